@@ -1,0 +1,347 @@
+//! Planners as noise policies: per-step plans `(σ_cur[W], σ_next[W])` for every stage a planner
+//! runs, precomputed once per planner so that the hot path only indexes tables.
+
+use serde::{Deserialize, Serialize};
+
+use crate::edm::{EdmSchedule, full_u, rolling_u, warmup_u};
+use crate::{Error, Result};
+
+/// Which noise policy a planner follows (math doc, "The planners").
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum PlannerKind {
+    /// RoAD-W: warm-up once, then one rolling stage per simulated step.
+    Rolling,
+    /// Autoregressive diffusion: one future slot (`F = 1`), fully diffused every step.
+    Autoregressive,
+    /// DJINN-F MPC-X: fully diffuse all F future slots every X steps, execute X of them.
+    Mpc,
+    /// DJINN one-shot: one full diffusion of the horizon, then open loop.
+    OneShot,
+}
+
+/// One planner: its window and its step budget. `Default` is RoAD-20 with K = 40.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PlannerSpec {
+    pub kind: PlannerKind,
+    /// `n`: observed slots at the start of the window.
+    pub obs_slots: usize,
+    /// `F`: future slots after the observations (`W = n + F`); the horizon for one-shot.
+    pub future_slots: usize,
+    /// `K`: steps that take one slot from u = 1 to u = 0.
+    pub steps_per_diffusion: usize,
+    /// `X`: simulated steps executed between replans (MPC only).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub replan_every: Option<usize>,
+    /// Noise level of observed slots at test time; EDM's σ_min when absent.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub obs_sigma: Option<f64>,
+    #[serde(default)]
+    pub edm: EdmSchedule,
+}
+
+impl Default for PlannerSpec {
+    fn default() -> Self {
+        Self {
+            kind: PlannerKind::Rolling,
+            obs_slots: 10,
+            future_slots: 10,
+            steps_per_diffusion: 40,
+            replan_every: None,
+            obs_sigma: None,
+            edm: EdmSchedule::default(),
+        }
+    }
+}
+
+impl PlannerSpec {
+    /// `W = n + F`.
+    pub fn window_slots(&self) -> usize {
+        self.obs_slots + self.future_slots
+    }
+
+    pub fn obs_sigma(&self) -> f64 {
+        self.obs_sigma.unwrap_or(self.edm.sigma_min)
+    }
+
+    /// Steps of a rolling stage: `K/F`.
+    pub fn rolling_steps(&self) -> usize {
+        self.steps_per_diffusion / self.future_slots
+    }
+
+    /// Checks the combination; `name` goes into the error.
+    pub fn validate(&self, name: &str) -> Result<()> {
+        let bad = |reason: String| {
+            Err(Error::InvalidPlanner {
+                name: name.to_owned(),
+                reason,
+            })
+        };
+        if self.obs_slots == 0 {
+            return bad("obs_slots must be at least 1".into());
+        }
+        if self.future_slots == 0 {
+            return bad("future_slots must be at least 1".into());
+        }
+        if self.steps_per_diffusion == 0 {
+            return bad("steps_per_diffusion (K) must be at least 1".into());
+        }
+        let obs_sigma = self.obs_sigma();
+        if !(obs_sigma.is_finite() && obs_sigma > 0.0) {
+            return bad(format!(
+                "obs_sigma must be positive and finite, got {obs_sigma}"
+            ));
+        }
+        let e = &self.edm;
+        if !(e.sigma_min > 0.0 && e.sigma_max > e.sigma_min && e.rho > 0.0 && e.sigma_data > 0.0) {
+            return bad(format!("EDM constants out of range: {e:?}"));
+        }
+        match self.kind {
+            PlannerKind::Rolling => {
+                if self.steps_per_diffusion % self.future_slots != 0 {
+                    return bad(format!(
+                        "steps_per_diffusion (K = {}) must be a multiple of future_slots (F = {})",
+                        self.steps_per_diffusion, self.future_slots
+                    ));
+                }
+            }
+            PlannerKind::Autoregressive => {
+                if self.future_slots != 1 {
+                    return bad(format!(
+                        "autoregressive needs future_slots = 1, got {}",
+                        self.future_slots
+                    ));
+                }
+            }
+            PlannerKind::Mpc => match self.replan_every {
+                Some(x) if x >= 1 && x <= self.future_slots => {}
+                Some(x) => {
+                    return bad(format!(
+                        "replan_every must be in 1..={}, got {x}",
+                        self.future_slots
+                    ));
+                }
+                None => return bad("mpc needs replan_every (X)".into()),
+            },
+            PlannerKind::OneShot => {}
+        }
+        if self.kind != PlannerKind::Mpc && self.replan_every.is_some() {
+            return bad("replan_every only applies to kind = \"mpc\"".into());
+        }
+        Ok(())
+    }
+
+    /// The stage a tick runs and what it emits, for tick number `tick` (0-based) of a scene.
+    pub fn tick_program(&self, tick: u64) -> Option<TickProgram> {
+        let f = self.future_slots as u64;
+        match self.kind {
+            PlannerKind::Rolling | PlannerKind::Autoregressive => Some(TickProgram {
+                stage: Some(if tick == 0 {
+                    StageKind::Warmup
+                } else {
+                    StageKind::Rolling
+                }),
+                emit_future_slot: 0,
+                then: WindowUpdate::Shift,
+            }),
+            PlannerKind::Mpc => {
+                let x = self.replan_every.unwrap_or(1) as u64;
+                let pos = tick % x;
+                Some(TickProgram {
+                    stage: (pos == 0).then_some(StageKind::Full),
+                    emit_future_slot: pos as usize,
+                    then: if pos + 1 == x {
+                        WindowUpdate::Rebuild
+                    } else {
+                        WindowUpdate::Hold
+                    },
+                })
+            }
+            PlannerKind::OneShot => (tick < f).then(|| TickProgram {
+                stage: (tick == 0).then_some(StageKind::Full),
+                emit_future_slot: tick as usize,
+                then: if tick + 1 == f {
+                    WindowUpdate::Exhausted
+                } else {
+                    WindowUpdate::Hold
+                },
+            }),
+        }
+    }
+
+    /// NFE per simulated step predicted by the math doc's table, averaged over `ticks` ticks.
+    pub fn expected_nfe_per_step(&self, ticks: u64) -> f64 {
+        let k = self.steps_per_diffusion as f64;
+        let f = self.future_slots as f64;
+        let t = ticks as f64;
+        match self.kind {
+            // Warm-up: K steps, 2 NFE each (slot 0 lands on 0 while the others stay noisy,
+            // except when F = 1). Rolling stage: K/F steps of 2 NFE, the same exception.
+            PlannerKind::Rolling | PlannerKind::Autoregressive => {
+                let last_step_single = self.future_slots == 1;
+                let warm = 2.0 * k - f64::from(u8::from(last_step_single));
+                let roll = 2.0 * k / f - f64::from(u8::from(last_step_single));
+                (warm + (t - 1.0) * roll) / t
+            }
+            PlannerKind::Mpc => {
+                let x = self.replan_every.unwrap_or(1) as u64;
+                let replans = ticks.div_ceil(x) as f64;
+                replans * (2.0 * k - 1.0) / t
+            }
+            PlannerKind::OneShot => (2.0 * k - 1.0) / t,
+        }
+    }
+}
+
+/// Which σ profile a stage follows.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum StageKind {
+    Warmup,
+    Rolling,
+    Full,
+}
+
+/// What the caller must do to the window after a tick's emission.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum WindowUpdate {
+    /// Drop the oldest observation, the emitted slot joins the observations, append a
+    /// pure-noise slot at the end (RoAD, AR).
+    Shift,
+    /// Keep the plan; the next tick emits the next future slot without a model evaluation.
+    Hold,
+    /// Discard the plan: the next tick rebuilds the window from the newest `n` states and fresh
+    /// noise and replans (MPC).
+    Rebuild,
+    /// The one-shot horizon is spent: the scene cannot tick again.
+    Exhausted,
+}
+
+/// One tick of one scene: the stage to run (none when the state is already planned), which
+/// future slot holds the emitted state, and the window update that follows.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct TickProgram {
+    pub stage: Option<StageKind>,
+    pub emit_future_slot: usize,
+    pub then: WindowUpdate,
+}
+
+/// One step of a stage: noise levels of every window slot before and after it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StepPlan<'a> {
+    /// `[W]`: σ of each slot now (observed slots first).
+    pub sigma_cur: &'a [f32],
+    /// `[W]`: σ of each slot after the step; 0 = clean.
+    pub sigma_next: &'a [f32],
+    /// Model evaluations this step costs: 2 (Heun), 1 when every changing slot lands on 0.
+    pub nfe: u8,
+}
+
+/// Every step of one stage of one planner, flattened: `[steps, W]` row-major.
+#[derive(Debug, Clone)]
+pub struct StageTable {
+    pub kind: StageKind,
+    window_slots: usize,
+    sigma_cur: Vec<f32>,  // [steps, W]
+    sigma_next: Vec<f32>, // [steps, W]
+    nfe: Vec<u8>,         // [steps]
+}
+
+impl StageTable {
+    /// Builds the table of `steps` uniform steps of τ from 1 to 0 along `kind`'s profile.
+    pub fn build(spec: &PlannerSpec, kind: StageKind, steps: usize) -> Self {
+        let (n, f) = (spec.obs_slots, spec.future_slots);
+        let w = n + f;
+        let profile: fn(usize, usize, f64) -> f64 = match kind {
+            StageKind::Warmup => warmup_u,
+            StageKind::Rolling => rolling_u,
+            StageKind::Full => full_u,
+        };
+        let obs_sigma = spec.obs_sigma() as f32;
+        let mut sigma_cur = Vec::with_capacity(steps * w);
+        let mut sigma_next = Vec::with_capacity(steps * w);
+        let mut nfe = Vec::with_capacity(steps);
+        for step in 0..steps {
+            let tau_cur = 1.0 - step as f64 / steps as f64;
+            // Exactly 0 at the last step so that slot 0 ends clean without rounding.
+            let tau_next = if step + 1 == steps {
+                0.0
+            } else {
+                1.0 - (step + 1) as f64 / steps as f64
+            };
+            let mut any_noisy_change = false;
+            for slot in 0..w {
+                let (cur, next) = if slot < n {
+                    (obs_sigma, obs_sigma)
+                } else {
+                    let k = slot - n;
+                    (
+                        spec.edm.sigma(profile(k, f, tau_cur)) as f32,
+                        spec.edm.sigma(profile(k, f, tau_next)) as f32,
+                    )
+                };
+                if cur != next && next > 0.0 {
+                    any_noisy_change = true;
+                }
+                sigma_cur.push(cur);
+                sigma_next.push(next);
+            }
+            nfe.push(if any_noisy_change { 2 } else { 1 });
+        }
+        Self {
+            kind,
+            window_slots: w,
+            sigma_cur,
+            sigma_next,
+            nfe,
+        }
+    }
+
+    pub fn steps(&self) -> usize {
+        self.nfe.len()
+    }
+
+    pub fn step(&self, step: usize) -> StepPlan<'_> {
+        let w = self.window_slots;
+        StepPlan {
+            sigma_cur: &self.sigma_cur[step * w..(step + 1) * w],
+            sigma_next: &self.sigma_next[step * w..(step + 1) * w],
+            nfe: self.nfe[step],
+        }
+    }
+
+    /// Model evaluations the whole stage costs.
+    pub fn nfe(&self) -> u32 {
+        self.nfe.iter().map(|&n| u32::from(n)).sum()
+    }
+}
+
+/// All stage tables of one planner.
+#[derive(Debug, Clone)]
+pub struct PlannerTables {
+    pub spec: PlannerSpec,
+    pub warmup: StageTable,
+    pub rolling: StageTable,
+    pub full: StageTable,
+}
+
+impl PlannerTables {
+    pub fn new(name: &str, spec: PlannerSpec) -> Result<Self> {
+        spec.validate(name)?;
+        let k = spec.steps_per_diffusion;
+        Ok(Self {
+            warmup: StageTable::build(&spec, StageKind::Warmup, k),
+            rolling: StageTable::build(&spec, StageKind::Rolling, spec.rolling_steps().max(1)),
+            full: StageTable::build(&spec, StageKind::Full, k),
+            spec,
+        })
+    }
+
+    pub fn stage(&self, kind: StageKind) -> &StageTable {
+        match kind {
+            StageKind::Warmup => &self.warmup,
+            StageKind::Rolling => &self.rolling,
+            StageKind::Full => &self.full,
+        }
+    }
+}

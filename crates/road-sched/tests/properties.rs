@@ -1,0 +1,346 @@
+//! Property tests of the math doc's invariants, for every planner kind.
+
+use proptest::prelude::*;
+use road_sched::{
+    EdmSchedule, PlannerKind, PlannerSpec, PlannerTables, SceneSpec, Scheduler, StageKind,
+    TickOutcome, WindowUpdate,
+};
+
+fn spec(kind: PlannerKind, n: usize, f: usize, k: usize, x: Option<usize>) -> PlannerSpec {
+    PlannerSpec {
+        kind,
+        obs_slots: n,
+        future_slots: f,
+        steps_per_diffusion: k,
+        replan_every: x,
+        obs_sigma: None,
+        edm: EdmSchedule::default(),
+    }
+}
+
+/// Any valid planner: (kind, n, F, K, X).
+fn any_planner() -> impl Strategy<Value = PlannerSpec> {
+    let rolling = (1usize..12, 1usize..24, 1usize..6)
+        .prop_map(|(n, f, m)| spec(PlannerKind::Rolling, n, f, f * m, None));
+    let ar = (1usize..12, 1usize..64)
+        .prop_map(|(n, k)| spec(PlannerKind::Autoregressive, n, 1, k, None));
+    let mpc = (
+        1usize..12,
+        1usize..24,
+        1usize..64,
+        any::<prop::sample::Index>(),
+    )
+        .prop_map(|(n, f, k, x)| spec(PlannerKind::Mpc, n, f, k, Some(x.index(f) + 1)));
+    let one_shot = (1usize..12, 1usize..40, 1usize..64)
+        .prop_map(|(n, f, k)| spec(PlannerKind::OneShot, n, f, k, None));
+    prop_oneof![rolling, ar, mpc, one_shot]
+}
+
+/// Relative closeness for σ values that went through f32.
+fn close(a: f32, b: f32) -> bool {
+    (a - b).abs() <= 1e-6 + 1e-5 * b.abs()
+}
+
+/// The σ profile after a window shift: drop future slot 0, append a pure-noise slot.
+fn shifted(sigma: &[f32], obs: usize, sigma_max: f32) -> Vec<f32> {
+    let mut out = sigma[..obs].to_vec();
+    out.extend_from_slice(&sigma[obs + 1..]);
+    out.push(sigma_max);
+    out
+}
+
+fn stages(t: &PlannerTables) -> Vec<StageKind> {
+    match t.spec.kind {
+        PlannerKind::Rolling | PlannerKind::Autoregressive => {
+            vec![StageKind::Warmup, StageKind::Rolling]
+        }
+        PlannerKind::Mpc | PlannerKind::OneShot => vec![StageKind::Full],
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(200))]
+
+    #[test]
+    fn snr_never_rises_along_the_window(spec in any_planner()) {
+        let t = PlannerTables::new("p", spec.clone()).unwrap();
+        let n = spec.obs_slots;
+        for stage in stages(&t) {
+            let table = t.stage(stage);
+            for s in 0..table.steps() {
+                let p = table.step(s);
+                for sig in [p.sigma_cur, p.sigma_next] {
+                    for w in n + 1..sig.len() {
+                        prop_assert!(sig[w - 1] <= sig[w], "{stage:?} step {s}: σ[{}] = {} > σ[{w}] = {}", w - 1, sig[w - 1], sig[w]);
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn slot_zero_is_clean_at_the_end_of_every_stage(spec in any_planner()) {
+        let t = PlannerTables::new("p", spec.clone()).unwrap();
+        for stage in stages(&t) {
+            let table = t.stage(stage);
+            let last = table.step(table.steps() - 1);
+            prop_assert_eq!(last.sigma_next[spec.obs_slots], 0.0, "{:?}", stage);
+            // And it was noisy at the start of the stage.
+            prop_assert!(table.step(0).sigma_cur[spec.obs_slots] > 0.0);
+        }
+    }
+
+    #[test]
+    fn steps_per_stage_are_k_and_k_over_f(spec in any_planner()) {
+        let t = PlannerTables::new("p", spec.clone()).unwrap();
+        let k = spec.steps_per_diffusion;
+        match spec.kind {
+            PlannerKind::Rolling | PlannerKind::Autoregressive => {
+                prop_assert_eq!(t.warmup.steps(), k);
+                prop_assert_eq!(t.rolling.steps(), k / spec.future_slots);
+            }
+            PlannerKind::Mpc | PlannerKind::OneShot => prop_assert_eq!(t.full.steps(), k),
+        }
+    }
+
+    #[test]
+    fn steps_chain_within_and_across_stages(spec in any_planner()) {
+        let t = PlannerTables::new("p", spec.clone()).unwrap();
+        let n = spec.obs_slots;
+        let obs_sigma = spec.obs_sigma() as f32;
+        for stage in stages(&t) {
+            let table = t.stage(stage);
+            for s in 0..table.steps() {
+                let p = table.step(s);
+                prop_assert!(p.sigma_cur[..n].iter().chain(&p.sigma_next[..n]).all(|&x| x == obs_sigma));
+                if s + 1 < table.steps() {
+                    prop_assert_eq!(p.sigma_next, table.step(s + 1).sigma_cur);
+                }
+            }
+        }
+        if matches!(spec.kind, PlannerKind::Rolling | PlannerKind::Autoregressive) {
+            let sigma_max = spec.edm.sigma_max as f32;
+            let first_rolling = t.rolling.step(0).sigma_cur;
+            for from in [&t.warmup, &t.rolling] {
+                let end = shifted(from.step(from.steps() - 1).sigma_next, n, sigma_max);
+                for (w, (&a, &b)) in end.iter().zip(first_rolling).enumerate() {
+                    prop_assert!(close(a, b), "{:?} → rolling jumps at slot {w}: {a} vs {b}", from.kind);
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn every_slot_moves_by_one_kth_of_u_per_step(spec in any_planner()) {
+        let t = PlannerTables::new("p", spec.clone()).unwrap();
+        let du = 1.0 / spec.steps_per_diffusion as f64;
+        for stage in stages(&t) {
+            let table = t.stage(stage);
+            for s in 0..table.steps() {
+                let p = table.step(s);
+                for w in spec.obs_slots..p.sigma_cur.len() {
+                    let moved = spec.edm.u_of_sigma(f64::from(p.sigma_cur[w])) - spec.edm.u_of_sigma(f64::from(p.sigma_next[w]));
+                    prop_assert!(moved.abs() < 1e-4 || (moved - du).abs() < 1e-4, "{stage:?} step {s} slot {w}: Δu = {moved}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn nfe_per_simulated_step_matches_the_math_doc(spec in any_planner(), ticks in 1u64..60) {
+        let horizon = if spec.kind == PlannerKind::OneShot { ticks.min(spec.future_slots as u64) } else { ticks };
+        let mut sched = Scheduler::new();
+        let planner = sched.add_planner("p", spec.clone()).unwrap();
+        let scene = sched.admit(SceneSpec { planner, external_agents: vec![] }).unwrap();
+        let mut outcomes = Vec::new();
+        let mut nfe = 0u64;
+        for tick in 0..horizon {
+            sched.request_tick(scene).unwrap();
+            while !sched.next_batch(8).unwrap().is_empty() {
+                sched.complete_batch();
+            }
+            sched.take_outcomes(&mut outcomes);
+            let o: TickOutcome = outcomes.pop().unwrap();
+            prop_assert_eq!(o.tick, tick);
+            nfe += u64::from(o.nfe);
+        }
+        prop_assert_eq!(sched.stats(scene).unwrap().nfe, nfe);
+        let expected = spec.expected_nfe_per_step(horizon) * horizon as f64;
+        prop_assert!((nfe as f64 - expected).abs() < 1e-6, "counted {nfe} NFE, table says {expected}");
+    }
+
+    /// Many scenes of mixed planners, admitted and retired at random: every batch holds each
+    /// scene at most once, every requested tick finishes, and no scene's work is lost.
+    #[test]
+    fn scheduler_serves_every_scene(ops in prop::collection::vec((0u8..4, 0usize..16), 1..200), max_batch in 1usize..9) {
+        let mut sched = Scheduler::with_capacity(16);
+        let planners = [
+            sched.add_planner("road", spec(PlannerKind::Rolling, 3, 4, 8, None)).unwrap(),
+            sched.add_planner("ar", spec(PlannerKind::Autoregressive, 3, 1, 5, None)).unwrap(),
+            sched.add_planner("mpc", spec(PlannerKind::Mpc, 3, 4, 6, Some(2))).unwrap(),
+            sched.add_planner("one", spec(PlannerKind::OneShot, 3, 30, 6, None)).unwrap(),
+        ];
+        let mut live = Vec::new();
+        let mut requested = std::collections::HashMap::new();
+        let mut outcomes = Vec::new();
+        for (op, arg) in ops {
+            match op {
+                0 => live.push(sched.admit(SceneSpec { planner: planners[arg % 4], external_agents: vec![0] }).unwrap()),
+                1 if !live.is_empty() => {
+                    let id = live[arg % live.len()];
+                    if sched.request_tick(id).is_ok() {
+                        *requested.entry(id).or_insert(0u64) += 1;
+                    }
+                }
+                2 if !live.is_empty() => {
+                    let batch = sched.next_batch(max_batch).unwrap().to_vec();
+                    let mut seen = std::collections::HashSet::new();
+                    for item in &batch {
+                        prop_assert!(seen.insert(item.scene), "scene twice in a batch");
+                        let plan = sched.step_plan(item);
+                        prop_assert_eq!(plan.sigma_cur.len(), sched.planner(item.planner).unwrap().spec.window_slots());
+                    }
+                    sched.complete_batch();
+                }
+                3 if !live.is_empty() => {
+                    let id = live.swap_remove(arg % live.len());
+                    sched.retire(id).unwrap();
+                    requested.remove(&id);
+                    prop_assert!(sched.stats(id).is_err());
+                }
+                _ => {}
+            }
+        }
+        // Drain: every requested tick of a live scene completes.
+        while !sched.next_batch(max_batch).unwrap().is_empty() {
+            sched.complete_batch();
+        }
+        sched.take_outcomes(&mut outcomes);
+        for id in &live {
+            let done = outcomes.iter().filter(|o| o.scene == *id).count() as u64;
+            prop_assert_eq!(done, requested.get(id).copied().unwrap_or(0));
+            prop_assert_eq!(sched.stats(*id).unwrap().ticks, done);
+        }
+        prop_assert_eq!(sched.live_scenes(), live.len());
+        prop_assert_eq!(sched.pending_scenes(), 0);
+    }
+}
+
+/// The math doc's table with the shipped step counts: RoAD-W ≈ 2K/F, AR ≈ 2K, MPC-X ≈ 2K/X,
+/// one-shot 2K once.
+#[test]
+fn nfe_table_of_the_math_doc() {
+    let k = 40;
+    let road20 = spec(PlannerKind::Rolling, 10, 10, k, None);
+    let road15 = spec(PlannerKind::Rolling, 10, 5, k, None);
+    let ar = spec(PlannerKind::Autoregressive, 10, 1, k, None);
+    let mpc1 = spec(PlannerKind::Mpc, 10, 10, k, Some(1));
+    let mpc5 = spec(PlannerKind::Mpc, 10, 10, k, Some(5));
+    let one_shot = spec(PlannerKind::OneShot, 10, 30, k, None);
+    let long = 100_000;
+    assert!((road20.expected_nfe_per_step(long) - 8.0).abs() < 1e-3);
+    assert!((road15.expected_nfe_per_step(long) - 16.0).abs() < 1e-3);
+    assert!((ar.expected_nfe_per_step(long) - 79.0).abs() < 1e-3);
+    assert!((mpc1.expected_nfe_per_step(long) - 79.0).abs() < 1e-3);
+    assert!((mpc5.expected_nfe_per_step(long) - 79.0 / 5.0).abs() < 1e-3);
+    assert!((one_shot.expected_nfe_per_step(30) * 30.0 - 79.0).abs() < 1e-9);
+}
+
+#[test]
+fn window_updates_follow_each_planner() {
+    let k = 8;
+    let mpc = spec(PlannerKind::Mpc, 2, 4, k, Some(3));
+    let updates: Vec<_> = (0..6).map(|t| mpc.tick_program(t).unwrap()).collect();
+    assert_eq!(
+        updates
+            .iter()
+            .map(|p| p.stage.is_some())
+            .collect::<Vec<_>>(),
+        [true, false, false, true, false, false]
+    );
+    assert_eq!(
+        updates
+            .iter()
+            .map(|p| p.emit_future_slot)
+            .collect::<Vec<_>>(),
+        [0, 1, 2, 0, 1, 2]
+    );
+    assert_eq!(updates[2].then, WindowUpdate::Rebuild);
+    let one = spec(PlannerKind::OneShot, 2, 3, k, None);
+    assert_eq!(one.tick_program(2).unwrap().then, WindowUpdate::Exhausted);
+    assert!(one.tick_program(3).is_none());
+    let road = spec(PlannerKind::Rolling, 2, 4, k, None);
+    assert_eq!(road.tick_program(0).unwrap().stage, Some(StageKind::Warmup));
+    assert_eq!(
+        road.tick_program(7).unwrap().stage,
+        Some(StageKind::Rolling)
+    );
+}
+
+#[test]
+fn invalid_planners_are_named_errors() {
+    let bad = spec(PlannerKind::Rolling, 10, 10, 45, None);
+    let err = PlannerTables::new("road20", bad).unwrap_err().to_string();
+    assert!(err.contains("road20") && err.contains("multiple"), "{err}");
+    let err = PlannerTables::new("ar", spec(PlannerKind::Autoregressive, 10, 2, 4, None))
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("future_slots = 1"), "{err}");
+    let err = PlannerTables::new("mpc", spec(PlannerKind::Mpc, 10, 10, 40, None))
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("replan_every"), "{err}");
+    let err = PlannerTables::new("mpc", spec(PlannerKind::Mpc, 10, 10, 40, Some(11)))
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("1..=10"), "{err}");
+}
+
+#[test]
+fn scheduler_refuses_misuse() {
+    let mut sched = Scheduler::new();
+    let p = sched
+        .add_planner("road", spec(PlannerKind::Rolling, 2, 2, 4, None))
+        .unwrap();
+    assert!(sched.add_planner("road", PlannerSpec::default()).is_err());
+    let s = sched
+        .admit(SceneSpec {
+            planner: p,
+            external_agents: vec![],
+        })
+        .unwrap();
+    sched.request_tick(s).unwrap();
+    assert!(
+        sched
+            .request_tick(s)
+            .unwrap_err()
+            .to_string()
+            .contains("in progress")
+    );
+    assert_eq!(sched.next_batch(4).unwrap().len(), 1);
+    assert!(matches!(
+        sched.next_batch(4),
+        Err(road_sched::Error::BatchInFlight)
+    ));
+    assert!(
+        sched.retire(s).is_err(),
+        "a scene in the batch cannot retire"
+    );
+    sched.complete_batch();
+    sched.retire(s).unwrap();
+    assert!(
+        sched
+            .request_tick(s)
+            .unwrap_err()
+            .to_string()
+            .contains("no live scene")
+    );
+    let s2 = sched
+        .admit(SceneSpec {
+            planner: p,
+            external_agents: vec![],
+        })
+        .unwrap();
+    assert_eq!(s2.index(), s.index(), "slots are reused");
+    assert_ne!(s2, s, "ids are not");
+}
