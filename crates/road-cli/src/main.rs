@@ -1,1 +1,50 @@
-fn main() {}
+//! `road`: the traffic NPC server's command-line program.
+
+mod commands;
+mod config;
+
+use clap::{Parser, Subcommand};
+
+/// Rolling-ahead diffusion traffic simulation: data, scheduling and GPU tools.
+#[derive(Debug, Parser)]
+#[command(name = "road", version, about, long_about = None)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// INTERACTION data: statistics and binary caches for training.
+    #[command(subcommand)]
+    Data(commands::data::DataCommand),
+    /// The noise scheduler: inspect a planner's per-step noise levels and NFE.
+    #[command(subcommand)]
+    Sched(commands::sched::SchedCommand),
+    /// The GPU: which adapter wgpu picks here, and a self-test of the kernels.
+    #[command(subcommand)]
+    Gpu(commands::gpu::GpuCommand),
+}
+
+fn main() -> std::process::ExitCode {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info,wgpu_core=warn,wgpu_hal=warn,naga=warn")),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Data(cmd) => commands::data::run(cmd),
+        Command::Sched(cmd) => commands::sched::run(cmd),
+        Command::Gpu(cmd) => commands::gpu::run(cmd),
+    };
+    match result {
+        Ok(code) => code,
+        Err(err) => {
+            eprintln!("error: {err:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}

@@ -1,1 +1,31 @@
+//! `road-gpu`: the denoiser's compute kernels in WGSL, run through wgpu.
+//!
+//! - [`context`]: adapter selection (GPU, else lavapipe; `WGPU_BACKEND`, `WGPU_ADAPTER_NAME`);
+//! - [`shaders`]: the embedded `shaders/*.wgsl` files;
+//! - [`kernels`]: one module per kernel family, each with a CPU reference in its tests;
+//! - [`tolerance`]: the relative + absolute tolerance every parity test uses.
 
+pub mod context;
+pub mod kernels;
+pub mod shaders;
+pub mod tolerance;
+
+pub use context::{ContextOptions, GpuContext};
+pub use tolerance::Tolerance;
+
+/// Errors of the GPU layer.
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    #[error("no GPU adapter found: {0}")]
+    NoAdapter(&'static str),
+    #[error("no adapter matches WGPU_ADAPTER_NAME=`{wanted}`; available: {available}")]
+    NoMatchingAdapter { wanted: String, available: String },
+    #[error("cannot open the device: {0}")]
+    Device(String),
+    #[error("waiting for the GPU failed: {0}")]
+    Poll(String),
+    #[error("reading results back failed: {0}")]
+    Readback(String),
+}
+
+pub type Result<T, E = Error> = std::result::Result<T, E>;

@@ -1,0 +1,203 @@
+//! `road data …`: statistics and caches of the INTERACTION recordings.
+
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use clap::{Args, Subcommand};
+use road_data::stats::{self, LocationStats, MAX_MEDIAN_LANE_DISTANCE_M, SplitStats};
+use road_data::{Dataset, SourceSet, Split, WindowConfig, cache};
+
+#[derive(Debug, Subcommand)]
+pub enum DataCommand {
+    /// Print files, hours, windows, agents per window, polylines per location and the
+    /// projection check (median distance from track points to the nearest lane centre,
+    /// which must be under 1.5 m at every location; the exit code is 1 otherwise).
+    Stats(StatsArgs),
+    /// Parse the recordings once and write one cache file per split (train, validation).
+    Build(BuildArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct SourceArgs {
+    /// The INTERACTION data folder (with maps/ and recorded_trackfiles/).
+    #[arg(long, env = "ROAD_DATA", default_value = "../shared/data/interaction")]
+    pub data: PathBuf,
+    /// Window config (TOML); the built-in defaults equal configs/data.toml.
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Per-key override of the window config, e.g. `--set window_steps=20` (repeatable).
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub overrides: Vec<String>,
+}
+
+#[derive(Debug, Args)]
+pub struct StatsArgs {
+    #[command(flatten)]
+    pub source: SourceArgs,
+    /// Read the caches in this folder instead of parsing the recordings (they must be
+    /// current: same files, same window config).
+    #[arg(long)]
+    pub cache: Option<PathBuf>,
+    /// Print JSON instead of tables.
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Debug, Args)]
+pub struct BuildArgs {
+    #[command(flatten)]
+    pub source: SourceArgs,
+    /// Folder for `train.roadds` and `validation.roadds`.
+    #[arg(long, default_value = ".road-cache")]
+    pub out: PathBuf,
+}
+
+pub fn run(cmd: DataCommand) -> Result<ExitCode> {
+    match cmd {
+        DataCommand::Stats(args) => stats_cmd(&args),
+        DataCommand::Build(args) => build_cmd(&args).map(|()| ExitCode::SUCCESS),
+    }
+}
+
+fn window_config(args: &SourceArgs) -> Result<WindowConfig> {
+    let config: WindowConfig = crate::config::load(args.config.as_deref(), &args.overrides)?;
+    config.validate().map_err(anyhow::Error::msg).context("bad window config")?;
+    Ok(config)
+}
+
+fn build_split(sources: &SourceSet, split: Split, config: &WindowConfig) -> Result<Dataset> {
+    let started = Instant::now();
+    let ds = Dataset::build(sources, split, config)
+        .with_context(|| format!("cannot build the {split} split from {}", sources.root.display()))?;
+    tracing::info!(%split, files = ds.recordings.len(), windows = ds.len(), secs = started.elapsed().as_secs_f32(), "parsed");
+    Ok(ds)
+}
+
+fn build_cmd(args: &BuildArgs) -> Result<()> {
+    let config = window_config(&args.source)?;
+    let sources = SourceSet::discover(&args.source.data)?;
+    for split in [Split::Train, Split::Validation] {
+        let ds = build_split(&sources, split, &config)?;
+        let path = cache::cache_path(&args.out, split);
+        cache::save(&ds, &path)?;
+        let bytes = std::fs::metadata(&path).map(|m| m.len()).unwrap_or(0);
+        println!(
+            "{split:<10} {:>4} files {:>7} windows  -> {} ({:.1} MiB)",
+            ds.recordings.len(),
+            ds.len(),
+            path.display(),
+            bytes as f64 / (1024.0 * 1024.0)
+        );
+        report_skips(&ds);
+    }
+    Ok(())
+}
+
+fn report_skips(ds: &Dataset) {
+    let r = &ds.report;
+    println!(
+        "{:<10} skipped {} windows with fewer than {} agents; dropped {} agents over {} and {} polylines over {}",
+        ds.split.name(),
+        r.windows_skipped_few_agents,
+        ds.config.min_agents,
+        r.agents_dropped_over_max,
+        ds.config.max_agents,
+        r.polylines_dropped_over_max,
+        ds.config.max_polylines
+    );
+    if !r.missing_validation_files.is_empty() {
+        println!("{:<10} validation list names {} files absent here: {}", ds.split.name(), r.missing_validation_files.len(), r.missing_validation_files.join(", "));
+    }
+}
+
+fn load_datasets(args: &StatsArgs, config: &WindowConfig) -> Result<Vec<Dataset>> {
+    match &args.cache {
+        Some(dir) => {
+            let sources = SourceSet::discover(&args.source.data).ok();
+            [Split::Train, Split::Validation]
+                .into_iter()
+                .map(|split| {
+                    let path = cache::cache_path(dir, split);
+                    cache::load_checked(&path, split, Some(config), sources.as_ref()).map_err(anyhow::Error::from)
+                })
+                .collect()
+        }
+        None => {
+            let sources = SourceSet::discover(&args.source.data)?;
+            [Split::Train, Split::Validation].into_iter().map(|s| build_split(&sources, s, config)).collect()
+        }
+    }
+}
+
+fn stats_cmd(args: &StatsArgs) -> Result<ExitCode> {
+    let config = window_config(&args.source)?;
+    let datasets = load_datasets(args, &config)?;
+    let splits: Vec<SplitStats> = datasets.iter().map(stats::split_stats).collect();
+    let locations = stats::location_stats(&datasets.iter().collect::<Vec<_>>());
+    let failing: Vec<&LocationStats> =
+        locations.iter().filter(|l| !(l.median_lane_distance_m < MAX_MEDIAN_LANE_DISTANCE_M)).collect();
+    if args.json {
+        let json = serde_json::json!({ "data": args.source.data, "window_config": config, "splits": splits, "locations": locations, "projection_check_passed": failing.is_empty() });
+        println!("{}", serde_json::to_string_pretty(&json)?);
+    } else {
+        print_tables(&args.source.data, &config, &splits, &locations, &datasets);
+    }
+    if failing.is_empty() {
+        Ok(ExitCode::SUCCESS)
+    } else {
+        for l in failing {
+            eprintln!(
+                "projection check failed: median lane distance {:.2} m ≥ {MAX_MEDIAN_LANE_DISTANCE_M} m at {}",
+                l.median_lane_distance_m, l.location
+            );
+        }
+        Ok(ExitCode::FAILURE)
+    }
+}
+
+fn print_tables(data: &Path, config: &WindowConfig, splits: &[SplitStats], locations: &[LocationStats], datasets: &[Dataset]) {
+    println!("INTERACTION data in {}", data.display());
+    println!(
+        "windows: {} steps ({:.1} s), stride {}, agents present at step {} ({}..={}), map radius {} m, {} points per polyline",
+        config.window_steps,
+        config.window_steps as f64 * road_data::tracks::STEP_SECS,
+        config.stride_steps,
+        config.reference_step,
+        config.min_agents,
+        config.max_agents,
+        config.map_radius_m,
+        config.polyline_points
+    );
+    println!();
+    println!("| split | files | hours | windows | agents/window mean | p95 | max | position RMS (m) |");
+    println!("|---|---:|---:|---:|---:|---:|---:|---:|");
+    for s in splits {
+        println!(
+            "| {} | {} | {:.2} | {} | {:.2} | {} | {} | {:.1} |",
+            s.split, s.files, s.hours, s.windows, s.agents_mean, s.agents_p95, s.agents_max, s.position_rms_m
+        );
+    }
+    println!();
+    for ds in datasets {
+        report_skips(ds);
+    }
+    println!();
+    println!("| location | files | hours | windows | polylines | track points | median lane distance (m) | check |");
+    println!("|---|---:|---:|---:|---:|---:|---:|---|");
+    for l in locations {
+        let ok = l.median_lane_distance_m < MAX_MEDIAN_LANE_DISTANCE_M;
+        println!(
+            "| {} | {} | {:.2} | {} | {} | {} | {:.2} | {} |",
+            l.location,
+            l.files,
+            l.hours,
+            l.windows,
+            l.polylines,
+            l.track_points,
+            l.median_lane_distance_m,
+            if ok { "ok" } else { "FAIL" }
+        );
+    }
+}

@@ -1,0 +1,329 @@
+//! Lanelet2 `.osm` maps: projection, lanelet bounds and centre lines, topology, and the lane
+//! queries later used for off-road checks.
+
+use std::collections::HashMap;
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use crate::geometry::{Aabb, Point, SegmentGrid, dist, point_in_polygon, polyline_length, resample};
+use crate::{Error, Result};
+
+/// UTM zone of every INTERACTION map (its lat/lon sit around (0, 0)).
+pub const UTM_ZONE: u8 = 31;
+
+/// Bound endpoints closer than this are the same point for topology (metres).
+const TOPOLOGY_TOLERANCE_M: f64 = 0.1;
+/// Spacing of the resampled bounds used for the centre line (metres).
+const CENTRE_SPACING_M: f64 = 1.0;
+
+/// Projects WGS84 lat/lon (degrees) to the INTERACTION frame: UTM zone 31 minus the projection
+/// of (0, 0). Returns `[x_m, y_m]` (east, north).
+pub fn project(lat_deg: f64, lon_deg: f64) -> Point {
+    // UTM adds a false northing of 10 000 km south of the equator (the `utm` crate from
+    // latitude 0 down): take it off so that the frame is continuous across the equator.
+    let utm = |lat, lon| {
+        let (north, east, _) = utm::to_utm_wgs84(lat, lon, UTM_ZONE);
+        let north = if north > 5_000_000.0 { north - 10_000_000.0 } else { north };
+        (north, east)
+    };
+    let (north, east) = utm(lat_deg, lon_deg);
+    let (north0, east0) = utm(0.0, 0.0);
+    [east - east0, north - north0]
+}
+
+/// One lanelet: bounds in driving direction, centre line and topology (indices into
+/// [`LaneletMap::lanelets`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Lanelet {
+    /// OSM relation id.
+    pub id: i64,
+    pub subtype: Option<String>,
+    pub left_way: i64,
+    pub right_way: i64,
+    pub left_m: Vec<Point>,
+    pub right_m: Vec<Point>,
+    /// Mean of the two bounds resampled to the same count (about one point per metre).
+    pub centre_m: Vec<Point>,
+    /// Lanelets that continue this one (bounds' ends meet their starts).
+    pub successors: Vec<u32>,
+    /// Lanelets that share a bound with this one.
+    pub neighbours: Vec<u32>,
+    pub bounds: Aabb,
+}
+
+impl Lanelet {
+    /// The lanelet's area: left bound, then right bound backwards.
+    pub fn polygon(&self) -> Vec<Point> {
+        self.left_m.iter().chain(self.right_m.iter().rev()).copied().collect()
+    }
+
+    pub fn contains(&self, p: Point) -> bool {
+        self.bounds.contains(p) && point_in_polygon(p, &self.polygon())
+    }
+}
+
+/// What a map load skipped on purpose (reported, never silent).
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct MapSkips {
+    /// Relations that are not lanelets (regulatory elements, multipolygons, ...).
+    pub non_lanelet_relations: usize,
+}
+
+/// A location's lanelets.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LaneletMap {
+    pub location: String,
+    pub lanelets: Vec<Lanelet>,
+    pub skipped: MapSkips,
+}
+
+impl LaneletMap {
+    pub fn load(path: &Path, location: &str) -> Result<Self> {
+        let text = std::fs::read_to_string(path).map_err(|source| Error::io(path, source))?;
+        Self::parse(&text, path, location)
+    }
+
+    /// Parses OSM XML text; `path` only names the input in errors.
+    pub fn parse(text: &str, path: &Path, location: &str) -> Result<Self> {
+        let map_err = |element: String, reason: String| Error::Map { path: path.to_owned(), element, reason };
+        let doc = roxmltree::Document::parse(text).map_err(|e| map_err("document".into(), e.to_string()))?;
+        let line_of = |n: roxmltree::Node| doc.text_pos_at(n.range().start).row;
+
+        let id_attr = |n: roxmltree::Node, what: &str| -> Result<i64> {
+            let raw = n.attribute("id").ok_or_else(|| {
+                map_err(format!("{what} at line {}", line_of(n)), "missing attribute `id`".into())
+            })?;
+            raw.parse().map_err(|_| map_err(format!("{what} at line {}", line_of(n)), format!("bad id `{raw}`")))
+        };
+
+        let mut nodes: HashMap<i64, Point> = HashMap::new();
+        let mut ways: HashMap<i64, Vec<i64>> = HashMap::new();
+        let mut relations = Vec::new();
+        for n in doc.root_element().children().filter(|n| n.is_element()) {
+            match n.tag_name().name() {
+                "node" => {
+                    let id = id_attr(n, "node")?;
+                    let coord = |key: &str| -> Result<f64> {
+                        let raw = n.attribute(key).ok_or_else(|| {
+                            map_err(format!("node {id} (line {})", line_of(n)), format!("missing attribute `{key}`"))
+                        })?;
+                        match raw.parse::<f64>() {
+                            Ok(v) if v.is_finite() => Ok(v),
+                            _ => Err(map_err(format!("node {id} (line {})", line_of(n)), format!("bad {key} `{raw}`"))),
+                        }
+                    };
+                    nodes.insert(id, project(coord("lat")?, coord("lon")?));
+                }
+                "way" => {
+                    let id = id_attr(n, "way")?;
+                    let refs = n
+                        .children()
+                        .filter(|c| c.has_tag_name("nd"))
+                        .map(|c| {
+                            c.attribute("ref").and_then(|r| r.parse::<i64>().ok()).ok_or_else(|| {
+                                map_err(format!("way {id} (line {})", line_of(c)), "nd without a numeric `ref`".into())
+                            })
+                        })
+                        .collect::<Result<Vec<_>>>()?;
+                    ways.insert(id, refs);
+                }
+                "relation" => relations.push(n),
+                _ => {}
+            }
+        }
+
+        let way_points = |way: i64, lanelet: i64| -> Result<Vec<Point>> {
+            let refs = ways.get(&way).ok_or_else(|| {
+                map_err(format!("relation {lanelet}"), format!("member way {way} does not exist"))
+            })?;
+            let pts = refs
+                .iter()
+                .map(|r| {
+                    nodes.get(r).copied().ok_or_else(|| {
+                        map_err(format!("way {way}"), format!("node {r} does not exist (used by lanelet {lanelet})"))
+                    })
+                })
+                .collect::<Result<Vec<_>>>()?;
+            if pts.len() < 2 {
+                return Err(map_err(format!("way {way}"), format!("a lanelet bound needs two nodes, has {}", pts.len())));
+            }
+            Ok(pts)
+        };
+
+        let mut lanelets = Vec::new();
+        let mut skipped = MapSkips::default();
+        for r in relations {
+            let id = id_attr(r, "relation")?;
+            let tag = |k: &str| {
+                r.children()
+                    .find(|c| c.has_tag_name("tag") && c.attribute("k") == Some(k))
+                    .and_then(|c| c.attribute("v"))
+                    .map(str::to_owned)
+            };
+            if tag("type").as_deref() != Some("lanelet") {
+                skipped.non_lanelet_relations += 1;
+                continue;
+            }
+            let member = |role: &str| -> Result<i64> {
+                r.children()
+                    .find(|c| c.has_tag_name("member") && c.attribute("role") == Some(role) && c.attribute("type") == Some("way"))
+                    .and_then(|c| c.attribute("ref"))
+                    .and_then(|v| v.parse().ok())
+                    .ok_or_else(|| map_err(format!("relation {id} (line {})", line_of(r)), format!("lanelet without a `{role}` way")))
+            };
+            let (left_way, right_way) = (member("left")?, member("right")?);
+            let left = way_points(left_way, id)?;
+            let mut right = way_points(right_way, id)?;
+            // Lanelet2 lets a bound be stored against the driving direction (the left bound
+            // defines it): turn the right bound round when its ends pair up crosswise.
+            let straight = dist(left[0], right[0]) + dist(left[left.len() - 1], right[right.len() - 1]);
+            let crossed = dist(left[0], right[right.len() - 1]) + dist(left[left.len() - 1], right[0]);
+            if crossed < straight {
+                right.reverse();
+            }
+            let longest = polyline_length(&left).max(polyline_length(&right));
+            let count = ((longest / CENTRE_SPACING_M).ceil() as usize + 1).max(left.len()).max(right.len()).max(2);
+            let (l, rr) = (resample(&left, count), resample(&right, count));
+            let centre = l.iter().zip(&rr).map(|(a, b)| [(a[0] + b[0]) / 2.0, (a[1] + b[1]) / 2.0]).collect();
+            let bounds = Aabb::of(&[left.as_slice(), right.as_slice()].concat());
+            lanelets.push(Lanelet {
+                id,
+                subtype: tag("subtype"),
+                left_way,
+                right_way,
+                left_m: left,
+                right_m: right,
+                centre_m: centre,
+                successors: Vec::new(),
+                neighbours: Vec::new(),
+                bounds,
+            });
+        }
+        if lanelets.is_empty() {
+            return Err(map_err("document".into(), "no lanelet relations".into()));
+        }
+        lanelets.sort_by_key(|l| l.id);
+        link_topology(&mut lanelets);
+        Ok(Self { location: location.to_owned(), lanelets, skipped })
+    }
+
+    /// Index of a lanelet that contains `p`, if any (off-road when none).
+    pub fn lanelet_at(&self, p: Point) -> Option<usize> {
+        self.lanelets.iter().position(|l| l.contains(p))
+    }
+
+    /// A grid over every centre-line segment, for distance queries.
+    pub fn centre_grid(&self, cell_m: f64) -> SegmentGrid {
+        let segments = self
+            .lanelets
+            .iter()
+            .flat_map(|l| l.centre_m.windows(2).map(|w| (w[0], w[1])))
+            .collect();
+        SegmentGrid::new(segments, cell_m)
+    }
+
+    /// Centre lines resampled to `points` points each, in lanelet order: the map polylines.
+    pub fn centre_polylines(&self, points: usize) -> Vec<Vec<Point>> {
+        self.lanelets.iter().map(|l| resample(&l.centre_m, points)).collect()
+    }
+}
+
+fn link_topology(lanelets: &mut [Lanelet]) {
+    let ends: Vec<(Point, Point, Point, Point, i64, i64)> = lanelets
+        .iter()
+        .map(|l| (l.left_m[0], l.right_m[0], *l.left_m.last().unwrap(), *l.right_m.last().unwrap(), l.left_way, l.right_way))
+        .collect();
+    for (i, a) in ends.iter().enumerate() {
+        for (j, b) in ends.iter().enumerate() {
+            if i == j {
+                continue;
+            }
+            if dist(a.2, b.0) < TOPOLOGY_TOLERANCE_M && dist(a.3, b.1) < TOPOLOGY_TOLERANCE_M {
+                lanelets[i].successors.push(j as u32);
+            }
+            if a.4 == b.4 || a.4 == b.5 || a.5 == b.4 || a.5 == b.5 {
+                lanelets[i].neighbours.push(j as u32);
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+pub(crate) mod tests {
+    use super::*;
+
+    /// Two lanelets in a row and one beside the first, ~1e-5 degrees ≈ 1.1 m apart.
+    pub(crate) fn fixture_osm() -> String {
+        let d = 0.000_036; // ≈ 4 m
+        let mut s = String::from("<?xml version=\"1.0\"?>\n<osm version=\"0.6\">\n");
+        // Three rows of nodes (y = 0, 1, 2 lanes) and three columns (x = 0, 1, 2 segments).
+        for row in 0..3 {
+            for col in 0..3 {
+                let id = 1000 + row * 10 + col;
+                s += &format!("  <node id=\"{id}\" lat=\"{}\" lon=\"{}\" />\n", row as f64 * d, col as f64 * d * 3.0);
+            }
+        }
+        let way = |id: i64, a: i64, b: i64| format!("  <way id=\"{id}\"><nd ref=\"{a}\"/><nd ref=\"{b}\"/></way>\n");
+        s += &way(1, 1010, 1011); // middle row, col 0→1
+        s += &way(2, 1000, 1001); // bottom row
+        s += &way(3, 1011, 1012);
+        s += &way(4, 1002, 1001); // stored backwards on purpose
+        s += &way(5, 1020, 1021); // top row
+        let lanelet = |id: i64, l: i64, r: i64| {
+            format!(
+                "  <relation id=\"{id}\"><member type=\"way\" ref=\"{l}\" role=\"left\"/><member type=\"way\" ref=\"{r}\" role=\"right\"/><tag k=\"type\" v=\"lanelet\"/><tag k=\"subtype\" v=\"road\"/></relation>\n"
+            )
+        };
+        s += &lanelet(30000, 1, 2);
+        s += &lanelet(30001, 3, 4);
+        s += &lanelet(30002, 5, 1);
+        s += "  <relation id=\"50000\"><tag k=\"type\" v=\"regulatory_element\"/></relation>\n</osm>\n";
+        s
+    }
+
+    #[test]
+    fn projection_of_known_points() {
+        // (0, 0) maps to the origin by construction; 0.001° of latitude is ≈ 110.6 m north.
+        assert_eq!(project(0.0, 0.0), [0.0, 0.0]);
+        let p = project(0.001, 0.0);
+        assert!(p[0].abs() < 0.5 && (p[1] - 110.6).abs() < 0.5, "{p:?}");
+        let q = project(0.0, 0.001);
+        assert!((q[0] - 111.0).abs() < 1.0 && q[1].abs() < 1e-6, "{q:?}");
+        // Continuous across the equator (no false-northing jump).
+        let s = project(-0.0001, 0.0);
+        assert!((s[1] + 11.06).abs() < 0.1, "{s:?}");
+    }
+
+    #[test]
+    fn parses_lanelets_centres_and_topology() {
+        let map = LaneletMap::parse(&fixture_osm(), Path::new("fixture.osm"), "FIX").unwrap();
+        assert_eq!(map.lanelets.len(), 3);
+        assert_eq!(map.skipped.non_lanelet_relations, 1);
+        let first = &map.lanelets[0];
+        // The centre runs midway between the bounds, ~2 m north of the bottom row.
+        let c = first.centre_m[0];
+        assert!((c[1] - 2.0).abs() < 0.05 && c[0].abs() < 0.05, "{c:?}");
+        // The backwards right bound of lanelet 30001 was turned round.
+        assert!(map.lanelets[1].right_m[0][0] < map.lanelets[1].right_m[1][0]);
+        assert_eq!(first.successors, vec![1]);
+        assert_eq!(first.neighbours, vec![2]);
+        assert!(map.lanelet_at(c).is_some());
+        assert_eq!(map.lanelet_at([c[0] + 1.0, c[1] + 20.0]), None);
+        let grid = map.centre_grid(5.0);
+        assert!(grid.nearest_distance([c[0] + 1.0, c[1] + 0.5]).unwrap() < 0.51);
+    }
+
+    #[test]
+    fn missing_node_and_way_are_named() {
+        let bad = fixture_osm().replace("<nd ref=\"1012\"/>", "<nd ref=\"999\"/>");
+        let err = LaneletMap::parse(&bad, Path::new("bad.osm"), "FIX").unwrap_err().to_string();
+        assert!(err.contains("node 999 does not exist") && err.contains("bad.osm") && err.contains("way 3"), "{err}");
+        let bad = fixture_osm().replace("ref=\"5\" role=\"left\"", "ref=\"77\" role=\"left\"");
+        let err = LaneletMap::parse(&bad, Path::new("bad.osm"), "FIX").unwrap_err().to_string();
+        assert!(err.contains("member way 77 does not exist") && err.contains("relation 30002"), "{err}");
+        let bad = fixture_osm().replace("lat=\"0\" lon=\"0\"", "lat=\"NaN\" lon=\"0\"");
+        let err = LaneletMap::parse(&bad, Path::new("bad.osm"), "FIX").unwrap_err().to_string();
+        assert!(err.contains("node 1000") && err.contains("bad lat"), "{err}");
+    }
+}
