@@ -1,7 +1,24 @@
 //! `road`: the traffic NPC server's command-line program.
 
+/// `println!` for results: a closed stdout (`road … | head`) ends the program quietly, as
+/// SIGPIPE would, instead of panicking.
+macro_rules! out {
+    ($($arg:tt)*) => { $crate::write_stdout_line(format_args!($($arg)*)) };
+}
+
 mod commands;
 mod config;
+
+pub(crate) fn write_stdout_line(args: std::fmt::Arguments<'_>) {
+    use std::io::Write;
+    if let Err(e) = writeln!(std::io::stdout().lock(), "{args}") {
+        if e.kind() == std::io::ErrorKind::BrokenPipe {
+            std::process::exit(0);
+        }
+        eprintln!("error: cannot write to stdout: {e}");
+        std::process::exit(1);
+    }
+}
 
 use clap::{Parser, Subcommand};
 

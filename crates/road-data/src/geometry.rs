@@ -77,10 +77,8 @@ impl Aabb {
     pub fn of(points: &[Point]) -> Self {
         let mut b = Self { min: [f64::INFINITY; 2], max: [f64::NEG_INFINITY; 2] };
         for p in points {
-            for d in 0..2 {
-                b.min[d] = b.min[d].min(p[d]);
-                b.max[d] = b.max[d].max(p[d]);
-            }
+            b.min = [b.min[0].min(p[0]), b.min[1].min(p[1])];
+            b.max = [b.max[0].max(p[0]), b.max[1].max(p[1])];
         }
         b
     }

@@ -40,6 +40,14 @@ pub struct LocationStats {
     pub median_lane_distance_m: f64,
 }
 
+impl LocationStats {
+    /// The projection check: the median is below the limit (a location without track points,
+    /// whose median is NaN, fails).
+    pub fn passes_projection_check(&self) -> bool {
+        self.median_lane_distance_m < MAX_MEDIAN_LANE_DISTANCE_M
+    }
+}
+
 pub fn split_stats(ds: &Dataset) -> SplitStats {
     let mut counts: Vec<usize> = ds.windows.iter().map(|w| w.agents.len()).collect();
     counts.sort_unstable();

@@ -122,8 +122,8 @@ mod tests {
         // σ = 0.5 = σ_d: c_skip = 0.5, c_out = 0.25/√0.5, c_in = 1/√0.5, c_noise = ln(0.5)/4.
         let p = s.preconditioning(0.5);
         assert!(close(p.c_skip, 0.5));
-        assert!(close(p.c_out, 0.353_553_390_593_273_8));
-        assert!(close(p.c_in, 1.414_213_562_373_095));
+        assert!(close(p.c_out, std::f64::consts::SQRT_2 / 4.0));
+        assert!(close(p.c_in, std::f64::consts::SQRT_2));
         assert!(close(p.c_noise, -0.173_286_795_139_986_3));
         // σ = 80: c_skip = 0.25/6400.25, c_in = 1/√6400.25.
         let p = s.preconditioning(80.0);

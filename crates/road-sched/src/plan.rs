@@ -99,7 +99,7 @@ impl PlannerSpec {
         }
         match self.kind {
             PlannerKind::Rolling => {
-                if self.steps_per_diffusion % self.future_slots != 0 {
+                if !self.steps_per_diffusion.is_multiple_of(self.future_slots) {
                     return bad(format!(
                         "steps_per_diffusion (K = {}) must be a multiple of future_slots (F = {})",
                         self.steps_per_diffusion, self.future_slots

@@ -30,6 +30,26 @@ pub struct SourceArgs {
     /// Per-key override of the window config, e.g. `--set window_steps=20` (repeatable).
     #[arg(long = "set", value_name = "KEY=VALUE")]
     pub overrides: Vec<String>,
+    /// Which splits to read: train, validation or both.
+    #[arg(long, value_enum, default_value_t = SplitChoice::Both)]
+    pub split: SplitChoice,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum SplitChoice {
+    Train,
+    Validation,
+    Both,
+}
+
+impl SplitChoice {
+    fn splits(self) -> &'static [Split] {
+        match self {
+            SplitChoice::Train => &[Split::Train],
+            SplitChoice::Validation => &[Split::Validation],
+            SplitChoice::Both => &[Split::Train, Split::Validation],
+        }
+    }
 }
 
 #[derive(Debug, Args)]
@@ -78,12 +98,12 @@ fn build_split(sources: &SourceSet, split: Split, config: &WindowConfig) -> Resu
 fn build_cmd(args: &BuildArgs) -> Result<()> {
     let config = window_config(&args.source)?;
     let sources = SourceSet::discover(&args.source.data)?;
-    for split in [Split::Train, Split::Validation] {
+    for &split in args.source.split.splits() {
         let ds = build_split(&sources, split, &config)?;
         let path = cache::cache_path(&args.out, split);
         cache::save(&ds, &path)?;
         let bytes = std::fs::metadata(&path).map(|m| m.len()).unwrap_or(0);
-        println!(
+        out!(
             "{split:<10} {:>4} files {:>7} windows  -> {} ({:.1} MiB)",
             ds.recordings.len(),
             ds.len(),
@@ -97,7 +117,7 @@ fn build_cmd(args: &BuildArgs) -> Result<()> {
 
 fn report_skips(ds: &Dataset) {
     let r = &ds.report;
-    println!(
+    out!(
         "{:<10} skipped {} windows with fewer than {} agents; dropped {} agents over {} and {} polylines over {}",
         ds.split.name(),
         r.windows_skipped_few_agents,
@@ -108,7 +128,7 @@ fn report_skips(ds: &Dataset) {
         ds.config.max_polylines
     );
     if !r.missing_validation_files.is_empty() {
-        println!("{:<10} validation list names {} files absent here: {}", ds.split.name(), r.missing_validation_files.len(), r.missing_validation_files.join(", "));
+        out!("{:<10} validation list names {} files absent here: {}", ds.split.name(), r.missing_validation_files.len(), r.missing_validation_files.join(", "));
     }
 }
 
@@ -116,9 +136,11 @@ fn load_datasets(args: &StatsArgs, config: &WindowConfig) -> Result<Vec<Dataset>
     match &args.cache {
         Some(dir) => {
             let sources = SourceSet::discover(&args.source.data).ok();
-            [Split::Train, Split::Validation]
-                .into_iter()
-                .map(|split| {
+            args.source
+                .split
+                .splits()
+                .iter()
+                .map(|&split| {
                     let path = cache::cache_path(dir, split);
                     cache::load_checked(&path, split, Some(config), sources.as_ref()).map_err(anyhow::Error::from)
                 })
@@ -126,7 +148,7 @@ fn load_datasets(args: &StatsArgs, config: &WindowConfig) -> Result<Vec<Dataset>
         }
         None => {
             let sources = SourceSet::discover(&args.source.data)?;
-            [Split::Train, Split::Validation].into_iter().map(|s| build_split(&sources, s, config)).collect()
+            args.source.split.splits().iter().map(|&s| build_split(&sources, s, config)).collect()
         }
     }
 }
@@ -137,10 +159,10 @@ fn stats_cmd(args: &StatsArgs) -> Result<ExitCode> {
     let splits: Vec<SplitStats> = datasets.iter().map(stats::split_stats).collect();
     let locations = stats::location_stats(&datasets.iter().collect::<Vec<_>>());
     let failing: Vec<&LocationStats> =
-        locations.iter().filter(|l| !(l.median_lane_distance_m < MAX_MEDIAN_LANE_DISTANCE_M)).collect();
+        locations.iter().filter(|l| !l.passes_projection_check()).collect();
     if args.json {
         let json = serde_json::json!({ "data": args.source.data, "window_config": config, "splits": splits, "locations": locations, "projection_check_passed": failing.is_empty() });
-        println!("{}", serde_json::to_string_pretty(&json)?);
+        out!("{}", serde_json::to_string_pretty(&json)?);
     } else {
         print_tables(&args.source.data, &config, &splits, &locations, &datasets);
     }
@@ -158,8 +180,8 @@ fn stats_cmd(args: &StatsArgs) -> Result<ExitCode> {
 }
 
 fn print_tables(data: &Path, config: &WindowConfig, splits: &[SplitStats], locations: &[LocationStats], datasets: &[Dataset]) {
-    println!("INTERACTION data in {}", data.display());
-    println!(
+    out!("INTERACTION data in {}", data.display());
+    out!(
         "windows: {} steps ({:.1} s), stride {}, agents present at step {} ({}..={}), map radius {} m, {} points per polyline",
         config.window_steps,
         config.window_steps as f64 * road_data::tracks::STEP_SECS,
@@ -170,25 +192,25 @@ fn print_tables(data: &Path, config: &WindowConfig, splits: &[SplitStats], locat
         config.map_radius_m,
         config.polyline_points
     );
-    println!();
-    println!("| split | files | hours | windows | agents/window mean | p95 | max | position RMS (m) |");
-    println!("|---|---:|---:|---:|---:|---:|---:|---:|");
+    out!("");
+    out!("| split | files | hours | windows | agents/window mean | p95 | max | position RMS (m) |");
+    out!("|---|---:|---:|---:|---:|---:|---:|---:|");
     for s in splits {
-        println!(
+        out!(
             "| {} | {} | {:.2} | {} | {:.2} | {} | {} | {:.1} |",
             s.split, s.files, s.hours, s.windows, s.agents_mean, s.agents_p95, s.agents_max, s.position_rms_m
         );
     }
-    println!();
+    out!("");
     for ds in datasets {
         report_skips(ds);
     }
-    println!();
-    println!("| location | files | hours | windows | polylines | track points | median lane distance (m) | check |");
-    println!("|---|---:|---:|---:|---:|---:|---:|---|");
+    out!("");
+    out!("| location | files | hours | windows | polylines | track points | median lane distance (m) | check |");
+    out!("|---|---:|---:|---:|---:|---:|---:|---|");
     for l in locations {
-        let ok = l.median_lane_distance_m < MAX_MEDIAN_LANE_DISTANCE_M;
-        println!(
+        let ok = l.passes_projection_check();
+        out!(
             "| {} | {} | {:.2} | {} | {} | {} | {:.2} | {} |",
             l.location,
             l.files,

@@ -22,17 +22,17 @@ pub fn run(cmd: GpuCommand) -> Result<ExitCode> {
     match cmd {
         GpuCommand::Info => {
             let l = ctx.device.limits();
-            println!("adapter: {}", ctx.describe());
-            println!("software adapter: {}", ctx.is_software());
-            println!("max storage buffer binding: {} MiB", l.max_storage_buffer_binding_size / (1024 * 1024));
-            println!("max storage buffers per stage: {}", l.max_storage_buffers_per_shader_stage);
-            println!("max invocations per workgroup: {}", l.max_compute_invocations_per_workgroup);
-            println!("max workgroup storage: {} KiB", l.max_compute_workgroup_storage_size / 1024);
-            println!("features: {:?}", ctx.adapter.features());
+            out!("adapter: {}", ctx.describe());
+            out!("software adapter: {}", ctx.is_software());
+            out!("max storage buffer binding: {} MiB", l.max_storage_buffer_binding_size / (1024 * 1024));
+            out!("max storage buffers per stage: {}", l.max_storage_buffers_per_shader_stage);
+            out!("max invocations per workgroup: {}", l.max_compute_invocations_per_workgroup);
+            out!("max workgroup storage: {} KiB", l.max_compute_workgroup_storage_size / 1024);
+            out!("features: {:?}", ctx.adapter.features());
             Ok(ExitCode::SUCCESS)
         }
         GpuCommand::Selftest => {
-            println!("adapter: {}", ctx.describe());
+            out!("adapter: {}", ctx.describe());
             let edm = EdmSchedule::default();
             let sigma: Vec<f32> = (0..=1000).map(|i| edm.sigma(f64::from(i) / 1000.0) as f32).collect();
             let got = EdmPrecondition::new(&ctx).run(&ctx, &sigma, edm.sigma_data as f32, edm.sigma_min as f32)?;
@@ -46,11 +46,11 @@ pub fn run(cmd: GpuCommand) -> Result<ExitCode> {
             let actual: Vec<f32> = got.iter().flatten().copied().collect();
             match Tolerance::F32.check(&actual, &expected) {
                 Ok(()) => {
-                    println!("edm.precondition: ok ({} slots, rel {} abs {})", sigma.len(), Tolerance::F32.rel, Tolerance::F32.abs);
+                    out!("edm.precondition: ok ({} slots, rel {} abs {})", sigma.len(), Tolerance::F32.rel, Tolerance::F32.abs);
                     Ok(ExitCode::SUCCESS)
                 }
                 Err(m) => {
-                    println!("edm.precondition: FAILED: {m}");
+                    out!("edm.precondition: FAILED: {m}");
                     Ok(ExitCode::FAILURE)
                 }
             }

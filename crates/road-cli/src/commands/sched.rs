@@ -51,11 +51,11 @@ pub fn load_planners(path: &std::path::Path) -> Result<Vec<(String, PlannerSpec)
 pub fn run(cmd: SchedCommand) -> Result<ExitCode> {
     match cmd {
         SchedCommand::List(args) => {
-            println!("| planner | kind | n | F | K | X | NFE per step (40 steps) |");
-            println!("|---|---|---:|---:|---:|---:|---:|");
+            out!("| planner | kind | n | F | K | X | NFE per step (40 steps) |");
+            out!("|---|---|---:|---:|---:|---:|---:|");
             for (name, spec) in load_planners(&args.planners)? {
                 let ticks = if spec.kind == road_sched::PlannerKind::OneShot { spec.future_slots as u64 } else { 40 };
-                println!(
+                out!(
                     "| {name} | {:?} | {} | {} | {} | {} | {:.2} |",
                     spec.kind,
                     spec.obs_slots,
@@ -78,17 +78,17 @@ pub fn run(cmd: SchedCommand) -> Result<ExitCode> {
             };
             for &stage in stages {
                 let table = tables.stage(stage);
-                println!("{stage:?} stage: {} steps, {} NFE; σ per slot (observed slots first)", table.steps(), table.nfe());
+                out!("{stage:?} stage: {} steps, {} NFE; σ per slot (observed slots first)", table.steps(), table.nfe());
                 for s in 0..table.steps() {
                     let p = table.step(s);
                     let row: Vec<String> = p.sigma_cur.iter().map(|v| format!("{v:8.3}")).collect();
-                    println!("step {s:>3} nfe {} | {}", p.nfe, row.join(" "));
+                    out!("step {s:>3} nfe {} | {}", p.nfe, row.join(" "));
                 }
                 let last = table.step(table.steps() - 1);
                 let row: Vec<String> = last.sigma_next.iter().map(|v| format!("{v:8.3}")).collect();
-                println!("end          | {}", row.join(" "));
+                out!("end          | {}", row.join(" "));
             }
-            println!("NFE per simulated step over {} steps: {:.2}", args.ticks, spec.expected_nfe_per_step(args.ticks));
+            out!("NFE per simulated step over {} steps: {:.2}", args.ticks, spec.expected_nfe_per_step(args.ticks));
         }
     }
     Ok(ExitCode::SUCCESS)
