@@ -4,7 +4,10 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 fn workspace() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..").canonicalize().unwrap()
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../..")
+        .canonicalize()
+        .unwrap()
 }
 
 /// The INTERACTION folder: `ROAD_DATA`, else `../shared/data/interaction` beside the clone.
@@ -13,7 +16,11 @@ fn data_dir() -> PathBuf {
     let dir = std::env::var_os("ROAD_DATA")
         .map(PathBuf::from)
         .unwrap_or_else(|| workspace().join("../shared/data/interaction"));
-    assert!(dir.join("maps").is_dir(), "INTERACTION data not found at {} (set ROAD_DATA)", dir.display());
+    assert!(
+        dir.join("maps").is_dir(),
+        "INTERACTION data not found at {} (set ROAD_DATA)",
+        dir.display()
+    );
     dir
 }
 
@@ -50,7 +57,11 @@ fn every_subcommand_explains_itself() {
         &["gpu", "selftest", "--help"],
     ] {
         let o = road(args);
-        assert!(o.status.success() && stdout(&o).contains("Usage"), "{args:?}: {}", stderr(&o));
+        assert!(
+            o.status.success() && stdout(&o).contains("Usage"),
+            "{args:?}: {}",
+            stderr(&o)
+        );
     }
 }
 
@@ -59,12 +70,35 @@ fn build_writes_a_cache_that_stats_reads() {
     let data = data_dir();
     let out = std::env::temp_dir().join(format!("road-cli-cache-{}", std::process::id()));
     let data_arg = data.to_str().unwrap();
-    let o = road(&["data", "build", "--data", data_arg, "--split", "validation", "--out", out.to_str().unwrap()]);
+    let o = road(&[
+        "data",
+        "build",
+        "--data",
+        data_arg,
+        "--split",
+        "validation",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
     assert!(o.status.success(), "{}", stderr(&o));
     assert!(out.join("validation.roadds").is_file());
-    assert!(stdout(&o).contains("validation list names"), "missing files are reported: {}", stdout(&o));
+    assert!(
+        stdout(&o).contains("validation list names"),
+        "missing files are reported: {}",
+        stdout(&o)
+    );
 
-    let o = road(&["data", "stats", "--data", data_arg, "--split", "validation", "--cache", out.to_str().unwrap(), "--json"]);
+    let o = road(&[
+        "data",
+        "stats",
+        "--data",
+        data_arg,
+        "--split",
+        "validation",
+        "--cache",
+        out.to_str().unwrap(),
+        "--json",
+    ]);
     assert!(o.status.success(), "{}", stderr(&o));
     let json: serde_json::Value = serde_json::from_str(&stdout(&o)).unwrap();
     assert_eq!(json["projection_check_passed"], true);
@@ -72,10 +106,23 @@ fn build_writes_a_cache_that_stats_reads() {
 
     // A cache built with other settings is stale, and says so.
     let o = road(&[
-        "data", "stats", "--data", data_arg, "--split", "validation", "--cache", out.to_str().unwrap(), "--set", "stride_steps=5",
+        "data",
+        "stats",
+        "--data",
+        data_arg,
+        "--split",
+        "validation",
+        "--cache",
+        out.to_str().unwrap(),
+        "--set",
+        "stride_steps=5",
     ]);
     assert!(!o.status.success());
-    assert!(stderr(&o).contains("stale dataset cache") && stderr(&o).contains("validation.roadds"), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("stale dataset cache") && stderr(&o).contains("validation.roadds"),
+        "{}",
+        stderr(&o)
+    );
 
     // A corrupt one too.
     let path = out.join("validation.roadds");
@@ -83,9 +130,22 @@ fn build_writes_a_cache_that_stats_reads() {
     let mid = bytes.len() / 2;
     bytes[mid] ^= 0xff;
     std::fs::write(&path, bytes).unwrap();
-    let o = road(&["data", "stats", "--data", data_arg, "--split", "validation", "--cache", out.to_str().unwrap()]);
+    let o = road(&[
+        "data",
+        "stats",
+        "--data",
+        data_arg,
+        "--split",
+        "validation",
+        "--cache",
+        out.to_str().unwrap(),
+    ]);
     assert!(!o.status.success());
-    assert!(stderr(&o).contains("corrupt dataset cache: checksum mismatch"), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("corrupt dataset cache: checksum mismatch"),
+        "{}",
+        stderr(&o)
+    );
     std::fs::remove_dir_all(&out).ok();
 }
 
@@ -93,7 +153,11 @@ fn build_writes_a_cache_that_stats_reads() {
 fn bad_inputs_are_named() {
     let o = road(&["data", "stats", "--data", "/nonexistent/interaction"]);
     assert!(!o.status.success());
-    assert!(stderr(&o).contains("/nonexistent/interaction/maps"), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("/nonexistent/interaction/maps"),
+        "{}",
+        stderr(&o)
+    );
 
     let o = road(&["data", "stats", "--set", "max_agents=0"]);
     assert!(!o.status.success());
@@ -101,7 +165,11 @@ fn bad_inputs_are_named() {
 
     let o = road(&["sched", "plan", "nonesuch"]);
     assert!(!o.status.success());
-    assert!(stderr(&o).contains("no planner `nonesuch`") && stderr(&o).contains("planners.toml"), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("no planner `nonesuch`") && stderr(&o).contains("planners.toml"),
+        "{}",
+        stderr(&o)
+    );
 }
 
 #[test]
@@ -113,16 +181,28 @@ fn shipped_configs_match_the_defaults_and_validate() {
     let o = road(&["sched", "list"]);
     assert!(o.status.success(), "{}", stderr(&o));
     for name in ["road20", "road15", "ar", "djinn10-mpc1", "djinn30"] {
-        assert!(stdout(&o).contains(&format!("| {name} |")), "{name} missing: {}", stdout(&o));
+        assert!(
+            stdout(&o).contains(&format!("| {name} |")),
+            "{name} missing: {}",
+            stdout(&o)
+        );
     }
     // road20: 2K/F NFE per simulated step in the long run; 40 steps include the warm-up.
     let o = road(&["sched", "plan", "road20", "--ticks", "40"]);
-    assert!(stdout(&o).contains("Rolling stage: 4 steps, 8 NFE"), "{}", stdout(&o));
+    assert!(
+        stdout(&o).contains("Rolling stage: 4 steps, 8 NFE"),
+        "{}",
+        stdout(&o)
+    );
 }
 
 #[test]
 fn gpu_selftest_passes_on_the_adapter_present() {
     let o = road(&["gpu", "selftest"]);
     assert!(o.status.success(), "{}\n{}", stdout(&o), stderr(&o));
-    assert!(stdout(&o).contains("edm.precondition: ok"), "{}", stdout(&o));
+    assert!(
+        stdout(&o).contains("edm.precondition: ok"),
+        "{}",
+        stdout(&o)
+    );
 }

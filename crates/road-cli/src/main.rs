@@ -38,6 +38,8 @@ enum Command {
     /// The noise scheduler: inspect a planner's per-step noise levels and NFE.
     #[command(subcommand)]
     Sched(commands::sched::SchedCommand),
+    /// Train a denoiser (RoAD, AR, DJINN) on the INTERACTION caches.
+    Train(commands::train::TrainArgs),
     /// The GPU: which adapter wgpu picks here, and a self-test of the kernels.
     #[command(subcommand)]
     Gpu(commands::gpu::GpuCommand),
@@ -46,8 +48,9 @@ enum Command {
 fn main() -> std::process::ExitCode {
     tracing_subscriber::fmt()
         .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info,wgpu_core=warn,wgpu_hal=warn,naga=warn")),
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| {
+                tracing_subscriber::EnvFilter::new("info,wgpu_core=warn,wgpu_hal=warn,naga=warn")
+            }),
         )
         .with_writer(std::io::stderr)
         .init();
@@ -56,6 +59,7 @@ fn main() -> std::process::ExitCode {
         Command::Data(cmd) => commands::data::run(cmd),
         Command::Sched(cmd) => commands::sched::run(cmd),
         Command::Gpu(cmd) => commands::gpu::run(cmd),
+        Command::Train(args) => commands::train::run(args),
     };
     match result {
         Ok(code) => code,

@@ -27,8 +27,10 @@ pub fn cache_path(dir: &Path, split: Split) -> PathBuf {
 
 /// Writes atomically (temporary file, then rename).
 pub fn save(dataset: &Dataset, path: &Path) -> Result<()> {
-    let payload = postcard::to_stdvec(dataset)
-        .map_err(|e| Error::CorruptCache { path: path.to_owned(), reason: format!("cannot encode: {e}") })?;
+    let payload = postcard::to_stdvec(dataset).map_err(|e| Error::CorruptCache {
+        path: path.to_owned(),
+        reason: format!("cannot encode: {e}"),
+    })?;
     let mut bytes = Vec::with_capacity(HEADER_BYTES + payload.len());
     bytes.extend_from_slice(MAGIC);
     bytes.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
@@ -40,7 +42,9 @@ pub fn save(dataset: &Dataset, path: &Path) -> Result<()> {
     }
     let tmp = path.with_extension("roadds.tmp");
     let mut file = std::fs::File::create(&tmp).map_err(|e| Error::io(&tmp, e))?;
-    file.write_all(&bytes).and_then(|()| file.sync_all()).map_err(|e| Error::io(&tmp, e))?;
+    file.write_all(&bytes)
+        .and_then(|()| file.sync_all())
+        .map_err(|e| Error::io(&tmp, e))?;
     std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e))
 }
 
@@ -51,7 +55,10 @@ pub fn load(path: &Path) -> Result<Dataset> {
 }
 
 pub fn decode(bytes: &[u8], path: &Path) -> Result<Dataset> {
-    let corrupt = |reason: String| Error::CorruptCache { path: path.to_owned(), reason };
+    let corrupt = |reason: String| Error::CorruptCache {
+        path: path.to_owned(),
+        reason,
+    };
     if bytes.len() < HEADER_BYTES || &bytes[..8] != MAGIC {
         return Err(corrupt("not a road dataset cache (bad magic)".into()));
     }
@@ -59,14 +66,19 @@ pub fn decode(bytes: &[u8], path: &Path) -> Result<Dataset> {
     if version != FORMAT_VERSION {
         return Err(Error::StaleCache {
             path: path.to_owned(),
-            reason: format!("written in format version {version}, this build reads version {FORMAT_VERSION}"),
+            reason: format!(
+                "written in format version {version}, this build reads version {FORMAT_VERSION}"
+            ),
         });
     }
     let len = u64::from_le_bytes(bytes[12..20].try_into().expect("8 bytes")) as usize;
     let crc = u32::from_le_bytes(bytes[20..24].try_into().expect("4 bytes"));
     let payload = &bytes[HEADER_BYTES..];
     if payload.len() != len {
-        return Err(corrupt(format!("payload is {} bytes, header says {len} (truncated?)", payload.len())));
+        return Err(corrupt(format!(
+            "payload is {} bytes, header says {len} (truncated?)",
+            payload.len()
+        )));
     }
     if crc32fast::hash(payload) != crc {
         return Err(corrupt("checksum mismatch".into()));
@@ -76,15 +88,31 @@ pub fn decode(bytes: &[u8], path: &Path) -> Result<Dataset> {
 
 /// Loads a cache and checks that it was built with `config` from exactly `sources`' files
 /// (names and sizes); either check can be skipped with `None`.
-pub fn load_checked(path: &Path, split: Split, config: Option<&WindowConfig>, sources: Option<&SourceSet>) -> Result<Dataset> {
+pub fn load_checked(
+    path: &Path,
+    split: Split,
+    config: Option<&WindowConfig>,
+    sources: Option<&SourceSet>,
+) -> Result<Dataset> {
     let dataset = load(path)?;
-    let stale = |reason: String| Err(Error::StaleCache { path: path.to_owned(), reason });
+    let stale = |reason: String| {
+        Err(Error::StaleCache {
+            path: path.to_owned(),
+            reason,
+        })
+    };
     if dataset.split != split {
-        return stale(format!("holds the {} split, expected {split}", dataset.split));
+        return stale(format!(
+            "holds the {} split, expected {split}",
+            dataset.split
+        ));
     }
     if let Some(config) = config {
         if &dataset.config != config {
-            return stale(format!("built with window config {:?}, expected {config:?}", dataset.config));
+            return stale(format!(
+                "built with window config {:?}, expected {config:?}",
+                dataset.config
+            ));
         }
     }
     if let Some(sources) = sources {
@@ -108,17 +136,41 @@ mod tests {
     use crate::tracks::{AgentType, Recording, Track};
 
     fn tiny() -> Dataset {
-        let map = LaneletMap::parse(&crate::map::tests::fixture_osm(), Path::new("f.osm"), "FIX").unwrap();
-        let track = Track { track_id: 7, agent_type: AgentType::Car, length_m: 4.0, width_m: 1.8, first_frame: 1, states: vec![[1.0, 2.0, 0.3]; 5] };
+        let map = LaneletMap::parse(&crate::map::tests::fixture_osm(), Path::new("f.osm"), "FIX")
+            .unwrap();
+        let track = Track {
+            track_id: 7,
+            agent_type: AgentType::Car,
+            length_m: 4.0,
+            width_m: 1.8,
+            first_frame: 1,
+            states: vec![[1.0, 2.0, 0.3]; 5],
+        };
         Dataset {
             split: Split::Train,
             config: WindowConfig::default(),
             sources: vec![],
             maps: vec![map],
-            recordings: vec![Recording { location: "FIX".into(), file: "t.csv".into(), tracks: vec![track], first_frame: 1, last_frame: 5 }],
+            recordings: vec![Recording {
+                location: "FIX".into(),
+                file: "t.csv".into(),
+                tracks: vec![track],
+                first_frame: 1,
+                last_frame: 5,
+            }],
             recording_map: vec![0],
-            windows: vec![crate::dataset::WindowRef { recording: 0, start_frame: 1, origin_m: [1.0, 2.0], agents: vec![0], polylines: vec![0, 1] }],
-            report: BuildReport { files: 1, windows: 1, ..BuildReport::default() },
+            windows: vec![crate::dataset::WindowRef {
+                recording: 0,
+                start_frame: 1,
+                origin_m: [1.0, 2.0],
+                agents: vec![0],
+                polylines: vec![0, 1],
+            }],
+            report: BuildReport {
+                files: 1,
+                windows: 1,
+                ..BuildReport::default()
+            },
         }
     }
 
@@ -134,7 +186,10 @@ mod tests {
         let ds = tiny();
         save(&ds, &path).unwrap();
         let back = load_checked(&path, Split::Train, Some(&WindowConfig::default()), None).unwrap();
-        assert_eq!(postcard::to_stdvec(&back).unwrap(), postcard::to_stdvec(&ds).unwrap());
+        assert_eq!(
+            postcard::to_stdvec(&back).unwrap(),
+            postcard::to_stdvec(&ds).unwrap()
+        );
         assert_eq!(back.window(0).unwrap(), ds.window(0).unwrap());
     }
 
@@ -147,22 +202,50 @@ mod tests {
         let mut flipped = good.clone();
         let last = flipped.len() - 3;
         flipped[last] ^= 0x40;
-        assert!(decode(&flipped, &path).unwrap_err().to_string().contains("checksum mismatch"));
+        assert!(
+            decode(&flipped, &path)
+                .unwrap_err()
+                .to_string()
+                .contains("checksum mismatch")
+        );
 
-        let err = decode(&good[..good.len() - 10], &path).unwrap_err().to_string();
-        assert!(err.contains("truncated") && err.contains("bad.roadds"), "{err}");
+        let err = decode(&good[..good.len() - 10], &path)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("truncated") && err.contains("bad.roadds"),
+            "{err}"
+        );
 
-        assert!(decode(b"hello world, not a cache at all", &path).unwrap_err().to_string().contains("bad magic"));
+        assert!(
+            decode(b"hello world, not a cache at all", &path)
+                .unwrap_err()
+                .to_string()
+                .contains("bad magic")
+        );
 
         let mut old = good.clone();
         old[8..12].copy_from_slice(&0u32.to_le_bytes());
         let err = decode(&old, &path).unwrap_err().to_string();
-        assert!(err.contains("stale") && err.contains("road data build"), "{err}");
+        assert!(
+            err.contains("stale") && err.contains("road data build"),
+            "{err}"
+        );
 
-        let other = WindowConfig { window_steps: 20, ..WindowConfig::default() };
-        let err = load_checked(&path, Split::Train, Some(&other), None).unwrap_err().to_string();
-        assert!(err.contains("stale") && err.contains("window config"), "{err}");
-        let err = load_checked(&path, Split::Validation, None, None).unwrap_err().to_string();
+        let other = WindowConfig {
+            window_steps: 20,
+            ..WindowConfig::default()
+        };
+        let err = load_checked(&path, Split::Train, Some(&other), None)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("stale") && err.contains("window config"),
+            "{err}"
+        );
+        let err = load_checked(&path, Split::Validation, None, None)
+            .unwrap_err()
+            .to_string();
         assert!(err.contains("train split"), "{err}");
     }
 }

@@ -61,24 +61,38 @@ impl Default for WindowConfig {
 impl WindowConfig {
     pub fn load(path: &Path) -> Result<Self> {
         let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
-        let config: Self =
-            toml::from_str(&text).map_err(|e| Error::Config { path: path.to_owned(), reason: e.to_string() })?;
-        config.validate().map_err(|reason| Error::Config { path: path.to_owned(), reason })?;
+        let config: Self = toml::from_str(&text).map_err(|e| Error::Config {
+            path: path.to_owned(),
+            reason: e.to_string(),
+        })?;
+        config.validate().map_err(|reason| Error::Config {
+            path: path.to_owned(),
+            reason,
+        })?;
         Ok(config)
     }
 
     pub fn validate(&self) -> std::result::Result<(), String> {
         if self.window_steps < 2 {
-            return Err(format!("window_steps must be at least 2, got {}", self.window_steps));
+            return Err(format!(
+                "window_steps must be at least 2, got {}",
+                self.window_steps
+            ));
         }
         if self.stride_steps == 0 {
             return Err("stride_steps must be at least 1".into());
         }
         if self.reference_step >= self.window_steps {
-            return Err(format!("reference_step ({}) must be below window_steps ({})", self.reference_step, self.window_steps));
+            return Err(format!(
+                "reference_step ({}) must be below window_steps ({})",
+                self.reference_step, self.window_steps
+            ));
         }
         if self.min_agents == 0 || self.max_agents < self.min_agents {
-            return Err(format!("need 1 ≤ min_agents ≤ max_agents, got {} and {}", self.min_agents, self.max_agents));
+            return Err(format!(
+                "need 1 ≤ min_agents ≤ max_agents, got {} and {}",
+                self.min_agents, self.max_agents
+            ));
         }
         if self.polyline_points < 2 {
             return Err("polyline_points must be at least 2".into());
@@ -99,12 +113,18 @@ pub struct SceneFrame {
 
 impl SceneFrame {
     pub fn to_norm(&self, p_m: Point) -> [f32; 2] {
-        [((p_m[0] - self.origin_m[0]) / self.scale_m) as f32, ((p_m[1] - self.origin_m[1]) / self.scale_m) as f32]
+        [
+            ((p_m[0] - self.origin_m[0]) / self.scale_m) as f32,
+            ((p_m[1] - self.origin_m[1]) / self.scale_m) as f32,
+        ]
     }
 
     /// The inverse transform back to metres.
     pub fn to_metres(&self, p: [f32; 2]) -> Point {
-        [f64::from(p[0]) * self.scale_m + self.origin_m[0], f64::from(p[1]) * self.scale_m + self.origin_m[1]]
+        [
+            f64::from(p[0]) * self.scale_m + self.origin_m[0],
+            f64::from(p[1]) * self.scale_m + self.origin_m[1],
+        ]
     }
 }
 
@@ -161,7 +181,13 @@ pub struct SceneWindow {
 impl SceneWindow {
     pub fn state(&self, agent: usize, step: usize) -> Option<[f32; 3]> {
         let i = agent * self.steps + step;
-        self.valid[i].then(|| [self.states[3 * i], self.states[3 * i + 1], self.states[3 * i + 2]])
+        self.valid[i].then(|| {
+            [
+                self.states[3 * i],
+                self.states[3 * i + 1],
+                self.states[3 * i + 2],
+            ]
+        })
     }
 
     pub fn polyline_count(&self) -> usize {
@@ -186,26 +212,35 @@ pub struct Dataset {
 impl Dataset {
     /// Parses one split's files and cuts its windows.
     pub fn build(sources: &SourceSet, split: Split, config: &WindowConfig) -> Result<Self> {
-        config.validate().map_err(|reason| Error::Config { path: "window config".into(), reason })?;
+        config.validate().map_err(|reason| Error::Config {
+            path: "window config".into(),
+            reason,
+        })?;
         let files = sources.split(split);
         let mut maps: Vec<LaneletMap> = Vec::new();
         let mut recordings = Vec::with_capacity(files.len());
         let mut recording_map = Vec::with_capacity(files.len());
         // Two workers: parsing dominates and the machine has two cores.
         let parsed: Vec<Result<Recording>> = std::thread::scope(|s| {
-            let chunks: Vec<&[TrackSource]> = files.chunks(files.len().div_ceil(2).max(1)).collect();
+            let chunks: Vec<&[TrackSource]> =
+                files.chunks(files.len().div_ceil(2).max(1)).collect();
             let handles: Vec<_> = chunks
                 .into_iter()
                 .map(|chunk| {
                     s.spawn(move || {
                         chunk
                             .iter()
-                            .map(|f| Recording::load(&sources.root.join(&f.relative_path), &f.location))
+                            .map(|f| {
+                                Recording::load(&sources.root.join(&f.relative_path), &f.location)
+                            })
                             .collect::<Vec<_>>()
                     })
                 })
                 .collect();
-            handles.into_iter().flat_map(|h| h.join().expect("parser thread panicked")).collect()
+            handles
+                .into_iter()
+                .flat_map(|h| h.join().expect("parser thread panicked"))
+                .collect()
         });
         for recording in parsed {
             let recording = recording?;
@@ -220,17 +255,55 @@ impl Dataset {
             recordings.push(recording);
             recording_map.push(map_index as u32);
         }
-        let mut report = BuildReport { files: recordings.len(), ..BuildReport::default() };
+        let mut ds = Self::from_parts(split, config, maps, recordings, recording_map)?;
+        ds.sources = files.to_vec();
         if split == Split::Validation {
-            report.missing_validation_files = sources.missing_validation.clone();
+            ds.report.missing_validation_files = sources.missing_validation.clone();
         }
+        Ok(ds)
+    }
+
+    /// Cuts the windows of recordings already in memory (tests, generated scenes);
+    /// `recording_map[i]` is the index in `maps` of recording `i`'s map.
+    pub fn from_parts(
+        split: Split,
+        config: &WindowConfig,
+        maps: Vec<LaneletMap>,
+        recordings: Vec<Recording>,
+        recording_map: Vec<u32>,
+    ) -> Result<Self> {
+        config.validate().map_err(|reason| Error::Config {
+            path: "window config".into(),
+            reason,
+        })?;
+        if recording_map.len() != recordings.len()
+            || recording_map.iter().any(|&m| m as usize >= maps.len())
+        {
+            return Err(Error::Config {
+                path: "recording_map".into(),
+                reason: "one valid map index per recording".into(),
+            });
+        }
+        let mut report = BuildReport {
+            files: recordings.len(),
+            ..BuildReport::default()
+        };
         let mut windows = Vec::new();
         for (r, recording) in recordings.iter().enumerate() {
             let map = &maps[recording_map[r] as usize];
             cut_windows(r as u32, recording, map, config, &mut windows, &mut report);
         }
         report.windows = windows.len();
-        Ok(Self { split, config: config.clone(), sources: files.to_vec(), maps, recordings, recording_map, windows, report })
+        Ok(Self {
+            split,
+            config: config.clone(),
+            sources: Vec::new(),
+            maps,
+            recordings,
+            recording_map,
+            windows,
+            report,
+        })
     }
 
     pub fn len(&self) -> usize {
@@ -247,11 +320,17 @@ impl Dataset {
 
     /// Materialises window `index`.
     pub fn window(&self, index: usize) -> Result<SceneWindow> {
-        let w = self.windows.get(index).ok_or(Error::WindowIndex { index, len: self.windows.len() })?;
+        let w = self.windows.get(index).ok_or(Error::WindowIndex {
+            index,
+            len: self.windows.len(),
+        })?;
         let recording = &self.recordings[w.recording as usize];
         let map = self.map_of(w);
         let steps = self.config.window_steps;
-        let frame = SceneFrame { origin_m: w.origin_m, scale_m: self.config.position_scale_m };
+        let frame = SceneFrame {
+            origin_m: w.origin_m,
+            scale_m: self.config.position_scale_m,
+        };
         let a = w.agents.len();
         let mut states = vec![0.0f32; a * steps * 3]; // [agents, steps, 3]
         let mut valid = vec![false; a * steps]; // [agents, steps]
@@ -280,7 +359,9 @@ impl Dataset {
             out.width_m.push(track.width_m);
             let mut previous_heading: Option<f32> = None;
             for s in 0..steps {
-                let Some([x, y, psi]) = track.state_at(w.start_frame + s as u32) else { continue };
+                let Some([x, y, psi]) = track.state_at(w.start_frame + s as u32) else {
+                    continue;
+                };
                 let p = frame.to_norm([f64::from(x), f64::from(y)]);
                 let heading = match previous_heading {
                     None => wrap_angle(psi),
@@ -337,7 +418,9 @@ fn cut_windows(
             continue;
         }
         let n = present.len() as f64;
-        let mean = present.iter().fold([0.0, 0.0], |acc, p| [acc[0] + p.2[0] / n, acc[1] + p.2[1] / n]);
+        let mean = present.iter().fold([0.0, 0.0], |acc, p| {
+            [acc[0] + p.2[0] / n, acc[1] + p.2[1] / n]
+        });
         for p in &mut present {
             p.0 = dist(p.2, mean);
         }
@@ -348,14 +431,20 @@ fn cut_windows(
         }
         // The centre is the mean of the agents kept.
         let n = present.len() as f64;
-        let origin = present.iter().fold([0.0, 0.0], |acc, p| [acc[0] + p.2[0] / n, acc[1] + p.2[1] / n]);
+        let origin = present.iter().fold([0.0, 0.0], |acc, p| {
+            [acc[0] + p.2[0] / n, acc[1] + p.2[1] / n]
+        });
         let mut near: Vec<(f64, u32)> = map
             .lanelets
             .iter()
             .enumerate()
             .filter(|(_, l)| l.bounds.distance(origin) <= config.map_radius_m)
             .filter_map(|(i, l)| {
-                let d = l.centre_m.iter().map(|&p| dist(p, origin)).fold(f64::INFINITY, f64::min);
+                let d = l
+                    .centre_m
+                    .iter()
+                    .map(|&p| dist(p, origin))
+                    .fold(f64::INFINITY, f64::min);
                 (d <= config.map_radius_m).then_some((d, i as u32))
             })
             .collect();
@@ -381,7 +470,14 @@ mod tests {
     use crate::tracks::Track;
 
     fn track(id: u32, first_frame: u32, states: Vec<[f32; 3]>) -> Track {
-        Track { track_id: id, agent_type: AgentType::Car, length_m: 4.0, width_m: 2.0, first_frame, states }
+        Track {
+            track_id: id,
+            agent_type: AgentType::Car,
+            length_m: 4.0,
+            width_m: 2.0,
+            first_frame,
+            states,
+        }
     }
 
     fn map() -> LaneletMap {
@@ -391,7 +487,13 @@ mod tests {
     fn dataset(tracks: Vec<Track>, config: WindowConfig) -> Dataset {
         let first = tracks.iter().map(|t| t.first_frame).min().unwrap();
         let last = tracks.iter().map(Track::last_frame).max().unwrap();
-        let recording = Recording { location: "FIX".into(), file: "t.csv".into(), tracks, first_frame: first, last_frame: last };
+        let recording = Recording {
+            location: "FIX".into(),
+            file: "t.csv".into(),
+            tracks,
+            first_frame: first,
+            last_frame: last,
+        };
         let mut windows = Vec::new();
         let mut report = BuildReport::default();
         let map = map();
@@ -410,13 +512,27 @@ mod tests {
     }
 
     fn config() -> WindowConfig {
-        WindowConfig { window_steps: 4, stride_steps: 2, reference_step: 1, min_agents: 2, max_agents: 2, ..WindowConfig::default() }
+        WindowConfig {
+            window_steps: 4,
+            stride_steps: 2,
+            reference_step: 1,
+            min_agents: 2,
+            max_agents: 2,
+            ..WindowConfig::default()
+        }
     }
 
     #[test]
     fn windows_keep_the_nearest_agents_and_count_the_rest() {
         let still = |x: f32| (0..10).map(|_| [x, 2.0, 0.0]).collect::<Vec<_>>();
-        let ds = dataset(vec![track(1, 0, still(0.0)), track(2, 0, still(4.0)), track(3, 0, still(100.0))], config());
+        let ds = dataset(
+            vec![
+                track(1, 0, still(0.0)),
+                track(2, 0, still(4.0)),
+                track(3, 0, still(100.0)),
+            ],
+            config(),
+        );
         // Frames 0..=9, windows of 4 with stride 2: starts 0, 2, 4, 6.
         assert_eq!(ds.len(), 4);
         // Three present, max two: the far one goes, once per window.
@@ -430,44 +546,80 @@ mod tests {
         let back = w.frame.to_metres([s[0], s[1]]);
         assert!((back[1] - 2.0).abs() < 1e-5);
         assert!(w.polyline_count() > 0);
-        assert_eq!(w.polylines.len(), w.polyline_count() * w.polyline_points * 2);
-        assert!(ds.window(4).unwrap_err().to_string().contains("no window 4"));
+        assert_eq!(
+            w.polylines.len(),
+            w.polyline_count() * w.polyline_points * 2
+        );
+        assert!(
+            ds.window(4)
+                .unwrap_err()
+                .to_string()
+                .contains("no window 4")
+        );
     }
 
     #[test]
     fn too_few_agents_are_counted_and_validity_follows_tracks() {
         let moving = |n: usize| (0..n).map(|i| [i as f32, 0.0, 0.0]).collect::<Vec<_>>();
         // Track 2 exists only on frames 3..=5.
-        let ds = dataset(vec![track(1, 0, moving(10)), track(2, 3, moving(3))], config());
+        let ds = dataset(
+            vec![track(1, 0, moving(10)), track(2, 3, moving(3))],
+            config(),
+        );
         // Reference frames 1, 3, 5, 7: only 3 and 5 have two agents.
         assert_eq!(ds.len(), 2);
         assert_eq!(ds.report.windows_skipped_few_agents, 2);
         let w = ds.window(0).unwrap(); // start 2: frames 2..=5
         let second = w.track_ids.iter().position(|&id| id == 2).unwrap();
-        assert_eq!((0..4).map(|s| w.state(second, s).is_some()).collect::<Vec<_>>(), [false, true, true, true]);
+        assert_eq!(
+            (0..4)
+                .map(|s| w.state(second, s).is_some())
+                .collect::<Vec<_>>(),
+            [false, true, true, true]
+        );
     }
 
     #[test]
     fn heading_is_unwrapped_across_pi() {
-        let turn = vec![[0.0, 0.0, 3.1], [0.0, 0.0, -3.1], [0.0, 0.0, -3.0], [0.0, 0.0, 3.0]];
+        let turn = vec![
+            [0.0, 0.0, 3.1],
+            [0.0, 0.0, -3.1],
+            [0.0, 0.0, -3.0],
+            [0.0, 0.0, 3.0],
+        ];
         let other = vec![[5.0, 0.0, 0.0]; 4];
-        let ds = dataset(vec![track(1, 0, turn), track(2, 0, other)], WindowConfig { stride_steps: 1, ..config() });
+        let ds = dataset(
+            vec![track(1, 0, turn), track(2, 0, other)],
+            WindowConfig {
+                stride_steps: 1,
+                ..config()
+            },
+        );
         let w = ds.window(0).unwrap();
         let a = w.track_ids.iter().position(|&id| id == 1).unwrap();
         let h: Vec<f32> = (0..4).map(|s| w.state(a, s).unwrap()[2]).collect();
-        assert!((h[1] - (2.0 * std::f32::consts::PI - 3.1)).abs() < 1e-5, "{h:?}");
+        assert!(
+            (h[1] - (2.0 * std::f32::consts::PI - 3.1)).abs() < 1e-5,
+            "{h:?}"
+        );
         assert!(h.windows(2).all(|p| (p[1] - p[0]).abs() < 0.5), "{h:?}");
     }
 
     #[test]
     fn config_errors_name_the_key() {
-        let bad = WindowConfig { reference_step: 40, ..WindowConfig::default() };
+        let bad = WindowConfig {
+            reference_step: 40,
+            ..WindowConfig::default()
+        };
         assert!(bad.validate().unwrap_err().contains("reference_step"));
         let dir = std::env::temp_dir().join(format!("road-data-cfg-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let path = dir.join("c.toml");
         std::fs::write(&path, "window_step = 3\n").unwrap();
         let err = WindowConfig::load(&path).unwrap_err().to_string();
-        assert!(err.contains("window_step") && err.contains("c.toml"), "{err}");
+        assert!(
+            err.contains("window_step") && err.contains("c.toml"),
+            "{err}"
+        );
     }
 }

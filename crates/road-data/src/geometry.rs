@@ -35,7 +35,11 @@ pub fn resample(points: &[Point], count: usize) -> Vec<Point> {
             seg += 1;
         }
         let len = dist(points[seg], points[seg + 1]);
-        let t = if len > 0.0 { ((target - seg_start) / len).clamp(0.0, 1.0) } else { 0.0 };
+        let t = if len > 0.0 {
+            ((target - seg_start) / len).clamp(0.0, 1.0)
+        } else {
+            0.0
+        };
         let (a, b) = (points[seg], points[seg + 1]);
         out.push([a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1])]);
     }
@@ -46,7 +50,11 @@ pub fn resample(points: &[Point], count: usize) -> Vec<Point> {
 pub fn point_segment_distance(p: Point, a: Point, b: Point) -> f64 {
     let (dx, dy) = (b[0] - a[0], b[1] - a[1]);
     let len2 = dx * dx + dy * dy;
-    let t = if len2 > 0.0 { (((p[0] - a[0]) * dx + (p[1] - a[1]) * dy) / len2).clamp(0.0, 1.0) } else { 0.0 };
+    let t = if len2 > 0.0 {
+        (((p[0] - a[0]) * dx + (p[1] - a[1]) * dy) / len2).clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
     dist(p, [a[0] + t * dx, a[1] + t * dy])
 }
 
@@ -75,7 +83,10 @@ pub struct Aabb {
 
 impl Aabb {
     pub fn of(points: &[Point]) -> Self {
-        let mut b = Self { min: [f64::INFINITY; 2], max: [f64::NEG_INFINITY; 2] };
+        let mut b = Self {
+            min: [f64::INFINITY; 2],
+            max: [f64::NEG_INFINITY; 2],
+        };
         for p in points {
             b.min = [b.min[0].min(p[0]), b.min[1].min(p[1])];
             b.max = [b.max[0].max(p[0]), b.max[1].max(p[1])];
@@ -109,11 +120,24 @@ pub struct SegmentGrid {
 impl SegmentGrid {
     pub fn new(segments: Vec<(Point, Point)>, cell_m: f64) -> Self {
         let pts: Vec<Point> = segments.iter().flat_map(|&(a, b)| [a, b]).collect();
-        let bounds = if pts.is_empty() { Aabb { min: [0.0; 2], max: [0.0; 2] } } else { Aabb::of(&pts) };
+        let bounds = if pts.is_empty() {
+            Aabb {
+                min: [0.0; 2],
+                max: [0.0; 2],
+            }
+        } else {
+            Aabb::of(&pts)
+        };
         let cols = ((bounds.max[0] - bounds.min[0]) / cell_m).floor() as usize + 1;
         let rows = ((bounds.max[1] - bounds.min[1]) / cell_m).floor() as usize + 1;
-        let mut grid =
-            Self { cell_m, origin: bounds.min, cols, rows, cells: vec![Vec::new(); cols * rows], segments };
+        let mut grid = Self {
+            cell_m,
+            origin: bounds.min,
+            cols,
+            rows,
+            cells: vec![Vec::new(); cols * rows],
+            segments,
+        };
         for (i, &(a, b)) in grid.segments.iter().enumerate() {
             let bb = Aabb::of(&[a, b]);
             let (c0, r0) = grid.cell_of(bb.min);
@@ -128,8 +152,12 @@ impl SegmentGrid {
     }
 
     fn cell_of(&self, p: Point) -> (usize, usize) {
-        let c = ((p[0] - self.origin[0]) / self.cell_m).floor().clamp(0.0, (self.cols - 1) as f64) as usize;
-        let r = ((p[1] - self.origin[1]) / self.cell_m).floor().clamp(0.0, (self.rows - 1) as f64) as usize;
+        let c = ((p[0] - self.origin[0]) / self.cell_m)
+            .floor()
+            .clamp(0.0, (self.cols - 1) as f64) as usize;
+        let r = ((p[1] - self.origin[1]) / self.cell_m)
+            .floor()
+            .clamp(0.0, (self.rows - 1) as f64) as usize;
         (c, r)
     }
 
@@ -142,7 +170,10 @@ impl SegmentGrid {
         // Distance from p to the grid's own box: rings closer than that hold nothing.
         let outside = Aabb {
             min: self.origin,
-            max: [self.origin[0] + self.cols as f64 * self.cell_m, self.origin[1] + self.rows as f64 * self.cell_m],
+            max: [
+                self.origin[0] + self.cols as f64 * self.cell_m,
+                self.origin[1] + self.rows as f64 * self.cell_m,
+            ],
         }
         .distance(p);
         let mut best = f64::INFINITY;

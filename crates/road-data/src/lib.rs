@@ -26,17 +26,36 @@ pub use tracks::{AgentType, Recording, Track};
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
     #[error("cannot read or write: {source} ({path})")]
-    Io { path: PathBuf, source: std::io::Error },
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
     #[error("malformed track row: {reason} ({path}:{line})")]
-    Track { path: PathBuf, line: u64, reason: String },
+    Track {
+        path: PathBuf,
+        line: u64,
+        reason: String,
+    },
     #[error("unknown column layout: expected `{expected}`, found `{found}` ({path}:1)")]
-    Columns { path: PathBuf, expected: String, found: String },
+    Columns {
+        path: PathBuf,
+        expected: String,
+        found: String,
+    },
     #[error("bad map: {reason} ({path}, {element})")]
-    Map { path: PathBuf, element: String, reason: String },
+    Map {
+        path: PathBuf,
+        element: String,
+        reason: String,
+    },
     #[error("bad data folder: {reason} ({path})")]
     Layout { path: PathBuf, reason: String },
     #[error("bad validation list: {reason} ({path}:{line})")]
-    ValidationList { path: PathBuf, line: usize, reason: String },
+    ValidationList {
+        path: PathBuf,
+        line: usize,
+        reason: String,
+    },
     #[error("bad config: {reason} ({path})")]
     Config { path: PathBuf, reason: String },
     #[error("corrupt dataset cache: {reason} ({path})")]
@@ -49,7 +68,10 @@ pub enum Error {
 
 impl Error {
     pub(crate) fn io(path: &Path, source: std::io::Error) -> Self {
-        Self::Io { path: path.to_owned(), source }
+        Self::Io {
+            path: path.to_owned(),
+            source,
+        }
     }
 }
 

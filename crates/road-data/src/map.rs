@@ -6,7 +6,9 @@ use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
-use crate::geometry::{Aabb, Point, SegmentGrid, dist, point_in_polygon, polyline_length, resample};
+use crate::geometry::{
+    Aabb, Point, SegmentGrid, dist, point_in_polygon, polyline_length, resample,
+};
 use crate::{Error, Result};
 
 /// UTM zone of every INTERACTION map (its lat/lon sit around (0, 0)).
@@ -24,7 +26,11 @@ pub fn project(lat_deg: f64, lon_deg: f64) -> Point {
     // latitude 0 down): take it off so that the frame is continuous across the equator.
     let utm = |lat, lon| {
         let (north, east, _) = utm::to_utm_wgs84(lat, lon, UTM_ZONE);
-        let north = if north > 5_000_000.0 { north - 10_000_000.0 } else { north };
+        let north = if north > 5_000_000.0 {
+            north - 10_000_000.0
+        } else {
+            north
+        };
         (north, east)
     };
     let (north, east) = utm(lat_deg, lon_deg);
@@ -55,7 +61,11 @@ pub struct Lanelet {
 impl Lanelet {
     /// The lanelet's area: left bound, then right bound backwards.
     pub fn polygon(&self) -> Vec<Point> {
-        self.left_m.iter().chain(self.right_m.iter().rev()).copied().collect()
+        self.left_m
+            .iter()
+            .chain(self.right_m.iter().rev())
+            .copied()
+            .collect()
     }
 
     pub fn contains(&self, p: Point) -> bool {
@@ -86,15 +96,28 @@ impl LaneletMap {
 
     /// Parses OSM XML text; `path` only names the input in errors.
     pub fn parse(text: &str, path: &Path, location: &str) -> Result<Self> {
-        let map_err = |element: String, reason: String| Error::Map { path: path.to_owned(), element, reason };
-        let doc = roxmltree::Document::parse(text).map_err(|e| map_err("document".into(), e.to_string()))?;
+        let map_err = |element: String, reason: String| Error::Map {
+            path: path.to_owned(),
+            element,
+            reason,
+        };
+        let doc = roxmltree::Document::parse(text)
+            .map_err(|e| map_err("document".into(), e.to_string()))?;
         let line_of = |n: roxmltree::Node| doc.text_pos_at(n.range().start).row;
 
         let id_attr = |n: roxmltree::Node, what: &str| -> Result<i64> {
             let raw = n.attribute("id").ok_or_else(|| {
-                map_err(format!("{what} at line {}", line_of(n)), "missing attribute `id`".into())
+                map_err(
+                    format!("{what} at line {}", line_of(n)),
+                    "missing attribute `id`".into(),
+                )
             })?;
-            raw.parse().map_err(|_| map_err(format!("{what} at line {}", line_of(n)), format!("bad id `{raw}`")))
+            raw.parse().map_err(|_| {
+                map_err(
+                    format!("{what} at line {}", line_of(n)),
+                    format!("bad id `{raw}`"),
+                )
+            })
         };
 
         let mut nodes: HashMap<i64, Point> = HashMap::new();
@@ -106,11 +129,17 @@ impl LaneletMap {
                     let id = id_attr(n, "node")?;
                     let coord = |key: &str| -> Result<f64> {
                         let raw = n.attribute(key).ok_or_else(|| {
-                            map_err(format!("node {id} (line {})", line_of(n)), format!("missing attribute `{key}`"))
+                            map_err(
+                                format!("node {id} (line {})", line_of(n)),
+                                format!("missing attribute `{key}`"),
+                            )
                         })?;
                         match raw.parse::<f64>() {
                             Ok(v) if v.is_finite() => Ok(v),
-                            _ => Err(map_err(format!("node {id} (line {})", line_of(n)), format!("bad {key} `{raw}`"))),
+                            _ => Err(map_err(
+                                format!("node {id} (line {})", line_of(n)),
+                                format!("bad {key} `{raw}`"),
+                            )),
                         }
                     };
                     nodes.insert(id, project(coord("lat")?, coord("lon")?));
@@ -121,9 +150,14 @@ impl LaneletMap {
                         .children()
                         .filter(|c| c.has_tag_name("nd"))
                         .map(|c| {
-                            c.attribute("ref").and_then(|r| r.parse::<i64>().ok()).ok_or_else(|| {
-                                map_err(format!("way {id} (line {})", line_of(c)), "nd without a numeric `ref`".into())
-                            })
+                            c.attribute("ref")
+                                .and_then(|r| r.parse::<i64>().ok())
+                                .ok_or_else(|| {
+                                    map_err(
+                                        format!("way {id} (line {})", line_of(c)),
+                                        "nd without a numeric `ref`".into(),
+                                    )
+                                })
                         })
                         .collect::<Result<Vec<_>>>()?;
                     ways.insert(id, refs);
@@ -135,18 +169,27 @@ impl LaneletMap {
 
         let way_points = |way: i64, lanelet: i64| -> Result<Vec<Point>> {
             let refs = ways.get(&way).ok_or_else(|| {
-                map_err(format!("relation {lanelet}"), format!("member way {way} does not exist"))
+                map_err(
+                    format!("relation {lanelet}"),
+                    format!("member way {way} does not exist"),
+                )
             })?;
             let pts = refs
                 .iter()
                 .map(|r| {
                     nodes.get(r).copied().ok_or_else(|| {
-                        map_err(format!("way {way}"), format!("node {r} does not exist (used by lanelet {lanelet})"))
+                        map_err(
+                            format!("way {way}"),
+                            format!("node {r} does not exist (used by lanelet {lanelet})"),
+                        )
                     })
                 })
                 .collect::<Result<Vec<_>>>()?;
             if pts.len() < 2 {
-                return Err(map_err(format!("way {way}"), format!("a lanelet bound needs two nodes, has {}", pts.len())));
+                return Err(map_err(
+                    format!("way {way}"),
+                    format!("a lanelet bound needs two nodes, has {}", pts.len()),
+                ));
             }
             Ok(pts)
         };
@@ -167,25 +210,43 @@ impl LaneletMap {
             }
             let member = |role: &str| -> Result<i64> {
                 r.children()
-                    .find(|c| c.has_tag_name("member") && c.attribute("role") == Some(role) && c.attribute("type") == Some("way"))
+                    .find(|c| {
+                        c.has_tag_name("member")
+                            && c.attribute("role") == Some(role)
+                            && c.attribute("type") == Some("way")
+                    })
                     .and_then(|c| c.attribute("ref"))
                     .and_then(|v| v.parse().ok())
-                    .ok_or_else(|| map_err(format!("relation {id} (line {})", line_of(r)), format!("lanelet without a `{role}` way")))
+                    .ok_or_else(|| {
+                        map_err(
+                            format!("relation {id} (line {})", line_of(r)),
+                            format!("lanelet without a `{role}` way"),
+                        )
+                    })
             };
             let (left_way, right_way) = (member("left")?, member("right")?);
             let left = way_points(left_way, id)?;
             let mut right = way_points(right_way, id)?;
             // Lanelet2 lets a bound be stored against the driving direction (the left bound
             // defines it): turn the right bound round when its ends pair up crosswise.
-            let straight = dist(left[0], right[0]) + dist(left[left.len() - 1], right[right.len() - 1]);
-            let crossed = dist(left[0], right[right.len() - 1]) + dist(left[left.len() - 1], right[0]);
+            let straight =
+                dist(left[0], right[0]) + dist(left[left.len() - 1], right[right.len() - 1]);
+            let crossed =
+                dist(left[0], right[right.len() - 1]) + dist(left[left.len() - 1], right[0]);
             if crossed < straight {
                 right.reverse();
             }
             let longest = polyline_length(&left).max(polyline_length(&right));
-            let count = ((longest / CENTRE_SPACING_M).ceil() as usize + 1).max(left.len()).max(right.len()).max(2);
+            let count = ((longest / CENTRE_SPACING_M).ceil() as usize + 1)
+                .max(left.len())
+                .max(right.len())
+                .max(2);
             let (l, rr) = (resample(&left, count), resample(&right, count));
-            let centre = l.iter().zip(&rr).map(|(a, b)| [(a[0] + b[0]) / 2.0, (a[1] + b[1]) / 2.0]).collect();
+            let centre = l
+                .iter()
+                .zip(&rr)
+                .map(|(a, b)| [(a[0] + b[0]) / 2.0, (a[1] + b[1]) / 2.0])
+                .collect();
             let bounds = Aabb::of(&[left.as_slice(), right.as_slice()].concat());
             lanelets.push(Lanelet {
                 id,
@@ -205,7 +266,11 @@ impl LaneletMap {
         }
         lanelets.sort_by_key(|l| l.id);
         link_topology(&mut lanelets);
-        Ok(Self { location: location.to_owned(), lanelets, skipped })
+        Ok(Self {
+            location: location.to_owned(),
+            lanelets,
+            skipped,
+        })
     }
 
     /// Index of a lanelet that contains `p`, if any (off-road when none).
@@ -225,14 +290,26 @@ impl LaneletMap {
 
     /// Centre lines resampled to `points` points each, in lanelet order: the map polylines.
     pub fn centre_polylines(&self, points: usize) -> Vec<Vec<Point>> {
-        self.lanelets.iter().map(|l| resample(&l.centre_m, points)).collect()
+        self.lanelets
+            .iter()
+            .map(|l| resample(&l.centre_m, points))
+            .collect()
     }
 }
 
 fn link_topology(lanelets: &mut [Lanelet]) {
     let ends: Vec<(Point, Point, Point, Point, i64, i64)> = lanelets
         .iter()
-        .map(|l| (l.left_m[0], l.right_m[0], *l.left_m.last().unwrap(), *l.right_m.last().unwrap(), l.left_way, l.right_way))
+        .map(|l| {
+            (
+                l.left_m[0],
+                l.right_m[0],
+                *l.left_m.last().unwrap(),
+                *l.right_m.last().unwrap(),
+                l.left_way,
+                l.right_way,
+            )
+        })
         .collect();
     for (i, a) in ends.iter().enumerate() {
         for (j, b) in ends.iter().enumerate() {
@@ -261,10 +338,16 @@ pub(crate) mod tests {
         for row in 0..3 {
             for col in 0..3 {
                 let id = 1000 + row * 10 + col;
-                s += &format!("  <node id=\"{id}\" lat=\"{}\" lon=\"{}\" />\n", row as f64 * d, col as f64 * d * 3.0);
+                s += &format!(
+                    "  <node id=\"{id}\" lat=\"{}\" lon=\"{}\" />\n",
+                    row as f64 * d,
+                    col as f64 * d * 3.0
+                );
             }
         }
-        let way = |id: i64, a: i64, b: i64| format!("  <way id=\"{id}\"><nd ref=\"{a}\"/><nd ref=\"{b}\"/></way>\n");
+        let way = |id: i64, a: i64, b: i64| {
+            format!("  <way id=\"{id}\"><nd ref=\"{a}\"/><nd ref=\"{b}\"/></way>\n")
+        };
         s += &way(1, 1010, 1011); // middle row, col 0→1
         s += &way(2, 1000, 1001); // bottom row
         s += &way(3, 1011, 1012);
@@ -317,13 +400,30 @@ pub(crate) mod tests {
     #[test]
     fn missing_node_and_way_are_named() {
         let bad = fixture_osm().replace("<nd ref=\"1012\"/>", "<nd ref=\"999\"/>");
-        let err = LaneletMap::parse(&bad, Path::new("bad.osm"), "FIX").unwrap_err().to_string();
-        assert!(err.contains("node 999 does not exist") && err.contains("bad.osm") && err.contains("way 3"), "{err}");
+        let err = LaneletMap::parse(&bad, Path::new("bad.osm"), "FIX")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("node 999 does not exist")
+                && err.contains("bad.osm")
+                && err.contains("way 3"),
+            "{err}"
+        );
         let bad = fixture_osm().replace("ref=\"5\" role=\"left\"", "ref=\"77\" role=\"left\"");
-        let err = LaneletMap::parse(&bad, Path::new("bad.osm"), "FIX").unwrap_err().to_string();
-        assert!(err.contains("member way 77 does not exist") && err.contains("relation 30002"), "{err}");
+        let err = LaneletMap::parse(&bad, Path::new("bad.osm"), "FIX")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("member way 77 does not exist") && err.contains("relation 30002"),
+            "{err}"
+        );
         let bad = fixture_osm().replace("lat=\"0\" lon=\"0\"", "lat=\"NaN\" lon=\"0\"");
-        let err = LaneletMap::parse(&bad, Path::new("bad.osm"), "FIX").unwrap_err().to_string();
-        assert!(err.contains("node 1000") && err.contains("bad lat"), "{err}");
+        let err = LaneletMap::parse(&bad, Path::new("bad.osm"), "FIX")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("node 1000") && err.contains("bad lat"),
+            "{err}"
+        );
     }
 }

@@ -57,12 +57,18 @@ pub struct SourceSet {
 
 impl SourceSet {
     pub fn discover(root: &Path) -> Result<Self> {
-        let layout = |path: &Path, reason: String| Error::Layout { path: path.to_owned(), reason };
+        let layout = |path: &Path, reason: String| Error::Layout {
+            path: path.to_owned(),
+            reason,
+        };
         let maps_dir = root.join("maps");
         let tracks_dir = root.join("recorded_trackfiles");
         for dir in [&maps_dir, &tracks_dir] {
             if !dir.is_dir() {
-                return Err(layout(dir, "folder not found: is this an INTERACTION data folder?".into()));
+                return Err(layout(
+                    dir,
+                    "folder not found: is this an INTERACTION data folder?".into(),
+                ));
             }
         }
         let read_dir = |dir: &Path| -> Result<Vec<PathBuf>> {
@@ -76,7 +82,11 @@ impl SourceSet {
 
         let mut maps = BTreeMap::new();
         for path in read_dir(&maps_dir)? {
-            let name = path.file_name().unwrap_or_default().to_string_lossy().into_owned();
+            let name = path
+                .file_name()
+                .unwrap_or_default()
+                .to_string_lossy()
+                .into_owned();
             if let Some(location) = name.strip_suffix(".osm") {
                 maps.insert(location.to_owned(), path);
             }
@@ -88,29 +98,58 @@ impl SourceSet {
                 let n = p.file_name().unwrap_or_default().to_string_lossy();
                 n.starts_with("validation-set-list") && n.ends_with(".txt")
             })
-            .ok_or_else(|| layout(&tracks_dir, "no validation-set-list*.txt: the split cannot be made".into()))?;
+            .ok_or_else(|| {
+                layout(
+                    &tracks_dir,
+                    "no validation-set-list*.txt: the split cannot be made".into(),
+                )
+            })?;
         let listed = parse_validation_list(&list_path)?;
 
         let mut train = Vec::new();
         let mut validation = Vec::new();
         let mut present = BTreeSet::new();
         for dir in read_dir(&tracks_dir)?.into_iter().filter(|p| p.is_dir()) {
-            let location = dir.file_name().unwrap_or_default().to_string_lossy().into_owned();
+            let location = dir
+                .file_name()
+                .unwrap_or_default()
+                .to_string_lossy()
+                .into_owned();
             for file in read_dir(&dir)? {
-                let name = file.file_name().unwrap_or_default().to_string_lossy().into_owned();
-                let Some(stem) = name.strip_suffix(".csv.gz").or_else(|| name.strip_suffix(".csv")) else {
+                let name = file
+                    .file_name()
+                    .unwrap_or_default()
+                    .to_string_lossy()
+                    .into_owned();
+                let Some(stem) = name
+                    .strip_suffix(".csv.gz")
+                    .or_else(|| name.strip_suffix(".csv"))
+                else {
                     continue;
                 };
                 if !stem.starts_with("vehicle_tracks_") {
                     continue;
                 }
                 if !maps.contains_key(&location) {
-                    return Err(layout(&file, format!("no map for location {location}: expected maps/{location}.osm")));
+                    return Err(layout(
+                        &file,
+                        format!("no map for location {location}: expected maps/{location}.osm"),
+                    ));
                 }
-                let size_bytes = std::fs::metadata(&file).map_err(|e| Error::io(&file, e))?.len();
-                let relative_path = file.strip_prefix(root).unwrap_or(&file).to_string_lossy().into_owned();
+                let size_bytes = std::fs::metadata(&file)
+                    .map_err(|e| Error::io(&file, e))?
+                    .len();
+                let relative_path = file
+                    .strip_prefix(root)
+                    .unwrap_or(&file)
+                    .to_string_lossy()
+                    .into_owned();
                 let key = (location.clone(), stem.to_owned());
-                let source = TrackSource { location: location.clone(), relative_path, size_bytes };
+                let source = TrackSource {
+                    location: location.clone(),
+                    relative_path,
+                    size_bytes,
+                };
                 if listed.contains(&key) {
                     validation.push(source);
                 } else {
@@ -119,8 +158,10 @@ impl SourceSet {
                 present.insert(key);
             }
         }
-        let missing_validation: Vec<String> =
-            listed.difference(&present).map(|(loc, stem)| format!("{loc}/{stem}")).collect();
+        let missing_validation: Vec<String> = listed
+            .difference(&present)
+            .map(|(loc, stem)| format!("{loc}/{stem}"))
+            .collect();
         if !missing_validation.is_empty() {
             tracing::warn!(
                 count = missing_validation.len(),
@@ -128,7 +169,13 @@ impl SourceSet {
                 missing_validation.join(", ")
             );
         }
-        Ok(Self { root: root.to_owned(), maps, train, validation, missing_validation })
+        Ok(Self {
+            root: root.to_owned(),
+            maps,
+            train,
+            validation,
+            missing_validation,
+        })
     }
 
     pub fn split(&self, split: Split) -> &[TrackSource] {
@@ -165,7 +212,11 @@ pub fn parse_validation_text(text: &str, path: &Path) -> Result<BTreeSet<(String
                 out.insert((loc, line.to_owned()));
             }
         } else {
-            return Err(Error::ValidationList { path: path.to_owned(), line: i + 1, reason: format!("unexpected line `{line}`") });
+            return Err(Error::ValidationList {
+                path: path.to_owned(),
+                line: i + 1,
+                reason: format!("unexpected line `{line}`"),
+            });
         }
     }
     Ok(out)
@@ -181,9 +232,13 @@ mod tests {
         let set = parse_validation_text(text, Path::new("list.txt")).unwrap();
         assert_eq!(set.len(), 3);
         assert!(set.contains(&("DR_A".into(), "vehicle_tracks_002".into())));
-        let err = parse_validation_text("vehicle_tracks_001\n", Path::new("list.txt")).unwrap_err().to_string();
+        let err = parse_validation_text("vehicle_tracks_001\n", Path::new("list.txt"))
+            .unwrap_err()
+            .to_string();
         assert!(err.contains("list.txt:1"), "{err}");
-        let err = parse_validation_text("DR_A\nhello\n", Path::new("list.txt")).unwrap_err().to_string();
+        let err = parse_validation_text("DR_A\nhello\n", Path::new("list.txt"))
+            .unwrap_err()
+            .to_string();
         assert!(err.contains("list.txt:2") && err.contains("hello"), "{err}");
     }
 }

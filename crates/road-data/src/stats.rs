@@ -51,7 +51,11 @@ impl LocationStats {
 pub fn split_stats(ds: &Dataset) -> SplitStats {
     let mut counts: Vec<usize> = ds.windows.iter().map(|w| w.agents.len()).collect();
     counts.sort_unstable();
-    let mean = if counts.is_empty() { 0.0 } else { counts.iter().sum::<usize>() as f64 / counts.len() as f64 };
+    let mean = if counts.is_empty() {
+        0.0
+    } else {
+        counts.iter().sum::<usize>() as f64 / counts.len() as f64
+    };
     let p95 = percentile(&counts, 0.95);
     let (mut sum_sq, mut n) = (0.0f64, 0usize);
     for w in &ds.windows {
@@ -75,7 +79,11 @@ pub fn split_stats(ds: &Dataset) -> SplitStats {
         agents_mean: mean,
         agents_p95: p95,
         agents_max: counts.last().copied().unwrap_or(0),
-        position_rms_m: if n > 0 { (sum_sq / n as f64).sqrt() } else { 0.0 },
+        position_rms_m: if n > 0 {
+            (sum_sq / n as f64).sqrt()
+        } else {
+            0.0
+        },
         windows_skipped_few_agents: ds.report.windows_skipped_few_agents,
         agents_dropped_over_max: ds.report.agents_dropped_over_max,
         polylines_dropped_over_max: ds.report.polylines_dropped_over_max,
@@ -99,23 +107,27 @@ pub fn location_stats(datasets: &[&Dataset]) -> Vec<LocationStats> {
     for ds in datasets {
         for map in &ds.maps {
             let grid = map.centre_grid(10.0);
-            let entry = by_location.entry(map.location.clone()).or_insert_with(|| LocationStats {
-                location: map.location.clone(),
-                files: 0,
-                hours: 0.0,
-                windows: 0,
-                polylines: map.lanelets.len(),
-                non_lanelet_relations: map.skipped.non_lanelet_relations,
-                track_points: 0,
-                median_lane_distance_m: f64::NAN,
-            });
+            let entry = by_location
+                .entry(map.location.clone())
+                .or_insert_with(|| LocationStats {
+                    location: map.location.clone(),
+                    files: 0,
+                    hours: 0.0,
+                    windows: 0,
+                    polylines: map.lanelets.len(),
+                    non_lanelet_relations: map.skipped.non_lanelet_relations,
+                    track_points: 0,
+                    median_lane_distance_m: f64::NAN,
+                });
             let d = distances.entry(map.location.clone()).or_default();
             for recording in ds.recordings.iter().filter(|r| r.location == map.location) {
                 entry.files += 1;
                 entry.hours += recording.duration_secs() / 3600.0;
                 for track in &recording.tracks {
                     for &[x, y, _] in &track.states {
-                        let nearest = grid.nearest_distance([f64::from(x), f64::from(y)]).unwrap_or(f64::INFINITY);
+                        let nearest = grid
+                            .nearest_distance([f64::from(x), f64::from(y)])
+                            .unwrap_or(f64::INFINITY);
                         d.push(nearest as f32);
                     }
                 }
@@ -129,7 +141,9 @@ pub fn location_stats(datasets: &[&Dataset]) -> Vec<LocationStats> {
         }
     }
     for (location, entry) in &mut by_location {
-        let d = distances.get_mut(location).expect("every location has a distance list");
+        let d = distances
+            .get_mut(location)
+            .expect("every location has a distance list");
         entry.track_points = d.len();
         if !d.is_empty() {
             let mid = d.len() / 2;

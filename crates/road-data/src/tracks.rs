@@ -8,8 +8,19 @@ use serde::{Deserialize, Serialize};
 use crate::{Error, Result};
 
 /// The column layout this reader accepts, in order.
-pub const TRACK_COLUMNS: [&str; 11] =
-    ["track_id", "frame_id", "timestamp_ms", "agent_type", "x", "y", "vx", "vy", "psi_rad", "length", "width"];
+pub const TRACK_COLUMNS: [&str; 11] = [
+    "track_id",
+    "frame_id",
+    "timestamp_ms",
+    "agent_type",
+    "x",
+    "y",
+    "vx",
+    "vy",
+    "psi_rad",
+    "length",
+    "width",
+];
 
 /// Recording rate of every INTERACTION file.
 pub const STEP_SECS: f64 = 0.1;
@@ -58,7 +69,10 @@ impl Track {
 
     /// State at `frame`, if the track covers it.
     pub fn state_at(&self, frame: u32) -> Option<[f32; 3]> {
-        frame.checked_sub(self.first_frame).and_then(|i| self.states.get(i as usize)).copied()
+        frame
+            .checked_sub(self.first_frame)
+            .and_then(|i| self.states.get(i as usize))
+            .copied()
     }
 }
 
@@ -80,10 +94,15 @@ impl Recording {
 
     pub fn load(path: &Path, location: &str) -> Result<Self> {
         let file = std::fs::File::open(path).map_err(|source| Error::io(path, source))?;
-        let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        let name = path
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
         if name.ends_with(".gz") {
             let mut text = String::new();
-            flate2::read::GzDecoder::new(file).read_to_string(&mut text).map_err(|source| Error::io(path, source))?;
+            flate2::read::GzDecoder::new(file)
+                .read_to_string(&mut text)
+                .map_err(|source| Error::io(path, source))?;
             Self::parse(text.as_bytes(), path, location)
         } else {
             Self::parse(std::io::BufReader::new(file), path, location)
@@ -92,10 +111,23 @@ impl Recording {
 
     /// Parses CSV text; `path` only names the input in errors.
     pub fn parse(reader: impl Read, path: &Path, location: &str) -> Result<Self> {
-        let row_err = |line: u64, reason: String| Error::Track { path: path.to_owned(), line, reason };
-        let mut csv = csv::ReaderBuilder::new().has_headers(true).from_reader(reader);
-        let header = csv.headers().map_err(|e| row_err(1, e.to_string()))?.clone();
-        if header.iter().map(str::trim).ne(TRACK_COLUMNS.iter().copied()) {
+        let row_err = |line: u64, reason: String| Error::Track {
+            path: path.to_owned(),
+            line,
+            reason,
+        };
+        let mut csv = csv::ReaderBuilder::new()
+            .has_headers(true)
+            .from_reader(reader);
+        let header = csv
+            .headers()
+            .map_err(|e| row_err(1, e.to_string()))?
+            .clone();
+        if header
+            .iter()
+            .map(str::trim)
+            .ne(TRACK_COLUMNS.iter().copied())
+        {
             return Err(Error::Columns {
                 path: path.to_owned(),
                 expected: TRACK_COLUMNS.join(","),
@@ -116,12 +148,24 @@ impl Recording {
             let line = record.position().map_or(0, |p| p.line());
             let field = |i: usize| record.get(i).unwrap_or("").trim();
             let int = |i: usize| -> Result<u32> {
-                field(i).parse().map_err(|_| row_err(line, format!("{} is not an integer: `{}`", TRACK_COLUMNS[i], field(i))))
+                field(i).parse().map_err(|_| {
+                    row_err(
+                        line,
+                        format!("{} is not an integer: `{}`", TRACK_COLUMNS[i], field(i)),
+                    )
+                })
             };
             let real = |i: usize| -> Result<f64> {
                 match field(i).parse::<f64>() {
                     Ok(v) if v.is_finite() => Ok(v),
-                    _ => Err(row_err(line, format!("{} is not a finite number: `{}`", TRACK_COLUMNS[i], field(i)))),
+                    _ => Err(row_err(
+                        line,
+                        format!(
+                            "{} is not a finite number: `{}`",
+                            TRACK_COLUMNS[i],
+                            field(i)
+                        ),
+                    )),
                 }
             };
             let (track_id, frame) = (int(0)?, int(1)?);
@@ -129,7 +173,10 @@ impl Recording {
                 .ok_or_else(|| row_err(line, format!("unknown agent_type `{}`", field(3))))?;
             let (x, y, psi, length, width) = (real(4)?, real(5)?, real(8)?, real(9)?, real(10)?);
             if length <= 0.0 || width <= 0.0 {
-                return Err(row_err(line, format!("agent size must be positive, got length {length} width {width}")));
+                return Err(row_err(
+                    line,
+                    format!("agent size must be positive, got length {length} width {width}"),
+                ));
             }
             let state = [x as f32, y as f32, psi as f32];
             match tracks.last_mut() {
@@ -138,14 +185,20 @@ impl Recording {
                     if frame != expected {
                         return Err(row_err(
                             line,
-                            format!("track {track_id} jumps from frame {} to {frame}: frames must be contiguous", expected - 1),
+                            format!(
+                                "track {track_id} jumps from frame {} to {frame}: frames must be contiguous",
+                                expected - 1
+                            ),
                         ));
                     }
                     t.states.push(state);
                 }
                 _ => {
                     if tracks.iter().any(|t| t.track_id == track_id) {
-                        return Err(row_err(line, format!("track {track_id} appears again after other tracks")));
+                        return Err(row_err(
+                            line,
+                            format!("track {track_id} appears again after other tracks"),
+                        ));
                     }
                     tracks.push(Track {
                         track_id,
@@ -163,8 +216,17 @@ impl Recording {
         }
         let first_frame = tracks.iter().map(|t| t.first_frame).min().unwrap_or(0);
         let last_frame = tracks.iter().map(Track::last_frame).max().unwrap_or(0);
-        let file = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-        Ok(Self { location: location.to_owned(), file, tracks, first_frame, last_frame })
+        let file = path
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        Ok(Self {
+            location: location.to_owned(),
+            file,
+            tracks,
+            first_frame,
+            last_frame,
+        })
     }
 }
 
@@ -172,10 +234,15 @@ impl Recording {
 mod tests {
     use super::*;
 
-    const HEADER: &str = "track_id,frame_id,timestamp_ms,agent_type,x,y,vx,vy,psi_rad,length,width\n";
+    const HEADER: &str =
+        "track_id,frame_id,timestamp_ms,agent_type,x,y,vx,vy,psi_rad,length,width\n";
 
     fn parse(body: &str) -> Result<Recording> {
-        Recording::parse(format!("{HEADER}{body}").as_bytes(), Path::new("t.csv"), "LOC")
+        Recording::parse(
+            format!("{HEADER}{body}").as_bytes(),
+            Path::new("t.csv"),
+            "LOC",
+        )
     }
 
     #[test]
@@ -192,15 +259,35 @@ mod tests {
 
     #[test]
     fn bad_rows_name_file_and_line() {
-        let e = parse("1,1,100,car,1.0,2.0,0,0,0.5,4.0,1.8\n1,2,200,car,NaN,2.0,0,0,0.5,4.0,1.8\n").unwrap_err().to_string();
-        assert!(e.contains("t.csv:3") && e.contains("x is not a finite number"), "{e}");
+        let e = parse("1,1,100,car,1.0,2.0,0,0,0.5,4.0,1.8\n1,2,200,car,NaN,2.0,0,0,0.5,4.0,1.8\n")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("t.csv:3") && e.contains("x is not a finite number"),
+            "{e}"
+        );
         let e = parse("1,1,100,car,1.0,2.0,0,0\n").unwrap_err().to_string();
         assert!(e.contains("t.csv:2"), "{e}");
-        let e = parse("1,1,100,tank,1.0,2.0,0,0,0.5,4.0,1.8\n").unwrap_err().to_string();
-        assert!(e.contains("unknown agent_type `tank`") && e.contains("t.csv:2"), "{e}");
-        let e = parse("1,1,100,car,1,2,0,0,0.5,4,1.8\n1,3,300,car,1,2,0,0,0.5,4,1.8\n").unwrap_err().to_string();
-        assert!(e.contains("jumps from frame 1 to 3") && e.contains("t.csv:3"), "{e}");
-        let e = Recording::parse("a,b,c\n1,2,3\n".as_bytes(), Path::new("t.csv"), "LOC").unwrap_err().to_string();
-        assert!(e.contains("unknown column layout") && e.contains("a,b,c"), "{e}");
+        let e = parse("1,1,100,tank,1.0,2.0,0,0,0.5,4.0,1.8\n")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("unknown agent_type `tank`") && e.contains("t.csv:2"),
+            "{e}"
+        );
+        let e = parse("1,1,100,car,1,2,0,0,0.5,4,1.8\n1,3,300,car,1,2,0,0,0.5,4,1.8\n")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("jumps from frame 1 to 3") && e.contains("t.csv:3"),
+            "{e}"
+        );
+        let e = Recording::parse("a,b,c\n1,2,3\n".as_bytes(), Path::new("t.csv"), "LOC")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("unknown column layout") && e.contains("a,b,c"),
+            "{e}"
+        );
     }
 }

@@ -9,8 +9,14 @@ use road_data::{Dataset, SourceSet, Split, WindowConfig, cache};
 fn data_dir() -> PathBuf {
     let dir = std::env::var_os("ROAD_DATA")
         .map(PathBuf::from)
-        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/interaction"));
-    assert!(dir.join("maps").is_dir(), "INTERACTION data not found at {} (set ROAD_DATA)", dir.display());
+        .unwrap_or_else(|| {
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/interaction")
+        });
+    assert!(
+        dir.join("maps").is_dir(),
+        "INTERACTION data not found at {} (set ROAD_DATA)",
+        dir.display()
+    );
     dir
 }
 
@@ -19,10 +25,20 @@ fn split_follows_the_official_list() {
     let sources = SourceSet::discover(&data_dir()).unwrap();
     assert_eq!(sources.train.len(), 132);
     assert_eq!(sources.validation.len(), 24);
-    assert!(sources.missing_validation.iter().any(|m| m.starts_with("DR_DEU_Merging_MT/")));
+    assert!(
+        sources
+            .missing_validation
+            .iter()
+            .any(|m| m.starts_with("DR_DEU_Merging_MT/"))
+    );
     // No file is in both splits.
     for v in &sources.validation {
-        assert!(!sources.train.iter().any(|t| t.relative_path == v.relative_path));
+        assert!(
+            !sources
+                .train
+                .iter()
+                .any(|t| t.relative_path == v.relative_path)
+        );
     }
 }
 
@@ -59,33 +75,70 @@ fn real_windows_are_well_formed_and_round_trip_through_the_cache() {
         let w = ds.window(index).unwrap();
         assert!(w.agents >= config.min_agents && w.agents <= config.max_agents);
         assert!(w.polyline_count() > 0, "window {index} has no map");
-        let recording = ds.recordings.iter().find(|r| r.file == w.file && r.location == w.location).unwrap();
+        let recording = ds
+            .recordings
+            .iter()
+            .find(|r| r.file == w.file && r.location == w.location)
+            .unwrap();
         for a in 0..w.agents {
             // Every agent is present at the reference step.
-            let s = w.state(a, config.reference_step).expect("agent present at the reference step");
+            let s = w
+                .state(a, config.reference_step)
+                .expect("agent present at the reference step");
             // Normalised positions are O(1); metres come back exactly.
-            assert!(s[0].abs() < 10.0 && s[1].abs() < 10.0, "window {index} agent {a}: {s:?}");
-            let track = recording.tracks.iter().find(|t| t.track_id == w.track_ids[a]).unwrap();
-            let raw = track.state_at(w.start_frame + config.reference_step as u32).unwrap();
+            assert!(
+                s[0].abs() < 10.0 && s[1].abs() < 10.0,
+                "window {index} agent {a}: {s:?}"
+            );
+            let track = recording
+                .tracks
+                .iter()
+                .find(|t| t.track_id == w.track_ids[a])
+                .unwrap();
+            let raw = track
+                .state_at(w.start_frame + config.reference_step as u32)
+                .unwrap();
             let back = w.frame.to_metres([s[0], s[1]]);
-            assert!((back[0] - f64::from(raw[0])).abs() < 1e-3 && (back[1] - f64::from(raw[1])).abs() < 1e-3);
+            assert!(
+                (back[0] - f64::from(raw[0])).abs() < 1e-3
+                    && (back[1] - f64::from(raw[1])).abs() < 1e-3
+            );
             // Headings are continuous: no ±2π jumps between valid neighbours.
             for t in 1..w.steps {
                 if let (Some(p), Some(q)) = (w.state(a, t - 1), w.state(a, t)) {
-                    assert!((q[2] - p[2]).abs() < 1.0, "window {index} agent {a} step {t}: {} → {}", p[2], q[2]);
+                    assert!(
+                        (q[2] - p[2]).abs() < 1.0,
+                        "window {index} agent {a} step {t}: {} → {}",
+                        p[2],
+                        q[2]
+                    );
                 }
             }
         }
-        assert!(w.states.iter().all(|v| v.is_finite()) && w.polylines.iter().all(|v| v.is_finite()));
+        assert!(
+            w.states.iter().all(|v| v.is_finite()) && w.polylines.iter().all(|v| v.is_finite())
+        );
     }
 
     let dir = std::env::temp_dir().join(format!("road-data-it-{}", std::process::id()));
     let path = cache::cache_path(&dir, Split::Validation);
     cache::save(&ds, &path).unwrap();
-    let back = cache::load_checked(&path, Split::Validation, Some(&config), Some(&sources)).unwrap();
+    let back =
+        cache::load_checked(&path, Split::Validation, Some(&config), Some(&sources)).unwrap();
     assert_eq!(back.len(), ds.len());
-    assert_eq!(back.window(ds.len() / 2).unwrap(), ds.window(ds.len() / 2).unwrap());
-    let other = WindowConfig { stride_steps: 20, ..config };
-    assert!(cache::load_checked(&path, Split::Validation, Some(&other), None).unwrap_err().to_string().contains("stale"));
+    assert_eq!(
+        back.window(ds.len() / 2).unwrap(),
+        ds.window(ds.len() / 2).unwrap()
+    );
+    let other = WindowConfig {
+        stride_steps: 20,
+        ..config
+    };
+    assert!(
+        cache::load_checked(&path, Split::Validation, Some(&other), None)
+            .unwrap_err()
+            .to_string()
+            .contains("stale")
+    );
     std::fs::remove_dir_all(&dir).ok();
 }

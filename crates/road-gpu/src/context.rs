@@ -16,7 +16,10 @@ pub struct ContextOptions {
 
 impl Default for ContextOptions {
     fn default() -> Self {
-        Self { validation: false, poll_timeout: Duration::from_secs(120) }
+        Self {
+            validation: false,
+            poll_timeout: Duration::from_secs(120),
+        }
     }
 }
 
@@ -57,7 +60,10 @@ impl GpuContext {
                 adapters
                     .into_iter()
                     .find(|a| a.get_info().name.to_lowercase().contains(&wanted_lower))
-                    .ok_or_else(|| Error::NoMatchingAdapter { wanted, available: described.join("; ") })?
+                    .ok_or_else(|| Error::NoMatchingAdapter {
+                        wanted,
+                        available: described.join("; "),
+                    })?
             }
             Err(_) => pick_preferred(adapters).ok_or(Error::NoAdapter(INSTALL_HINT))?,
         };
@@ -72,13 +78,22 @@ impl GpuContext {
             })
             .await
             .map_err(|e| Error::Device(e.to_string()))?;
-        Ok(Self { adapter, device, queue, info, poll_timeout: options.poll_timeout })
+        Ok(Self {
+            adapter,
+            device,
+            queue,
+            info,
+            poll_timeout: options.poll_timeout,
+        })
     }
 
     /// Blocks until the queue's work is done, within the poll timeout.
     pub fn wait(&self) -> Result<()> {
         self.device
-            .poll(wgpu::PollType::Wait { submission_index: None, timeout: Some(self.poll_timeout) })
+            .poll(wgpu::PollType::Wait {
+                submission_index: None,
+                timeout: Some(self.poll_timeout),
+            })
             .map(|_| ())
             .map_err(|e| Error::Poll(e.to_string()))
     }
@@ -102,9 +117,14 @@ fn pick_preferred(adapters: Vec<wgpu::Adapter>) -> Option<wgpu::Adapter> {
         wgpu::DeviceType::Other => 3,
         wgpu::DeviceType::Cpu => 4,
     };
-    adapters.into_iter().min_by_key(|a| rank(a.get_info().device_type))
+    adapters
+        .into_iter()
+        .min_by_key(|a| rank(a.get_info().device_type))
 }
 
 fn describe(info: &wgpu::AdapterInfo) -> String {
-    format!("{} ({:?}, {:?}, driver {} {})", info.name, info.device_type, info.backend, info.driver, info.driver_info)
+    format!(
+        "{} ({:?}, {:?}, driver {} {})",
+        info.name, info.device_type, info.backend, info.driver, info.driver_info
+    )
 }

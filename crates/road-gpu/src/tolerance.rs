@@ -30,7 +30,10 @@ impl std::fmt::Display for Mismatch {
 
 impl Tolerance {
     /// f32 kernels against an f64 or f32 reference (the 1e-4 relative).
-    pub const F32: Tolerance = Tolerance { rel: 1e-4, abs: 1e-6 };
+    pub const F32: Tolerance = Tolerance {
+        rel: 1e-4,
+        abs: 1e-6,
+    };
 
     pub fn accepts(&self, actual: f32, expected: f32) -> bool {
         (actual - expected).abs() <= self.abs + self.rel * expected.abs()
@@ -38,13 +41,24 @@ impl Tolerance {
 
     /// Compares element by element; lengths must match.
     pub fn check(&self, actual: &[f32], expected: &[f32]) -> Result<(), Mismatch> {
-        assert_eq!(actual.len(), expected.len(), "compared slices differ in length");
+        assert_eq!(
+            actual.len(),
+            expected.len(),
+            "compared slices differ in length"
+        );
         let mut first: Option<Mismatch> = None;
         for (i, (&a, &e)) in actual.iter().zip(expected).enumerate() {
             if !self.accepts(a, e) {
                 match &mut first {
                     Some(m) => m.count += 1,
-                    None => first = Some(Mismatch { index: i, actual: a, expected: e, count: 1 }),
+                    None => {
+                        first = Some(Mismatch {
+                            index: i,
+                            actual: a,
+                            expected: e,
+                            count: 1,
+                        })
+                    }
                 }
             }
         }
@@ -58,12 +72,17 @@ mod tests {
 
     #[test]
     fn relative_and_absolute_parts() {
-        let t = Tolerance { rel: 1e-3, abs: 1e-6 };
+        let t = Tolerance {
+            rel: 1e-3,
+            abs: 1e-6,
+        };
         assert!(t.accepts(1000.5, 1000.0));
         assert!(!t.accepts(1001.5, 1000.0));
         assert!(t.accepts(5e-7, 0.0));
         assert!(!t.accepts(f32::NAN, 0.0));
-        let m = t.check(&[1.0, 2.0, 9.0, 9.0], &[1.0, 2.0, 3.0, 4.0]).unwrap_err();
+        let m = t
+            .check(&[1.0, 2.0, 9.0, 9.0], &[1.0, 2.0, 3.0, 4.0])
+            .unwrap_err();
         assert_eq!((m.index, m.count), (2, 2));
     }
 }

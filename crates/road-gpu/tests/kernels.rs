@@ -8,8 +8,11 @@ use road_sched::EdmSchedule;
 /// The test adapter: validation on, `WGPU_BACKEND` / `WGPU_ADAPTER_NAME` honoured, software
 /// adapters accepted. No adapter is a failure, not a skip: CI installs lavapipe.
 fn context() -> GpuContext {
-    GpuContext::new(&ContextOptions { validation: true, ..ContextOptions::default() })
-        .unwrap_or_else(|e| panic!("GPU tests need an adapter: {e}"))
+    GpuContext::new(&ContextOptions {
+        validation: true,
+        ..ContextOptions::default()
+    })
+    .unwrap_or_else(|e| panic!("GPU tests need an adapter: {e}"))
 }
 
 #[test]
@@ -22,15 +25,28 @@ fn edm_preconditioning_matches_the_cpu_reference() {
     for count in [1usize, 63, 64, 65, 1000, 4099] {
         // σ over the whole schedule, plus clean slots (σ = 0).
         let sigma: Vec<f32> = (0..count)
-            .map(|i| if i % 17 == 3 { 0.0 } else { edm.sigma(rng.random_range(0.0..=1.0)) as f32 })
+            .map(|i| {
+                if i % 17 == 3 {
+                    0.0
+                } else {
+                    edm.sigma(rng.random_range(0.0..=1.0)) as f32
+                }
+            })
             .collect();
-        let got = kernel.run(&ctx, &sigma, edm.sigma_data as f32, edm.sigma_min as f32).unwrap();
+        let got = kernel
+            .run(&ctx, &sigma, edm.sigma_data as f32, edm.sigma_min as f32)
+            .unwrap();
         assert_eq!(got.len(), count);
         let mut expected = Vec::with_capacity(count * 4);
         for &s in &sigma {
             let p = edm.preconditioning(f64::from(s));
             let c_noise = f64::from(s).max(edm.sigma_min).ln() / 4.0;
-            expected.extend([p.c_skip as f32, p.c_out as f32, p.c_in as f32, c_noise as f32]);
+            expected.extend([
+                p.c_skip as f32,
+                p.c_out as f32,
+                p.c_in as f32,
+                c_noise as f32,
+            ]);
         }
         let actual: Vec<f32> = got.iter().flatten().copied().collect();
         if let Err(m) = Tolerance::F32.check(&actual, &expected) {

@@ -10,7 +10,9 @@ fn shader_dir() -> PathBuf {
 }
 
 fn wgsl_files(dir: &Path, out: &mut Vec<PathBuf>) {
-    for entry in std::fs::read_dir(dir).unwrap_or_else(|e| panic!("cannot list {}: {e}", dir.display())) {
+    for entry in
+        std::fs::read_dir(dir).unwrap_or_else(|e| panic!("cannot list {}: {e}", dir.display()))
+    {
         let path = entry.unwrap().path();
         if path.is_dir() {
             wgsl_files(&path, out);
@@ -21,17 +23,25 @@ fn wgsl_files(dir: &Path, out: &mut Vec<PathBuf>) {
 }
 
 fn validate(name: &str, source: &str) {
-    let module = naga::front::wgsl::parse_str(source).unwrap_or_else(|e| panic!("{name}: {}", e.emit_to_string(source)));
-    naga::valid::Validator::new(naga::valid::ValidationFlags::all(), naga::valid::Capabilities::all())
-        .validate(&module)
+    let module = naga::front::wgsl::parse_str(source)
         .unwrap_or_else(|e| panic!("{name}: {}", e.emit_to_string(source)));
+    naga::valid::Validator::new(
+        naga::valid::ValidationFlags::all(),
+        naga::valid::Capabilities::all(),
+    )
+    .validate(&module)
+    .unwrap_or_else(|e| panic!("{name}: {}", e.emit_to_string(source)));
 }
 
 #[test]
 fn every_shader_file_validates() {
     let mut files = Vec::new();
     wgsl_files(&shader_dir(), &mut files);
-    assert!(!files.is_empty(), "no shaders found under {}", shader_dir().display());
+    assert!(
+        !files.is_empty(),
+        "no shaders found under {}",
+        shader_dir().display()
+    );
     for path in &files {
         let source = std::fs::read_to_string(path).unwrap();
         // Helpers under shaders/common/ are included by kernel files, not compiled alone.
@@ -46,10 +56,18 @@ fn every_shader_file_validates() {
 fn every_kernel_file_is_embedded() {
     let mut files = Vec::new();
     wgsl_files(&shader_dir(), &mut files);
-    for path in files.iter().filter(|p| !p.parent().is_some_and(|p| p.ends_with("common"))) {
+    for path in files
+        .iter()
+        .filter(|p| !p.parent().is_some_and(|p| p.ends_with("common")))
+    {
         let name = path.file_name().unwrap().to_string_lossy();
         let shader = Shader::ALL.iter().find(|s| s.file_name() == name);
-        let shader = shader.unwrap_or_else(|| panic!("{name} is not listed in road_gpu::shaders::Shader"));
-        assert_eq!(shader.source(), std::fs::read_to_string(path).unwrap(), "{name} embedded copy differs");
+        let shader =
+            shader.unwrap_or_else(|| panic!("{name} is not listed in road_gpu::shaders::Shader"));
+        assert_eq!(
+            shader.source(),
+            std::fs::read_to_string(path).unwrap(),
+            "{name} embedded copy differs"
+        );
     }
 }

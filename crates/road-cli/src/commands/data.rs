@@ -83,14 +83,21 @@ pub fn run(cmd: DataCommand) -> Result<ExitCode> {
 
 fn window_config(args: &SourceArgs) -> Result<WindowConfig> {
     let config: WindowConfig = crate::config::load(args.config.as_deref(), &args.overrides)?;
-    config.validate().map_err(anyhow::Error::msg).context("bad window config")?;
+    config
+        .validate()
+        .map_err(anyhow::Error::msg)
+        .context("bad window config")?;
     Ok(config)
 }
 
 fn build_split(sources: &SourceSet, split: Split, config: &WindowConfig) -> Result<Dataset> {
     let started = Instant::now();
-    let ds = Dataset::build(sources, split, config)
-        .with_context(|| format!("cannot build the {split} split from {}", sources.root.display()))?;
+    let ds = Dataset::build(sources, split, config).with_context(|| {
+        format!(
+            "cannot build the {split} split from {}",
+            sources.root.display()
+        )
+    })?;
     tracing::info!(%split, files = ds.recordings.len(), windows = ds.len(), secs = started.elapsed().as_secs_f32(), "parsed");
     Ok(ds)
 }
@@ -128,7 +135,12 @@ fn report_skips(ds: &Dataset) {
         ds.config.max_polylines
     );
     if !r.missing_validation_files.is_empty() {
-        out!("{:<10} validation list names {} files absent here: {}", ds.split.name(), r.missing_validation_files.len(), r.missing_validation_files.join(", "));
+        out!(
+            "{:<10} validation list names {} files absent here: {}",
+            ds.split.name(),
+            r.missing_validation_files.len(),
+            r.missing_validation_files.join(", ")
+        );
     }
 }
 
@@ -142,13 +154,19 @@ fn load_datasets(args: &StatsArgs, config: &WindowConfig) -> Result<Vec<Dataset>
                 .iter()
                 .map(|&split| {
                     let path = cache::cache_path(dir, split);
-                    cache::load_checked(&path, split, Some(config), sources.as_ref()).map_err(anyhow::Error::from)
+                    cache::load_checked(&path, split, Some(config), sources.as_ref())
+                        .map_err(anyhow::Error::from)
                 })
                 .collect()
         }
         None => {
             let sources = SourceSet::discover(&args.source.data)?;
-            args.source.split.splits().iter().map(|&s| build_split(&sources, s, config)).collect()
+            args.source
+                .split
+                .splits()
+                .iter()
+                .map(|&s| build_split(&sources, s, config))
+                .collect()
         }
     }
 }
@@ -158,8 +176,10 @@ fn stats_cmd(args: &StatsArgs) -> Result<ExitCode> {
     let datasets = load_datasets(args, &config)?;
     let splits: Vec<SplitStats> = datasets.iter().map(stats::split_stats).collect();
     let locations = stats::location_stats(&datasets.iter().collect::<Vec<_>>());
-    let failing: Vec<&LocationStats> =
-        locations.iter().filter(|l| !l.passes_projection_check()).collect();
+    let failing: Vec<&LocationStats> = locations
+        .iter()
+        .filter(|l| !l.passes_projection_check())
+        .collect();
     if args.json {
         let json = serde_json::json!({ "data": args.source.data, "window_config": config, "splits": splits, "locations": locations, "projection_check_passed": failing.is_empty() });
         out!("{}", serde_json::to_string_pretty(&json)?);
@@ -179,7 +199,13 @@ fn stats_cmd(args: &StatsArgs) -> Result<ExitCode> {
     }
 }
 
-fn print_tables(data: &Path, config: &WindowConfig, splits: &[SplitStats], locations: &[LocationStats], datasets: &[Dataset]) {
+fn print_tables(
+    data: &Path,
+    config: &WindowConfig,
+    splits: &[SplitStats],
+    locations: &[LocationStats],
+    datasets: &[Dataset],
+) {
     out!("INTERACTION data in {}", data.display());
     out!(
         "windows: {} steps ({:.1} s), stride {}, agents present at step {} ({}..={}), map radius {} m, {} points per polyline",
@@ -198,7 +224,14 @@ fn print_tables(data: &Path, config: &WindowConfig, splits: &[SplitStats], locat
     for s in splits {
         out!(
             "| {} | {} | {:.2} | {} | {:.2} | {} | {} | {:.1} |",
-            s.split, s.files, s.hours, s.windows, s.agents_mean, s.agents_p95, s.agents_max, s.position_rms_m
+            s.split,
+            s.files,
+            s.hours,
+            s.windows,
+            s.agents_mean,
+            s.agents_p95,
+            s.agents_max,
+            s.position_rms_m
         );
     }
     out!("");
@@ -206,7 +239,9 @@ fn print_tables(data: &Path, config: &WindowConfig, splits: &[SplitStats], locat
         report_skips(ds);
     }
     out!("");
-    out!("| location | files | hours | windows | polylines | track points | median lane distance (m) | check |");
+    out!(
+        "| location | files | hours | windows | polylines | track points | median lane distance (m) | check |"
+    );
     out!("|---|---:|---:|---:|---:|---:|---:|---|");
     for l in locations {
         let ok = l.passes_projection_check();

@@ -36,13 +36,17 @@ pub struct PlanArgs {
 
 /// Reads a planners file: `[name]` tables of [`PlannerSpec`], validated.
 pub fn load_planners(path: &std::path::Path) -> Result<Vec<(String, PlannerSpec)>> {
-    let text = std::fs::read_to_string(path).with_context(|| format!("cannot read planners file {}", path.display()))?;
-    let table: toml::Table = toml::from_str(&text).with_context(|| format!("bad planners file {}", path.display()))?;
+    let text = std::fs::read_to_string(path)
+        .with_context(|| format!("cannot read planners file {}", path.display()))?;
+    let table: toml::Table =
+        toml::from_str(&text).with_context(|| format!("bad planners file {}", path.display()))?;
     let mut out = Vec::new();
     for (name, value) in table {
-        let spec: PlannerSpec =
-            value.try_into().with_context(|| format!("bad planner `{name}` in {}", path.display()))?;
-        spec.validate(&name).with_context(|| format!("in {}", path.display()))?;
+        let spec: PlannerSpec = value
+            .try_into()
+            .with_context(|| format!("bad planner `{name}` in {}", path.display()))?;
+        spec.validate(&name)
+            .with_context(|| format!("in {}", path.display()))?;
         out.push((name, spec));
     }
     Ok(out)
@@ -54,7 +58,11 @@ pub fn run(cmd: SchedCommand) -> Result<ExitCode> {
             out!("| planner | kind | n | F | K | X | NFE per step (40 steps) |");
             out!("|---|---|---:|---:|---:|---:|---:|");
             for (name, spec) in load_planners(&args.planners)? {
-                let ticks = if spec.kind == road_sched::PlannerKind::OneShot { spec.future_slots as u64 } else { 40 };
+                let ticks = if spec.kind == road_sched::PlannerKind::OneShot {
+                    spec.future_slots as u64
+                } else {
+                    40
+                };
                 out!(
                     "| {name} | {:?} | {} | {} | {} | {} | {:.2} |",
                     spec.kind,
@@ -73,12 +81,18 @@ pub fn run(cmd: SchedCommand) -> Result<ExitCode> {
             };
             let tables = PlannerTables::new(&name, spec.clone())?;
             let stages: &[StageKind] = match spec.kind {
-                road_sched::PlannerKind::Rolling | road_sched::PlannerKind::Autoregressive => &[StageKind::Warmup, StageKind::Rolling],
+                road_sched::PlannerKind::Rolling | road_sched::PlannerKind::Autoregressive => {
+                    &[StageKind::Warmup, StageKind::Rolling]
+                }
                 _ => &[StageKind::Full],
             };
             for &stage in stages {
                 let table = tables.stage(stage);
-                out!("{stage:?} stage: {} steps, {} NFE; σ per slot (observed slots first)", table.steps(), table.nfe());
+                out!(
+                    "{stage:?} stage: {} steps, {} NFE; σ per slot (observed slots first)",
+                    table.steps(),
+                    table.nfe()
+                );
                 for s in 0..table.steps() {
                     let p = table.step(s);
                     let row: Vec<String> = p.sigma_cur.iter().map(|v| format!("{v:8.3}")).collect();
@@ -88,7 +102,11 @@ pub fn run(cmd: SchedCommand) -> Result<ExitCode> {
                 let row: Vec<String> = last.sigma_next.iter().map(|v| format!("{v:8.3}")).collect();
                 out!("end          | {}", row.join(" "));
             }
-            out!("NFE per simulated step over {} steps: {:.2}", args.ticks, spec.expected_nfe_per_step(args.ticks));
+            out!(
+                "NFE per simulated step over {} steps: {:.2}",
+                args.ticks,
+                spec.expected_nfe_per_step(args.ticks)
+            );
         }
     }
     Ok(ExitCode::SUCCESS)

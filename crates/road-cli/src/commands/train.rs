@@ -1,0 +1,157 @@
+//! `road train`: train a denoiser from the dataset caches, with a progress bar, validation,
+//! a CSV log and checkpoints; `--resume` continues exactly.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use clap::Args;
+use indicatif::{ProgressBar, ProgressStyle};
+use road_data::{Dataset, SourceSet, Split, WindowConfig, cache};
+use road_model::RunConfig;
+use road_model::checkpoint::DataIdentity;
+use road_model::train::{TrainEvent, Trainer};
+
+#[derive(Debug, Args)]
+pub struct TrainArgs {
+    /// Run config (TOML with [model], [planner], [train]), e.g. configs/road20.toml.
+    #[arg(long)]
+    pub config: PathBuf,
+    /// Per-key override of the run config, e.g. `--set train.batch_scenes=8` (repeatable).
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub overrides: Vec<String>,
+    /// Checkpoint folder; defaults to models/<name>.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Continue the run in the checkpoint folder exactly where it stopped.
+    #[arg(long)]
+    pub resume: bool,
+    /// Stop after this many optimiser steps in total (default: the config's `train.steps`).
+    #[arg(long)]
+    pub until_step: Option<u64>,
+    /// Folder of `train.roadds` / `validation.roadds` (`road data build`); built from
+    /// --data into it when absent.
+    #[arg(long, default_value = ".road-cache")]
+    pub cache: PathBuf,
+    /// INTERACTION data folder, used when the caches must be built.
+    #[arg(long, env = "ROAD_DATA", default_value = "../shared/data/interaction")]
+    pub data: PathBuf,
+}
+
+fn load_or_build(args: &TrainArgs, split: Split, config: &WindowConfig) -> Result<Dataset> {
+    let path = cache::cache_path(&args.cache, split);
+    if path.is_file() {
+        return Ok(cache::load_checked(&path, split, Some(config), None)?);
+    }
+    tracing::info!(path = %path.display(), "no cache yet: building it from {}", args.data.display());
+    let sources = SourceSet::discover(&args.data)?;
+    let ds = Dataset::build(&sources, split, config)?;
+    cache::save(&ds, &path)?;
+    Ok(ds)
+}
+
+pub fn hardware() -> String {
+    let cpu = std::fs::read_to_string("/proc/cpuinfo")
+        .ok()
+        .and_then(|t| {
+            t.lines()
+                .find(|l| l.starts_with("model name"))
+                .map(|l| l.split(':').nth(1).unwrap_or("").trim().to_owned())
+        })
+        .unwrap_or_else(|| "unknown CPU".into());
+    let threads = std::thread::available_parallelism()
+        .map(|n| n.get())
+        .unwrap_or(1);
+    format!("{cpu}, {threads} threads (candle CPU)")
+}
+
+pub fn run(args: TrainArgs) -> Result<ExitCode> {
+    let run: RunConfig = crate::config::load(Some(&args.config), &args.overrides)?;
+    run.validate()
+        .map_err(anyhow::Error::msg)
+        .with_context(|| format!("bad run config {}", args.config.display()))?;
+    let window = WindowConfig::default();
+    anyhow::ensure!(
+        window.polyline_points == run.model.polyline_points
+            && window.position_scale_m == run.model.position_scale_m,
+        "model.polyline_points / position_scale_m must equal configs/data.toml's ({}, {})",
+        window.polyline_points,
+        window.position_scale_m
+    );
+    let train_set = load_or_build(&args, Split::Train, &window)?;
+    let validation_set = load_or_build(&args, Split::Validation, &window)?;
+    let out = args
+        .out
+        .clone()
+        .unwrap_or_else(|| PathBuf::from("models").join(&run.name));
+    let data = DataIdentity {
+        train_cache: cache::cache_path(&args.cache, Split::Train)
+            .display()
+            .to_string(),
+        train_windows: train_set.len(),
+        validation_windows: validation_set.len(),
+        source: "INTERACTION DR v1.0 (non-commercial licence), official validation split".into(),
+    };
+    let mut trainer = Trainer::new(
+        run.clone(),
+        &validation_set,
+        data,
+        args.resume.then_some(out.as_path()),
+    )
+    .with_context(|| format!("cannot start the run in {}", out.display()))?;
+    let until = args
+        .until_step
+        .unwrap_or(run.train.steps)
+        .min(run.train.steps);
+    eprintln!(
+        "training {} ({} parameters) from step {} to {until}; train {} windows, validation {}; untrained validation loss {:?}",
+        run.name,
+        trainer.parameter_count(),
+        trainer.step,
+        train_set.len(),
+        validation_set.len(),
+        trainer.untrained_validation_loss()
+    );
+    let bar = ProgressBar::new(until);
+    bar.set_style(
+        ProgressStyle::with_template(
+            "{spinner} [{elapsed_precise}] {bar:30} {pos}/{len} ETA {eta} {msg}",
+        )
+        .expect("valid template"),
+    );
+    bar.set_position(trainer.step);
+    let started = Instant::now();
+    let start_step = trainer.step;
+    let mut last_val = None;
+    trainer.run_until(&train_set, &out, until, &hardware(), |event| match event {
+        TrainEvent::Step(r) => {
+            let rate = (r.step - start_step) as f64 * run.train.batch_scenes as f64
+                / started.elapsed().as_secs_f64();
+            bar.set_position(r.step);
+            bar.set_message(format!(
+                "loss {:.4} val {} lr {:.2e} {rate:.1} samples/s",
+                r.loss,
+                last_val.map_or("-".into(), |v: f64| format!("{v:.4}")),
+                r.learning_rate
+            ));
+        }
+        TrainEvent::Validation { loss, .. } => last_val = Some(*loss),
+        TrainEvent::Checkpoint { step, dir } => {
+            bar.println(format!("checkpoint at step {step} in {}", dir.display()))
+        }
+    })?;
+    bar.finish();
+    let secs = started.elapsed().as_secs_f64();
+    out!(
+        "{}: step {} validation loss {:?} (untrained {:?}); {:.1} samples/s over {:.0} s; checkpoint in {}",
+        run.name,
+        trainer.step,
+        last_val,
+        trainer.untrained_validation_loss(),
+        (trainer.step - start_step) as f64 * run.train.batch_scenes as f64 / secs,
+        secs,
+        out.display()
+    );
+    Ok(ExitCode::SUCCESS)
+}

@@ -1,0 +1,211 @@
+//! Scene windows → padded model inputs, and the training task's noise (math doc, "Training").
+
+use candle_core::{Device, Tensor};
+use rand::Rng;
+use road_data::{AgentType, SceneWindow};
+use road_sched::edm::{full_u, rolling_u, warmup_u};
+
+use crate::Result;
+use crate::config::{ModelConfig, TaskKind};
+
+/// Per-agent static features: length/5 m, width/2.5 m, one-hot type (4).
+pub const AGENT_FEATURES: usize = 6;
+
+/// One scene cropped to the model's window, in model units, on the CPU (plain vectors).
+#[derive(Debug, Clone)]
+pub struct SceneInput {
+    pub agents: usize,
+    pub slots: usize,
+    /// `[agents, slots, 3]`: x, y, heading·heading_scale.
+    pub states: Vec<f32>,
+    /// `[agents, slots]`.
+    pub valid: Vec<bool>,
+    /// `[agents, AGENT_FEATURES]`.
+    pub agent_features: Vec<f32>,
+    pub polylines: usize,
+    pub points: usize,
+    /// `[polylines, points, 2]`.
+    pub map: Vec<f32>,
+}
+
+impl SceneInput {
+    /// Crops `slots` steps from `start` of a window. Agents with no valid step in the crop
+    /// stay (all invalid): padding is masked anyway.
+    pub fn from_window(w: &SceneWindow, start: usize, slots: usize, config: &ModelConfig) -> Self {
+        assert!(
+            start + slots <= w.steps,
+            "crop {start}+{slots} exceeds the window's {} steps",
+            w.steps
+        );
+        let a = w.agents;
+        let mut states = vec![0.0f32; a * slots * 3];
+        let mut valid = vec![false; a * slots];
+        for agent in 0..a {
+            for s in 0..slots {
+                if let Some([x, y, h]) = w.state(agent, start + s) {
+                    let k = agent * slots + s;
+                    valid[k] = true;
+                    states[3 * k..3 * k + 3].copy_from_slice(&[
+                        x,
+                        y,
+                        h * config.heading_scale as f32,
+                    ]);
+                }
+            }
+        }
+        Self {
+            agents: a,
+            slots,
+            states,
+            valid,
+            agent_features: agent_features(&w.length_m, &w.width_m, &w.agent_types),
+            // The window lists polylines nearest first.
+            polylines: w.polyline_count().min(config.map_polylines),
+            points: w.polyline_points,
+            map: w.polylines
+                [..w.polyline_count().min(config.map_polylines) * w.polyline_points * 2]
+                .to_vec(),
+        }
+    }
+}
+
+pub fn agent_features(length_m: &[f32], width_m: &[f32], types: &[AgentType]) -> Vec<f32> {
+    let mut out = Vec::with_capacity(types.len() * AGENT_FEATURES);
+    for i in 0..types.len() {
+        let mut one_hot = [0.0f32; 4];
+        one_hot[types[i].index() as usize] = 1.0;
+        out.extend([length_m[i] / 5.0, width_m[i] / 2.5]);
+        out.extend(one_hot);
+    }
+    out
+}
+
+/// A padded batch of scenes as tensors.
+#[derive(Debug, Clone)]
+pub struct Batch {
+    /// `[B, A, W, 3]` clean states (targets).
+    pub x0: Tensor,
+    /// `[B, A, W, 3]` noised states.
+    pub x_noisy: Tensor,
+    /// `[B, W]` noise level of every slot.
+    pub sigma: Tensor,
+    /// `[B, A, W]` 1 = valid, 0 = padding or absent.
+    pub valid: Tensor,
+    /// `[B, A, AGENT_FEATURES]`.
+    pub agent_features: Tensor,
+    /// `[B, P, Q, 2]`.
+    pub map: Tensor,
+    /// `[B, P]`.
+    pub map_valid: Tensor,
+}
+
+/// Pads scenes to the batch's largest agent and polyline counts. `sigma` is `[B][W]`, `noise`
+/// `[B][A_b·W·3]` standard normal (or `None` for clean inputs).
+pub fn collate(
+    scenes: &[SceneInput],
+    sigma: &[Vec<f32>],
+    noise: Option<&[Vec<f32>]>,
+    device: &Device,
+) -> Result<Batch> {
+    let b = scenes.len();
+    let w = scenes[0].slots;
+    let a = scenes.iter().map(|s| s.agents).max().unwrap_or(1).max(1);
+    let p = scenes.iter().map(|s| s.polylines).max().unwrap_or(1).max(1);
+    let q = scenes[0].points;
+    let mut x0 = vec![0.0f32; b * a * w * 3];
+    let mut xn = vec![0.0f32; b * a * w * 3];
+    let mut valid = vec![0.0f32; b * a * w];
+    let mut feats = vec![0.0f32; b * a * AGENT_FEATURES];
+    let mut map = vec![0.0f32; b * p * q * 2];
+    let mut map_valid = vec![0.0f32; b * p];
+    let mut sig = vec![0.0f32; b * w];
+    for (i, s) in scenes.iter().enumerate() {
+        assert_eq!(s.slots, w, "scenes of one batch share the window length");
+        sig[i * w..(i + 1) * w].copy_from_slice(&sigma[i]);
+        for agent in 0..s.agents {
+            for (slot, &slot_sigma) in sigma[i].iter().enumerate() {
+                let src = agent * w + slot;
+                let dst = (i * a + agent) * w + slot;
+                valid[dst] = f32::from(u8::from(s.valid[src]));
+                for d in 0..3 {
+                    let clean = s.states[3 * src + d];
+                    x0[3 * dst + d] = clean;
+                    let eps = noise.map_or(0.0, |n| n[i][3 * src + d]);
+                    xn[3 * dst + d] = clean + slot_sigma * eps;
+                }
+            }
+            let fa = (i * a + agent) * AGENT_FEATURES;
+            feats[fa..fa + AGENT_FEATURES].copy_from_slice(
+                &s.agent_features[agent * AGENT_FEATURES..(agent + 1) * AGENT_FEATURES],
+            );
+        }
+        for poly in 0..s.polylines {
+            map_valid[i * p + poly] = 1.0;
+            let src = poly * q * 2;
+            let dst = (i * p + poly) * q * 2;
+            map[dst..dst + q * 2].copy_from_slice(&s.map[src..src + q * 2]);
+        }
+    }
+    Ok(Batch {
+        x0: Tensor::from_vec(x0, (b, a, w, 3), device)?,
+        x_noisy: Tensor::from_vec(xn, (b, a, w, 3), device)?,
+        sigma: Tensor::from_vec(sig, (b, w), device)?,
+        valid: Tensor::from_vec(valid, (b, a, w), device)?,
+        agent_features: Tensor::from_vec(feats, (b, a, AGENT_FEATURES), device)?,
+        map: Tensor::from_vec(map, (b, p, q, 2), device)?,
+        map_valid: Tensor::from_vec(map_valid, (b, p), device)?,
+    })
+}
+
+/// Standard normal draws (Box–Muller).
+pub fn normal_vec(rng: &mut impl Rng, n: usize) -> Vec<f32> {
+    let mut out = Vec::with_capacity(n + 1);
+    while out.len() < n {
+        let u1: f64 = rng.random_range(f64::EPSILON..1.0);
+        let u2: f64 = rng.random_range(0.0..1.0);
+        let r = (-2.0 * u1.ln()).sqrt();
+        let t = 2.0 * std::f64::consts::PI * u2;
+        out.push((r * t.cos()) as f32);
+        out.push((r * t.sin()) as f32);
+    }
+    out.truncate(n);
+    out
+}
+
+/// The training task's σ per slot: observed slots at σ(u_ca), u_ca ~ U(0, r) (at least
+/// σ_min); future slots along the task's profile at τ ~ U(0, 1).
+pub fn task_sigma(
+    rng: &mut impl Rng,
+    config: &ModelConfig,
+    obs_slots: usize,
+    task: TaskKind,
+    warmup_prob: f64,
+    aug_ratio: f64,
+) -> Vec<f32> {
+    let w = config.window_slots;
+    let f = w - obs_slots;
+    let edm = &config.edm;
+    let tau: f64 = rng.random_range(0.0..1.0);
+    let profile: fn(usize, usize, f64) -> f64 = match task {
+        TaskKind::Full => full_u,
+        TaskKind::Rolling if rng.random_bool(warmup_prob) => warmup_u,
+        TaskKind::Rolling => rolling_u,
+    };
+    let u_ca: f64 = if aug_ratio > 0.0 {
+        rng.random_range(0.0..aug_ratio)
+    } else {
+        0.0
+    };
+    let sigma_obs = edm.sigma(u_ca).max(edm.sigma_min);
+    (0..w)
+        .map(|slot| {
+            let s = if slot < obs_slots {
+                sigma_obs
+            } else {
+                edm.sigma(profile(slot - obs_slots, f, tau))
+                    .max(edm.sigma_min)
+            };
+            s as f32
+        })
+        .collect()
+}

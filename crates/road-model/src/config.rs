@@ -1,0 +1,213 @@
+//! Model and training configuration: one TOML file per shipped config under `configs/`
+//! (`[model]`, `[planner]`, `[train]`), saved next to every checkpoint's weights.
+
+use std::path::Path;
+
+use road_sched::{EdmSchedule, PlannerKind, PlannerSpec};
+use serde::{Deserialize, Serialize};
+
+use crate::{Error, Result};
+
+/// The denoiser's shape. `Default` is the default (RoAD-20) model.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ModelConfig {
+    /// Token width D.
+    pub hidden: usize,
+    pub heads: usize,
+    /// Transformer blocks (time attention, agent attention, map cross-attention, MLP).
+    pub blocks: usize,
+    /// MLP width as a multiple of `hidden`.
+    pub mlp_ratio: usize,
+    /// Window slots W = n + F the model is trained on (slot embeddings are learned per slot).
+    pub window_slots: usize,
+    /// Points per map polyline (must match the data's `polyline_points`).
+    pub polyline_points: usize,
+    /// Map polylines per scene the model attends to: the nearest ones to the scene centre.
+    pub map_polylines: usize,
+    /// State units per radian of heading: the state is (x, y, heading_rad · heading_scale),
+    /// heading unwrapped along the window so that it never jumps at ±π.
+    pub heading_scale: f64,
+    /// Metres per normalised position unit (the data's `position_scale_m`).
+    pub position_scale_m: f64,
+    pub edm: EdmSchedule,
+}
+
+impl Default for ModelConfig {
+    fn default() -> Self {
+        Self {
+            hidden: 64,
+            heads: 4,
+            blocks: 3,
+            mlp_ratio: 2,
+            window_slots: 20,
+            polyline_points: 20,
+            map_polylines: 32,
+            heading_scale: 0.25,
+            position_scale_m: 40.0,
+            edm: EdmSchedule::default(),
+        }
+    }
+}
+
+impl ModelConfig {
+    pub fn validate(&self) -> std::result::Result<(), String> {
+        if self.hidden == 0 || self.heads == 0 || !self.hidden.is_multiple_of(self.heads) {
+            return Err(format!(
+                "hidden ({}) must be a positive multiple of heads ({})",
+                self.hidden, self.heads
+            ));
+        }
+        if self.blocks == 0
+            || self.mlp_ratio == 0
+            || self.window_slots < 2
+            || self.polyline_points < 2
+            || self.map_polylines == 0
+        {
+            return Err(
+                "blocks, mlp_ratio, map_polylines ≥ 1; window_slots, polyline_points ≥ 2".into(),
+            );
+        }
+        if !(self.heading_scale > 0.0 && self.position_scale_m > 0.0) {
+            return Err("heading_scale and position_scale_m must be positive".into());
+        }
+        Ok(())
+    }
+}
+
+/// Optimisation and task sampling. `Default` matches `configs/road20.toml`'s `[train]`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct TrainConfig {
+    /// Scenes per optimiser step.
+    pub batch_scenes: usize,
+    pub steps: u64,
+    pub learning_rate: f64,
+    /// Linear warm-up of the learning rate, then cosine decay to `min_learning_rate`.
+    pub warmup_steps: u64,
+    pub min_learning_rate: f64,
+    pub weight_decay: f64,
+    /// Global gradient-norm clip.
+    pub grad_clip: f64,
+    /// EMA of the weights (what inference uses).
+    pub ema_decay: f64,
+    /// β: probability of the warm-up task (rolling planners only).
+    pub warmup_task_prob: f64,
+    /// r: observed slots get σ(u), u ~ U(0, r) (conditioning augmentation); 0 turns it off.
+    pub augmentation_ratio: f64,
+    pub seed: u64,
+    pub val_every_steps: u64,
+    pub val_batches: usize,
+    pub checkpoint_every_secs: u64,
+}
+
+impl Default for TrainConfig {
+    fn default() -> Self {
+        Self {
+            batch_scenes: 16,
+            steps: 20_000,
+            learning_rate: 1e-3,
+            warmup_steps: 200,
+            min_learning_rate: 1e-5,
+            weight_decay: 0.0,
+            grad_clip: 1.0,
+            ema_decay: 0.999,
+            warmup_task_prob: 0.1,
+            augmentation_ratio: 0.5,
+            seed: 0,
+            val_every_steps: 250,
+            val_batches: 8,
+            checkpoint_every_secs: 300,
+        }
+    }
+}
+
+/// A whole run: what `road train --config` reads.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RunConfig {
+    pub name: String,
+    #[serde(default)]
+    pub model: ModelConfig,
+    pub planner: PlannerSpec,
+    #[serde(default)]
+    pub train: TrainConfig,
+}
+
+impl Default for RunConfig {
+    /// RoAD-20, as in `configs/road20.toml`.
+    fn default() -> Self {
+        Self {
+            name: "road20".into(),
+            model: ModelConfig::default(),
+            planner: PlannerSpec::default(),
+            train: TrainConfig::default(),
+        }
+    }
+}
+
+impl RunConfig {
+    pub fn load(path: &Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+        Self::parse(&text, path)
+    }
+
+    pub fn parse(text: &str, path: &Path) -> Result<Self> {
+        let config: Self = toml::from_str(text).map_err(|e| Error::Config {
+            path: path.to_owned(),
+            reason: e.to_string(),
+        })?;
+        config.validate().map_err(|reason| Error::Config {
+            path: path.to_owned(),
+            reason,
+        })?;
+        Ok(config)
+    }
+
+    pub fn validate(&self) -> std::result::Result<(), String> {
+        self.model.validate()?;
+        self.planner
+            .validate(&self.name)
+            .map_err(|e| e.to_string())?;
+        if self.planner.window_slots() != self.model.window_slots {
+            return Err(format!(
+                "model.window_slots ({}) must equal planner obs_slots + future_slots ({})",
+                self.model.window_slots,
+                self.planner.window_slots()
+            ));
+        }
+        if self.planner.edm != self.model.edm {
+            return Err("planner.edm and model.edm differ".into());
+        }
+        let t = &self.train;
+        if t.batch_scenes == 0
+            || t.learning_rate.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater)
+            || !(0.0..1.0).contains(&t.ema_decay)
+        {
+            return Err("train: batch_scenes ≥ 1, learning_rate > 0, 0 ≤ ema_decay < 1".into());
+        }
+        if !(0.0..=1.0).contains(&t.warmup_task_prob)
+            || !(0.0..=1.0).contains(&t.augmentation_ratio)
+        {
+            return Err("train: warmup_task_prob and augmentation_ratio lie in [0, 1]".into());
+        }
+        Ok(())
+    }
+
+    /// Which σ profile the training tasks follow.
+    pub fn task_kind(&self) -> TaskKind {
+        match self.planner.kind {
+            PlannerKind::Rolling => TaskKind::Rolling,
+            PlannerKind::Autoregressive | PlannerKind::Mpc | PlannerKind::OneShot => TaskKind::Full,
+        }
+    }
+}
+
+/// Training task families (math doc, "Training").
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TaskKind {
+    /// Warm-up with probability β, else rolling.
+    Rolling,
+    /// Every future slot at the same u = τ (AR, DJINN).
+    Full,
+}

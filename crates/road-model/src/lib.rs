@@ -1,0 +1,68 @@
+//! `road-model`: the DJINN-style scene denoiser in candle (CPU), its training and checkpoints.
+//!
+//! - [`config`]: model, planner and training hyperparameters (`configs/<name>.toml`);
+//! - [`batch`]: scene windows → padded tensors, and the training tasks' noise;
+//! - [`model`]: the transformer and the EDM loss;
+//! - [`train`]: AdamW, EMA, validation, checkpoints and exact resume;
+//! - [`checkpoint`]: the on-disk format (`docs/checkpoint.md`).
+
+pub mod batch;
+pub mod checkpoint;
+pub mod config;
+pub mod model;
+pub mod train;
+
+use std::path::{Path, PathBuf};
+
+pub use config::{ModelConfig, RunConfig, TrainConfig};
+pub use model::{Denoiser, Mode};
+
+/// Errors of the model layer.
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    #[error("tensor operation failed: {0}")]
+    Tensor(#[from] candle_core::Error),
+    #[error(transparent)]
+    Data(#[from] DataError),
+    #[error("cannot read or write: {source} ({path})")]
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("bad config: {reason} ({path})")]
+    Config { path: PathBuf, reason: String },
+    #[error("bad checkpoint: {reason} ({path})")]
+    Checkpoint { path: PathBuf, reason: String },
+    #[error("training diverged: loss {loss} at step {step}")]
+    Diverged { step: u64, loss: f64 },
+}
+
+/// Data problems met while training or sampling.
+#[derive(Debug, thiserror::Error)]
+pub enum DataError {
+    #[error(transparent)]
+    Dataset(#[from] road_data::Error),
+    #[error("{0}")]
+    Mismatch(String),
+}
+
+impl Error {
+    pub(crate) fn io(path: &Path, source: std::io::Error) -> Self {
+        Self::Io {
+            path: path.to_owned(),
+            source,
+        }
+    }
+
+    pub(crate) fn data(reason: String) -> Self {
+        Self::Data(DataError::Mismatch(reason))
+    }
+}
+
+impl From<road_data::Error> for Error {
+    fn from(e: road_data::Error) -> Self {
+        Self::Data(DataError::Dataset(e))
+    }
+}
+
+pub type Result<T, E = Error> = std::result::Result<T, E>;

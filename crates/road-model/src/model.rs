@@ -1,0 +1,382 @@
+//! The DJINN-style denoiser: one token per agent and window slot, blocks of time attention,
+//! agent attention, map cross-attention and an MLP; EDM preconditioning per slot.
+//!
+//! Tensor names used in the checkpoint (see `docs/checkpoint.md`) follow the module paths
+//! below, e.g. `blocks.0.time.q.weight`.
+
+use candle_core::{D, DType, Module, Tensor};
+use candle_nn::{LayerNorm, Linear, VarBuilder, layer_norm, linear};
+
+use crate::Result;
+use crate::batch::AGENT_FEATURES;
+use crate::config::ModelConfig;
+
+/// Additive attention bias for masked keys: exp(−1e9) is exactly 0 in f32, so a masked key
+/// has no influence at all.
+const MASKED: f64 = -1e9;
+const LN_EPS: f64 = 1e-5;
+
+/// Training needs differentiable ops; inference may use candle's fused kernels.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Mode {
+    Train,
+    Infer,
+}
+
+fn norm(ln: &LayerNorm, x: &Tensor, mode: Mode) -> Result<Tensor> {
+    Ok(match mode {
+        Mode::Infer => ln.forward(&x.contiguous()?)?,
+        Mode::Train => {
+            let bias = ln.bias().expect("layer norms carry a bias");
+            candle_nn::ops::layer_norm_slow(x, ln.weight(), bias, LN_EPS as f32)?
+        }
+    })
+}
+
+fn softmax(x: &Tensor, mode: Mode) -> Result<Tensor> {
+    Ok(match mode {
+        Mode::Infer => candle_nn::ops::softmax_last_dim(x)?,
+        Mode::Train => candle_nn::ops::softmax(x, D::Minus1)?,
+    })
+}
+
+#[derive(Debug)]
+struct Attention {
+    q: Linear,
+    k: Linear,
+    v: Linear,
+    o: Linear,
+    heads: usize,
+}
+
+impl Attention {
+    fn new(d: usize, heads: usize, vb: VarBuilder) -> Result<Self> {
+        Ok(Self {
+            q: linear(d, d, vb.pp("q"))?,
+            k: linear(d, d, vb.pp("k"))?,
+            v: linear(d, d, vb.pp("v"))?,
+            o: linear(d, d, vb.pp("o"))?,
+            heads,
+        })
+    }
+
+    /// `xq [N, Lq, D]`, `xkv [N, Lk, D]`, `key_bias [N, 1, 1, Lk]` → `[N, Lq, D]`.
+    fn forward(&self, xq: &Tensor, xkv: &Tensor, key_bias: &Tensor, mode: Mode) -> Result<Tensor> {
+        let (n, lq, d) = xq.dims3()?;
+        let lk = xkv.dim(1)?;
+        let h = self.heads;
+        let dh = d / h;
+        let split = |t: Tensor, l: usize| -> Result<Tensor> {
+            Ok(t.reshape((n, l, h, dh))?.transpose(1, 2)?.contiguous()?)
+        };
+        // Scaling q rather than the scores: the scores are the largest tensor here.
+        let q = split((self.q.forward(xq)? * (1.0 / (dh as f64).sqrt()))?, lq)?; // [N, H, Lq, dh]
+        let k = split(self.k.forward(xkv)?, lk)?; // [N, H, Lk, dh]
+        let v = split(self.v.forward(xkv)?, lk)?; // [N, H, Lk, dh]
+        let scores = q.matmul(&k.t()?)?.broadcast_add(key_bias)?; // [N, H, Lq, Lk]
+        let attn = softmax(&scores, mode)?;
+        let out = attn.matmul(&v)?.transpose(1, 2)?.reshape((n, lq, d))?; // [N, Lq, D]
+        Ok(self.o.forward(&out)?)
+    }
+}
+
+#[derive(Debug)]
+struct Block {
+    ln_time: LayerNorm,
+    time: Attention,
+    ln_agents: LayerNorm,
+    agents: Attention,
+    ln_map: LayerNorm,
+    map: Attention,
+    ln_mlp: LayerNorm,
+    mlp_in: Linear,
+    mlp_out: Linear,
+}
+
+impl Block {
+    fn new(c: &ModelConfig, vb: VarBuilder) -> Result<Self> {
+        let d = c.hidden;
+        Ok(Self {
+            ln_time: layer_norm(d, LN_EPS, vb.pp("ln_time"))?,
+            time: Attention::new(d, c.heads, vb.pp("time"))?,
+            ln_agents: layer_norm(d, LN_EPS, vb.pp("ln_agents"))?,
+            agents: Attention::new(d, c.heads, vb.pp("agents"))?,
+            ln_map: layer_norm(d, LN_EPS, vb.pp("ln_map"))?,
+            map: Attention::new(d, c.heads, vb.pp("map"))?,
+            ln_mlp: layer_norm(d, LN_EPS, vb.pp("ln_mlp"))?,
+            mlp_in: linear(d, d * c.mlp_ratio, vb.pp("mlp_in"))?,
+            mlp_out: linear(d * c.mlp_ratio, d, vb.pp("mlp_out"))?,
+        })
+    }
+
+    /// `h [B, A, W, D]`; biases from [`Masks`]; `map_tokens [B, P, D]`.
+    fn forward(&self, h: &Tensor, m: &Masks, map_tokens: &Tensor, mode: Mode) -> Result<Tensor> {
+        let (b, a, w, d) = h.dims4()?;
+        // Time attention within each agent: [B·A, W, D].
+        let x = norm(&self.ln_time, h, mode)?.reshape((b * a, w, d))?;
+        let h = (h + self
+            .time
+            .forward(&x, &x, &m.time_bias, mode)?
+            .reshape((b, a, w, d))?)?;
+        // Agent attention within each slot: [B·W, A, D].
+        let x = norm(&self.ln_agents, &h, mode)?
+            .transpose(1, 2)?
+            .contiguous()?
+            .reshape((b * w, a, d))?;
+        let y = self
+            .agents
+            .forward(&x, &x, &m.agent_bias, mode)?
+            .reshape((b, w, a, d))?
+            .transpose(1, 2)?;
+        let h = (h + y)?;
+        // Cross-attention to the map: [B, A·W, D] → [B, P, D].
+        let x = norm(&self.ln_map, &h, mode)?.reshape((b, a * w, d))?;
+        let h = (h + self
+            .map
+            .forward(&x, map_tokens, &m.map_bias, mode)?
+            .reshape((b, a, w, d))?)?;
+        let x = norm(&self.ln_mlp, &h, mode)?;
+        let y = self.mlp_out.forward(&self.mlp_in.forward(&x)?.relu()?)?;
+        Ok((h + y)?)
+    }
+}
+
+/// Attention biases built once per forward.
+#[derive(Debug)]
+struct Masks {
+    time_bias: Tensor,  // [B·A, 1, 1, W]
+    agent_bias: Tensor, // [B·W, 1, 1, A]
+    map_bias: Tensor,   // [B, 1, 1, P]
+}
+
+impl Masks {
+    fn new(valid: &Tensor, map_valid: &Tensor) -> Result<Self> {
+        let (b, a, w) = valid.dims3()?;
+        let p = map_valid.dim(1)?;
+        let bias = |m: &Tensor| -> Result<Tensor> { Ok(((m - 1.0)? * -MASKED)?) };
+        Ok(Self {
+            time_bias: bias(valid)?.reshape((b * a, 1, 1, w))?,
+            agent_bias: bias(&valid.transpose(1, 2)?.contiguous()?)?.reshape((b * w, 1, 1, a))?,
+            map_bias: bias(map_valid)?.reshape((b, 1, 1, p))?,
+        })
+    }
+}
+
+/// The denoiser `D(x; σ)`.
+#[derive(Debug)]
+pub struct Denoiser {
+    pub config: ModelConfig,
+    embed_state: Linear,
+    embed_noise: Linear,
+    embed_agent: Linear,
+    slot_embedding: Tensor, // [W, D]
+    map_point: Linear,
+    map_point_embedding: Tensor, // [Q, D]
+    map_mix: Linear,
+    ln_map_out: LayerNorm,
+    blocks: Vec<Block>,
+    ln_out: LayerNorm,
+    head: Linear,
+}
+
+impl Denoiser {
+    pub fn new(config: &ModelConfig, vb: VarBuilder) -> Result<Self> {
+        let d = config.hidden;
+        let init = candle_nn::Init::Randn {
+            mean: 0.0,
+            stdev: 0.02,
+        };
+        Ok(Self {
+            embed_state: linear(3, d, vb.pp("embed_state"))?,
+            embed_noise: linear(1, d, vb.pp("embed_noise"))?,
+            embed_agent: linear(AGENT_FEATURES, d, vb.pp("embed_agent"))?,
+            slot_embedding: vb.get_with_hints((config.window_slots, d), "slot_embedding", init)?,
+            map_point: linear(2, d, vb.pp("map_point"))?,
+            map_point_embedding: vb.get_with_hints(
+                (config.polyline_points, d),
+                "map_point_embedding",
+                init,
+            )?,
+            map_mix: linear(d, d, vb.pp("map_mix"))?,
+            ln_map_out: layer_norm(d, LN_EPS, vb.pp("ln_map_out"))?,
+            blocks: (0..config.blocks)
+                .map(|i| Block::new(config, vb.pp(format!("blocks.{i}"))))
+                .collect::<Result<_>>()?,
+            ln_out: layer_norm(d, LN_EPS, vb.pp("ln_out"))?,
+            head: linear(d, 3, vb.pp("head"))?,
+            config: config.clone(),
+        })
+    }
+
+    /// Map tokens, once per scene: `map [B, P, Q, 2]` → `[B, P, D]` (per-point MLP, max-pool).
+    pub fn encode_map(&self, map: &Tensor, mode: Mode) -> Result<Tensor> {
+        let x = self
+            .map_point
+            .forward(map)?
+            .broadcast_add(&self.map_point_embedding)?
+            .relu()?; // [B, P, Q, D]
+        let x = self.map_mix.forward(&x)?.max(2)?; // [B, P, D]
+        norm(&self.ln_map_out, &x, mode)
+    }
+
+    /// `D(x; σ)`: `x_noisy [B, A, W, 3]`, `sigma [B, W]` (> 0), `valid [B, A, W]`,
+    /// `agent_features [B, A, 6]`, `map_tokens [B, P, D]`, `map_valid [B, P]` → `[B, A, W, 3]`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn denoise(
+        &self,
+        x_noisy: &Tensor,
+        sigma: &Tensor,
+        valid: &Tensor,
+        agent_features: &Tensor,
+        map_tokens: &Tensor,
+        map_valid: &Tensor,
+        mode: Mode,
+    ) -> Result<Tensor> {
+        let f = self.raw_output(
+            x_noisy,
+            sigma,
+            valid,
+            agent_features,
+            map_tokens,
+            map_valid,
+            mode,
+        )?;
+        let (c_skip, c_out, _, _) = self.preconditioning(sigma)?;
+        Ok((x_noisy.broadcast_mul(&c_skip)? + f.broadcast_mul(&c_out)?)?)
+    }
+
+    /// EDM coefficients as `[B, 1, W, 1]` tensors: (c_skip, c_out, c_in, c_noise).
+    pub fn preconditioning(&self, sigma: &Tensor) -> Result<(Tensor, Tensor, Tensor, Tensor)> {
+        let (b, w) = sigma.dims2()?;
+        let sd = self.config.edm.sigma_data;
+        let s2 = sigma.sqr()?;
+        let denom = (&s2 + sd * sd)?; // σ² + σd²
+        let root = denom.sqrt()?;
+        let shape = (b, 1, w, 1);
+        let c_skip = (denom.recip()? * (sd * sd))?.reshape(shape)?;
+        let c_out = ((sigma * sd)? / &root)?.reshape(shape)?;
+        let c_in = root.recip()?.reshape(shape)?;
+        let c_noise = (sigma.log()? * 0.25)?.reshape(shape)?;
+        Ok((c_skip, c_out, c_in, c_noise))
+    }
+
+    /// The network `F(c_in·x; c_noise, …)` before preconditioning: `[B, A, W, 3]`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn raw_output(
+        &self,
+        x_noisy: &Tensor,
+        sigma: &Tensor,
+        valid: &Tensor,
+        agent_features: &Tensor,
+        map_tokens: &Tensor,
+        map_valid: &Tensor,
+        mode: Mode,
+    ) -> Result<Tensor> {
+        let w = x_noisy.dim(2)?;
+        let d = self.config.hidden;
+        let (_, _, c_in, c_noise) = self.preconditioning(sigma)?;
+        // Invalid tokens carry zeros in, so that nothing of theirs leaks even before masking.
+        let valid4 = valid.unsqueeze(3)?; // [B, A, W, 1]
+        let x_in = x_noisy.broadcast_mul(&c_in)?.broadcast_mul(&valid4)?;
+        let h = self.embed_state.forward(&x_in)?; // [B, A, W, D]
+        let noise = self.embed_noise.forward(&c_noise)?; // [B, 1, W, D]
+        let agent = self.embed_agent.forward(agent_features)?.unsqueeze(2)?; // [B, A, 1, D]
+        let slots = self.slot_embedding.reshape((1, 1, w, d))?;
+        let mut h = h
+            .broadcast_add(&noise)?
+            .broadcast_add(&agent)?
+            .broadcast_add(&slots)?;
+        let masks = Masks::new(valid, map_valid)?;
+        for block in &self.blocks {
+            h = block.forward(&h, &masks, map_tokens, mode)?;
+        }
+        let out = self.head.forward(&norm(&self.ln_out, &h, mode)?)?; // [B, A, W, 3]
+        Ok(out.broadcast_mul(&valid4)?)
+    }
+}
+
+/// The EDM training loss: `λ(σ)·|D − x0|²` = `|F − (x0 − c_skip·x)/c_out|²`, averaged over
+/// valid agent-slots. Returns a scalar tensor.
+pub fn edm_loss(
+    model: &Denoiser,
+    batch: &crate::batch::Batch,
+    map_tokens: &Tensor,
+    mode: Mode,
+) -> Result<Tensor> {
+    let f = model.raw_output(
+        &batch.x_noisy,
+        &batch.sigma,
+        &batch.valid,
+        &batch.agent_features,
+        map_tokens,
+        &batch.map_valid,
+        mode,
+    )?;
+    let (c_skip, c_out, _, _) = model.preconditioning(&batch.sigma)?;
+    let target = (&batch.x0 - batch.x_noisy.broadcast_mul(&c_skip)?)?.broadcast_div(&c_out)?;
+    let valid4 = batch.valid.unsqueeze(3)?;
+    let err = (f - target)?.sqr()?.broadcast_mul(&valid4)?;
+    let count = (batch.valid.sum_all()? * 3.0)?.maximum(1.0)?;
+    Ok(err.sum_all()?.div(&count)?)
+}
+
+/// The number of scalar parameters of a config (for model cards and FLOP counts).
+pub fn parameter_count(vars: &[candle_core::Var]) -> usize {
+    vars.iter().map(|v| v.elem_count()).sum()
+}
+
+/// A model with its variables (candle's unseeded initialisation; see [`init_seeded`]).
+pub fn init(
+    config: &ModelConfig,
+    device: &candle_core::Device,
+) -> Result<(candle_nn::VarMap, Denoiser)> {
+    let varmap = candle_nn::VarMap::new();
+    let vb = VarBuilder::from_varmap(&varmap, DType::F32, device);
+    let model = Denoiser::new(config, vb)?;
+    Ok((varmap, model))
+}
+
+/// A fresh model whose weights depend only on `seed` (candle cannot seed its CPU RNG):
+/// linear weights Kaiming-normal (fan-in, ReLU gain), linear biases uniform ±1/√fan_in,
+/// layer norms 1 and 0, learned embeddings N(0, 0.02²).
+pub fn init_seeded(
+    config: &ModelConfig,
+    device: &candle_core::Device,
+    seed: u64,
+) -> Result<(candle_nn::VarMap, Denoiser)> {
+    use rand::{Rng, SeedableRng};
+    let (varmap, model) = init(config, device)?;
+    let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+    let vars = varmap.data().lock().expect("var map lock");
+    let mut names: Vec<&String> = vars.keys().collect();
+    names.sort();
+    for name in names {
+        let var = &vars[name];
+        let dims = var.dims().to_vec();
+        let n = var.elem_count();
+        let leaf = name.rsplit('.').nth(1).unwrap_or("");
+        let values: Vec<f32> = if leaf.starts_with("ln_") {
+            vec![if name.ends_with(".weight") { 1.0 } else { 0.0 }; n]
+        } else if name.ends_with(".weight") {
+            let std = (2.0 / dims[1] as f64).sqrt();
+            crate::batch::normal_vec(&mut rng, n)
+                .into_iter()
+                .map(|z| (f64::from(z) * std) as f32)
+                .collect()
+        } else if name.ends_with(".bias") {
+            let weight = &vars[&name.replace(".bias", ".weight")];
+            let bound = 1.0 / (weight.dims()[1] as f64).sqrt();
+            (0..n)
+                .map(|_| rng.random_range(-bound..bound) as f32)
+                .collect()
+        } else {
+            crate::batch::normal_vec(&mut rng, n)
+                .into_iter()
+                .map(|z| z * 0.02)
+                .collect()
+        };
+        var.set(&Tensor::from_vec(values, dims, device)?)?;
+    }
+    drop(vars);
+    Ok((varmap, model))
+}

@@ -1,0 +1,449 @@
+//! Training: task sampling, EDM loss, AdamW with warm-up + cosine learning rate, gradient
+//! clipping, an EMA of the weights, validation, checkpoints and exact resume.
+//!
+//! Exact resume: every step draws from an RNG seeded by `(seed, step)`, and the checkpoint
+//! holds the raw weights and AdamW moments, so continuing from step s repeats what an
+//! uninterrupted run would have done.
+
+use std::collections::HashMap;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use candle_core::{DType, Device, Tensor, Var};
+use candle_nn::{VarBuilder, VarMap};
+use rand::{Rng, SeedableRng, rngs::StdRng};
+use road_data::Dataset;
+
+use crate::batch::{Batch, SceneInput, collate, normal_vec, task_sigma};
+use crate::checkpoint::{self, CheckpointMeta, DataIdentity, TRAIN_STATE_FILE, WEIGHTS_FILE};
+use crate::config::RunConfig;
+use crate::model::{self, Denoiser, Mode};
+use crate::{Error, Result};
+
+const ADAM_BETA1: f64 = 0.9;
+const ADAM_BETA2: f64 = 0.999;
+const ADAM_EPS: f64 = 1e-8;
+/// The validation batches' fixed seed (independent of the training seed).
+const VALIDATION_SEED: u64 = 0x005E_ED0F_7A11;
+
+/// One optimiser step's figures.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StepReport {
+    pub step: u64,
+    pub loss: f64,
+    pub learning_rate: f64,
+    pub grad_norm: f64,
+    pub samples_per_sec: f64,
+}
+
+/// What the loop tells its caller.
+#[derive(Debug, Clone, PartialEq)]
+pub enum TrainEvent {
+    Step(StepReport),
+    Validation { step: u64, loss: f64 },
+    Checkpoint { step: u64, dir: PathBuf },
+}
+
+/// Builds a batch of `scenes` random windows of `ds`, cropped to the model's window, with the
+/// run's task noise; `rng` decides everything.
+pub fn sample_batch(
+    run: &RunConfig,
+    ds: &Dataset,
+    scenes: usize,
+    rng: &mut StdRng,
+    device: &Device,
+) -> Result<Batch> {
+    let w = run.model.window_slots;
+    let steps = ds.config.window_steps;
+    if steps < w {
+        return Err(Error::data(format!(
+            "dataset windows have {steps} steps, the model needs {w}"
+        )));
+    }
+    if ds.is_empty() {
+        return Err(Error::data(format!(
+            "the {} dataset has no windows",
+            ds.split
+        )));
+    }
+    let mut inputs = Vec::with_capacity(scenes);
+    let mut sigma = Vec::with_capacity(scenes);
+    let mut noise = Vec::with_capacity(scenes);
+    for _ in 0..scenes {
+        let index = rng.random_range(0..ds.len());
+        let window = ds.window(index)?;
+        let start = rng.random_range(0..=steps - w);
+        let input = SceneInput::from_window(&window, start, w, &run.model);
+        sigma.push(task_sigma(
+            rng,
+            &run.model,
+            run.planner.obs_slots,
+            run.task_kind(),
+            run.train.warmup_task_prob,
+            run.train.augmentation_ratio,
+        ));
+        noise.push(normal_vec(rng, input.agents * w * 3));
+        inputs.push(input);
+    }
+    collate(&inputs, &sigma, Some(&noise), device)
+}
+
+/// Learning rate at `step`: linear warm-up, then cosine decay to the minimum.
+pub fn learning_rate(run: &RunConfig, step: u64) -> f64 {
+    let t = &run.train;
+    if step < t.warmup_steps {
+        return t.learning_rate * (step + 1) as f64 / t.warmup_steps as f64;
+    }
+    let span = t.steps.saturating_sub(t.warmup_steps).max(1) as f64;
+    let progress = ((step - t.warmup_steps) as f64 / span).min(1.0);
+    t.min_learning_rate
+        + 0.5
+            * (t.learning_rate - t.min_learning_rate)
+            * (1.0 + (std::f64::consts::PI * progress).cos())
+}
+
+fn step_rng(seed: u64, step: u64) -> StdRng {
+    StdRng::seed_from_u64(seed ^ step.wrapping_mul(0x9E37_79B9_7F4A_7C15))
+}
+
+/// The training state of one run.
+pub struct Trainer {
+    pub run: RunConfig,
+    device: Device,
+    varmap: VarMap,
+    model: Denoiser,
+    /// Variables sorted by name, with their AdamW moments and EMA.
+    names: Vec<String>,
+    vars: Vec<Var>,
+    adam_m: Vec<Tensor>,
+    adam_v: Vec<Tensor>,
+    ema: Vec<Tensor>,
+    pub step: u64,
+    wall_secs_before: f64,
+    untrained_validation_loss: Option<f64>,
+    last_validation_loss: Option<f64>,
+    validation: Vec<Batch>,
+    data: DataIdentity,
+}
+
+impl std::fmt::Debug for Trainer {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Trainer")
+            .field("run", &self.run.name)
+            .field("step", &self.step)
+            .finish_non_exhaustive()
+    }
+}
+
+impl Trainer {
+    /// A fresh run, or the one in `resume_from` continued.
+    pub fn new(
+        run: RunConfig,
+        validation_set: &Dataset,
+        data: DataIdentity,
+        resume_from: Option<&Path>,
+    ) -> Result<Self> {
+        let device = Device::Cpu;
+        let (varmap, model) = model::init_seeded(&run.model, &device, run.train.seed)?;
+        let mut names: Vec<String> = varmap
+            .data()
+            .lock()
+            .expect("var map lock")
+            .keys()
+            .cloned()
+            .collect();
+        names.sort();
+        let vars: Vec<Var> = {
+            let map = varmap.data().lock().expect("var map lock");
+            names.iter().map(|n| map[n].clone()).collect()
+        };
+        let zeros = |v: &Var| Tensor::zeros(v.shape(), DType::F32, &device);
+        let adam_m = vars
+            .iter()
+            .map(zeros)
+            .collect::<candle_core::Result<Vec<_>>>()?;
+        let adam_v = vars
+            .iter()
+            .map(zeros)
+            .collect::<candle_core::Result<Vec<_>>>()?;
+        let ema = vars
+            .iter()
+            .map(|v| v.as_tensor().detach().copy())
+            .collect::<candle_core::Result<Vec<_>>>()?;
+        let mut rng = StdRng::seed_from_u64(VALIDATION_SEED);
+        let validation = (0..run.train.val_batches)
+            .map(|_| {
+                sample_batch(
+                    &run,
+                    validation_set,
+                    run.train.batch_scenes,
+                    &mut rng,
+                    &device,
+                )
+            })
+            .collect::<Result<Vec<_>>>()?;
+        let mut trainer = Self {
+            run,
+            device,
+            varmap,
+            model,
+            names,
+            vars,
+            adam_m,
+            adam_v,
+            ema,
+            step: 0,
+            wall_secs_before: 0.0,
+            untrained_validation_loss: None,
+            last_validation_loss: None,
+            validation,
+            data,
+        };
+        match resume_from {
+            Some(dir) => trainer.restore(dir)?,
+            None => trainer.untrained_validation_loss = Some(trainer.validate()?),
+        }
+        Ok(trainer)
+    }
+
+    pub fn parameter_count(&self) -> usize {
+        model::parameter_count(&self.vars)
+    }
+
+    pub fn untrained_validation_loss(&self) -> Option<f64> {
+        self.untrained_validation_loss
+    }
+
+    /// One optimiser step on a fresh batch.
+    pub fn train_step(&mut self, train_set: &Dataset) -> Result<StepReport> {
+        let started = Instant::now();
+        let mut rng = step_rng(self.run.train.seed, self.step);
+        let batch = sample_batch(
+            &self.run,
+            train_set,
+            self.run.train.batch_scenes,
+            &mut rng,
+            &self.device,
+        )?;
+        let map_tokens = self.model.encode_map(&batch.map, Mode::Train)?;
+        let loss = model::edm_loss(&self.model, &batch, &map_tokens, Mode::Train)?;
+        let loss_value = f64::from(loss.to_scalar::<f32>()?);
+        if !loss_value.is_finite() {
+            return Err(Error::Diverged {
+                step: self.step,
+                loss: loss_value,
+            });
+        }
+        let grads = loss.backward()?;
+        // Global gradient norm, for clipping.
+        let mut sq = 0.0f64;
+        let mut grad_list = Vec::with_capacity(self.vars.len());
+        for var in &self.vars {
+            let g = match grads.get(var.as_tensor()) {
+                Some(g) => g.clone(),
+                None => var.as_tensor().zeros_like()?,
+            };
+            sq += f64::from(g.sqr()?.sum_all()?.to_scalar::<f32>()?);
+            grad_list.push(g);
+        }
+        let grad_norm = sq.sqrt();
+        let clip = if grad_norm > self.run.train.grad_clip {
+            self.run.train.grad_clip / grad_norm
+        } else {
+            1.0
+        };
+        let lr = learning_rate(&self.run, self.step);
+        let t = (self.step + 1) as i32;
+        let (bc1, bc2) = (1.0 - ADAM_BETA1.powi(t), 1.0 - ADAM_BETA2.powi(t));
+        let wd = self.run.train.weight_decay;
+        let ema_decay = self.run.train.ema_decay;
+        for (i, var) in self.vars.iter().enumerate() {
+            let g = (&grad_list[i] * clip)?;
+            let m = ((&self.adam_m[i] * ADAM_BETA1)? + (&g * (1.0 - ADAM_BETA1))?)?;
+            let v = ((&self.adam_v[i] * ADAM_BETA2)? + (g.sqr()? * (1.0 - ADAM_BETA2))?)?;
+            let p = var.as_tensor().detach();
+            let update = ((&m / bc1)? / ((&v / bc2)?.sqrt()? + ADAM_EPS)?)?;
+            let p = ((&p * (1.0 - lr * wd))? - (update * lr)?)?;
+            var.set(&p)?;
+            self.ema[i] = ((&self.ema[i] * ema_decay)? + (&p * (1.0 - ema_decay))?)?;
+            self.adam_m[i] = m;
+            self.adam_v[i] = v;
+        }
+        self.step += 1;
+        let secs = started.elapsed().as_secs_f64();
+        Ok(StepReport {
+            step: self.step,
+            loss: loss_value,
+            learning_rate: lr,
+            grad_norm,
+            samples_per_sec: self.run.train.batch_scenes as f64 / secs.max(1e-9),
+        })
+    }
+
+    /// A model built from the EMA weights.
+    pub fn ema_model(&self) -> Result<Denoiser> {
+        let tensors: HashMap<String, Tensor> = self
+            .names
+            .iter()
+            .cloned()
+            .zip(self.ema.iter().cloned())
+            .collect();
+        Denoiser::new(
+            &self.run.model,
+            VarBuilder::from_tensors(tensors, DType::F32, &self.device),
+        )
+    }
+
+    /// Mean loss of the EMA weights over the fixed validation batches.
+    pub fn validate(&mut self) -> Result<f64> {
+        let model = self.ema_model()?;
+        let mut total = 0.0;
+        for batch in &self.validation {
+            let map_tokens = model.encode_map(&batch.map, Mode::Infer)?;
+            total += f64::from(
+                model::edm_loss(&model, batch, &map_tokens, Mode::Infer)?.to_scalar::<f32>()?,
+            );
+        }
+        let loss = total / self.validation.len().max(1) as f64;
+        self.last_validation_loss = Some(loss);
+        Ok(loss)
+    }
+
+    /// Writes the checkpoint folder (EMA weights, train state, config).
+    pub fn save(&self, dir: &Path, wall_secs: f64, hardware: &str) -> Result<()> {
+        std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+        let ema: HashMap<String, Tensor> = self
+            .names
+            .iter()
+            .cloned()
+            .zip(self.ema.iter().cloned())
+            .collect();
+        checkpoint::save_tensors(&ema, &dir.join(WEIGHTS_FILE))?;
+        let mut state = HashMap::new();
+        for (i, name) in self.names.iter().enumerate() {
+            state.insert(format!("param.{name}"), self.vars[i].as_tensor().detach());
+            state.insert(format!("adam_m.{name}"), self.adam_m[i].clone());
+            state.insert(format!("adam_v.{name}"), self.adam_v[i].clone());
+        }
+        checkpoint::save_tensors(&state, &dir.join(TRAIN_STATE_FILE))?;
+        CheckpointMeta {
+            run: self.run.clone(),
+            data: self.data.clone(),
+            step: self.step,
+            parameters: self.parameter_count(),
+            wall_secs: self.wall_secs_before + wall_secs,
+            hardware: hardware.to_owned(),
+            validation_loss: self.last_validation_loss,
+            untrained_validation_loss: self.untrained_validation_loss,
+        }
+        .save(dir)
+    }
+
+    fn restore(&mut self, dir: &Path) -> Result<()> {
+        let meta = CheckpointMeta::load(dir)?;
+        if meta.run.model != self.run.model || meta.run.planner != self.run.planner {
+            return Err(Error::Checkpoint {
+                path: dir.join(checkpoint::META_FILE),
+                reason: "the checkpoint's model or planner differs from the run's config".into(),
+            });
+        }
+        let path = dir.join(TRAIN_STATE_FILE);
+        let state = checkpoint::load_tensors(&path, &self.device)?;
+        let ema_path = dir.join(WEIGHTS_FILE);
+        let ema = checkpoint::load_tensors(&ema_path, &self.device)?;
+        checkpoint::check_against(&self.varmap, &ema, &ema_path)?;
+        let get = |key: String| {
+            state.get(&key).cloned().ok_or_else(|| Error::Checkpoint {
+                path: path.clone(),
+                reason: format!("missing tensor `{key}`"),
+            })
+        };
+        for (i, name) in self.names.iter().enumerate() {
+            self.vars[i].set(&get(format!("param.{name}"))?)?;
+            self.adam_m[i] = get(format!("adam_m.{name}"))?;
+            self.adam_v[i] = get(format!("adam_v.{name}"))?;
+            self.ema[i] = ema[name].clone();
+        }
+        self.step = meta.step;
+        self.wall_secs_before = meta.wall_secs;
+        self.untrained_validation_loss = meta.untrained_validation_loss;
+        self.last_validation_loss = meta.validation_loss;
+        Ok(())
+    }
+
+    /// Trains until `until_step` (or the config's step count), validating, logging to
+    /// `dir/train_log.csv` and checkpointing into `dir` as configured.
+    pub fn run_until(
+        &mut self,
+        train_set: &Dataset,
+        dir: &Path,
+        until_step: u64,
+        hardware: &str,
+        mut on_event: impl FnMut(&TrainEvent),
+    ) -> Result<()> {
+        let started = Instant::now();
+        let mut last_checkpoint = Instant::now();
+        let log_path = dir.join("train_log.csv");
+        std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+        let fresh_log = !log_path.exists();
+        let mut log = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(&log_path)
+            .map_err(|e| Error::io(&log_path, e))?;
+        let mut write_log = |line: String| {
+            log.write_all(line.as_bytes())
+                .map_err(|e| Error::io(&log_path, e))
+        };
+        if fresh_log {
+            write_log(
+                "step,loss,learning_rate,grad_norm,samples_per_sec,validation_loss,wall_secs\n"
+                    .into(),
+            )?;
+            if let Some(v) = self.untrained_validation_loss {
+                write_log(format!("0,,,,,{v},0\n"))?;
+            }
+        }
+        let until = until_step.min(self.run.train.steps);
+        while self.step < until {
+            let report = self.train_step(train_set)?;
+            on_event(&TrainEvent::Step(report));
+            let wall = self.wall_secs_before + started.elapsed().as_secs_f64();
+            let mut val = String::new();
+            if self
+                .step
+                .is_multiple_of(self.run.train.val_every_steps.max(1))
+                || self.step == until
+            {
+                let loss = self.validate()?;
+                on_event(&TrainEvent::Validation {
+                    step: self.step,
+                    loss,
+                });
+                val = loss.to_string();
+            }
+            write_log(format!(
+                "{},{},{},{},{:.2},{},{:.1}\n",
+                report.step,
+                report.loss,
+                report.learning_rate,
+                report.grad_norm,
+                report.samples_per_sec,
+                val,
+                wall
+            ))?;
+            if last_checkpoint.elapsed().as_secs() >= self.run.train.checkpoint_every_secs
+                || self.step == until
+            {
+                self.save(dir, started.elapsed().as_secs_f64(), hardware)?;
+                last_checkpoint = Instant::now();
+                on_event(&TrainEvent::Checkpoint {
+                    step: self.step,
+                    dir: dir.to_owned(),
+                });
+            }
+        }
+        Ok(())
+    }
+}

@@ -1,0 +1,345 @@
+//! The denoiser and its training on small in-memory scenes.
+
+use std::path::Path;
+
+use candle_core::{Device, Tensor};
+use rand::{SeedableRng, rngs::StdRng};
+use road_data::{AgentType, Dataset, LaneletMap, Recording, Split, Track, WindowConfig};
+use road_model::batch::{SceneInput, collate, normal_vec};
+use road_model::checkpoint::{self, DataIdentity};
+use road_model::model::{self, Mode, edm_loss};
+use road_model::train::{Trainer, sample_batch};
+use road_model::{ModelConfig, RunConfig, TrainConfig};
+use road_sched::EdmSchedule;
+
+/// Two straight lanes along +x, 4 m wide, 200 m long (lat/lon around (0, 0)).
+fn map() -> LaneletMap {
+    let deg_per_m = 1.0 / 111_320.0;
+    let mut s = String::from("<osm>\n");
+    for (row, y) in [0.0, 4.0, 8.0].iter().enumerate() {
+        for (col, x) in [0.0, 100.0, 200.0].iter().enumerate() {
+            s += &format!(
+                "<node id=\"{}\" lat=\"{}\" lon=\"{}\"/>\n",
+                100 + row * 10 + col,
+                y * deg_per_m,
+                x * deg_per_m
+            );
+        }
+    }
+    for row in 0..3 {
+        s += &format!(
+            "<way id=\"{}\"><nd ref=\"{}\"/><nd ref=\"{}\"/><nd ref=\"{}\"/></way>\n",
+            row + 1,
+            100 + row * 10,
+            101 + row * 10,
+            102 + row * 10
+        );
+    }
+    for lane in 0..2 {
+        s += &format!(
+            "<relation id=\"{}\"><member type=\"way\" ref=\"{}\" role=\"left\"/><member type=\"way\" ref=\"{}\" role=\"right\"/><tag k=\"type\" v=\"lanelet\"/></relation>\n",
+            500 + lane,
+            lane + 2,
+            lane + 1
+        );
+    }
+    s += "</osm>\n";
+    LaneletMap::parse(&s, Path::new("lanes.osm"), "LANES").unwrap()
+}
+
+/// Cars driving along the two lanes at different speeds, entering at different times.
+fn dataset(split: Split) -> Dataset {
+    let mut tracks = Vec::new();
+    for i in 0..6u32 {
+        let lane_y = if i % 2 == 0 { 2.0 } else { 6.0 };
+        let speed = 4.0 + i as f32;
+        let first = i * 3;
+        let states = (0..60)
+            .map(|t| [5.0 + 6.0 * i as f32 + speed * 0.1 * t as f32, lane_y, 0.0])
+            .collect();
+        tracks.push(Track {
+            track_id: i + 1,
+            agent_type: AgentType::Car,
+            length_m: 4.5,
+            width_m: 1.8,
+            first_frame: first,
+            states,
+        });
+    }
+    let last = tracks.iter().map(Track::last_frame).max().unwrap();
+    let recording = Recording {
+        location: "LANES".into(),
+        file: "synthetic.csv".into(),
+        tracks,
+        first_frame: 0,
+        last_frame: last,
+    };
+    let config = WindowConfig {
+        stride_steps: 3,
+        ..WindowConfig::default()
+    };
+    Dataset::from_parts(split, &config, vec![map()], vec![recording], vec![0]).unwrap()
+}
+
+fn run_config() -> RunConfig {
+    RunConfig {
+        name: "tiny".into(),
+        model: ModelConfig {
+            hidden: 16,
+            heads: 2,
+            blocks: 1,
+            map_polylines: 8,
+            ..ModelConfig::default()
+        },
+        train: TrainConfig {
+            batch_scenes: 4,
+            steps: 400,
+            learning_rate: 3e-3,
+            warmup_steps: 5,
+            val_batches: 2,
+            val_every_steps: 1000,
+            checkpoint_every_secs: 3600,
+            ..TrainConfig::default()
+        },
+        ..RunConfig::default()
+    }
+}
+
+fn identity() -> DataIdentity {
+    DataIdentity {
+        train_cache: "memory".into(),
+        train_windows: 0,
+        validation_windows: 0,
+        source: "synthetic".into(),
+    }
+}
+
+fn temp_dir(name: &str) -> std::path::PathBuf {
+    let dir = std::env::temp_dir().join(format!("road-model-{name}-{}", std::process::id()));
+    std::fs::remove_dir_all(&dir).ok();
+    dir
+}
+
+#[test]
+fn preconditioning_tensors_match_the_scheduler() {
+    let run = run_config();
+    let (_, model) = model::init_seeded(&run.model, &Device::Cpu, 1).unwrap();
+    let edm = EdmSchedule::default();
+    let sigmas = [0.002f32, 0.1, 0.5, 3.0, 80.0];
+    let sigma = Tensor::from_vec(sigmas.to_vec(), (1, 5), &Device::Cpu).unwrap();
+    let (skip, out, inp, noise) = model.preconditioning(&sigma).unwrap();
+    let flat = |t: Tensor| t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+    let (skip, out, inp, noise) = (flat(skip), flat(out), flat(inp), flat(noise));
+    for (i, &s) in sigmas.iter().enumerate() {
+        let p = edm.preconditioning(f64::from(s));
+        for (got, want) in [
+            (skip[i], p.c_skip),
+            (out[i], p.c_out),
+            (inp[i], p.c_in),
+            (noise[i], p.c_noise),
+        ] {
+            assert!(
+                (f64::from(got) - want).abs() <= 1e-6 + 1e-5 * want.abs(),
+                "σ = {s}: {got} vs {want}"
+            );
+        }
+    }
+}
+
+/// Perturbing everything of an invalid agent (its states, size, type, noise) leaves every
+/// valid agent's output bit-identical.
+#[test]
+fn an_invalid_agent_never_influences_a_valid_one() {
+    let run = run_config();
+    let ds = dataset(Split::Train);
+    let (_, model) = model::init_seeded(&run.model, &Device::Cpu, 2).unwrap();
+    let window = ds.window(2).unwrap();
+    let mut scene = SceneInput::from_window(&window, 10, run.model.window_slots, &run.model);
+    // Add an agent that is invalid everywhere, then vary its inputs.
+    let w = scene.slots;
+    scene.agents += 1;
+    scene.states.extend(vec![0.3f32; w * 3]);
+    scene.valid.extend(vec![false; w]);
+    scene.agent_features.extend([1.0, 1.0, 1.0, 0.0, 0.0, 0.0]);
+    let sigma = vec![vec![0.7f32; w]];
+    let mut rng = StdRng::seed_from_u64(3);
+    let noise = vec![normal_vec(&mut rng, scene.agents * w * 3)];
+    let run_once = |scene: &SceneInput, noise: &[Vec<f32>]| -> Vec<f32> {
+        let batch = collate(
+            std::slice::from_ref(scene),
+            &sigma,
+            Some(noise),
+            &Device::Cpu,
+        )
+        .unwrap();
+        let map = model.encode_map(&batch.map, Mode::Infer).unwrap();
+        let out = model
+            .denoise(
+                &batch.x_noisy,
+                &batch.sigma,
+                &batch.valid,
+                &batch.agent_features,
+                &map,
+                &batch.map_valid,
+                Mode::Infer,
+            )
+            .unwrap();
+        let valid_agents = scene.agents - 1;
+        out.narrow(1, 0, valid_agents)
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1::<f32>()
+            .unwrap()
+    };
+    let before = run_once(&scene, &noise);
+    let last = scene.agents - 1;
+    let mut perturbed = scene.clone();
+    for v in &mut perturbed.states[last * w * 3..] {
+        *v = 1e3;
+    }
+    perturbed.agent_features[last * 6..].copy_from_slice(&[9.0, -9.0, 0.0, 0.0, 1.0, 0.0]);
+    let mut noise2 = noise.clone();
+    for v in &mut noise2[0][last * w * 3..] {
+        *v = -5.0;
+    }
+    let after = run_once(&perturbed, &noise2);
+    assert_eq!(before, after);
+    // And the valid agents themselves do interact (the test would be vacuous otherwise).
+    let mut moved = scene.clone();
+    moved.states[0] += 0.5;
+    assert_ne!(run_once(&moved, &noise)[3 * w..], before[3 * w..]);
+}
+
+#[test]
+fn one_training_step_lowers_the_loss_on_a_fixed_batch() {
+    let run = run_config();
+    let ds = dataset(Split::Train);
+    let (varmap, model) = model::init_seeded(&run.model, &Device::Cpu, 4).unwrap();
+    let mut rng = StdRng::seed_from_u64(5);
+    let batch = sample_batch(&run, &ds, 4, &mut rng, &Device::Cpu).unwrap();
+    let loss_of = || {
+        let map = model.encode_map(&batch.map, Mode::Train).unwrap();
+        edm_loss(&model, &batch, &map, Mode::Train).unwrap()
+    };
+    let loss = loss_of();
+    let before = loss.to_scalar::<f32>().unwrap();
+    let grads = loss.backward().unwrap();
+    for var in varmap.all_vars() {
+        if let Some(g) = grads.get(var.as_tensor()) {
+            var.set(&(var.as_tensor() - (g * 1e-2).unwrap()).unwrap())
+                .unwrap();
+        }
+    }
+    let after = loss_of().to_scalar::<f32>().unwrap();
+    assert!(after < before, "loss {before} → {after}");
+}
+
+/// Training overfits a tiny dataset: the validation loss (same scenes) falls well below the
+/// untrained model's.
+#[test]
+fn the_model_overfits_a_tiny_dataset() {
+    // A short EMA, so that the evaluated weights follow 300 steps.
+    let run = RunConfig {
+        train: TrainConfig {
+            steps: 300,
+            ema_decay: 0.9,
+            ..run_config().train
+        },
+        ..run_config()
+    };
+    let ds = dataset(Split::Train);
+    let mut trainer = Trainer::new(run, &ds, identity(), None).unwrap();
+    let untrained = trainer.untrained_validation_loss().unwrap();
+    let dir = temp_dir("overfit");
+    trainer.run_until(&ds, &dir, 300, "test", |_| {}).unwrap();
+    let trained = trainer.validate().unwrap();
+    assert!(
+        trained < 0.5 * untrained,
+        "validation loss {untrained} → {trained}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// Save → load gives the same weights bit for bit, and a checkpoint whose tensors do not
+/// match its config is refused with a clear error.
+#[test]
+fn checkpoints_round_trip_exactly_and_refuse_mismatches() {
+    let run = run_config();
+    let ds = dataset(Split::Train);
+    let mut trainer = Trainer::new(run.clone(), &ds, identity(), None).unwrap();
+    let dir = temp_dir("ckpt");
+    trainer.run_until(&ds, &dir, 3, "test", |_| {}).unwrap();
+    let saved =
+        checkpoint::load_tensors(&dir.join(checkpoint::WEIGHTS_FILE), &Device::Cpu).unwrap();
+    let loaded = checkpoint::load(&dir, &Device::Cpu).unwrap();
+    assert_eq!(loaded.meta.step, 3);
+    let ema = trainer.ema_model().unwrap();
+    let mut rng = StdRng::seed_from_u64(9);
+    let batch = sample_batch(&run, &ds, 2, &mut rng, &Device::Cpu).unwrap();
+    let eval = |m: &road_model::Denoiser| {
+        let map = m.encode_map(&batch.map, Mode::Infer).unwrap();
+        m.denoise(
+            &batch.x_noisy,
+            &batch.sigma,
+            &batch.valid,
+            &batch.agent_features,
+            &map,
+            &batch.map_valid,
+            Mode::Infer,
+        )
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .to_vec1::<f32>()
+        .unwrap()
+    };
+    assert_eq!(eval(&loaded.model), eval(&ema));
+    assert!(!saved.is_empty());
+
+    // A config with another width no longer matches the tensors.
+    let mut meta = loaded.meta.clone();
+    meta.run.model.hidden = 32;
+    meta.save(&dir).unwrap();
+    let err = checkpoint::load(&dir, &Device::Cpu)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("weights do not match the config") && err.contains("weights.safetensors"),
+        "{err}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// Stopping and resuming gives exactly the weights of an uninterrupted run.
+#[test]
+fn resume_continues_exactly() {
+    let run = run_config();
+    let ds = dataset(Split::Train);
+    let straight_dir = temp_dir("straight");
+    let mut straight = Trainer::new(run.clone(), &ds, identity(), None).unwrap();
+    straight
+        .run_until(&ds, &straight_dir, 6, "test", |_| {})
+        .unwrap();
+
+    let split_dir = temp_dir("split");
+    let mut first = Trainer::new(run.clone(), &ds, identity(), None).unwrap();
+    first.run_until(&ds, &split_dir, 3, "test", |_| {}).unwrap();
+    let mut second = Trainer::new(run, &ds, identity(), Some(&split_dir)).unwrap();
+    assert_eq!(second.step, 3);
+    second
+        .run_until(&ds, &split_dir, 6, "test", |_| {})
+        .unwrap();
+
+    let a = checkpoint::load_tensors(&straight_dir.join(checkpoint::WEIGHTS_FILE), &Device::Cpu)
+        .unwrap();
+    let b =
+        checkpoint::load_tensors(&split_dir.join(checkpoint::WEIGHTS_FILE), &Device::Cpu).unwrap();
+    for (name, t) in &a {
+        let x = t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        let y = b[name].flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        assert_eq!(x, y, "{name} differs after resume");
+    }
+    std::fs::remove_dir_all(&straight_dir).ok();
+    std::fs::remove_dir_all(&split_dir).ok();
+}
