@@ -8,6 +8,7 @@ macro_rules! out {
 
 mod commands;
 mod config;
+mod plot;
 
 pub(crate) fn write_stdout_line(args: std::fmt::Arguments<'_>) {
     use std::io::Write;
@@ -40,6 +41,8 @@ enum Command {
     Sched(commands::sched::SchedCommand),
     /// Train a denoiser (RoAD, AR, DJINN) on the INTERACTION caches.
     Train(commands::train::TrainArgs),
+    /// Sample futures of a validation scene with a checkpoint and draw them as a PNG.
+    Sample(commands::sample::SampleArgs),
     /// The GPU: which adapter wgpu picks here, and a self-test of the kernels.
     #[command(subcommand)]
     Gpu(commands::gpu::GpuCommand),
@@ -60,6 +63,7 @@ fn main() -> std::process::ExitCode {
         Command::Sched(cmd) => commands::sched::run(cmd),
         Command::Gpu(cmd) => commands::gpu::run(cmd),
         Command::Train(args) => commands::train::run(args),
+        Command::Sample(args) => commands::sample::run(args),
     };
     match result {
         Ok(code) => code,

@@ -10,6 +10,7 @@ pub mod batch;
 pub mod checkpoint;
 pub mod config;
 pub mod model;
+pub mod sample;
 pub mod train;
 
 use std::path::{Path, PathBuf};

@@ -343,3 +343,98 @@ fn resume_continues_exactly() {
     std::fs::remove_dir_all(&straight_dir).ok();
     std::fs::remove_dir_all(&split_dir).ok();
 }
+
+/// Reference sampling: every planner that fits the window runs through the scheduler with the
+/// NFE of the math doc's table, deterministically for a seed; a trained model follows the
+/// logged futures far better than an untrained one.
+#[test]
+fn reference_sampling_runs_every_planner_and_learns_the_lanes() {
+    use road_model::sample::{RolloutScene, rollout};
+    use road_sched::{PlannerKind, PlannerSpec};
+    let run = RunConfig {
+        train: TrainConfig {
+            steps: 300,
+            ema_decay: 0.9,
+            ..run_config().train
+        },
+        ..run_config()
+    };
+    let ds = dataset(Split::Train);
+    let mut trainer = Trainer::new(run.clone(), &ds, identity(), None).unwrap();
+    let untrained = trainer.ema_model().unwrap();
+    let dir = temp_dir("sampling");
+    trainer.run_until(&ds, &dir, 300, "test", |_| {}).unwrap();
+    let trained = trainer.ema_model().unwrap();
+    std::fs::remove_dir_all(&dir).ok();
+
+    let window = ds.window(3).unwrap();
+    let n = 10;
+    let history = SceneInput::from_window(&window, 0, n, &run.model);
+    let scenes = vec![RolloutScene { history }; 3];
+    let steps = 10;
+    let planner = |kind, x| PlannerSpec {
+        kind,
+        steps_per_diffusion: 10,
+        replan_every: x,
+        ..PlannerSpec::default()
+    };
+    for (spec, nfe) in [
+        (planner(PlannerKind::Rolling, None), 20 + 9 * 2),
+        (planner(PlannerKind::Mpc, Some(5)), 2 * 19),
+        (planner(PlannerKind::OneShot, None), 19),
+    ] {
+        let a = rollout(
+            &trained,
+            &spec,
+            &scenes,
+            steps,
+            &mut StdRng::seed_from_u64(1),
+        )
+        .unwrap();
+        let b = rollout(
+            &trained,
+            &spec,
+            &scenes,
+            steps,
+            &mut StdRng::seed_from_u64(1),
+        )
+        .unwrap();
+        assert_eq!(a, b, "{:?}: same seed, same samples", spec.kind);
+        assert_eq!(a.nfe, nfe, "{:?}", spec.kind);
+        assert_eq!(a.states.len(), 3);
+        assert_eq!(a.states[0].len(), window.agents * steps * 3);
+        assert!(a.states.iter().flatten().all(|v| v.is_finite()));
+        assert_ne!(a.states[0], a.states[1], "each scene has its own noise");
+    }
+    // Average displacement from the logged future (normalised units).
+    let ade = |m: &road_model::Denoiser| {
+        let r = rollout(
+            m,
+            &planner(PlannerKind::Rolling, None),
+            &scenes,
+            steps,
+            &mut StdRng::seed_from_u64(2),
+        )
+        .unwrap();
+        let (mut sum, mut count) = (0.0f32, 0);
+        for sample in &r.states {
+            for a in 0..window.agents {
+                for t in 0..steps {
+                    if let Some(truth) = window.state(a, n + t) {
+                        let k = 3 * (a * steps + t);
+                        sum += ((sample[k] - truth[0]).powi(2)
+                            + (sample[k + 1] - truth[1]).powi(2))
+                        .sqrt();
+                        count += 1;
+                    }
+                }
+            }
+        }
+        sum / count as f32
+    };
+    let (trained_ade, untrained_ade) = (ade(&trained), ade(&untrained));
+    assert!(
+        trained_ade < 0.5 * untrained_ade,
+        "ADE trained {trained_ade} vs untrained {untrained_ade}"
+    );
+}

@@ -1,4 +1,5 @@
 pub mod data;
 pub mod gpu;
+pub mod sample;
 pub mod sched;
 pub mod train;

@@ -34,6 +34,9 @@ pub struct TrainArgs {
     /// --data into it when absent.
     #[arg(long, default_value = ".road-cache")]
     pub cache: PathBuf,
+    /// Only redraw `loss.png` from the run folder's `train_log.csv`, then exit.
+    #[arg(long)]
+    pub plot_only: bool,
     /// INTERACTION data folder, used when the caches must be built.
     #[arg(long, env = "ROAD_DATA", default_value = "../shared/data/interaction")]
     pub data: PathBuf,
@@ -66,11 +69,26 @@ pub fn hardware() -> String {
     format!("{cpu}, {threads} threads (candle CPU)")
 }
 
+/// `DIR/loss.png` from `DIR/train_log.csv`: training loss (running mean, blue) and
+/// validation loss (orange), log scale.
+fn plot_loss(dir: &std::path::Path) -> Result<()> {
+    let (train, validation) = crate::plot::read_train_log(&dir.join("train_log.csv"))?;
+    crate::plot::loss_png(&dir.join("loss.png"), &train, &validation)
+}
+
 pub fn run(args: TrainArgs) -> Result<ExitCode> {
     let run: RunConfig = crate::config::load(Some(&args.config), &args.overrides)?;
     run.validate()
         .map_err(anyhow::Error::msg)
         .with_context(|| format!("bad run config {}", args.config.display()))?;
+    let out = args
+        .out
+        .clone()
+        .unwrap_or_else(|| PathBuf::from("models").join(&run.name));
+    if args.plot_only {
+        plot_loss(&out)?;
+        return Ok(ExitCode::SUCCESS);
+    }
     let window = WindowConfig::default();
     anyhow::ensure!(
         window.polyline_points == run.model.polyline_points
@@ -142,6 +160,7 @@ pub fn run(args: TrainArgs) -> Result<ExitCode> {
         }
     })?;
     bar.finish();
+    plot_loss(&out)?;
     let secs = started.elapsed().as_secs_f64();
     out!(
         "{}: step {} validation loss {:?} (untrained {:?}); {:.1} samples/s over {:.0} s; checkpoint in {}",

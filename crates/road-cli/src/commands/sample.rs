@@ -1,0 +1,181 @@
+//! `road sample`: sample futures of one validation scene with a checkpoint on the CPU and draw
+//! them over the map with the observed history and the logged future.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use rand::SeedableRng;
+use road_data::{Dataset, Split, WindowConfig, cache};
+use road_model::batch::SceneInput;
+use road_model::checkpoint;
+use road_model::sample::{RolloutScene, rollout};
+
+use crate::plot::{HISTORY, LOGGED, MAP, PREDICTED, Stroke, scene_png};
+
+#[derive(Debug, Args)]
+pub struct SampleArgs {
+    /// Checkpoint folder (config.toml + weights.safetensors), e.g. models/road20.
+    #[arg(long)]
+    pub checkpoint: PathBuf,
+    /// `val:<index>` (a validation window) or `val:<LOCATION>/<file>:<start frame>`, e.g.
+    /// `val:DR_USA_Roundabout_FT/vehicle_tracks_003.csv.gz:101`.
+    #[arg(long, default_value = "val:0")]
+    pub scene: String,
+    /// Joint samples to draw.
+    #[arg(long, default_value_t = 6)]
+    pub samples: usize,
+    /// Simulated steps (default: the rest of the window after the observations).
+    #[arg(long)]
+    pub steps: Option<usize>,
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Engine; only `cpu` (the candle reference) exists so far.
+    #[arg(long, default_value = "cpu")]
+    pub engine: String,
+    #[arg(long, default_value = "sample.png")]
+    pub out: PathBuf,
+    /// Folder of the dataset caches (`road data build`).
+    #[arg(long, default_value = ".road-cache")]
+    pub cache: PathBuf,
+}
+
+fn find_scene(ds: &Dataset, spec: &str) -> Result<usize> {
+    let Some(rest) = spec.strip_prefix("val:") else {
+        bail!("scene `{spec}` must start with `val:`");
+    };
+    if let Ok(index) = rest.parse::<usize>() {
+        anyhow::ensure!(
+            index < ds.len(),
+            "scene `{spec}`: the validation set has {} windows",
+            ds.len()
+        );
+        return Ok(index);
+    }
+    let (file, frame) = rest
+        .rsplit_once(':')
+        .with_context(|| format!("scene `{spec}`: expected val:<LOCATION>/<file>:<frame>"))?;
+    let frame: u32 = frame
+        .parse()
+        .with_context(|| format!("scene `{spec}`: bad frame `{frame}`"))?;
+    ds.windows
+        .iter()
+        .position(|w| {
+            let r = &ds.recordings[w.recording as usize];
+            format!("{}/{}", r.location, r.file) == file && w.start_frame == frame
+        })
+        .with_context(|| {
+            format!("scene `{spec}`: no validation window starts at frame {frame} of {file}")
+        })
+}
+
+pub fn run(args: SampleArgs) -> Result<ExitCode> {
+    anyhow::ensure!(
+        args.engine == "cpu",
+        "engine `{}` is not available yet; use --engine cpu",
+        args.engine
+    );
+    let loaded = checkpoint::load(&args.checkpoint, &candle_core::Device::Cpu)?;
+    let run = &loaded.meta.run;
+    let window_config = WindowConfig::default();
+    let ds = cache::load_checked(
+        &cache::cache_path(&args.cache, Split::Validation),
+        Split::Validation,
+        Some(&window_config),
+        None,
+    )
+    .context("the validation cache is needed: run `road data build`")?;
+    let index = find_scene(&ds, &args.scene)?;
+    let window = ds.window(index)?;
+    let n = run.planner.obs_slots;
+    let reference = window_config.reference_step;
+    let start = reference + 1 - n;
+    let steps = args.steps.unwrap_or(window.steps - reference - 1);
+    let history = SceneInput::from_window(&window, start, n, &run.model);
+    let scenes = vec![RolloutScene { history }; args.samples.max(1)];
+    let mut rng = rand::rngs::StdRng::seed_from_u64(args.seed);
+    let started = Instant::now();
+    let out = rollout(&loaded.model, &run.planner, &scenes, steps, &mut rng)?;
+    let secs = started.elapsed().as_secs_f64();
+
+    let to_m = |x: f32, y: f32| {
+        let p = window.frame.to_metres([x, y]);
+        (p[0], p[1])
+    };
+    let mut strokes = Vec::new();
+    for p in 0..window.polyline_count() {
+        let pts = (0..window.polyline_points)
+            .map(|k| {
+                to_m(
+                    window.polylines[2 * (p * window.polyline_points + k)],
+                    window.polylines[2 * (p * window.polyline_points + k) + 1],
+                )
+            })
+            .collect();
+        strokes.push(Stroke {
+            points: pts,
+            color: MAP,
+            width: 6,
+        });
+    }
+    for a in 0..window.agents {
+        let logged: Vec<(f64, f64)> = (reference..window.steps)
+            .filter_map(|t| window.state(a, t))
+            .map(|s| to_m(s[0], s[1]))
+            .collect();
+        strokes.push(Stroke {
+            points: logged,
+            color: LOGGED,
+            width: 2,
+        });
+    }
+    for sample in &out.states {
+        for a in 0..window.agents {
+            let mut pts = vec![];
+            if let Some(s) = window.state(a, reference) {
+                pts.push(to_m(s[0], s[1]));
+            }
+            pts.extend(
+                (0..steps)
+                    .map(|t| to_m(sample[3 * (a * steps + t)], sample[3 * (a * steps + t) + 1])),
+            );
+            strokes.push(Stroke {
+                points: pts,
+                color: PREDICTED,
+                width: 1,
+            });
+        }
+    }
+    for a in 0..window.agents {
+        let hist: Vec<(f64, f64)> = (start..=reference)
+            .filter_map(|t| window.state(a, t))
+            .map(|s| to_m(s[0], s[1]))
+            .collect();
+        strokes.push(Stroke {
+            points: hist,
+            color: HISTORY,
+            width: 3,
+        });
+    }
+    scene_png(
+        &args.out,
+        &strokes,
+        900,
+        (window.frame.origin_m[0], window.frame.origin_m[1]),
+        50.0,
+    )?;
+    out!(
+        "{} {} frame {}: {} agents, {} samples × {steps} steps with {} ({} NFE per sample) in {secs:.2} s → {}",
+        window.location,
+        window.file,
+        window.start_frame,
+        window.agents,
+        scenes.len(),
+        run.name,
+        out.nfe,
+        args.out.display()
+    );
+    Ok(ExitCode::SUCCESS)
+}

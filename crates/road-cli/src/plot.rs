@@ -1,0 +1,137 @@
+//! PNG figures without fonts (no system font libraries needed): scenes and loss curves.
+
+use std::path::Path;
+
+use anyhow::{Context, Result};
+use plotters::prelude::*;
+
+/// Paper style: map light grey, logged trajectories grey, predictions orange, history blue.
+pub const MAP: RGBColor = RGBColor(215, 215, 215);
+pub const LOGGED: RGBColor = RGBColor(110, 110, 110);
+pub const PREDICTED: RGBColor = RGBColor(240, 140, 20);
+pub const HISTORY: RGBColor = RGBColor(40, 90, 200);
+
+/// A polyline in metres with its colour and width.
+#[derive(Debug, Clone)]
+pub struct Stroke {
+    pub points: Vec<(f64, f64)>,
+    pub color: RGBColor,
+    pub width: u32,
+}
+
+/// Draws strokes (and dots at each stroke's end) fitted into a square PNG.
+pub fn scene_png(
+    path: &Path,
+    strokes: &[Stroke],
+    size_px: u32,
+    centre: (f64, f64),
+    half_extent_m: f64,
+) -> Result<()> {
+    let root = BitMapBackend::new(path, (size_px, size_px)).into_drawing_area();
+    root.fill(&WHITE)?;
+    let scale = f64::from(size_px) / (2.0 * half_extent_m);
+    let to_px = |(x, y): (f64, f64)| -> (i32, i32) {
+        (
+            ((x - centre.0 + half_extent_m) * scale) as i32,
+            ((centre.1 + half_extent_m - y) * scale) as i32,
+        )
+    };
+    for s in strokes {
+        let pts: Vec<(i32, i32)> = s.points.iter().map(|&p| to_px(p)).collect();
+        root.draw(&PathElement::new(
+            pts.clone(),
+            s.color.stroke_width(s.width),
+        ))?;
+        if s.color != MAP {
+            if let Some(&last) = pts.last() {
+                root.draw(&Circle::new(last, s.width as i32 + 1, s.color.filled()))?;
+            }
+        }
+    }
+    root.present()
+        .with_context(|| format!("cannot write {}", path.display()))?;
+    Ok(())
+}
+
+/// Training and validation loss (log scale) against steps.
+pub fn loss_png(path: &Path, train: &[(f64, f64)], validation: &[(f64, f64)]) -> Result<()> {
+    let (w, h) = (800u32, 450u32);
+    let root = BitMapBackend::new(path, (w, h)).into_drawing_area();
+    root.fill(&WHITE)?;
+    let all: Vec<&(f64, f64)> = train
+        .iter()
+        .chain(validation)
+        .filter(|p| p.1 > 0.0)
+        .collect();
+    if all.is_empty() {
+        root.present()?;
+        return Ok(());
+    }
+    let max_step = all.iter().map(|p| p.0).fold(1.0, f64::max);
+    let (lo, hi) = all
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), p| {
+            (lo.min(p.1.ln()), hi.max(p.1.ln()))
+        });
+    let span = (hi - lo).max(1e-6);
+    let margin = 20.0;
+    let to_px = |(s, l): (f64, f64)| -> (i32, i32) {
+        let x = margin + (s / max_step) * (f64::from(w) - 2.0 * margin);
+        let y = margin + (hi - l.ln()) / span * (f64::from(h) - 2.0 * margin);
+        (x as i32, y as i32)
+    };
+    root.draw(&PathElement::new(
+        vec![
+            to_px((0.0, hi.exp())),
+            to_px((0.0, lo.exp())),
+            to_px((max_step, lo.exp())),
+        ],
+        BLACK.stroke_width(1),
+    ))?;
+    // A running mean keeps the noisy per-step loss readable.
+    let window = (train.len() / 100).max(1);
+    let smoothed: Vec<(i32, i32)> = train
+        .windows(window)
+        .step_by(window.max(1))
+        .map(|c| {
+            to_px((
+                c[c.len() - 1].0,
+                c.iter().map(|p| p.1).sum::<f64>() / c.len() as f64,
+            ))
+        })
+        .collect();
+    root.draw(&PathElement::new(smoothed, HISTORY.stroke_width(2)))?;
+    let val: Vec<(i32, i32)> = validation
+        .iter()
+        .filter(|p| p.1 > 0.0)
+        .map(|&p| to_px(p))
+        .collect();
+    root.draw(&PathElement::new(val.clone(), PREDICTED.stroke_width(2)))?;
+    for p in val {
+        root.draw(&Circle::new(p, 3, PREDICTED.filled()))?;
+    }
+    root.present()
+        .with_context(|| format!("cannot write {}", path.display()))?;
+    Ok(())
+}
+
+/// Reads `train_log.csv` into (step, loss) and (step, validation loss) series.
+pub fn read_train_log(path: &Path) -> Result<(Vec<(f64, f64)>, Vec<(f64, f64)>)> {
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
+    let (mut train, mut val) = (Vec::new(), Vec::new());
+    for (i, line) in text.lines().enumerate().skip(1) {
+        let f: Vec<&str> = line.split(',').collect();
+        anyhow::ensure!(f.len() == 7, "bad line ({}:{})", path.display(), i + 1);
+        let step: f64 = f[0]
+            .parse()
+            .with_context(|| format!("bad step ({}:{})", path.display(), i + 1))?;
+        if let Ok(loss) = f[1].parse::<f64>() {
+            train.push((step, loss));
+        }
+        if let Ok(v) = f[5].parse::<f64>() {
+            val.push((step, v));
+        }
+    }
+    Ok((train, val))
+}

@@ -1,0 +1,402 @@
+//! Reference sampling on the CPU: the scheduler drives the per-slot noise levels, the
+//! denoiser evaluates, and a deterministic Heun step (EDM Algorithm 1 with a per-slot σ)
+//! moves every slot. This is the oracle the WGSL engine must match, and the CPU path for
+//! users without a GPU.
+//!
+//! Many scenes run in lockstep as one batch (each with its own noise); scenes of one call share
+//! a planner, so their steps line up.
+
+use candle_core::{Device, Tensor};
+use rand::rngs::StdRng;
+use road_sched::{PlannerSpec, SceneSpec, Scheduler, TickOutcome, WindowUpdate};
+
+use crate::batch::{AGENT_FEATURES, SceneInput, normal_vec};
+use crate::model::{Denoiser, Mode};
+use crate::{Error, Result};
+
+/// One scene to roll out: its observed history (the last `n` slots of `history` are the
+/// window's observations) and static features, in model units.
+#[derive(Debug, Clone)]
+pub struct RolloutScene {
+    /// History and map; `history.slots ≥ n`, the newest step last.
+    pub history: SceneInput,
+}
+
+/// Emitted states of every scene: `[scenes][agents, steps, 3]` in model units.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Rollout {
+    pub agents: Vec<usize>,
+    pub steps: usize,
+    pub states: Vec<Vec<f32>>,
+    /// Model evaluations per scene over the whole rollout.
+    pub nfe: u64,
+}
+
+/// Per-scene window state in model units: `[A_max, W, 3]` plus the emitted history.
+struct SceneState {
+    agents: usize,
+    window: Vec<f32>, // [A_max, W, 3]
+    valid: Vec<f32>,  // [A_max, W]
+    /// Every state so far: observed history then emitted, `[agents][t] → [3]`.
+    history: Vec<Vec<[f32; 3]>>,
+    history_valid: Vec<Vec<bool>>,
+    emitted: Vec<f32>, // [agents, steps, 3]
+}
+
+/// Rolls out `steps` simulated steps of every scene with `planner` (open loop: every agent is
+/// the model's). `rng` draws all noise.
+pub fn rollout(
+    model: &Denoiser,
+    planner: &PlannerSpec,
+    scenes: &[RolloutScene],
+    steps: usize,
+    rng: &mut StdRng,
+) -> Result<Rollout> {
+    let device = Device::Cpu;
+    let n = planner.obs_slots;
+    let w = planner.window_slots();
+    if w != model.config.window_slots {
+        return Err(Error::data(format!(
+            "planner window {w} ≠ model window {}",
+            model.config.window_slots
+        )));
+    }
+    if scenes.is_empty() {
+        return Ok(Rollout {
+            agents: vec![],
+            steps,
+            states: vec![],
+            nfe: 0,
+        });
+    }
+    let b = scenes.len();
+    let a_max = scenes
+        .iter()
+        .map(|s| s.history.agents)
+        .max()
+        .unwrap_or(1)
+        .max(1);
+    let p_max = scenes
+        .iter()
+        .map(|s| s.history.polylines)
+        .max()
+        .unwrap_or(1)
+        .max(1);
+    let q = scenes[0].history.points;
+    let sigma_max = planner.edm.sigma_max as f32;
+    let obs_sigma = planner.obs_sigma() as f32;
+
+    // Static inputs, once: agent features and map tokens.
+    let mut feats = vec![0.0f32; b * a_max * AGENT_FEATURES];
+    let mut map = vec![0.0f32; b * p_max * q * 2];
+    let mut map_valid = vec![0.0f32; b * p_max];
+    for (i, s) in scenes.iter().enumerate() {
+        let h = &s.history;
+        if h.slots < n {
+            return Err(Error::data(format!(
+                "scene {i}: {} history steps, the planner observes {n}",
+                h.slots
+            )));
+        }
+        feats[i * a_max * AGENT_FEATURES..][..h.agents * AGENT_FEATURES]
+            .copy_from_slice(&h.agent_features);
+        map[i * p_max * q * 2..][..h.polylines * q * 2].copy_from_slice(&h.map);
+        map_valid[i * p_max..][..h.polylines].fill(1.0);
+    }
+    let feats = Tensor::from_vec(feats, (b, a_max, AGENT_FEATURES), &device)?;
+    let map = Tensor::from_vec(map, (b, p_max, q, 2), &device)?;
+    let map_valid = Tensor::from_vec(map_valid, (b, p_max), &device)?;
+    let map_tokens = model.encode_map(&map, Mode::Infer)?;
+
+    let mut states: Vec<SceneState> = scenes
+        .iter()
+        .map(|s| {
+            let h = &s.history;
+            let history = (0..h.agents)
+                .map(|a| {
+                    (0..h.slots)
+                        .map(|t| {
+                            let k = 3 * (a * h.slots + t);
+                            [h.states[k], h.states[k + 1], h.states[k + 2]]
+                        })
+                        .collect()
+                })
+                .collect();
+            let history_valid = (0..h.agents)
+                .map(|a| h.valid[a * h.slots..(a + 1) * h.slots].to_vec())
+                .collect();
+            SceneState {
+                agents: h.agents,
+                window: vec![0.0; a_max * w * 3],
+                valid: vec![0.0; a_max * w],
+                history,
+                history_valid,
+                emitted: Vec::with_capacity(h.agents * steps * 3),
+            }
+        })
+        .collect();
+    for s in &mut states {
+        rebuild_window(s, n, w, obs_sigma, sigma_max, rng);
+    }
+
+    let mut sched = Scheduler::with_capacity(b);
+    let pid = sched.add_planner("rollout", planner.clone())?;
+    let ids = (0..b)
+        .map(|_| {
+            sched.admit(SceneSpec {
+                planner: pid,
+                external_agents: vec![],
+            })
+        })
+        .collect::<road_sched::Result<Vec<_>>>()?;
+    let mut outcomes: Vec<TickOutcome> = Vec::with_capacity(b);
+    let mut per_tick: Vec<Vec<f32>> = vec![Vec::new(); b]; // [scenes][A·3] emitted this tick
+    for _ in 0..steps {
+        for &id in &ids {
+            sched.request_tick(id)?;
+        }
+        loop {
+            let batch = sched.next_batch(b)?.to_vec();
+            if batch.is_empty() {
+                break;
+            }
+            // Lockstep: one planner, so every pending scene sits at the same step.
+            let plan = sched.step_plan(&batch[0]);
+            let (sigma_cur, sigma_next, nfe) =
+                (plan.sigma_cur.to_vec(), plan.sigma_next.to_vec(), plan.nfe);
+            let scene_index: Vec<usize> = batch.iter().map(|item| item.scene.index()).collect();
+            heun_step(
+                model,
+                &mut states,
+                &scene_index,
+                &sigma_cur,
+                &sigma_next,
+                nfe,
+                a_max,
+                w,
+                &feats,
+                &map_tokens,
+                &map_valid,
+            )?;
+            sched.complete_batch();
+        }
+        outcomes.clear();
+        sched.take_outcomes(&mut outcomes);
+        for o in &outcomes {
+            let s = &mut states[o.scene.index()];
+            let slot = n + o.emit_future_slot;
+            let emitted: Vec<f32> = (0..s.agents)
+                .flat_map(|a| s.window[3 * (a * w + slot)..3 * (a * w + slot) + 3].to_vec())
+                .collect();
+            per_tick[o.scene.index()] = emitted;
+        }
+        for o in &outcomes {
+            let i = o.scene.index();
+            let s = &mut states[i];
+            let emitted = std::mem::take(&mut per_tick[i]);
+            for a in 0..s.agents {
+                let state = [emitted[3 * a], emitted[3 * a + 1], emitted[3 * a + 2]];
+                s.history[a].push(state);
+                s.history_valid[a].push(true);
+            }
+            s.emitted.extend_from_slice(&emitted);
+            match o.then {
+                WindowUpdate::Shift => shift_window(s, n, w, obs_sigma, sigma_max, rng),
+                WindowUpdate::Rebuild => rebuild_window(s, n, w, obs_sigma, sigma_max, rng),
+                WindowUpdate::Hold | WindowUpdate::Exhausted => {}
+            }
+        }
+    }
+    let nfe = ids
+        .first()
+        .map(|&id| sched.stats(id).map(|s| s.nfe))
+        .transpose()?
+        .unwrap_or(0);
+    Ok(Rollout {
+        agents: states.iter().map(|s| s.agents).collect(),
+        steps,
+        states: states
+            .into_iter()
+            .map(|s| {
+                // [steps, agents, 3] → [agents, steps, 3]
+                let mut out = vec![0.0; s.agents * steps * 3];
+                for t in 0..steps {
+                    for a in 0..s.agents {
+                        out[3 * (a * steps + t)..][..3]
+                            .copy_from_slice(&s.emitted[3 * (t * s.agents + a)..][..3]);
+                    }
+                }
+                out
+            })
+            .collect(),
+        nfe,
+    })
+}
+
+/// Window from the newest `n` history states (observations at `obs_sigma`) and pure noise.
+fn rebuild_window(
+    s: &mut SceneState,
+    n: usize,
+    w: usize,
+    obs_sigma: f32,
+    sigma_max: f32,
+    rng: &mut StdRng,
+) {
+    let noise = normal_vec(rng, s.agents * w * 3);
+    s.window.fill(0.0);
+    s.valid.fill(0.0);
+    for a in 0..s.agents {
+        let len = s.history[a].len();
+        for slot in 0..w {
+            let k = a * w + slot;
+            if slot < n {
+                let t = len - n + slot;
+                if s.history_valid[a][t] {
+                    for d in 0..3 {
+                        s.window[3 * k + d] = s.history[a][t][d] + obs_sigma * noise[3 * k + d];
+                    }
+                    s.valid[k] = 1.0;
+                }
+            } else {
+                for d in 0..3 {
+                    s.window[3 * k + d] = sigma_max * noise[3 * k + d];
+                }
+                s.valid[k] = 1.0;
+            }
+        }
+    }
+}
+
+/// After an emission: observations move up by one (the emitted slot joins them at
+/// `obs_sigma`), future slots move up, a pure-noise slot is appended.
+fn shift_window(
+    s: &mut SceneState,
+    n: usize,
+    w: usize,
+    obs_sigma: f32,
+    sigma_max: f32,
+    rng: &mut StdRng,
+) {
+    let noise = normal_vec(rng, s.agents * 6);
+    for a in 0..s.agents {
+        let row = a * w;
+        s.window.copy_within(3 * (row + 1)..3 * (row + w), 3 * row);
+        s.valid.copy_within(row + 1..row + w, row);
+        // The emitted state (now at slot n − 1) is an observation: it gets the observation
+        // noise level; its value is the model's clean estimate plus σ_obs noise.
+        for d in 0..3 {
+            s.window[3 * (row + n - 1) + d] += obs_sigma * noise[6 * a + d];
+            s.window[3 * (row + w - 1) + d] = sigma_max * noise[6 * a + 3 + d];
+        }
+        s.valid[row + n - 1] = 1.0;
+        s.valid[row + w - 1] = 1.0;
+    }
+}
+
+/// One Heun step for the scenes in `scene_index` (per-slot σ, EDM Algorithm 1).
+#[allow(clippy::too_many_arguments)]
+fn heun_step(
+    model: &Denoiser,
+    states: &mut [SceneState],
+    scene_index: &[usize],
+    sigma_cur: &[f32],
+    sigma_next: &[f32],
+    nfe: u8,
+    a_max: usize,
+    w: usize,
+    feats: &Tensor,
+    map_tokens: &Tensor,
+    map_valid: &Tensor,
+) -> Result<()> {
+    let device = Device::Cpu;
+    let bsel = scene_index.len();
+    let idx = Tensor::from_vec(
+        scene_index.iter().map(|&i| i as u32).collect::<Vec<_>>(),
+        bsel,
+        &device,
+    )?;
+    let feats = feats.index_select(&idx, 0)?;
+    let map_tokens = map_tokens.index_select(&idx, 0)?;
+    let map_valid = map_valid.index_select(&idx, 0)?;
+    let mut x = Vec::with_capacity(bsel * a_max * w * 3);
+    let mut valid = Vec::with_capacity(bsel * a_max * w);
+    for &i in scene_index {
+        x.extend_from_slice(&states[i].window);
+        valid.extend_from_slice(&states[i].valid);
+    }
+    let x_t = Tensor::from_vec(x.clone(), (bsel, a_max, w, 3), &device)?;
+    let valid_t = Tensor::from_vec(valid, (bsel, a_max, w), &device)?;
+    let sig = |s: &[f32]| -> Result<Tensor> {
+        let row: Vec<f32> = (0..bsel).flat_map(|_| s.iter().copied()).collect();
+        Ok(Tensor::from_vec(row, (bsel, w), &device)?)
+    };
+    let d1 = model
+        .denoise(
+            &x_t,
+            &sig(sigma_cur)?,
+            &valid_t,
+            &feats,
+            &map_tokens,
+            &map_valid,
+            Mode::Infer,
+        )?
+        .flatten_all()?
+        .to_vec1::<f32>()?;
+    // Euler for every changing slot.
+    let mut x_e = x.clone();
+    for (e, (xe, xv)) in x_e.iter_mut().zip(&x).enumerate() {
+        let slot = (e / 3) % w;
+        let (s, sn) = (sigma_cur[slot], sigma_next[slot]);
+        if s != sn {
+            *xe = xv + (sn - s) * (xv - d1[e]) / s;
+        }
+    }
+    let result = if nfe == 2 {
+        // Second evaluation at σ_next; slots landing on 0 keep their Euler result (their
+        // model input uses σ_cur, as it is never read).
+        let sigma_eval: Vec<f32> = sigma_cur
+            .iter()
+            .zip(sigma_next)
+            .map(|(&s, &sn)| if sn > 0.0 { sn } else { s })
+            .collect();
+        let xe_t = Tensor::from_vec(x_e.clone(), (bsel, a_max, w, 3), &device)?;
+        let d2 = model
+            .denoise(
+                &xe_t,
+                &sig(&sigma_eval)?,
+                &valid_t,
+                &feats,
+                &map_tokens,
+                &map_valid,
+                Mode::Infer,
+            )?
+            .flatten_all()?
+            .to_vec1::<f32>()?;
+        let mut out = x_e.clone();
+        for (e, o) in out.iter_mut().enumerate() {
+            let slot = (e / 3) % w;
+            let (s, sn) = (sigma_cur[slot], sigma_next[slot]);
+            if s != sn && sn > 0.0 {
+                let slope1 = (x[e] - d1[e]) / s;
+                let slope2 = (x_e[e] - d2[e]) / sn;
+                *o = x[e] + (sn - s) * 0.5 * (slope1 + slope2);
+            }
+        }
+        out
+    } else {
+        x_e
+    };
+    let per_scene = a_max * w * 3;
+    for (j, &i) in scene_index.iter().enumerate() {
+        states[i]
+            .window
+            .copy_from_slice(&result[j * per_scene..(j + 1) * per_scene]);
+    }
+    Ok(())
+}
+
+impl From<road_sched::Error> for Error {
+    fn from(e: road_sched::Error) -> Self {
+        Error::data(format!("scheduler: {e}"))
+    }
+}
