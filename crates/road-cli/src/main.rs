@@ -43,6 +43,9 @@ enum Command {
     Train(commands::train::TrainArgs),
     /// Sample futures of a validation scene with a checkpoint and draw them as a PNG.
     Sample(commands::sample::SampleArgs),
+    /// Throughput benchmarks (training, scheduler), each against a baseline from the same run.
+    #[command(subcommand)]
+    Bench(commands::bench::BenchCommand),
     /// The GPU: which adapter wgpu picks here, and a self-test of the kernels.
     #[command(subcommand)]
     Gpu(commands::gpu::GpuCommand),
@@ -64,6 +67,7 @@ fn main() -> std::process::ExitCode {
         Command::Gpu(cmd) => commands::gpu::run(cmd),
         Command::Train(args) => commands::train::run(args),
         Command::Sample(args) => commands::sample::run(args),
+        Command::Bench(cmd) => commands::bench::run(cmd),
     };
     match result {
         Ok(code) => code,

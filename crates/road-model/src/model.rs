@@ -33,6 +33,20 @@ fn norm(ln: &LayerNorm, x: &Tensor, mode: Mode) -> Result<Tensor> {
     })
 }
 
+/// A linear layer over the last dimension as one `[N, D_in] × [D_in, D_out]` product.
+/// candle's `Linear` on a 4-D input broadcasts the weight into a batched product, whose
+/// backward materialises and reduces a per-batch weight gradient: several times slower.
+fn lin(layer: &Linear, x: &Tensor) -> Result<Tensor> {
+    let dims = x.dims().to_vec();
+    let d_in = dims[dims.len() - 1];
+    let rows = x.elem_count() / d_in;
+    let y = layer.forward(&x.reshape((rows, d_in))?)?; // [N, D_out]
+    let mut out_dims = dims;
+    let last = out_dims.len() - 1;
+    out_dims[last] = y.dim(1)?;
+    Ok(y.reshape(out_dims)?)
+}
+
 fn softmax(x: &Tensor, mode: Mode) -> Result<Tensor> {
     Ok(match mode {
         Mode::Infer => candle_nn::ops::softmax_last_dim(x)?,
@@ -70,13 +84,13 @@ impl Attention {
             Ok(t.reshape((n, l, h, dh))?.transpose(1, 2)?.contiguous()?)
         };
         // Scaling q rather than the scores: the scores are the largest tensor here.
-        let q = split((self.q.forward(xq)? * (1.0 / (dh as f64).sqrt()))?, lq)?; // [N, H, Lq, dh]
-        let k = split(self.k.forward(xkv)?, lk)?; // [N, H, Lk, dh]
-        let v = split(self.v.forward(xkv)?, lk)?; // [N, H, Lk, dh]
+        let q = split((lin(&self.q, xq)? * (1.0 / (dh as f64).sqrt()))?, lq)?; // [N, H, Lq, dh]
+        let k = split(lin(&self.k, xkv)?, lk)?; // [N, H, Lk, dh]
+        let v = split(lin(&self.v, xkv)?, lk)?; // [N, H, Lk, dh]
         let scores = q.matmul(&k.t()?)?.broadcast_add(key_bias)?; // [N, H, Lq, Lk]
         let attn = softmax(&scores, mode)?;
         let out = attn.matmul(&v)?.transpose(1, 2)?.reshape((n, lq, d))?; // [N, Lq, D]
-        Ok(self.o.forward(&out)?)
+        Ok(lin(&self.o, &out)?)
     }
 }
 
@@ -136,7 +150,7 @@ impl Block {
             .forward(&x, map_tokens, &m.map_bias, mode)?
             .reshape((b, a, w, d))?)?;
         let x = norm(&self.ln_mlp, &h, mode)?;
-        let y = self.mlp_out.forward(&self.mlp_in.forward(&x)?.relu()?)?;
+        let y = lin(&self.mlp_out, &lin(&self.mlp_in, &x)?.relu()?)?;
         Ok((h + y)?)
     }
 }
@@ -215,7 +229,7 @@ impl Denoiser {
             .forward(map)?
             .broadcast_add(&self.map_point_embedding)?
             .relu()?; // [B, P, Q, D]
-        let x = self.map_mix.forward(&x)?.max(2)?; // [B, P, D]
+        let x = lin(&self.map_mix, &x)?.max(2)?; // [B, P, D]
         norm(&self.ln_map_out, &x, mode)
     }
 
@@ -278,9 +292,9 @@ impl Denoiser {
         // Invalid tokens carry zeros in, so that nothing of theirs leaks even before masking.
         let valid4 = valid.unsqueeze(3)?; // [B, A, W, 1]
         let x_in = x_noisy.broadcast_mul(&c_in)?.broadcast_mul(&valid4)?;
-        let h = self.embed_state.forward(&x_in)?; // [B, A, W, D]
-        let noise = self.embed_noise.forward(&c_noise)?; // [B, 1, W, D]
-        let agent = self.embed_agent.forward(agent_features)?.unsqueeze(2)?; // [B, A, 1, D]
+        let h = lin(&self.embed_state, &x_in)?; // [B, A, W, D]
+        let noise = lin(&self.embed_noise, &c_noise)?; // [B, 1, W, D]
+        let agent = lin(&self.embed_agent, agent_features)?.unsqueeze(2)?; // [B, A, 1, D]
         let slots = self.slot_embedding.reshape((1, 1, w, d))?;
         let mut h = h
             .broadcast_add(&noise)?
@@ -290,7 +304,7 @@ impl Denoiser {
         for block in &self.blocks {
             h = block.forward(&h, &masks, map_tokens, mode)?;
         }
-        let out = self.head.forward(&norm(&self.ln_out, &h, mode)?)?; // [B, A, W, 3]
+        let out = lin(&self.head, &norm(&self.ln_out, &h, mode)?)?; // [B, A, W, 3]
         Ok(out.broadcast_mul(&valid4)?)
     }
 }

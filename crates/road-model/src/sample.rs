@@ -151,27 +151,24 @@ pub fn rollout(
         .collect::<road_sched::Result<Vec<_>>>()?;
     let mut outcomes: Vec<TickOutcome> = Vec::with_capacity(b);
     let mut per_tick: Vec<Vec<f32>> = vec![Vec::new(); b]; // [scenes][A·3] emitted this tick
+    let mut scene_index: Vec<usize> = Vec::with_capacity(b);
     for _ in 0..steps {
         for &id in &ids {
             sched.request_tick(id)?;
         }
-        loop {
-            let batch = sched.next_batch(b)?.to_vec();
-            if batch.is_empty() {
-                break;
-            }
+        while sched.next_batch(b)? > 0 {
             // Lockstep: one planner, so every pending scene sits at the same step.
+            let batch = sched.batch();
             let plan = sched.step_plan(&batch[0]);
-            let (sigma_cur, sigma_next, nfe) =
-                (plan.sigma_cur.to_vec(), plan.sigma_next.to_vec(), plan.nfe);
-            let scene_index: Vec<usize> = batch.iter().map(|item| item.scene.index()).collect();
+            scene_index.clear();
+            scene_index.extend(batch.iter().map(|item| item.scene.index()));
             heun_step(
                 model,
                 &mut states,
                 &scene_index,
-                &sigma_cur,
-                &sigma_next,
-                nfe,
+                plan.sigma_cur,
+                plan.sigma_next,
+                plan.nfe,
                 a_max,
                 w,
                 &feats,

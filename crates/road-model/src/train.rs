@@ -387,6 +387,24 @@ impl Trainer {
         let log_path = dir.join("train_log.csv");
         std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
         let fresh_log = !log_path.exists();
+        if !fresh_log {
+            // A resumed run drops the rows logged after its checkpoint: they are redone.
+            let text = std::fs::read_to_string(&log_path).map_err(|e| Error::io(&log_path, e))?;
+            let kept: String = text
+                .lines()
+                .enumerate()
+                .filter(|(i, line)| {
+                    *i == 0
+                        || line
+                            .split(',')
+                            .next()
+                            .and_then(|s| s.parse::<u64>().ok())
+                            .is_some_and(|s| s <= self.step)
+                })
+                .map(|(_, line)| format!("{line}\n"))
+                .collect();
+            checkpoint::write_atomic(&log_path, kept.as_bytes())?;
+        }
         let mut log = std::fs::OpenOptions::new()
             .create(true)
             .append(true)

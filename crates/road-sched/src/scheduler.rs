@@ -1,8 +1,8 @@
 //! Many scenes, each in its own phase; batches of denoising work for one engine step.
 //!
 //! The caller's loop: `admit` scenes, `request_tick` the ones that need their next state,
-//! then repeatedly take `next_batch`, run one batched denoiser step for its items, and
-//! `complete_batch`; finished ticks appear in `take_outcomes`. Nothing allocates on that loop
+//! then repeatedly form a batch (`next_batch`, read with `batch` and `step_plan`), run one
+//! batched denoiser step for its items, and `complete_batch`; finished ticks appear in `take_outcomes`. Nothing allocates on that loop
 //! once the internal buffers have grown to the number of live scenes.
 
 use std::collections::VecDeque;
@@ -277,9 +277,10 @@ impl Scheduler {
         Ok(())
     }
 
-    /// Hands out up to `max_items` scenes' next denoising step, each scene at most once.
-    /// The previous batch must have been completed.
-    pub fn next_batch(&mut self, max_items: usize) -> Result<&[WorkItem]> {
+    /// Forms the next batch: up to `max_items` scenes' next denoising step, each scene at most
+    /// once; returns how many. Read it with [`Self::batch`]. The previous batch must have been
+    /// completed.
+    pub fn next_batch(&mut self, max_items: usize) -> Result<usize> {
         if !self.batch.is_empty() {
             return Err(Error::BatchInFlight);
         }
@@ -303,7 +304,12 @@ impl Scheduler {
                 stage_start: step == 0,
             });
         }
-        Ok(&self.batch)
+        Ok(self.batch.len())
+    }
+
+    /// The current batch (empty once completed).
+    pub fn batch(&self) -> &[WorkItem] {
+        &self.batch
     }
 
     /// The noise levels of one work item's step.

@@ -66,7 +66,7 @@ pub fn hardware() -> String {
     let threads = std::thread::available_parallelism()
         .map(|n| n.get())
         .unwrap_or(1);
-    format!("{cpu}, {threads} threads (candle CPU)")
+    format!("{cpu}, {threads} threads")
 }
 
 /// `DIR/loss.png` from `DIR/train_log.csv`: training loss (running mean, blue) and
