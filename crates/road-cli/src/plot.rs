@@ -115,8 +115,11 @@ pub fn loss_png(path: &Path, train: &[(f64, f64)], validation: &[(f64, f64)]) ->
     Ok(())
 }
 
+/// (step, value) points of a curve.
+pub type Series = Vec<(f64, f64)>;
+
 /// Reads `train_log.csv` into (step, loss) and (step, validation loss) series.
-pub fn read_train_log(path: &Path) -> Result<(Vec<(f64, f64)>, Vec<(f64, f64)>)> {
+pub fn read_train_log(path: &Path) -> Result<(Series, Series)> {
     let text =
         std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
     let (mut train, mut val) = (Vec::new(), Vec::new());
