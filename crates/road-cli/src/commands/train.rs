@@ -34,9 +34,10 @@ pub struct TrainArgs {
     /// --data into it when absent.
     #[arg(long, default_value = ".road-cache")]
     pub cache: PathBuf,
-    /// Only redraw `loss.png` from the run folder's `train_log.csv`, then exit.
+    /// Only redraw `loss.png` and rewrite the model card `README.md` from the run folder's
+    /// `train_log.csv` and `config.toml`, then exit.
     #[arg(long)]
-    pub plot_only: bool,
+    pub report_only: bool,
     /// INTERACTION data folder, used when the caches must be built.
     #[arg(long, env = "ROAD_DATA", default_value = "../shared/data/interaction")]
     pub data: PathBuf,
@@ -76,6 +77,63 @@ fn plot_loss(dir: &std::path::Path) -> Result<()> {
     crate::plot::loss_png(&dir.join("loss.png"), &train, &validation)
 }
 
+/// `DIR/README.md`: the model card, from `config.toml`.
+fn write_model_card(dir: &std::path::Path) -> Result<()> {
+    let meta = road_model::checkpoint::CheckpointMeta::load(dir)?;
+    let r = &meta.run;
+    let loss = |v: Option<f64>| v.map_or("not measured".to_owned(), |v| format!("{v:.4}"));
+    let card = format!(
+        "# {name}: {kind:?} denoiser (RoAD project)\n\n\
+A DJINN-style scene denoiser ({params} parameters: D = {d}, {heads} heads, {blocks} blocks, W = {w} slots: \
+{n} observed + {f} future) for the `{kind:?}` planner (K = {k}).\n\n\
+## Data\n\n\
+Derived from the INTERACTION dataset (DR v1.0 recordings; released for non-commercial research use only: \
+this model is a derived work under that licence). {source}. Train cache: {train_windows} windows of 4 s; \
+validation: {val_windows} windows.\n\n\
+## Training\n\n\
+| | |\n|---|---|\n\
+| optimiser steps | {step} of {steps} planned |\n\
+| batch | {batch} scenes |\n\
+| wall time | {wall:.0} s ({hours:.2} h) |\n\
+| hardware | {hardware} |\n\
+| conditioning augmentation | r = {r}, warm-up task probability β = {beta} |\n\
+| validation denoising loss (EMA weights) | {val} |\n\
+| same, untrained model | {untrained} |\n\n\
+The loss is EDM's weighted denoising loss, averaged over valid agent-slots of fixed validation batches \
+(`train_log.csv`, `loss.png`). Files: `weights.safetensors` (EMA weights, format in `docs/checkpoint.md`), \
+`config.toml` (every hyperparameter), `train_state.safetensors` (for `road train --resume`).\n\n\
+## Use\n\n\
+```sh\nroad sample --checkpoint models/{name} --scene val:0 --out sample.png\n```\n\n\
+## Limits\n\n\
+A small model trained briefly on a 2-core CPU; the paper's model is far larger and trained for 36 GPU-days. \
+Its samples are not yet evaluated with the paper's metrics (`road eval` is a later issue).\n",
+        name = r.name,
+        kind = r.planner.kind,
+        params = meta.parameters,
+        d = r.model.hidden,
+        heads = r.model.heads,
+        blocks = r.model.blocks,
+        w = r.model.window_slots,
+        n = r.planner.obs_slots,
+        f = r.planner.future_slots,
+        k = r.planner.steps_per_diffusion,
+        source = meta.data.source,
+        train_windows = meta.data.train_windows,
+        val_windows = meta.data.validation_windows,
+        step = meta.step,
+        steps = r.train.steps,
+        batch = r.train.batch_scenes,
+        wall = meta.wall_secs,
+        hours = meta.wall_secs / 3600.0,
+        hardware = meta.hardware,
+        r = r.train.augmentation_ratio,
+        beta = r.train.warmup_task_prob,
+        val = loss(meta.validation_loss),
+        untrained = loss(meta.untrained_validation_loss),
+    );
+    std::fs::write(dir.join("README.md"), card).with_context(|| format!("cannot write the model card in {}", dir.display()))
+}
+
 pub fn run(args: TrainArgs) -> Result<ExitCode> {
     let run: RunConfig = crate::config::load(Some(&args.config), &args.overrides)?;
     run.validate()
@@ -85,8 +143,9 @@ pub fn run(args: TrainArgs) -> Result<ExitCode> {
         .out
         .clone()
         .unwrap_or_else(|| PathBuf::from("models").join(&run.name));
-    if args.plot_only {
+    if args.report_only {
         plot_loss(&out)?;
+        write_model_card(&out)?;
         return Ok(ExitCode::SUCCESS);
     }
     let window = WindowConfig::default();
@@ -161,6 +220,7 @@ pub fn run(args: TrainArgs) -> Result<ExitCode> {
     })?;
     bar.finish();
     plot_loss(&out)?;
+    write_model_card(&out)?;
     let secs = started.elapsed().as_secs_f64();
     out!(
         "{}: step {} validation loss {:?} (untrained {:?}); {:.1} samples/s over {:.0} s; checkpoint in {}",
