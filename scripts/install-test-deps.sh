@@ -8,11 +8,11 @@ SUDO=""
 if [ "$(id -u)" -ne 0 ]; then SUDO="sudo"; fi
 
 have_lavapipe() {
-    ls /usr/share/vulkan/icd.d/lvp_icd.*.json >/dev/null 2>&1 && ldconfig -p | grep -q 'libvulkan.so.1'
+    ls /usr/share/vulkan/icd.d/lvp_icd*.json >/dev/null 2>&1 && ldconfig -p | grep -q 'libvulkan.so.1'
 }
 
 if have_lavapipe; then
-    echo "lavapipe already installed: $(ls /usr/share/vulkan/icd.d/lvp_icd.*.json)"
+    echo "lavapipe already installed: $(ls /usr/share/vulkan/icd.d/lvp_icd*.json)"
     exit 0
 fi
 

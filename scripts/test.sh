@@ -18,7 +18,7 @@ if [ -z "${XDG_RUNTIME_DIR:-}" ] || [ ! -d "${XDG_RUNTIME_DIR}" ]; then
 fi
 # In CI, pin the Vulkan loader to lavapipe so that results do not depend on the machine.
 if [ -n "${CI:-}" ] && [ -z "${VK_ICD_FILENAMES:-}" ]; then
-    icd=$(ls /usr/share/vulkan/icd.d/lvp_icd.*.json | head -1)
+    icd=$(ls /usr/share/vulkan/icd.d/lvp_icd*.json | head -1)
     export VK_ICD_FILENAMES="$icd"
 fi
 

@@ -2,11 +2,13 @@
 //!
 //! - [`context`]: adapter selection (GPU, else lavapipe; `WGPU_BACKEND`, `WGPU_ADAPTER_NAME`);
 //! - [`shaders`]: the embedded `shaders/*.wgsl` files;
-//! - [`kernels`]: one module per kernel family, each with a CPU reference in its tests;
+//! - [`kernels`]: one module per kernel family;
+//! - [`reference`]: the kernels' CPU references (plain f64 loops);
 //! - [`tolerance`]: the relative + absolute tolerance every parity test uses.
 
 pub mod context;
 pub mod kernels;
+pub mod reference;
 pub mod shaders;
 pub mod tolerance;
 

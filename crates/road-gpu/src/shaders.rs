@@ -6,21 +6,33 @@
 pub enum Shader {
     /// EDM preconditioning coefficients per window slot.
     Edm,
+    /// Linear layers (+ bias, optional ReLU).
+    Linear,
+    /// Layer norm over the last dimension.
+    LayerNorm,
+    /// Masked multi-head attention over strided token layouts.
+    Attention,
 }
 
 impl Shader {
-    pub const ALL: [Shader; 1] = [Shader::Edm];
+    pub const ALL: [Shader; 4] = [Shader::Edm, Shader::Linear, Shader::LayerNorm, Shader::Attention];
 
     /// File name under `shaders/`.
     pub fn file_name(self) -> &'static str {
         match self {
             Shader::Edm => "edm.wgsl",
+            Shader::Linear => "linear.wgsl",
+            Shader::LayerNorm => "layer_norm.wgsl",
+            Shader::Attention => "attention.wgsl",
         }
     }
 
     pub fn source(self) -> &'static str {
         match self {
             Shader::Edm => include_str!("../../../shaders/edm.wgsl"),
+            Shader::Linear => include_str!("../../../shaders/linear.wgsl"),
+            Shader::LayerNorm => include_str!("../../../shaders/layer_norm.wgsl"),
+            Shader::Attention => include_str!("../../../shaders/attention.wgsl"),
         }
     }
 
