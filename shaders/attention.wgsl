@@ -42,10 +42,10 @@ const MAX_HEAD_DIM: u32 = 64u;
 @group(0) @binding(4) var<storage, read> key_valid: array<f32>;
 @group(0) @binding(5) var<storage, read_write> out: array<f32>;
 
-fn row_of(layout: Layout, group: u32, token: u32) -> u32 {
-    return (group / layout.inner_count) * layout.outer_stride
-        + (group % layout.inner_count) * layout.inner_stride
-        + token * layout.token_stride;
+fn row_of(tokens: Layout, group: u32, token: u32) -> u32 {
+    return (group / tokens.inner_count) * tokens.outer_stride
+        + (group % tokens.inner_count) * tokens.inner_stride
+        + token * tokens.token_stride;
 }
 
 @compute @workgroup_size(64)

@@ -15,7 +15,12 @@ pub enum Shader {
 }
 
 impl Shader {
-    pub const ALL: [Shader; 4] = [Shader::Edm, Shader::Linear, Shader::LayerNorm, Shader::Attention];
+    pub const ALL: [Shader; 4] = [
+        Shader::Edm,
+        Shader::Linear,
+        Shader::LayerNorm,
+        Shader::Attention,
+    ];
 
     /// File name under `shaders/`.
     pub fn file_name(self) -> &'static str {

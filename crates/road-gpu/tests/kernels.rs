@@ -65,11 +65,23 @@ fn linear_matches_the_cpu_reference_on_random_shapes() {
     let ctx = context();
     let kernel = Linear::new(&ctx);
     let mut rng = rand::rngs::StdRng::seed_from_u64(11);
-    for (rows, in_dim, out_dim, relu) in [(1, 1, 1, false), (7, 3, 64, false), (130, 64, 64, true), (33, 64, 3, false), (5, 6, 17, true), (300, 128, 64, false)] {
+    for (rows, in_dim, out_dim, relu) in [
+        (1, 1, 1, false),
+        (7, 3, 64, false),
+        (130, 64, 64, true),
+        (33, 64, 3, false),
+        (5, 6, 17, true),
+        (300, 128, 64, false),
+    ] {
         let x = random(&mut rng, rows * in_dim, 2.0);
         let w = random(&mut rng, out_dim * in_dim, 0.5);
         let b = random(&mut rng, out_dim, 0.5);
-        let p = LinearParams { rows: rows as u32, in_dim: in_dim as u32, out_dim: out_dim as u32, relu: u32::from(relu) };
+        let p = LinearParams {
+            rows: rows as u32,
+            in_dim: in_dim as u32,
+            out_dim: out_dim as u32,
+            relu: u32::from(relu),
+        };
         let got = kernel.run(&ctx, p, &x, &w, &b).unwrap();
         let want = road_gpu::reference::linear(&x, &w, &b, rows, in_dim, out_dim, relu);
         if let Err(m) = Tolerance::F32.check(&got, &want) {
@@ -85,14 +97,25 @@ fn layer_norm_matches_the_cpu_reference_on_random_shapes() {
     let kernel = LayerNorm::new(&ctx);
     let mut rng = rand::rngs::StdRng::seed_from_u64(12);
     for (rows, dim) in [(1, 2), (9, 64), (257, 64), (40, 128), (3, 7)] {
-        let x: Vec<f32> = random(&mut rng, rows * dim, 3.0).iter().map(|v| v + 1.5).collect();
+        let x: Vec<f32> = random(&mut rng, rows * dim, 3.0)
+            .iter()
+            .map(|v| v + 1.5)
+            .collect();
         let gamma = random(&mut rng, dim, 1.0);
         let beta = random(&mut rng, dim, 1.0);
-        let p = LayerNormParams { rows: rows as u32, dim: dim as u32, eps: 1e-5, _pad: 0 };
+        let p = LayerNormParams {
+            rows: rows as u32,
+            dim: dim as u32,
+            eps: 1e-5,
+            _pad: 0,
+        };
         let got = kernel.run(&ctx, p, &x, &gamma, &beta).unwrap();
         let want = road_gpu::reference::layer_norm(&x, &gamma, &beta, rows, dim, 1e-5);
         // Outputs near 0 come from a difference of O(1) terms: the absolute part covers them.
-        let tol = Tolerance { rel: 1e-4, abs: 1e-5 };
+        let tol = Tolerance {
+            rel: 1e-4,
+            abs: 1e-5,
+        };
         if let Err(m) = tol.check(&got, &want) {
             panic!("layer norm {rows}×{dim}: {m}");
         }
@@ -108,19 +131,36 @@ fn attention_matches_the_cpu_reference_over_every_layout() {
     let ctx = context();
     let kernel = Attention::new(&ctx);
     let mut rng = rand::rngs::StdRng::seed_from_u64(13);
-    for (b, a, w, heads, head_dim, p) in [(1, 1, 1, 1, 4, 1), (2, 5, 7, 2, 8, 3), (3, 12, 20, 4, 16, 30), (1, 32, 11, 4, 16, 9)] {
+    for (b, a, w, heads, head_dim, p) in [
+        (1, 1, 1, 1, 4, 1),
+        (2, 5, 7, 2, 8, 3),
+        (3, 12, 20, 4, 16, 30),
+        (1, 32, 11, 4, 16, 9),
+    ] {
         let d = heads * head_dim;
         let tokens = b * a * w;
         let h = random(&mut rng, tokens * d, 1.0); // [B, A, W, D], used as q, k and v
-        let mut valid: Vec<f32> = (0..tokens).map(|_| f32::from(u8::from(rng.random_bool(0.8)))).collect(); // [B, A, W]
+        let mut valid: Vec<f32> = (0..tokens)
+            .map(|_| f32::from(u8::from(rng.random_bool(0.8))))
+            .collect(); // [B, A, W]
         // Agent 0 of scene 0 is absent everywhere.
         for s in 0..w {
             valid[s] = 0.0;
         }
         let (b, a, w) = (b as u32, a as u32, w as u32);
         let scale = 1.0 / (head_dim as f32).sqrt();
-        let time = TokenLayout { inner_count: 1, outer_stride: w, inner_stride: 0, token_stride: 1 };
-        let agents = TokenLayout { inner_count: w, outer_stride: a * w, inner_stride: 1, token_stride: w };
+        let time = TokenLayout {
+            inner_count: 1,
+            outer_stride: w,
+            inner_stride: 0,
+            token_stride: 1,
+        };
+        let agents = TokenLayout {
+            inner_count: w,
+            outer_stride: a * w,
+            inner_stride: 1,
+            token_stride: w,
+        };
         let base = AttentionParams {
             groups: 0,
             heads: heads as u32,
@@ -134,8 +174,27 @@ fn attention_matches_the_cpu_reference_over_every_layout() {
             mask_layout: time,
         };
         let cases = [
-            ("time", AttentionParams { groups: b * a, queries: w, keys: w, ..base }),
-            ("agents", AttentionParams { groups: b * w, queries: a, keys: a, q_layout: agents, kv_layout: agents, mask_layout: agents, ..base }),
+            (
+                "time",
+                AttentionParams {
+                    groups: b * a,
+                    queries: w,
+                    keys: w,
+                    ..base
+                },
+            ),
+            (
+                "agents",
+                AttentionParams {
+                    groups: b * w,
+                    queries: a,
+                    keys: a,
+                    q_layout: agents,
+                    kv_layout: agents,
+                    mask_layout: agents,
+                    ..base
+                },
+            ),
         ];
         for (name, params) in cases {
             let got = kernel.run(&ctx, params, &h, &h, &h, &valid).unwrap();
@@ -146,7 +205,9 @@ fn attention_matches_the_cpu_reference_over_every_layout() {
         }
         // Map cross-attention: queries [B, A·W, D], keys [B, P, D], map validity [B, P].
         let map = random(&mut rng, b as usize * p * d, 1.0);
-        let map_valid: Vec<f32> = (0..b as usize * p).map(|i| f32::from(u8::from(i % 4 != 1))).collect();
+        let map_valid: Vec<f32> = (0..b as usize * p)
+            .map(|i| f32::from(u8::from(i % 4 != 1)))
+            .collect();
         let params = AttentionParams {
             groups: b,
             queries: a * w,
@@ -156,7 +217,9 @@ fn attention_matches_the_cpu_reference_over_every_layout() {
             mask_layout: TokenLayout::contiguous(p as u32),
             ..base
         };
-        let got = kernel.run(&ctx, params, &h, &map, &map, &map_valid).unwrap();
+        let got = kernel
+            .run(&ctx, params, &h, &map, &map, &map_valid)
+            .unwrap();
         let want = road_gpu::reference::attention(&params, &h, &map, &map, &map_valid);
         if let Err(m) = Tolerance::F32.check(&got, &want) {
             panic!("map attention b{b} a{a} w{w} p{p}: {m}");

@@ -131,7 +131,8 @@ Its samples are not yet evaluated with the paper's metrics (`road eval` is a lat
         val = loss(meta.validation_loss),
         untrained = loss(meta.untrained_validation_loss),
     );
-    std::fs::write(dir.join("README.md"), card).with_context(|| format!("cannot write the model card in {}", dir.display()))
+    std::fs::write(dir.join("README.md"), card)
+        .with_context(|| format!("cannot write the model card in {}", dir.display()))
 }
 
 pub fn run(args: TrainArgs) -> Result<ExitCode> {

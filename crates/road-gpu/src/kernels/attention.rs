@@ -20,11 +20,18 @@ pub struct TokenLayout {
 impl TokenLayout {
     /// Contiguous `[groups, tokens, D]`.
     pub fn contiguous(tokens: u32) -> Self {
-        Self { inner_count: 1, outer_stride: tokens, inner_stride: 0, token_stride: 1 }
+        Self {
+            inner_count: 1,
+            outer_stride: tokens,
+            inner_stride: 0,
+            token_stride: 1,
+        }
     }
 
     pub fn row(&self, group: u32, token: u32) -> u32 {
-        (group / self.inner_count) * self.outer_stride + (group % self.inner_count) * self.inner_stride + token * self.token_stride
+        (group / self.inner_count) * self.outer_stride
+            + (group % self.inner_count) * self.inner_stride
+            + token * self.token_stride
     }
 }
 
@@ -62,8 +69,26 @@ impl Attention {
 
     /// Runs once; `out_len` is the size of the query tensor (the output shares its layout;
     /// rows no query touches stay 0).
-    pub fn run(&self, ctx: &GpuContext, p: AttentionParams, q: &[f32], k: &[f32], v: &[f32], key_valid: &[f32]) -> Result<Vec<f32>> {
-        assert!(p.head_dim <= MAX_HEAD_DIM, "head_dim {} exceeds {MAX_HEAD_DIM}", p.head_dim);
-        self.0.run_once(ctx, bytemuck::bytes_of(&p), &[q, k, v, key_valid], q.len(), p.threads())
+    pub fn run(
+        &self,
+        ctx: &GpuContext,
+        p: AttentionParams,
+        q: &[f32],
+        k: &[f32],
+        v: &[f32],
+        key_valid: &[f32],
+    ) -> Result<Vec<f32>> {
+        assert!(
+            p.head_dim <= MAX_HEAD_DIM,
+            "head_dim {} exceeds {MAX_HEAD_DIM}",
+            p.head_dim
+        );
+        self.0.run_once(
+            ctx,
+            bytemuck::bytes_of(&p),
+            &[q, k, v, key_valid],
+            q.len(),
+            p.threads(),
+        )
     }
 }

@@ -24,7 +24,20 @@ impl LayerNorm {
     }
 
     /// `x [rows, dim]`, `gamma [dim]`, `beta [dim]` → `[rows, dim]`.
-    pub fn run(&self, ctx: &GpuContext, p: LayerNormParams, x: &[f32], gamma: &[f32], beta: &[f32]) -> Result<Vec<f32>> {
-        self.0.run_once(ctx, bytemuck::bytes_of(&p), &[x, gamma, beta], (p.rows * p.dim) as usize, p.rows)
+    pub fn run(
+        &self,
+        ctx: &GpuContext,
+        p: LayerNormParams,
+        x: &[f32],
+        gamma: &[f32],
+        beta: &[f32],
+    ) -> Result<Vec<f32>> {
+        self.0.run_once(
+            ctx,
+            bytemuck::bytes_of(&p),
+            &[x, gamma, beta],
+            (p.rows * p.dim) as usize,
+            p.rows,
+        )
     }
 }

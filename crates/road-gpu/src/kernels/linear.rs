@@ -31,7 +31,20 @@ impl Linear {
     }
 
     /// `x [rows, in]`, `w [out, in]`, `b [out]` → `[rows, out]`.
-    pub fn run(&self, ctx: &GpuContext, p: LinearParams, x: &[f32], w: &[f32], b: &[f32]) -> Result<Vec<f32>> {
-        self.0.run_once(ctx, bytemuck::bytes_of(&p), &[x, w, b], (p.rows * p.out_dim) as usize, p.threads())
+    pub fn run(
+        &self,
+        ctx: &GpuContext,
+        p: LinearParams,
+        x: &[f32],
+        w: &[f32],
+        b: &[f32],
+    ) -> Result<Vec<f32>> {
+        self.0.run_once(
+            ctx,
+            bytemuck::bytes_of(&p),
+            &[x, w, b],
+            (p.rows * p.out_dim) as usize,
+            p.threads(),
+        )
     }
 }

@@ -28,44 +28,94 @@ pub struct Pipeline {
 impl Pipeline {
     pub fn new(ctx: &GpuContext, shader: Shader, entry: &'static str) -> Self {
         let module = ctx.device.create_shader_module(shader.module_descriptor());
-        let pipeline = ctx.device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-            label: Some(entry),
-            layout: None,
-            module: &module,
-            entry_point: Some(entry),
-            compilation_options: Default::default(),
-            cache: None,
-        });
+        let pipeline = ctx
+            .device
+            .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some(entry),
+                layout: None,
+                module: &module,
+                entry_point: Some(entry),
+                compilation_options: Default::default(),
+                cache: None,
+            });
         let layout = pipeline.get_bind_group_layout(0);
-        Self { pipeline, layout, label: entry }
+        Self {
+            pipeline,
+            layout,
+            label: entry,
+        }
     }
 
     /// Records one dispatch of `threads` invocations: binding 0 is the uniform `params`, the
     /// storage buffers follow in order.
-    pub fn encode(&self, ctx: &GpuContext, encoder: &mut wgpu::CommandEncoder, params: &wgpu::Buffer, buffers: &[&wgpu::Buffer], threads: u32) {
-        let mut entries = vec![wgpu::BindGroupEntry { binding: 0, resource: params.as_entire_binding() }];
+    pub fn encode(
+        &self,
+        ctx: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        params: &wgpu::Buffer,
+        buffers: &[&wgpu::Buffer],
+        threads: u32,
+    ) {
+        let mut entries = vec![wgpu::BindGroupEntry {
+            binding: 0,
+            resource: params.as_entire_binding(),
+        }];
         for (i, b) in buffers.iter().enumerate() {
-            entries.push(wgpu::BindGroupEntry { binding: i as u32 + 1, resource: b.as_entire_binding() });
+            entries.push(wgpu::BindGroupEntry {
+                binding: i as u32 + 1,
+                resource: b.as_entire_binding(),
+            });
         }
-        let bind_group = ctx.device.create_bind_group(&wgpu::BindGroupDescriptor { label: Some(self.label), layout: &self.layout, entries: &entries });
+        let bind_group = ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some(self.label),
+            layout: &self.layout,
+            entries: &entries,
+        });
         let groups = threads.div_ceil(WORKGROUP).max(1);
-        let (gx, gy) = if groups <= MAX_GROUPS_X { (groups, 1) } else { (MAX_GROUPS_X, groups.div_ceil(MAX_GROUPS_X)) };
-        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some(self.label), timestamp_writes: None });
+        let (gx, gy) = if groups <= MAX_GROUPS_X {
+            (groups, 1)
+        } else {
+            (MAX_GROUPS_X, groups.div_ceil(MAX_GROUPS_X))
+        };
+        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some(self.label),
+            timestamp_writes: None,
+        });
         pass.set_pipeline(&self.pipeline);
         pass.set_bind_group(0, &bind_group, &[]);
         pass.dispatch_workgroups(gx, gy, 1);
     }
 
     /// Uploads `inputs`, runs once into a fresh output of `out_len` floats, reads it back.
-    pub fn run_once(&self, ctx: &GpuContext, params: &[u8], inputs: &[&[f32]], out_len: usize, threads: u32) -> Result<Vec<f32>> {
+    pub fn run_once(
+        &self,
+        ctx: &GpuContext,
+        params: &[u8],
+        inputs: &[&[f32]],
+        out_len: usize,
+        threads: u32,
+    ) -> Result<Vec<f32>> {
         let params = upload(ctx, "params", params, wgpu::BufferUsages::UNIFORM);
-        let input_buffers: Vec<wgpu::Buffer> =
-            inputs.iter().map(|data| upload(ctx, "input", bytemuck::cast_slice(data), wgpu::BufferUsages::STORAGE)).collect();
+        let input_buffers: Vec<wgpu::Buffer> = inputs
+            .iter()
+            .map(|data| {
+                upload(
+                    ctx,
+                    "input",
+                    bytemuck::cast_slice(data),
+                    wgpu::BufferUsages::STORAGE,
+                )
+            })
+            .collect();
         let out_bytes = (out_len * 4) as u64;
         let out = storage_buffer(ctx, "output", out_bytes);
         let mut buffers: Vec<&wgpu::Buffer> = input_buffers.iter().collect();
         buffers.push(&out);
-        let mut encoder = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some(self.label) });
+        let mut encoder = ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some(self.label),
+            });
         self.encode(ctx, &mut encoder, &params, &buffers, threads);
         ctx.queue.submit([encoder.finish()]);
         if out_len == 0 {
@@ -81,13 +131,20 @@ pub(crate) fn storage_buffer(ctx: &GpuContext, label: &str, bytes: u64) -> wgpu:
     ctx.device.create_buffer(&wgpu::BufferDescriptor {
         label: Some(label),
         size: bytes.max(4),
-        usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST,
+        usage: wgpu::BufferUsages::STORAGE
+            | wgpu::BufferUsages::COPY_SRC
+            | wgpu::BufferUsages::COPY_DST,
         mapped_at_creation: false,
     })
 }
 
 /// A buffer holding `data`; empty data still gets 4 bytes (bindings cannot be empty).
-pub(crate) fn upload(ctx: &GpuContext, label: &str, data: &[u8], usage: wgpu::BufferUsages) -> wgpu::Buffer {
+pub(crate) fn upload(
+    ctx: &GpuContext,
+    label: &str,
+    data: &[u8],
+    usage: wgpu::BufferUsages,
+) -> wgpu::Buffer {
     let padded;
     let contents = if data.is_empty() {
         padded = [0u8; 4];
@@ -95,7 +152,12 @@ pub(crate) fn upload(ctx: &GpuContext, label: &str, data: &[u8], usage: wgpu::Bu
     } else {
         data
     };
-    ctx.device.create_buffer_init(&wgpu::util::BufferInitDescriptor { label: Some(label), contents, usage })
+    ctx.device
+        .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some(label),
+            contents,
+            usage,
+        })
 }
 
 /// Copies `bytes` of `source` back to the CPU (blocking).
@@ -106,16 +168,28 @@ pub(crate) fn read_back(ctx: &GpuContext, source: &wgpu::Buffer, bytes: u64) -> 
         usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
         mapped_at_creation: false,
     });
-    let mut encoder = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("readback") });
+    let mut encoder = ctx
+        .device
+        .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+            label: Some("readback"),
+        });
     encoder.copy_buffer_to_buffer(source, 0, &staging, 0, bytes);
     ctx.queue.submit([encoder.finish()]);
     let (tx, rx) = std::sync::mpsc::channel();
-    staging.slice(..bytes).map_async(wgpu::MapMode::Read, move |r| {
-        let _ = tx.send(r);
-    });
+    staging
+        .slice(..bytes)
+        .map_async(wgpu::MapMode::Read, move |r| {
+            let _ = tx.send(r);
+        });
     ctx.wait()?;
-    rx.recv().map_err(|e| Error::Readback(e.to_string()))?.map_err(|e| Error::Readback(e.to_string()))?;
-    let data = staging.slice(..bytes).get_mapped_range().map_err(|e| Error::Readback(e.to_string()))?.to_vec();
+    rx.recv()
+        .map_err(|e| Error::Readback(e.to_string()))?
+        .map_err(|e| Error::Readback(e.to_string()))?;
+    let data = staging
+        .slice(..bytes)
+        .get_mapped_range()
+        .map_err(|e| Error::Readback(e.to_string()))?
+        .to_vec();
     staging.unmap();
     Ok(data)
 }
