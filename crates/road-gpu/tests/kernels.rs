@@ -144,9 +144,7 @@ fn attention_matches_the_cpu_reference_over_every_layout() {
             .map(|_| f32::from(u8::from(rng.random_bool(0.8))))
             .collect(); // [B, A, W]
         // Agent 0 of scene 0 is absent everywhere.
-        for s in 0..w {
-            valid[s] = 0.0;
-        }
+        valid[..w].fill(0.0);
         let (b, a, w) = (b as u32, a as u32, w as u32);
         let scale = 1.0 / (head_dim as f32).sqrt();
         let time = TokenLayout {
