@@ -1,12 +1,14 @@
 //! `road-gpu`: the denoiser's compute kernels in WGSL, run through wgpu.
 //!
 //! - [`context`]: adapter selection (GPU, else lavapipe; `WGPU_BACKEND`, `WGPU_ADAPTER_NAME`);
+//! - [`engine`]: a checkpoint's denoiser and the Heun step as a chain of kernels, batched;
 //! - [`shaders`]: the embedded `shaders/*.wgsl` files;
 //! - [`kernels`]: one module per kernel family;
 //! - [`reference`]: the kernels' CPU references (plain f64 loops);
 //! - [`tolerance`]: the relative + absolute tolerance every parity test uses.
 
 pub mod context;
+pub mod engine;
 pub mod kernels;
 pub mod reference;
 pub mod shaders;
@@ -28,6 +30,8 @@ pub enum Error {
     Poll(String),
     #[error("reading results back failed: {0}")]
     Readback(String),
+    #[error("cannot use the checkpoint: {0}")]
+    Checkpoint(String),
 }
 
 pub type Result<T, E = Error> = std::result::Result<T, E>;

@@ -12,14 +12,23 @@ pub enum Shader {
     LayerNorm,
     /// Masked multi-head attention over strided token layouts.
     Attention,
+    /// Token embeddings of the denoiser.
+    Embed,
+    /// Residual adds, output preconditioning, map point embedding and pooling.
+    Elementwise,
+    /// The per-slot Heun step of the sampler.
+    Heun,
 }
 
 impl Shader {
-    pub const ALL: [Shader; 4] = [
+    pub const ALL: [Shader; 7] = [
         Shader::Edm,
         Shader::Linear,
         Shader::LayerNorm,
         Shader::Attention,
+        Shader::Embed,
+        Shader::Elementwise,
+        Shader::Heun,
     ];
 
     /// File name under `shaders/`.
@@ -29,6 +38,9 @@ impl Shader {
             Shader::Linear => "linear.wgsl",
             Shader::LayerNorm => "layer_norm.wgsl",
             Shader::Attention => "attention.wgsl",
+            Shader::Embed => "embed.wgsl",
+            Shader::Elementwise => "elementwise.wgsl",
+            Shader::Heun => "heun.wgsl",
         }
     }
 
@@ -38,6 +50,9 @@ impl Shader {
             Shader::Linear => include_str!("../../../shaders/linear.wgsl"),
             Shader::LayerNorm => include_str!("../../../shaders/layer_norm.wgsl"),
             Shader::Attention => include_str!("../../../shaders/attention.wgsl"),
+            Shader::Embed => include_str!("../../../shaders/embed.wgsl"),
+            Shader::Elementwise => include_str!("../../../shaders/elementwise.wgsl"),
+            Shader::Heun => include_str!("../../../shaders/heun.wgsl"),
         }
     }
 

@@ -47,7 +47,7 @@ impl Pipeline {
     }
 
     /// Records one dispatch of `threads` invocations: binding 0 is the uniform `params`, the
-    /// storage buffers follow in order.
+    /// storage buffers follow in order (bindings 1, 2, ...).
     pub fn encode(
         &self,
         ctx: &GpuContext,
@@ -56,16 +56,50 @@ impl Pipeline {
         buffers: &[&wgpu::Buffer],
         threads: u32,
     ) {
+        let resources: Vec<wgpu::BindingResource<'_>> =
+            buffers.iter().map(|b| b.as_entire_binding()).collect();
+        self.encode_resources(ctx, encoder, params, &resources, threads);
+    }
+
+    /// As [`Self::encode`], with resources (such as sub-ranges of the weights buffer).
+    pub fn encode_resources(
+        &self,
+        ctx: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        params: &wgpu::Buffer,
+        resources: &[wgpu::BindingResource<'_>],
+        threads: u32,
+    ) {
+        let bound: Vec<(u32, wgpu::BindingResource<'_>)> = resources
+            .iter()
+            .enumerate()
+            .map(|(i, r)| (i as u32 + 1, r.clone()))
+            .collect();
+        self.encode_bound(ctx, encoder, params, &bound, threads);
+    }
+
+    /// As [`Self::encode`], with explicit binding numbers: for entry points of a shared module
+    /// that use only some of its bindings.
+    pub fn encode_bound(
+        &self,
+        ctx: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        params: &wgpu::Buffer,
+        bound: &[(u32, wgpu::BindingResource<'_>)],
+        threads: u32,
+    ) {
         let mut entries = vec![wgpu::BindGroupEntry {
             binding: 0,
             resource: params.as_entire_binding(),
         }];
-        for (i, b) in buffers.iter().enumerate() {
-            entries.push(wgpu::BindGroupEntry {
-                binding: i as u32 + 1,
-                resource: b.as_entire_binding(),
-            });
-        }
+        entries.extend(
+            bound
+                .iter()
+                .map(|(binding, resource)| wgpu::BindGroupEntry {
+                    binding: *binding,
+                    resource: resource.clone(),
+                }),
+        );
         let bind_group = ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some(self.label),
             layout: &self.layout,
@@ -127,7 +161,7 @@ impl Pipeline {
 }
 
 /// A read-write storage buffer that can be copied out.
-pub(crate) fn storage_buffer(ctx: &GpuContext, label: &str, bytes: u64) -> wgpu::Buffer {
+pub fn storage_buffer(ctx: &GpuContext, label: &str, bytes: u64) -> wgpu::Buffer {
     ctx.device.create_buffer(&wgpu::BufferDescriptor {
         label: Some(label),
         size: bytes.max(4),
@@ -139,7 +173,7 @@ pub(crate) fn storage_buffer(ctx: &GpuContext, label: &str, bytes: u64) -> wgpu:
 }
 
 /// A buffer holding `data`; empty data still gets 4 bytes (bindings cannot be empty).
-pub(crate) fn upload(
+pub fn upload(
     ctx: &GpuContext,
     label: &str,
     data: &[u8],
@@ -161,7 +195,7 @@ pub(crate) fn upload(
 }
 
 /// Copies `bytes` of `source` back to the CPU (blocking).
-pub(crate) fn read_back(ctx: &GpuContext, source: &wgpu::Buffer, bytes: u64) -> Result<Vec<u8>> {
+pub fn read_back(ctx: &GpuContext, source: &wgpu::Buffer, bytes: u64) -> Result<Vec<u8>> {
     let staging = ctx.device.create_buffer(&wgpu::BufferDescriptor {
         label: Some("readback"),
         size: bytes.max(4),

@@ -1,0 +1,304 @@
+//! The WGSL denoiser and Heun step against the candle reference, on real validation scenes
+//! (`ROAD_DATA`, else `../shared/data/interaction`), with one per-slot σ vector per scene.
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+use candle_core::{Device, Tensor};
+use rand::SeedableRng;
+use rand::rngs::StdRng;
+use road_data::{Dataset, SourceSet, Split, WindowConfig};
+use road_gpu::engine::{DenoiseInputs, GpuDenoiser};
+use road_gpu::{ContextOptions, GpuContext, Tolerance};
+use road_model::batch::{Batch, SceneInput, collate, normal_vec, task_sigma};
+use road_model::checkpoint::{self, CheckpointMeta, DataIdentity};
+use road_model::config::TaskKind;
+use road_model::model::{self, Denoiser, Mode};
+use road_model::{ModelConfig, RunConfig};
+
+/// Parity tolerance of the whole denoiser: f32 sums in another order through every block.
+const WHOLE_MODEL: Tolerance = Tolerance {
+    rel: 1e-4,
+    abs: 1e-5,
+};
+
+fn context() -> GpuContext {
+    GpuContext::new(&ContextOptions {
+        validation: true,
+        ..ContextOptions::default()
+    })
+    .unwrap_or_else(|e| panic!("GPU tests need an adapter: {e}"))
+}
+
+fn validation_set() -> Dataset {
+    let dir = std::env::var_os("ROAD_DATA")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| {
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/interaction")
+        });
+    assert!(
+        dir.join("maps").is_dir(),
+        "INTERACTION data not found at {} (set ROAD_DATA)",
+        dir.display()
+    );
+    Dataset::build(
+        &SourceSet::discover(&dir).unwrap(),
+        Split::Validation,
+        &WindowConfig::default(),
+    )
+    .unwrap()
+}
+
+/// A seeded road20-shaped model saved as a checkpoint (small hidden size keeps CI quick).
+fn checkpoint_dir(config: &ModelConfig, name: &str) -> (PathBuf, Denoiser) {
+    let (varmap, model) = model::init_seeded(config, &Device::Cpu, 42).unwrap();
+    let dir = std::env::temp_dir().join(format!("road-gpu-engine-{name}-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let tensors: HashMap<String, Tensor> = varmap
+        .data()
+        .lock()
+        .unwrap()
+        .iter()
+        .map(|(k, v)| (k.clone(), v.as_tensor().clone()))
+        .collect();
+    checkpoint::save_tensors(&tensors, &dir.join(checkpoint::WEIGHTS_FILE)).unwrap();
+    let run = RunConfig {
+        model: config.clone(),
+        ..RunConfig::default()
+    };
+    CheckpointMeta {
+        run,
+        data: DataIdentity {
+            train_cache: "none".into(),
+            train_windows: 0,
+            validation_windows: 0,
+            source: "test".into(),
+        },
+        step: 0,
+        parameters: 0,
+        wall_secs: 0.0,
+        hardware: "test".into(),
+        validation_loss: None,
+        untrained_validation_loss: None,
+    }
+    .save(&dir)
+    .unwrap();
+    (dir, model)
+}
+
+fn flat(t: &Tensor) -> Vec<f32> {
+    t.flatten_all().unwrap().to_vec1::<f32>().unwrap()
+}
+
+/// Three real scenes of different agent counts, padded into one batch, each with its own σ[W].
+fn batch(ds: &Dataset, config: &ModelConfig) -> Batch {
+    let mut rng = StdRng::seed_from_u64(5);
+    let scenes: Vec<SceneInput> = [17usize, 400, 2500]
+        .iter()
+        .map(|&i| {
+            SceneInput::from_window(
+                &ds.window(i % ds.len()).unwrap(),
+                0,
+                config.window_slots,
+                config,
+            )
+        })
+        .collect();
+    assert!(
+        scenes
+            .iter()
+            .map(|s| s.agents)
+            .collect::<std::collections::HashSet<_>>()
+            .len()
+            > 1,
+        "scenes of different sizes"
+    );
+    let sigma: Vec<Vec<f32>> = (0..scenes.len())
+        .map(|_| task_sigma(&mut rng, config, 10, TaskKind::Rolling, 0.3, 0.5))
+        .collect();
+    let noise: Vec<Vec<f32>> = scenes
+        .iter()
+        .map(|s| normal_vec(&mut rng, s.agents * s.slots * 3))
+        .collect();
+    collate(&scenes, &sigma, Some(&noise), &Device::Cpu).unwrap()
+}
+
+fn test_config() -> ModelConfig {
+    ModelConfig {
+        hidden: 32,
+        heads: 2,
+        blocks: 2,
+        ..ModelConfig::default()
+    }
+}
+
+#[test]
+fn whole_denoiser_matches_candle_on_real_validation_scenes() {
+    let ctx = context();
+    let config = test_config();
+    let (dir, reference) = checkpoint_dir(&config, "denoiser");
+    let gpu = GpuDenoiser::from_checkpoint(&ctx, &dir).unwrap();
+    let ds = validation_set();
+    let b = batch(&ds, &config);
+    let (scenes, agents, _, _) = b.x_noisy.dims4().unwrap();
+    let polylines = b.map_valid.dim(1).unwrap();
+
+    let map_tokens = reference.encode_map(&b.map, Mode::Infer).unwrap();
+    let want = flat(
+        &reference
+            .denoise(
+                &b.x_noisy,
+                &b.sigma,
+                &b.valid,
+                &b.agent_features,
+                &map_tokens,
+                &b.map_valid,
+                Mode::Infer,
+            )
+            .unwrap(),
+    );
+
+    let map = gpu
+        .encode_map(&ctx, scenes, polylines, &flat(&b.map), &flat(&b.map_valid))
+        .unwrap();
+    let (x, sigma, valid, features) = (
+        flat(&b.x_noisy),
+        flat(&b.sigma),
+        flat(&b.valid),
+        flat(&b.agent_features),
+    );
+    let inputs = DenoiseInputs {
+        scenes,
+        agents,
+        x: &x,
+        sigma: &sigma,
+        valid: &valid,
+        agent_features: &features,
+    };
+    let got = gpu.denoise(&ctx, &inputs, &map).unwrap();
+    if let Err(m) = WHOLE_MODEL.check(&got, &want) {
+        panic!("denoiser on {}: {m}", ctx.describe());
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// One Heun step (both evaluations and the update on the GPU) against the same step computed
+/// from candle's evaluations.
+#[test]
+fn heun_step_matches_the_reference() {
+    let ctx = context();
+    let config = test_config();
+    let (dir, reference) = checkpoint_dir(&config, "heun");
+    let gpu = GpuDenoiser::from_checkpoint(&ctx, &dir).unwrap();
+    let ds = validation_set();
+    let b = batch(&ds, &config);
+    let (scenes, agents, w, _) = b.x_noisy.dims4().unwrap();
+    let polylines = b.map_valid.dim(1).unwrap();
+    // A rolling step of each scene's own σ: σ_next one K-th lower in u, slot 10 landing on 0.
+    let edm = config.edm;
+    let sigma_cur = flat(&b.sigma);
+    let sigma_next: Vec<f32> = sigma_cur
+        .iter()
+        .enumerate()
+        .map(|(i, &s)| {
+            let slot = i % w;
+            if slot < 10 {
+                s
+            } else if slot == 10 {
+                0.0
+            } else {
+                edm.sigma(edm.u_of_sigma(f64::from(s)) - 1.0 / 40.0) as f32
+            }
+        })
+        .collect();
+    let eval_sigma: Vec<f32> = sigma_cur
+        .iter()
+        .zip(&sigma_next)
+        .map(|(&s, &n)| if n > 0.0 { n } else { s })
+        .collect();
+    let map_tokens = reference.encode_map(&b.map, Mode::Infer).unwrap();
+    let d = |x: &Tensor, sigma: &[f32]| {
+        let s = Tensor::from_vec(sigma.to_vec(), (scenes, w), &Device::Cpu).unwrap();
+        flat(
+            &reference
+                .denoise(
+                    x,
+                    &s,
+                    &b.valid,
+                    &b.agent_features,
+                    &map_tokens,
+                    &b.map_valid,
+                    Mode::Infer,
+                )
+                .unwrap(),
+        )
+    };
+    let x = flat(&b.x_noisy);
+    let d1 = d(&b.x_noisy, &sigma_cur);
+    let slot_sigma = |e: usize| {
+        let token = e / 3;
+        let (slot, scene) = (token % w, token / (w * agents));
+        (sigma_cur[scene * w + slot], sigma_next[scene * w + slot])
+    };
+    let x_e: Vec<f32> = (0..x.len())
+        .map(|e| {
+            let (s, n) = slot_sigma(e);
+            if s == n {
+                x[e]
+            } else {
+                x[e] + (n - s) * (x[e] - d1[e]) / s
+            }
+        })
+        .collect();
+    let d2 = d(
+        &Tensor::from_vec(x_e.clone(), (scenes, agents, w, 3), &Device::Cpu).unwrap(),
+        &eval_sigma,
+    );
+    let want: Vec<f32> = (0..x.len())
+        .map(|e| {
+            let (s, n) = slot_sigma(e);
+            if s == n || n == 0.0 {
+                x_e[e]
+            } else {
+                x[e] + (n - s) * 0.5 * ((x[e] - d1[e]) / s + (x_e[e] - d2[e]) / n)
+            }
+        })
+        .collect();
+
+    let map = gpu
+        .encode_map(&ctx, scenes, polylines, &flat(&b.map), &flat(&b.map_valid))
+        .unwrap();
+    let (valid, features) = (flat(&b.valid), flat(&b.agent_features));
+    let inputs = DenoiseInputs {
+        scenes,
+        agents,
+        x: &x,
+        sigma: &sigma_cur,
+        valid: &valid,
+        agent_features: &features,
+    };
+    let device_batch = gpu.upload_batch(&ctx, &inputs).unwrap();
+    let got = gpu
+        .heun_step(
+            &ctx,
+            &device_batch,
+            &map,
+            &sigma_cur,
+            &sigma_next,
+            true,
+            true,
+        )
+        .unwrap()
+        .unwrap();
+    if let Err(m) = WHOLE_MODEL.check(&got, &want) {
+        panic!("Heun step on {}: {m}", ctx.describe());
+    }
+    // Observed slots (σ unchanged) are untouched exactly.
+    for e in 0..x.len() {
+        let (s, n) = slot_sigma(e);
+        if s == n {
+            assert_eq!(got[e], x[e]);
+        }
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}

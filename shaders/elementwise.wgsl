@@ -1,0 +1,85 @@
+// Elementwise steps of the denoiser and the sampler.
+
+struct Params {
+    count: u32,      // elements of the main operand
+    slots: u32,      // W
+    per_slot: u32,   // elements per (scene, slot) row of x: 3 for states
+    agents: u32,     // A
+    sigma_data: f32,
+    hidden: u32,     // D (point embeddings) or unused
+    points: u32,     // Q (point embeddings) or unused
+    _pad: u32,
+}
+
+@group(0) @binding(0) var<uniform> params: Params;
+@group(0) @binding(1) var<storage, read> a: array<f32>;
+@group(0) @binding(2) var<storage, read> b: array<f32>;
+@group(0) @binding(3) var<storage, read> c: array<f32>;
+@group(0) @binding(4) var<storage, read> e: array<f32>;
+@group(0) @binding(5) var<storage, read_write> out: array<f32>;
+
+fn flat_index(gid: vec3<u32>, groups: vec3<u32>) -> u32 {
+    return gid.x + gid.y * groups.x * 64u;
+}
+
+// out += a (residual connections). b, c, e unused.
+@compute @workgroup_size(64)
+fn add_in_place(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let i = flat_index(gid, groups);
+    if (i >= params.count) {
+        return;
+    }
+    out[i] = out[i] + a[i];
+}
+
+// D = c_skip · x + c_out · F · valid. a = x [B, A, W, 3], b = F [B, A, W, 3], c = σ [B, W],
+// e = valid [B, A, W].
+@compute @workgroup_size(64)
+fn precondition_output(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let i = flat_index(gid, groups);
+    if (i >= params.count) {
+        return;
+    }
+    let token = i / 3u; // (b, a, w)
+    let w = token % params.slots;
+    let scene = token / (params.slots * params.agents);
+    let s = c[scene * params.slots + w];
+    let sd = params.sigma_data;
+    let denom = s * s + sd * sd;
+    out[i] = sd * sd / denom * a[i] + s * sd * inverseSqrt(denom) * b[i] * e[token];
+}
+
+// Map points: out[b, p, q, :] = relu(W · point + bias + point_embedding[q, :]).
+// a = points [B, P, Q, 2], b = packed (W [D, 2] | bias [D] | point_embedding [Q, D]).
+@compute @workgroup_size(64)
+fn embed_map_points(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let i = flat_index(gid, groups);
+    if (i >= params.count) {
+        return;
+    }
+    let d_count = params.hidden;
+    let d = i % d_count;
+    let point = i / d_count; // (b, p, q)
+    let q = point % params.points;
+    let bias = 2u * d_count;
+    let pe = bias + d_count;
+    let v = b[2u * d] * a[2u * point] + b[2u * d + 1u] * a[2u * point + 1u] + b[bias + d] + b[pe + q * d_count + d];
+    out[i] = max(v, 0.0);
+}
+
+// Max over the Q points of each polyline: a = [B·P, Q, D] → out [B·P, D].
+@compute @workgroup_size(64)
+fn max_over_points(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let i = flat_index(gid, groups);
+    if (i >= params.count) {
+        return;
+    }
+    let d_count = params.hidden;
+    let d = i % d_count;
+    let poly = i / d_count;
+    var m = -3.0e38;
+    for (var q = 0u; q < params.points; q++) {
+        m = max(m, a[(poly * params.points + q) * d_count + d]);
+    }
+    out[i] = m;
+}

@@ -1,0 +1,54 @@
+// Token and map-point embeddings of the denoiser (docs/checkpoint.md, "The forward pass").
+
+struct Params {
+    scenes: u32,
+    agents: u32,
+    slots: u32,
+    hidden: u32,
+    sigma_data: f32,
+    polylines: u32,
+    points: u32,
+    _pad: u32,
+}
+
+@group(0) @binding(0) var<uniform> params: Params;
+
+// embed_tokens: h[b, a, w, :] = W_state · (c_in · x · valid) + b_state
+//                              + W_noise · c_noise + b_noise + agent[b, a, :] + slot[w, :]
+@group(0) @binding(1) var<storage, read> x: array<f32>;          // [B, A, W, 3]
+@group(0) @binding(2) var<storage, read> sigma: array<f32>;      // [B, W]
+@group(0) @binding(3) var<storage, read> valid: array<f32>;      // [B, A, W]
+@group(0) @binding(4) var<storage, read> agent: array<f32>;      // [B, A, D] (embed_agent output)
+@group(0) @binding(5) var<storage, read> w_state: array<f32>;    // [D, 3] then b_state [D], w_noise [D], b_noise [D], slot [W, D]
+@group(0) @binding(6) var<storage, read_write> h: array<f32>;    // [B, A, W, D]
+
+@compute @workgroup_size(64)
+fn embed_tokens(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let index = gid.x + gid.y * groups.x * 64u;
+    let d_count = params.hidden;
+    if (index >= params.scenes * params.agents * params.slots * d_count) {
+        return;
+    }
+    let d = index % d_count;
+    let token = index / d_count; // (b, a, w)
+    let w = token % params.slots;
+    let b = token / (params.slots * params.agents);
+    let a = (token / params.slots) % params.agents;
+    let s = sigma[b * params.slots + w];
+    let sd = params.sigma_data;
+    let c_in = inverseSqrt(s * s + sd * sd);
+    let c_noise = log(s) * 0.25;
+    let scale = c_in * valid[token];
+    let xb = token * 3u;
+    // Packed small weights: w_state [D, 3] | b_state [D] | w_noise [D] | b_noise [D] | slot [W, D].
+    let b_state = 3u * d_count;
+    let w_noise = b_state + d_count;
+    let b_noise = w_noise + d_count;
+    let slot = b_noise + d_count;
+    var acc = w_state[3u * d] * x[xb] * scale + w_state[3u * d + 1u] * x[xb + 1u] * scale + w_state[3u * d + 2u] * x[xb + 2u] * scale;
+    acc += w_state[b_state + d];
+    acc += w_state[w_noise + d] * c_noise + w_state[b_noise + d];
+    acc += agent[(b * params.agents + a) * d_count + d];
+    acc += w_state[slot + w * d_count + d];
+    h[index] = acc;
+}
