@@ -874,3 +874,113 @@ impl GpuDenoiser {
         Ok(Some(bytemuck::cast_slice::<u8, f32>(&bytes).to_vec()))
     }
 }
+
+/// The rollout driver's engine on the GPU: windows stay on the device through a tick's steps
+/// and are read back once per tick.
+#[derive(Debug)]
+pub struct GpuStepEngine<'a> {
+    ctx: &'a GpuContext,
+    model: &'a GpuDenoiser,
+    map: Option<MapTokens>,
+    batch: Option<DeviceBatch>,
+    features: Vec<f32>,
+    scenes: usize,
+    agents: usize,
+}
+
+impl<'a> GpuStepEngine<'a> {
+    pub fn new(ctx: &'a GpuContext, model: &'a GpuDenoiser) -> Self {
+        Self {
+            ctx,
+            model,
+            map: None,
+            batch: None,
+            features: Vec::new(),
+            scenes: 0,
+            agents: 0,
+        }
+    }
+}
+
+fn engine_err(e: Error) -> road_model::Error {
+    road_model::Error::Engine(e.to_string())
+}
+
+impl road_model::sample::StepEngine for GpuStepEngine<'_> {
+    fn window_slots(&self) -> usize {
+        self.model.config.window_slots
+    }
+
+    fn prepare(
+        &mut self,
+        scenes: usize,
+        agents: usize,
+        features: &[f32],
+        polylines: usize,
+        map: &[f32],
+        map_valid: &[f32],
+    ) -> road_model::Result<()> {
+        self.map = Some(
+            self.model
+                .encode_map(self.ctx, scenes, polylines, map, map_valid)
+                .map_err(engine_err)?,
+        );
+        self.features = features.to_vec();
+        self.scenes = scenes;
+        self.agents = agents;
+        Ok(())
+    }
+
+    fn load(&mut self, windows: &[f32], valid: &[f32]) -> road_model::Result<()> {
+        // σ of the batch is set per step; the upload's own σ is never read.
+        let sigma = vec![1.0f32; self.scenes * self.model.config.window_slots];
+        let inputs = DenoiseInputs {
+            scenes: self.scenes,
+            agents: self.agents,
+            x: windows,
+            sigma: &sigma,
+            valid,
+            agent_features: &self.features,
+        };
+        self.batch = Some(
+            self.model
+                .upload_batch(self.ctx, &inputs)
+                .map_err(engine_err)?,
+        );
+        Ok(())
+    }
+
+    fn step(&mut self, sigma_cur: &[f32], sigma_next: &[f32], nfe: u8) -> road_model::Result<()> {
+        let (Some(batch), Some(map)) = (&self.batch, &self.map) else {
+            return Err(road_model::Error::Engine(
+                "step before prepare and load".into(),
+            ));
+        };
+        // Every scene of the lockstep batch shares this step's σ vector.
+        let per_scene =
+            |s: &[f32]| -> Vec<f32> { (0..self.scenes).flat_map(|_| s.iter().copied()).collect() };
+        self.model
+            .heun_step(
+                self.ctx,
+                batch,
+                map,
+                &per_scene(sigma_cur),
+                &per_scene(sigma_next),
+                nfe == 2,
+                false,
+            )
+            .map_err(engine_err)?;
+        Ok(())
+    }
+
+    fn read(&mut self, windows: &mut [f32]) -> road_model::Result<()> {
+        let batch = self
+            .batch
+            .as_ref()
+            .ok_or_else(|| road_model::Error::Engine("read before load".into()))?;
+        let bytes =
+            read_back(self.ctx, &batch.x, (windows.len() * 4) as u64).map_err(engine_err)?;
+        windows.copy_from_slice(bytemuck::cast_slice(&bytes));
+        Ok(())
+    }
+}

@@ -21,6 +21,11 @@ const WHOLE_MODEL: Tolerance = Tolerance {
     rel: 1e-4,
     abs: 1e-5,
 };
+/// Rollouts chain dozens of evaluations and Heun steps: differences grow along the way.
+const ROLLOUT: Tolerance = Tolerance {
+    rel: 1e-3,
+    abs: 1e-4,
+};
 
 fn context() -> GpuContext {
     GpuContext::new(&ContextOptions {
@@ -298,6 +303,54 @@ fn heun_step_matches_the_reference() {
         let (s, n) = slot_sigma(e);
         if s == n {
             assert_eq!(got[e], x[e]);
+        }
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// `road sample --engine gpu|cpu`: the same rollout driver and seed give the same futures.
+#[test]
+fn gpu_and_cpu_rollouts_agree_for_a_seed() {
+    use road_gpu::engine::GpuStepEngine;
+    use road_model::sample::{RolloutScene, rollout, rollout_with};
+    use road_sched::{PlannerKind, PlannerSpec};
+    let ctx = context();
+    let config = test_config();
+    let (dir, reference) = checkpoint_dir(&config, "rollout");
+    let gpu = GpuDenoiser::from_checkpoint(&ctx, &dir).unwrap();
+    let ds = validation_set();
+    let scenes: Vec<RolloutScene> = [3usize, 1200]
+        .iter()
+        .map(|&i| RolloutScene {
+            history: SceneInput::from_window(&ds.window(i).unwrap(), 0, 10, &config),
+        })
+        .collect();
+    for spec in [
+        PlannerSpec {
+            steps_per_diffusion: 10,
+            ..PlannerSpec::default()
+        },
+        PlannerSpec {
+            kind: PlannerKind::Mpc,
+            steps_per_diffusion: 10,
+            replan_every: Some(3),
+            ..PlannerSpec::default()
+        },
+    ] {
+        let cpu = rollout(&reference, &spec, &scenes, 6, &mut StdRng::seed_from_u64(8)).unwrap();
+        let on_gpu = rollout_with(
+            &mut GpuStepEngine::new(&ctx, &gpu),
+            &spec,
+            &scenes,
+            6,
+            &mut StdRng::seed_from_u64(8),
+        )
+        .unwrap();
+        assert_eq!(cpu.nfe, on_gpu.nfe);
+        for (c, g) in cpu.states.iter().zip(&on_gpu.states) {
+            if let Err(m) = ROLLOUT.check(g, c) {
+                panic!("{:?} rollout: {m}", spec.kind);
+            }
         }
     }
     std::fs::remove_dir_all(&dir).ok();

@@ -34,6 +34,8 @@ pub enum Error {
     Config { path: PathBuf, reason: String },
     #[error("bad checkpoint: {reason} ({path})")]
     Checkpoint { path: PathBuf, reason: String },
+    #[error("engine failed: {0}")]
+    Engine(String),
     #[error("training diverged: loss {loss} at step {step}")]
     Diverged { step: u64, loss: f64 },
 }

@@ -43,8 +43,127 @@ struct SceneState {
     emitted: Vec<f32>, // [agents, steps, 3]
 }
 
-/// Rolls out `steps` simulated steps of every scene with `planner` (open loop: every agent is
-/// the model's). `rng` draws all noise.
+/// What the rollout driver needs of an engine: static inputs once, then Heun steps of every
+/// scene in lockstep on device-resident windows, loaded before a tick's first step and read
+/// back after its last (so a GPU engine reads back once per tick).
+pub trait StepEngine {
+    /// W of the model.
+    fn window_slots(&self) -> usize;
+    /// `features [B, A, 6]`, `map [B, P, Q, 2]`, `map_valid [B, P]`.
+    fn prepare(
+        &mut self,
+        scenes: usize,
+        agents: usize,
+        features: &[f32],
+        polylines: usize,
+        map: &[f32],
+        map_valid: &[f32],
+    ) -> Result<()>;
+    /// Windows `[B, A, W, 3]` and validity `[B, A, W]` before a tick's first step.
+    fn load(&mut self, windows: &[f32], valid: &[f32]) -> Result<()>;
+    /// One Heun step of every scene with the per-slot σ `[W]` (EDM Algorithm 1, per slot).
+    fn step(&mut self, sigma_cur: &[f32], sigma_next: &[f32], nfe: u8) -> Result<()>;
+    /// The windows after a tick's last step.
+    fn read(&mut self, windows: &mut [f32]) -> Result<()>;
+}
+
+/// The candle reference engine.
+#[derive(Debug)]
+pub struct CpuEngine<'a> {
+    model: &'a Denoiser,
+    scenes: usize,
+    agents: usize,
+    features: Option<Tensor>,
+    map_tokens: Option<Tensor>,
+    map_valid: Option<Tensor>,
+    windows: Vec<f32>,
+    valid: Vec<f32>,
+}
+
+impl<'a> CpuEngine<'a> {
+    pub fn new(model: &'a Denoiser) -> Self {
+        Self {
+            model,
+            scenes: 0,
+            agents: 0,
+            features: None,
+            map_tokens: None,
+            map_valid: None,
+            windows: Vec::new(),
+            valid: Vec::new(),
+        }
+    }
+}
+
+impl StepEngine for CpuEngine<'_> {
+    fn window_slots(&self) -> usize {
+        self.model.config.window_slots
+    }
+
+    fn prepare(
+        &mut self,
+        scenes: usize,
+        agents: usize,
+        features: &[f32],
+        polylines: usize,
+        map: &[f32],
+        map_valid: &[f32],
+    ) -> Result<()> {
+        let device = Device::Cpu;
+        let q = self.model.config.polyline_points;
+        self.scenes = scenes;
+        self.agents = agents;
+        self.features = Some(Tensor::from_vec(
+            features.to_vec(),
+            (scenes, agents, AGENT_FEATURES),
+            &device,
+        )?);
+        let map = Tensor::from_vec(map.to_vec(), (scenes, polylines, q, 2), &device)?;
+        self.map_tokens = Some(self.model.encode_map(&map, Mode::Infer)?);
+        self.map_valid = Some(Tensor::from_vec(
+            map_valid.to_vec(),
+            (scenes, polylines),
+            &device,
+        )?);
+        Ok(())
+    }
+
+    fn load(&mut self, windows: &[f32], valid: &[f32]) -> Result<()> {
+        self.windows = windows.to_vec();
+        self.valid = valid.to_vec();
+        Ok(())
+    }
+
+    fn step(&mut self, sigma_cur: &[f32], sigma_next: &[f32], nfe: u8) -> Result<()> {
+        let (Some(features), Some(map_tokens), Some(map_valid)) =
+            (&self.features, &self.map_tokens, &self.map_valid)
+        else {
+            return Err(Error::data("engine used before prepare".into()));
+        };
+        self.windows = heun_step(
+            self.model,
+            &self.windows,
+            &self.valid,
+            self.scenes,
+            self.agents,
+            sigma_cur,
+            sigma_next,
+            nfe,
+            features,
+            map_tokens,
+            map_valid,
+        )?;
+        Ok(())
+    }
+
+    fn read(&mut self, windows: &mut [f32]) -> Result<()> {
+        windows.copy_from_slice(&self.windows);
+        Ok(())
+    }
+}
+
+/// Rolls out `steps` simulated steps of every scene with `planner` on the candle reference
+/// (open loop: every agent is the model's). `rng` draws all noise.
 pub fn rollout(
     model: &Denoiser,
     planner: &PlannerSpec,
@@ -52,13 +171,25 @@ pub fn rollout(
     steps: usize,
     rng: &mut StdRng,
 ) -> Result<Rollout> {
-    let device = Device::Cpu;
+    rollout_with(&mut CpuEngine::new(model), planner, scenes, steps, rng)
+}
+
+/// Rolls out `steps` simulated steps of every scene with `planner` on `engine`. The noise draws
+/// depend only on `rng`, so two engines given the same seed sample the same futures (to their
+/// numerical agreement).
+pub fn rollout_with(
+    engine: &mut dyn StepEngine,
+    planner: &PlannerSpec,
+    scenes: &[RolloutScene],
+    steps: usize,
+    rng: &mut StdRng,
+) -> Result<Rollout> {
     let n = planner.obs_slots;
     let w = planner.window_slots();
-    if w != model.config.window_slots {
+    if w != engine.window_slots() {
         return Err(Error::data(format!(
             "planner window {w} ≠ model window {}",
-            model.config.window_slots
+            engine.window_slots()
         )));
     }
     if scenes.is_empty() {
@@ -86,7 +217,7 @@ pub fn rollout(
     let sigma_max = planner.edm.sigma_max as f32;
     let obs_sigma = planner.obs_sigma() as f32;
 
-    // Static inputs, once: agent features and map tokens.
+    // Static inputs, once: agent features and the map.
     let mut feats = vec![0.0f32; b * a_max * AGENT_FEATURES];
     let mut map = vec![0.0f32; b * p_max * q * 2];
     let mut map_valid = vec![0.0f32; b * p_max];
@@ -103,10 +234,9 @@ pub fn rollout(
         map[i * p_max * q * 2..][..h.polylines * q * 2].copy_from_slice(&h.map);
         map_valid[i * p_max..][..h.polylines].fill(1.0);
     }
-    let feats = Tensor::from_vec(feats, (b, a_max, AGENT_FEATURES), &device)?;
-    let map = Tensor::from_vec(map, (b, p_max, q, 2), &device)?;
-    let map_valid = Tensor::from_vec(map_valid, (b, p_max), &device)?;
-    let map_tokens = model.encode_map(&map, Mode::Infer)?;
+    engine.prepare(b, a_max, &feats, p_max, &map, &map_valid)?;
+    let mut packed = vec![0.0f32; b * a_max * w * 3]; // [B, A, W, 3]
+    let mut packed_valid = vec![0.0f32; b * a_max * w]; // [B, A, W]
 
     let mut states: Vec<SceneState> = scenes
         .iter()
@@ -151,31 +281,39 @@ pub fn rollout(
         .collect::<road_sched::Result<Vec<_>>>()?;
     let mut outcomes: Vec<TickOutcome> = Vec::with_capacity(b);
     let mut per_tick: Vec<Vec<f32>> = vec![Vec::new(); b]; // [scenes][A·3] emitted this tick
-    let mut scene_index: Vec<usize> = Vec::with_capacity(b);
+    let per_scene = a_max * w * 3;
     for _ in 0..steps {
         for &id in &ids {
             sched.request_tick(id)?;
         }
+        let mut stepped = false;
         while sched.next_batch(b)? > 0 {
             // Lockstep: one planner, so every pending scene sits at the same step.
             let batch = sched.batch();
+            if batch.len() != b {
+                return Err(Error::data(format!(
+                    "lockstep rollout: {} of {b} scenes pending",
+                    batch.len()
+                )));
+            }
             let plan = sched.step_plan(&batch[0]);
-            scene_index.clear();
-            scene_index.extend(batch.iter().map(|item| item.scene.index()));
-            heun_step(
-                model,
-                &mut states,
-                &scene_index,
-                plan.sigma_cur,
-                plan.sigma_next,
-                plan.nfe,
-                a_max,
-                w,
-                &feats,
-                &map_tokens,
-                &map_valid,
-            )?;
+            if batch[0].stage_start {
+                for (i, s) in states.iter().enumerate() {
+                    packed[i * per_scene..(i + 1) * per_scene].copy_from_slice(&s.window);
+                    packed_valid[i * a_max * w..(i + 1) * a_max * w].copy_from_slice(&s.valid);
+                }
+                engine.load(&packed, &packed_valid)?;
+            }
+            engine.step(plan.sigma_cur, plan.sigma_next, plan.nfe)?;
+            stepped = true;
             sched.complete_batch();
+        }
+        if stepped {
+            engine.read(&mut packed)?;
+            for (i, s) in states.iter_mut().enumerate() {
+                s.window
+                    .copy_from_slice(&packed[i * per_scene..(i + 1) * per_scene]);
+            }
         }
         outcomes.clear();
         sched.take_outcomes(&mut outcomes);
@@ -290,106 +428,85 @@ fn shift_window(
     }
 }
 
-/// One Heun step for the scenes in `scene_index` (per-slot σ, EDM Algorithm 1).
+/// One Heun step of every scene (per-slot σ, EDM Algorithm 1) on packed windows
+/// `[B, A, W, 3]`; returns the new windows.
 #[allow(clippy::too_many_arguments)]
 fn heun_step(
     model: &Denoiser,
-    states: &mut [SceneState],
-    scene_index: &[usize],
+    x: &[f32],
+    valid: &[f32],
+    scenes: usize,
+    a_max: usize,
     sigma_cur: &[f32],
     sigma_next: &[f32],
     nfe: u8,
-    a_max: usize,
-    w: usize,
     feats: &Tensor,
     map_tokens: &Tensor,
     map_valid: &Tensor,
-) -> Result<()> {
+) -> Result<Vec<f32>> {
     let device = Device::Cpu;
-    let bsel = scene_index.len();
-    let idx = Tensor::from_vec(
-        scene_index.iter().map(|&i| i as u32).collect::<Vec<_>>(),
-        bsel,
-        &device,
-    )?;
-    let feats = feats.index_select(&idx, 0)?;
-    let map_tokens = map_tokens.index_select(&idx, 0)?;
-    let map_valid = map_valid.index_select(&idx, 0)?;
-    let mut x = Vec::with_capacity(bsel * a_max * w * 3);
-    let mut valid = Vec::with_capacity(bsel * a_max * w);
-    for &i in scene_index {
-        x.extend_from_slice(&states[i].window);
-        valid.extend_from_slice(&states[i].valid);
-    }
-    let x_t = Tensor::from_vec(x.clone(), (bsel, a_max, w, 3), &device)?;
-    let valid_t = Tensor::from_vec(valid, (bsel, a_max, w), &device)?;
+    let w = sigma_cur.len();
+    let x_t = Tensor::from_vec(x.to_vec(), (scenes, a_max, w, 3), &device)?;
+    let valid_t = Tensor::from_vec(valid.to_vec(), (scenes, a_max, w), &device)?;
     let sig = |s: &[f32]| -> Result<Tensor> {
-        let row: Vec<f32> = (0..bsel).flat_map(|_| s.iter().copied()).collect();
-        Ok(Tensor::from_vec(row, (bsel, w), &device)?)
+        let row: Vec<f32> = (0..scenes).flat_map(|_| s.iter().copied()).collect();
+        Ok(Tensor::from_vec(row, (scenes, w), &device)?)
     };
     let d1 = model
         .denoise(
             &x_t,
             &sig(sigma_cur)?,
             &valid_t,
-            &feats,
-            &map_tokens,
-            &map_valid,
+            feats,
+            map_tokens,
+            map_valid,
             Mode::Infer,
         )?
         .flatten_all()?
         .to_vec1::<f32>()?;
     // Euler for every changing slot.
-    let mut x_e = x.clone();
-    for (e, (xe, xv)) in x_e.iter_mut().zip(&x).enumerate() {
+    let mut x_e = x.to_vec();
+    for (e, (xe, xv)) in x_e.iter_mut().zip(x).enumerate() {
         let slot = (e / 3) % w;
         let (s, sn) = (sigma_cur[slot], sigma_next[slot]);
         if s != sn {
             *xe = xv + (sn - s) * (xv - d1[e]) / s;
         }
     }
-    let result = if nfe == 2 {
-        // Second evaluation at σ_next; slots landing on 0 keep their Euler result (their
-        // model input uses σ_cur, as it is never read).
-        let sigma_eval: Vec<f32> = sigma_cur
-            .iter()
-            .zip(sigma_next)
-            .map(|(&s, &sn)| if sn > 0.0 { sn } else { s })
-            .collect();
-        let xe_t = Tensor::from_vec(x_e.clone(), (bsel, a_max, w, 3), &device)?;
-        let d2 = model
-            .denoise(
-                &xe_t,
-                &sig(&sigma_eval)?,
-                &valid_t,
-                &feats,
-                &map_tokens,
-                &map_valid,
-                Mode::Infer,
-            )?
-            .flatten_all()?
-            .to_vec1::<f32>()?;
-        let mut out = x_e.clone();
-        for (e, o) in out.iter_mut().enumerate() {
-            let slot = (e / 3) % w;
-            let (s, sn) = (sigma_cur[slot], sigma_next[slot]);
-            if s != sn && sn > 0.0 {
-                let slope1 = (x[e] - d1[e]) / s;
-                let slope2 = (x_e[e] - d2[e]) / sn;
-                *o = x[e] + (sn - s) * 0.5 * (slope1 + slope2);
-            }
-        }
-        out
-    } else {
-        x_e
-    };
-    let per_scene = a_max * w * 3;
-    for (j, &i) in scene_index.iter().enumerate() {
-        states[i]
-            .window
-            .copy_from_slice(&result[j * per_scene..(j + 1) * per_scene]);
+    if nfe != 2 {
+        return Ok(x_e);
     }
-    Ok(())
+    // Second evaluation at σ_next; slots landing on 0 keep their Euler result (their model
+    // input uses σ_cur, as it is never read).
+    let sigma_eval: Vec<f32> = sigma_cur
+        .iter()
+        .zip(sigma_next)
+        .map(|(&s, &sn)| if sn > 0.0 { sn } else { s })
+        .collect();
+    let xe_t = Tensor::from_vec(x_e.clone(), (scenes, a_max, w, 3), &device)?;
+    let d2 = model
+        .denoise(
+            &xe_t,
+            &sig(&sigma_eval)?,
+            &valid_t,
+            feats,
+            map_tokens,
+            map_valid,
+            Mode::Infer,
+        )?
+        .flatten_all()?
+        .to_vec1::<f32>()?;
+    let mut out = x_e.clone();
+    for (e, o) in out.iter_mut().enumerate() {
+        let slot = (e / 3) % w;
+        let (s, sn) = (sigma_cur[slot], sigma_next[slot]);
+        if s != sn && sn > 0.0 {
+            let slope1 = (x[e] - d1[e]) / s;
+            let slope2 = (x_e[e] - d2[e]) / sn;
+            *o = x[e] + (sn - s) * 0.5 * (slope1 + slope2);
+        }
+    }
+    Ok(out)
 }
 
 impl From<road_sched::Error> for Error {

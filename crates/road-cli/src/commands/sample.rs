@@ -11,7 +11,7 @@ use rand::SeedableRng;
 use road_data::{Dataset, Split, WindowConfig, cache};
 use road_model::batch::SceneInput;
 use road_model::checkpoint;
-use road_model::sample::{RolloutScene, rollout};
+use road_model::sample::{RolloutScene, rollout, rollout_with};
 
 use crate::plot::{HISTORY, LOGGED, MAP, PREDICTED, Stroke, scene_png};
 
@@ -32,14 +32,21 @@ pub struct SampleArgs {
     pub steps: Option<usize>,
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
-    /// Engine; only `cpu` (the candle reference) exists so far.
-    #[arg(long, default_value = "cpu")]
-    pub engine: String,
+    /// `cpu` (the candle reference) or `gpu` (the WGSL kernels on the adapter wgpu picks;
+    /// lavapipe when there is no GPU). The same seed gives the same samples on both.
+    #[arg(long, value_enum, default_value_t = Engine::Cpu)]
+    pub engine: Engine,
     #[arg(long, default_value = "sample.png")]
     pub out: PathBuf,
     /// Folder of the dataset caches (`road data build`).
     #[arg(long, default_value = ".road-cache")]
     pub cache: PathBuf,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Engine {
+    Cpu,
+    Gpu,
 }
 
 fn find_scene(ds: &Dataset, spec: &str) -> Result<usize> {
@@ -72,11 +79,6 @@ fn find_scene(ds: &Dataset, spec: &str) -> Result<usize> {
 }
 
 pub fn run(args: SampleArgs) -> Result<ExitCode> {
-    anyhow::ensure!(
-        args.engine == "cpu",
-        "engine `{}` is not available yet; use --engine cpu",
-        args.engine
-    );
     let loaded = checkpoint::load(&args.checkpoint, &candle_core::Device::Cpu)?;
     let run = &loaded.meta.run;
     let window_config = WindowConfig::default();
@@ -97,7 +99,15 @@ pub fn run(args: SampleArgs) -> Result<ExitCode> {
     let scenes = vec![RolloutScene { history }; args.samples.max(1)];
     let mut rng = rand::rngs::StdRng::seed_from_u64(args.seed);
     let started = Instant::now();
-    let out = rollout(&loaded.model, &run.planner, &scenes, steps, &mut rng)?;
+    let out = match args.engine {
+        Engine::Cpu => rollout(&loaded.model, &run.planner, &scenes, steps, &mut rng)?,
+        Engine::Gpu => {
+            let ctx = road_gpu::GpuContext::new(&road_gpu::ContextOptions::default())?;
+            let model = road_gpu::engine::GpuDenoiser::from_checkpoint(&ctx, &args.checkpoint)?;
+            let mut engine = road_gpu::engine::GpuStepEngine::new(&ctx, &model);
+            rollout_with(&mut engine, &run.planner, &scenes, steps, &mut rng)?
+        }
+    };
     let secs = started.elapsed().as_secs_f64();
 
     let to_m = |x: f32, y: f32| {
@@ -167,13 +177,14 @@ pub fn run(args: SampleArgs) -> Result<ExitCode> {
         50.0,
     )?;
     out!(
-        "{} {} frame {}: {} agents, {} samples × {steps} steps with {} ({} NFE per sample) in {secs:.2} s → {}",
+        "{} {} frame {}: {} agents, {} samples × {steps} steps with {} on {:?} ({} NFE per sample) in {secs:.2} s → {}",
         window.location,
         window.file,
         window.start_frame,
         window.agents,
         scenes.len(),
         run.name,
+        args.engine,
         out.nfe,
         args.out.display()
     );
