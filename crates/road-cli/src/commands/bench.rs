@@ -23,6 +23,27 @@ pub enum BenchCommand {
     /// Scheduler overhead per scene-step for many live scenes, against recomputing every
     /// step's σ vectors from the schedule (no tables) as the baseline.
     Sched(SchedBenchArgs),
+    /// Batched denoiser steps (one Heun step, 2 evaluations) of real validation scenes on the
+    /// WGSL engine (the adapter wgpu picks) side by side with the candle CPU reference:
+    /// scene-steps/s, ms per batched step, FLOPs per scene-step and achieved FLOP/s.
+    Engine(EngineBenchArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct EngineBenchArgs {
+    /// Checkpoint folders to measure.
+    #[arg(long, num_args = 1.., default_values = ["models/road20", "models/ar", "models/djinn10"])]
+    pub checkpoints: Vec<PathBuf>,
+    /// Scenes per batched step.
+    #[arg(long, num_args = 1.., default_values_t = [1usize, 8, 64, 512])]
+    pub batches: Vec<usize>,
+    /// Timed repetitions per measurement (after one warm-up step).
+    #[arg(long, default_value_t = 2)]
+    pub reps: usize,
+    #[arg(long, default_value = ".road-cache")]
+    pub cache: PathBuf,
+    #[arg(long)]
+    pub json: bool,
 }
 
 #[derive(Debug, Args)]
@@ -55,6 +76,7 @@ pub fn run(cmd: BenchCommand) -> Result<ExitCode> {
     match cmd {
         BenchCommand::Train(args) => train_bench(&args),
         BenchCommand::Sched(args) => sched_bench(&args),
+        BenchCommand::Engine(args) => engine_bench(&args),
     }
     .map(|()| ExitCode::SUCCESS)
 }
@@ -239,6 +261,155 @@ fn sched_bench(args: &SchedBenchArgs) -> Result<()> {
                 r["baseline_ns_per_scene_step"].as_f64().unwrap_or(0.0)
             );
         }
+    }
+    Ok(())
+}
+
+/// Multiply-adds ×2 of one denoiser evaluation of one scene: `A` agents, `P` polylines.
+fn flops_per_evaluation(c: &road_model::ModelConfig, agents: usize, polylines: usize) -> f64 {
+    let (a, p, w, d) = (
+        agents as f64,
+        polylines as f64,
+        c.window_slots as f64,
+        c.hidden as f64,
+    );
+    let m = d * c.mlp_ratio as f64;
+    let t = a * w;
+    let linear = |rows: f64, i: f64, o: f64| 2.0 * rows * i * o;
+    let per_block = 2.0 * 4.0 * linear(t, d, d) // time and agent attention projections
+        + 2.0 * 2.0 * t * w * d // time attention scores and weighted sums
+        + 2.0 * 2.0 * t * a * d // agent attention
+        + 2.0 * linear(t, d, d) + 2.0 * linear(p, d, d) // map q, o; k, v
+        + 2.0 * 2.0 * t * p * d // map attention
+        + linear(t, d, m) + linear(t, m, d); // MLP
+    c.blocks as f64 * per_block + linear(t, 3.0, d) + linear(t, d, 3.0)
+}
+
+fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
+    use road_model::batch::SceneInput;
+    use road_model::sample::{CpuEngine, StepEngine};
+    let window = WindowConfig::default();
+    let validation = cache::load_checked(
+        &cache::cache_path(&args.cache, Split::Validation),
+        Split::Validation,
+        Some(&window),
+        None,
+    )
+    .context("run `road data build` first")?;
+    let ctx = road_gpu::GpuContext::new(&road_gpu::ContextOptions::default())?;
+    let mut rows = Vec::new();
+    for dir in &args.checkpoints {
+        let loaded = road_model::checkpoint::load(dir, &candle_core::Device::Cpu)?;
+        let config = loaded.meta.run.model.clone();
+        let gpu_model = road_gpu::engine::GpuDenoiser::from_checkpoint(&ctx, dir)?;
+        let tables =
+            road_sched::PlannerTables::new(&loaded.meta.run.name, loaded.meta.run.planner.clone())?;
+        let stage = if tables.spec.kind == road_sched::PlannerKind::Rolling {
+            &tables.rolling
+        } else {
+            &tables.full
+        };
+        let plan = stage.step(0);
+        for &b in &args.batches {
+            // b real scenes (cycling through the validation windows), cropped to the window.
+            let scenes: Vec<SceneInput> = (0..b)
+                .map(|i| {
+                    validation
+                        .window((i * 97) % validation.len())
+                        .map(|w| SceneInput::from_window(&w, 0, config.window_slots, &config))
+                })
+                .collect::<Result<_, _>>()?;
+            let a = scenes.iter().map(|s| s.agents).max().unwrap_or(1);
+            let p = scenes.iter().map(|s| s.polylines).max().unwrap_or(1);
+            let (w, q) = (config.window_slots, config.polyline_points);
+            let mut feats = vec![0.0f32; b * a * 6];
+            let mut map = vec![0.0f32; b * p * q * 2];
+            let mut map_valid = vec![0.0f32; b * p];
+            let mut x = vec![0.0f32; b * a * w * 3];
+            let mut valid = vec![0.0f32; b * a * w];
+            for (i, s) in scenes.iter().enumerate() {
+                feats[i * a * 6..][..s.agents * 6].copy_from_slice(&s.agent_features);
+                map[i * p * q * 2..][..s.polylines * q * 2].copy_from_slice(&s.map);
+                map_valid[i * p..][..s.polylines].fill(1.0);
+                for agent in 0..s.agents {
+                    x[(i * a + agent) * w * 3..][..w * 3]
+                        .copy_from_slice(&s.states[agent * w * 3..][..w * 3]);
+                    for slot in 0..w {
+                        valid[(i * a + agent) * w + slot] =
+                            f32::from(u8::from(s.valid[agent * w + slot]));
+                    }
+                }
+            }
+            let flops = 2.0
+                * scenes
+                    .iter()
+                    .map(|s| flops_per_evaluation(&config, s.agents, s.polylines))
+                    .sum::<f64>()
+                / b as f64;
+            let time =
+                |engine: &mut dyn StepEngine, wait: &dyn Fn() -> Result<()>| -> Result<f64> {
+                    engine.prepare(b, a, &feats, p, &map, &map_valid)?;
+                    engine.load(&x, &valid)?;
+                    engine.step(plan.sigma_cur, plan.sigma_next, 2)?;
+                    wait()?;
+                    let started = Instant::now();
+                    for _ in 0..args.reps {
+                        engine.step(plan.sigma_cur, plan.sigma_next, 2)?;
+                    }
+                    wait()?;
+                    Ok(started.elapsed().as_secs_f64() / args.reps as f64)
+                };
+            let gpu_secs = time(
+                &mut road_gpu::engine::GpuStepEngine::new(&ctx, &gpu_model),
+                &|| Ok(ctx.wait()?),
+            )?;
+            let cpu_secs = time(&mut CpuEngine::new(&loaded.model), &|| Ok(()))?;
+            rows.push(serde_json::json!({
+                "checkpoint": loaded.meta.run.name,
+                "scenes": b,
+                "padded_agents": a,
+                "flops_per_scene_step": flops,
+                "gpu_ms_per_step": gpu_secs * 1e3,
+                "gpu_scene_steps_per_sec": b as f64 / gpu_secs,
+                "gpu_gflops": flops * b as f64 / gpu_secs / 1e9,
+                "cpu_ms_per_step": cpu_secs * 1e3,
+                "cpu_scene_steps_per_sec": b as f64 / cpu_secs,
+                "cpu_gflops": flops * b as f64 / cpu_secs / 1e9,
+            }));
+        }
+    }
+    if args.json {
+        out!(
+            "{}",
+            serde_json::to_string_pretty(
+                &serde_json::json!({ "adapter": ctx.describe(), "cpu": crate::commands::train::hardware(), "rows": rows })
+            )?
+        );
+        return Ok(());
+    }
+    out!(
+        "engine: one Heun step (2 evaluations) per scene; GPU = {}; CPU = candle on {}",
+        ctx.describe(),
+        crate::commands::train::hardware()
+    );
+    out!(
+        "| checkpoint | scenes | MFLOP per scene-step | GPU ms/step | GPU scene-steps/s | GPU GFLOP/s | CPU ms/step | CPU scene-steps/s | CPU GFLOP/s |"
+    );
+    out!("|---|---:|---:|---:|---:|---:|---:|---:|---:|");
+    for r in &rows {
+        let f = |k: &str| r[k].as_f64().unwrap_or(0.0);
+        out!(
+            "| {} | {} | {:.1} | {:.1} | {:.1} | {:.2} | {:.1} | {:.1} | {:.2} |",
+            r["checkpoint"].as_str().unwrap_or(""),
+            r["scenes"],
+            f("flops_per_scene_step") / 1e6,
+            f("gpu_ms_per_step"),
+            f("gpu_scene_steps_per_sec"),
+            f("gpu_gflops"),
+            f("cpu_ms_per_step"),
+            f("cpu_scene_steps_per_sec"),
+            f("cpu_gflops")
+        );
     }
     Ok(())
 }
