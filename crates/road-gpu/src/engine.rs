@@ -16,7 +16,7 @@ use road_model::ModelConfig;
 use crate::kernels::attention::{AttentionParams, MAX_HEAD_DIM, TokenLayout};
 use crate::kernels::layer_norm::LayerNormParams;
 use crate::kernels::linear::LinearParams;
-use crate::kernels::{Pipeline, read_back, storage_buffer, upload};
+use crate::kernels::{Dispatch, Pipeline, read_back, record_all, storage_buffer, upload};
 use crate::shaders::Shader;
 use crate::{Error, GpuContext, Result};
 
@@ -257,7 +257,7 @@ impl GpuDenoiser {
     fn linear(
         &self,
         ctx: &GpuContext,
-        enc: &mut wgpu::CommandEncoder,
+        ops: &mut Vec<Dispatch>,
         layer: &str,
         x: &wgpu::Buffer,
         y: &wgpu::Buffer,
@@ -279,16 +279,18 @@ impl GpuDenoiser {
             self.w(&format!("{layer}.bias"))?,
             y.as_entire_binding(),
         ];
-        self.pipelines
-            .linear
-            .encode_resources(ctx, enc, &params, &resources, p.threads());
+        ops.push(
+            self.pipelines
+                .linear
+                .prepare_resources(ctx, &params, &resources, p.threads()),
+        );
         Ok(())
     }
 
     fn layer_norm(
         &self,
         ctx: &GpuContext,
-        enc: &mut wgpu::CommandEncoder,
+        ops: &mut Vec<Dispatch>,
         name: &str,
         x: &wgpu::Buffer,
         y: &wgpu::Buffer,
@@ -307,16 +309,18 @@ impl GpuDenoiser {
             self.w(&format!("{name}.bias"))?,
             y.as_entire_binding(),
         ];
-        self.pipelines
-            .layer_norm
-            .encode_resources(ctx, enc, &params, &resources, p.rows);
+        ops.push(
+            self.pipelines
+                .layer_norm
+                .prepare_resources(ctx, &params, &resources, p.rows),
+        );
         Ok(())
     }
 
     fn add(
         &self,
         ctx: &GpuContext,
-        enc: &mut wgpu::CommandEncoder,
+        ops: &mut Vec<Dispatch>,
         from: &wgpu::Buffer,
         into: &wgpu::Buffer,
         count: usize,
@@ -333,9 +337,11 @@ impl GpuDenoiser {
         };
         let params = Self::params(ctx, &p);
         let bound = [(1, from.as_entire_binding()), (5, into.as_entire_binding())];
-        self.pipelines
-            .add_in_place
-            .encode_bound(ctx, enc, &params, &bound, p.count);
+        ops.push(
+            self.pipelines
+                .add_in_place
+                .prepare(ctx, &params, &bound, p.count),
+        );
     }
 
     /// Map tokens of `scenes` scenes: `map [B, P, Q, 2]` (normalised), `map_valid [B, P]`.
@@ -368,9 +374,7 @@ impl GpuDenoiser {
         let mixed = storage_buffer(ctx, "map.mixed", (n_points * d * 4) as u64);
         let pooled = storage_buffer(ctx, "map.pooled", (scenes * polylines * d * 4) as u64);
         let tokens = storage_buffer(ctx, "map.tokens", (scenes * polylines * d * 4) as u64);
-        let mut enc = ctx
-            .device
-            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("map") });
+        let mut ops = Vec::new();
         let p = ElementwiseParams {
             count: (n_points * d) as u32,
             slots: 0,
@@ -388,11 +392,13 @@ impl GpuDenoiser {
             (2, self.w("packed.map_points")?),
             (5, embedded.as_entire_binding()),
         ];
-        self.pipelines
-            .embed_map_points
-            .encode_bound(ctx, &mut enc, &params, &bound, p.count);
+        ops.push(
+            self.pipelines
+                .embed_map_points
+                .prepare(ctx, &params, &bound, p.count),
+        );
         self.linear(
-            ctx, &mut enc, "map_mix", &embedded, &mixed, n_points, d, d, false,
+            ctx, &mut ops, "map_mix", &embedded, &mixed, n_points, d, d, false,
         )?;
         let p = ElementwiseParams {
             count: (scenes * polylines * d) as u32,
@@ -405,17 +411,23 @@ impl GpuDenoiser {
             (1, mixed.as_entire_binding()),
             (5, pooled.as_entire_binding()),
         ];
-        self.pipelines
-            .max_over_points
-            .encode_bound(ctx, &mut enc, &params, &bound, p.count);
+        ops.push(
+            self.pipelines
+                .max_over_points
+                .prepare(ctx, &params, &bound, p.count),
+        );
         self.layer_norm(
             ctx,
-            &mut enc,
+            &mut ops,
             "ln_map_out",
             &pooled,
             &tokens,
             scenes * polylines,
         )?;
+        let mut enc = ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("map") });
+        record_all(&mut enc, "map", &ops);
         ctx.queue.submit([enc.finish()]);
         Ok(MapTokens {
             tokens,
@@ -458,14 +470,10 @@ impl GpuDenoiser {
             wgpu::BufferUsages::STORAGE,
         );
         let agent_embedding = storage_buffer(ctx, "agent embedding", (b * a * d * 4) as u64);
-        let mut enc = ctx
-            .device
-            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                label: Some("agents"),
-            });
+        let mut ops = Vec::new();
         self.linear(
             ctx,
-            &mut enc,
+            &mut ops,
             "embed_agent",
             &features,
             &agent_embedding,
@@ -474,6 +482,12 @@ impl GpuDenoiser {
             d,
             false,
         )?;
+        let mut enc = ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("agents"),
+            });
+        record_all(&mut enc, "agents", &ops);
         ctx.queue.submit([enc.finish()]);
         Ok(DeviceBatch {
             scenes: b,
@@ -485,17 +499,19 @@ impl GpuDenoiser {
         })
     }
 
-    /// Records `D(x; σ)` for the batch into `out` (`[B, A, W, 3]`): `x` and `sigma` are read from
-    /// the given buffers so that a sampler can evaluate at intermediate states.
+    /// Prepares the dispatches of `D(x; σ)` for the batch into `out` (`[B, A, W, 3]`), reading
+    /// `x` and `sigma` from the given buffers (so that a sampler can evaluate at intermediate
+    /// states) and working in `scratch`.
     #[allow(clippy::too_many_arguments)]
-    pub fn encode_denoise(
+    fn prepare_denoise(
         &self,
         ctx: &GpuContext,
-        enc: &mut wgpu::CommandEncoder,
+        ops: &mut Vec<Dispatch>,
         batch: &DeviceBatch,
         x: &wgpu::Buffer,
         sigma: &wgpu::Buffer,
         map: &MapTokens,
+        scratch: &Scratch,
         out: &wgpu::Buffer,
     ) -> Result<()> {
         let c = &self.config;
@@ -503,22 +519,19 @@ impl GpuDenoiser {
         assert_eq!(map.scenes, b, "map tokens for another scene count");
         let tokens = b * a * w;
         let m = d * c.mlp_ratio;
-        let buf = |label: &str, floats: usize| storage_buffer(ctx, label, (floats * 4) as u64);
-        let h = buf("h", tokens * d);
-        let t = buf("normed", tokens * d);
-        let (q, k, v) = (
-            buf("q", tokens * d),
-            buf("k", tokens * d),
-            buf("v", tokens * d),
-        );
-        let att = buf("attention", tokens * d);
-        let y = buf("y", tokens * d);
-        let hidden = buf("mlp", tokens * m);
-        let (mk, mv) = (
-            buf("map k", map.polylines * b * d),
-            buf("map v", map.polylines * b * d),
-        );
-        let f = buf("F", tokens * 3);
+        let Scratch {
+            h,
+            t,
+            q,
+            k,
+            v,
+            att,
+            y,
+            hidden,
+            mk,
+            mv,
+            f,
+        } = scratch;
 
         let p = EmbedParams {
             scenes: b as u32,
@@ -539,13 +552,12 @@ impl GpuDenoiser {
             self.w("packed.embed")?,
             h.as_entire_binding(),
         ];
-        self.pipelines.embed_tokens.encode_resources(
+        ops.push(self.pipelines.embed_tokens.prepare_resources(
             ctx,
-            enc,
             &params,
             &resources,
             (tokens * d) as u32,
-        );
+        ));
 
         let heads = c.heads as u32;
         let head_dim = (d / c.heads) as u32;
@@ -600,13 +612,13 @@ impl GpuDenoiser {
                     },
                 ),
             ] {
-                self.layer_norm(ctx, enc, &format!("{blk}.ln_{part}"), &h, &t, tokens)?;
+                self.layer_norm(ctx, ops, &format!("{blk}.ln_{part}"), h, t, tokens)?;
                 self.linear(
                     ctx,
-                    enc,
+                    ops,
                     &format!("{blk}.{part}.q"),
-                    &t,
-                    &q,
+                    t,
+                    q,
                     tokens,
                     d,
                     d,
@@ -614,10 +626,10 @@ impl GpuDenoiser {
                 )?;
                 self.linear(
                     ctx,
-                    enc,
+                    ops,
                     &format!("{blk}.{part}.k"),
-                    &t,
-                    &k,
+                    t,
+                    k,
                     tokens,
                     d,
                     d,
@@ -625,56 +637,45 @@ impl GpuDenoiser {
                 )?;
                 self.linear(
                     ctx,
-                    enc,
+                    ops,
                     &format!("{blk}.{part}.v"),
-                    &t,
-                    &v,
+                    t,
+                    v,
                     tokens,
                     d,
                     d,
                     false,
                 )?;
                 let params = Self::params(ctx, &attn);
-                self.pipelines.attention.encode(
+                ops.push(self.pipelines.attention.prepare_buffers(
                     ctx,
-                    enc,
                     &params,
-                    &[&q, &k, &v, &batch.valid, &att],
+                    &[q, k, v, &batch.valid, att],
                     attn.threads(),
-                );
+                ));
                 self.linear(
                     ctx,
-                    enc,
+                    ops,
                     &format!("{blk}.{part}.o"),
-                    &att,
-                    &y,
+                    att,
+                    y,
                     tokens,
                     d,
                     d,
                     false,
                 )?;
-                self.add(ctx, enc, &y, &h, tokens * d);
+                self.add(ctx, ops, y, h, tokens * d);
             }
             // Map cross-attention: queries [B, A·W, D], keys [B, P, D].
             let pl = map.polylines as u32;
-            self.layer_norm(ctx, enc, &format!("{blk}.ln_map"), &h, &t, tokens)?;
+            self.layer_norm(ctx, ops, &format!("{blk}.ln_map"), h, t, tokens)?;
+            self.linear(ctx, ops, &format!("{blk}.map.q"), t, q, tokens, d, d, false)?;
             self.linear(
                 ctx,
-                enc,
-                &format!("{blk}.map.q"),
-                &t,
-                &q,
-                tokens,
-                d,
-                d,
-                false,
-            )?;
-            self.linear(
-                ctx,
-                enc,
+                ops,
                 &format!("{blk}.map.k"),
                 &map.tokens,
-                &mk,
+                mk,
                 b * map.polylines,
                 d,
                 d,
@@ -682,10 +683,10 @@ impl GpuDenoiser {
             )?;
             self.linear(
                 ctx,
-                enc,
+                ops,
                 &format!("{blk}.map.v"),
                 &map.tokens,
-                &mv,
+                mv,
                 b * map.polylines,
                 d,
                 d,
@@ -701,33 +702,32 @@ impl GpuDenoiser {
                 ..base
             };
             let params = Self::params(ctx, &attn);
-            self.pipelines.attention.encode(
+            ops.push(self.pipelines.attention.prepare_buffers(
                 ctx,
-                enc,
                 &params,
-                &[&q, &mk, &mv, &map.valid, &att],
+                &[q, mk, mv, &map.valid, att],
                 attn.threads(),
-            );
+            ));
             self.linear(
                 ctx,
-                enc,
+                ops,
                 &format!("{blk}.map.o"),
-                &att,
-                &y,
+                att,
+                y,
                 tokens,
                 d,
                 d,
                 false,
             )?;
-            self.add(ctx, enc, &y, &h, tokens * d);
+            self.add(ctx, ops, y, h, tokens * d);
             // MLP.
-            self.layer_norm(ctx, enc, &format!("{blk}.ln_mlp"), &h, &t, tokens)?;
+            self.layer_norm(ctx, ops, &format!("{blk}.ln_mlp"), h, t, tokens)?;
             self.linear(
                 ctx,
-                enc,
+                ops,
                 &format!("{blk}.mlp_in"),
-                &t,
-                &hidden,
+                t,
+                hidden,
                 tokens,
                 d,
                 m,
@@ -735,19 +735,19 @@ impl GpuDenoiser {
             )?;
             self.linear(
                 ctx,
-                enc,
+                ops,
                 &format!("{blk}.mlp_out"),
-                &hidden,
-                &y,
+                hidden,
+                y,
                 tokens,
                 m,
                 d,
                 false,
             )?;
-            self.add(ctx, enc, &y, &h, tokens * d);
+            self.add(ctx, ops, y, h, tokens * d);
         }
-        self.layer_norm(ctx, enc, "ln_out", &h, &t, tokens)?;
-        self.linear(ctx, enc, "head", &t, &f, tokens, d, 3, false)?;
+        self.layer_norm(ctx, ops, "ln_out", h, t, tokens)?;
+        self.linear(ctx, ops, "head", t, f, tokens, d, 3, false)?;
         let p = ElementwiseParams {
             count: (tokens * 3) as u32,
             slots: w32,
@@ -759,13 +759,12 @@ impl GpuDenoiser {
             _pad: 0,
         };
         let params = Self::params(ctx, &p);
-        self.pipelines.precondition_output.encode(
+        ops.push(self.pipelines.precondition_output.prepare_buffers(
             ctx,
-            enc,
             &params,
-            &[x, &f, sigma, &batch.valid, out],
+            &[x, f, sigma, &batch.valid, out],
             p.count,
-        );
+        ));
         Ok(())
     }
 
@@ -779,20 +778,98 @@ impl GpuDenoiser {
         let batch = self.upload_batch(ctx, inputs)?;
         let len = (inputs.x.len() * 4) as u64;
         let out = storage_buffer(ctx, "denoised", len);
+        let scratch = Scratch::new(ctx, &self.config, batch.scenes, batch.agents, map.polylines);
+        let mut ops = Vec::new();
+        self.prepare_denoise(
+            ctx,
+            &mut ops,
+            &batch,
+            &batch.x,
+            &batch.sigma,
+            map,
+            &scratch,
+            &out,
+        )?;
         let mut enc = ctx
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                 label: Some("denoise"),
             });
-        self.encode_denoise(ctx, &mut enc, &batch, &batch.x, &batch.sigma, map, &out)?;
+        record_all(&mut enc, "denoise", &ops);
         ctx.queue.submit([enc.finish()]);
         let bytes = read_back(ctx, &out, len)?;
         Ok(bytemuck::cast_slice::<u8, f32>(&bytes).to_vec())
     }
 
-    /// One Heun step on the GPU for the whole batch (per-scene σ_cur[W], σ_next[W]):
-    /// both evaluations and the update run on the device, and only the new state is read back
-    /// when `read` is true. `batch.x` holds the state and is updated in place.
+    /// Everything a Heun step of this batch needs, made once: buffers, bind groups and the
+    /// dispatch lists of both evaluations and the updates. Steps then only write σ.
+    pub fn heun_plan(
+        &self,
+        ctx: &GpuContext,
+        batch: &DeviceBatch,
+        map: &MapTokens,
+    ) -> Result<HeunPlan> {
+        let (b, a, w) = (batch.scenes, batch.agents, self.config.window_slots);
+        let count = b * a * w * 3;
+        let len = (count * 4) as u64;
+        let sigma = |label| storage_buffer(ctx, label, (b * w * 4) as u64);
+        let (sigma_cur, sigma_next, sigma_eval) =
+            (sigma("sigma_cur"), sigma("sigma_next"), sigma("sigma_eval"));
+        let (first, second, x_e) = (
+            storage_buffer(ctx, "D1", len),
+            storage_buffer(ctx, "D2", len),
+            storage_buffer(ctx, "x_e", len),
+        );
+        let scratch = Scratch::new(ctx, &self.config, b, a, map.polylines);
+        let p = HeunParams {
+            count: count as u32,
+            slots: w as u32,
+            agents: a as u32,
+            _pad: 0,
+        };
+        let params = Self::params(ctx, &p);
+        let mut euler = Vec::new();
+        self.prepare_denoise(
+            ctx, &mut euler, batch, &batch.x, &sigma_cur, map, &scratch, &first,
+        )?;
+        euler.push(self.pipelines.heun_euler.prepare_buffers(
+            ctx,
+            &params,
+            &[&batch.x, &first, &sigma_cur, &sigma_next, &x_e],
+            p.count,
+        ));
+        let mut correct = Vec::new();
+        self.prepare_denoise(
+            ctx,
+            &mut correct,
+            batch,
+            &x_e,
+            &sigma_eval,
+            map,
+            &scratch,
+            &second,
+        )?;
+        correct.push(self.pipelines.heun_correct.prepare_buffers(
+            ctx,
+            &params,
+            &[&batch.x, &first, &sigma_cur, &sigma_next, &x_e, &second],
+            p.count,
+        ));
+        Ok(HeunPlan {
+            sigma_cur,
+            sigma_next,
+            sigma_eval,
+            x_e,
+            euler,
+            correct,
+            bytes: len,
+            sigma_eval_host: vec![0.0; b * w],
+        })
+    }
+
+    /// One Heun step for the whole batch (per-scene σ_cur, σ_next as `[B, W]`): both
+    /// evaluations and the update run on the device in one submission; `batch.x` is updated in
+    /// place and read back only when `read` is true.
     #[allow(clippy::too_many_arguments)]
     pub fn heun_step(
         &self,
@@ -804,74 +881,122 @@ impl GpuDenoiser {
         second_evaluation: bool,
         read: bool,
     ) -> Result<Option<Vec<f32>>> {
-        let (b, a, w) = (batch.scenes, batch.agents, self.config.window_slots);
-        let count = b * a * w * 3;
-        let len = (count * 4) as u64;
-        let sc = upload(
-            ctx,
-            "sigma_cur",
-            bytemuck::cast_slice(sigma_cur),
-            wgpu::BufferUsages::STORAGE,
-        );
-        let sn = upload(
-            ctx,
-            "sigma_next",
-            bytemuck::cast_slice(sigma_next),
-            wgpu::BufferUsages::STORAGE,
-        );
+        let mut plan = self.heun_plan(ctx, batch, map)?;
+        plan.run(ctx, batch, sigma_cur, sigma_next, second_evaluation)?;
+        if !read {
+            return Ok(None);
+        }
+        let bytes = read_back(ctx, &batch.x, plan.bytes)?;
+        Ok(Some(bytemuck::cast_slice::<u8, f32>(&bytes).to_vec()))
+    }
+}
+
+/// Scratch activations of one forward pass.
+#[derive(Debug)]
+struct Scratch {
+    h: wgpu::Buffer,
+    t: wgpu::Buffer,
+    q: wgpu::Buffer,
+    k: wgpu::Buffer,
+    v: wgpu::Buffer,
+    att: wgpu::Buffer,
+    y: wgpu::Buffer,
+    hidden: wgpu::Buffer,
+    mk: wgpu::Buffer,
+    mv: wgpu::Buffer,
+    f: wgpu::Buffer,
+}
+
+impl Scratch {
+    fn new(
+        ctx: &GpuContext,
+        c: &ModelConfig,
+        scenes: usize,
+        agents: usize,
+        polylines: usize,
+    ) -> Self {
+        let tokens = scenes * agents * c.window_slots;
+        let d = c.hidden;
+        let buf = |label: &str, floats: usize| storage_buffer(ctx, label, (floats * 4) as u64);
+        Self {
+            h: buf("h", tokens * d),
+            t: buf("normed", tokens * d),
+            q: buf("q", tokens * d),
+            k: buf("k", tokens * d),
+            v: buf("v", tokens * d),
+            att: buf("attention", tokens * d),
+            y: buf("y", tokens * d),
+            hidden: buf("mlp", tokens * d * c.mlp_ratio),
+            mk: buf("map k", scenes * polylines * d),
+            mv: buf("map v", scenes * polylines * d),
+            f: buf("F", tokens * 3),
+        }
+    }
+}
+
+/// A batch's Heun step, prepared: see [`GpuDenoiser::heun_plan`].
+#[derive(Debug)]
+pub struct HeunPlan {
+    sigma_cur: wgpu::Buffer,
+    sigma_next: wgpu::Buffer,
+    sigma_eval: wgpu::Buffer,
+    x_e: wgpu::Buffer,
+    euler: Vec<Dispatch>,
+    correct: Vec<Dispatch>,
+    bytes: u64,
+    sigma_eval_host: Vec<f32>,
+}
+
+impl HeunPlan {
+    /// Writes this step's σ (`[B, W]` each) and submits the step.
+    pub fn run(
+        &mut self,
+        ctx: &GpuContext,
+        batch: &DeviceBatch,
+        sigma_cur: &[f32],
+        sigma_next: &[f32],
+        second_evaluation: bool,
+    ) -> Result<()> {
+        assert_eq!(sigma_cur.len(), self.sigma_eval_host.len(), "σ is [B, W]");
+        ctx.queue
+            .write_buffer(&self.sigma_cur, 0, bytemuck::cast_slice(sigma_cur));
+        ctx.queue
+            .write_buffer(&self.sigma_next, 0, bytemuck::cast_slice(sigma_next));
         // The second evaluation's σ: σ_next, or σ_cur where σ_next is 0 (those slots keep
         // their Euler result, so the value there is never read).
-        let eval: Vec<f32> = sigma_cur
-            .iter()
-            .zip(sigma_next)
-            .map(|(&s, &n)| if n > 0.0 { n } else { s })
-            .collect();
-        let se = upload(
-            ctx,
-            "sigma_eval",
-            bytemuck::cast_slice(&eval),
-            wgpu::BufferUsages::STORAGE,
+        for (e, (&s, &n)) in self
+            .sigma_eval_host
+            .iter_mut()
+            .zip(sigma_cur.iter().zip(sigma_next))
+        {
+            *e = if n > 0.0 { n } else { s };
+        }
+        ctx.queue.write_buffer(
+            &self.sigma_eval,
+            0,
+            bytemuck::cast_slice(&self.sigma_eval_host),
         );
-        let d1 = storage_buffer(ctx, "D1", len);
-        let x_e = storage_buffer(ctx, "x_e", len);
         let mut enc = ctx
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                 label: Some("heun"),
             });
-        self.encode_denoise(ctx, &mut enc, batch, &batch.x, &sc, map, &d1)?;
-        let p = HeunParams {
-            count: count as u32,
-            slots: w as u32,
-            agents: a as u32,
-            _pad: 0,
-        };
-        let params = Self::params(ctx, &p);
-        self.pipelines.heun_euler.encode(
-            ctx,
-            &mut enc,
-            &params,
-            &[&batch.x, &d1, &sc, &sn, &x_e],
-            p.count,
-        );
-        if second_evaluation {
-            let d2 = storage_buffer(ctx, "D2", len);
-            self.encode_denoise(ctx, &mut enc, batch, &x_e, &se, map, &d2)?;
-            self.pipelines.heun_correct.encode(
-                ctx,
-                &mut enc,
-                &params,
-                &[&batch.x, &d1, &sc, &sn, &x_e, &d2],
-                p.count,
-            );
+        {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("heun"),
+                timestamp_writes: None,
+            });
+            for d in self.euler.iter().chain(if second_evaluation {
+                &self.correct[..]
+            } else {
+                &[]
+            }) {
+                d.record(&mut pass);
+            }
         }
-        enc.copy_buffer_to_buffer(&x_e, 0, &batch.x, 0, len);
+        enc.copy_buffer_to_buffer(&self.x_e, 0, &batch.x, 0, self.bytes);
         ctx.queue.submit([enc.finish()]);
-        if !read {
-            return Ok(None);
-        }
-        let bytes = read_back(ctx, &batch.x, len)?;
-        Ok(Some(bytemuck::cast_slice::<u8, f32>(&bytes).to_vec()))
+        Ok(())
     }
 }
 
@@ -883,7 +1008,10 @@ pub struct GpuStepEngine<'a> {
     model: &'a GpuDenoiser,
     map: Option<MapTokens>,
     batch: Option<DeviceBatch>,
+    plan: Option<HeunPlan>,
     features: Vec<f32>,
+    sigma_cur: Vec<f32>,
+    sigma_next: Vec<f32>,
     scenes: usize,
     agents: usize,
 }
@@ -895,7 +1023,10 @@ impl<'a> GpuStepEngine<'a> {
             model,
             map: None,
             batch: None,
+            plan: None,
             features: Vec::new(),
+            sigma_cur: Vec::new(),
+            sigma_next: Vec::new(),
             scenes: 0,
             agents: 0,
         }
@@ -928,11 +1059,28 @@ impl road_model::sample::StepEngine for GpuStepEngine<'_> {
         self.features = features.to_vec();
         self.scenes = scenes;
         self.agents = agents;
+        // A new scene set: the next load makes its batch and plan.
+        self.batch = None;
+        self.plan = None;
         Ok(())
     }
 
     fn load(&mut self, windows: &[f32], valid: &[f32]) -> road_model::Result<()> {
-        // σ of the batch is set per step; the upload's own σ is never read.
+        // Later ticks only overwrite the state: buffers, bind groups and the plan stay.
+        if let Some(batch) = &self.batch {
+            self.ctx
+                .queue
+                .write_buffer(&batch.x, 0, bytemuck::cast_slice(windows));
+            self.ctx
+                .queue
+                .write_buffer(&batch.valid, 0, bytemuck::cast_slice(valid));
+            return Ok(());
+        }
+        let map = self
+            .map
+            .as_ref()
+            .ok_or_else(|| road_model::Error::Engine("load before prepare".into()))?;
+        // σ is written per step into the plan's buffers; the batch's own σ is never read.
         let sigma = vec![1.0f32; self.scenes * self.model.config.window_slots];
         let inputs = DenoiseInputs {
             scenes: self.scenes,
@@ -942,35 +1090,34 @@ impl road_model::sample::StepEngine for GpuStepEngine<'_> {
             valid,
             agent_features: &self.features,
         };
-        self.batch = Some(
+        let batch = self
+            .model
+            .upload_batch(self.ctx, &inputs)
+            .map_err(engine_err)?;
+        self.plan = Some(
             self.model
-                .upload_batch(self.ctx, &inputs)
+                .heun_plan(self.ctx, &batch, map)
                 .map_err(engine_err)?,
         );
+        self.batch = Some(batch);
         Ok(())
     }
 
     fn step(&mut self, sigma_cur: &[f32], sigma_next: &[f32], nfe: u8) -> road_model::Result<()> {
-        let (Some(batch), Some(map)) = (&self.batch, &self.map) else {
+        let (Some(batch), Some(plan)) = (&self.batch, &mut self.plan) else {
             return Err(road_model::Error::Engine(
                 "step before prepare and load".into(),
             ));
         };
         // Every scene of the lockstep batch shares this step's σ vector.
-        let per_scene =
-            |s: &[f32]| -> Vec<f32> { (0..self.scenes).flat_map(|_| s.iter().copied()).collect() };
-        self.model
-            .heun_step(
-                self.ctx,
-                batch,
-                map,
-                &per_scene(sigma_cur),
-                &per_scene(sigma_next),
-                nfe == 2,
-                false,
-            )
-            .map_err(engine_err)?;
-        Ok(())
+        self.sigma_cur.clear();
+        self.sigma_next.clear();
+        for _ in 0..self.scenes {
+            self.sigma_cur.extend_from_slice(sigma_cur);
+            self.sigma_next.extend_from_slice(sigma_next);
+        }
+        plan.run(self.ctx, batch, &self.sigma_cur, &self.sigma_next, nfe == 2)
+            .map_err(engine_err)
     }
 
     fn read(&mut self, windows: &mut [f32]) -> road_model::Result<()> {

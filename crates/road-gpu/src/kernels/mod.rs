@@ -88,6 +88,54 @@ impl Pipeline {
         bound: &[(u32, wgpu::BindingResource<'_>)],
         threads: u32,
     ) {
+        let dispatch = self.prepare(ctx, params, bound, threads);
+        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some(self.label),
+            timestamp_writes: None,
+        });
+        dispatch.record(&mut pass);
+    }
+
+    /// [`Self::prepare`] with storage buffers at bindings 1, 2, ...
+    pub fn prepare_buffers(
+        &self,
+        ctx: &GpuContext,
+        params: &wgpu::Buffer,
+        buffers: &[&wgpu::Buffer],
+        threads: u32,
+    ) -> Dispatch {
+        let bound: Vec<(u32, wgpu::BindingResource<'_>)> = buffers
+            .iter()
+            .enumerate()
+            .map(|(i, b)| (i as u32 + 1, b.as_entire_binding()))
+            .collect();
+        self.prepare(ctx, params, &bound, threads)
+    }
+
+    /// [`Self::prepare`] with resources at bindings 1, 2, ...
+    pub fn prepare_resources(
+        &self,
+        ctx: &GpuContext,
+        params: &wgpu::Buffer,
+        resources: &[wgpu::BindingResource<'_>],
+        threads: u32,
+    ) -> Dispatch {
+        let bound: Vec<(u32, wgpu::BindingResource<'_>)> = resources
+            .iter()
+            .enumerate()
+            .map(|(i, r)| (i as u32 + 1, r.clone()))
+            .collect();
+        self.prepare(ctx, params, &bound, threads)
+    }
+
+    /// A dispatch with its bind group made once, to be recorded any number of times.
+    pub fn prepare(
+        &self,
+        ctx: &GpuContext,
+        params: &wgpu::Buffer,
+        bound: &[(u32, wgpu::BindingResource<'_>)],
+        threads: u32,
+    ) -> Dispatch {
         let mut entries = vec![wgpu::BindGroupEntry {
             binding: 0,
             resource: params.as_entire_binding(),
@@ -106,18 +154,16 @@ impl Pipeline {
             entries: &entries,
         });
         let groups = threads.div_ceil(WORKGROUP).max(1);
-        let (gx, gy) = if groups <= MAX_GROUPS_X {
+        let groups = if groups <= MAX_GROUPS_X {
             (groups, 1)
         } else {
             (MAX_GROUPS_X, groups.div_ceil(MAX_GROUPS_X))
         };
-        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-            label: Some(self.label),
-            timestamp_writes: None,
-        });
-        pass.set_pipeline(&self.pipeline);
-        pass.set_bind_group(0, &bind_group, &[]);
-        pass.dispatch_workgroups(gx, gy, 1);
+        Dispatch {
+            pipeline: self.pipeline.clone(),
+            bind_group,
+            groups,
+        }
     }
 
     /// Uploads `inputs`, runs once into a fresh output of `out_len` floats, reads it back.
@@ -157,6 +203,33 @@ impl Pipeline {
         }
         let bytes = read_back(ctx, &out, out_bytes)?;
         Ok(bytemuck::cast_slice::<u8, f32>(&bytes).to_vec())
+    }
+}
+
+/// One prepared dispatch: pipeline, bind group (which keeps its buffers alive) and grid.
+#[derive(Debug, Clone)]
+pub struct Dispatch {
+    pipeline: wgpu::ComputePipeline,
+    bind_group: wgpu::BindGroup,
+    groups: (u32, u32),
+}
+
+impl Dispatch {
+    pub fn record(&self, pass: &mut wgpu::ComputePass<'_>) {
+        pass.set_pipeline(&self.pipeline);
+        pass.set_bind_group(0, &self.bind_group, &[]);
+        pass.dispatch_workgroups(self.groups.0, self.groups.1, 1);
+    }
+}
+
+/// Records dispatches in order into one compute pass (wgpu orders their memory accesses).
+pub fn record_all(encoder: &mut wgpu::CommandEncoder, label: &str, dispatches: &[Dispatch]) {
+    let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+        label: Some(label),
+        timestamp_writes: None,
+    });
+    for d in dispatches {
+        d.record(&mut pass);
     }
 }
 
