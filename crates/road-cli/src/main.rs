@@ -43,6 +43,8 @@ enum Command {
     Train(commands::train::TrainArgs),
     /// Sample futures of a validation scene with a checkpoint and draw them as a PNG.
     Sample(commands::sample::SampleArgs),
+    /// The paper's evaluation on validation scenes (forecasting suite so far).
+    Eval(commands::eval::EvalArgs),
     /// Throughput benchmarks (training, scheduler), each against a baseline from the same run.
     #[command(subcommand)]
     Bench(commands::bench::BenchCommand),
@@ -68,6 +70,7 @@ fn main() -> std::process::ExitCode {
         Command::Train(args) => commands::train::run(args),
         Command::Sample(args) => commands::sample::run(args),
         Command::Bench(cmd) => commands::bench::run(cmd),
+        Command::Eval(args) => commands::eval::run(args),
     };
     match result {
         Ok(code) => code,

@@ -1,0 +1,318 @@
+//! `road eval`: the paper's evaluation on validation scenes. So far the forecasting suite
+//! (minSceneADE, minSceneFDE, miss rate, prediction time, NFE per simulated step).
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use rand::SeedableRng;
+use road_data::{Dataset, SceneWindow, Split, WindowConfig, cache};
+use road_model::batch::SceneInput;
+use road_model::sample::{CpuEngine, RolloutScene, StepEngine, rollout_with};
+use road_sim::Pose;
+use road_sim::controllers::constant_velocity;
+use road_sim::metrics::scene_metrics;
+
+use crate::commands::sample::Engine;
+
+#[derive(Debug, Args)]
+pub struct EvalArgs {
+    /// Suite: `forecasting` (10 observed steps, 30 predicted, joint samples per scene).
+    #[arg(long, default_value = "forecasting")]
+    pub suite: String,
+    /// Checkpoints to evaluate; a constant-velocity baseline is always added.
+    #[arg(long, num_args = 1.., default_values = ["models/road20", "models/ar", "models/djinn10"])]
+    pub checkpoints: Vec<PathBuf>,
+    /// Joint samples per scene.
+    #[arg(long, default_value_t = 6)]
+    pub samples: usize,
+    /// Scenes evaluated (spread evenly over the eligible ones); 0 = all.
+    #[arg(long, default_value_t = 60)]
+    pub limit: usize,
+    /// Locations kept: the ones with the most eligible scenes.
+    #[arg(long, default_value_t = 6)]
+    pub top_locations: usize,
+    /// Scenes with fewer agents present at the last observed step are left out.
+    #[arg(long, default_value_t = 4)]
+    pub min_agents: usize,
+    /// Miss threshold (metres) on the final displacement.
+    #[arg(long, default_value_t = 2.0)]
+    pub miss_threshold_m: f64,
+    /// Scenes per batched rollout (each repeated `samples` times in the batch).
+    #[arg(long, default_value_t = 8)]
+    pub batch_scenes: usize,
+    #[arg(long, value_enum, default_value_t = Engine::Cpu)]
+    pub engine: Engine,
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    #[arg(long, default_value = ".road-cache")]
+    pub cache: PathBuf,
+    /// Also write the results as JSON here.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+}
+
+/// Scenes of the suite: eligible windows of the top locations, spread evenly up to `limit`.
+fn select_scenes(ds: &Dataset, args: &EvalArgs) -> Vec<usize> {
+    let eligible: Vec<usize> = (0..ds.len())
+        .filter(|&i| ds.windows[i].agents.len() >= args.min_agents)
+        .collect();
+    let mut per_location: BTreeMap<&str, usize> = BTreeMap::new();
+    for &i in &eligible {
+        *per_location
+            .entry(
+                ds.recordings[ds.windows[i].recording as usize]
+                    .location
+                    .as_str(),
+            )
+            .or_default() += 1;
+    }
+    let mut ranked: Vec<(&str, usize)> = per_location.into_iter().collect();
+    ranked.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(b.0)));
+    let keep: Vec<&str> = ranked
+        .iter()
+        .take(args.top_locations)
+        .map(|r| r.0)
+        .collect();
+    let kept: Vec<usize> = eligible
+        .into_iter()
+        .filter(|&i| {
+            keep.contains(
+                &ds.recordings[ds.windows[i].recording as usize]
+                    .location
+                    .as_str(),
+            )
+        })
+        .collect();
+    if args.limit == 0 || kept.len() <= args.limit {
+        return kept;
+    }
+    (0..args.limit)
+        .map(|k| kept[k * kept.len() / args.limit])
+        .collect()
+}
+
+/// Per-model totals.
+#[derive(Debug, Default, Clone, serde::Serialize)]
+struct Totals {
+    model: String,
+    scenes: usize,
+    ade_sum: f64,
+    fde_sum: f64,
+    missed: usize,
+    agents: usize,
+    secs: f64,
+    samples: usize,
+    nfe_per_step: f64,
+}
+
+fn truth_of(window: &SceneWindow, reference: usize, steps: usize) -> Vec<Vec<Option<[f64; 2]>>> {
+    (0..window.agents)
+        .map(|a| {
+            (1..=steps)
+                .map(|t| {
+                    window
+                        .state(a, reference + t)
+                        .map(|s| window.frame.to_metres([s[0], s[1]]))
+                })
+                .collect()
+        })
+        .collect()
+}
+
+pub fn run(args: EvalArgs) -> Result<ExitCode> {
+    if args.suite != "forecasting" {
+        bail!(
+            "suite `{}` is not implemented yet; available: forecasting",
+            args.suite
+        );
+    }
+    let window_config = WindowConfig::default();
+    let ds = cache::load_checked(
+        &cache::cache_path(&args.cache, Split::Validation),
+        Split::Validation,
+        Some(&window_config),
+        None,
+    )
+    .context("the validation cache is needed: run `road data build`")?;
+    let reference = window_config.reference_step;
+    let steps = window_config.window_steps - reference - 1; // 30
+    let scenes = select_scenes(&ds, &args);
+    anyhow::ensure!(
+        !scenes.is_empty(),
+        "no validation scene has {} agents or more",
+        args.min_agents
+    );
+    eprintln!(
+        "forecasting suite: {} scenes (top {} locations, ≥ {} agents at the last observed step), {} samples each, {steps} steps",
+        scenes.len(),
+        args.top_locations,
+        args.min_agents,
+        args.samples
+    );
+    let windows: Vec<SceneWindow> = scenes
+        .iter()
+        .map(|&i| ds.window(i))
+        .collect::<Result<_, _>>()?;
+    let mut results = Vec::new();
+
+    // Constant velocity: one deterministic sample.
+    let started = Instant::now();
+    let mut cv = Totals {
+        model: "constant velocity".into(),
+        ..Totals::default()
+    };
+    for w in &windows {
+        let samples = vec![
+            (0..w.agents)
+                .map(|a| {
+                    let pose = |t: usize| {
+                        w.state(a, t).map(|s| {
+                            let p = w.frame.to_metres([s[0], s[1]]);
+                            Pose {
+                                x_m: p[0],
+                                y_m: p[1],
+                                heading_rad: f64::from(s[2]),
+                            }
+                        })
+                    };
+                    let last = pose(reference).expect("agents are present at the reference step");
+                    let previous = pose(reference - 1).unwrap_or(last);
+                    constant_velocity(previous, last, steps)
+                        .into_iter()
+                        .map(|p| [p.x_m, p.y_m])
+                        .collect::<Vec<_>>()
+                })
+                .collect::<Vec<_>>(),
+        ];
+        accumulate(
+            &mut cv,
+            &scene_metrics(
+                &samples,
+                &truth_of(w, reference, steps),
+                args.miss_threshold_m,
+            ),
+        );
+    }
+    cv.secs = started.elapsed().as_secs_f64();
+    cv.samples = windows.len();
+    results.push(cv);
+
+    let ctx = match args.engine {
+        Engine::Gpu => Some(road_gpu::GpuContext::new(
+            &road_gpu::ContextOptions::default(),
+        )?),
+        Engine::Cpu => None,
+    };
+    for dir in &args.checkpoints {
+        let loaded = road_model::checkpoint::load(dir, &candle_core::Device::Cpu)?;
+        let run = &loaded.meta.run;
+        let n = run.planner.obs_slots;
+        let gpu_model = match &ctx {
+            Some(ctx) => Some(road_gpu::engine::GpuDenoiser::from_checkpoint(ctx, dir)?),
+            None => None,
+        };
+        let mut totals = Totals {
+            model: run.name.clone(),
+            ..Totals::default()
+        };
+        let mut rng = rand::rngs::StdRng::seed_from_u64(args.seed);
+        let mut nfe_total = 0u64;
+        let started = Instant::now();
+        for chunk in windows.chunks(args.batch_scenes.max(1)) {
+            let batch: Vec<RolloutScene> = chunk
+                .iter()
+                .flat_map(|w| {
+                    let history = SceneInput::from_window(w, reference + 1 - n, n, &run.model);
+                    std::iter::repeat_n(RolloutScene { history }, args.samples)
+                })
+                .collect();
+            let mut cpu_engine;
+            let mut gpu_engine;
+            let engine: &mut dyn StepEngine = match (&ctx, &gpu_model) {
+                (Some(ctx), Some(model)) => {
+                    gpu_engine = road_gpu::engine::GpuStepEngine::new(ctx, model);
+                    &mut gpu_engine
+                }
+                _ => {
+                    cpu_engine = CpuEngine::new(&loaded.model);
+                    &mut cpu_engine
+                }
+            };
+            let out = rollout_with(engine, &run.planner, &batch, steps, &mut rng)?;
+            nfe_total += out.nfe;
+            for (k, w) in chunk.iter().enumerate() {
+                let samples: Vec<Vec<Vec<[f64; 2]>>> = (0..args.samples)
+                    .map(|s| {
+                        let states = &out.states[k * args.samples + s];
+                        (0..w.agents)
+                            .map(|a| {
+                                (0..steps)
+                                    .map(|t| {
+                                        let i = 3 * (a * steps + t);
+                                        w.frame.to_metres([states[i], states[i + 1]])
+                                    })
+                                    .collect()
+                            })
+                            .collect()
+                    })
+                    .collect();
+                accumulate(
+                    &mut totals,
+                    &scene_metrics(
+                        &samples,
+                        &truth_of(w, reference, steps),
+                        args.miss_threshold_m,
+                    ),
+                );
+            }
+        }
+        totals.secs = started.elapsed().as_secs_f64();
+        totals.samples = windows.len() * args.samples;
+        let chunks = windows.len().div_ceil(args.batch_scenes.max(1)) as f64;
+        totals.nfe_per_step = nfe_total as f64 / chunks / steps as f64;
+        results.push(totals);
+    }
+
+    out!(
+        "forecasting, INTERACTION validation: {} scenes, {} joint samples, {steps} steps after 10 observed; engine {:?}",
+        windows.len(),
+        args.samples,
+        args.engine
+    );
+    out!(
+        "| model | minSceneADE (m) | minSceneFDE (m) | miss rate | time per sample (s) | NFE per simulated step |"
+    );
+    out!("|---|---:|---:|---:|---:|---:|");
+    for r in &results {
+        out!(
+            "| {} | {:.3} | {:.3} | {:.3} | {:.3} | {:.1} |",
+            r.model,
+            r.ade_sum / r.scenes as f64,
+            r.fde_sum / r.scenes as f64,
+            r.missed as f64 / r.agents.max(1) as f64,
+            r.secs / r.samples.max(1) as f64,
+            r.nfe_per_step
+        );
+    }
+    if let Some(path) = &args.json {
+        let json = serde_json::json!({ "suite": "forecasting", "scenes": windows.len(), "samples": args.samples, "results": results });
+        std::fs::write(path, serde_json::to_string_pretty(&json)?)
+            .with_context(|| format!("cannot write {}", path.display()))?;
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+fn accumulate(t: &mut Totals, m: &road_sim::metrics::SceneMetrics) {
+    if m.agents == 0 {
+        return;
+    }
+    t.scenes += 1;
+    t.ade_sum += m.min_scene_ade_m;
+    t.fde_sum += m.min_scene_fde_m;
+    t.missed += m.missed_agents;
+    t.agents += m.agents;
+}

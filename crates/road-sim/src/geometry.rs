@@ -1,0 +1,92 @@
+//! Oriented boxes and the separating-axis test.
+
+use crate::Pose;
+
+/// An agent's footprint: a rectangle centred on its pose.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct OrientedBox {
+    pub pose: Pose,
+    pub length_m: f64,
+    pub width_m: f64,
+}
+
+impl OrientedBox {
+    /// The four corners, counter-clockwise.
+    pub fn corners(&self) -> [[f64; 2]; 4] {
+        let (c, s) = (self.pose.heading_rad.cos(), self.pose.heading_rad.sin());
+        let (hl, hw) = (self.length_m / 2.0, self.width_m / 2.0);
+        let at = |l: f64, w: f64| [self.pose.x_m + l * c - w * s, self.pose.y_m + l * s + w * c];
+        [at(hl, hw), at(-hl, hw), at(-hl, -hw), at(hl, -hw)]
+    }
+
+    /// True when the boxes overlap (touching counts): no separating axis among the four edge
+    /// normals.
+    pub fn overlaps(&self, other: &OrientedBox) -> bool {
+        let (a, b) = (self.corners(), other.corners());
+        let axes = [
+            [self.pose.heading_rad.cos(), self.pose.heading_rad.sin()],
+            [-self.pose.heading_rad.sin(), self.pose.heading_rad.cos()],
+            [other.pose.heading_rad.cos(), other.pose.heading_rad.sin()],
+            [-other.pose.heading_rad.sin(), other.pose.heading_rad.cos()],
+        ];
+        axes.iter().all(|axis| {
+            let project = |pts: &[[f64; 2]; 4]| {
+                pts.iter()
+                    .map(|p| p[0] * axis[0] + p[1] * axis[1])
+                    .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), v| {
+                        (lo.min(v), hi.max(v))
+                    })
+            };
+            let ((a0, a1), (b0, b1)) = (project(&a), project(&b));
+            a0 <= b1 && b0 <= a1
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn car(x: f64, y: f64, h: f64) -> OrientedBox {
+        OrientedBox {
+            pose: Pose {
+                x_m: x,
+                y_m: y,
+                heading_rad: h,
+            },
+            length_m: 4.0,
+            width_m: 2.0,
+        }
+    }
+
+    #[test]
+    fn axis_aligned_and_rotated_cases() {
+        assert!(car(0.0, 0.0, 0.0).overlaps(&car(3.9, 0.0, 0.0)));
+        assert!(!car(0.0, 0.0, 0.0).overlaps(&car(4.1, 0.0, 0.0)));
+        assert!(!car(0.0, 0.0, 0.0).overlaps(&car(0.0, 2.1, 0.0)));
+        // Side by side but one turned 90°: its length now spans y.
+        assert!(car(0.0, 0.0, 0.0).overlaps(&car(0.0, 2.9, std::f64::consts::FRAC_PI_2)));
+        assert!(!car(0.0, 0.0, 0.0).overlaps(&car(0.0, 3.1, std::f64::consts::FRAC_PI_2)));
+        // Diagonal near miss: corners pass each other at 45°.
+        assert!(!car(0.0, 0.0, 0.0).overlaps(&car(3.3, 2.7, std::f64::consts::FRAC_PI_4)));
+        assert!(car(0.0, 0.0, 0.0).overlaps(&car(3.2, 2.6, std::f64::consts::FRAC_PI_4)));
+    }
+
+    proptest! {
+        #[test]
+        fn overlap_is_symmetric_and_rigid(x in -8.0f64..8.0, y in -8.0f64..8.0, h1 in -3.2f64..3.2, h2 in -3.2f64..3.2, shift in (-50.0f64..50.0, -50.0f64..50.0), turn in -3.2f64..3.2) {
+            let (a, b) = (car(0.0, 0.0, h1), car(x, y, h2));
+            prop_assert_eq!(a.overlaps(&b), b.overlaps(&a));
+            // Moving and turning both boxes together changes nothing (exact touching, where
+            // rounding could decide, has probability zero here).
+            let (c, s) = (turn.cos(), turn.sin());
+            let moved = |o: &OrientedBox| OrientedBox { pose: Pose { x_m: o.pose.x_m * c - o.pose.y_m * s + shift.0, y_m: o.pose.x_m * s + o.pose.y_m * c + shift.1, heading_rad: o.pose.heading_rad + turn }, ..*o };
+            prop_assert_eq!(a.overlaps(&b), moved(&a).overlaps(&moved(&b)));
+            // Centres closer than the narrow side always overlap; farther than the diagonal never.
+            let d = (x * x + y * y).sqrt();
+            if d < 2.0 { prop_assert!(a.overlaps(&b)); }
+            if d > 2.0 * (4.0f64.hypot(2.0)) / 2.0 + 0.01 { prop_assert!(!a.overlaps(&b)); }
+        }
+    }
+}
