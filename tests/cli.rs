@@ -206,3 +206,83 @@ fn gpu_selftest_passes_on_the_adapter_present() {
         stdout(&o)
     );
 }
+
+/// The shipped road20 checkpoint through `road sample` (both engines) and `road eval` on one
+/// validation scene.
+#[test]
+fn sample_and_eval_run_with_the_shipped_checkpoint() {
+    let data = data_dir();
+    let dir = std::env::temp_dir().join(format!("road-cli-eval-{}", std::process::id()));
+    let (data_arg, dir_arg) = (data.to_str().unwrap(), dir.to_str().unwrap());
+    let o = road(&[
+        "data",
+        "build",
+        "--data",
+        data_arg,
+        "--split",
+        "validation",
+        "--out",
+        dir_arg,
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let mut pngs = Vec::new();
+    for engine in ["cpu", "gpu"] {
+        let png = dir.join(format!("sample-{engine}.png"));
+        let o = road(&[
+            "sample",
+            "--checkpoint",
+            "models/road20",
+            "--scene",
+            "val:5",
+            "--samples",
+            "2",
+            "--steps",
+            "3",
+            "--engine",
+            engine,
+            "--cache",
+            dir_arg,
+            "--out",
+            png.to_str().unwrap(),
+        ]);
+        assert!(o.status.success(), "{engine}: {}", stderr(&o));
+        assert!(stdout(&o).contains("NFE per sample"), "{}", stdout(&o));
+        pngs.push(std::fs::read(&png).unwrap());
+    }
+    assert!(pngs[0].starts_with(b"\x89PNG"));
+    assert_eq!(
+        pngs[0], pngs[1],
+        "both engines draw the same samples for a seed"
+    );
+
+    let json = dir.join("eval.json");
+    let o = road(&[
+        "eval",
+        "--checkpoints",
+        "models/road20",
+        "--limit",
+        "1",
+        "--samples",
+        "2",
+        "--cache",
+        dir_arg,
+        "--json",
+        json.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(
+        stdout(&o).contains("| constant velocity |") && stdout(&o).contains("| road20 |"),
+        "{}",
+        stdout(&o)
+    );
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let road20 = &v["results"][1];
+    assert_eq!(road20["model"], "road20");
+    assert!(
+        road20["ade_sum"].as_f64().unwrap().is_finite() && road20["agents"].as_u64().unwrap() >= 4
+    );
+    // RoAD-20 over 30 steps: 80 warm-up NFE + 29 rolling stages of 8.
+    assert!((road20["nfe_per_step"].as_f64().unwrap() - 312.0 / 30.0).abs() < 1e-9);
+    std::fs::remove_dir_all(&dir).ok();
+}
