@@ -1,7 +1,7 @@
-//! Reference sampling on the CPU: the scheduler drives the per-slot noise levels, the
-//! denoiser evaluates, and a deterministic Heun step (EDM Algorithm 1 with a per-slot σ)
-//! moves every slot. This is the oracle the WGSL engine must match, and the CPU path for
-//! users without a GPU.
+//! Sampling rollouts: the scheduler drives the per-slot noise levels, an engine evaluates the
+//! denoiser and takes a deterministic Heun step (EDM Algorithm 1 with a per-slot σ) of every
+//! slot, and the driver here emits, shifts and rebuilds windows. [`CpuEngine`] (candle) is the
+//! reference the WGSL engine (`road-gpu`) must match, and the CPU path for users without a GPU.
 //!
 //! Many scenes run in lockstep as one batch (each with its own noise); scenes of one call share
 //! a planner, so their steps line up.
