@@ -106,7 +106,7 @@ The loss is EDM's weighted denoising loss, averaged over valid agent-slots of fi
 ```sh\nroad sample --checkpoint models/{name} --scene val:0 --out sample.png\n```\n\n\
 ## Limits\n\n\
 A small model trained briefly on a 2-core CPU; the paper's model is far larger and trained for 36 GPU-days. \
-Its samples are not yet evaluated with the paper's metrics (`road eval` is a later issue).\n",
+Forecasting figures (`road eval`) are in `docs/results.md`; the reactivity suite is still to come.\n",
         name = r.name,
         kind = r.planner.kind,
         params = meta.parameters,
