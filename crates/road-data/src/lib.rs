@@ -17,7 +17,9 @@ pub mod tracks;
 
 use std::path::{Path, PathBuf};
 
-pub use dataset::{BuildReport, Dataset, SceneFrame, SceneWindow, WindowConfig, WindowRef};
+pub use dataset::{
+    BuildReport, Dataset, SceneFrame, SceneWindow, WindowConfig, WindowRef, wrap_angle,
+};
 pub use map::LaneletMap;
 pub use sources::{SourceSet, Split};
 pub use tracks::{AgentType, Recording, Track};

@@ -184,14 +184,6 @@ pub fn rollout_with(
     steps: usize,
     rng: &mut StdRng,
 ) -> Result<Rollout> {
-    let n = planner.obs_slots;
-    let w = planner.window_slots();
-    if w != engine.window_slots() {
-        return Err(Error::data(format!(
-            "planner window {w} ≠ model window {}",
-            engine.window_slots()
-        )));
-    }
     if scenes.is_empty() {
         return Ok(Rollout {
             agents: vec![],
@@ -200,172 +192,293 @@ pub fn rollout_with(
             nfe: 0,
         });
     }
-    let b = scenes.len();
-    let a_max = scenes
-        .iter()
-        .map(|s| s.history.agents)
-        .max()
-        .unwrap_or(1)
-        .max(1);
-    let p_max = scenes
-        .iter()
-        .map(|s| s.history.polylines)
-        .max()
-        .unwrap_or(1)
-        .max(1);
-    let q = scenes[0].history.points;
-    let sigma_max = planner.edm.sigma_max as f32;
-    let obs_sigma = planner.obs_sigma() as f32;
+    let mut driver = RolloutDriver::new(engine, planner, scenes, steps, rng)?;
+    for _ in 0..steps {
+        driver.tick(engine, rng, &mut |_, _| Ok(()))?;
+    }
+    driver.into_rollout()
+}
 
-    // Static inputs, once: agent features and the map.
-    let mut feats = vec![0.0f32; b * a_max * AGENT_FEATURES];
-    let mut map = vec![0.0f32; b * p_max * q * 2];
-    let mut map_valid = vec![0.0f32; b * p_max];
-    for (i, s) in scenes.iter().enumerate() {
-        let h = &s.history;
-        if h.slots < n {
+/// Tick-by-tick rollouts of many scenes in lockstep (one planner): the open-loop
+/// [`rollout_with`] and the closed loop of `road-sim`, where agents the model does not drive
+/// overwrite their emitted states every tick (math doc: "In closed loop the ego agent's slots are
+/// overwritten by the states it reports").
+pub struct RolloutDriver {
+    n: usize,
+    w: usize,
+    a_max: usize,
+    obs_sigma: f32,
+    sigma_max: f32,
+    states: Vec<SceneState>,
+    sched: Scheduler,
+    ids: Vec<road_sched::SceneId>,
+    outcomes: Vec<TickOutcome>,
+    packed: Vec<f32>,       // [B, A, W, 3]
+    packed_valid: Vec<f32>, // [B, A, W]
+    ticks: usize,
+}
+
+impl std::fmt::Debug for RolloutDriver {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("RolloutDriver")
+            .field("scenes", &self.states.len())
+            .field("window_slots", &self.w)
+            .field("ticks", &self.ticks)
+            .finish_non_exhaustive()
+    }
+}
+
+impl RolloutDriver {
+    /// Prepares `engine` with the scenes' static inputs and builds every first window.
+    /// `steps_hint` only sizes buffers.
+    pub fn new(
+        engine: &mut dyn StepEngine,
+        planner: &PlannerSpec,
+        scenes: &[RolloutScene],
+        steps_hint: usize,
+        rng: &mut StdRng,
+    ) -> Result<Self> {
+        let n = planner.obs_slots;
+        let w = planner.window_slots();
+        if w != engine.window_slots() {
             return Err(Error::data(format!(
-                "scene {i}: {} history steps, the planner observes {n}",
-                h.slots
+                "planner window {w} ≠ model window {}",
+                engine.window_slots()
             )));
         }
-        feats[i * a_max * AGENT_FEATURES..][..h.agents * AGENT_FEATURES]
-            .copy_from_slice(&h.agent_features);
-        map[i * p_max * q * 2..][..h.polylines * q * 2].copy_from_slice(&h.map);
-        map_valid[i * p_max..][..h.polylines].fill(1.0);
-    }
-    engine.prepare(b, a_max, &feats, p_max, &map, &map_valid)?;
-    let mut packed = vec![0.0f32; b * a_max * w * 3]; // [B, A, W, 3]
-    let mut packed_valid = vec![0.0f32; b * a_max * w]; // [B, A, W]
+        if scenes.is_empty() {
+            return Err(Error::data("a rollout needs at least one scene".into()));
+        }
+        let b = scenes.len();
+        let a_max = scenes
+            .iter()
+            .map(|s| s.history.agents)
+            .max()
+            .unwrap_or(1)
+            .max(1);
+        let p_max = scenes
+            .iter()
+            .map(|s| s.history.polylines)
+            .max()
+            .unwrap_or(1)
+            .max(1);
+        let q = scenes[0].history.points;
+        let sigma_max = planner.edm.sigma_max as f32;
+        let obs_sigma = planner.obs_sigma() as f32;
 
-    let mut states: Vec<SceneState> = scenes
-        .iter()
-        .map(|s| {
+        // Static inputs, once: agent features and the map.
+        let mut feats = vec![0.0f32; b * a_max * AGENT_FEATURES];
+        let mut map = vec![0.0f32; b * p_max * q * 2];
+        let mut map_valid = vec![0.0f32; b * p_max];
+        for (i, s) in scenes.iter().enumerate() {
             let h = &s.history;
-            let history = (0..h.agents)
-                .map(|a| {
-                    (0..h.slots)
-                        .map(|t| {
-                            let k = 3 * (a * h.slots + t);
-                            [h.states[k], h.states[k + 1], h.states[k + 2]]
-                        })
-                        .collect()
-                })
-                .collect();
-            let history_valid = (0..h.agents)
-                .map(|a| h.valid[a * h.slots..(a + 1) * h.slots].to_vec())
-                .collect();
-            SceneState {
-                agents: h.agents,
-                window: vec![0.0; a_max * w * 3],
-                valid: vec![0.0; a_max * w],
-                history,
-                history_valid,
-                emitted: Vec::with_capacity(h.agents * steps * 3),
+            if h.slots < n {
+                return Err(Error::data(format!(
+                    "scene {i}: {} history steps, the planner observes {n}",
+                    h.slots
+                )));
             }
+            if h.points != q {
+                return Err(Error::data(format!(
+                    "scene {i}: {} points per polyline, scene 0 has {q}",
+                    h.points
+                )));
+            }
+            feats[i * a_max * AGENT_FEATURES..][..h.agents * AGENT_FEATURES]
+                .copy_from_slice(&h.agent_features);
+            map[i * p_max * q * 2..][..h.polylines * q * 2].copy_from_slice(&h.map);
+            map_valid[i * p_max..][..h.polylines].fill(1.0);
+        }
+        engine.prepare(b, a_max, &feats, p_max, &map, &map_valid)?;
+
+        let mut states: Vec<SceneState> = scenes
+            .iter()
+            .map(|s| {
+                let h = &s.history;
+                let history = (0..h.agents)
+                    .map(|a| {
+                        (0..h.slots)
+                            .map(|t| {
+                                let k = 3 * (a * h.slots + t);
+                                [h.states[k], h.states[k + 1], h.states[k + 2]]
+                            })
+                            .collect()
+                    })
+                    .collect();
+                let history_valid = (0..h.agents)
+                    .map(|a| h.valid[a * h.slots..(a + 1) * h.slots].to_vec())
+                    .collect();
+                SceneState {
+                    agents: h.agents,
+                    window: vec![0.0; a_max * w * 3],
+                    valid: vec![0.0; a_max * w],
+                    history,
+                    history_valid,
+                    emitted: Vec::with_capacity(h.agents * steps_hint * 3),
+                }
+            })
+            .collect();
+        for s in &mut states {
+            rebuild_window(s, n, w, obs_sigma, sigma_max, rng);
+        }
+
+        let mut sched = Scheduler::with_capacity(b);
+        let pid = sched.add_planner("rollout", planner.clone())?;
+        let ids = (0..b)
+            .map(|_| {
+                sched.admit(SceneSpec {
+                    planner: pid,
+                    external_agents: vec![],
+                })
+            })
+            .collect::<road_sched::Result<Vec<_>>>()?;
+        Ok(Self {
+            n,
+            w,
+            a_max,
+            obs_sigma,
+            sigma_max,
+            states,
+            sched,
+            ids,
+            outcomes: Vec::with_capacity(b),
+            packed: vec![0.0f32; b * a_max * w * 3],
+            packed_valid: vec![0.0f32; b * a_max * w],
+            ticks: 0,
         })
-        .collect();
-    for s in &mut states {
-        rebuild_window(s, n, w, obs_sigma, sigma_max, rng);
     }
 
-    let mut sched = Scheduler::with_capacity(b);
-    let pid = sched.add_planner("rollout", planner.clone())?;
-    let ids = (0..b)
-        .map(|_| {
-            sched.admit(SceneSpec {
-                planner: pid,
-                external_agents: vec![],
-            })
-        })
-        .collect::<road_sched::Result<Vec<_>>>()?;
-    let mut outcomes: Vec<TickOutcome> = Vec::with_capacity(b);
-    let mut per_tick: Vec<Vec<f32>> = vec![Vec::new(); b]; // [scenes][A·3] emitted this tick
-    let per_scene = a_max * w * 3;
-    for _ in 0..steps {
-        for &id in &ids {
-            sched.request_tick(id)?;
+    /// Scenes in the rollout.
+    pub fn scenes(&self) -> usize {
+        self.states.len()
+    }
+
+    /// Agents of scene `scene`.
+    pub fn agents(&self, scene: usize) -> usize {
+        self.states[scene].agents
+    }
+
+    /// Simulated steps so far.
+    pub fn ticks(&self) -> usize {
+        self.ticks
+    }
+
+    /// One simulated step of every scene. `overrides(scene, emitted)` is called once per scene
+    /// with the states the model emitted this tick, `[agents·3]` in model units, and may
+    /// overwrite the agents it drives before they join the observations.
+    pub fn tick(
+        &mut self,
+        engine: &mut dyn StepEngine,
+        rng: &mut StdRng,
+        overrides: &mut dyn FnMut(usize, &mut [f32]) -> Result<()>,
+    ) -> Result<()> {
+        let b = self.states.len();
+        let (n, w) = (self.n, self.w);
+        let per_scene = self.a_max * w * 3;
+        for &id in &self.ids {
+            self.sched.request_tick(id)?;
         }
         let mut stepped = false;
-        while sched.next_batch(b)? > 0 {
+        while self.sched.next_batch(b)? > 0 {
             // Lockstep: one planner, so every pending scene sits at the same step.
-            let batch = sched.batch();
+            let batch = self.sched.batch();
             if batch.len() != b {
                 return Err(Error::data(format!(
                     "lockstep rollout: {} of {b} scenes pending",
                     batch.len()
                 )));
             }
-            let plan = sched.step_plan(&batch[0]);
+            let plan = self.sched.step_plan(&batch[0]);
             if batch[0].stage_start {
-                for (i, s) in states.iter().enumerate() {
-                    packed[i * per_scene..(i + 1) * per_scene].copy_from_slice(&s.window);
-                    packed_valid[i * a_max * w..(i + 1) * a_max * w].copy_from_slice(&s.valid);
+                for (i, s) in self.states.iter().enumerate() {
+                    self.packed[i * per_scene..(i + 1) * per_scene].copy_from_slice(&s.window);
+                    self.packed_valid[i * self.a_max * w..(i + 1) * self.a_max * w]
+                        .copy_from_slice(&s.valid);
                 }
-                engine.load(&packed, &packed_valid)?;
+                engine.load(&self.packed, &self.packed_valid)?;
             }
             engine.step(plan.sigma_cur, plan.sigma_next, plan.nfe)?;
             stepped = true;
-            sched.complete_batch();
+            self.sched.complete_batch();
         }
         if stepped {
-            engine.read(&mut packed)?;
-            for (i, s) in states.iter_mut().enumerate() {
+            engine.read(&mut self.packed)?;
+            for (i, s) in self.states.iter_mut().enumerate() {
                 s.window
-                    .copy_from_slice(&packed[i * per_scene..(i + 1) * per_scene]);
+                    .copy_from_slice(&self.packed[i * per_scene..(i + 1) * per_scene]);
             }
         }
-        outcomes.clear();
-        sched.take_outcomes(&mut outcomes);
-        for o in &outcomes {
-            let s = &mut states[o.scene.index()];
-            let slot = n + o.emit_future_slot;
-            let emitted: Vec<f32> = (0..s.agents)
-                .flat_map(|a| s.window[3 * (a * w + slot)..3 * (a * w + slot) + 3].to_vec())
-                .collect();
-            per_tick[o.scene.index()] = emitted;
+        self.outcomes.clear();
+        self.sched.take_outcomes(&mut self.outcomes);
+        if self.outcomes.len() != b {
+            return Err(Error::data(format!(
+                "tick {}: {} of {b} scenes emitted a state",
+                self.ticks,
+                self.outcomes.len()
+            )));
         }
-        for o in &outcomes {
+        let mut emitted: Vec<f32> = Vec::with_capacity(self.a_max * 3);
+        for o in &self.outcomes {
             let i = o.scene.index();
-            let s = &mut states[i];
-            let emitted = std::mem::take(&mut per_tick[i]);
+            let s = &mut self.states[i];
+            let slot = n + o.emit_future_slot;
+            emitted.clear();
+            for a in 0..s.agents {
+                emitted.extend_from_slice(&s.window[3 * (a * w + slot)..3 * (a * w + slot) + 3]);
+            }
+            overrides(i, &mut emitted)?;
             for a in 0..s.agents {
                 let state = [emitted[3 * a], emitted[3 * a + 1], emitted[3 * a + 2]];
+                // The window carries the (possibly overwritten) state into the observations.
+                s.window[3 * (a * w + slot)..3 * (a * w + slot) + 3].copy_from_slice(&state);
                 s.history[a].push(state);
                 s.history_valid[a].push(true);
             }
             s.emitted.extend_from_slice(&emitted);
             match o.then {
-                WindowUpdate::Shift => shift_window(s, n, w, obs_sigma, sigma_max, rng),
-                WindowUpdate::Rebuild => rebuild_window(s, n, w, obs_sigma, sigma_max, rng),
+                WindowUpdate::Shift => {
+                    shift_window(s, n, w, self.obs_sigma, self.sigma_max, rng);
+                }
+                WindowUpdate::Rebuild => {
+                    rebuild_window(s, n, w, self.obs_sigma, self.sigma_max, rng);
+                }
                 WindowUpdate::Hold | WindowUpdate::Exhausted => {}
             }
         }
+        self.ticks += 1;
+        Ok(())
     }
-    let nfe = ids
-        .first()
-        .map(|&id| sched.stats(id).map(|s| s.nfe))
-        .transpose()?
-        .unwrap_or(0);
-    Ok(Rollout {
-        agents: states.iter().map(|s| s.agents).collect(),
-        steps,
-        states: states
-            .into_iter()
-            .map(|s| {
-                // [steps, agents, 3] → [agents, steps, 3]
-                let mut out = vec![0.0; s.agents * steps * 3];
-                for t in 0..steps {
-                    for a in 0..s.agents {
-                        out[3 * (a * steps + t)..][..3]
-                            .copy_from_slice(&s.emitted[3 * (t * s.agents + a)..][..3]);
+
+    /// Model evaluations per scene so far.
+    pub fn nfe(&self) -> Result<u64> {
+        Ok(self.sched.stats(self.ids[0])?.nfe)
+    }
+
+    /// The emitted states of every scene, `[scenes][agents, ticks, 3]` in model units.
+    pub fn into_rollout(self) -> Result<Rollout> {
+        let nfe = self.nfe()?;
+        let steps = self.ticks;
+        Ok(Rollout {
+            agents: self.states.iter().map(|s| s.agents).collect(),
+            steps,
+            states: self
+                .states
+                .into_iter()
+                .map(|s| {
+                    // [steps, agents, 3] → [agents, steps, 3]
+                    let mut out = vec![0.0; s.agents * steps * 3];
+                    for t in 0..steps {
+                        for a in 0..s.agents {
+                            out[3 * (a * steps + t)..][..3]
+                                .copy_from_slice(&s.emitted[3 * (t * s.agents + a)..][..3]);
+                        }
                     }
-                }
-                out
-            })
-            .collect(),
-        nfe,
-    })
+                    out
+                })
+                .collect(),
+            nfe,
+        })
+    }
 }
 
 /// Window from the newest `n` history states (observations at `obs_sigma`) and pure noise.

@@ -3,14 +3,38 @@
 //! - [`infractions`]: collisions between agents and off-road positions per tick;
 //! - [`controllers`]: non-model controllers: constant velocity, and the paper's adversarial
 //!   agent (its logged path, slowed to cover only half of it by the end);
-//! - [`metrics`]: minSceneADE / minSceneFDE and the miss rate (math doc, "Evaluation").
+//! - [`metrics`]: minSceneADE / minSceneFDE and the miss rate (math doc, "Evaluation");
+//! - [`closed_loop`]: scenes simulated tick by tick on an engine, each agent with its
+//!   [`closed_loop::Controller`] (model, replay, adversarial, constant velocity, external);
+//! - [`procedural`]: a redistributable scene built from code (the `road demo` default).
 //!
 //! All positions are metres in the map frame; headings radians.
 
+pub mod closed_loop;
 pub mod controllers;
 pub mod geometry;
 pub mod infractions;
 pub mod metrics;
+pub mod procedural;
+
+/// Errors of the simulation layer.
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    #[error(transparent)]
+    Model(#[from] road_model::Error),
+    /// A simulation set up inconsistently (counts that do not match, agents absent).
+    #[error("simulation setup: {0}")]
+    Config(String),
+    /// An external driver could not give an agent's pose.
+    #[error("scene {scene}, agent {agent}: external driver: {reason}")]
+    External {
+        scene: usize,
+        agent: usize,
+        reason: String,
+    },
+}
+
+pub type Result<T, E = Error> = std::result::Result<T, E>;
 
 /// A pose in metres and radians.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
