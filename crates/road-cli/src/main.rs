@@ -33,6 +33,9 @@ struct Cli {
 
 #[derive(Debug, Subcommand)]
 enum Command {
+    /// The main job on its embedded default: a procedural roundabout simulated closed loop with
+    /// the default checkpoint and a scripted ego; prints ticks, time per tick and infractions.
+    Demo(commands::demo::DemoArgs),
     /// INTERACTION data: statistics and binary caches for training.
     #[command(subcommand)]
     Data(commands::data::DataCommand),
@@ -43,7 +46,7 @@ enum Command {
     Train(commands::train::TrainArgs),
     /// Sample futures of a validation scene with a checkpoint and draw them as a PNG.
     Sample(commands::sample::SampleArgs),
-    /// The paper's evaluation on validation scenes (forecasting suite so far).
+    /// The paper's evaluation on validation scenes: forecasting and reactivity suites.
     Eval(commands::eval::EvalArgs),
     /// Throughput benchmarks (training, scheduler), each against a baseline from the same run.
     #[command(subcommand)]
@@ -64,6 +67,7 @@ fn main() -> std::process::ExitCode {
         .init();
     let cli = Cli::parse();
     let result = match cli.command {
+        Command::Demo(args) => commands::demo::run(args),
         Command::Data(cmd) => commands::data::run(cmd),
         Command::Sched(cmd) => commands::sched::run(cmd),
         Command::Gpu(cmd) => commands::gpu::run(cmd),

@@ -10,6 +10,10 @@ pub const MAP: RGBColor = RGBColor(215, 215, 215);
 pub const LOGGED: RGBColor = RGBColor(110, 110, 110);
 pub const PREDICTED: RGBColor = RGBColor(240, 140, 20);
 pub const HISTORY: RGBColor = RGBColor(40, 90, 200);
+/// The adversarial agent of the reactivity test.
+pub const ADVERSARY: RGBColor = RGBColor(210, 30, 30);
+/// An externally driven ego.
+pub const EGO: RGBColor = RGBColor(30, 150, 70);
 
 /// A polyline in metres with its colour and width.
 #[derive(Debug, Clone)]
@@ -19,10 +23,38 @@ pub struct Stroke {
     pub width: u32,
 }
 
+/// An agent's footprint: its four corners in metres.
+#[derive(Debug, Clone)]
+pub struct Footprint {
+    pub corners: [[f64; 2]; 4],
+    pub color: RGBColor,
+}
+
+/// A ring around a point in metres (collisions are circled).
+#[derive(Debug, Clone)]
+pub struct Ring {
+    pub centre: (f64, f64),
+    pub radius_m: f64,
+    pub color: RGBColor,
+}
+
 /// Draws strokes (and dots at each stroke's end) fitted into a square PNG.
 pub fn scene_png(
     path: &Path,
     strokes: &[Stroke],
+    size_px: u32,
+    centre: (f64, f64),
+    half_extent_m: f64,
+) -> Result<()> {
+    figure_png(path, strokes, &[], &[], size_px, centre, half_extent_m)
+}
+
+/// Strokes, then footprints (outlined), then rings, in a square PNG around `centre`.
+pub fn figure_png(
+    path: &Path,
+    strokes: &[Stroke],
+    footprints: &[Footprint],
+    rings: &[Ring],
     size_px: u32,
     centre: (f64, f64),
     half_extent_m: f64,
@@ -48,9 +80,55 @@ pub fn scene_png(
             }
         }
     }
+    for f in footprints {
+        let mut pts: Vec<(i32, i32)> = f.corners.iter().map(|c| to_px((c[0], c[1]))).collect();
+        pts.push(pts[0]);
+        root.draw(&PathElement::new(pts, f.color.stroke_width(2)))?;
+    }
+    for r in rings {
+        let radius = (r.radius_m * scale).max(4.0) as i32;
+        root.draw(&Circle::new(
+            to_px(r.centre),
+            radius,
+            r.color.stroke_width(3),
+        ))?;
+    }
     root.present()
         .with_context(|| format!("cannot write {}", path.display()))?;
     Ok(())
+}
+
+/// The window's map polylines (normalised) as wide light-grey strokes in metres.
+pub fn window_map_strokes(window: &road_data::SceneWindow) -> Vec<Stroke> {
+    let q = window.polyline_points;
+    (0..window.polyline_count())
+        .map(|p| Stroke {
+            points: (0..q)
+                .map(|k| {
+                    let i = 2 * (p * q + k);
+                    let m = window
+                        .frame
+                        .to_metres([window.polylines[i], window.polylines[i + 1]]);
+                    (m[0], m[1])
+                })
+                .collect(),
+            color: MAP,
+            width: 6,
+        })
+        .collect()
+}
+
+/// A lanelet map's lane bounds as thin light-grey strokes.
+pub fn lanelet_strokes(map: &road_data::LaneletMap) -> Vec<Stroke> {
+    map.lanelets
+        .iter()
+        .flat_map(|l| [&l.left_m, &l.right_m])
+        .map(|bound| Stroke {
+            points: bound.iter().map(|p| (p[0], p[1])).collect(),
+            color: MAP,
+            width: 2,
+        })
+        .collect()
 }
 
 /// Training and validation loss (log scale) against steps.

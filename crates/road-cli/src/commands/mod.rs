@@ -1,5 +1,7 @@
 pub mod bench;
 pub mod data;
+pub mod demo;
+pub mod engine;
 pub mod eval;
 pub mod gpu;
 pub mod sample;

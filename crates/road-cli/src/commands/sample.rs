@@ -13,7 +13,7 @@ use road_model::batch::SceneInput;
 use road_model::checkpoint;
 use road_model::sample::{RolloutScene, rollout, rollout_with};
 
-use crate::plot::{HISTORY, LOGGED, MAP, PREDICTED, Stroke, scene_png};
+use crate::plot::{HISTORY, LOGGED, PREDICTED, Stroke, scene_png, window_map_strokes};
 
 #[derive(Debug, Args)]
 pub struct SampleArgs {
@@ -114,22 +114,7 @@ pub fn run(args: SampleArgs) -> Result<ExitCode> {
         let p = window.frame.to_metres([x, y]);
         (p[0], p[1])
     };
-    let mut strokes = Vec::new();
-    for p in 0..window.polyline_count() {
-        let pts = (0..window.polyline_points)
-            .map(|k| {
-                to_m(
-                    window.polylines[2 * (p * window.polyline_points + k)],
-                    window.polylines[2 * (p * window.polyline_points + k) + 1],
-                )
-            })
-            .collect();
-        strokes.push(Stroke {
-            points: pts,
-            color: MAP,
-            width: 6,
-        });
-    }
+    let mut strokes = window_map_strokes(&window);
     for a in 0..window.agents {
         let logged: Vec<(f64, f64)> = (reference..window.steps)
             .filter_map(|t| window.state(a, t))

@@ -1,0 +1,242 @@
+//! `road demo`: the main job on its embedded default. A procedurally built roundabout (no
+//! INTERACTION data: every byte redistributable) is simulated closed loop: a scripted ego that
+//! does not yield, every other vehicle the model's. Prints what happened (ticks, time per
+//! tick, infractions) and draws it.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use clap::Args;
+use rand::SeedableRng;
+use road_data::WindowConfig;
+use road_sim::closed_loop::{ClosedLoop, Controller, SceneTick, SimScene};
+use road_sim::geometry::OrientedBox;
+use road_sim::procedural::{STEP_SECS, roundabout};
+
+use crate::commands::engine::{EngineChoice, Engines};
+use crate::plot::{
+    ADVERSARY, EGO, Footprint, HISTORY, PREDICTED, Ring, Stroke, figure_png, lanelet_strokes,
+};
+
+#[derive(Debug, Args)]
+pub struct DemoArgs {
+    /// Checkpoint folder; the default is the shipped RoAD-20.
+    #[arg(long, default_value = "models/road20")]
+    pub checkpoint: PathBuf,
+    /// Simulated steps (10 Hz).
+    #[arg(long, default_value_t = 60)]
+    pub steps: usize,
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// `gpu` (WGSL kernels), `cpu` (candle reference) or `auto`: a hardware GPU when wgpu finds
+    /// one, else the candle reference (lavapipe runs the kernels correctly but slower than
+    /// candle on the same CPU).
+    #[arg(long, value_enum, default_value_t = EngineChoice::Auto)]
+    pub engine: EngineChoice,
+    /// The figure: lanes grey, 1 s histories blue, the model's vehicles orange, the ego green,
+    /// final footprints outlined, collisions circled red.
+    #[arg(long, default_value = "demo.png")]
+    pub out: PathBuf,
+    /// Also write every tick (poses, collisions, off-road agents) as JSON here.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+}
+
+pub fn run(args: DemoArgs) -> Result<ExitCode> {
+    anyhow::ensure!(args.steps > 0, "--steps must be at least 1");
+    let engines = Engines::load(&args.checkpoint, args.engine).with_context(|| {
+        format!(
+            "cannot load the demo checkpoint {} (run from the repository root, or pass --checkpoint)",
+            args.checkpoint.display()
+        )
+    })?;
+    let run = &engines.cpu.meta.run;
+    let model = &run.model;
+    let n = run.planner.obs_slots;
+    let window_config = WindowConfig {
+        position_scale_m: model.position_scale_m,
+        polyline_points: model.polyline_points,
+        ..WindowConfig::default()
+    };
+    let scene = roundabout(&window_config, n)?;
+    let agents = scene.window.agents;
+    let mut controllers = vec![Controller::Model; agents];
+    controllers[scene.ego.agent] = Controller::External;
+    let mut ego = scene.ego.clone();
+
+    let mut engine = engines.engine();
+    let mut rng = rand::rngs::StdRng::seed_from_u64(args.seed);
+    let started = Instant::now();
+    let mut sim = ClosedLoop::new(
+        engine.as_dyn(),
+        model,
+        &run.planner,
+        vec![SimScene {
+            window: scene.window.clone(),
+            observed_steps: n,
+            controllers,
+        }],
+        vec![Some(&scene.map)],
+        args.steps,
+        &mut rng,
+    )?;
+    let setup_secs = started.elapsed().as_secs_f64();
+    let mut ticks: Vec<SceneTick> = Vec::with_capacity(args.steps);
+    let mut tick_ms: Vec<f64> = Vec::with_capacity(args.steps);
+    let mut out = Vec::new();
+    let bar = indicatif::ProgressBar::new(args.steps as u64);
+    for _ in 0..args.steps {
+        let t0 = Instant::now();
+        sim.tick(engine.as_dyn(), &mut rng, &mut ego, &mut out)?;
+        tick_ms.push(t0.elapsed().as_secs_f64() * 1e3);
+        ticks.push(out[0].clone());
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    let nfe = sim.nfe()?;
+
+    // What happened: each collision pair and off-road agent once, at its first tick.
+    let name = |a: usize| {
+        if a == scene.ego.agent {
+            "the ego".to_owned()
+        } else {
+            format!("vehicle {a}")
+        }
+    };
+    let mut seen_pairs = std::collections::BTreeSet::new();
+    let mut seen_off = std::collections::BTreeSet::new();
+    let mut events = Vec::new();
+    for (t, tick) in ticks.iter().enumerate() {
+        let secs = (t + 1) as f64 * STEP_SECS;
+        for &(i, j) in &tick.collisions {
+            if seen_pairs.insert((i, j)) {
+                events.push(format!(
+                    "tick {:>3} ({secs:4.1} s): collision of {} and {}",
+                    t + 1,
+                    name(i),
+                    name(j)
+                ));
+            }
+        }
+        for &a in &tick.off_road {
+            if seen_off.insert(a) {
+                events.push(format!(
+                    "tick {:>3} ({secs:4.1} s): {} off road",
+                    t + 1,
+                    name(a)
+                ));
+            }
+        }
+    }
+    let mut sorted = tick_ms.clone();
+    sorted.sort_by(f64::total_cmp);
+    let mean_ms = tick_ms.iter().sum::<f64>() / tick_ms.len() as f64;
+    out!(
+        "road demo: procedural roundabout, {agents} vehicles (ego scripted, {} by {} on {}), {} ticks of {:.1} s",
+        agents - 1,
+        run.name,
+        engines.describe(),
+        args.steps,
+        STEP_SECS
+    );
+    out!(
+        "time per tick: mean {mean_ms:.1} ms, median {:.1} ms, max {:.1} ms (first tick includes the {}-step warm-up); setup {:.0} ms; {:.1} NFE per simulated step",
+        sorted[sorted.len() / 2],
+        sorted[sorted.len() - 1],
+        run.planner.steps_per_diffusion,
+        setup_secs * 1e3,
+        nfe as f64 / args.steps as f64
+    );
+    if events.is_empty() {
+        out!("infractions: none (no collision, nobody off road)");
+    } else {
+        out!(
+            "infractions: {} collision pair(s), {} vehicle(s) off road",
+            seen_pairs.len(),
+            seen_off.len()
+        );
+        for e in &events {
+            out!("  {e}");
+        }
+    }
+
+    // The figure.
+    let mut strokes = lanelet_strokes(&scene.map);
+    let w = &scene.window;
+    for a in 0..agents {
+        let history: Vec<(f64, f64)> = (0..w.steps)
+            .filter_map(|t| w.state(a, t))
+            .map(|s| {
+                let p = w.frame.to_metres([s[0], s[1]]);
+                (p[0], p[1])
+            })
+            .collect();
+        let start = *history.last().expect("agents are present at the last step");
+        strokes.push(Stroke {
+            points: std::iter::once(start)
+                .chain(ticks.iter().map(|t| (t.poses[a].x_m, t.poses[a].y_m)))
+                .collect(),
+            color: if a == scene.ego.agent { EGO } else { PREDICTED },
+            width: 2,
+        });
+        strokes.push(Stroke {
+            points: history,
+            color: HISTORY,
+            width: 3,
+        });
+    }
+    let last = ticks.last().expect("at least one tick");
+    let footprints: Vec<Footprint> = (0..agents)
+        .map(|a| Footprint {
+            corners: OrientedBox {
+                pose: last.poses[a],
+                length_m: f64::from(w.length_m[a]),
+                width_m: f64::from(w.width_m[a]),
+            }
+            .corners(),
+            color: if a == scene.ego.agent { EGO } else { PREDICTED },
+        })
+        .collect();
+    let mut rings = Vec::new();
+    for (t, tick) in ticks.iter().enumerate() {
+        for &(i, j) in &tick.collisions {
+            // Circle a pair where it first collides.
+            if ticks[..t].iter().all(|e| !e.collisions.contains(&(i, j))) {
+                let (p, q) = (tick.poses[i], tick.poses[j]);
+                rings.push(Ring {
+                    centre: (0.5 * (p.x_m + q.x_m), 0.5 * (p.y_m + q.y_m)),
+                    radius_m: 4.0,
+                    color: ADVERSARY,
+                });
+            }
+        }
+    }
+    figure_png(
+        &args.out,
+        &strokes,
+        &footprints,
+        &rings,
+        900,
+        (0.0, 0.0),
+        60.0,
+    )?;
+    out!("figure: {}", args.out.display());
+    if let Some(path) = &args.json {
+        let json = serde_json::json!({
+            "scene": "procedural roundabout",
+            "checkpoint": args.checkpoint,
+            "engine": engines.describe(),
+            "step_secs": STEP_SECS,
+            "ego_agent": scene.ego.agent,
+            "tick_ms": tick_ms,
+            "nfe": nfe,
+            "ticks": ticks,
+        });
+        std::fs::write(path, serde_json::to_string_pretty(&json)?)
+            .with_context(|| format!("cannot write {}", path.display()))?;
+        out!("ticks: {}", path.display());
+    }
+    Ok(ExitCode::SUCCESS)
+}
