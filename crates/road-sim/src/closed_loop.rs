@@ -323,6 +323,81 @@ impl<'m> ClosedLoop<'m> {
     }
 }
 
+/// Simulates a scene whose every agent is scripted (replay, adversarial, constant velocity):
+/// the non-reactive baselines, with no model. Reports like [`ClosedLoop::tick`].
+pub fn simulate_scripted(
+    scene: &SimScene,
+    map: Option<&LaneletMap>,
+    steps: usize,
+) -> Result<Vec<SceneTick>> {
+    let w = &scene.window;
+    let label = || format!("{} {} frame {}", w.location, w.file, w.start_frame);
+    if scene.controllers.len() != w.agents {
+        return Err(Error::Config(format!(
+            "{}: {} controllers for {} agents",
+            label(),
+            scene.controllers.len(),
+            w.agents
+        )));
+    }
+    if scene.observed_steps == 0 || scene.observed_steps > w.steps {
+        return Err(Error::Config(format!(
+            "{}: {} observed steps in a {}-step window",
+            label(),
+            scene.observed_steps,
+            w.steps
+        )));
+    }
+    let reference = scene.observed_steps - 1;
+    let mut start = Vec::with_capacity(w.agents);
+    for a in 0..w.agents {
+        if matches!(
+            scene.controllers[a],
+            Controller::Model | Controller::External
+        ) {
+            return Err(Error::Config(format!(
+                "{}: agent {a} is not scripted ({:?})",
+                label(),
+                scene.controllers[a]
+            )));
+        }
+        start.push(pose_of(w, a, reference).ok_or_else(|| {
+            Error::Config(format!(
+                "{}: agent {a} (track {}) is absent at the last observed step",
+                label(),
+                w.track_ids[a]
+            ))
+        })?);
+    }
+    let scripted: Vec<Vec<Pose>> = (0..w.agents)
+        .map(|a| script(w, a, reference, steps, scene.controllers[a]))
+        .collect();
+    let initial_boxes = boxes(w, &start);
+    let initial_overlaps = collisions(&initial_boxes);
+    let initially_off = map.map(|m| off_road(&initial_boxes, m)).unwrap_or_default();
+    Ok((0..steps)
+        .map(|t| {
+            let poses: Vec<Pose> = scripted
+                .iter()
+                .map(|p| Pose {
+                    heading_rad: f64::from(wrap_angle(p[t].heading_rad as f32)),
+                    ..p[t]
+                })
+                .collect();
+            let b = boxes(w, &poses);
+            let mut hits = collisions(&b);
+            hits.retain(|pair| !initial_overlaps.contains(pair));
+            let mut off = map.map(|m| off_road(&b, m)).unwrap_or_default();
+            off.retain(|a| !initially_off.contains(a));
+            SceneTick {
+                poses,
+                collisions: hits,
+                off_road: off,
+            }
+        })
+        .collect())
+}
+
 /// The scripted poses of agent `a` for ticks `0..steps` (pose after each tick); empty for the
 /// model's and external agents.
 fn script(

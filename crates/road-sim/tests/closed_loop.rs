@@ -229,3 +229,31 @@ fn an_external_agent_without_a_driver_is_an_error() {
             .contains("1 controllers for 7 agents")
     );
 }
+
+#[test]
+fn scripted_baselines_match_the_closed_loop_with_the_same_controllers() {
+    use road_sim::closed_loop::simulate_scripted;
+    let model = small_model();
+    let scene = scene();
+    let n = scene.window.agents;
+    let mut controllers = vec![Controller::ConstantVelocity; n];
+    controllers[1] = Controller::Replay; // the log ends here: it carries on at constant velocity
+    let looped = simulate(&model, &scene, controllers.clone(), &mut NoExternal, 5, 0);
+    let sim_scene = SimScene {
+        window: scene.window.clone(),
+        observed_steps: 10,
+        controllers,
+    };
+    let scripted = simulate_scripted(&sim_scene, Some(&scene.map), 5).unwrap();
+    for (t, (a, b)) in looped.iter().zip(&scripted).enumerate() {
+        for i in 0..n {
+            assert!(close(a.poses[i], b.poses[i]), "tick {t} agent {i}");
+        }
+        assert_eq!(a.collisions, b.collisions);
+        assert_eq!(a.off_road, b.off_road);
+    }
+    let mut with_model = sim_scene.clone();
+    with_model.controllers[0] = Controller::Model;
+    let err = simulate_scripted(&with_model, None, 5).unwrap_err();
+    assert!(err.to_string().contains("agent 0 is not scripted"), "{err}");
+}

@@ -20,15 +20,16 @@ use crate::commands::sample::Engine;
 
 #[derive(Debug, Args)]
 pub struct EvalArgs {
-    /// Suite: `forecasting` (10 observed steps, 30 predicted, joint samples per scene).
+    /// Suite: `forecasting` (10 observed steps, 30 predicted, joint samples per scene) or
+    /// `reactivity` (an adversarial agent per scene, 40 simulated steps after 10 observed).
     #[arg(long, default_value = "forecasting")]
     pub suite: String,
     /// Checkpoints to evaluate; a constant-velocity baseline is always added.
     #[arg(long, num_args = 1.., default_values = ["models/road20", "models/ar", "models/djinn10"])]
     pub checkpoints: Vec<PathBuf>,
-    /// Joint samples per scene.
-    #[arg(long, default_value_t = 6)]
-    pub samples: usize,
+    /// Joint samples per scene (default: 6 for forecasting, 3 for reactivity).
+    #[arg(long)]
+    pub samples: Option<usize>,
     /// Scenes evaluated (spread evenly over the eligible ones); 0 = all.
     #[arg(long, default_value_t = 60)]
     pub limit: usize,
@@ -53,12 +54,30 @@ pub struct EvalArgs {
     /// Also write the results as JSON here.
     #[arg(long)]
     pub json: Option<PathBuf>,
+    /// Reactivity: the INTERACTION data folder (its windows are cut 50 steps long, longer than
+    /// the training caches' 40).
+    #[arg(long, env = "ROAD_DATA", default_value = "../shared/data/interaction")]
+    pub data: PathBuf,
+    /// Reactivity: simulated steps after the observations.
+    #[arg(long, default_value_t = 40)]
+    pub sim_steps: usize,
+    /// Draw the first this many scenes of every model (paper style) into `--figures`.
+    #[arg(long, default_value_t = 0)]
+    pub figure_scenes: usize,
+    /// Folder for the figures.
+    #[arg(long, default_value = "eval-figures")]
+    pub figures: PathBuf,
 }
 
-/// Scenes of the suite: eligible windows of the top locations, spread evenly up to `limit`.
-fn select_scenes(ds: &Dataset, args: &EvalArgs) -> Vec<usize> {
+/// Scenes of the suite: eligible windows (enough agents, and `extra`) of the top locations,
+/// spread evenly up to `limit`.
+pub(crate) fn select_scenes(
+    ds: &Dataset,
+    args: &EvalArgs,
+    extra: impl Fn(usize) -> bool,
+) -> Vec<usize> {
     let eligible: Vec<usize> = (0..ds.len())
-        .filter(|&i| ds.windows[i].agents.len() >= args.min_agents)
+        .filter(|&i| ds.windows[i].agents.len() >= args.min_agents && extra(i))
         .collect();
     let mut per_location: BTreeMap<&str, usize> = BTreeMap::new();
     for &i in &eligible {
@@ -124,12 +143,14 @@ fn truth_of(window: &SceneWindow, reference: usize, steps: usize) -> Vec<Vec<Opt
 }
 
 pub fn run(args: EvalArgs) -> Result<ExitCode> {
-    if args.suite != "forecasting" {
-        bail!(
-            "suite `{}` is not implemented yet; available: forecasting",
-            args.suite
-        );
+    match args.suite.as_str() {
+        "forecasting" => forecasting(args),
+        "reactivity" => crate::commands::reactivity::run(args),
+        other => bail!("unknown suite `{other}`; available: forecasting, reactivity"),
     }
+}
+
+fn forecasting(args: EvalArgs) -> Result<ExitCode> {
     let window_config = WindowConfig::default();
     let ds = cache::load_checked(
         &cache::cache_path(&args.cache, Split::Validation),
@@ -140,7 +161,8 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
     .context("the validation cache is needed: run `road data build`")?;
     let reference = window_config.reference_step;
     let steps = window_config.window_steps - reference - 1; // 30
-    let scenes = select_scenes(&ds, &args);
+    let sample_count = args.samples.unwrap_or(6);
+    let scenes = select_scenes(&ds, &args, |_| true);
     anyhow::ensure!(
         !scenes.is_empty(),
         "no validation scene has {} agents or more",
@@ -151,7 +173,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         scenes.len(),
         args.top_locations,
         args.min_agents,
-        args.samples
+        sample_count
     );
     let windows: Vec<SceneWindow> = scenes
         .iter()
@@ -227,7 +249,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
                 .iter()
                 .flat_map(|w| {
                     let history = SceneInput::from_window(w, reference + 1 - n, n, &run.model);
-                    std::iter::repeat_n(RolloutScene { history }, args.samples)
+                    std::iter::repeat_n(RolloutScene { history }, sample_count)
                 })
                 .collect();
             let mut cpu_engine;
@@ -245,9 +267,9 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
             let out = rollout_with(engine, &run.planner, &batch, steps, &mut rng)?;
             nfe_total += out.nfe;
             for (k, w) in chunk.iter().enumerate() {
-                let samples: Vec<Vec<Vec<[f64; 2]>>> = (0..args.samples)
+                let samples: Vec<Vec<Vec<[f64; 2]>>> = (0..sample_count)
                     .map(|s| {
-                        let states = &out.states[k * args.samples + s];
+                        let states = &out.states[k * sample_count + s];
                         (0..w.agents)
                             .map(|a| {
                                 (0..steps)
@@ -271,7 +293,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
             }
         }
         totals.secs = started.elapsed().as_secs_f64();
-        totals.samples = windows.len() * args.samples;
+        totals.samples = windows.len() * sample_count;
         let chunks = windows.len().div_ceil(args.batch_scenes.max(1)) as f64;
         totals.nfe_per_step = nfe_total as f64 / chunks / steps as f64;
         results.push(totals);
@@ -280,7 +302,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
     out!(
         "forecasting, INTERACTION validation: {} scenes, {} joint samples, {steps} steps after 10 observed; engine {:?}",
         windows.len(),
-        args.samples,
+        sample_count,
         args.engine
     );
     out!(
@@ -299,7 +321,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         );
     }
     if let Some(path) = &args.json {
-        let json = serde_json::json!({ "suite": "forecasting", "scenes": windows.len(), "samples": args.samples, "results": results });
+        let json = serde_json::json!({ "suite": "forecasting", "scenes": windows.len(), "samples": sample_count, "results": results });
         std::fs::write(path, serde_json::to_string_pretty(&json)?)
             .with_context(|| format!("cannot write {}", path.display()))?;
     }

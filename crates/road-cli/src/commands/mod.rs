@@ -4,6 +4,7 @@ pub mod demo;
 pub mod engine;
 pub mod eval;
 pub mod gpu;
+pub mod reactivity;
 pub mod sample;
 pub mod sched;
 pub mod train;

@@ -1,0 +1,359 @@
+//! `road eval --suite reactivity` (math doc, "Evaluation"): one adversarial agent per scene
+//! drives its logged path slowed to half; every other agent is the model's and must react.
+//! 40 simulated steps after 10 observed, 3 samples per scene; collision rate with the
+//! adversarial agent, off-road rate, time per sample and NFE per simulated step, next to the
+//! non-reactive baselines (log replay, constant velocity).
+
+use std::collections::BTreeSet;
+use std::path::Path;
+use std::process::ExitCode;
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use rand::SeedableRng;
+use road_data::{Dataset, SceneWindow, SourceSet, Split, WindowConfig};
+use road_sim::closed_loop::{
+    ClosedLoop, Controller, NoExternal, SceneTick, SimScene, pick_adversary, simulate_scripted,
+};
+
+use crate::commands::engine::{EngineChoice, Engines};
+use crate::commands::eval::{EvalArgs, select_scenes};
+use crate::commands::sample::Engine;
+use crate::plot::{ADVERSARY, LOGGED, PREDICTED, Ring, Stroke, figure_png, window_map_strokes};
+
+/// Per-model totals over every simulated (scene, sample).
+#[derive(Debug, Default, Clone, serde::Serialize)]
+struct Totals {
+    model: String,
+    simulations: usize,
+    /// Simulations in which the adversarial agent collides with anybody.
+    adversary_collisions: usize,
+    /// Simulations with any collision at all.
+    any_collisions: usize,
+    /// Agents driven by the model (or the baseline's controller), summed over simulations.
+    driven_agents: usize,
+    /// Of those, agents that left every lanelet at some tick (having started on one).
+    off_road_agents: usize,
+    secs: f64,
+    nfe_per_step: f64,
+    expected_nfe_per_step: Option<f64>,
+}
+
+/// What one simulation did.
+fn score(totals: &mut Totals, ticks: &[SceneTick], adversary: usize, agents: usize) {
+    totals.simulations += 1;
+    let pairs: BTreeSet<(usize, usize)> = ticks
+        .iter()
+        .flat_map(|t| t.collisions.iter().copied())
+        .collect();
+    totals.any_collisions += usize::from(!pairs.is_empty());
+    totals.adversary_collisions +=
+        usize::from(pairs.iter().any(|&(i, j)| i == adversary || j == adversary));
+    let off: BTreeSet<usize> = ticks
+        .iter()
+        .flat_map(|t| t.off_road.iter().copied())
+        .filter(|&a| a != adversary)
+        .collect();
+    totals.driven_agents += agents - 1;
+    totals.off_road_agents += off.len();
+}
+
+pub fn run(args: EvalArgs) -> Result<ExitCode> {
+    let samples = args.samples.unwrap_or(3).max(1);
+    let observed = 10;
+    let config = WindowConfig {
+        window_steps: observed + args.sim_steps,
+        reference_step: observed - 1,
+        ..WindowConfig::default()
+    };
+    let reference = config.reference_step;
+    let sources = SourceSet::discover(&args.data)
+        .with_context(|| format!("the reactivity suite reads {}", args.data.display()))?;
+    let started = Instant::now();
+    let ds = Dataset::build(&sources, Split::Validation, &config).with_context(|| {
+        format!(
+            "cannot cut {}-step validation windows from {}",
+            config.window_steps,
+            args.data.display()
+        )
+    })?;
+    tracing::info!(
+        windows = ds.len(),
+        secs = started.elapsed().as_secs_f32(),
+        "validation windows cut"
+    );
+    // Eligible: enough agents, and an agent present throughout that moves (the adversary).
+    let adversary_of = |i: usize| -> Option<usize> {
+        ds.window(i)
+            .ok()
+            .and_then(|w| pick_adversary(&w, reference))
+    };
+    let scenes = select_scenes(&ds, &args, |i| adversary_of(i).is_some());
+    anyhow::ensure!(
+        !scenes.is_empty(),
+        "no validation scene has {} agents or more and an agent that moves throughout",
+        args.min_agents
+    );
+    let windows: Vec<SceneWindow> = scenes
+        .iter()
+        .map(|&i| ds.window(i))
+        .collect::<Result<_, _>>()?;
+    let adversaries: Vec<usize> = scenes
+        .iter()
+        .map(|&i| adversary_of(i).expect("selected scenes have one"))
+        .collect();
+    let maps: Vec<&road_data::LaneletMap> =
+        scenes.iter().map(|&i| ds.map_of(&ds.windows[i])).collect();
+    eprintln!(
+        "reactivity suite: {} scenes (top {} locations, ≥ {} agents at the last observed step, an agent present and moving through all {} steps: the adversary, the one with the longest path), {samples} samples each, {} simulated steps",
+        windows.len(),
+        args.top_locations,
+        args.min_agents,
+        config.window_steps,
+        args.sim_steps
+    );
+    let controllers_with = |k: usize, others: Controller| -> Vec<Controller> {
+        (0..windows[k].agents)
+            .map(|a| {
+                if a == adversaries[k] {
+                    Controller::Adversarial
+                } else {
+                    others
+                }
+            })
+            .collect()
+    };
+    if args.figure_scenes > 0 {
+        std::fs::create_dir_all(&args.figures)
+            .with_context(|| format!("cannot create {}", args.figures.display()))?;
+    }
+
+    let mut results = Vec::new();
+    // Non-reactive baselines: one deterministic sample each.
+    for (name, others) in [
+        ("log replay", Controller::Replay),
+        ("constant velocity", Controller::ConstantVelocity),
+    ] {
+        let started = Instant::now();
+        let mut totals = Totals {
+            model: name.into(),
+            ..Totals::default()
+        };
+        for (k, w) in windows.iter().enumerate() {
+            let scene = SimScene {
+                window: w.clone(),
+                observed_steps: observed,
+                controllers: controllers_with(k, others),
+            };
+            let ticks = simulate_scripted(&scene, Some(maps[k]), args.sim_steps)?;
+            score(&mut totals, &ticks, adversaries[k], w.agents);
+            if k < args.figure_scenes {
+                draw(
+                    &args.figures,
+                    name,
+                    k,
+                    w,
+                    adversaries[k],
+                    &[ticks],
+                    reference,
+                )?;
+            }
+        }
+        totals.secs = started.elapsed().as_secs_f64();
+        results.push(totals);
+    }
+
+    let choice = match args.engine {
+        Engine::Cpu => EngineChoice::Cpu,
+        Engine::Gpu => EngineChoice::Gpu,
+    };
+    let batch_scenes = args.batch_scenes.max(1);
+    for dir in &args.checkpoints {
+        let engines = Engines::load(dir, choice)
+            .with_context(|| format!("cannot load checkpoint {}", dir.display()))?;
+        let run = &engines.cpu.meta.run;
+        let n = run.planner.obs_slots;
+        anyhow::ensure!(
+            n <= observed,
+            "{}: the planner observes {n} steps, the suite gives {observed}",
+            dir.display()
+        );
+        let mut totals = Totals {
+            model: run.name.clone(),
+            expected_nfe_per_step: Some(run.planner.expected_nfe_per_step(args.sim_steps as u64)),
+            ..Totals::default()
+        };
+        let mut rng = rand::rngs::StdRng::seed_from_u64(args.seed);
+        let bar = indicatif::ProgressBar::new(windows.len() as u64);
+        bar.set_message(run.name.clone());
+        let mut nfe_sum = 0u64;
+        let mut batches = 0u64;
+        let started = Instant::now();
+        let indices: Vec<usize> = (0..windows.len()).collect();
+        for chunk in indices.chunks(batch_scenes) {
+            let mut sims = Vec::with_capacity(chunk.len() * samples);
+            let mut sim_maps = Vec::with_capacity(chunk.len() * samples);
+            for &k in chunk {
+                for _ in 0..samples {
+                    sims.push(SimScene {
+                        window: windows[k].clone(),
+                        observed_steps: observed,
+                        controllers: controllers_with(k, Controller::Model),
+                    });
+                    sim_maps.push(Some(maps[k]));
+                }
+            }
+            let mut engine = engines.engine();
+            let mut sim = ClosedLoop::new(
+                engine.as_dyn(),
+                &run.model,
+                &run.planner,
+                sims,
+                sim_maps,
+                args.sim_steps,
+                &mut rng,
+            )?;
+            let mut per_sim: Vec<Vec<SceneTick>> =
+                vec![Vec::with_capacity(args.sim_steps); chunk.len() * samples];
+            let mut out = Vec::new();
+            for _ in 0..args.sim_steps {
+                sim.tick(engine.as_dyn(), &mut rng, &mut NoExternal, &mut out)?;
+                for (i, t) in out.drain(..).enumerate() {
+                    per_sim[i].push(t);
+                }
+            }
+            nfe_sum += sim.nfe()?;
+            batches += 1;
+            for (j, &k) in chunk.iter().enumerate() {
+                let ticks = &per_sim[j * samples..(j + 1) * samples];
+                for t in ticks {
+                    score(&mut totals, t, adversaries[k], windows[k].agents);
+                }
+                if k < args.figure_scenes {
+                    draw(
+                        &args.figures,
+                        &run.name,
+                        k,
+                        &windows[k],
+                        adversaries[k],
+                        ticks,
+                        reference,
+                    )?;
+                }
+            }
+            bar.inc(chunk.len() as u64);
+        }
+        bar.finish_and_clear();
+        totals.secs = started.elapsed().as_secs_f64();
+        totals.nfe_per_step = nfe_sum as f64 / batches.max(1) as f64 / args.sim_steps as f64;
+        results.push(totals);
+    }
+
+    out!(
+        "reactivity, INTERACTION validation: {} scenes × {samples} samples (baselines: 1), {} simulated steps after {observed} observed; engine {:?}",
+        windows.len(),
+        args.sim_steps,
+        args.engine
+    );
+    out!(
+        "| model | collision rate (adversary) | any collision | off-road rate | time per sample (s) | NFE per simulated step (expected) |"
+    );
+    out!("|---|---:|---:|---:|---:|---:|");
+    for r in &results {
+        let sims = r.simulations.max(1) as f64;
+        let nfe = match r.expected_nfe_per_step {
+            Some(e) => format!("{:.1} ({e:.1})", r.nfe_per_step),
+            None => "0 (scripted)".into(),
+        };
+        out!(
+            "| {} | {:.3} | {:.3} | {:.3} | {:.3} | {nfe} |",
+            r.model,
+            r.adversary_collisions as f64 / sims,
+            r.any_collisions as f64 / sims,
+            r.off_road_agents as f64 / r.driven_agents.max(1) as f64,
+            r.secs / sims,
+        );
+    }
+    if let Some(path) = &args.json {
+        let json = serde_json::json!({
+            "suite": "reactivity",
+            "scenes": windows.len(),
+            "samples": samples,
+            "sim_steps": args.sim_steps,
+            "results": results,
+        });
+        std::fs::write(path, serde_json::to_string_pretty(&json)?)
+            .with_context(|| format!("cannot write {}", path.display()))?;
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Paper style: map, logged trajectories grey, simulated agents orange (every sample), the
+/// adversarial agent red, collisions circled.
+fn draw(
+    dir: &Path,
+    model: &str,
+    k: usize,
+    w: &SceneWindow,
+    adversary: usize,
+    samples: &[Vec<SceneTick>],
+    reference: usize,
+) -> Result<()> {
+    let to_m = |s: [f32; 3]| {
+        let p = w.frame.to_metres([s[0], s[1]]);
+        (p[0], p[1])
+    };
+    let mut strokes = window_map_strokes(w);
+    for a in 0..w.agents {
+        strokes.push(Stroke {
+            points: (0..w.steps)
+                .filter_map(|t| w.state(a, t))
+                .map(to_m)
+                .collect(),
+            color: LOGGED,
+            width: 2,
+        });
+    }
+    let mut rings = Vec::new();
+    for ticks in samples {
+        for a in 0..w.agents {
+            let start = w.state(a, reference).map(to_m);
+            strokes.push(Stroke {
+                points: start
+                    .into_iter()
+                    .chain(ticks.iter().map(|t| (t.poses[a].x_m, t.poses[a].y_m)))
+                    .collect(),
+                color: if a == adversary { ADVERSARY } else { PREDICTED },
+                width: if a == adversary { 3 } else { 1 },
+            });
+        }
+        let mut seen = BTreeSet::new();
+        for t in ticks {
+            for &(i, j) in &t.collisions {
+                if seen.insert((i, j)) {
+                    rings.push(Ring {
+                        centre: (
+                            0.5 * (t.poses[i].x_m + t.poses[j].x_m),
+                            0.5 * (t.poses[i].y_m + t.poses[j].y_m),
+                        ),
+                        radius_m: 3.0,
+                        color: ADVERSARY,
+                    });
+                }
+            }
+        }
+    }
+    let file = format!(
+        "reactivity-{}-{k:02}.png",
+        model.replace(|c: char| !c.is_ascii_alphanumeric(), "-")
+    );
+    figure_png(
+        &dir.join(file),
+        &strokes,
+        &[],
+        &rings,
+        700,
+        (w.frame.origin_m[0], w.frame.origin_m[1]),
+        45.0,
+    )
+}
