@@ -69,6 +69,34 @@ impl SceneInput {
     }
 }
 
+impl SceneInput {
+    /// Drops agents with no valid slot in the crop, and their rows of `noise`
+    /// (`[agents, slots, 3]`); keeps every agent when none is valid. Padding is masked, so the
+    /// loss does not change; the batch just pads to fewer agents.
+    pub fn drop_absent_agents(&mut self, noise: &mut Vec<f32>) {
+        let w = self.slots;
+        let keep: Vec<usize> = (0..self.agents)
+            .filter(|&a| self.valid[a * w..(a + 1) * w].iter().any(|&v| v))
+            .collect();
+        if keep.is_empty() || keep.len() == self.agents {
+            return;
+        }
+        let gather = |v: &[f32], per: usize| -> Vec<f32> {
+            keep.iter()
+                .flat_map(|&a| v[a * per..(a + 1) * per].iter().copied())
+                .collect()
+        };
+        self.states = gather(&self.states, w * 3);
+        *noise = gather(noise, w * 3);
+        self.agent_features = gather(&self.agent_features, AGENT_FEATURES);
+        self.valid = keep
+            .iter()
+            .flat_map(|&a| self.valid[a * w..(a + 1) * w].iter().copied())
+            .collect();
+        self.agents = keep.len();
+    }
+}
+
 pub fn agent_features(length_m: &[f32], width_m: &[f32], types: &[AgentType]) -> Vec<f32> {
     let mut out = Vec::with_capacity(types.len() * AGENT_FEATURES);
     for i in 0..types.len() {

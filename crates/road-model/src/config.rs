@@ -99,6 +99,9 @@ pub struct TrainConfig {
     pub val_every_steps: u64,
     pub val_batches: usize,
     pub checkpoint_every_secs: u64,
+    /// Fill each training batch with scenes of similar agent counts (less padding, the same
+    /// per-window sampling probability); validation batches never are.
+    pub bucket_by_agents: bool,
 }
 
 impl Default for TrainConfig {
@@ -118,6 +121,7 @@ impl Default for TrainConfig {
             val_every_steps: 250,
             val_batches: 8,
             checkpoint_every_secs: 300,
+            bucket_by_agents: true,
         }
     }
 }

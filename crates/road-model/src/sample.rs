@@ -216,6 +216,10 @@ pub struct RolloutDriver {
     packed: Vec<f32>,       // [B, A, W, 3]
     packed_valid: Vec<f32>, // [B, A, W]
     ticks: usize,
+    planner: PlannerSpec,
+    /// Model evaluations per scene under planners switched away from.
+    nfe_before: u64,
+    switches: usize,
 }
 
 impl std::fmt::Debug for RolloutDriver {
@@ -345,7 +349,50 @@ impl RolloutDriver {
             packed: vec![0.0f32; b * a_max * w * 3],
             packed_valid: vec![0.0f32; b * a_max * w],
             ticks: 0,
+            planner: planner.clone(),
+            nfe_before: 0,
+            switches: 0,
         })
+    }
+
+    /// The planner the next tick uses.
+    pub fn planner(&self) -> &PlannerSpec {
+        &self.planner
+    }
+
+    /// Switches every scene to `planner` from the next tick on. It must run on the same model:
+    /// the same window (W) and observations (n). Each window is rebuilt from the history (the
+    /// last n states, emitted or overwritten) with fresh noise, so the new planner starts with
+    /// its warm-up, as a newly admitted scene does.
+    pub fn switch_planner(&mut self, planner: &PlannerSpec, rng: &mut StdRng) -> Result<()> {
+        if planner.window_slots() != self.w || planner.obs_slots != self.n {
+            return Err(Error::data(format!(
+                "cannot switch to a planner with W = {} and n = {}: the model runs W = {}, n = {}",
+                planner.window_slots(),
+                planner.obs_slots,
+                self.w,
+                self.n
+            )));
+        }
+        self.switches += 1;
+        let pid = self
+            .sched
+            .add_planner(&format!("rollout-{}", self.switches), planner.clone())?;
+        let mut nfe = None;
+        for id in std::mem::take(&mut self.ids) {
+            let stats = self.sched.retire(id)?;
+            nfe.get_or_insert(stats.nfe);
+            self.ids.push(self.sched.admit(SceneSpec {
+                planner: pid,
+                external_agents: vec![],
+            })?);
+        }
+        self.nfe_before += nfe.unwrap_or(0);
+        for s in &mut self.states {
+            rebuild_window(s, self.n, self.w, self.obs_sigma, self.sigma_max, rng);
+        }
+        self.planner = planner.clone();
+        Ok(())
     }
 
     /// Scenes in the rollout.
@@ -451,7 +498,7 @@ impl RolloutDriver {
 
     /// Model evaluations per scene so far.
     pub fn nfe(&self) -> Result<u64> {
-        Ok(self.sched.stats(self.ids[0])?.nfe)
+        Ok(self.nfe_before + self.sched.stats(self.ids[0])?.nfe)
     }
 
     /// The emitted states of every scene, `[scenes][agents, ticks, 3]` in model units.

@@ -45,12 +45,66 @@ pub enum TrainEvent {
     Checkpoint { step: u64, dir: PathBuf },
 }
 
-/// Builds a batch of `scenes` random windows of `ds`, cropped to the model's window, with the
-/// run's task noise; `rng` decides everything.
+/// Windows grouped by agent count (contiguous count ranges of at least [`Self::MIN_BUCKET`]
+/// windows), so that a batch of one bucket pads to similar sizes.
+#[derive(Debug, Clone)]
+pub struct AgentBuckets {
+    bucket_of: Vec<u32>,
+    members: Vec<Vec<u32>>,
+}
+
+impl AgentBuckets {
+    pub const MIN_BUCKET: usize = 256;
+
+    pub fn new(ds: &Dataset) -> Self {
+        let counts: Vec<usize> = ds.windows.iter().map(|w| w.agents.len()).collect();
+        let max = counts.iter().copied().max().unwrap_or(0);
+        let mut by_count = vec![Vec::new(); max + 1];
+        for (i, &c) in counts.iter().enumerate() {
+            by_count[c].push(i as u32);
+        }
+        let mut members: Vec<Vec<u32>> = vec![Vec::new()];
+        for group in by_count {
+            let last = members.last_mut().expect("one bucket at least");
+            last.extend(group);
+            if last.len() >= Self::MIN_BUCKET {
+                members.push(Vec::new());
+            }
+        }
+        // A small remainder joins the bucket before it.
+        if members.len() > 1 && members.last().is_some_and(|m| m.len() < Self::MIN_BUCKET) {
+            let tail = members.pop().expect("checked");
+            members.last_mut().expect("checked").extend(tail);
+        }
+        let mut bucket_of = vec![0u32; counts.len()];
+        for (b, m) in members.iter().enumerate() {
+            for &i in m {
+                bucket_of[i as usize] = b as u32;
+            }
+        }
+        Self { bucket_of, members }
+    }
+
+    pub fn buckets(&self) -> usize {
+        self.members.len()
+    }
+
+    /// A uniform draw from the bucket of window `anchor`.
+    fn pick(&self, anchor: usize, rng: &mut StdRng) -> usize {
+        let m = &self.members[self.bucket_of[anchor] as usize];
+        m[rng.random_range(0..m.len())] as usize
+    }
+}
+
+/// Builds a batch of `scenes` random windows of `ds`, cropped to the model's window (agents
+/// absent from the crop dropped), with the run's task noise; `rng` decides everything. With
+/// `buckets`, the first window is uniform and the others uniform within its agent-count bucket
+/// (every window keeps the same probability of being drawn).
 pub fn sample_batch(
     run: &RunConfig,
     ds: &Dataset,
     scenes: usize,
+    buckets: Option<&AgentBuckets>,
     rng: &mut StdRng,
     device: &Device,
 ) -> Result<Batch> {
@@ -67,14 +121,28 @@ pub fn sample_batch(
             ds.split
         )));
     }
+    if let Some(b) = buckets {
+        if b.bucket_of.len() != ds.len() {
+            return Err(Error::data(format!(
+                "agent buckets of {} windows for a dataset of {}",
+                b.bucket_of.len(),
+                ds.len()
+            )));
+        }
+    }
     let mut inputs = Vec::with_capacity(scenes);
     let mut sigma = Vec::with_capacity(scenes);
     let mut noise = Vec::with_capacity(scenes);
+    let mut anchor = None;
     for _ in 0..scenes {
-        let index = rng.random_range(0..ds.len());
+        let index = match (buckets, anchor) {
+            (Some(b), Some(a)) => b.pick(a, rng),
+            _ => rng.random_range(0..ds.len()),
+        };
+        anchor.get_or_insert(index);
         let window = ds.window(index)?;
         let start = rng.random_range(0..=steps - w);
-        let input = SceneInput::from_window(&window, start, w, &run.model);
+        let mut input = SceneInput::from_window(&window, start, w, &run.model);
         sigma.push(task_sigma(
             rng,
             &run.model,
@@ -83,7 +151,9 @@ pub fn sample_batch(
             run.train.warmup_task_prob,
             run.train.augmentation_ratio,
         ));
-        noise.push(normal_vec(rng, input.agents * w * 3));
+        let mut eps = normal_vec(rng, input.agents * w * 3);
+        input.drop_absent_agents(&mut eps);
+        noise.push(eps);
         inputs.push(input);
     }
     collate(&inputs, &sigma, Some(&noise), device)
@@ -125,6 +195,8 @@ pub struct Trainer {
     last_validation_loss: Option<f64>,
     validation: Vec<Batch>,
     data: DataIdentity,
+    /// Built from the training set on the first step.
+    buckets: Option<AgentBuckets>,
 }
 
 impl std::fmt::Debug for Trainer {
@@ -178,6 +250,7 @@ impl Trainer {
                     &run,
                     validation_set,
                     run.train.batch_scenes,
+                    None,
                     &mut rng,
                     &device,
                 )
@@ -199,6 +272,7 @@ impl Trainer {
             last_validation_loss: None,
             validation,
             data,
+            buckets: None,
         };
         match resume_from {
             Some(dir) => trainer.restore(dir)?,
@@ -219,10 +293,23 @@ impl Trainer {
     pub fn train_step(&mut self, train_set: &Dataset) -> Result<StepReport> {
         let started = Instant::now();
         let mut rng = step_rng(self.run.train.seed, self.step);
+        if self.run.train.bucket_by_agents
+            && self
+                .buckets
+                .as_ref()
+                .is_none_or(|b| b.bucket_of.len() != train_set.len())
+        {
+            self.buckets = Some(AgentBuckets::new(train_set));
+        }
+        let buckets = self
+            .buckets
+            .as_ref()
+            .filter(|_| self.run.train.bucket_by_agents);
         let batch = sample_batch(
             &self.run,
             train_set,
             self.run.train.batch_scenes,
+            buckets,
             &mut rng,
             &self.device,
         )?;

@@ -217,7 +217,7 @@ fn one_training_step_lowers_the_loss_on_a_fixed_batch() {
     let ds = dataset(Split::Train);
     let (varmap, model) = model::init_seeded(&run.model, &Device::Cpu, 4).unwrap();
     let mut rng = StdRng::seed_from_u64(5);
-    let batch = sample_batch(&run, &ds, 4, &mut rng, &Device::Cpu).unwrap();
+    let batch = sample_batch(&run, &ds, 4, None, &mut rng, &Device::Cpu).unwrap();
     let loss_of = || {
         let map = model.encode_map(&batch.map, Mode::Train).unwrap();
         edm_loss(&model, &batch, &map, Mode::Train).unwrap()
@@ -276,7 +276,7 @@ fn checkpoints_round_trip_exactly_and_refuse_mismatches() {
     assert_eq!(loaded.meta.step, 3);
     let ema = trainer.ema_model().unwrap();
     let mut rng = StdRng::seed_from_u64(9);
-    let batch = sample_batch(&run, &ds, 2, &mut rng, &Device::Cpu).unwrap();
+    let batch = sample_batch(&run, &ds, 2, None, &mut rng, &Device::Cpu).unwrap();
     let eval = |m: &road_model::Denoiser| {
         let map = m.encode_map(&batch.map, Mode::Infer).unwrap();
         m.denoise(

@@ -244,6 +244,17 @@ impl<'m> ClosedLoop<'m> {
         Ok(self.driver.nfe()?)
     }
 
+    /// Switches every scene to another planner on the same checkpoint (same W and n), from the
+    /// next tick on; see [`RolloutDriver::switch_planner`].
+    pub fn switch_planner(&mut self, planner: &PlannerSpec, rng: &mut StdRng) -> Result<()> {
+        Ok(self.driver.switch_planner(planner, rng)?)
+    }
+
+    /// The planner the next tick uses.
+    pub fn planner(&self) -> &PlannerSpec {
+        self.driver.planner()
+    }
+
     /// Poses after the last tick (the last observed step before the first), per agent.
     pub fn poses(&self, scene: usize) -> &[Pose] {
         &self.scenes[scene].poses

@@ -257,3 +257,59 @@ fn scripted_baselines_match_the_closed_loop_with_the_same_controllers() {
     let err = simulate_scripted(&with_model, None, 5).unwrap_err();
     assert!(err.to_string().contains("agent 0 is not scripted"), "{err}");
 }
+
+#[test]
+fn a_scene_switches_planner_between_ticks_on_the_same_checkpoint() {
+    let model = small_model();
+    let scene = scene();
+    let n = scene.window.agents;
+    let mut controllers = vec![Controller::Model; n];
+    controllers[0] = Controller::External;
+    let mut ego = scene.ego.clone();
+    let mut engine = CpuEngine::new(&model);
+    let mut rng = StdRng::seed_from_u64(5);
+    let mut sim = ClosedLoop::new(
+        &mut engine,
+        &model.config,
+        &planner(),
+        vec![SimScene {
+            window: scene.window.clone(),
+            observed_steps: 10,
+            controllers,
+        }],
+        vec![Some(&scene.map)],
+        6,
+        &mut rng,
+    )
+    .unwrap();
+    let mut out = Vec::new();
+    for _ in 0..3 {
+        sim.tick(&mut engine, &mut rng, &mut ego, &mut out).unwrap();
+    }
+    let rolling_nfe = sim.nfe().unwrap();
+    // DJINN-4 MPC-1 on the same W = 14 checkpoint: a full K = 8 diffusion every tick.
+    let mpc = PlannerSpec {
+        kind: PlannerKind::Mpc,
+        replan_every: Some(1),
+        ..planner()
+    };
+    sim.switch_planner(&mpc, &mut rng).unwrap();
+    assert_eq!(sim.planner(), &mpc);
+    for _ in 0..3 {
+        sim.tick(&mut engine, &mut rng, &mut ego, &mut out).unwrap();
+    }
+    assert_eq!(sim.ticks(), 6);
+    // Heun: 2 NFE per step but 1 on the last (σ_next = 0 everywhere): 15 per MPC tick.
+    assert_eq!(sim.nfe().unwrap() - rolling_nfe, 3 * 15);
+    use road_sim::closed_loop::ExternalDriver;
+    let want = scene.ego.clone().pose(0, 0, 5, &[]).unwrap();
+    assert!(close(out[0].poses[0], want));
+    // Another window length is another checkpoint: refused.
+    let ar = PlannerSpec {
+        kind: PlannerKind::Autoregressive,
+        future_slots: 1,
+        ..planner()
+    };
+    let err = sim.switch_planner(&ar, &mut rng).unwrap_err();
+    assert!(err.to_string().contains("W = 11"), "{err}");
+}

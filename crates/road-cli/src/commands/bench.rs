@@ -116,12 +116,17 @@ fn train_bench(args: &TrainBenchArgs) -> Result<()> {
         let mut rng = rand::rngs::StdRng::seed_from_u64(1);
         let started = Instant::now();
         let mut batch_secs = 0.0;
+        let buckets = run
+            .train
+            .bucket_by_agents
+            .then(|| road_model::train::AgentBuckets::new(&train));
         for _ in 0..args.steps {
             let t = Instant::now();
             let batch = sample_batch(
                 &run,
                 &train,
                 run.train.batch_scenes,
+                buckets.as_ref(),
                 &mut rng,
                 &candle_core::Device::Cpu,
             )?;
