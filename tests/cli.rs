@@ -286,3 +286,113 @@ fn sample_and_eval_run_with_the_shipped_checkpoint() {
     assert!((road20["nfe_per_step"].as_f64().unwrap() - 312.0 / 30.0).abs() < 1e-9);
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// `road demo`, the README's main job: the procedural scene closed loop on both engines.
+#[test]
+fn demo_runs_closed_loop_on_both_engines() {
+    let dir = std::env::temp_dir().join(format!("road-cli-demo-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let mut runs = Vec::new();
+    for engine in ["cpu", "gpu"] {
+        let (png, json) = (
+            dir.join(format!("demo-{engine}.png")),
+            dir.join(format!("demo-{engine}.json")),
+        );
+        let o = road(&[
+            "demo",
+            "--steps",
+            "4",
+            "--engine",
+            engine,
+            "--out",
+            png.to_str().unwrap(),
+            "--json",
+            json.to_str().unwrap(),
+        ]);
+        assert!(o.status.success(), "{engine}: {}", stderr(&o));
+        let text = stdout(&o);
+        assert!(
+            text.contains("time per tick") && text.contains("infractions"),
+            "{text}"
+        );
+        assert!(std::fs::read(&png).unwrap().starts_with(b"\x89PNG"));
+        let v: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+        assert_eq!(v["ticks"].as_array().unwrap().len(), 4);
+        // RoAD-20: the K = 40 warm-up (80 NFE) then rolling stages of K/F = 4 steps (8 NFE).
+        assert_eq!(v["nfe"], 80 + 3 * 8);
+        runs.push(v);
+    }
+    // The same seed: the same closed loop on both engines, to the rollout tolerance.
+    for (t, (a, b)) in runs[0]["ticks"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .zip(runs[1]["ticks"].as_array().unwrap())
+        .enumerate()
+    {
+        for (p, q) in a["poses"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .zip(b["poses"].as_array().unwrap())
+        {
+            for key in ["x_m", "y_m"] {
+                let (x, y) = (p[key].as_f64().unwrap(), q[key].as_f64().unwrap());
+                assert!((x - y).abs() < 0.02, "tick {t} {key}: cpu {x} vs gpu {y}");
+            }
+        }
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// The reactivity suite end to end on one validation scene, with figures and JSON.
+#[test]
+fn reactivity_suite_runs_with_the_shipped_checkpoint() {
+    let data = data_dir();
+    let dir = std::env::temp_dir().join(format!("road-cli-react-{}", std::process::id()));
+    let json = dir.join("reactivity.json");
+    let o = road(&[
+        "eval",
+        "--suite",
+        "reactivity",
+        "--data",
+        data.to_str().unwrap(),
+        "--checkpoints",
+        "models/road20",
+        "--limit",
+        "1",
+        "--samples",
+        "2",
+        "--sim-steps",
+        "6",
+        "--figure-scenes",
+        "1",
+        "--figures",
+        dir.to_str().unwrap(),
+        "--json",
+        json.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let text = stdout(&o);
+    for row in ["| log replay |", "| constant velocity |", "| road20 |"] {
+        assert!(text.contains(row), "{text}");
+    }
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let road20 = &v["results"][2];
+    assert_eq!(road20["model"], "road20");
+    assert_eq!(road20["simulations"], 2);
+    // NFE per simulated step as the math doc predicts: (80 + 5 · 8) / 6.
+    let nfe = road20["nfe_per_step"].as_f64().unwrap();
+    assert!((nfe - 120.0 / 6.0).abs() < 1e-9, "{nfe}");
+    assert!((road20["expected_nfe_per_step"].as_f64().unwrap() - nfe).abs() < 1e-9);
+    for name in ["log-replay", "constant-velocity", "road20"] {
+        let png = dir.join(format!("reactivity-{name}-00.png"));
+        assert!(
+            std::fs::read(&png).unwrap().starts_with(b"\x89PNG"),
+            "{name}"
+        );
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}
