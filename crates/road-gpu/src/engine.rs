@@ -957,7 +957,14 @@ impl HeunPlan {
         sigma_next: &[f32],
         second_evaluation: bool,
     ) -> Result<()> {
-        assert_eq!(sigma_cur.len(), self.sigma_eval_host.len(), "σ is [B, W]");
+        let expected = self.sigma_eval_host.len();
+        if sigma_cur.len() != expected || sigma_next.len() != expected {
+            return Err(Error::Input(format!(
+                "σ rows of {} and {} values; the batch is [B, W] = {expected}",
+                sigma_cur.len(),
+                sigma_next.len()
+            )));
+        }
         ctx.queue
             .write_buffer(&self.sigma_cur, 0, bytemuck::cast_slice(sigma_cur));
         ctx.queue
@@ -1009,8 +1016,6 @@ pub struct GpuStepEngine<'a> {
     batch: Option<DeviceBatch>,
     plan: Option<HeunPlan>,
     features: Vec<f32>,
-    sigma_cur: Vec<f32>,
-    sigma_next: Vec<f32>,
     scenes: usize,
     agents: usize,
 }
@@ -1024,8 +1029,6 @@ impl<'a> GpuStepEngine<'a> {
             batch: None,
             plan: None,
             features: Vec::new(),
-            sigma_cur: Vec::new(),
-            sigma_next: Vec::new(),
             scenes: 0,
             agents: 0,
         }
@@ -1102,20 +1105,52 @@ impl road_model::sample::StepEngine for GpuStepEngine<'_> {
         Ok(())
     }
 
-    fn step(&mut self, sigma_cur: &[f32], sigma_next: &[f32], nfe: u8) -> road_model::Result<()> {
+    fn load_scene(
+        &mut self,
+        scene: usize,
+        window: &[f32],
+        valid: &[f32],
+    ) -> road_model::Result<()> {
+        let batch = self
+            .batch
+            .as_ref()
+            .ok_or_else(|| road_model::Error::Engine("load_scene before load".into()))?;
+        let w = self.model.config.window_slots;
+        let (x_len, v_len) = (self.agents * w * 3, self.agents * w);
+        if window.len() != x_len || valid.len() != v_len || scene >= self.scenes {
+            return Err(road_model::Error::Engine(format!(
+                "load_scene {scene}: {} states and {} flags for a batch of {} scenes × {x_len} / {v_len}",
+                window.len(),
+                valid.len(),
+                self.scenes
+            )));
+        }
+        self.ctx.queue.write_buffer(
+            &batch.x,
+            (scene * x_len * 4) as u64,
+            bytemuck::cast_slice(window),
+        );
+        self.ctx.queue.write_buffer(
+            &batch.valid,
+            (scene * v_len * 4) as u64,
+            bytemuck::cast_slice(valid),
+        );
+        Ok(())
+    }
+
+    fn step(
+        &mut self,
+        sigma_cur: &[f32],
+        sigma_next: &[f32],
+        second_evaluation: bool,
+    ) -> road_model::Result<()> {
         let (Some(batch), Some(plan)) = (&self.batch, &mut self.plan) else {
             return Err(road_model::Error::Engine(
                 "step before prepare and load".into(),
             ));
         };
-        // Every scene of the lockstep batch shares this step's σ vector.
-        self.sigma_cur.clear();
-        self.sigma_next.clear();
-        for _ in 0..self.scenes {
-            self.sigma_cur.extend_from_slice(sigma_cur);
-            self.sigma_next.extend_from_slice(sigma_next);
-        }
-        plan.run(self.ctx, batch, &self.sigma_cur, &self.sigma_next, nfe == 2)
+        // σ rows are per scene: [B, W].
+        plan.run(self.ctx, batch, sigma_cur, sigma_next, second_evaluation)
             .map_err(engine_err)
     }
 

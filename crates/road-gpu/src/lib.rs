@@ -32,6 +32,9 @@ pub enum Error {
     Readback(String),
     #[error("cannot use the checkpoint: {0}")]
     Checkpoint(String),
+    /// Inputs whose sizes do not match the prepared batch.
+    #[error("engine input: {0}")]
+    Input(String),
 }
 
 pub type Result<T, E = Error> = std::result::Result<T, E>;

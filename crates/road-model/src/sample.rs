@@ -8,6 +8,7 @@
 
 use candle_core::{Device, Tensor};
 use rand::rngs::StdRng;
+use rand::{RngCore, SeedableRng};
 use road_sched::{PlannerSpec, SceneSpec, Scheduler, TickOutcome, WindowUpdate};
 
 use crate::batch::{AGENT_FEATURES, SceneInput, normal_vec};
@@ -43,9 +44,11 @@ struct SceneState {
     emitted: Vec<f32>, // [agents, steps, 3]
 }
 
-/// What the rollout driver needs of an engine: static inputs once, then Heun steps of every
-/// scene in lockstep on device-resident windows, loaded before a tick's first step and read
-/// back after its last (so a GPU engine reads back once per tick).
+/// What the rollout driver needs of an engine: static inputs once, then batched Heun steps on
+/// device-resident windows, each scene with its own per-slot σ row (scenes at different phases,
+/// or under different planners, share a batch; a scene with σ_cur = σ_next everywhere holds
+/// still). A scene's window is loaded when its stage starts; windows are read back once per
+/// tick.
 pub trait StepEngine {
     /// W of the model.
     fn window_slots(&self) -> usize;
@@ -59,10 +62,18 @@ pub trait StepEngine {
         map: &[f32],
         map_valid: &[f32],
     ) -> Result<()>;
-    /// Windows `[B, A, W, 3]` and validity `[B, A, W]` before a tick's first step.
+    /// Every window `[B, A, W, 3]` and validity `[B, A, W]`, once after `prepare`.
     fn load(&mut self, windows: &[f32], valid: &[f32]) -> Result<()>;
-    /// One Heun step of every scene with the per-slot σ `[W]` (EDM Algorithm 1, per slot).
-    fn step(&mut self, sigma_cur: &[f32], sigma_next: &[f32], nfe: u8) -> Result<()>;
+    /// One scene's window `[A, W, 3]` and validity `[A, W]` (at the start of its stage).
+    fn load_scene(&mut self, scene: usize, window: &[f32], valid: &[f32]) -> Result<()>;
+    /// One Heun step of every scene, σ `[B, W]` per scene and slot (EDM Algorithm 1, per slot).
+    /// Without `second_evaluation` every changing slot takes the Euler step.
+    fn step(
+        &mut self,
+        sigma_cur: &[f32],
+        sigma_next: &[f32],
+        second_evaluation: bool,
+    ) -> Result<()>;
     /// The windows after a tick's last step.
     fn read(&mut self, windows: &mut [f32]) -> Result<()>;
 }
@@ -134,7 +145,24 @@ impl StepEngine for CpuEngine<'_> {
         Ok(())
     }
 
-    fn step(&mut self, sigma_cur: &[f32], sigma_next: &[f32], nfe: u8) -> Result<()> {
+    fn load_scene(&mut self, scene: usize, window: &[f32], valid: &[f32]) -> Result<()> {
+        let (x, v) = (window.len(), valid.len());
+        if (scene + 1) * x > self.windows.len() || (scene + 1) * v > self.valid.len() {
+            return Err(Error::data(format!(
+                "load_scene {scene}: outside the loaded batch"
+            )));
+        }
+        self.windows[scene * x..(scene + 1) * x].copy_from_slice(window);
+        self.valid[scene * v..(scene + 1) * v].copy_from_slice(valid);
+        Ok(())
+    }
+
+    fn step(
+        &mut self,
+        sigma_cur: &[f32],
+        sigma_next: &[f32],
+        second_evaluation: bool,
+    ) -> Result<()> {
         let (Some(features), Some(map_tokens), Some(map_valid)) =
             (&self.features, &self.map_tokens, &self.map_valid)
         else {
@@ -148,7 +176,7 @@ impl StepEngine for CpuEngine<'_> {
             self.agents,
             sigma_cur,
             sigma_next,
-            nfe,
+            second_evaluation,
             features,
             map_tokens,
             map_valid,
@@ -194,15 +222,19 @@ pub fn rollout_with(
     }
     let mut driver = RolloutDriver::new(engine, planner, scenes, steps, rng)?;
     for _ in 0..steps {
-        driver.tick(engine, rng, &mut |_, _| Ok(()))?;
+        driver.tick(engine, &mut |_, _| Ok(()))?;
     }
     driver.into_rollout()
 }
 
-/// Tick-by-tick rollouts of many scenes in lockstep (one planner): the open-loop
-/// [`rollout_with`] and the closed loop of `road-sim`, where agents the model does not drive
-/// overwrite their emitted states every tick (math doc: "In closed loop the ego agent's slots are
-/// overwritten by the states it reports").
+/// Tick-by-tick rollouts of many scenes batched on one engine: the open-loop [`rollout_with`]
+/// and the closed loop of `road-sim`, where agents the model does not drive overwrite their
+/// emitted states every tick (math doc: "In closed loop the ego agent's slots are overwritten by
+/// the states it reports").
+///
+/// The scheduler forms the batches: every round, each scene with a tick in progress contributes
+/// its own σ rows (its planner, its phase); the others hold still. Each scene draws its noise
+/// from its own random stream, so its samples do not depend on which scenes share its batches.
 pub struct RolloutDriver {
     n: usize,
     w: usize,
@@ -210,15 +242,19 @@ pub struct RolloutDriver {
     obs_sigma: f32,
     sigma_max: f32,
     states: Vec<SceneState>,
+    rngs: Vec<StdRng>,
     sched: Scheduler,
     ids: Vec<road_sched::SceneId>,
-    outcomes: Vec<TickOutcome>,
-    packed: Vec<f32>,       // [B, A, W, 3]
-    packed_valid: Vec<f32>, // [B, A, W]
-    ticks: usize,
-    planner: PlannerSpec,
+    /// Scheduler slot index → scene.
+    scene_of_slot: Vec<usize>,
+    planners: Vec<PlannerSpec>,
     /// Model evaluations per scene under planners switched away from.
-    nfe_before: u64,
+    nfe_before: Vec<u64>,
+    outcomes: Vec<TickOutcome>,
+    packed: Vec<f32>,     // [B, A, W, 3]
+    sigma_cur: Vec<f32>,  // [B, W]
+    sigma_next: Vec<f32>, // [B, W]
+    ticks: Vec<usize>,
     switches: usize,
 }
 
@@ -232,9 +268,12 @@ impl std::fmt::Debug for RolloutDriver {
     }
 }
 
+/// σ of a slot that holds still in a batch (any positive value: σ_cur = σ_next skips it).
+const IDLE_SIGMA: f32 = 1.0;
+
 impl RolloutDriver {
-    /// Prepares `engine` with the scenes' static inputs and builds every first window.
-    /// `steps_hint` only sizes buffers.
+    /// Prepares `engine` with the scenes' static inputs, builds and loads every first window.
+    /// `rng` seeds the scenes' own noise streams; `steps_hint` only sizes buffers.
     pub fn new(
         engine: &mut dyn StepEngine,
         planner: &PlannerSpec,
@@ -295,6 +334,14 @@ impl RolloutDriver {
         }
         engine.prepare(b, a_max, &feats, p_max, &map, &map_valid)?;
 
+        let base_seed = rng.next_u64();
+        let mut rngs: Vec<StdRng> = (0..b)
+            .map(|i| {
+                StdRng::seed_from_u64(
+                    base_seed ^ (i as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15),
+                )
+            })
+            .collect();
         let mut states: Vec<SceneState> = scenes
             .iter()
             .map(|s| {
@@ -322,9 +369,18 @@ impl RolloutDriver {
                 }
             })
             .collect();
-        for s in &mut states {
-            rebuild_window(s, n, w, obs_sigma, sigma_max, rng);
+        for (s, r) in states.iter_mut().zip(&mut rngs) {
+            rebuild_window(s, n, w, obs_sigma, sigma_max, r);
         }
+        let packed: Vec<f32> = states
+            .iter()
+            .flat_map(|s| s.window.iter().copied())
+            .collect();
+        let packed_valid: Vec<f32> = states
+            .iter()
+            .flat_map(|s| s.valid.iter().copied())
+            .collect();
+        engine.load(&packed, &packed_valid)?;
 
         let mut sched = Scheduler::with_capacity(b);
         let pid = sched.add_planner("rollout", planner.clone())?;
@@ -336,6 +392,13 @@ impl RolloutDriver {
                 })
             })
             .collect::<road_sched::Result<Vec<_>>>()?;
+        let mut scene_of_slot = vec![usize::MAX; b];
+        for (i, id) in ids.iter().enumerate() {
+            if id.index() >= scene_of_slot.len() {
+                scene_of_slot.resize(id.index() + 1, usize::MAX);
+            }
+            scene_of_slot[id.index()] = i;
+        }
         Ok(Self {
             n,
             w,
@@ -343,56 +406,19 @@ impl RolloutDriver {
             obs_sigma,
             sigma_max,
             states,
+            rngs,
             sched,
             ids,
+            scene_of_slot,
+            planners: vec![planner.clone(); b],
+            nfe_before: vec![0; b],
             outcomes: Vec::with_capacity(b),
-            packed: vec![0.0f32; b * a_max * w * 3],
-            packed_valid: vec![0.0f32; b * a_max * w],
-            ticks: 0,
-            planner: planner.clone(),
-            nfe_before: 0,
+            packed,
+            sigma_cur: vec![IDLE_SIGMA; b * w],
+            sigma_next: vec![IDLE_SIGMA; b * w],
+            ticks: vec![0; b],
             switches: 0,
         })
-    }
-
-    /// The planner the next tick uses.
-    pub fn planner(&self) -> &PlannerSpec {
-        &self.planner
-    }
-
-    /// Switches every scene to `planner` from the next tick on. It must run on the same model:
-    /// the same window (W) and observations (n). Each window is rebuilt from the history (the
-    /// last n states, emitted or overwritten) with fresh noise, so the new planner starts with
-    /// its warm-up, as a newly admitted scene does.
-    pub fn switch_planner(&mut self, planner: &PlannerSpec, rng: &mut StdRng) -> Result<()> {
-        if planner.window_slots() != self.w || planner.obs_slots != self.n {
-            return Err(Error::data(format!(
-                "cannot switch to a planner with W = {} and n = {}: the model runs W = {}, n = {}",
-                planner.window_slots(),
-                planner.obs_slots,
-                self.w,
-                self.n
-            )));
-        }
-        self.switches += 1;
-        let pid = self
-            .sched
-            .add_planner(&format!("rollout-{}", self.switches), planner.clone())?;
-        let mut nfe = None;
-        for id in std::mem::take(&mut self.ids) {
-            let stats = self.sched.retire(id)?;
-            nfe.get_or_insert(stats.nfe);
-            self.ids.push(self.sched.admit(SceneSpec {
-                planner: pid,
-                external_agents: vec![],
-            })?);
-        }
-        self.nfe_before += nfe.unwrap_or(0);
-        for s in &mut self.states {
-            rebuild_window(s, self.n, self.w, self.obs_sigma, self.sigma_max, rng);
-        }
-        self.planner = planner.clone();
-        Ok(())
     }
 
     /// Scenes in the rollout.
@@ -405,69 +431,148 @@ impl RolloutDriver {
         self.states[scene].agents
     }
 
-    /// Simulated steps so far.
+    /// Simulated steps of scene 0 so far (every scene's, when all tick together).
     pub fn ticks(&self) -> usize {
-        self.ticks
+        self.ticks[0]
     }
 
-    /// One simulated step of every scene. `overrides(scene, emitted)` is called once per scene
-    /// with the states the model emitted this tick, `[agents·3]` in model units, and may
-    /// overwrite the agents it drives before they join the observations.
+    /// Simulated steps of one scene so far.
+    pub fn scene_ticks(&self, scene: usize) -> usize {
+        self.ticks[scene]
+    }
+
+    /// The planner scene 0's next tick uses.
+    pub fn planner(&self) -> &PlannerSpec {
+        &self.planners[0]
+    }
+
+    /// Switches every scene to `planner`; see [`Self::switch_scene_planner`].
+    pub fn switch_planner(&mut self, planner: &PlannerSpec) -> Result<()> {
+        for scene in 0..self.states.len() {
+            self.switch_scene_planner(scene, planner)?;
+        }
+        Ok(())
+    }
+
+    /// Switches one scene to `planner` from its next tick on. It must run on the same model:
+    /// the same window (W) and observations (n). The window is rebuilt from the history (the
+    /// last n states, emitted or overwritten) with fresh noise, so the new planner starts with
+    /// its warm-up, as a newly admitted scene does, while other scenes go on where they are.
+    pub fn switch_scene_planner(&mut self, scene: usize, planner: &PlannerSpec) -> Result<()> {
+        if planner.window_slots() != self.w || planner.obs_slots != self.n {
+            return Err(Error::data(format!(
+                "cannot switch to a planner with W = {} and n = {}: the model runs W = {}, n = {}",
+                planner.window_slots(),
+                planner.obs_slots,
+                self.w,
+                self.n
+            )));
+        }
+        let old = self.ids.get(scene).copied().ok_or_else(|| {
+            Error::data(format!("scene {scene}: the rollout has {}", self.ids.len()))
+        })?;
+        self.switches += 1;
+        let pid = self
+            .sched
+            .add_planner(&format!("rollout-{}", self.switches), planner.clone())?;
+        let stats = self.sched.retire(old)?;
+        self.nfe_before[scene] += stats.nfe;
+        self.scene_of_slot[old.index()] = usize::MAX;
+        let id = self.sched.admit(SceneSpec {
+            planner: pid,
+            external_agents: vec![],
+        })?;
+        if id.index() >= self.scene_of_slot.len() {
+            self.scene_of_slot.resize(id.index() + 1, usize::MAX);
+        }
+        self.scene_of_slot[id.index()] = scene;
+        self.ids[scene] = id;
+        rebuild_window(
+            &mut self.states[scene],
+            self.n,
+            self.w,
+            self.obs_sigma,
+            self.sigma_max,
+            &mut self.rngs[scene],
+        );
+        self.planners[scene] = planner.clone();
+        Ok(())
+    }
+
+    /// One simulated step of every scene; see [`Self::tick_scenes`].
     pub fn tick(
         &mut self,
         engine: &mut dyn StepEngine,
-        rng: &mut StdRng,
+        overrides: &mut dyn FnMut(usize, &mut [f32]) -> Result<()>,
+    ) -> Result<()> {
+        let all: Vec<usize> = (0..self.states.len()).collect();
+        self.tick_scenes(engine, &all, overrides)
+    }
+
+    /// One simulated step of the given scenes, batched on `engine` whatever their planners and
+    /// phases. `overrides(scene, emitted)` is called once per ticked scene with the states the
+    /// model emitted, `[agents·3]` in model units, and may overwrite the agents it drives before
+    /// they join the observations.
+    pub fn tick_scenes(
+        &mut self,
+        engine: &mut dyn StepEngine,
+        scenes: &[usize],
         overrides: &mut dyn FnMut(usize, &mut [f32]) -> Result<()>,
     ) -> Result<()> {
         let b = self.states.len();
         let (n, w) = (self.n, self.w);
         let per_scene = self.a_max * w * 3;
-        for &id in &self.ids {
+        for &i in scenes {
+            let id = *self
+                .ids
+                .get(i)
+                .ok_or_else(|| Error::data(format!("scene {i}: the rollout has {b}")))?;
             self.sched.request_tick(id)?;
         }
         let mut stepped = false;
         while self.sched.next_batch(b)? > 0 {
-            // Lockstep: one planner, so every pending scene sits at the same step.
-            let batch = self.sched.batch();
-            if batch.len() != b {
-                return Err(Error::data(format!(
-                    "lockstep rollout: {} of {b} scenes pending",
-                    batch.len()
-                )));
-            }
-            let plan = self.sched.step_plan(&batch[0]);
-            if batch[0].stage_start {
-                for (i, s) in self.states.iter().enumerate() {
-                    self.packed[i * per_scene..(i + 1) * per_scene].copy_from_slice(&s.window);
-                    self.packed_valid[i * self.a_max * w..(i + 1) * self.a_max * w]
-                        .copy_from_slice(&s.valid);
+            let mut second_evaluation = false;
+            for item in self.sched.batch() {
+                let i = self.scene_of_slot[item.scene.index()];
+                let plan = self.sched.step_plan(item);
+                if item.stage_start {
+                    let s = &self.states[i];
+                    engine.load_scene(i, &s.window, &s.valid)?;
                 }
-                engine.load(&self.packed, &self.packed_valid)?;
+                self.sigma_cur[i * w..(i + 1) * w].copy_from_slice(plan.sigma_cur);
+                self.sigma_next[i * w..(i + 1) * w].copy_from_slice(plan.sigma_next);
+                second_evaluation |= plan.nfe == 2;
             }
-            engine.step(plan.sigma_cur, plan.sigma_next, plan.nfe)?;
+            engine.step(&self.sigma_cur, &self.sigma_next, second_evaluation)?;
+            // The batch's scenes hold still in later rounds unless they are in them again.
+            for item in self.sched.batch() {
+                let i = self.scene_of_slot[item.scene.index()];
+                self.sigma_cur[i * w..(i + 1) * w].fill(IDLE_SIGMA);
+                self.sigma_next[i * w..(i + 1) * w].fill(IDLE_SIGMA);
+            }
             stepped = true;
             self.sched.complete_batch();
         }
         if stepped {
             engine.read(&mut self.packed)?;
-            for (i, s) in self.states.iter_mut().enumerate() {
-                s.window
-                    .copy_from_slice(&self.packed[i * per_scene..(i + 1) * per_scene]);
-            }
         }
         self.outcomes.clear();
         self.sched.take_outcomes(&mut self.outcomes);
-        if self.outcomes.len() != b {
+        if self.outcomes.len() != scenes.len() {
             return Err(Error::data(format!(
-                "tick {}: {} of {b} scenes emitted a state",
-                self.ticks,
-                self.outcomes.len()
+                "{} of {} ticked scenes emitted a state",
+                self.outcomes.len(),
+                scenes.len()
             )));
         }
         let mut emitted: Vec<f32> = Vec::with_capacity(self.a_max * 3);
         for o in &self.outcomes {
-            let i = o.scene.index();
+            let i = self.scene_of_slot[o.scene.index()];
             let s = &mut self.states[i];
+            if stepped && o.nfe > 0 {
+                s.window
+                    .copy_from_slice(&self.packed[i * per_scene..(i + 1) * per_scene]);
+            }
             let slot = n + o.emit_future_slot;
             emitted.clear();
             for a in 0..s.agents {
@@ -482,29 +587,40 @@ impl RolloutDriver {
                 s.history_valid[a].push(true);
             }
             s.emitted.extend_from_slice(&emitted);
+            let rng = &mut self.rngs[i];
             match o.then {
-                WindowUpdate::Shift => {
-                    shift_window(s, n, w, self.obs_sigma, self.sigma_max, rng);
-                }
+                WindowUpdate::Shift => shift_window(s, n, w, self.obs_sigma, self.sigma_max, rng),
                 WindowUpdate::Rebuild => {
                     rebuild_window(s, n, w, self.obs_sigma, self.sigma_max, rng);
                 }
                 WindowUpdate::Hold | WindowUpdate::Exhausted => {}
             }
+            self.ticks[i] += 1;
         }
-        self.ticks += 1;
         Ok(())
     }
 
-    /// Model evaluations per scene so far.
+    /// Model evaluations of scene 0 so far (every scene's, when all tick together).
     pub fn nfe(&self) -> Result<u64> {
-        Ok(self.nfe_before + self.sched.stats(self.ids[0])?.nfe)
+        self.scene_nfe(0)
     }
 
-    /// The emitted states of every scene, `[scenes][agents, ticks, 3]` in model units.
+    /// Model evaluations of one scene so far.
+    pub fn scene_nfe(&self, scene: usize) -> Result<u64> {
+        Ok(self.nfe_before[scene] + self.sched.stats(self.ids[scene])?.nfe)
+    }
+
+    /// The emitted states of every scene, `[scenes][agents, ticks, 3]` in model units. Every
+    /// scene must have ticked equally often.
     pub fn into_rollout(self) -> Result<Rollout> {
         let nfe = self.nfe()?;
-        let steps = self.ticks;
+        let steps = self.ticks[0];
+        if self.ticks.iter().any(|&t| t != steps) {
+            return Err(Error::data(format!(
+                "scenes ticked unequally ({:?}): no common rollout",
+                self.ticks
+            )));
+        }
         Ok(Rollout {
             agents: self.states.iter().map(|s| s.agents).collect(),
             steps,
@@ -588,8 +704,8 @@ fn shift_window(
     }
 }
 
-/// One Heun step of every scene (per-slot σ, EDM Algorithm 1) on packed windows
-/// `[B, A, W, 3]`; returns the new windows.
+/// One Heun step of every scene (per-scene, per-slot σ `[B, W]`, EDM Algorithm 1) on packed
+/// windows `[B, A, W, 3]`; returns the new windows.
 #[allow(clippy::too_many_arguments)]
 fn heun_step(
     model: &Denoiser,
@@ -599,19 +715,26 @@ fn heun_step(
     a_max: usize,
     sigma_cur: &[f32],
     sigma_next: &[f32],
-    nfe: u8,
+    second_evaluation: bool,
     feats: &Tensor,
     map_tokens: &Tensor,
     map_valid: &Tensor,
 ) -> Result<Vec<f32>> {
     let device = Device::Cpu;
-    let w = sigma_cur.len();
+    let w = sigma_cur.len() / scenes.max(1);
+    if sigma_cur.len() != scenes * w || sigma_next.len() != scenes * w {
+        return Err(Error::data(format!(
+            "σ rows: {} and {} values for {scenes} scenes",
+            sigma_cur.len(),
+            sigma_next.len()
+        )));
+    }
+    // Element e of [B, A, W, 3] → its (scene, slot) row index in σ [B, W].
+    let row = |e: usize| (e / (3 * a_max * w)) * w + (e / 3) % w;
     let x_t = Tensor::from_vec(x.to_vec(), (scenes, a_max, w, 3), &device)?;
     let valid_t = Tensor::from_vec(valid.to_vec(), (scenes, a_max, w), &device)?;
-    let sig = |s: &[f32]| -> Result<Tensor> {
-        let row: Vec<f32> = (0..scenes).flat_map(|_| s.iter().copied()).collect();
-        Ok(Tensor::from_vec(row, (scenes, w), &device)?)
-    };
+    let sig =
+        |s: &[f32]| -> Result<Tensor> { Ok(Tensor::from_vec(s.to_vec(), (scenes, w), &device)?) };
     let d1 = model
         .denoise(
             &x_t,
@@ -627,13 +750,13 @@ fn heun_step(
     // Euler for every changing slot.
     let mut x_e = x.to_vec();
     for (e, (xe, xv)) in x_e.iter_mut().zip(x).enumerate() {
-        let slot = (e / 3) % w;
-        let (s, sn) = (sigma_cur[slot], sigma_next[slot]);
+        let r = row(e);
+        let (s, sn) = (sigma_cur[r], sigma_next[r]);
         if s != sn {
             *xe = xv + (sn - s) * (xv - d1[e]) / s;
         }
     }
-    if nfe != 2 {
+    if !second_evaluation {
         return Ok(x_e);
     }
     // Second evaluation at σ_next; slots landing on 0 keep their Euler result (their model
@@ -658,8 +781,8 @@ fn heun_step(
         .to_vec1::<f32>()?;
     let mut out = x_e.clone();
     for (e, o) in out.iter_mut().enumerate() {
-        let slot = (e / 3) % w;
-        let (s, sn) = (sigma_cur[slot], sigma_next[slot]);
+        let r = row(e);
+        let (s, sn) = (sigma_cur[r], sigma_next[r]);
         if s != sn && sn > 0.0 {
             let slope1 = (x[e] - d1[e]) / s;
             let slope2 = (x_e[e] - d2[e]) / sn;

@@ -438,3 +438,84 @@ fn reference_sampling_runs_every_planner_and_learns_the_lanes() {
         "ADE trained {trained_ade} vs untrained {untrained_ade}"
     );
 }
+
+/// The scheduler batches scenes at different phases and under different planners: a scene's
+/// samples are the same whether it runs alone or shares every batch with a scene that is in its
+/// warm-up while it rolls (each scene has its own σ rows and its own noise stream).
+#[test]
+fn scenes_at_different_phases_share_batches_without_changing_each_other() {
+    use road_model::sample::{CpuEngine, RolloutDriver, RolloutScene};
+    use road_sched::{PlannerKind, PlannerSpec};
+    let run = run_config();
+    let ds = dataset(Split::Train);
+    let (_, model) = model::init_seeded(&run.model, &Device::Cpu, 11).unwrap();
+    let n = 10;
+    let scene = |i: usize| RolloutScene {
+        history: SceneInput::from_window(&ds.window(i).unwrap(), 0, n, &run.model),
+    };
+    let rolling = PlannerSpec {
+        steps_per_diffusion: 10,
+        ..PlannerSpec::default()
+    };
+    let mpc = PlannerSpec {
+        kind: PlannerKind::Mpc,
+        replan_every: Some(2),
+        ..rolling.clone()
+    };
+    let emitted = |driver: &mut RolloutDriver, engine: &mut CpuEngine, which: &[usize]| {
+        let mut out: Vec<Vec<f32>> = vec![Vec::new(); driver.scenes()];
+        driver
+            .tick_scenes(engine, which, &mut |i, e| {
+                out[i] = e.to_vec();
+                Ok(())
+            })
+            .unwrap();
+        out
+    };
+    // Alone: scene 0 rolls for 6 ticks.
+    let mut engine = CpuEngine::new(&model);
+    let mut alone = RolloutDriver::new(
+        &mut engine,
+        &rolling,
+        &[scene(0)],
+        6,
+        &mut StdRng::seed_from_u64(3),
+    )
+    .unwrap();
+    let alone_out: Vec<Vec<f32>> = (0..6)
+        .map(|_| emitted(&mut alone, &mut engine, &[0]).swap_remove(0))
+        .collect();
+    // Together with scene 1, which switches to MPC at tick 2 (a full diffusion while scene 0
+    // is in its rolling stages) and skips tick 4.
+    let mut engine = CpuEngine::new(&model);
+    let mut both = RolloutDriver::new(
+        &mut engine,
+        &rolling,
+        &[scene(0), scene(1)],
+        6,
+        &mut StdRng::seed_from_u64(3),
+    )
+    .unwrap();
+    for (t, alone_tick) in alone_out.iter().enumerate() {
+        if t == 2 {
+            both.switch_scene_planner(1, &mpc).unwrap();
+        }
+        let which: &[usize] = if t == 4 { &[0] } else { &[0, 1] };
+        let out = emitted(&mut both, &mut engine, which);
+        for (x, y) in out[0].iter().zip(alone_tick) {
+            assert!(
+                (x - y).abs() <= 1e-4 * (1.0 + y.abs()),
+                "tick {t}: {x} vs {y}"
+            );
+        }
+    }
+    assert_eq!(both.scene_ticks(0), 6);
+    assert_eq!(both.scene_ticks(1), 5);
+    // Scene 1: the rolling warm-up (20) and one rolling stage (2), then MPC-2 replans at its
+    // ticks 2 and 4 (19 each; its tick 3 executes the plan).
+    assert_eq!(both.scene_nfe(1).unwrap(), 20 + 2 + 19 + 19);
+    assert!(
+        both.into_rollout().is_err(),
+        "unequal ticks have no common rollout"
+    );
+}

@@ -138,7 +138,7 @@ fn boxes(window: &SceneWindow, poses: &[Pose]) -> Vec<Option<OrientedBox>> {
 }
 
 impl<'m> ClosedLoop<'m> {
-    /// Builds the first windows of every scene on `engine`. `maps[i]` (when given) is scene
+    /// Builds the first windows of every scene on `engine` (`rng` seeds the scenes' noise). `maps[i]` (when given) is scene
     /// `i`'s lanelet map for the off-road check. Every agent must be present at the last
     /// observed step.
     pub fn new(
@@ -246,8 +246,8 @@ impl<'m> ClosedLoop<'m> {
 
     /// Switches every scene to another planner on the same checkpoint (same W and n), from the
     /// next tick on; see [`RolloutDriver::switch_planner`].
-    pub fn switch_planner(&mut self, planner: &PlannerSpec, rng: &mut StdRng) -> Result<()> {
-        Ok(self.driver.switch_planner(planner, rng)?)
+    pub fn switch_planner(&mut self, planner: &PlannerSpec) -> Result<()> {
+        Ok(self.driver.switch_planner(planner)?)
     }
 
     /// The planner the next tick uses.
@@ -264,7 +264,6 @@ impl<'m> ClosedLoop<'m> {
     pub fn tick(
         &mut self,
         engine: &mut dyn StepEngine,
-        rng: &mut StdRng,
         external: &mut dyn ExternalDriver,
         out: &mut Vec<SceneTick>,
     ) -> Result<()> {
@@ -293,8 +292,8 @@ impl<'m> ClosedLoop<'m> {
         }
         let scenes = &mut self.scenes;
         let heading_scale = self.heading_scale;
-        self.driver.tick(engine, rng, &mut |i: usize,
-                                             emitted: &mut [f32]|
+        self.driver.tick(engine, &mut |i: usize,
+                                        emitted: &mut [f32]|
          -> ModelResult<()> {
             let s = &mut scenes[i];
             for (a, o) in s.overrides.iter().enumerate() {

@@ -66,7 +66,7 @@ fn simulate(
     let mut out = Vec::new();
     let mut ticks = Vec::new();
     for _ in 0..steps {
-        sim.tick(&mut engine, &mut rng, external, &mut out).unwrap();
+        sim.tick(&mut engine, external, &mut out).unwrap();
         ticks.push(out[0].clone());
     }
     assert_eq!(sim.ticks(), steps);
@@ -206,7 +206,7 @@ fn an_external_agent_without_a_driver_is_an_error() {
     )
     .unwrap();
     let err = sim
-        .tick(&mut engine, &mut rng, &mut NoExternal, &mut Vec::new())
+        .tick(&mut engine, &mut NoExternal, &mut Vec::new())
         .unwrap_err();
     assert!(err.to_string().contains("scene 0, agent 0"), "{err}");
     // Controllers that do not match the agents are refused up front.
@@ -284,7 +284,7 @@ fn a_scene_switches_planner_between_ticks_on_the_same_checkpoint() {
     .unwrap();
     let mut out = Vec::new();
     for _ in 0..3 {
-        sim.tick(&mut engine, &mut rng, &mut ego, &mut out).unwrap();
+        sim.tick(&mut engine, &mut ego, &mut out).unwrap();
     }
     let rolling_nfe = sim.nfe().unwrap();
     // DJINN-4 MPC-1 on the same W = 14 checkpoint: a full K = 8 diffusion every tick.
@@ -293,10 +293,10 @@ fn a_scene_switches_planner_between_ticks_on_the_same_checkpoint() {
         replan_every: Some(1),
         ..planner()
     };
-    sim.switch_planner(&mpc, &mut rng).unwrap();
+    sim.switch_planner(&mpc).unwrap();
     assert_eq!(sim.planner(), &mpc);
     for _ in 0..3 {
-        sim.tick(&mut engine, &mut rng, &mut ego, &mut out).unwrap();
+        sim.tick(&mut engine, &mut ego, &mut out).unwrap();
     }
     assert_eq!(sim.ticks(), 6);
     // Heun: 2 NFE per step but 1 on the last (σ_next = 0 everywhere): 15 per MPC tick.
@@ -310,6 +310,6 @@ fn a_scene_switches_planner_between_ticks_on_the_same_checkpoint() {
         future_slots: 1,
         ..planner()
     };
-    let err = sim.switch_planner(&ar, &mut rng).unwrap_err();
+    let err = sim.switch_planner(&ar).unwrap_err();
     assert!(err.to_string().contains("W = 11"), "{err}");
 }

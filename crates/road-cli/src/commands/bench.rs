@@ -351,15 +351,18 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
                     .map(|s| flops_per_evaluation(&config, s.agents, s.polylines))
                     .sum::<f64>()
                 / b as f64;
+            // Every scene at the same step here; each still gets its own σ row, as in serving.
+            let sigma_cur = plan.sigma_cur.repeat(b);
+            let sigma_next = plan.sigma_next.repeat(b);
             let time =
                 |engine: &mut dyn StepEngine, wait: &dyn Fn() -> Result<()>| -> Result<f64> {
                     engine.prepare(b, a, &feats, p, &map, &map_valid)?;
                     engine.load(&x, &valid)?;
-                    engine.step(plan.sigma_cur, plan.sigma_next, 2)?;
+                    engine.step(&sigma_cur, &sigma_next, true)?;
                     wait()?;
                     let started = Instant::now();
                     for _ in 0..args.reps {
-                        engine.step(plan.sigma_cur, plan.sigma_next, 2)?;
+                        engine.step(&sigma_cur, &sigma_next, true)?;
                     }
                     wait()?;
                     Ok(started.elapsed().as_secs_f64() / args.reps as f64)

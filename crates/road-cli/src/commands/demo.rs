@@ -89,7 +89,7 @@ pub fn run(args: DemoArgs) -> Result<ExitCode> {
     let bar = indicatif::ProgressBar::new(args.steps as u64);
     for _ in 0..args.steps {
         let t0 = Instant::now();
-        sim.tick(engine.as_dyn(), &mut rng, &mut ego, &mut out)?;
+        sim.tick(engine.as_dyn(), &mut ego, &mut out)?;
         tick_ms.push(t0.elapsed().as_secs_f64() * 1e3);
         ticks.push(out[0].clone());
         bar.inc(1);

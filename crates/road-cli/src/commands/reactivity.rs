@@ -217,7 +217,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
                 vec![Vec::with_capacity(args.sim_steps); chunk.len() * samples];
             let mut out = Vec::new();
             for _ in 0..args.sim_steps {
-                sim.tick(engine.as_dyn(), &mut rng, &mut NoExternal, &mut out)?;
+                sim.tick(engine.as_dyn(), &mut NoExternal, &mut out)?;
                 for (i, t) in out.drain(..).enumerate() {
                     per_sim[i].push(t);
                 }
