@@ -9,6 +9,7 @@
 pub mod batch;
 pub mod checkpoint;
 pub mod config;
+pub mod fused;
 pub mod model;
 pub mod sample;
 pub mod train;

@@ -4,7 +4,7 @@
 //! Tensor names used in the checkpoint (see `docs/checkpoint.md`) follow the module paths
 //! below, e.g. `blocks.0.time.q.weight`.
 
-use candle_core::{D, DType, Module, Tensor};
+use candle_core::{DType, Module, Tensor};
 use candle_nn::{LayerNorm, Linear, VarBuilder, layer_norm, linear};
 
 use crate::Result;
@@ -28,7 +28,7 @@ fn norm(ln: &LayerNorm, x: &Tensor, mode: Mode) -> Result<Tensor> {
         Mode::Infer => ln.forward(&x.contiguous()?)?,
         Mode::Train => {
             let bias = ln.bias().expect("layer norms carry a bias");
-            candle_nn::ops::layer_norm_slow(x, ln.weight(), bias, LN_EPS as f32)?
+            crate::fused::layer_norm(x, ln.weight(), bias, LN_EPS as f32)?
         }
     })
 }
@@ -50,7 +50,7 @@ fn lin(layer: &Linear, x: &Tensor) -> Result<Tensor> {
 fn softmax(x: &Tensor, mode: Mode) -> Result<Tensor> {
     Ok(match mode {
         Mode::Infer => candle_nn::ops::softmax_last_dim(x)?,
-        Mode::Train => candle_nn::ops::softmax(x, D::Minus1)?,
+        Mode::Train => crate::fused::softmax_last_dim(x)?,
     })
 }
 
