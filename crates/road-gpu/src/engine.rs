@@ -1015,6 +1015,7 @@ pub struct GpuStepEngine<'a> {
     map: Option<MapTokens>,
     batch: Option<DeviceBatch>,
     plan: Option<HeunPlan>,
+    window: Option<crate::kernels::window::WindowOps>,
     features: Vec<f32>,
     scenes: usize,
     agents: usize,
@@ -1028,6 +1029,7 @@ impl<'a> GpuStepEngine<'a> {
             map: None,
             batch: None,
             plan: None,
+            window: None,
             features: Vec::new(),
             scenes: 0,
             agents: 0,
@@ -1064,6 +1066,7 @@ impl road_model::sample::StepEngine for GpuStepEngine<'_> {
         // A new scene set: the next load makes its batch and plan.
         self.batch = None;
         self.plan = None;
+        self.window = None;
         Ok(())
     }
 
@@ -1101,6 +1104,13 @@ impl road_model::sample::StepEngine for GpuStepEngine<'_> {
                 .heun_plan(self.ctx, &batch, map)
                 .map_err(engine_err)?,
         );
+        self.window = Some(crate::kernels::window::WindowOps::new(
+            self.ctx,
+            &batch.x,
+            self.scenes,
+            self.agents,
+            self.model.config.window_slots,
+        ));
         self.batch = Some(batch);
         Ok(())
     }
@@ -1154,14 +1164,44 @@ impl road_model::sample::StepEngine for GpuStepEngine<'_> {
             .map_err(engine_err)
     }
 
-    fn read(&mut self, windows: &mut [f32]) -> road_model::Result<()> {
-        let batch = self
-            .batch
-            .as_ref()
-            .ok_or_else(|| road_model::Error::Engine("read before load".into()))?;
-        let bytes =
-            read_back(self.ctx, &batch.x, (windows.len() * 4) as u64).map_err(engine_err)?;
-        windows.copy_from_slice(bytemuck::cast_slice(&bytes));
+    fn read_emitted(&mut self, slots: &[Option<usize>], out: &mut [f32]) -> road_model::Result<()> {
+        let window = self
+            .window
+            .as_mut()
+            .ok_or_else(|| road_model::Error::Engine("read_emitted before load".into()))?;
+        window.emitted(self.ctx, slots, out).map_err(engine_err)
+    }
+
+    fn shift(
+        &mut self,
+        edits: &[road_model::sample::ShiftEdit<'_>],
+        shape: road_model::sample::ShiftShape,
+    ) -> road_model::Result<()> {
+        let (Some(batch), Some(window)) = (&self.batch, &mut self.window) else {
+            return Err(road_model::Error::Engine("shift before load".into()));
+        };
+        let v_len = self.agents * self.model.config.window_slots;
+        let list: Vec<(usize, &[f32], &[f32])> = edits
+            .iter()
+            .map(|e| (e.scene, e.emitted, e.noise))
+            .collect();
+        window
+            .shift(self.ctx, &batch.x, &list, shape)
+            .map_err(engine_err)?;
+        for e in edits {
+            if e.valid.len() != v_len {
+                return Err(road_model::Error::Engine(format!(
+                    "shift of scene {}: {} validity flags, expected {v_len}",
+                    e.scene,
+                    e.valid.len()
+                )));
+            }
+            self.ctx.queue.write_buffer(
+                &batch.valid,
+                (e.scene * v_len * 4) as u64,
+                bytemuck::cast_slice(e.valid),
+            );
+        }
         Ok(())
     }
 }

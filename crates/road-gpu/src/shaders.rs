@@ -18,10 +18,12 @@ pub enum Shader {
     Elementwise,
     /// The per-slot Heun step of the sampler.
     Heun,
+    /// Window updates on the device: gather the emitted slot, shift after an emission.
+    Window,
 }
 
 impl Shader {
-    pub const ALL: [Shader; 7] = [
+    pub const ALL: [Shader; 8] = [
         Shader::Edm,
         Shader::Linear,
         Shader::LayerNorm,
@@ -29,6 +31,7 @@ impl Shader {
         Shader::Embed,
         Shader::Elementwise,
         Shader::Heun,
+        Shader::Window,
     ];
 
     /// File name under `shaders/`.
@@ -41,6 +44,7 @@ impl Shader {
             Shader::Embed => "embed.wgsl",
             Shader::Elementwise => "elementwise.wgsl",
             Shader::Heun => "heun.wgsl",
+            Shader::Window => "window.wgsl",
         }
     }
 
@@ -53,6 +57,7 @@ impl Shader {
             Shader::Embed => include_str!("../../../shaders/embed.wgsl"),
             Shader::Elementwise => include_str!("../../../shaders/elementwise.wgsl"),
             Shader::Heun => include_str!("../../../shaders/heun.wgsl"),
+            Shader::Window => include_str!("../../../shaders/window.wgsl"),
         }
     }
 

@@ -224,3 +224,74 @@ fn attention_matches_the_cpu_reference_over_every_layout() {
         }
     }
 }
+
+/// `window.wgsl`: the emitted-slot gather and the shift after an emission, against
+/// `road_model::sample::{window_emitted, window_shift}` (what the candle engine runs), on
+/// random shapes with some scenes not read or not shifted and padded agents.
+#[test]
+fn window_kernels_match_the_cpu_reference() {
+    use road_gpu::kernels::storage_buffer;
+    use road_gpu::kernels::window::WindowOps;
+    use road_model::sample::{ShiftEdit, ShiftShape, window_emitted, window_shift};
+    let ctx = context();
+    let mut rng = rand::rngs::StdRng::seed_from_u64(21);
+    for (b, a, w, n) in [
+        (1usize, 1usize, 2usize, 1usize),
+        (3, 5, 11, 10),
+        (7, 13, 20, 10),
+        (70, 4, 40, 10),
+    ] {
+        let x = random(&mut rng, b * a * w * 3, 3.0);
+        let buffer = storage_buffer(&ctx, "x", (x.len() * 4) as u64);
+        ctx.queue.write_buffer(&buffer, 0, bytemuck::cast_slice(&x));
+        let mut ops = WindowOps::new(&ctx, &buffer, b, a, w);
+        // Gather: every third scene not read.
+        let slots: Vec<Option<usize>> = (0..b)
+            .map(|i| (i % 3 != 2).then(|| rng.random_range(0..w)))
+            .collect();
+        let mut got = vec![0.0f32; b * a * 3];
+        ops.emitted(&ctx, &slots, &mut got).unwrap();
+        let mut expected = vec![0.0f32; b * a * 3];
+        window_emitted(&x, a, w, &slots, &mut expected);
+        assert_eq!(got, expected, "gather {b}×{a}×{w}");
+        // Shift: every other scene, with fewer real agents than the padded count.
+        let shape = ShiftShape {
+            observed: n,
+            obs_sigma: 0.002,
+            sigma_max: 80.0,
+        };
+        let edits: Vec<(usize, Vec<f32>, Vec<f32>)> = (0..b)
+            .step_by(2)
+            .map(|i| {
+                let real = 1 + i % a;
+                (
+                    i,
+                    random(&mut rng, real * 3, 2.0),
+                    random(&mut rng, real * 6, 2.0),
+                )
+            })
+            .collect();
+        let list: Vec<(usize, &[f32], &[f32])> = edits
+            .iter()
+            .map(|(i, e, z)| (*i, e.as_slice(), z.as_slice()))
+            .collect();
+        ops.shift(&ctx, &buffer, &list, shape).unwrap();
+        let bytes = road_gpu::kernels::read_back(&ctx, &buffer, (x.len() * 4) as u64).unwrap();
+        let got: Vec<f32> = bytemuck::cast_slice(&bytes).to_vec();
+        let mut expected = x.clone();
+        let per_scene = a * w * 3;
+        let valid = vec![1.0f32; a * w];
+        for (i, e, z) in &edits {
+            let edit = ShiftEdit {
+                scene: *i,
+                emitted: e,
+                noise: z,
+                valid: &valid,
+            };
+            window_shift(&mut expected[i * per_scene..][..per_scene], w, &edit, shape);
+        }
+        if let Err(m) = Tolerance::F32.check(&got, &expected) {
+            panic!("shift {b}×{a}×{w}: {m}");
+        }
+    }
+}

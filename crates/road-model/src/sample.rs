@@ -33,7 +33,8 @@ pub struct Rollout {
     pub nfe: u64,
 }
 
-/// Per-scene window state in model units: `[A_max, W, 3]` plus the emitted history.
+/// Per-scene state in model units. The window lives in the engine; `window` is the host copy
+/// built from the history when the window is (re)built, `valid` the window's current validity.
 struct SceneState {
     agents: usize,
     window: Vec<f32>, // [A_max, W, 3]
@@ -47,8 +48,9 @@ struct SceneState {
 /// What the rollout driver needs of an engine: static inputs once, then batched Heun steps on
 /// device-resident windows, each scene with its own per-slot σ row (scenes at different phases,
 /// or under different planners, share a batch; a scene with σ_cur = σ_next everywhere holds
-/// still). A scene's window is loaded when its stage starts; windows are read back once per
-/// tick.
+/// still). Windows stay on the device from tick to tick: a scene's window is loaded only when
+/// it is (re)built, a tick reads back only the emitted slots, and the shift after an emission
+/// happens on the device.
 pub trait StepEngine {
     /// W of the model.
     fn window_slots(&self) -> usize;
@@ -74,8 +76,80 @@ pub trait StepEngine {
         sigma_next: &[f32],
         second_evaluation: bool,
     ) -> Result<()>;
-    /// The windows after a tick's last step.
-    fn read(&mut self, windows: &mut [f32]) -> Result<()>;
+    /// Each scene's emitted states `[B, A, 3]` from window slot `slots[b]` (`None`: not read,
+    /// zeros): the only readback of a tick.
+    fn read_emitted(&mut self, slots: &[Option<usize>], out: &mut [f32]) -> Result<()>;
+    /// After an emission, on the device: every scene with an edit shifts its window by one
+    /// slot (see [`window_shift`]) and takes the edit's validity `[A, W]`.
+    fn shift(&mut self, edits: &[ShiftEdit<'_>], shape: ShiftShape) -> Result<()>;
+}
+
+/// One scene's window shift after an emission.
+#[derive(Debug, Clone, Copy)]
+pub struct ShiftEdit<'a> {
+    pub scene: usize,
+    /// The emitted states as they join the observations (controllers' overrides applied),
+    /// `[agents, 3]`.
+    pub emitted: &'a [f32],
+    /// Standard normal draws `[agents, 6]`: observation noise (3), then the new slot's (3).
+    pub noise: &'a [f32],
+    /// The window's validity after the shift, `[A, W]`.
+    pub valid: &'a [f32],
+}
+
+/// What a shift needs to know of the planner.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ShiftShape {
+    /// n: observed slots.
+    pub observed: usize,
+    pub obs_sigma: f32,
+    pub sigma_max: f32,
+}
+
+/// Gathers slot `slots[b]` of every scene's window `[B, A, W, 3]` into `out [B, A, 3]` (zeros
+/// where `None`). The reference of the `window_emitted` kernel.
+pub fn window_emitted(
+    windows: &[f32],
+    agents: usize,
+    w: usize,
+    slots: &[Option<usize>],
+    out: &mut [f32],
+) {
+    for (b, slot) in slots.iter().enumerate() {
+        for a in 0..agents {
+            let o = &mut out[3 * (b * agents + a)..][..3];
+            match slot {
+                Some(s) => o.copy_from_slice(&windows[3 * ((b * agents + a) * w + s)..][..3]),
+                None => o.fill(0.0),
+            }
+        }
+    }
+}
+
+/// The window after an emission from slot n of scene `scene` (`window [A, W, 3]` of that scene):
+/// slots move up by one, slot n − 1 = emitted + σ_obs·noise, slot W − 1 = σ_max·noise (agents past
+/// `emitted`'s count are padding and untouched but for the move). The reference of the
+/// `window_shift` kernel.
+pub fn window_shift(window: &mut [f32], w: usize, edit: &ShiftEdit<'_>, shape: ShiftShape) {
+    let agents = window.len() / (3 * w);
+    let real = edit.emitted.len() / 3;
+    for a in 0..agents {
+        let row = a * w;
+        window.copy_within(3 * (row + 1)..3 * (row + w), 3 * row);
+        for d in 0..3 {
+            let (e, obs, new) = if a < real {
+                (
+                    edit.emitted[3 * a + d],
+                    edit.noise[6 * a + d],
+                    edit.noise[6 * a + 3 + d],
+                )
+            } else {
+                (0.0, 0.0, 0.0)
+            };
+            window[3 * (row + shape.observed - 1) + d] = e + shape.obs_sigma * obs;
+            window[3 * (row + w - 1) + d] = shape.sigma_max * new;
+        }
+    }
 }
 
 /// The candle reference engine.
@@ -184,8 +258,36 @@ impl StepEngine for CpuEngine<'_> {
         Ok(())
     }
 
-    fn read(&mut self, windows: &mut [f32]) -> Result<()> {
-        windows.copy_from_slice(&self.windows);
+    fn read_emitted(&mut self, slots: &[Option<usize>], out: &mut [f32]) -> Result<()> {
+        let w = self.model.config.window_slots;
+        if slots.len() != self.scenes || out.len() != self.scenes * self.agents * 3 {
+            return Err(Error::data(format!(
+                "read_emitted: {} slots and {} outputs for {} scenes of {} agents",
+                slots.len(),
+                out.len(),
+                self.scenes,
+                self.agents
+            )));
+        }
+        window_emitted(&self.windows, self.agents, w, slots, out);
+        Ok(())
+    }
+
+    fn shift(&mut self, edits: &[ShiftEdit<'_>], shape: ShiftShape) -> Result<()> {
+        let w = self.model.config.window_slots;
+        let (x_len, v_len) = (self.agents * w * 3, self.agents * w);
+        for e in edits {
+            if e.scene >= self.scenes || e.valid.len() != v_len {
+                return Err(Error::data(format!(
+                    "shift of scene {}: {} validity flags, the batch has {} scenes × {v_len}",
+                    e.scene,
+                    e.valid.len(),
+                    self.scenes
+                )));
+            }
+            window_shift(&mut self.windows[e.scene * x_len..][..x_len], w, e, shape);
+            self.valid[e.scene * v_len..][..v_len].copy_from_slice(e.valid);
+        }
         Ok(())
     }
 }
@@ -251,9 +353,13 @@ pub struct RolloutDriver {
     /// Model evaluations per scene under planners switched away from.
     nfe_before: Vec<u64>,
     outcomes: Vec<TickOutcome>,
-    packed: Vec<f32>,     // [B, A, W, 3]
-    sigma_cur: Vec<f32>,  // [B, W]
-    sigma_next: Vec<f32>, // [B, W]
+    /// Scenes whose host window must go to the engine when their next stage starts (new or
+    /// rebuilt windows); otherwise the engine's window is the newer one.
+    needs_load: Vec<bool>,
+    emitted: Vec<f32>,              // [B, A, 3] read back each tick
+    emit_slots: Vec<Option<usize>>, // [B]
+    sigma_cur: Vec<f32>,            // [B, W]
+    sigma_next: Vec<f32>,           // [B, W]
     ticks: Vec<usize>,
     switches: usize,
 }
@@ -413,7 +519,9 @@ impl RolloutDriver {
             planners: vec![planner.clone(); b],
             nfe_before: vec![0; b],
             outcomes: Vec::with_capacity(b),
-            packed,
+            needs_load: vec![false; b],
+            emitted: vec![0.0; b * a_max * 3],
+            emit_slots: vec![None; b],
             sigma_cur: vec![IDLE_SIGMA; b * w],
             sigma_next: vec![IDLE_SIGMA; b * w],
             ticks: vec![0; b],
@@ -487,6 +595,7 @@ impl RolloutDriver {
         }
         self.scene_of_slot[id.index()] = scene;
         self.ids[scene] = id;
+        self.needs_load[scene] = true;
         rebuild_window(
             &mut self.states[scene],
             self.n,
@@ -520,8 +629,7 @@ impl RolloutDriver {
         overrides: &mut dyn FnMut(usize, &mut [f32]) -> Result<()>,
     ) -> Result<()> {
         let b = self.states.len();
-        let (n, w) = (self.n, self.w);
-        let per_scene = self.a_max * w * 3;
+        let (n, w, a_max) = (self.n, self.w, self.a_max);
         for &i in scenes {
             let id = *self
                 .ids
@@ -529,15 +637,15 @@ impl RolloutDriver {
                 .ok_or_else(|| Error::data(format!("scene {i}: the rollout has {b}")))?;
             self.sched.request_tick(id)?;
         }
-        let mut stepped = false;
         while self.sched.next_batch(b)? > 0 {
             let mut second_evaluation = false;
             for item in self.sched.batch() {
                 let i = self.scene_of_slot[item.scene.index()];
                 let plan = self.sched.step_plan(item);
-                if item.stage_start {
+                if item.stage_start && self.needs_load[i] {
                     let s = &self.states[i];
                     engine.load_scene(i, &s.window, &s.valid)?;
+                    self.needs_load[i] = false;
                 }
                 self.sigma_cur[i * w..(i + 1) * w].copy_from_slice(plan.sigma_cur);
                 self.sigma_next[i * w..(i + 1) * w].copy_from_slice(plan.sigma_next);
@@ -550,11 +658,7 @@ impl RolloutDriver {
                 self.sigma_cur[i * w..(i + 1) * w].fill(IDLE_SIGMA);
                 self.sigma_next[i * w..(i + 1) * w].fill(IDLE_SIGMA);
             }
-            stepped = true;
             self.sched.complete_batch();
-        }
-        if stepped {
-            engine.read(&mut self.packed)?;
         }
         self.outcomes.clear();
         self.sched.take_outcomes(&mut self.outcomes);
@@ -565,37 +669,63 @@ impl RolloutDriver {
                 scenes.len()
             )));
         }
-        let mut emitted: Vec<f32> = Vec::with_capacity(self.a_max * 3);
+        // The tick's only readback: each ticked scene's emitted slot.
+        self.emit_slots.fill(None);
+        for o in &self.outcomes {
+            let i = self.scene_of_slot[o.scene.index()];
+            self.emit_slots[i] = Some(n + o.emit_future_slot);
+        }
+        engine.read_emitted(&self.emit_slots, &mut self.emitted)?;
+        let shape = ShiftShape {
+            observed: n,
+            obs_sigma: self.obs_sigma,
+            sigma_max: self.sigma_max,
+        };
+        // (scene, emitted [agents·3], noise [agents·6]) of the scenes that shift.
+        let mut shifts: Vec<(usize, Vec<f32>, Vec<f32>)> = Vec::new();
         for o in &self.outcomes {
             let i = self.scene_of_slot[o.scene.index()];
             let s = &mut self.states[i];
-            if stepped && o.nfe > 0 {
-                s.window
-                    .copy_from_slice(&self.packed[i * per_scene..(i + 1) * per_scene]);
-            }
-            let slot = n + o.emit_future_slot;
-            emitted.clear();
-            for a in 0..s.agents {
-                emitted.extend_from_slice(&s.window[3 * (a * w + slot)..3 * (a * w + slot) + 3]);
-            }
+            let mut emitted = self.emitted[i * a_max * 3..][..s.agents * 3].to_vec();
             overrides(i, &mut emitted)?;
             for a in 0..s.agents {
-                let state = [emitted[3 * a], emitted[3 * a + 1], emitted[3 * a + 2]];
-                // The window carries the (possibly overwritten) state into the observations.
-                s.window[3 * (a * w + slot)..3 * (a * w + slot) + 3].copy_from_slice(&state);
-                s.history[a].push(state);
+                s.history[a].push([emitted[3 * a], emitted[3 * a + 1], emitted[3 * a + 2]]);
                 s.history_valid[a].push(true);
             }
             s.emitted.extend_from_slice(&emitted);
             let rng = &mut self.rngs[i];
             match o.then {
-                WindowUpdate::Shift => shift_window(s, n, w, self.obs_sigma, self.sigma_max, rng),
+                WindowUpdate::Shift => {
+                    let noise = normal_vec(rng, s.agents * 6);
+                    // Validity moves with the slots; the joining observation and the new slot
+                    // are valid.
+                    for a in 0..s.agents {
+                        let row = a * w;
+                        s.valid.copy_within(row + 1..row + w, row);
+                        s.valid[row + n - 1] = 1.0;
+                        s.valid[row + w - 1] = 1.0;
+                    }
+                    shifts.push((i, emitted, noise));
+                }
                 WindowUpdate::Rebuild => {
                     rebuild_window(s, n, w, self.obs_sigma, self.sigma_max, rng);
+                    self.needs_load[i] = true;
                 }
                 WindowUpdate::Hold | WindowUpdate::Exhausted => {}
             }
             self.ticks[i] += 1;
+        }
+        if !shifts.is_empty() {
+            let edits: Vec<ShiftEdit<'_>> = shifts
+                .iter()
+                .map(|(i, emitted, noise)| ShiftEdit {
+                    scene: *i,
+                    emitted,
+                    noise,
+                    valid: &self.states[*i].valid,
+                })
+                .collect();
+            engine.shift(&edits, shape)?;
         }
         Ok(())
     }
@@ -675,32 +805,6 @@ fn rebuild_window(
                 s.valid[k] = 1.0;
             }
         }
-    }
-}
-
-/// After an emission: observations move up by one (the emitted slot joins them at
-/// `obs_sigma`), future slots move up, a pure-noise slot is appended.
-fn shift_window(
-    s: &mut SceneState,
-    n: usize,
-    w: usize,
-    obs_sigma: f32,
-    sigma_max: f32,
-    rng: &mut StdRng,
-) {
-    let noise = normal_vec(rng, s.agents * 6);
-    for a in 0..s.agents {
-        let row = a * w;
-        s.window.copy_within(3 * (row + 1)..3 * (row + w), 3 * row);
-        s.valid.copy_within(row + 1..row + w, row);
-        // The emitted state (now at slot n − 1) is an observation: it gets the observation
-        // noise level; its value is the model's clean estimate plus σ_obs noise.
-        for d in 0..3 {
-            s.window[3 * (row + n - 1) + d] += obs_sigma * noise[6 * a + d];
-            s.window[3 * (row + w - 1) + d] = sigma_max * noise[6 * a + 3 + d];
-        }
-        s.valid[row + n - 1] = 1.0;
-        s.valid[row + w - 1] = 1.0;
     }
 }
 

@@ -6,6 +6,7 @@ pub mod attention;
 pub mod edm;
 pub mod layer_norm;
 pub mod linear;
+pub mod window;
 
 use wgpu::util::DeviceExt;
 
