@@ -244,6 +244,8 @@ fn forecasting(args: EvalArgs) -> Result<ExitCode> {
         let mut rng = rand::rngs::StdRng::seed_from_u64(args.seed);
         let mut nfe_total = 0u64;
         let started = Instant::now();
+        let bar = indicatif::ProgressBar::new(windows.len() as u64);
+        bar.set_message(run.name.clone());
         for chunk in windows.chunks(args.batch_scenes.max(1)) {
             let batch: Vec<RolloutScene> = chunk
                 .iter()
@@ -291,7 +293,9 @@ fn forecasting(args: EvalArgs) -> Result<ExitCode> {
                     ),
                 );
             }
+            bar.inc(chunk.len() as u64);
         }
+        bar.finish_and_clear();
         totals.secs = started.elapsed().as_secs_f64();
         totals.samples = windows.len() * sample_count;
         let chunks = windows.len().div_ceil(args.batch_scenes.max(1)) as f64;
