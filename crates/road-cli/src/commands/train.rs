@@ -106,7 +106,8 @@ The loss is EDM's weighted denoising loss, averaged over valid agent-slots of fi
 ```sh\nroad sample --checkpoint models/{name} --scene val:0 --out sample.png\n```\n\n\
 ## Limits\n\n\
 A small model trained briefly on a 2-core CPU; the paper's model is far larger and trained for 36 GPU-days. \
-Forecasting figures (`road eval`) are in `docs/results.md`; the reactivity suite is still to come.\n",
+Forecasting and reactivity figures (`road eval --suite forecasting|reactivity`) are in `docs/results.md`. \
+Trained with one thread while other trainings shared the machine: the wall time is not this model's alone.\n",
         name = r.name,
         kind = r.planner.kind,
         params = meta.parameters,
