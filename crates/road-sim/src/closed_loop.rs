@@ -279,7 +279,17 @@ impl<'m> ClosedLoop<'m> {
             for a in 0..s.controllers.len() {
                 let pose = match s.controllers[a] {
                     Controller::Model => None,
-                    Controller::External => Some(external.pose(i, a, tick, &s.poses)?),
+                    Controller::External => {
+                        let p = external.pose(i, a, tick, &s.poses)?;
+                        if !(p.x_m.is_finite() && p.y_m.is_finite() && p.heading_rad.is_finite()) {
+                            return Err(Error::External {
+                                scene: i,
+                                agent: a,
+                                reason: format!("tick {tick}: pose {p:?} is not finite"),
+                            });
+                        }
+                        Some(p)
+                    }
                     _ => Some(s.scripted[a][tick]),
                 };
                 s.overrides[a] = pose.map(|p| {

@@ -209,6 +209,24 @@ fn an_external_agent_without_a_driver_is_an_error() {
         .tick(&mut engine, &mut NoExternal, &mut Vec::new())
         .unwrap_err();
     assert!(err.to_string().contains("scene 0, agent 0"), "{err}");
+    // A driver that reports a non-finite pose is refused with the scene and agent named.
+    struct Broken;
+    impl road_sim::closed_loop::ExternalDriver for Broken {
+        fn pose(&mut self, _: usize, _: usize, _: usize, _: &[Pose]) -> road_sim::Result<Pose> {
+            Ok(Pose {
+                x_m: f64::NAN,
+                y_m: 0.0,
+                heading_rad: 0.0,
+            })
+        }
+    }
+    let err = sim
+        .tick(&mut engine, &mut Broken, &mut Vec::new())
+        .unwrap_err();
+    assert!(
+        err.to_string().contains("scene 0, agent 0") && err.to_string().contains("not finite"),
+        "{err}"
+    );
     // Controllers that do not match the agents are refused up front.
     let bad = ClosedLoop::new(
         &mut engine,
