@@ -242,19 +242,68 @@ impl StepEngine for CpuEngine<'_> {
         else {
             return Err(Error::data("engine used before prepare".into()));
         };
-        self.windows = heun_step(
-            self.model,
-            &self.windows,
-            &self.valid,
-            self.scenes,
-            self.agents,
-            sigma_cur,
-            sigma_next,
-            second_evaluation,
-            features,
-            map_tokens,
-            map_valid,
+        let w = self.model.config.window_slots;
+        if sigma_cur.len() != self.scenes * w || sigma_next.len() != self.scenes * w {
+            return Err(Error::data(format!(
+                "σ rows: {} and {} values for {} scenes × {w} slots",
+                sigma_cur.len(),
+                sigma_next.len(),
+                self.scenes
+            )));
+        }
+        // Only scenes with a changing slot are evaluated: in a batch of scenes at different
+        // phases the others hold still, and on the CPU skipping them is free.
+        let active: Vec<usize> = (0..self.scenes)
+            .filter(|&b| sigma_cur[b * w..(b + 1) * w] != sigma_next[b * w..(b + 1) * w])
+            .collect();
+        if active.is_empty() {
+            return Ok(());
+        }
+        if active.len() == self.scenes {
+            self.windows = heun_step(
+                self.model,
+                &self.windows,
+                &self.valid,
+                self.scenes,
+                self.agents,
+                sigma_cur,
+                sigma_next,
+                second_evaluation,
+                features,
+                map_tokens,
+                map_valid,
+            )?;
+            return Ok(());
+        }
+        let (x_len, v_len) = (self.agents * w * 3, self.agents * w);
+        let gather = |v: &[f32], len: usize| -> Vec<f32> {
+            active
+                .iter()
+                .flat_map(|&b| v[b * len..(b + 1) * len].iter().copied())
+                .collect()
+        };
+        let index = Tensor::from_vec(
+            active.iter().map(|&b| b as u32).collect::<Vec<_>>(),
+            active.len(),
+            &Device::Cpu,
         )?;
+        let stepped = heun_step(
+            self.model,
+            &gather(&self.windows, x_len),
+            &gather(&self.valid, v_len),
+            active.len(),
+            self.agents,
+            &gather(sigma_cur, w),
+            &gather(sigma_next, w),
+            second_evaluation,
+            &features.index_select(&index, 0)?,
+            &map_tokens.index_select(&index, 0)?,
+            &map_valid.index_select(&index, 0)?,
+        )?;
+        for (k, &b) in active.iter().enumerate() {
+            self.windows[b * x_len..(b + 1) * x_len]
+                .copy_from_slice(&stepped[k * x_len..(k + 1) * x_len]);
+        }
         Ok(())
     }
 
