@@ -268,8 +268,17 @@ fn sample_and_eval_run_with_the_shipped_checkpoint() {
         dir_arg,
         "--json",
         json.to_str().unwrap(),
+        "--figure-scenes",
+        "1",
+        "--figures",
+        dir_arg,
     ]);
     assert!(o.status.success(), "{}", stderr(&o));
+    assert!(
+        std::fs::read(dir.join("forecasting-road20-00.png"))
+            .unwrap()
+            .starts_with(b"\x89PNG")
+    );
     assert!(
         stdout(&o).contains("| constant velocity |") && stdout(&o).contains("| road20 |"),
         "{}",

@@ -61,7 +61,7 @@ pub struct EvalArgs {
     /// Reactivity: simulated steps after the observations.
     #[arg(long, default_value_t = 40)]
     pub sim_steps: usize,
-    /// Draw the first this many scenes of every model (paper style) into `--figures`.
+    /// Draw the first this many scenes of every model (paper style) into `--figures` (both suites).
     #[arg(long, default_value_t = 0)]
     pub figure_scenes: usize,
     /// Folder for the figures.
@@ -246,7 +246,12 @@ fn forecasting(args: EvalArgs) -> Result<ExitCode> {
         let started = Instant::now();
         let bar = indicatif::ProgressBar::new(windows.len() as u64);
         bar.set_message(run.name.clone());
-        for chunk in windows.chunks(args.batch_scenes.max(1)) {
+        if args.figure_scenes > 0 {
+            std::fs::create_dir_all(&args.figures)
+                .with_context(|| format!("cannot create {}", args.figures.display()))?;
+        }
+        let batch_scenes = args.batch_scenes.max(1);
+        for (c, chunk) in windows.chunks(batch_scenes).enumerate() {
             let batch: Vec<RolloutScene> = chunk
                 .iter()
                 .flat_map(|w| {
@@ -292,6 +297,10 @@ fn forecasting(args: EvalArgs) -> Result<ExitCode> {
                         args.miss_threshold_m,
                     ),
                 );
+                let index = c * batch_scenes + k;
+                if index < args.figure_scenes {
+                    draw_forecast(&args.figures, &run.name, index, w, &samples, reference)?;
+                }
             }
             bar.inc(chunk.len() as u64);
         }
@@ -330,6 +339,68 @@ fn forecasting(args: EvalArgs) -> Result<ExitCode> {
             .with_context(|| format!("cannot write {}", path.display()))?;
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// Paper style: map, 1 s history blue, logged future grey, every sample's prediction orange.
+fn draw_forecast(
+    dir: &std::path::Path,
+    model: &str,
+    index: usize,
+    w: &SceneWindow,
+    samples: &[Vec<Vec<[f64; 2]>>],
+    reference: usize,
+) -> Result<()> {
+    use crate::plot::{HISTORY, LOGGED, PREDICTED, Stroke, scene_png, window_map_strokes};
+    let to_m = |s: [f32; 3]| {
+        let p = w.frame.to_metres([s[0], s[1]]);
+        (p[0], p[1])
+    };
+    let mut strokes = window_map_strokes(w);
+    for a in 0..w.agents {
+        strokes.push(Stroke {
+            points: (reference..w.steps)
+                .filter_map(|t| w.state(a, t))
+                .map(to_m)
+                .collect(),
+            color: LOGGED,
+            width: 2,
+        });
+    }
+    for sample in samples {
+        for (a, path) in sample.iter().enumerate() {
+            strokes.push(Stroke {
+                points: w
+                    .state(a, reference)
+                    .map(to_m)
+                    .into_iter()
+                    .chain(path.iter().map(|p| (p[0], p[1])))
+                    .collect(),
+                color: PREDICTED,
+                width: 1,
+            });
+        }
+    }
+    for a in 0..w.agents {
+        strokes.push(Stroke {
+            points: (0..=reference)
+                .filter_map(|t| w.state(a, t))
+                .map(to_m)
+                .collect(),
+            color: HISTORY,
+            width: 3,
+        });
+    }
+    let file = format!(
+        "forecasting-{}-{index:02}.png",
+        model.replace(|c: char| !c.is_ascii_alphanumeric(), "-")
+    );
+    scene_png(
+        &dir.join(file),
+        &strokes,
+        700,
+        (w.frame.origin_m[0], w.frame.origin_m[1]),
+        45.0,
+    )
 }
 
 fn accumulate(t: &mut Totals, m: &road_sim::metrics::SceneMetrics) {
