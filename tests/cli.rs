@@ -293,6 +293,29 @@ fn sample_and_eval_run_with_the_shipped_checkpoint() {
     );
     // RoAD-20 over 30 steps: 80 warm-up NFE + 29 rolling stages of 8.
     assert!((road20["nfe_per_step"].as_f64().unwrap() - 312.0 / 30.0).abs() < 1e-9);
+
+    // Serving through the scheduler on both engines, lockstep and with a scene joining.
+    let o = road(&[
+        "bench",
+        "serve",
+        "--scenes",
+        "2",
+        "--ticks",
+        "2",
+        "--join-every",
+        "2",
+        "--cache",
+        dir_arg,
+        "--json",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let v: serde_json::Value = serde_json::from_str(&stdout(&o)).unwrap();
+    let rows = v["rows"].as_array().unwrap();
+    assert_eq!(rows.len(), 4, "{v}");
+    // Lockstep RoAD-20 rolling ticks: K/F = 4 steps, 8 NFE; a joining scene adds its warm-up.
+    assert_eq!(rows[0]["nfe_per_scene_tick"], 8.0);
+    assert!(rows[1]["nfe_per_scene_tick"].as_f64().unwrap() > 8.0);
+    assert_eq!(rows[0]["nfe_per_scene_tick"], rows[2]["nfe_per_scene_tick"]);
     std::fs::remove_dir_all(&dir).ok();
 }
 

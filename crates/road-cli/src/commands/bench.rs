@@ -27,6 +27,34 @@ pub enum BenchCommand {
     /// WGSL engine (the adapter wgpu picks) side by side with the candle CPU reference:
     /// scene-steps/s, ms per batched step, FLOPs per scene-step and achieved FLOP/s.
     Engine(EngineBenchArgs),
+    /// Serving: B validation scenes ticking together through the scheduler and the rollout
+    /// driver (windows on the engine, only emitted slots read back), with scenes joining (a
+    /// fresh warm-up) every few ticks, against the same scenes in lockstep as the baseline.
+    Serve(ServeBenchArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct ServeBenchArgs {
+    /// Checkpoint (its planner is what every scene runs).
+    #[arg(long, default_value = "models/road20")]
+    pub checkpoint: PathBuf,
+    /// Scenes served together.
+    #[arg(long, num_args = 1.., default_values_t = [8usize, 64])]
+    pub scenes: Vec<usize>,
+    /// Timed ticks after the first (the initial warm-up of every scene is not timed).
+    #[arg(long, default_value_t = 12)]
+    pub ticks: usize,
+    /// In the joining run, one scene restarts (a new session: rebuilt window, warm-up) every
+    /// this many ticks.
+    #[arg(long, default_value_t = 3)]
+    pub join_every: usize,
+    /// `cpu`, `gpu` or both (default).
+    #[arg(long, value_enum, num_args = 1.., default_values_t = [crate::commands::sample::Engine::Cpu, crate::commands::sample::Engine::Gpu])]
+    pub engines: Vec<crate::commands::sample::Engine>,
+    #[arg(long, default_value = ".road-cache")]
+    pub cache: PathBuf,
+    #[arg(long)]
+    pub json: bool,
 }
 
 #[derive(Debug, Args)]
@@ -77,6 +105,7 @@ pub fn run(cmd: BenchCommand) -> Result<ExitCode> {
         BenchCommand::Train(args) => train_bench(&args),
         BenchCommand::Sched(args) => sched_bench(&args),
         BenchCommand::Engine(args) => engine_bench(&args),
+        BenchCommand::Serve(args) => serve_bench(&args),
     }
     .map(|()| ExitCode::SUCCESS)
 }
@@ -417,6 +446,109 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
             f("cpu_ms_per_step"),
             f("cpu_scene_steps_per_sec"),
             f("cpu_gflops")
+        );
+    }
+    Ok(())
+}
+
+fn serve_bench(args: &ServeBenchArgs) -> Result<()> {
+    use road_model::sample::{RolloutDriver, RolloutScene, StepEngine};
+
+    use crate::commands::engine::{EngineChoice, Engines};
+    use crate::commands::sample::Engine;
+    let window = WindowConfig::default();
+    let validation = cache::load_checked(
+        &cache::cache_path(&args.cache, Split::Validation),
+        Split::Validation,
+        Some(&window),
+        None,
+    )
+    .context("run `road data build` first")?;
+    anyhow::ensure!(args.join_every > 0, "--join-every must be at least 1");
+    let mut rows = Vec::new();
+    for &engine_kind in &args.engines {
+        let choice = match engine_kind {
+            Engine::Cpu => EngineChoice::Cpu,
+            Engine::Gpu => EngineChoice::Gpu,
+        };
+        let engines = Engines::load(&args.checkpoint, choice)?;
+        let run = &engines.cpu.meta.run;
+        let n = run.planner.obs_slots;
+        for &b in &args.scenes {
+            let scenes: Vec<RolloutScene> = (0..b)
+                .map(|i| {
+                    validation
+                        .window((i * 97) % validation.len())
+                        .map(|w| RolloutScene {
+                            history: road_model::batch::SceneInput::from_window(
+                                &w,
+                                window.reference_step + 1 - n,
+                                n,
+                                &run.model,
+                            ),
+                        })
+                })
+                .collect::<Result<_, _>>()?;
+            for joining in [false, true] {
+                let mut engine = engines.engine();
+                let engine: &mut dyn StepEngine = engine.as_dyn();
+                let mut rng = rand::rngs::StdRng::seed_from_u64(0);
+                let mut driver =
+                    RolloutDriver::new(engine, &run.planner, &scenes, args.ticks + 1, &mut rng)?;
+                driver.tick(engine, &mut |_, _| Ok(()))?; // every scene's warm-up, untimed
+                let nfe_before = (0..b)
+                    .map(|i| driver.scene_nfe(i))
+                    .sum::<road_model::Result<u64>>()?;
+                let started = Instant::now();
+                for t in 0..args.ticks {
+                    if joining && t % args.join_every == 0 {
+                        driver.switch_scene_planner((t / args.join_every) % b, &run.planner)?;
+                    }
+                    driver.tick(engine, &mut |_, _| Ok(()))?;
+                }
+                let secs = started.elapsed().as_secs_f64();
+                let nfe = (0..b)
+                    .map(|i| driver.scene_nfe(i))
+                    .sum::<road_model::Result<u64>>()?
+                    - nfe_before;
+                rows.push(serde_json::json!({
+                    "engine": engines.describe(),
+                    "scenes": b,
+                    "mode": if joining { format!("a scene joins every {} ticks", args.join_every) } else { "lockstep".into() },
+                    "ms_per_tick": secs * 1e3 / args.ticks as f64,
+                    "scene_ticks_per_sec": (b * args.ticks) as f64 / secs,
+                    "nfe_per_scene_tick": nfe as f64 / (b * args.ticks) as f64,
+                }));
+            }
+        }
+    }
+    if args.json {
+        out!(
+            "{}",
+            serde_json::to_string_pretty(
+                &serde_json::json!({ "checkpoint": args.checkpoint, "cpu": crate::commands::train::hardware(), "rows": rows })
+            )?
+        );
+        return Ok(());
+    }
+    out!(
+        "serve: {} ({} ticks timed after every scene's warm-up); CPU = {}",
+        args.checkpoint.display(),
+        args.ticks,
+        crate::commands::train::hardware()
+    );
+    out!("| engine | scenes | mode | ms per tick | scene-ticks/s | NFE per scene-tick |");
+    out!("|---|---:|---|---:|---:|---:|");
+    for r in &rows {
+        let f = |k: &str| r[k].as_f64().unwrap_or(0.0);
+        out!(
+            "| {} | {} | {} | {:.1} | {:.1} | {:.1} |",
+            r["engine"].as_str().unwrap_or(""),
+            r["scenes"],
+            r["mode"].as_str().unwrap_or(""),
+            f("ms_per_tick"),
+            f("scene_ticks_per_sec"),
+            f("nfe_per_scene_tick")
         );
     }
     Ok(())
