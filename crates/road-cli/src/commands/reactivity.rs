@@ -168,6 +168,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         Engine::Gpu => EngineChoice::Gpu,
     };
     let batch_scenes = args.batch_scenes.max(1);
+    let mut skipped: Vec<String> = Vec::new();
     for dir in &args.checkpoints {
         let engines = Engines::load(dir, choice)
             .with_context(|| format!("cannot load checkpoint {}", dir.display()))?;
@@ -178,6 +179,20 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
             "{}: the planner observes {n} steps, the suite gives {observed}",
             dir.display()
         );
+        if run.planner.kind == road_sched::PlannerKind::OneShot
+            && run.planner.future_slots < args.sim_steps
+        {
+            // Open loop ends with the horizon: it cannot drive the whole simulation.
+            eprintln!(
+                "{}: a one-shot horizon of {} steps is shorter than the {} simulated steps: not run",
+                run.name, run.planner.future_slots, args.sim_steps
+            );
+            skipped.push(format!(
+                "{} (one-shot horizon {} < {} simulated steps)",
+                run.name, run.planner.future_slots, args.sim_steps
+            ));
+            continue;
+        }
         let mut totals = Totals {
             model: run.name.clone(),
             expected_nfe_per_step: Some(run.planner.expected_nfe_per_step(args.sim_steps as u64)),
@@ -274,9 +289,13 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
             r.secs / sims,
         );
     }
+    for s in &skipped {
+        out!("not run: {s}");
+    }
     if let Some(path) = &args.json {
         let json = serde_json::json!({
             "suite": "reactivity",
+            "not_run": skipped,
             "scenes": windows.len(),
             "samples": samples,
             "sim_steps": args.sim_steps,
