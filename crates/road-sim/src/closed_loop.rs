@@ -137,6 +137,43 @@ fn boxes(window: &SceneWindow, poses: &[Pose]) -> Vec<Option<OrientedBox>> {
         .collect()
 }
 
+/// Checks a scene against its window (one controller per agent, `min_observed` ≤ observed
+/// steps ≤ window steps, every agent present at the last observed step) and returns the poses
+/// at that step. Errors name the scene by its recording and frame.
+fn start_poses(scene: &SimScene, min_observed: usize) -> Result<Vec<Pose>> {
+    let w = &scene.window;
+    let label = || format!("{} {} frame {}", w.location, w.file, w.start_frame);
+    if scene.controllers.len() != w.agents {
+        return Err(Error::Config(format!(
+            "{}: {} controllers for {} agents",
+            label(),
+            scene.controllers.len(),
+            w.agents
+        )));
+    }
+    if scene.observed_steps < min_observed.max(1) || scene.observed_steps > w.steps {
+        return Err(Error::Config(format!(
+            "{}: {} observed steps; at least {} needed and the window has {}",
+            label(),
+            scene.observed_steps,
+            min_observed.max(1),
+            w.steps
+        )));
+    }
+    let reference = scene.observed_steps - 1;
+    (0..w.agents)
+        .map(|a| {
+            pose_of(w, a, reference).ok_or_else(|| {
+                Error::Config(format!(
+                    "{}: agent {a} (track {}) is absent at the last observed step",
+                    label(),
+                    w.track_ids[a]
+                ))
+            })
+        })
+        .collect()
+}
+
 impl<'m> ClosedLoop<'m> {
     /// Builds the first windows of every scene on `engine` (`rng` seeds the scenes' noise). `maps[i]` (when given) is scene
     /// `i`'s lanelet map for the off-road check. Every agent must be present at the last
@@ -161,40 +198,12 @@ impl<'m> ClosedLoop<'m> {
         let mut inputs = Vec::with_capacity(scenes.len());
         let mut runtimes = Vec::with_capacity(scenes.len());
         for (i, scene) in scenes.into_iter().enumerate() {
+            let poses = start_poses(&scene, n).map_err(|e| match e {
+                Error::Config(m) => Error::Config(format!("scene {i}: {m}")),
+                other => other,
+            })?;
             let w = &scene.window;
-            let label = || {
-                format!(
-                    "scene {i} ({} {} frame {})",
-                    w.location, w.file, w.start_frame
-                )
-            };
-            if scene.controllers.len() != w.agents {
-                return Err(Error::Config(format!(
-                    "{}: {} controllers for {} agents",
-                    label(),
-                    scene.controllers.len(),
-                    w.agents
-                )));
-            }
-            if scene.observed_steps < n || scene.observed_steps > w.steps {
-                return Err(Error::Config(format!(
-                    "{}: {} observed steps; the planner needs {n} and the window has {}",
-                    label(),
-                    scene.observed_steps,
-                    w.steps
-                )));
-            }
             let reference = scene.observed_steps - 1;
-            let mut poses = Vec::with_capacity(w.agents);
-            for a in 0..w.agents {
-                poses.push(pose_of(w, a, reference).ok_or_else(|| {
-                    Error::Config(format!(
-                        "{}: agent {a} (track {}) is absent at the last observed step",
-                        label(),
-                        w.track_ids[a]
-                    ))
-                })?);
-            }
             let scripted = (0..w.agents)
                 .map(|a| script(w, a, reference, steps, scene.controllers[a]))
                 .collect();
@@ -350,44 +359,18 @@ pub fn simulate_scripted(
     map: Option<&LaneletMap>,
     steps: usize,
 ) -> Result<Vec<SceneTick>> {
+    let start = start_poses(scene, 1)?;
     let w = &scene.window;
-    let label = || format!("{} {} frame {}", w.location, w.file, w.start_frame);
-    if scene.controllers.len() != w.agents {
-        return Err(Error::Config(format!(
-            "{}: {} controllers for {} agents",
-            label(),
-            scene.controllers.len(),
-            w.agents
-        )));
-    }
-    if scene.observed_steps == 0 || scene.observed_steps > w.steps {
-        return Err(Error::Config(format!(
-            "{}: {} observed steps in a {}-step window",
-            label(),
-            scene.observed_steps,
-            w.steps
-        )));
-    }
     let reference = scene.observed_steps - 1;
-    let mut start = Vec::with_capacity(w.agents);
-    for a in 0..w.agents {
-        if matches!(
-            scene.controllers[a],
-            Controller::Model | Controller::External
-        ) {
-            return Err(Error::Config(format!(
-                "{}: agent {a} is not scripted ({:?})",
-                label(),
-                scene.controllers[a]
-            )));
-        }
-        start.push(pose_of(w, a, reference).ok_or_else(|| {
-            Error::Config(format!(
-                "{}: agent {a} (track {}) is absent at the last observed step",
-                label(),
-                w.track_ids[a]
-            ))
-        })?);
+    if let Some(a) = scene
+        .controllers
+        .iter()
+        .position(|c| matches!(c, Controller::Model | Controller::External))
+    {
+        return Err(Error::Config(format!(
+            "{} {} frame {}: agent {a} is not scripted ({:?})",
+            w.location, w.file, w.start_frame, scene.controllers[a]
+        )));
     }
     let scripted: Vec<Vec<Pose>> = (0..w.agents)
         .map(|a| script(w, a, reference, steps, scene.controllers[a]))

@@ -38,6 +38,31 @@ fn scene() -> ProceduralScene {
     roundabout(&WindowConfig::default(), 10).unwrap()
 }
 
+/// The scene in a closed loop on `engine` with the test planner (`with_map`: off-road checks).
+fn closed_loop<'m>(
+    engine: &mut CpuEngine,
+    model: &road_model::Denoiser,
+    scene: &'m ProceduralScene,
+    controllers: Vec<Controller>,
+    with_map: bool,
+    steps: usize,
+    rng: &mut StdRng,
+) -> road_sim::Result<ClosedLoop<'m>> {
+    ClosedLoop::new(
+        engine,
+        &model.config,
+        &planner(),
+        vec![SimScene {
+            window: scene.window.clone(),
+            observed_steps: 10,
+            controllers,
+        }],
+        vec![with_map.then_some(&scene.map)],
+        steps,
+        rng,
+    )
+}
+
 /// Runs `steps` ticks; returns every tick's report.
 fn simulate(
     model: &road_model::Denoiser,
@@ -49,16 +74,12 @@ fn simulate(
 ) -> Vec<SceneTick> {
     let mut engine = CpuEngine::new(model);
     let mut rng = StdRng::seed_from_u64(seed);
-    let mut sim = ClosedLoop::new(
+    let mut sim = closed_loop(
         &mut engine,
-        &model.config,
-        &planner(),
-        vec![SimScene {
-            window: scene.window.clone(),
-            observed_steps: 10,
-            controllers,
-        }],
-        vec![Some(&scene.map)],
+        model,
+        scene,
+        controllers,
+        true,
         steps,
         &mut rng,
     )
@@ -191,20 +212,8 @@ fn an_external_agent_without_a_driver_is_an_error() {
     let mut rng = StdRng::seed_from_u64(0);
     let mut controllers = vec![Controller::Model; scene.window.agents];
     controllers[0] = Controller::External;
-    let mut sim = ClosedLoop::new(
-        &mut engine,
-        &model.config,
-        &planner(),
-        vec![SimScene {
-            window: scene.window.clone(),
-            observed_steps: 10,
-            controllers,
-        }],
-        vec![None],
-        2,
-        &mut rng,
-    )
-    .unwrap();
+    let mut sim =
+        closed_loop(&mut engine, &model, &scene, controllers, false, 2, &mut rng).unwrap();
     let err = sim
         .tick(&mut engine, &mut NoExternal, &mut Vec::new())
         .unwrap_err();
@@ -228,16 +237,12 @@ fn an_external_agent_without_a_driver_is_an_error() {
         "{err}"
     );
     // Controllers that do not match the agents are refused up front.
-    let bad = ClosedLoop::new(
+    let bad = closed_loop(
         &mut engine,
-        &model.config,
-        &planner(),
-        vec![SimScene {
-            window: scene.window.clone(),
-            observed_steps: 10,
-            controllers: vec![Controller::Model],
-        }],
-        vec![None],
+        &model,
+        &scene,
+        vec![Controller::Model],
+        false,
         2,
         &mut rng,
     );
@@ -286,20 +291,7 @@ fn a_scene_switches_planner_between_ticks_on_the_same_checkpoint() {
     let mut ego = scene.ego.clone();
     let mut engine = CpuEngine::new(&model);
     let mut rng = StdRng::seed_from_u64(5);
-    let mut sim = ClosedLoop::new(
-        &mut engine,
-        &model.config,
-        &planner(),
-        vec![SimScene {
-            window: scene.window.clone(),
-            observed_steps: 10,
-            controllers,
-        }],
-        vec![Some(&scene.map)],
-        6,
-        &mut rng,
-    )
-    .unwrap();
+    let mut sim = closed_loop(&mut engine, &model, &scene, controllers, true, 6, &mut rng).unwrap();
     let mut out = Vec::new();
     for _ in 0..3 {
         sim.tick(&mut engine, &mut ego, &mut out).unwrap();
