@@ -367,7 +367,7 @@ impl GpuDenoiser {
             ctx,
             "map.valid",
             bytemuck::cast_slice(map_valid),
-            wgpu::BufferUsages::STORAGE,
+            wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
         );
         let n_points = scenes * polylines * q;
         let embedded = storage_buffer(ctx, "map.embedded", (n_points * d * 4) as u64);
@@ -1016,6 +1016,8 @@ pub struct GpuStepEngine<'a> {
     batch: Option<DeviceBatch>,
     plan: Option<HeunPlan>,
     window: Option<crate::kernels::window::WindowOps>,
+    /// Compacted sub-batches by capacity (powers of two), made on first use.
+    compact: Vec<Compact>,
     features: Vec<f32>,
     scenes: usize,
     agents: usize,
@@ -1030,10 +1032,57 @@ impl<'a> GpuStepEngine<'a> {
             batch: None,
             plan: None,
             window: None,
+            compact: Vec::new(),
             features: Vec::new(),
             scenes: 0,
             agents: 0,
         }
+    }
+}
+
+/// A compacted sub-batch of `capacity` scenes with its own Heun plan: the moving scenes of a
+/// mixed-phase round are copied in, stepped, and copied back, so idle scenes cost nothing.
+#[derive(Debug)]
+struct Compact {
+    batch: DeviceBatch,
+    map: MapTokens,
+    plan: HeunPlan,
+    sigma_cur: Vec<f32>,  // [capacity, W]
+    sigma_next: Vec<f32>, // [capacity, W]
+}
+
+impl Compact {
+    fn new(
+        ctx: &GpuContext,
+        model: &GpuDenoiser,
+        capacity: usize,
+        agents: usize,
+        polylines: usize,
+    ) -> Result<Self> {
+        let (w, d) = (model.config.window_slots, model.config.hidden);
+        let buffer = |label, floats: usize| storage_buffer(ctx, label, (floats * 4) as u64);
+        let batch = DeviceBatch {
+            scenes: capacity,
+            agents,
+            x: buffer("compact.x", capacity * agents * w * 3),
+            sigma: buffer("compact.sigma", capacity * w),
+            valid: buffer("compact.valid", capacity * agents * w),
+            agent_embedding: buffer("compact.agent_embedding", capacity * agents * d),
+        };
+        let map = MapTokens {
+            tokens: buffer("compact.map.tokens", capacity * polylines * d),
+            valid: buffer("compact.map.valid", capacity * polylines),
+            scenes: capacity,
+            polylines,
+        };
+        let plan = model.heun_plan(ctx, &batch, &map)?;
+        Ok(Self {
+            batch,
+            map,
+            plan,
+            sigma_cur: vec![1.0; capacity * w],
+            sigma_next: vec![1.0; capacity * w],
+        })
     }
 }
 
@@ -1067,6 +1116,7 @@ impl road_model::sample::StepEngine for GpuStepEngine<'_> {
         self.batch = None;
         self.plan = None;
         self.window = None;
+        self.compact.clear();
         Ok(())
     }
 
@@ -1154,14 +1204,106 @@ impl road_model::sample::StepEngine for GpuStepEngine<'_> {
         sigma_next: &[f32],
         second_evaluation: bool,
     ) -> road_model::Result<()> {
-        let (Some(batch), Some(plan)) = (&self.batch, &mut self.plan) else {
+        let (Some(batch), Some(plan), Some(map)) = (&self.batch, &mut self.plan, &self.map) else {
             return Err(road_model::Error::Engine(
                 "step before prepare and load".into(),
             ));
         };
-        // σ rows are per scene: [B, W].
-        plan.run(self.ctx, batch, sigma_cur, sigma_next, second_evaluation)
-            .map_err(engine_err)
+        let (b, w) = (self.scenes, self.model.config.window_slots);
+        if sigma_cur.len() != b * w || sigma_next.len() != b * w {
+            return Err(road_model::Error::Engine(format!(
+                "σ rows: {} and {} values for {b} scenes × {w} slots",
+                sigma_cur.len(),
+                sigma_next.len()
+            )));
+        }
+        let active: Vec<usize> = (0..b)
+            .filter(|&i| sigma_cur[i * w..(i + 1) * w] != sigma_next[i * w..(i + 1) * w])
+            .collect();
+        if active.is_empty() {
+            return Ok(());
+        }
+        if active.len() * 2 > b {
+            // σ rows are per scene: [B, W]; idle scenes hold still.
+            return plan
+                .run(self.ctx, batch, sigma_cur, sigma_next, second_evaluation)
+                .map_err(engine_err);
+        }
+        // Few scenes move (others idle in a mixed-phase batch): copy them into a compact
+        // sub-batch, step it, copy the states back.
+        let capacity = active.len().next_power_of_two();
+        if !self.compact.iter().any(|c| c.batch.scenes == capacity) {
+            let c = Compact::new(self.ctx, self.model, capacity, self.agents, map.polylines)
+                .map_err(engine_err)?;
+            self.compact.push(c);
+        }
+        let compact = self
+            .compact
+            .iter_mut()
+            .find(|c| c.batch.scenes == capacity)
+            .expect("made above");
+        let d = self.model.config.hidden;
+        let a = self.agents;
+        let p = map.polylines;
+        // (source, destination, floats per scene) of every per-scene region.
+        let regions = [
+            (&batch.x, &compact.batch.x, a * w * 3),
+            (&batch.valid, &compact.batch.valid, a * w),
+            (
+                &batch.agent_embedding,
+                &compact.batch.agent_embedding,
+                a * d,
+            ),
+            (&map.tokens, &compact.map.tokens, p * d),
+            (&map.valid, &compact.map.valid, p),
+        ];
+        let mut enc = self
+            .ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("compact gather"),
+            });
+        for (k, &i) in active.iter().enumerate() {
+            for (src, dst, len) in regions {
+                let bytes = (len * 4) as u64;
+                enc.copy_buffer_to_buffer(src, i as u64 * bytes, dst, k as u64 * bytes, bytes);
+            }
+        }
+        self.ctx.queue.submit([enc.finish()]);
+        compact.sigma_cur.fill(1.0);
+        compact.sigma_next.fill(1.0);
+        for (k, &i) in active.iter().enumerate() {
+            compact.sigma_cur[k * w..(k + 1) * w].copy_from_slice(&sigma_cur[i * w..(i + 1) * w]);
+            compact.sigma_next[k * w..(k + 1) * w].copy_from_slice(&sigma_next[i * w..(i + 1) * w]);
+        }
+        compact
+            .plan
+            .run(
+                self.ctx,
+                &compact.batch,
+                &compact.sigma_cur,
+                &compact.sigma_next,
+                second_evaluation,
+            )
+            .map_err(engine_err)?;
+        let mut enc = self
+            .ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("compact scatter"),
+            });
+        let bytes = (a * w * 3 * 4) as u64;
+        for (k, &i) in active.iter().enumerate() {
+            enc.copy_buffer_to_buffer(
+                &compact.batch.x,
+                k as u64 * bytes,
+                &batch.x,
+                i as u64 * bytes,
+                bytes,
+            );
+        }
+        self.ctx.queue.submit([enc.finish()]);
+        Ok(())
     }
 
     fn read_emitted(&mut self, slots: &[Option<usize>], out: &mut [f32]) -> road_model::Result<()> {
