@@ -552,3 +552,76 @@ impl Trainer {
         Ok(())
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use road_data::{Split, WindowConfig, WindowRef};
+
+    use super::*;
+
+    /// A dataset whose windows have the given agent counts (nothing else is read).
+    fn windows_with(counts: &[usize]) -> Dataset {
+        let mut ds = Dataset::from_parts(
+            Split::Train,
+            &WindowConfig::default(),
+            vec![],
+            vec![],
+            vec![],
+        )
+        .unwrap();
+        ds.windows = counts
+            .iter()
+            .map(|&c| WindowRef {
+                recording: 0,
+                start_frame: 0,
+                origin_m: [0.0, 0.0],
+                agents: (0..c as u32).collect(),
+                polylines: vec![],
+            })
+            .collect();
+        ds
+    }
+
+    #[test]
+    fn agent_buckets_partition_the_windows_by_count_ranges() {
+        // Skewed like the data: many small scenes, few large ones.
+        let counts: Vec<usize> = (0..5000).map(|i| 2 + (i * i) % 29 / (1 + i % 3)).collect();
+        let ds = windows_with(&counts);
+        let b = AgentBuckets::new(&ds);
+        assert!(b.buckets() >= 3, "{} buckets", b.buckets());
+        let mut seen = vec![0u32; counts.len()];
+        let mut ranges = Vec::new();
+        for (k, m) in b.members.iter().enumerate() {
+            assert!(
+                m.len() >= AgentBuckets::MIN_BUCKET,
+                "bucket {k}: {}",
+                m.len()
+            );
+            let lo = m.iter().map(|&i| counts[i as usize]).min().unwrap();
+            let hi = m.iter().map(|&i| counts[i as usize]).max().unwrap();
+            ranges.push((lo, hi));
+            for &i in m {
+                seen[i as usize] += 1;
+                assert_eq!(b.bucket_of[i as usize] as usize, k);
+            }
+        }
+        assert!(
+            seen.iter().all(|&s| s == 1),
+            "every window in exactly one bucket"
+        );
+        // Contiguous, non-overlapping count ranges in order.
+        for pair in ranges.windows(2) {
+            assert!(pair[0].1 < pair[1].0, "{ranges:?}");
+        }
+        // A draw stays in its anchor's bucket.
+        let mut rng = StdRng::seed_from_u64(1);
+        for anchor in [0usize, 17, 4999] {
+            for _ in 0..50 {
+                let i = b.pick(anchor, &mut rng);
+                assert_eq!(b.bucket_of[i], b.bucket_of[anchor]);
+            }
+        }
+        // Fewer windows than a bucket: one bucket.
+        assert_eq!(AgentBuckets::new(&windows_with(&[2, 5, 9])).buckets(), 1);
+    }
+}
