@@ -237,3 +237,48 @@ pub fn task_sigma(
         })
         .collect()
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn absent_agents_are_dropped_with_their_noise() {
+        let (agents, slots) = (3, 2);
+        let mut input = SceneInput {
+            agents,
+            slots,
+            states: (0..agents * slots * 3).map(|v| v as f32).collect(),
+            valid: vec![true, false, false, false, false, true],
+            agent_features: (0..agents * AGENT_FEATURES).map(|v| v as f32).collect(),
+            polylines: 0,
+            points: 20,
+            map: vec![],
+        };
+        let mut noise: Vec<f32> = (0..agents * slots * 3).map(|v| -(v as f32)).collect();
+        let before = input.clone();
+        input.drop_absent_agents(&mut noise);
+        assert_eq!(input.agents, 2);
+        let row = |v: &[f32], a: usize, len: usize| v[a * len..(a + 1) * len].to_vec();
+        for (new, old) in [(0, 0), (1, 2)] {
+            assert_eq!(row(&input.states, new, 6), row(&before.states, old, 6));
+            assert_eq!(
+                row(&input.agent_features, new, AGENT_FEATURES),
+                row(&before.agent_features, old, AGENT_FEATURES)
+            );
+            assert_eq!(
+                row(&noise, new, 6),
+                (0..6).map(|k| -((old * 6 + k) as f32)).collect::<Vec<_>>()
+            );
+        }
+        assert_eq!(input.valid, vec![true, false, false, true]);
+        // Nobody valid: nothing to drop to.
+        let mut empty = SceneInput {
+            valid: vec![false; agents * slots],
+            ..before.clone()
+        };
+        let mut noise = vec![0.0; agents * slots * 3];
+        empty.drop_absent_agents(&mut noise);
+        assert_eq!(empty.agents, agents);
+    }
+}
