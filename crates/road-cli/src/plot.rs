@@ -118,6 +118,32 @@ pub fn window_map_strokes(window: &road_data::SceneWindow) -> Vec<Stroke> {
         .collect()
 }
 
+/// A window state (normalised x, y, heading) as a plot point in metres.
+pub fn window_point_m(window: &road_data::SceneWindow, state: [f32; 3]) -> (f64, f64) {
+    let m = window.frame.to_metres([state[0], state[1]]);
+    (m[0], m[1])
+}
+
+/// Every agent's logged path over `steps` of the window, one stroke each.
+pub fn window_path_strokes(
+    window: &road_data::SceneWindow,
+    steps: std::ops::Range<usize>,
+    color: RGBColor,
+    width: u32,
+) -> Vec<Stroke> {
+    (0..window.agents)
+        .map(|a| Stroke {
+            points: steps
+                .clone()
+                .filter_map(|t| window.state(a, t))
+                .map(|s| window_point_m(window, s))
+                .collect(),
+            color,
+            width,
+        })
+        .collect()
+}
+
 /// A lanelet map's lane bounds as thin light-grey strokes.
 pub fn lanelet_strokes(map: &road_data::LaneletMap) -> Vec<Stroke> {
     map.lanelets

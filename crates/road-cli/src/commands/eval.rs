@@ -69,13 +69,21 @@ pub struct EvalArgs {
     pub figures: PathBuf,
 }
 
+/// The scenes a suite evaluates.
+pub(crate) struct SceneSelection {
+    /// Window indices evaluated: spread evenly over the eligible ones, at most `limit`.
+    pub scenes: Vec<usize>,
+    /// Eligible windows of the kept locations (what `--limit 0` evaluates).
+    pub eligible: usize,
+}
+
 /// Scenes of the suite: eligible windows (enough agents, and `extra`) of the top locations,
 /// spread evenly up to `limit`.
 pub(crate) fn select_scenes(
     ds: &Dataset,
     args: &EvalArgs,
     extra: impl Fn(usize) -> bool,
-) -> Vec<usize> {
+) -> SceneSelection {
     let eligible: Vec<usize> = (0..ds.len())
         .filter(|&i| ds.windows[i].agents.len() >= args.min_agents && extra(i))
         .collect();
@@ -106,12 +114,17 @@ pub(crate) fn select_scenes(
             )
         })
         .collect();
+    let eligible = kept.len();
     if args.limit == 0 || kept.len() <= args.limit {
-        return kept;
+        return SceneSelection {
+            scenes: kept,
+            eligible,
+        };
     }
-    (0..args.limit)
+    let scenes = (0..args.limit)
         .map(|k| kept[k * kept.len() / args.limit])
-        .collect()
+        .collect();
+    SceneSelection { scenes, eligible }
 }
 
 /// Per-model totals.
@@ -162,14 +175,14 @@ fn forecasting(args: EvalArgs) -> Result<ExitCode> {
     let reference = window_config.reference_step;
     let steps = window_config.window_steps - reference - 1; // 30
     let sample_count = args.samples.unwrap_or(6);
-    let scenes = select_scenes(&ds, &args, |_| true);
+    let SceneSelection { scenes, eligible } = select_scenes(&ds, &args, |_| true);
     anyhow::ensure!(
         !scenes.is_empty(),
         "no validation scene has {} agents or more",
         args.min_agents
     );
     eprintln!(
-        "forecasting suite: {} scenes (top {} locations, ≥ {} agents at the last observed step), {} samples each, {steps} steps",
+        "forecasting suite: {} of {eligible} eligible scenes (top {} locations, ≥ {} agents at the last observed step), {} samples each, {steps} steps",
         scenes.len(),
         args.top_locations,
         args.min_agents,
@@ -334,7 +347,7 @@ fn forecasting(args: EvalArgs) -> Result<ExitCode> {
         );
     }
     if let Some(path) = &args.json {
-        let json = serde_json::json!({ "suite": "forecasting", "scenes": windows.len(), "samples": sample_count, "results": results });
+        let json = serde_json::json!({ "suite": "forecasting", "scenes": windows.len(), "eligible_scenes": eligible, "samples": sample_count, "results": results });
         std::fs::write(path, serde_json::to_string_pretty(&json)?)
             .with_context(|| format!("cannot write {}", path.display()))?;
     }
@@ -350,28 +363,18 @@ fn draw_forecast(
     samples: &[Vec<Vec<[f64; 2]>>],
     reference: usize,
 ) -> Result<()> {
-    use crate::plot::{HISTORY, LOGGED, PREDICTED, Stroke, scene_png, window_map_strokes};
-    let to_m = |s: [f32; 3]| {
-        let p = w.frame.to_metres([s[0], s[1]]);
-        (p[0], p[1])
+    use crate::plot::{
+        HISTORY, LOGGED, PREDICTED, Stroke, scene_png, window_map_strokes, window_path_strokes,
+        window_point_m,
     };
     let mut strokes = window_map_strokes(w);
-    for a in 0..w.agents {
-        strokes.push(Stroke {
-            points: (reference..w.steps)
-                .filter_map(|t| w.state(a, t))
-                .map(to_m)
-                .collect(),
-            color: LOGGED,
-            width: 2,
-        });
-    }
+    strokes.extend(window_path_strokes(w, reference..w.steps, LOGGED, 2));
     for sample in samples {
         for (a, path) in sample.iter().enumerate() {
             strokes.push(Stroke {
                 points: w
                     .state(a, reference)
-                    .map(to_m)
+                    .map(|s| window_point_m(w, s))
                     .into_iter()
                     .chain(path.iter().map(|p| (p[0], p[1])))
                     .collect(),
@@ -380,16 +383,7 @@ fn draw_forecast(
             });
         }
     }
-    for a in 0..w.agents {
-        strokes.push(Stroke {
-            points: (0..=reference)
-                .filter_map(|t| w.state(a, t))
-                .map(to_m)
-                .collect(),
-            color: HISTORY,
-            width: 3,
-        });
-    }
+    strokes.extend(window_path_strokes(w, 0..reference + 1, HISTORY, 3));
     let file = format!(
         "forecasting-{}-{index:02}.png",
         model.replace(|c: char| !c.is_ascii_alphanumeric(), "-")

@@ -17,9 +17,12 @@ use road_sim::closed_loop::{
 };
 
 use crate::commands::engine::{EngineChoice, Engines};
-use crate::commands::eval::{EvalArgs, select_scenes};
+use crate::commands::eval::{EvalArgs, SceneSelection, select_scenes};
 use crate::commands::sample::Engine;
-use crate::plot::{ADVERSARY, LOGGED, PREDICTED, Ring, Stroke, figure_png, window_map_strokes};
+use crate::plot::{
+    ADVERSARY, LOGGED, PREDICTED, Ring, Stroke, figure_png, window_map_strokes,
+    window_path_strokes, window_point_m,
+};
 
 /// Per-model totals over every simulated (scene, sample).
 #[derive(Debug, Default, Clone, serde::Serialize)]
@@ -88,7 +91,8 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
             .ok()
             .and_then(|w| pick_adversary(&w, reference))
     };
-    let scenes = select_scenes(&ds, &args, |i| adversary_of(i).is_some());
+    let SceneSelection { scenes, eligible } =
+        select_scenes(&ds, &args, |i| adversary_of(i).is_some());
     anyhow::ensure!(
         !scenes.is_empty(),
         "no validation scene has {} agents or more and an agent that moves throughout",
@@ -105,7 +109,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
     let maps: Vec<&road_data::LaneletMap> =
         scenes.iter().map(|&i| ds.map_of(&ds.windows[i])).collect();
     eprintln!(
-        "reactivity suite: {} scenes (top {} locations, ≥ {} agents at the last observed step, an agent present and moving through all {} steps: the adversary, the one with the longest path), {samples} samples each, {} simulated steps",
+        "reactivity suite: {} of {eligible} eligible scenes (top {} locations, ≥ {} agents at the last observed step, an agent present and moving through all {} steps: the adversary, the one with the longest path), {samples} samples each, {} simulated steps",
         windows.len(),
         args.top_locations,
         args.min_agents,
@@ -297,6 +301,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
             "suite": "reactivity",
             "not_run": skipped,
             "scenes": windows.len(),
+            "eligible_scenes": eligible,
             "samples": samples,
             "sim_steps": args.sim_steps,
             "results": results,
@@ -318,25 +323,12 @@ fn draw(
     samples: &[Vec<SceneTick>],
     reference: usize,
 ) -> Result<()> {
-    let to_m = |s: [f32; 3]| {
-        let p = w.frame.to_metres([s[0], s[1]]);
-        (p[0], p[1])
-    };
     let mut strokes = window_map_strokes(w);
-    for a in 0..w.agents {
-        strokes.push(Stroke {
-            points: (0..w.steps)
-                .filter_map(|t| w.state(a, t))
-                .map(to_m)
-                .collect(),
-            color: LOGGED,
-            width: 2,
-        });
-    }
+    strokes.extend(window_path_strokes(w, 0..w.steps, LOGGED, 2));
     let mut rings = Vec::new();
     for ticks in samples {
         for a in 0..w.agents {
-            let start = w.state(a, reference).map(to_m);
+            let start = w.state(a, reference).map(|s| window_point_m(w, s));
             strokes.push(Stroke {
                 points: start
                     .into_iter()
