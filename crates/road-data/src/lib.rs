@@ -27,7 +27,7 @@ pub use tracks::{AgentType, Recording, Track};
 /// Errors of the data layer. Each names its input last: file and line, element or key.
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
-    #[error("cannot read or write: {source} ({path})")]
+    #[error("cannot read or write {path}")]
     Io {
         path: PathBuf,
         source: std::io::Error,

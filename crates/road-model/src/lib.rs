@@ -26,7 +26,7 @@ pub enum Error {
     Tensor(#[from] candle_core::Error),
     #[error(transparent)]
     Data(#[from] DataError),
-    #[error("cannot read or write: {source} ({path})")]
+    #[error("cannot read or write {path}")]
     Io {
         path: PathBuf,
         source: std::io::Error,
