@@ -5,15 +5,17 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Instant;
 
-use anyhow::{Context, Result};
+use anyhow::Result;
 use clap::{Args, Subcommand};
 use rand::SeedableRng;
-use road_data::{Split, WindowConfig, cache};
+use road_data::{Split, WindowConfig};
 use road_model::RunConfig;
 use road_model::checkpoint::DataIdentity;
 use road_model::model::{Mode, edm_loss};
 use road_model::train::{Trainer, sample_batch};
 use road_sched::{PlannerSpec, SceneSpec, Scheduler};
+
+use crate::commands::load_cache;
 
 #[derive(Debug, Subcommand)]
 pub enum BenchCommand {
@@ -111,17 +113,8 @@ pub fn run(cmd: BenchCommand) -> Result<ExitCode> {
 }
 
 fn train_bench(args: &TrainBenchArgs) -> Result<()> {
-    let window = WindowConfig::default();
-    let load = |split| {
-        cache::load_checked(
-            &cache::cache_path(&args.cache, split),
-            split,
-            Some(&window),
-            None,
-        )
-    };
-    let train = load(Split::Train).context("run `road data build` first")?;
-    let validation = load(Split::Validation).context("run `road data build` first")?;
+    let train = load_cache(&args.cache, Split::Train)?;
+    let validation = load_cache(&args.cache, Split::Validation)?;
     let threads = std::env::var("RAYON_NUM_THREADS").unwrap_or_else(|_| "default".into());
     let mut rows = Vec::new();
     for path in &args.configs {
@@ -322,14 +315,7 @@ fn flops_per_evaluation(c: &road_model::ModelConfig, agents: usize, polylines: u
 fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
     use road_model::batch::SceneInput;
     use road_model::sample::{CpuEngine, StepEngine};
-    let window = WindowConfig::default();
-    let validation = cache::load_checked(
-        &cache::cache_path(&args.cache, Split::Validation),
-        Split::Validation,
-        Some(&window),
-        None,
-    )
-    .context("run `road data build` first")?;
+    let validation = load_cache(&args.cache, Split::Validation)?;
     let ctx = road_gpu::GpuContext::new(&road_gpu::ContextOptions::default())?;
     let mut rows = Vec::new();
     for dir in &args.checkpoints {
@@ -456,14 +442,7 @@ fn serve_bench(args: &ServeBenchArgs) -> Result<()> {
 
     use crate::commands::engine::{EngineChoice, Engines};
     use crate::commands::sample::Engine;
-    let window = WindowConfig::default();
-    let validation = cache::load_checked(
-        &cache::cache_path(&args.cache, Split::Validation),
-        Split::Validation,
-        Some(&window),
-        None,
-    )
-    .context("run `road data build` first")?;
+    let validation = load_cache(&args.cache, Split::Validation)?;
     anyhow::ensure!(args.join_every > 0, "--join-every must be at least 1");
     let mut rows = Vec::new();
     for &engine_kind in &args.engines {
@@ -482,7 +461,7 @@ fn serve_bench(args: &ServeBenchArgs) -> Result<()> {
                         .map(|w| RolloutScene {
                             history: road_model::batch::SceneInput::from_window(
                                 &w,
-                                window.reference_step + 1 - n,
+                                WindowConfig::default().reference_step + 1 - n,
                                 n,
                                 &run.model,
                             ),

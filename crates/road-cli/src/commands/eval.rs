@@ -9,13 +9,14 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use rand::SeedableRng;
-use road_data::{Dataset, SceneWindow, Split, WindowConfig, cache};
+use road_data::{Dataset, SceneWindow, Split, WindowConfig};
 use road_model::batch::SceneInput;
 use road_model::sample::{CpuEngine, RolloutScene, StepEngine, rollout_with};
 use road_sim::Pose;
 use road_sim::controllers::constant_velocity;
 use road_sim::metrics::scene_metrics;
 
+use crate::commands::load_cache;
 use crate::commands::sample::Engine;
 
 #[derive(Debug, Args)]
@@ -165,13 +166,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
 
 fn forecasting(args: EvalArgs) -> Result<ExitCode> {
     let window_config = WindowConfig::default();
-    let ds = cache::load_checked(
-        &cache::cache_path(&args.cache, Split::Validation),
-        Split::Validation,
-        Some(&window_config),
-        None,
-    )
-    .context("the validation cache is needed: run `road data build`")?;
+    let ds = load_cache(&args.cache, Split::Validation)?;
     let reference = window_config.reference_step;
     let steps = window_config.window_steps - reference - 1; // 30
     let sample_count = args.samples.unwrap_or(6);

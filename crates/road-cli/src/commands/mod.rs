@@ -8,3 +8,18 @@ pub mod reactivity;
 pub mod sample;
 pub mod sched;
 pub mod train;
+
+/// Loads a split's cache from `cache_dir`, checked against the default window settings.
+pub(crate) fn load_cache(
+    cache_dir: &std::path::Path,
+    split: road_data::Split,
+) -> anyhow::Result<road_data::Dataset> {
+    use anyhow::Context;
+    road_data::cache::load_checked(
+        &road_data::cache::cache_path(cache_dir, split),
+        split,
+        Some(&road_data::WindowConfig::default()),
+        None,
+    )
+    .with_context(|| format!("the {split} cache is needed: run `road data build`"))
+}

@@ -8,11 +8,12 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use rand::SeedableRng;
-use road_data::{Dataset, Split, WindowConfig, cache};
+use road_data::{Dataset, Split, WindowConfig};
 use road_model::batch::SceneInput;
 use road_model::checkpoint;
 use road_model::sample::{RolloutScene, rollout, rollout_with};
 
+use crate::commands::load_cache;
 use crate::plot::{HISTORY, LOGGED, PREDICTED, Stroke, scene_png, window_map_strokes};
 
 #[derive(Debug, Args)]
@@ -82,13 +83,7 @@ pub fn run(args: SampleArgs) -> Result<ExitCode> {
     let loaded = checkpoint::load(&args.checkpoint, &candle_core::Device::Cpu)?;
     let run = &loaded.meta.run;
     let window_config = WindowConfig::default();
-    let ds = cache::load_checked(
-        &cache::cache_path(&args.cache, Split::Validation),
-        Split::Validation,
-        Some(&window_config),
-        None,
-    )
-    .context("the validation cache is needed: run `road data build`")?;
+    let ds = load_cache(&args.cache, Split::Validation)?;
     let index = find_scene(&ds, &args.scene)?;
     let window = ds.window(index)?;
     let n = run.planner.obs_slots;
