@@ -144,10 +144,10 @@ impl GpuDenoiser {
     /// Loads `config.toml` and `weights.safetensors` of a checkpoint folder.
     pub fn from_checkpoint(ctx: &GpuContext, dir: &Path) -> Result<Self> {
         let loaded = road_model::checkpoint::load(dir, &candle_core::Device::Cpu)
-            .map_err(|e| Error::Checkpoint(e.to_string()))?;
+            .map_err(Error::CheckpointLoad)?;
         let path = dir.join(road_model::checkpoint::WEIGHTS_FILE);
         let tensors = road_model::checkpoint::load_tensors(&path, &candle_core::Device::Cpu)
-            .map_err(|e| Error::Checkpoint(e.to_string()))?;
+            .map_err(Error::CheckpointLoad)?;
         let mut host = HashMap::new();
         for (name, t) in tensors {
             let values = t

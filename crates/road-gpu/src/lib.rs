@@ -32,6 +32,9 @@ pub enum Error {
     Readback(String),
     #[error("cannot use the checkpoint: {0}")]
     Checkpoint(String),
+    /// The model layer's error names the file; kept as the source so its cause prints too.
+    #[error("cannot load the checkpoint")]
+    CheckpointLoad(#[source] road_model::Error),
     /// Inputs whose sizes do not match the prepared batch.
     #[error("engine input: {0}")]
     Input(String),

@@ -443,6 +443,7 @@ fn serve_bench(args: &ServeBenchArgs) -> Result<()> {
     use crate::commands::engine::{EngineChoice, Engines};
     use crate::commands::sample::Engine;
     let validation = load_cache(&args.cache, Split::Validation)?;
+    let reference = WindowConfig::default().reference_step;
     anyhow::ensure!(args.join_every > 0, "--join-every must be at least 1");
     let mut rows = Vec::new();
     for &engine_kind in &args.engines {
@@ -461,7 +462,7 @@ fn serve_bench(args: &ServeBenchArgs) -> Result<()> {
                         .map(|w| RolloutScene {
                             history: road_model::batch::SceneInput::from_window(
                                 &w,
-                                WindowConfig::default().reference_step + 1 - n,
+                                reference + 1 - n,
                                 n,
                                 &run.model,
                             ),
