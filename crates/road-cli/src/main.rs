@@ -56,6 +56,18 @@ enum Command {
     Gpu(commands::gpu::GpuCommand),
 }
 
+/// Training runs `train.workers` threads of its own; candle's matrix products must then stay on
+/// their caller's thread (it reads `RAYON_NUM_THREADS` on every product). A value the user set
+/// is kept.
+#[allow(unsafe_code)]
+fn single_threaded_matmuls() {
+    if std::env::var_os("RAYON_NUM_THREADS").is_none() {
+        // SAFETY: called from `main` before this program starts any thread, so nothing reads
+        // the environment concurrently.
+        unsafe { std::env::set_var("RAYON_NUM_THREADS", "1") };
+    }
+}
+
 fn main() -> std::process::ExitCode {
     tracing_subscriber::fmt()
         .with_env_filter(
@@ -66,6 +78,12 @@ fn main() -> std::process::ExitCode {
         .with_writer(std::io::stderr)
         .init();
     let cli = Cli::parse();
+    if matches!(
+        cli.command,
+        Command::Train(_) | Command::Bench(commands::bench::BenchCommand::Train(_))
+    ) {
+        single_threaded_matmuls();
+    }
     let result = match cli.command {
         Command::Demo(args) => commands::demo::run(args),
         Command::Data(cmd) => commands::data::run(cmd),

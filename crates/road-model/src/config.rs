@@ -102,6 +102,10 @@ pub struct TrainConfig {
     /// Fill each training batch with scenes of similar agent counts (less padding, the same
     /// per-window sampling probability); validation batches never are.
     pub bucket_by_agents: bool,
+    /// Data-parallel worker threads: each differentiates a shard of the batch (candle's own
+    /// matrix products single-threaded; `road train` sets `RAYON_NUM_THREADS=1` unless given).
+    /// Part of the run: the gradient is summed shard by shard, so it fixes the float rounding.
+    pub workers: usize,
 }
 
 impl Default for TrainConfig {
@@ -122,6 +126,7 @@ impl Default for TrainConfig {
             val_batches: 8,
             checkpoint_every_secs: 300,
             bucket_by_agents: true,
+            workers: 2,
         }
     }
 }
@@ -194,6 +199,9 @@ impl RunConfig {
             || !(0.0..=1.0).contains(&t.augmentation_ratio)
         {
             return Err("train: warmup_task_prob and augmentation_ratio lie in [0, 1]".into());
+        }
+        if t.workers == 0 {
+            return Err("train: workers ≥ 1".into());
         }
         Ok(())
     }

@@ -37,6 +37,8 @@ pub enum Error {
     Checkpoint { path: PathBuf, reason: String },
     #[error("engine failed: {0}")]
     Engine(String),
+    #[error("training worker {worker} failed: {message}")]
+    Worker { worker: usize, message: String },
     #[error("training diverged: loss {loss} at step {step}")]
     Diverged { step: u64, loss: f64 },
 }

@@ -224,9 +224,7 @@ impl Denoiser {
 
     /// Map tokens, once per scene: `map [B, P, Q, 2]` → `[B, P, D]` (per-point MLP, max-pool).
     pub fn encode_map(&self, map: &Tensor, mode: Mode) -> Result<Tensor> {
-        let x = self
-            .map_point
-            .forward(map)?
+        let x = lin(&self.map_point, map)?
             .broadcast_add(&self.map_point_embedding)?
             .relu()?; // [B, P, Q, D]
         let x = lin(&self.map_mix, &x)?.max(2)?; // [B, P, D]
@@ -317,6 +315,18 @@ pub fn edm_loss(
     map_tokens: &Tensor,
     mode: Mode,
 ) -> Result<Tensor> {
+    let (error_sum, count) = edm_error_sum(model, batch, map_tokens, mode)?;
+    Ok(error_sum.div(&count.maximum(1.0)?)?)
+}
+
+/// The EDM loss's numerator and denominator: the squared error summed over valid
+/// agent-slots, and the number of values summed (3 per valid agent-slot). Scalar tensors.
+pub fn edm_error_sum(
+    model: &Denoiser,
+    batch: &crate::batch::Batch,
+    map_tokens: &Tensor,
+    mode: Mode,
+) -> Result<(Tensor, Tensor)> {
     let f = model.raw_output(
         &batch.x_noisy,
         &batch.sigma,
@@ -330,8 +340,8 @@ pub fn edm_loss(
     let target = (&batch.x0 - batch.x_noisy.broadcast_mul(&c_skip)?)?.broadcast_div(&c_out)?;
     let valid4 = batch.valid.unsqueeze(3)?;
     let err = (f - target)?.sqr()?.broadcast_mul(&valid4)?;
-    let count = (batch.valid.sum_all()? * 3.0)?.maximum(1.0)?;
-    Ok(err.sum_all()?.div(&count)?)
+    let count = (batch.valid.sum_all()? * 3.0)?;
+    Ok((err.sum_all()?, count))
 }
 
 /// The number of scalar parameters of a config (for model cards and FLOP counts).

@@ -7,9 +7,12 @@
 
 use std::collections::HashMap;
 use std::io::Write;
+use std::ops::Range;
 use std::path::{Path, PathBuf};
+use std::sync::{Arc, mpsc};
 use std::time::Instant;
 
+use candle_core::backprop::GradStore;
 use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::{VarBuilder, VarMap};
 use rand::{Rng, SeedableRng, rngs::StdRng};
@@ -96,18 +99,48 @@ impl AgentBuckets {
     }
 }
 
-/// Builds a batch of `scenes` random windows of `ds`, cropped to the model's window (agents
-/// absent from the crop dropped), with the run's task noise; `rng` decides everything. With
-/// `buckets`, the first window is uniform and the others uniform within its agent-count bucket
-/// (every window keeps the same probability of being drawn).
-pub fn sample_batch(
+/// The scenes of one batch before padding: collated whole ([`sample_batch`]) or in shards
+/// (one per training worker).
+#[derive(Debug, Clone)]
+pub struct SceneDraw {
+    pub inputs: Vec<SceneInput>,
+    /// `[scenes][W]` task noise levels.
+    pub sigma: Vec<Vec<f32>>,
+    /// `[scenes][A_s·W·3]` standard normal noise.
+    pub noise: Vec<Vec<f32>>,
+}
+
+impl SceneDraw {
+    pub fn len(&self) -> usize {
+        self.inputs.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.inputs.is_empty()
+    }
+
+    /// The scenes `range` as one padded batch.
+    pub fn collate(&self, range: Range<usize>, device: &Device) -> Result<Batch> {
+        collate(
+            &self.inputs[range.clone()],
+            &self.sigma[range.clone()],
+            Some(&self.noise[range]),
+            device,
+        )
+    }
+}
+
+/// Draws `scenes` random windows of `ds`, cropped to the model's window (agents absent from
+/// the crop dropped), with the run's task noise; `rng` decides everything. With `buckets`, the
+/// first window is uniform and the others uniform within its agent-count bucket (every window
+/// keeps the same probability of being drawn).
+pub fn sample_scenes(
     run: &RunConfig,
     ds: &Dataset,
     scenes: usize,
     buckets: Option<&AgentBuckets>,
     rng: &mut StdRng,
-    device: &Device,
-) -> Result<Batch> {
+) -> Result<SceneDraw> {
     let w = run.model.window_slots;
     let steps = ds.config.window_steps;
     if steps < w {
@@ -130,9 +163,11 @@ pub fn sample_batch(
             )));
         }
     }
-    let mut inputs = Vec::with_capacity(scenes);
-    let mut sigma = Vec::with_capacity(scenes);
-    let mut noise = Vec::with_capacity(scenes);
+    let mut draw = SceneDraw {
+        inputs: Vec::with_capacity(scenes),
+        sigma: Vec::with_capacity(scenes),
+        noise: Vec::with_capacity(scenes),
+    };
     let mut anchor = None;
     for _ in 0..scenes {
         let index = match (buckets, anchor) {
@@ -143,7 +178,7 @@ pub fn sample_batch(
         let window = ds.window(index)?;
         let start = rng.random_range(0..=steps - w);
         let mut input = SceneInput::from_window(&window, start, w, &run.model);
-        sigma.push(task_sigma(
+        draw.sigma.push(task_sigma(
             rng,
             &run.model,
             run.planner.obs_slots,
@@ -153,10 +188,172 @@ pub fn sample_batch(
         ));
         let mut eps = normal_vec(rng, input.agents * w * 3);
         input.drop_absent_agents(&mut eps);
-        noise.push(eps);
-        inputs.push(input);
+        draw.noise.push(eps);
+        draw.inputs.push(input);
     }
-    collate(&inputs, &sigma, Some(&noise), device)
+    Ok(draw)
+}
+
+/// [`sample_scenes`] collated into one padded batch.
+pub fn sample_batch(
+    run: &RunConfig,
+    ds: &Dataset,
+    scenes: usize,
+    buckets: Option<&AgentBuckets>,
+    rng: &mut StdRng,
+    device: &Device,
+) -> Result<Batch> {
+    let draw = sample_scenes(run, ds, scenes, buckets, rng)?;
+    draw.collate(0..draw.len(), device)
+}
+
+/// Splits `scenes` into at most `workers` contiguous, non-empty ranges of near-equal size.
+pub fn shard_ranges(scenes: usize, workers: usize) -> Vec<Range<usize>> {
+    let shards = workers.clamp(1, scenes.max(1));
+    (0..shards)
+        .map(|i| i * scenes / shards..(i + 1) * scenes / shards)
+        .collect()
+}
+
+/// One shard's share of the batch loss (its error sum over the whole batch's count) and the
+/// gradients of that share.
+fn shard_gradients(model: &Denoiser, batch: &Batch, batch_count: f64) -> Result<ShardGradients> {
+    let map_tokens = model.encode_map(&batch.map, Mode::Train)?;
+    let (error_sum, _) = model::edm_error_sum(model, batch, &map_tokens, Mode::Train)?;
+    let loss = (error_sum / batch_count)?;
+    let value = f64::from(loss.to_scalar::<f32>()?);
+    Ok((value, loss.backward()?))
+}
+
+type ShardGradients = (f64, GradStore);
+
+/// A shard for a worker: the batch and the whole batch's value count.
+struct ShardJob {
+    batch: Batch,
+    batch_count: f64,
+}
+
+/// Worker threads that live as long as the trainer: a thread spawned per step would start
+/// from a cold allocator arena every step (measured: its forward pass ran at half speed).
+/// Shard 0 runs on the caller's thread; worker `i` takes shard `i + 1`.
+struct ShardWorkers {
+    jobs: Vec<mpsc::Sender<ShardJob>>,
+    results: mpsc::Receiver<(usize, Result<ShardGradients>)>,
+    threads: Vec<std::thread::JoinHandle<()>>,
+}
+
+impl ShardWorkers {
+    fn new(model: &Arc<Denoiser>, count: usize) -> Result<Self> {
+        let (result_tx, results) = mpsc::channel();
+        let mut jobs = Vec::with_capacity(count);
+        let mut threads = Vec::with_capacity(count);
+        for index in 0..count {
+            let (job_tx, job_rx) = mpsc::channel::<ShardJob>();
+            let model = Arc::clone(model);
+            let result_tx = result_tx.clone();
+            let thread = std::thread::Builder::new()
+                .name(format!("train-worker-{}", index + 1))
+                .spawn(move || {
+                    for job in job_rx {
+                        let outcome =
+                            std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                                shard_gradients(&model, &job.batch, job.batch_count)
+                            }))
+                            .unwrap_or_else(|panic| {
+                                let message = panic
+                                    .downcast_ref::<&str>()
+                                    .map(|m| (*m).to_owned())
+                                    .or_else(|| panic.downcast_ref::<String>().cloned())
+                                    .unwrap_or_else(|| "no message".into());
+                                Err(Error::Worker {
+                                    worker: index + 1,
+                                    message,
+                                })
+                            });
+                        if result_tx.send((index, outcome)).is_err() {
+                            break;
+                        }
+                    }
+                })
+                .map_err(|e| Error::Worker {
+                    worker: index + 1,
+                    message: format!("cannot start the thread: {e}"),
+                })?;
+            jobs.push(job_tx);
+            threads.push(thread);
+        }
+        Ok(Self {
+            jobs,
+            results,
+            threads,
+        })
+    }
+
+    /// Gradients of every shard, in shard order: the first here, the others on the workers.
+    fn run(
+        &self,
+        model: &Denoiser,
+        shards: Vec<Batch>,
+        batch_count: f64,
+    ) -> Result<Vec<ShardGradients>> {
+        let mut shards = shards.into_iter();
+        let first = shards
+            .next()
+            .ok_or_else(|| Error::data("a training batch without scenes".into()))?;
+        let mut sent = 0;
+        let mut send_error = None;
+        for (index, batch) in shards.enumerate() {
+            let outcome = match self.jobs.get(index) {
+                Some(jobs) => jobs
+                    .send(ShardJob { batch, batch_count })
+                    .map_err(|_| "the thread has stopped".to_owned()),
+                None => Err(format!("no worker for shard {}", index + 2)),
+            };
+            match outcome {
+                Ok(()) => sent += 1,
+                Err(message) => {
+                    send_error = Some(Error::Worker {
+                        worker: index + 1,
+                        message,
+                    });
+                    break;
+                }
+            }
+        }
+        let first = shard_gradients(model, &first, batch_count);
+        // Every job sent is answered before returning, even on an error, so that no result is
+        // left behind for the next step.
+        let mut others: Vec<Option<Result<ShardGradients>>> = (0..sent).map(|_| None).collect();
+        for _ in 0..sent {
+            let (index, outcome) = self.results.recv().map_err(|_| Error::Worker {
+                worker: 0,
+                message: "every worker thread has stopped".into(),
+            })?;
+            others[index] = Some(outcome);
+        }
+        if let Some(e) = send_error {
+            return Err(e);
+        }
+        std::iter::once(first)
+            .chain(others.into_iter().enumerate().map(|(index, outcome)| {
+                outcome.unwrap_or_else(|| {
+                    Err(Error::Worker {
+                        worker: index + 1,
+                        message: "no answer".into(),
+                    })
+                })
+            }))
+            .collect()
+    }
+}
+
+impl Drop for ShardWorkers {
+    fn drop(&mut self) {
+        self.jobs.clear(); // closes every job channel: the workers' loops end
+        for thread in self.threads.drain(..) {
+            let _ = thread.join();
+        }
+    }
 }
 
 /// Learning rate at `step`: linear warm-up, then cosine decay to the minimum.
@@ -182,7 +379,8 @@ pub struct Trainer {
     pub run: RunConfig,
     device: Device,
     varmap: VarMap,
-    model: Denoiser,
+    /// Shared with the worker threads (its variables are updated in place between steps).
+    model: Arc<Denoiser>,
     /// Variables sorted by name, with their AdamW moments and EMA.
     names: Vec<String>,
     vars: Vec<Var>,
@@ -197,6 +395,8 @@ pub struct Trainer {
     data: DataIdentity,
     /// Built from the training set on the first step.
     buckets: Option<AgentBuckets>,
+    /// Started on the first step that has more than one shard.
+    workers: Option<ShardWorkers>,
 }
 
 impl std::fmt::Debug for Trainer {
@@ -260,7 +460,7 @@ impl Trainer {
             run,
             device,
             varmap,
-            model,
+            model: Arc::new(model),
             names,
             vars,
             adam_m,
@@ -273,6 +473,7 @@ impl Trainer {
             validation,
             data,
             buckets: None,
+            workers: None,
         };
         match resume_from {
             Some(dir) => trainer.restore(dir)?,
@@ -287,6 +488,55 @@ impl Trainer {
 
     pub fn untrained_validation_loss(&self) -> Option<f64> {
         self.untrained_validation_loss
+    }
+
+    /// The batch loss of `draw` (mean over its valid values) and its gradient for every
+    /// variable (in [`Self::variable_names`] order), with the run's data parallelism: each
+    /// worker differentiates its shard's error sum divided by the whole batch's count, so the
+    /// shards' losses and gradients add up to the batch's. Shards are summed in a fixed order:
+    /// a run stays deterministic.
+    pub fn loss_and_gradients(&mut self, draw: &SceneDraw) -> Result<(f64, Vec<Tensor>)> {
+        let shards = shard_ranges(draw.len(), self.run.train.workers)
+            .into_iter()
+            .map(|range| draw.collate(range, &self.device))
+            .collect::<Result<Vec<_>>>()?;
+        let valid_slots = shards.iter().try_fold(0.0f64, |acc, b| {
+            Ok::<_, Error>(acc + f64::from(b.valid.sum_all()?.to_scalar::<f32>()?))
+        })?;
+        let batch_count = (3.0 * valid_slots).max(1.0);
+        let workers_needed = shards.len() - 1;
+        if self
+            .workers
+            .as_ref()
+            .is_none_or(|w| w.jobs.len() < workers_needed)
+        {
+            self.workers = Some(ShardWorkers::new(&self.model, workers_needed)?);
+        }
+        let workers = self.workers.as_ref().expect("workers were just started");
+        let results = workers.run(&self.model, shards, batch_count)?;
+        let loss: f64 = results.iter().map(|(value, _)| value).sum();
+        let mut gradients = Vec::with_capacity(self.vars.len());
+        for var in &self.vars {
+            let mut sum: Option<Tensor> = None;
+            for (_, grads) in &results {
+                if let Some(shard) = grads.get(var.as_tensor()) {
+                    sum = Some(match sum {
+                        Some(total) => (total + shard)?,
+                        None => shard.clone(),
+                    });
+                }
+            }
+            gradients.push(match sum {
+                Some(g) => g,
+                None => var.as_tensor().zeros_like()?,
+            });
+        }
+        Ok((loss, gradients))
+    }
+
+    /// The variables' names, sorted (the order of [`Self::loss_and_gradients`]).
+    pub fn variable_names(&self) -> &[String] {
+        &self.names
     }
 
     /// One optimiser step on a fresh batch.
@@ -305,34 +555,24 @@ impl Trainer {
             .buckets
             .as_ref()
             .filter(|_| self.run.train.bucket_by_agents);
-        let batch = sample_batch(
+        let draw = sample_scenes(
             &self.run,
             train_set,
             self.run.train.batch_scenes,
             buckets,
             &mut rng,
-            &self.device,
         )?;
-        let map_tokens = self.model.encode_map(&batch.map, Mode::Train)?;
-        let loss = model::edm_loss(&self.model, &batch, &map_tokens, Mode::Train)?;
-        let loss_value = f64::from(loss.to_scalar::<f32>()?);
+        let (loss_value, grad_list) = self.loss_and_gradients(&draw)?;
         if !loss_value.is_finite() {
             return Err(Error::Diverged {
                 step: self.step,
                 loss: loss_value,
             });
         }
-        let grads = loss.backward()?;
         // Global gradient norm, for clipping.
         let mut sq = 0.0f64;
-        let mut grad_list = Vec::with_capacity(self.vars.len());
-        for var in &self.vars {
-            let g = match grads.get(var.as_tensor()) {
-                Some(g) => g.clone(),
-                None => var.as_tensor().zeros_like()?,
-            };
+        for g in &grad_list {
             sq += f64::from(g.sqr()?.sum_all()?.to_scalar::<f32>()?);
-            grad_list.push(g);
         }
         let grad_norm = sq.sqrt();
         let clip = if grad_norm > self.run.train.grad_clip {

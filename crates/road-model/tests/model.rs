@@ -8,7 +8,7 @@ use road_data::{AgentType, Dataset, LaneletMap, Recording, Split, Track, WindowC
 use road_model::batch::{SceneInput, collate, normal_vec};
 use road_model::checkpoint::{self, DataIdentity};
 use road_model::model::{self, Mode, edm_loss};
-use road_model::train::{Trainer, sample_batch};
+use road_model::train::{Trainer, sample_batch, sample_scenes};
 use road_model::{ModelConfig, RunConfig, TrainConfig};
 use road_sched::EdmSchedule;
 
@@ -342,6 +342,41 @@ fn resume_continues_exactly() {
     }
     std::fs::remove_dir_all(&straight_dir).ok();
     std::fs::remove_dir_all(&split_dir).ok();
+}
+
+/// Data-parallel shards (uneven ones included) give the whole batch's loss and gradients.
+#[test]
+fn sharded_gradients_equal_the_whole_batch_gradients() {
+    let ds = dataset(Split::Train);
+    let gradients = |workers: usize| {
+        let mut run = run_config();
+        run.train.workers = workers;
+        let draw = sample_scenes(&run, &ds, 5, None, &mut StdRng::seed_from_u64(3)).unwrap();
+        let mut trainer = Trainer::new(run, &ds, identity(), None).unwrap();
+        let (loss, grads) = trainer.loss_and_gradients(&draw).unwrap();
+        (loss, grads, trainer.variable_names().to_vec())
+    };
+    let (whole_loss, whole, names) = gradients(1);
+    for workers in [2, 3, 8] {
+        let (loss, sharded, _) = gradients(workers);
+        assert!(
+            (loss - whole_loss).abs() <= 1e-6 * whole_loss.abs().max(1.0),
+            "{workers} workers: loss {loss} against {whole_loss}"
+        );
+        for ((name, a), b) in names.iter().zip(&whole).zip(&sharded) {
+            let (a, b) = (
+                a.flatten_all().unwrap().to_vec1::<f32>().unwrap(),
+                b.flatten_all().unwrap().to_vec1::<f32>().unwrap(),
+            );
+            let scale = a.iter().fold(0.0f32, |m, v| m.max(v.abs())).max(1e-3);
+            for (x, y) in a.iter().zip(&b) {
+                assert!(
+                    (x - y).abs() <= 1e-4 * scale,
+                    "{workers} workers: gradient of {name} {y} against {x}"
+                );
+            }
+        }
+    }
 }
 
 /// Reference sampling: every planner that fits the window runs through the scheduler with the
