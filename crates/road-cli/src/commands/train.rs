@@ -95,7 +95,7 @@ validation: {val_windows} windows.\n\n\
 | optimiser steps | {step} of {steps} planned |\n\
 | batch | {batch} scenes |\n\
 | wall time | {wall:.0} s ({hours:.2} h) |\n\
-| hardware | {hardware} |\n\
+| hardware (the last session's) | {hardware}; {workers} |\n\
 | conditioning augmentation | r = {r}, warm-up task probability β = {beta} |\n\
 | validation denoising loss (EMA weights) | {val} |\n\
 | same, untrained model | {untrained} |\n\n\
@@ -105,10 +105,15 @@ The loss is EDM's weighted denoising loss, averaged over valid agent-slots of fi
 ## Use\n\n\
 ```sh\nroad sample --checkpoint models/{name} --scene val:0 --out sample.png\n```\n\n\
 ## Limits\n\n\
-A small model trained briefly on a 2-core CPU; the paper's model is far larger and trained for 36 GPU-days. \
+A small model trained briefly on CPUs; the paper's model is far larger and trained for 36 GPU-days. \
 Forecasting and reactivity figures (`road eval --suite forecasting|reactivity`) are in `docs/results.md`. \
-Trained with one thread while other trainings shared the machine: the wall time is not this model's alone.\n",
+The wall time adds up every session of the run (resumed across sessions, at times sharing the machine with other \
+trainings): it is not this model's alone; `train_log.csv` gives samples/s for each logged step.\n",
         name = r.name,
+        workers = match r.train.workers {
+            1 => "one training thread".to_owned(),
+            n => format!("{n} data-parallel workers, one thread each"),
+        },
         kind = r.planner.kind,
         params = meta.parameters,
         d = r.model.hidden,
