@@ -8,8 +8,13 @@ struct Params {
     sigma_data: f32,
     hidden: u32,     // D (point embeddings) or unused
     points: u32,     // Q (point embeddings) or unused
-    _pad: u32,
+    anchor_slot: u32, // precondition_output: the agent frame's anchor slot, or NO_FRAME
+    heading_scale: f32, // precondition_output with an agent frame: state units per radian
+    _pad0: u32,
+    _pad1: u32,
 }
+
+const NO_FRAME: u32 = 0xffffffffu;
 
 @group(0) @binding(0) var<uniform> params: Params;
 @group(0) @binding(1) var<storage, read> a: array<f32>;
@@ -33,7 +38,8 @@ fn add_in_place(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
 }
 
 // D = c_skip · x + c_out · F · valid. a = x [B, A, W, 3], b = F [B, A, W, 3], c = σ [B, W],
-// e = valid [B, A, W].
+// e = valid [B, A, W]. With an agent frame, F's (x, y) is first rotated from the anchor's
+// heading back to the scene frame (model.rs `AnchorFrame::rotate_to_scene`).
 @compute @workgroup_size(64)
 fn precondition_output(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let i = flat_index(gid, groups);
@@ -46,7 +52,18 @@ fn precondition_output(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(n
     let s = c[scene * params.slots + w];
     let sd = params.sigma_data;
     let denom = s * s + sd * sd;
-    out[i] = sd * sd / denom * a[i] + s * sd * inverseSqrt(denom) * b[i] * e[token];
+    var f = b[i];
+    let component = i % 3u;
+    if (params.anchor_slot != NO_FRAME && component < 2u) {
+        let anchor = (token / params.slots) * params.slots + params.anchor_slot;
+        let heading_rad = a[anchor * 3u + 2u] * e[anchor] / params.heading_scale;
+        let cs = cos(heading_rad);
+        let sn = sin(heading_rad);
+        let f0 = b[token * 3u];
+        let f1 = b[token * 3u + 1u];
+        f = select(sn * f0 + cs * f1, cs * f0 - sn * f1, component == 0u);
+    }
+    out[i] = sd * sd / denom * a[i] + s * sd * inverseSqrt(denom) * f * e[token];
 }
 
 // Map points: out[b, p, q, :] = relu(W · point + bias + point_embedding[q, :]).

@@ -8,18 +8,29 @@ struct Params {
     sigma_data: f32,
     polylines: u32,
     points: u32,
-    _pad: u32,
+    // The agent frame's anchor slot (ModelConfig::agent_frame), NO_FRAME without one.
+    anchor_slot: u32,
+    heading_scale: f32,   // state units per radian
+    relative_scale: f32,  // multiplier of the relative features after c_in
+    _pad0: u32,
+    _pad1: u32,
 }
+
+const NO_FRAME: u32 = 0xffffffffu;
 
 @group(0) @binding(0) var<uniform> params: Params;
 
 // embed_tokens: h[b, a, w, :] = W_state · (c_in · x · valid) + b_state
 //                              + W_noise · c_noise + b_noise + agent[b, a, :] + slot[w, :]
+//                              (+ W_rel · rel + b_rel with an agent frame: rel = the state
+//                              relative to the agent's anchor state, rotated into the anchor's
+//                              heading, times c_in · relative_scale · valid · anchor_valid, and
+//                              anchor_valid; model.rs `AnchorFrame`)
 @group(0) @binding(1) var<storage, read> x: array<f32>;          // [B, A, W, 3]
 @group(0) @binding(2) var<storage, read> sigma: array<f32>;      // [B, W]
 @group(0) @binding(3) var<storage, read> valid: array<f32>;      // [B, A, W]
 @group(0) @binding(4) var<storage, read> agent: array<f32>;      // [B, A, D] (embed_agent output)
-@group(0) @binding(5) var<storage, read> w_state: array<f32>;    // [D, 3] then b_state [D], w_noise [D], b_noise [D], slot [W, D]
+@group(0) @binding(5) var<storage, read> w_state: array<f32>;    // [D, 3] then b_state [D], w_noise [D], b_noise [D], slot [W, D] (, w_rel [D, 4], b_rel [D])
 @group(0) @binding(6) var<storage, read_write> h: array<f32>;    // [B, A, W, D]
 
 @compute @workgroup_size(64)
@@ -50,5 +61,24 @@ fn embed_tokens(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
     acc += w_state[w_noise + d] * c_noise + w_state[b_noise + d];
     acc += agent[(b * params.agents + a) * d_count + d];
     acc += w_state[slot + w * d_count + d];
+    if (params.anchor_slot != NO_FRAME) {
+        let anchor = (token / params.slots) * params.slots + params.anchor_slot;
+        let anchor_valid = valid[anchor];
+        let xa = vec3<f32>(x[anchor * 3u], x[anchor * 3u + 1u], x[anchor * 3u + 2u]) * anchor_valid;
+        let heading_rad = xa.z / params.heading_scale;
+        let cs = cos(heading_rad);
+        let sn = sin(heading_rad);
+        let dx = x[xb] - xa.x;
+        let dy = x[xb + 1u] - xa.y;
+        let dh = x[xb + 2u] - xa.z;
+        let k = c_in * params.relative_scale * valid[token] * anchor_valid;
+        let w_rel = slot + params.slots * d_count;
+        let b_rel = w_rel + 4u * d_count;
+        acc += w_state[w_rel + 4u * d] * (cs * dx + sn * dy) * k
+            + w_state[w_rel + 4u * d + 1u] * (cs * dy - sn * dx) * k
+            + w_state[w_rel + 4u * d + 2u] * dh * k
+            + w_state[w_rel + 4u * d + 3u] * anchor_valid
+            + w_state[b_rel + d];
+    }
     h[index] = acc;
 }

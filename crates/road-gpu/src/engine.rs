@@ -32,8 +32,14 @@ struct EmbedParams {
     sigma_data: f32,
     polylines: u32,
     points: u32,
-    _pad: u32,
+    anchor_slot: u32,
+    heading_scale: f32,
+    relative_scale: f32,
+    _pad: [u32; 2],
 }
+
+/// `anchor_slot` of the kernels' params when the model has no agent frame.
+const NO_FRAME: u32 = u32::MAX;
 
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
@@ -45,7 +51,9 @@ struct ElementwiseParams {
     sigma_data: f32,
     hidden: u32,
     points: u32,
-    _pad: u32,
+    anchor_slot: u32,
+    heading_scale: f32,
+    _pad: [u32; 3],
 }
 
 #[repr(C)]
@@ -179,17 +187,17 @@ impl GpuDenoiser {
         };
         // Packed small tensors the embedding kernels read from one binding.
         let mut packed: Vec<(String, Vec<f32>)> = Vec::new();
-        let embed: Vec<f32> = [
+        let mut embed_parts = vec![
             get("embed_state.weight")?,
             get("embed_state.bias")?,
             get("embed_noise.weight")?,
             get("embed_noise.bias")?,
             get("slot_embedding")?,
-        ]
-        .into_iter()
-        .flatten()
-        .copied()
-        .collect();
+        ];
+        if config.agent_frame.is_some() {
+            embed_parts.extend([get("embed_relative.weight")?, get("embed_relative.bias")?]);
+        }
+        let embed: Vec<f32> = embed_parts.into_iter().flatten().copied().collect();
         packed.push(("packed.embed".into(), embed));
         let map_points: Vec<f32> = [
             get("map_point.weight")?,
@@ -333,7 +341,9 @@ impl GpuDenoiser {
             sigma_data: 0.0,
             hidden: 0,
             points: 0,
-            _pad: 0,
+            anchor_slot: NO_FRAME,
+            heading_scale: 1.0,
+            _pad: [0; 3],
         };
         let params = Self::params(ctx, &p);
         let bound = [(1, from.as_entire_binding()), (5, into.as_entire_binding())];
@@ -383,7 +393,9 @@ impl GpuDenoiser {
             sigma_data: 0.0,
             hidden: d as u32,
             points: q as u32,
-            _pad: 0,
+            anchor_slot: NO_FRAME,
+            heading_scale: 1.0,
+            _pad: [0; 3],
         };
         let params = Self::params(ctx, &p);
         // Bindings a, b and out of the elementwise family (c and e are unused by this entry).
@@ -541,7 +553,16 @@ impl GpuDenoiser {
             sigma_data: c.edm.sigma_data as f32,
             polylines: 0,
             points: 0,
-            _pad: 0,
+            anchor_slot: c
+                .agent_frame
+                .as_ref()
+                .map_or(NO_FRAME, |f| f.anchor_slot as u32),
+            heading_scale: c.heading_scale as f32,
+            relative_scale: c
+                .agent_frame
+                .as_ref()
+                .map_or(1.0, |f| f.relative_scale as f32),
+            _pad: [0; 2],
         };
         let params = Self::params(ctx, &p);
         let resources = [
@@ -756,7 +777,12 @@ impl GpuDenoiser {
             sigma_data: c.edm.sigma_data as f32,
             hidden: d as u32,
             points: 0,
-            _pad: 0,
+            anchor_slot: c
+                .agent_frame
+                .as_ref()
+                .map_or(NO_FRAME, |f| f.anchor_slot as u32),
+            heading_scale: c.heading_scale as f32,
+            _pad: [0; 3],
         };
         let params = Self::params(ctx, &p);
         ops.push(self.pipelines.precondition_output.prepare_buffers(

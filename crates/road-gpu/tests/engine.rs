@@ -139,12 +139,36 @@ fn test_config() -> ModelConfig {
 
 #[test]
 fn whole_denoiser_matches_candle_on_real_validation_scenes() {
+    whole_denoiser_matches_candle(&test_config(), "denoiser");
+}
+
+/// The agent frame (relative features in, rotated output out), with one agent missing at the
+/// anchor slot so that the scene-frame fallback runs too.
+#[test]
+fn whole_denoiser_with_an_agent_frame_matches_candle() {
+    let config = ModelConfig {
+        agent_frame: Some(road_model::AgentFrame {
+            anchor_slot: 9,
+            relative_scale: 2.0,
+        }),
+        ..test_config()
+    };
+    whole_denoiser_matches_candle(&config, "denoiser-frame");
+}
+
+fn whole_denoiser_matches_candle(config: &ModelConfig, name: &str) {
     let ctx = context();
-    let config = test_config();
-    let (dir, reference) = checkpoint_dir(&config, "denoiser");
+    let (dir, reference) = checkpoint_dir(config, name);
     let gpu = GpuDenoiser::from_checkpoint(&ctx, &dir).unwrap();
     let ds = validation_set();
-    let b = batch(&ds, &config);
+    let mut b = batch(&ds, config);
+    if let Some(frame) = &config.agent_frame {
+        // Scene 0, agent 1: not valid at the anchor slot (its other slots stay valid).
+        let mut valid = flat(&b.valid);
+        let w = config.window_slots;
+        valid[w + frame.anchor_slot] = 0.0;
+        b.valid = Tensor::from_vec(valid, b.valid.shape(), &Device::Cpu).unwrap();
+    }
     let (scenes, agents, _, _) = b.x_noisy.dims4().unwrap();
     let polylines = b.map_valid.dim(1).unwrap();
 

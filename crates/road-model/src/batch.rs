@@ -70,6 +70,27 @@ impl SceneInput {
 }
 
 impl SceneInput {
+    /// Rotates the scene about its centre (the frame's origin) by `angle_rad`: positions and
+    /// map points turn, headings (state units: `heading_rad · heading_scale`) shift by the
+    /// angle. Padding stays zero.
+    pub fn rotate(&mut self, angle_rad: f32, heading_scale: f32) {
+        let (sin, cos) = angle_rad.sin_cos();
+        let turn = |p: &mut [f32]| {
+            let (x, y) = (p[0], p[1]);
+            p[0] = cos * x - sin * y;
+            p[1] = sin * x + cos * y;
+        };
+        for (state, &valid) in self.states.chunks_exact_mut(3).zip(&self.valid) {
+            if valid {
+                turn(&mut state[..2]);
+                state[2] += angle_rad * heading_scale;
+            }
+        }
+        for point in self.map.chunks_exact_mut(2) {
+            turn(point);
+        }
+    }
+
     /// Drops agents with no valid slot in the crop, and their rows of `noise`
     /// (`[agents, slots, 3]`); keeps every agent when none is valid. Padding is masked, so the
     /// loss does not change; the batch just pads to fewer agents.

@@ -31,6 +31,27 @@ pub struct ModelConfig {
     /// Metres per normalised position unit (the data's `position_scale_m`).
     pub position_scale_m: f64,
     pub edm: EdmSchedule,
+    /// Per-agent frame features (see [`AgentFrame`]). Absent from a file means none: the
+    /// checkpoints trained before it saw the scene frame only.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub agent_frame: Option<AgentFrame>,
+}
+
+/// Each token also sees its state relative to its agent's anchor pose (translated and rotated
+/// so that the agent heads along +x), and the network's output is rotated back from that
+/// frame. "Follow my lane" and "keep my speed" then look the same for every orientation, and
+/// motion is seen at a finer scale than the scene's. A deviation from the paper (which feeds
+/// scene-frame states only); the EDM preconditioning is unchanged: the frame is a function of
+/// the noisy input, so `D(x; σ)` is still a denoiser of the scene-frame state.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AgentFrame {
+    /// The slot whose (noisy) state anchors each agent's frame: the newest observation, n − 1.
+    /// Agents not valid there keep the scene frame and get zero relative features.
+    pub anchor_slot: usize,
+    /// Multiplier of the relative features after `c_in`: 2 shows motion at 20 m per unit
+    /// (where the scene-frame input has 40 m).
+    pub relative_scale: f64,
 }
 
 impl Default for ModelConfig {
@@ -46,6 +67,7 @@ impl Default for ModelConfig {
             heading_scale: 0.25,
             position_scale_m: 40.0,
             edm: EdmSchedule::default(),
+            agent_frame: None,
         }
     }
 }
@@ -70,6 +92,17 @@ impl ModelConfig {
         }
         if !(self.heading_scale > 0.0 && self.position_scale_m > 0.0) {
             return Err("heading_scale and position_scale_m must be positive".into());
+        }
+        if let Some(frame) = &self.agent_frame {
+            if frame.anchor_slot >= self.window_slots {
+                return Err(format!(
+                    "agent_frame.anchor_slot ({}) must be a slot of the window (< {})",
+                    frame.anchor_slot, self.window_slots
+                ));
+            }
+            if !(frame.relative_scale > 0.0 && frame.relative_scale.is_finite()) {
+                return Err("agent_frame.relative_scale must be positive".into());
+            }
         }
         Ok(())
     }
@@ -106,6 +139,9 @@ pub struct TrainConfig {
     /// matrix products single-threaded; `road train` sets `RAYON_NUM_THREADS=1` unless given).
     /// Part of the run: the gradient is summed shard by shard, so it fixes the float rounding.
     pub workers: usize,
+    /// Rotate every training scene about its centre by a uniform random angle (positions, map
+    /// and headings together): the scene frame has no preferred orientation at inference.
+    pub rotation_augmentation: bool,
 }
 
 impl Default for TrainConfig {
@@ -127,6 +163,7 @@ impl Default for TrainConfig {
             checkpoint_every_secs: 300,
             bucket_by_agents: true,
             workers: 2,
+            rotation_augmentation: false,
         }
     }
 }
@@ -202,6 +239,15 @@ impl RunConfig {
         }
         if t.workers == 0 {
             return Err("train: workers ≥ 1".into());
+        }
+        if let Some(frame) = &self.model.agent_frame {
+            if frame.anchor_slot + 1 != self.planner.obs_slots {
+                return Err(format!(
+                    "model.agent_frame.anchor_slot ({}) must be the newest observed slot ({})",
+                    frame.anchor_slot,
+                    self.planner.obs_slots.saturating_sub(1)
+                ));
+            }
         }
         Ok(())
     }

@@ -9,14 +9,17 @@
 pub mod batch;
 pub mod checkpoint;
 pub mod config;
+pub mod cpu_engine;
+pub mod fast;
 pub mod fused;
+pub mod heun;
 pub mod model;
 pub mod sample;
 pub mod train;
 
 use std::path::{Path, PathBuf};
 
-pub use config::{ModelConfig, RunConfig, TrainConfig};
+pub use config::{AgentFrame, ModelConfig, RunConfig, TrainConfig};
 pub use model::{Denoiser, Mode};
 
 /// Errors of the model layer.

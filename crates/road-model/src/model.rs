@@ -55,12 +55,12 @@ fn softmax(x: &Tensor, mode: Mode) -> Result<Tensor> {
 }
 
 #[derive(Debug)]
-struct Attention {
-    q: Linear,
-    k: Linear,
-    v: Linear,
-    o: Linear,
-    heads: usize,
+pub(crate) struct Attention {
+    pub(crate) q: Linear,
+    pub(crate) k: Linear,
+    pub(crate) v: Linear,
+    pub(crate) o: Linear,
+    pub(crate) heads: usize,
 }
 
 impl Attention {
@@ -95,16 +95,16 @@ impl Attention {
 }
 
 #[derive(Debug)]
-struct Block {
-    ln_time: LayerNorm,
-    time: Attention,
-    ln_agents: LayerNorm,
-    agents: Attention,
-    ln_map: LayerNorm,
-    map: Attention,
-    ln_mlp: LayerNorm,
-    mlp_in: Linear,
-    mlp_out: Linear,
+pub(crate) struct Block {
+    pub(crate) ln_time: LayerNorm,
+    pub(crate) time: Attention,
+    pub(crate) ln_agents: LayerNorm,
+    pub(crate) agents: Attention,
+    pub(crate) ln_map: LayerNorm,
+    pub(crate) map: Attention,
+    pub(crate) ln_mlp: LayerNorm,
+    pub(crate) mlp_in: Linear,
+    pub(crate) mlp_out: Linear,
 }
 
 impl Block {
@@ -180,17 +180,19 @@ impl Masks {
 #[derive(Debug)]
 pub struct Denoiser {
     pub config: ModelConfig,
-    embed_state: Linear,
-    embed_noise: Linear,
-    embed_agent: Linear,
-    slot_embedding: Tensor, // [W, D]
-    map_point: Linear,
-    map_point_embedding: Tensor, // [Q, D]
-    map_mix: Linear,
-    ln_map_out: LayerNorm,
-    blocks: Vec<Block>,
-    ln_out: LayerNorm,
-    head: Linear,
+    pub(crate) embed_state: Linear,
+    pub(crate) embed_noise: Linear,
+    pub(crate) embed_agent: Linear,
+    /// With an agent frame: relative (x, y, heading) and the anchor's validity → D.
+    pub(crate) embed_relative: Option<Linear>,
+    pub(crate) slot_embedding: Tensor, // [W, D]
+    pub(crate) map_point: Linear,
+    pub(crate) map_point_embedding: Tensor, // [Q, D]
+    pub(crate) map_mix: Linear,
+    pub(crate) ln_map_out: LayerNorm,
+    pub(crate) blocks: Vec<Block>,
+    pub(crate) ln_out: LayerNorm,
+    pub(crate) head: Linear,
 }
 
 impl Denoiser {
@@ -204,6 +206,10 @@ impl Denoiser {
             embed_state: linear(3, d, vb.pp("embed_state"))?,
             embed_noise: linear(1, d, vb.pp("embed_noise"))?,
             embed_agent: linear(AGENT_FEATURES, d, vb.pp("embed_agent"))?,
+            embed_relative: match config.agent_frame {
+                Some(_) => Some(linear(4, d, vb.pp("embed_relative"))?),
+                None => None,
+            },
             slot_embedding: vb.get_with_hints((config.window_slots, d), "slot_embedding", init)?,
             map_point: linear(2, d, vb.pp("map_point"))?,
             map_point_embedding: vb.get_with_hints(
@@ -298,12 +304,79 @@ impl Denoiser {
             .broadcast_add(&noise)?
             .broadcast_add(&agent)?
             .broadcast_add(&slots)?;
+        let frame = match (&self.config.agent_frame, &self.embed_relative) {
+            (Some(spec), Some(embed)) => {
+                let frame =
+                    AnchorFrame::new(x_noisy, valid, spec.anchor_slot, self.config.heading_scale)?;
+                let scale = (c_in * spec.relative_scale)?.broadcast_mul(&valid4)?; // [B, A, W, 1]
+                let rel = frame.relative_features(x_noisy, &scale)?; // [B, A, W, 4]
+                h = (h + lin(embed, &rel)?)?;
+                Some(frame)
+            }
+            _ => None,
+        };
         let masks = Masks::new(valid, map_valid)?;
         for block in &self.blocks {
             h = block.forward(&h, &masks, map_tokens, mode)?;
         }
         let out = lin(&self.head, &norm(&self.ln_out, &h, mode)?)?; // [B, A, W, 3]
+        let out = match &frame {
+            Some(frame) => frame.rotate_to_scene(&out)?,
+            None => out,
+        };
         Ok(out.broadcast_mul(&valid4)?)
+    }
+}
+
+/// Each agent's anchor pose (its state at the anchor slot, in the noisy input): the frame of
+/// `ModelConfig::agent_frame`. An agent not valid at the anchor slot keeps the scene frame.
+#[derive(Debug)]
+struct AnchorFrame {
+    anchor: Tensor,       // [B, A, 1, 3] anchor state (zero where not valid)
+    anchor_valid: Tensor, // [B, A, 1, 1]
+    cos: Tensor,          // [B, A, 1, 1] of the anchor heading
+    sin: Tensor,          // [B, A, 1, 1]
+}
+
+impl AnchorFrame {
+    fn new(x: &Tensor, valid: &Tensor, slot: usize, heading_scale: f64) -> Result<Self> {
+        let anchor_valid = valid.narrow(2, slot, 1)?.unsqueeze(3)?; // [B, A, 1, 1]
+        let anchor = x.narrow(2, slot, 1)?.broadcast_mul(&anchor_valid)?; // [B, A, 1, 3]
+        let heading_rad = (anchor.narrow(3, 2, 1)? / heading_scale)?;
+        Ok(Self {
+            cos: heading_rad.cos()?,
+            sin: heading_rad.sin()?,
+            anchor,
+            anchor_valid,
+        })
+    }
+
+    /// `x [B, A, W, 3]` relative to the anchor, rotated into its heading, times `scale
+    /// [B, A, W, 1]`; the anchor's validity as a fourth feature: `[B, A, W, 4]`.
+    fn relative_features(&self, x: &Tensor, scale: &Tensor) -> Result<Tensor> {
+        let d = x.broadcast_sub(&self.anchor)?; // [B, A, W, 3]
+        let (dx, dy, dh) = (d.narrow(3, 0, 1)?, d.narrow(3, 1, 1)?, d.narrow(3, 2, 1)?);
+        let forward = (dx.broadcast_mul(&self.cos)? + dy.broadcast_mul(&self.sin)?)?;
+        let left = (dy.broadcast_mul(&self.cos)? - dx.broadcast_mul(&self.sin)?)?;
+        let scale = scale.broadcast_mul(&self.anchor_valid)?;
+        let flag = self.anchor_valid.broadcast_as(dh.shape())?;
+        Ok(Tensor::cat(
+            &[
+                (forward * &scale)?,
+                (left * &scale)?,
+                (dh * &scale)?,
+                flag.contiguous()?,
+            ],
+            3,
+        )?)
+    }
+
+    /// `f [B, A, W, 3]` from the anchor frame back to the scene frame (heading unchanged).
+    fn rotate_to_scene(&self, f: &Tensor) -> Result<Tensor> {
+        let (f0, f1, f2) = (f.narrow(3, 0, 1)?, f.narrow(3, 1, 1)?, f.narrow(3, 2, 1)?);
+        let x = (f0.broadcast_mul(&self.cos)? - f1.broadcast_mul(&self.sin)?)?;
+        let y = (f0.broadcast_mul(&self.sin)? + f1.broadcast_mul(&self.cos)?)?;
+        Ok(Tensor::cat(&[x, y, f2], 3)?)
     }
 }
 
@@ -403,4 +476,80 @@ pub fn init_seeded(
     }
     drop(vars);
     Ok((varmap, model))
+}
+
+#[cfg(test)]
+mod tests {
+    use candle_core::{Device, Tensor};
+
+    use super::AnchorFrame;
+
+    fn values(t: &Tensor) -> Vec<f32> {
+        t.flatten_all().unwrap().to_vec1::<f32>().unwrap()
+    }
+
+    /// One scene, two agents, three slots; the anchor is slot 1. Agent 0 heads along +y
+    /// (π/2) from (1, 2); agent 1 is not valid at the anchor slot.
+    fn frame() -> (Tensor, AnchorFrame) {
+        let heading_scale = 0.25;
+        let up = std::f32::consts::FRAC_PI_2 * heading_scale;
+        #[rustfmt::skip]
+        let x = Tensor::from_vec(
+            vec![
+                1.0, 1.0, up,   1.0, 2.0, up,   1.0, 3.0, up + 0.1,
+                5.0, 5.0, 0.3,  9.0, 9.0, 0.0,  6.0, 5.0, 0.3,
+            ],
+            (1, 2, 3, 3),
+            &Device::Cpu,
+        )
+        .unwrap();
+        let valid =
+            Tensor::from_vec(vec![1f32, 1., 1., 1., 0., 1.], (1, 2, 3), &Device::Cpu).unwrap();
+        let frame = AnchorFrame::new(&x, &valid, 1, f64::from(heading_scale)).unwrap();
+        (x, frame)
+    }
+
+    #[test]
+    fn relative_features_put_the_anchor_heading_along_x() {
+        let (x, frame) = frame();
+        let scale = Tensor::full(2f32, (1, 2, 3, 1), &Device::Cpu).unwrap();
+        let rel = values(&frame.relative_features(&x, &scale).unwrap()); // [1, 2, 3, 4]
+        let agent0 = &rel[..12];
+        // One unit behind, at the anchor, one unit ahead (heading +0.1), all scaled by 2.
+        let want0 = [-2.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 2.0, 0.0, 0.2, 1.0];
+        for (got, want) in agent0.iter().zip(want0) {
+            assert!(
+                (got - want).abs() < 1e-5,
+                "agent 0: {agent0:?} against {want0:?}"
+            );
+        }
+        // No anchor: every relative feature and the flag are zero.
+        assert!(
+            rel[12..].iter().all(|&v| v == 0.0),
+            "agent 1: {:?}",
+            &rel[12..]
+        );
+    }
+
+    #[test]
+    fn output_turns_back_to_the_scene_frame() {
+        let (_, frame) = frame();
+        let forward =
+            Tensor::from_vec([1f32, 0.0, 0.5].repeat(6), (1, 2, 3, 3), &Device::Cpu).unwrap();
+        let out = values(&frame.rotate_to_scene(&forward).unwrap());
+        // Agent 0's forward is the scene's +y; agent 1 keeps the scene frame.
+        for (token, got) in out.chunks(3).enumerate() {
+            let want = if token < 3 {
+                [0.0, 1.0, 0.5]
+            } else {
+                [1.0, 0.0, 0.5]
+            };
+            for (g, w) in got.iter().zip(want) {
+                assert!(
+                    (g - w).abs() < 1e-6,
+                    "token {token}: {got:?} against {want:?}"
+                );
+            }
+        }
+    }
 }

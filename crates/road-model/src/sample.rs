@@ -1,18 +1,19 @@
 //! Sampling rollouts: the scheduler drives the per-slot noise levels, an engine evaluates the
 //! denoiser and takes a deterministic Heun step (EDM Algorithm 1 with a per-slot σ) of every
-//! slot, and the driver here emits, shifts and rebuilds windows. [`CpuEngine`] (candle) is the
-//! reference the WGSL engine (`road-gpu`) must match, and the CPU path for users without a GPU.
+//! slot, and the driver here emits, shifts and rebuilds windows. The engines: [`CpuEngine`]
+//! (candle, the reference every engine must match) and [`FastCpuEngine`] (the CPU path for
+//! users without a GPU) in `cpu_engine.rs`, the WGSL engine in `road-gpu`.
 //!
 //! Many scenes run in lockstep as one batch (each with its own noise); scenes of one call share
 //! a planner, so their steps line up.
 
-use candle_core::{Device, Tensor};
 use rand::rngs::StdRng;
 use rand::{RngCore, SeedableRng};
 use road_sched::{PlannerSpec, SceneSpec, Scheduler, TickOutcome, WindowUpdate};
 
 use crate::batch::{AGENT_FEATURES, SceneInput, normal_vec};
-use crate::model::{Denoiser, Mode};
+pub use crate::cpu_engine::{CpuEngine, FastCpuEngine};
+use crate::model::Denoiser;
 use crate::{Error, Result};
 
 /// One scene to roll out: its observed history (the last `n` slots of `history` are the
@@ -149,195 +150,6 @@ pub fn window_shift(window: &mut [f32], w: usize, edit: &ShiftEdit<'_>, shape: S
             window[3 * (row + shape.observed - 1) + d] = e + shape.obs_sigma * obs;
             window[3 * (row + w - 1) + d] = shape.sigma_max * new;
         }
-    }
-}
-
-/// The candle reference engine.
-#[derive(Debug)]
-pub struct CpuEngine<'a> {
-    model: &'a Denoiser,
-    scenes: usize,
-    agents: usize,
-    features: Option<Tensor>,
-    map_tokens: Option<Tensor>,
-    map_valid: Option<Tensor>,
-    windows: Vec<f32>,
-    valid: Vec<f32>,
-}
-
-impl<'a> CpuEngine<'a> {
-    pub fn new(model: &'a Denoiser) -> Self {
-        Self {
-            model,
-            scenes: 0,
-            agents: 0,
-            features: None,
-            map_tokens: None,
-            map_valid: None,
-            windows: Vec::new(),
-            valid: Vec::new(),
-        }
-    }
-}
-
-impl StepEngine for CpuEngine<'_> {
-    fn window_slots(&self) -> usize {
-        self.model.config.window_slots
-    }
-
-    fn prepare(
-        &mut self,
-        scenes: usize,
-        agents: usize,
-        features: &[f32],
-        polylines: usize,
-        map: &[f32],
-        map_valid: &[f32],
-    ) -> Result<()> {
-        let device = Device::Cpu;
-        let q = self.model.config.polyline_points;
-        self.scenes = scenes;
-        self.agents = agents;
-        self.features = Some(Tensor::from_vec(
-            features.to_vec(),
-            (scenes, agents, AGENT_FEATURES),
-            &device,
-        )?);
-        let map = Tensor::from_vec(map.to_vec(), (scenes, polylines, q, 2), &device)?;
-        self.map_tokens = Some(self.model.encode_map(&map, Mode::Infer)?);
-        self.map_valid = Some(Tensor::from_vec(
-            map_valid.to_vec(),
-            (scenes, polylines),
-            &device,
-        )?);
-        Ok(())
-    }
-
-    fn load(&mut self, windows: &[f32], valid: &[f32]) -> Result<()> {
-        self.windows = windows.to_vec();
-        self.valid = valid.to_vec();
-        Ok(())
-    }
-
-    fn load_scene(&mut self, scene: usize, window: &[f32], valid: &[f32]) -> Result<()> {
-        let (x, v) = (window.len(), valid.len());
-        if (scene + 1) * x > self.windows.len() || (scene + 1) * v > self.valid.len() {
-            return Err(Error::data(format!(
-                "load_scene {scene}: outside the loaded batch"
-            )));
-        }
-        self.windows[scene * x..(scene + 1) * x].copy_from_slice(window);
-        self.valid[scene * v..(scene + 1) * v].copy_from_slice(valid);
-        Ok(())
-    }
-
-    fn step(
-        &mut self,
-        sigma_cur: &[f32],
-        sigma_next: &[f32],
-        second_evaluation: bool,
-    ) -> Result<()> {
-        let (Some(features), Some(map_tokens), Some(map_valid)) =
-            (&self.features, &self.map_tokens, &self.map_valid)
-        else {
-            return Err(Error::data("engine used before prepare".into()));
-        };
-        let w = self.model.config.window_slots;
-        if sigma_cur.len() != self.scenes * w || sigma_next.len() != self.scenes * w {
-            return Err(Error::data(format!(
-                "σ rows: {} and {} values for {} scenes × {w} slots",
-                sigma_cur.len(),
-                sigma_next.len(),
-                self.scenes
-            )));
-        }
-        // Only scenes with a changing slot are evaluated: in a batch of scenes at different
-        // phases the others hold still, and on the CPU skipping them is free.
-        let active: Vec<usize> = (0..self.scenes)
-            .filter(|&b| sigma_cur[b * w..(b + 1) * w] != sigma_next[b * w..(b + 1) * w])
-            .collect();
-        if active.is_empty() {
-            return Ok(());
-        }
-        if active.len() == self.scenes {
-            self.windows = heun_step(
-                self.model,
-                &self.windows,
-                &self.valid,
-                self.scenes,
-                self.agents,
-                sigma_cur,
-                sigma_next,
-                second_evaluation,
-                features,
-                map_tokens,
-                map_valid,
-            )?;
-            return Ok(());
-        }
-        let (x_len, v_len) = (self.agents * w * 3, self.agents * w);
-        let gather = |v: &[f32], len: usize| -> Vec<f32> {
-            active
-                .iter()
-                .flat_map(|&b| v[b * len..(b + 1) * len].iter().copied())
-                .collect()
-        };
-        let index = Tensor::from_vec(
-            active.iter().map(|&b| b as u32).collect::<Vec<_>>(),
-            active.len(),
-            &Device::Cpu,
-        )?;
-        let stepped = heun_step(
-            self.model,
-            &gather(&self.windows, x_len),
-            &gather(&self.valid, v_len),
-            active.len(),
-            self.agents,
-            &gather(sigma_cur, w),
-            &gather(sigma_next, w),
-            second_evaluation,
-            &features.index_select(&index, 0)?,
-            &map_tokens.index_select(&index, 0)?,
-            &map_valid.index_select(&index, 0)?,
-        )?;
-        for (k, &b) in active.iter().enumerate() {
-            self.windows[b * x_len..(b + 1) * x_len]
-                .copy_from_slice(&stepped[k * x_len..(k + 1) * x_len]);
-        }
-        Ok(())
-    }
-
-    fn read_emitted(&mut self, slots: &[Option<usize>], out: &mut [f32]) -> Result<()> {
-        let w = self.model.config.window_slots;
-        if slots.len() != self.scenes || out.len() != self.scenes * self.agents * 3 {
-            return Err(Error::data(format!(
-                "read_emitted: {} slots and {} outputs for {} scenes of {} agents",
-                slots.len(),
-                out.len(),
-                self.scenes,
-                self.agents
-            )));
-        }
-        window_emitted(&self.windows, self.agents, w, slots, out);
-        Ok(())
-    }
-
-    fn shift(&mut self, edits: &[ShiftEdit<'_>], shape: ShiftShape) -> Result<()> {
-        let w = self.model.config.window_slots;
-        let (x_len, v_len) = (self.agents * w * 3, self.agents * w);
-        for e in edits {
-            if e.scene >= self.scenes || e.valid.len() != v_len {
-                return Err(Error::data(format!(
-                    "shift of scene {}: {} validity flags, the batch has {} scenes × {v_len}",
-                    e.scene,
-                    e.valid.len(),
-                    self.scenes
-                )));
-            }
-            window_shift(&mut self.windows[e.scene * x_len..][..x_len], w, e, shape);
-            self.valid[e.scene * v_len..][..v_len].copy_from_slice(e.valid);
-        }
-        Ok(())
     }
 }
 
@@ -855,94 +667,6 @@ fn rebuild_window(
             }
         }
     }
-}
-
-/// One Heun step of every scene (per-scene, per-slot σ `[B, W]`, EDM Algorithm 1) on packed
-/// windows `[B, A, W, 3]`; returns the new windows.
-#[allow(clippy::too_many_arguments)]
-fn heun_step(
-    model: &Denoiser,
-    x: &[f32],
-    valid: &[f32],
-    scenes: usize,
-    a_max: usize,
-    sigma_cur: &[f32],
-    sigma_next: &[f32],
-    second_evaluation: bool,
-    feats: &Tensor,
-    map_tokens: &Tensor,
-    map_valid: &Tensor,
-) -> Result<Vec<f32>> {
-    let device = Device::Cpu;
-    let w = sigma_cur.len() / scenes.max(1);
-    if sigma_cur.len() != scenes * w || sigma_next.len() != scenes * w {
-        return Err(Error::data(format!(
-            "σ rows: {} and {} values for {scenes} scenes",
-            sigma_cur.len(),
-            sigma_next.len()
-        )));
-    }
-    // Element e of [B, A, W, 3] → its (scene, slot) row index in σ [B, W].
-    let row = |e: usize| (e / (3 * a_max * w)) * w + (e / 3) % w;
-    let x_t = Tensor::from_vec(x.to_vec(), (scenes, a_max, w, 3), &device)?;
-    let valid_t = Tensor::from_vec(valid.to_vec(), (scenes, a_max, w), &device)?;
-    let sig =
-        |s: &[f32]| -> Result<Tensor> { Ok(Tensor::from_vec(s.to_vec(), (scenes, w), &device)?) };
-    let d1 = model
-        .denoise(
-            &x_t,
-            &sig(sigma_cur)?,
-            &valid_t,
-            feats,
-            map_tokens,
-            map_valid,
-            Mode::Infer,
-        )?
-        .flatten_all()?
-        .to_vec1::<f32>()?;
-    // Euler for every changing slot.
-    let mut x_e = x.to_vec();
-    for (e, (xe, xv)) in x_e.iter_mut().zip(x).enumerate() {
-        let r = row(e);
-        let (s, sn) = (sigma_cur[r], sigma_next[r]);
-        if s != sn {
-            *xe = xv + (sn - s) * (xv - d1[e]) / s;
-        }
-    }
-    if !second_evaluation {
-        return Ok(x_e);
-    }
-    // Second evaluation at σ_next; slots landing on 0 keep their Euler result (their model
-    // input uses σ_cur, as it is never read).
-    let sigma_eval: Vec<f32> = sigma_cur
-        .iter()
-        .zip(sigma_next)
-        .map(|(&s, &sn)| if sn > 0.0 { sn } else { s })
-        .collect();
-    let xe_t = Tensor::from_vec(x_e.clone(), (scenes, a_max, w, 3), &device)?;
-    let d2 = model
-        .denoise(
-            &xe_t,
-            &sig(&sigma_eval)?,
-            &valid_t,
-            feats,
-            map_tokens,
-            map_valid,
-            Mode::Infer,
-        )?
-        .flatten_all()?
-        .to_vec1::<f32>()?;
-    let mut out = x_e.clone();
-    for (e, o) in out.iter_mut().enumerate() {
-        let r = row(e);
-        let (s, sn) = (sigma_cur[r], sigma_next[r]);
-        if s != sn && sn > 0.0 {
-            let slope1 = (x[e] - d1[e]) / s;
-            let slope2 = (x_e[e] - d2[e]) / sn;
-            *o = x[e] + (sn - s) * 0.5 * (slope1 + slope2);
-        }
-    }
-    Ok(out)
 }
 
 impl From<road_sched::Error> for Error {

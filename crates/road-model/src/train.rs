@@ -178,6 +178,10 @@ pub fn sample_scenes(
         let window = ds.window(index)?;
         let start = rng.random_range(0..=steps - w);
         let mut input = SceneInput::from_window(&window, start, w, &run.model);
+        if run.train.rotation_augmentation {
+            let angle_rad = rng.random_range(0.0..std::f32::consts::TAU);
+            input.rotate(angle_rad, run.model.heading_scale as f32);
+        }
         draw.sigma.push(task_sigma(
             rng,
             &run.model,
@@ -444,10 +448,13 @@ impl Trainer {
             .map(|v| v.as_tensor().detach().copy())
             .collect::<candle_core::Result<Vec<_>>>()?;
         let mut rng = StdRng::seed_from_u64(VALIDATION_SEED);
+        // Validation scenes as recorded, so that losses compare across augmentation settings.
+        let mut validation_run = run.clone();
+        validation_run.train.rotation_augmentation = false;
         let validation = (0..run.train.val_batches)
             .map(|_| {
                 sample_batch(
-                    &run,
+                    &validation_run,
                     validation_set,
                     run.train.batch_scenes,
                     None,

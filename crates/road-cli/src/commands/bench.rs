@@ -51,7 +51,7 @@ pub struct ServeBenchArgs {
     #[arg(long, default_value_t = 3)]
     pub join_every: usize,
     /// `cpu`, `gpu` or both (default).
-    #[arg(long, value_enum, num_args = 1.., default_values_t = [crate::commands::sample::Engine::Cpu, crate::commands::sample::Engine::Gpu])]
+    #[arg(long, value_enum, num_args = 1.., default_values_t = [crate::commands::sample::Engine::Candle, crate::commands::sample::Engine::Cpu, crate::commands::sample::Engine::Gpu])]
     pub engines: Vec<crate::commands::sample::Engine>,
     #[arg(long, default_value = ".road-cache")]
     pub cache: PathBuf,
@@ -441,16 +441,12 @@ fn serve_bench(args: &ServeBenchArgs) -> Result<()> {
     use road_model::sample::{RolloutDriver, RolloutScene, StepEngine};
 
     use crate::commands::engine::{EngineChoice, Engines};
-    use crate::commands::sample::Engine;
     let validation = load_cache(&args.cache, Split::Validation)?;
     let reference = WindowConfig::default().reference_step;
     anyhow::ensure!(args.join_every > 0, "--join-every must be at least 1");
     let mut rows = Vec::new();
     for &engine_kind in &args.engines {
-        let choice = match engine_kind {
-            Engine::Cpu => EngineChoice::Cpu,
-            Engine::Gpu => EngineChoice::Gpu,
-        };
+        let choice = EngineChoice::from(engine_kind);
         let engines = Engines::load(&args.checkpoint, choice)?;
         let run = &engines.cpu.meta.run;
         let n = run.planner.obs_slots;
@@ -470,7 +466,7 @@ fn serve_bench(args: &ServeBenchArgs) -> Result<()> {
                 })
                 .collect::<Result<_, _>>()?;
             for joining in [false, true] {
-                let mut engine = engines.engine();
+                let mut engine = engines.engine()?;
                 let engine: &mut dyn StepEngine = engine.as_dyn();
                 let mut rng = rand::rngs::StdRng::seed_from_u64(0);
                 let mut driver =

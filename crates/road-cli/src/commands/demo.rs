@@ -66,7 +66,7 @@ pub fn run(args: DemoArgs) -> Result<ExitCode> {
     controllers[scene.ego.agent] = Controller::External;
     let mut ego = scene.ego.clone();
 
-    let mut engine = engines.engine();
+    let mut engine = engines.engine()?;
     let mut rng = rand::rngs::StdRng::seed_from_u64(args.seed);
     let started = Instant::now();
     let mut sim = ClosedLoop::new(

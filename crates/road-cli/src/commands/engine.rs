@@ -1,5 +1,5 @@
-//! Picking and holding the engine a command runs a checkpoint on: the WGSL kernels (`road-gpu`)
-//! or the candle reference (`road-model`).
+//! Picking and holding the engine a command runs a checkpoint on: the WGSL kernels (`road-gpu`),
+//! the fast CPU engine or the candle reference (`road-model`).
 
 use std::path::Path;
 
@@ -7,29 +7,46 @@ use anyhow::Result;
 use road_gpu::engine::{GpuDenoiser, GpuStepEngine};
 use road_gpu::{ContextOptions, GpuContext};
 use road_model::checkpoint::{self, LoadedModel};
-use road_model::sample::{CpuEngine, StepEngine};
+use road_model::sample::{CpuEngine, FastCpuEngine, StepEngine};
 
 /// What the user asked for.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum EngineChoice {
-    /// A hardware GPU when wgpu finds one, else the candle reference.
+    /// A hardware GPU when wgpu finds one, else the fast CPU engine.
     Auto,
+    /// The fast CPU engine (every core).
     Cpu,
+    /// The candle reference (what every engine is tested against).
+    Candle,
+    /// The WGSL kernels (lavapipe without a GPU).
     Gpu,
 }
 
-/// A checkpoint loaded for the candle reference and, when the GPU engine was chosen, uploaded
-/// to the adapter.
+impl From<crate::commands::sample::Engine> for EngineChoice {
+    fn from(e: crate::commands::sample::Engine) -> Self {
+        use crate::commands::sample::Engine as E;
+        match e {
+            E::Cpu => EngineChoice::Cpu,
+            E::Candle => EngineChoice::Candle,
+            E::Gpu => EngineChoice::Gpu,
+        }
+    }
+}
+
+/// A checkpoint loaded for the CPU engines and, when the GPU engine was chosen, uploaded to
+/// the adapter.
 pub struct Engines {
     pub cpu: LoadedModel,
     pub gpu: Option<(GpuContext, GpuDenoiser)>,
+    /// Without a GPU: the candle reference rather than the fast CPU engine.
+    pub candle: bool,
 }
 
 impl Engines {
     pub fn load(dir: &Path, choice: EngineChoice) -> Result<Self> {
         let cpu = checkpoint::load(dir, &candle_core::Device::Cpu)?;
         let gpu = match choice {
-            EngineChoice::Cpu => None,
+            EngineChoice::Cpu | EngineChoice::Candle => None,
             EngineChoice::Gpu => {
                 let ctx = GpuContext::new(&ContextOptions::default())?;
                 let model = GpuDenoiser::from_checkpoint(&ctx, dir)?;
@@ -43,38 +60,45 @@ impl Engines {
                 Ok(ctx) => {
                     tracing::info!(
                         adapter = %ctx.describe(),
-                        "software adapter only: running the candle reference instead"
+                        "software adapter only: running the fast CPU engine instead"
                     );
                     None
                 }
                 Err(e) => {
-                    tracing::info!("no GPU adapter ({e}): running the candle reference");
+                    tracing::info!("no GPU adapter ({e}): running the fast CPU engine");
                     None
                 }
             },
         };
-        Ok(Self { cpu, gpu })
+        Ok(Self {
+            cpu,
+            gpu,
+            candle: choice == EngineChoice::Candle,
+        })
     }
 
     /// A fresh engine over the loaded model.
-    pub fn engine(&self) -> Engine<'_> {
-        match &self.gpu {
+    pub fn engine(&self) -> Result<Engine<'_>> {
+        Ok(match &self.gpu {
             Some((ctx, model)) => Engine::Gpu(Box::new(GpuStepEngine::new(ctx, model))),
-            None => Engine::Cpu(CpuEngine::new(&self.cpu.model)),
-        }
+            None if self.candle => Engine::Candle(CpuEngine::new(&self.cpu.model)),
+            None => Engine::Cpu(FastCpuEngine::new(&self.cpu.model)?),
+        })
     }
 
     pub fn describe(&self) -> String {
         match &self.gpu {
             Some((ctx, _)) => format!("WGSL on {}", ctx.info.name),
-            None => "the candle CPU reference".into(),
+            None if self.candle => "the candle CPU reference".into(),
+            None => "the fast CPU engine".into(),
         }
     }
 }
 
-/// One engine, either kind.
+/// One engine, any kind.
 pub enum Engine<'a> {
-    Cpu(CpuEngine<'a>),
+    Cpu(FastCpuEngine<'a>),
+    Candle(CpuEngine<'a>),
     Gpu(Box<GpuStepEngine<'a>>),
 }
 
@@ -82,6 +106,7 @@ impl Engine<'_> {
     pub fn as_dyn(&mut self) -> &mut dyn StepEngine {
         match self {
             Engine::Cpu(e) => e,
+            Engine::Candle(e) => e,
             Engine::Gpu(e) => e.as_mut(),
         }
     }

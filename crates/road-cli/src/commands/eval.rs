@@ -11,7 +11,7 @@ use clap::Args;
 use rand::SeedableRng;
 use road_data::{Dataset, SceneWindow, Split, WindowConfig};
 use road_model::batch::SceneInput;
-use road_model::sample::{CpuEngine, RolloutScene, StepEngine, rollout_with};
+use road_model::sample::{CpuEngine, FastCpuEngine, RolloutScene, StepEngine, rollout_with};
 use road_sim::Pose;
 use road_sim::controllers::constant_velocity;
 use road_sim::metrics::scene_metrics;
@@ -235,7 +235,7 @@ fn forecasting(args: EvalArgs) -> Result<ExitCode> {
         Engine::Gpu => Some(road_gpu::GpuContext::new(
             &road_gpu::ContextOptions::default(),
         )?),
-        Engine::Cpu => None,
+        Engine::Cpu | Engine::Candle => None,
     };
     for dir in &args.checkpoints {
         let loaded = road_model::checkpoint::load(dir, &candle_core::Device::Cpu)?;
@@ -268,15 +268,20 @@ fn forecasting(args: EvalArgs) -> Result<ExitCode> {
                 })
                 .collect();
             let mut cpu_engine;
+            let mut fast_engine;
             let mut gpu_engine;
             let engine: &mut dyn StepEngine = match (&ctx, &gpu_model) {
                 (Some(ctx), Some(model)) => {
                     gpu_engine = road_gpu::engine::GpuStepEngine::new(ctx, model);
                     &mut gpu_engine
                 }
-                _ => {
+                _ if args.engine == Engine::Candle => {
                     cpu_engine = CpuEngine::new(&loaded.model);
                     &mut cpu_engine
+                }
+                _ => {
+                    fast_engine = FastCpuEngine::new(&loaded.model)?;
+                    &mut fast_engine
                 }
             };
             let out = rollout_with(engine, &run.planner, &batch, steps, &mut rng)?;

@@ -18,7 +18,6 @@ use road_sim::closed_loop::{
 
 use crate::commands::engine::{EngineChoice, Engines};
 use crate::commands::eval::{EvalArgs, SceneSelection, select_scenes};
-use crate::commands::sample::Engine;
 use crate::plot::{
     ADVERSARY, LOGGED, PREDICTED, Ring, Stroke, figure_png, window_map_strokes,
     window_path_strokes, window_point_m,
@@ -167,10 +166,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         results.push(totals);
     }
 
-    let choice = match args.engine {
-        Engine::Cpu => EngineChoice::Cpu,
-        Engine::Gpu => EngineChoice::Gpu,
-    };
+    let choice = EngineChoice::from(args.engine);
     let batch_scenes = args.batch_scenes.max(1);
     let mut skipped: Vec<String> = Vec::new();
     for dir in &args.checkpoints {
@@ -222,7 +218,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
                     sim_maps.push(Some(maps[k]));
                 }
             }
-            let mut engine = engines.engine();
+            let mut engine = engines.engine()?;
             let mut sim = ClosedLoop::new(
                 engine.as_dyn(),
                 &run.model,

@@ -46,7 +46,11 @@ pub struct SampleArgs {
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum Engine {
+    /// The fast CPU engine (every core).
     Cpu,
+    /// The candle reference.
+    Candle,
+    /// The WGSL kernels (lavapipe without a GPU).
     Gpu,
 }
 
@@ -95,7 +99,11 @@ pub fn run(args: SampleArgs) -> Result<ExitCode> {
     let mut rng = rand::rngs::StdRng::seed_from_u64(args.seed);
     let started = Instant::now();
     let out = match args.engine {
-        Engine::Cpu => rollout(&loaded.model, &run.planner, &scenes, steps, &mut rng)?,
+        Engine::Candle => rollout(&loaded.model, &run.planner, &scenes, steps, &mut rng)?,
+        Engine::Cpu => {
+            let mut engine = road_model::sample::FastCpuEngine::new(&loaded.model)?;
+            rollout_with(&mut engine, &run.planner, &scenes, steps, &mut rng)?
+        }
         Engine::Gpu => {
             let ctx = road_gpu::GpuContext::new(&road_gpu::ContextOptions::default())?;
             let model = road_gpu::engine::GpuDenoiser::from_checkpoint(&ctx, &args.checkpoint)?;

@@ -1,0 +1,364 @@
+//! The two CPU engines behind [`StepEngine`]: [`CpuEngine`], candle's [`Denoiser`] (the
+//! reference every other engine is held to), and [`FastCpuEngine`], the same denoiser on the
+//! fast path of [`crate::fast`]. Both keep the windows on the host ([`HostWindows`]) and
+//! evaluate only the scenes whose σ row changes: in a batch of scenes at different phases the
+//! others hold still, and on the CPU skipping them is free.
+
+use candle_core::{Device, Tensor};
+
+use crate::batch::AGENT_FEATURES;
+use crate::fast::{FastDenoiser, FastInputs, SceneCache};
+use crate::heun::{changing_scenes, gather_rows, heun_update, scatter_rows};
+use crate::model::{Denoiser, Mode};
+use crate::sample::{ShiftEdit, ShiftShape, StepEngine, window_emitted, window_shift};
+use crate::{Error, Result};
+
+/// Every scene's window `[B, A, W, 3]` and validity `[B, A, W]` on the host.
+#[derive(Debug, Default)]
+struct HostWindows {
+    scenes: usize,
+    agents: usize,
+    slots: usize,
+    windows: Vec<f32>,
+    valid: Vec<f32>,
+}
+
+impl HostWindows {
+    fn load(&mut self, windows: &[f32], valid: &[f32]) -> Result<()> {
+        let (x, v) = (self.agents * self.slots * 3, self.agents * self.slots);
+        if windows.len() != self.scenes * x || valid.len() != self.scenes * v {
+            return Err(Error::data(format!(
+                "load: {} state and {} validity values for {} scenes × {} agents × {} slots",
+                windows.len(),
+                valid.len(),
+                self.scenes,
+                self.agents,
+                self.slots
+            )));
+        }
+        self.windows = windows.to_vec();
+        self.valid = valid.to_vec();
+        Ok(())
+    }
+
+    fn load_scene(&mut self, scene: usize, window: &[f32], valid: &[f32]) -> Result<()> {
+        let (x, v) = (window.len(), valid.len());
+        if (scene + 1) * x > self.windows.len() || (scene + 1) * v > self.valid.len() {
+            return Err(Error::data(format!(
+                "load_scene {scene}: outside the loaded batch"
+            )));
+        }
+        self.windows[scene * x..(scene + 1) * x].copy_from_slice(window);
+        self.valid[scene * v..(scene + 1) * v].copy_from_slice(valid);
+        Ok(())
+    }
+
+    fn read_emitted(&self, slots: &[Option<usize>], out: &mut [f32]) -> Result<()> {
+        if slots.len() != self.scenes || out.len() != self.scenes * self.agents * 3 {
+            return Err(Error::data(format!(
+                "read_emitted: {} slots and {} outputs for {} scenes of {} agents",
+                slots.len(),
+                out.len(),
+                self.scenes,
+                self.agents
+            )));
+        }
+        window_emitted(&self.windows, self.agents, self.slots, slots, out);
+        Ok(())
+    }
+
+    fn shift(&mut self, edits: &[ShiftEdit<'_>], shape: ShiftShape) -> Result<()> {
+        let w = self.slots;
+        let (x_len, v_len) = (self.agents * w * 3, self.agents * w);
+        for e in edits {
+            if e.scene >= self.scenes || e.valid.len() != v_len {
+                return Err(Error::data(format!(
+                    "shift of scene {}: {} validity flags, the batch has {} scenes × {v_len}",
+                    e.scene,
+                    e.valid.len(),
+                    self.scenes
+                )));
+            }
+            window_shift(&mut self.windows[e.scene * x_len..][..x_len], w, e, shape);
+            self.valid[e.scene * v_len..][..v_len].copy_from_slice(e.valid);
+        }
+        Ok(())
+    }
+
+    /// One Heun step of the scenes whose σ row changes, each evaluation by `denoise(x, σ,
+    /// valid, scenes)` over the packed rows of those scenes.
+    fn step(
+        &mut self,
+        sigma_cur: &[f32],
+        sigma_next: &[f32],
+        second_evaluation: bool,
+        mut denoise: impl FnMut(&[f32], &[f32], &[f32], &[usize]) -> Result<Vec<f32>>,
+    ) -> Result<()> {
+        let w = self.slots;
+        let active = changing_scenes(sigma_cur, sigma_next, self.scenes, w)?;
+        if active.is_empty() {
+            return Ok(());
+        }
+        let (x_len, v_len) = (self.agents * w * 3, self.agents * w);
+        if active.len() == self.scenes {
+            let valid = &self.valid;
+            self.windows = heun_update(
+                &self.windows,
+                self.agents,
+                w,
+                sigma_cur,
+                sigma_next,
+                second_evaluation,
+                |x, sigma| denoise(x, sigma, valid, &active),
+            )?;
+            return Ok(());
+        }
+        let valid = gather_rows(&self.valid, &active, v_len);
+        let stepped = heun_update(
+            &gather_rows(&self.windows, &active, x_len),
+            self.agents,
+            w,
+            &gather_rows(sigma_cur, &active, w),
+            &gather_rows(sigma_next, &active, w),
+            second_evaluation,
+            |x, sigma| denoise(x, sigma, &valid, &active),
+        )?;
+        scatter_rows(&mut self.windows, &active, x_len, &stepped);
+        Ok(())
+    }
+}
+
+/// The candle reference engine.
+#[derive(Debug)]
+pub struct CpuEngine<'a> {
+    model: &'a Denoiser,
+    host: HostWindows,
+    features: Option<Tensor>,
+    map_tokens: Option<Tensor>,
+    map_valid: Option<Tensor>,
+}
+
+impl<'a> CpuEngine<'a> {
+    pub fn new(model: &'a Denoiser) -> Self {
+        Self {
+            model,
+            host: HostWindows::default(),
+            features: None,
+            map_tokens: None,
+            map_valid: None,
+        }
+    }
+}
+
+impl StepEngine for CpuEngine<'_> {
+    fn window_slots(&self) -> usize {
+        self.model.config.window_slots
+    }
+
+    fn prepare(
+        &mut self,
+        scenes: usize,
+        agents: usize,
+        features: &[f32],
+        polylines: usize,
+        map: &[f32],
+        map_valid: &[f32],
+    ) -> Result<()> {
+        let device = Device::Cpu;
+        let q = self.model.config.polyline_points;
+        self.host = HostWindows {
+            scenes,
+            agents,
+            slots: self.model.config.window_slots,
+            ..HostWindows::default()
+        };
+        self.features = Some(Tensor::from_vec(
+            features.to_vec(),
+            (scenes, agents, AGENT_FEATURES),
+            &device,
+        )?);
+        let map = Tensor::from_vec(map.to_vec(), (scenes, polylines, q, 2), &device)?;
+        self.map_tokens = Some(self.model.encode_map(&map, Mode::Infer)?);
+        self.map_valid = Some(Tensor::from_vec(
+            map_valid.to_vec(),
+            (scenes, polylines),
+            &device,
+        )?);
+        Ok(())
+    }
+
+    fn load(&mut self, windows: &[f32], valid: &[f32]) -> Result<()> {
+        self.host.load(windows, valid)
+    }
+
+    fn load_scene(&mut self, scene: usize, window: &[f32], valid: &[f32]) -> Result<()> {
+        self.host.load_scene(scene, window, valid)
+    }
+
+    fn step(
+        &mut self,
+        sigma_cur: &[f32],
+        sigma_next: &[f32],
+        second_evaluation: bool,
+    ) -> Result<()> {
+        let (Some(features), Some(map_tokens), Some(map_valid)) =
+            (&self.features, &self.map_tokens, &self.map_valid)
+        else {
+            return Err(Error::data("engine used before prepare".into()));
+        };
+        let model = self.model;
+        let (a, w) = (self.host.agents, self.host.slots);
+        let all = self.host.scenes;
+        self.host.step(
+            sigma_cur,
+            sigma_next,
+            second_evaluation,
+            |x, sigma, valid, scenes| {
+                let b = scenes.len();
+                let device = Device::Cpu;
+                // The whole batch as it is; a subset through an index (static inputs gathered).
+                let (feats, tokens, map_flags) = if b == all {
+                    (features.clone(), map_tokens.clone(), map_valid.clone())
+                } else {
+                    let index = Tensor::from_vec(
+                        scenes.iter().map(|&s| s as u32).collect::<Vec<_>>(),
+                        b,
+                        &device,
+                    )?;
+                    (
+                        features.index_select(&index, 0)?,
+                        map_tokens.index_select(&index, 0)?,
+                        map_valid.index_select(&index, 0)?,
+                    )
+                };
+                Ok(model
+                    .denoise(
+                        &Tensor::from_vec(x.to_vec(), (b, a, w, 3), &device)?,
+                        &Tensor::from_vec(sigma.to_vec(), (b, w), &device)?,
+                        &Tensor::from_vec(valid.to_vec(), (b, a, w), &device)?,
+                        &feats,
+                        &tokens,
+                        &map_flags,
+                        Mode::Infer,
+                    )?
+                    .flatten_all()?
+                    .to_vec1::<f32>()?)
+            },
+        )
+    }
+
+    fn read_emitted(&mut self, slots: &[Option<usize>], out: &mut [f32]) -> Result<()> {
+        self.host.read_emitted(slots, out)
+    }
+
+    fn shift(&mut self, edits: &[ShiftEdit<'_>], shape: ShiftShape) -> Result<()> {
+        self.host.shift(edits, shape)
+    }
+}
+
+/// The fast CPU engine: [`FastDenoiser`] on the host windows, scenes split across threads.
+#[derive(Debug)]
+pub struct FastCpuEngine<'a> {
+    model: &'a Denoiser,
+    fast: FastDenoiser,
+    host: HostWindows,
+    cache: Option<SceneCache>,
+}
+
+impl<'a> FastCpuEngine<'a> {
+    /// `threads` workers per evaluation (the scenes of a batch are split between them);
+    /// [`FastCpuEngine::new`] takes the machine's available parallelism.
+    pub fn with_threads(model: &'a Denoiser, threads: usize) -> Result<Self> {
+        Ok(Self {
+            model,
+            fast: FastDenoiser::new(model, threads)?,
+            host: HostWindows::default(),
+            cache: None,
+        })
+    }
+
+    pub fn new(model: &'a Denoiser) -> Result<Self> {
+        let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+        Self::with_threads(model, threads)
+    }
+}
+
+impl StepEngine for FastCpuEngine<'_> {
+    fn window_slots(&self) -> usize {
+        self.model.config.window_slots
+    }
+
+    fn prepare(
+        &mut self,
+        scenes: usize,
+        agents: usize,
+        features: &[f32],
+        polylines: usize,
+        map: &[f32],
+        map_valid: &[f32],
+    ) -> Result<()> {
+        let q = self.model.config.polyline_points;
+        self.host = HostWindows {
+            scenes,
+            agents,
+            slots: self.model.config.window_slots,
+            ..HostWindows::default()
+        };
+        // The map encoder runs once per scene set: candle's is fast enough there.
+        let map = Tensor::from_vec(map.to_vec(), (scenes, polylines, q, 2), &Device::Cpu)?;
+        let tokens = self
+            .model
+            .encode_map(&map, Mode::Infer)?
+            .flatten_all()?
+            .to_vec1::<f32>()?;
+        self.cache = Some(
+            self.fast
+                .scene_cache(scenes, agents, features, &tokens, map_valid)?,
+        );
+        Ok(())
+    }
+
+    fn load(&mut self, windows: &[f32], valid: &[f32]) -> Result<()> {
+        self.host.load(windows, valid)
+    }
+
+    fn load_scene(&mut self, scene: usize, window: &[f32], valid: &[f32]) -> Result<()> {
+        self.host.load_scene(scene, window, valid)
+    }
+
+    fn step(
+        &mut self,
+        sigma_cur: &[f32],
+        sigma_next: &[f32],
+        second_evaluation: bool,
+    ) -> Result<()> {
+        let Some(cache) = &self.cache else {
+            return Err(Error::data("engine used before prepare".into()));
+        };
+        let fast = &self.fast;
+        self.host.step(
+            sigma_cur,
+            sigma_next,
+            second_evaluation,
+            |x, sigma, valid, scenes| {
+                let mut out = vec![0.0; x.len()];
+                let inputs = FastInputs {
+                    x,
+                    sigma,
+                    valid,
+                    scene_ids: scenes,
+                };
+                fast.denoise(cache, &inputs, &mut out)?;
+                Ok(out)
+            },
+        )
+    }
+
+    fn read_emitted(&mut self, slots: &[Option<usize>], out: &mut [f32]) -> Result<()> {
+        self.host.read_emitted(slots, out)
+    }
+
+    fn shift(&mut self, edits: &[ShiftEdit<'_>], shape: ShiftShape) -> Result<()> {
+        self.host.shift(edits, shape)
+    }
+}

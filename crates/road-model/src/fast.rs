@@ -1,0 +1,729 @@
+//! The fast CPU inference path: the denoiser's forward pass over plain buffers that are kept
+//! from call to call, matrix products through `gemm`'s kernels (AVX2/FMA or AVX-512 chosen at
+//! run time), attention fused per group of tokens (no per-head tensors, no transposes), the
+//! map's keys and values computed once per scene set, and the scenes of a batch split across
+//! threads that share nothing. [`Denoiser`] (candle) stays the reference: `tests/fast.rs`
+//! holds the two to the tolerance the WGSL engine meets.
+//!
+//! candle spends most of an inference step outside its matrix products here (thread barriers
+//! per op, allocation per op, tiny batched products for attention): see `docs/benchmarks.md`.
+
+use std::sync::Mutex;
+
+use candle_core::Tensor;
+use candle_nn::{LayerNorm, Linear};
+
+use crate::config::AgentFrame;
+use crate::model::{Attention, Denoiser};
+use crate::{Error, Result};
+
+/// Additive bias of a masked key, as in the candle model: its weight is exactly zero.
+const MASKED: f32 = -1e9;
+const LN_EPS: f32 = 1e-5;
+
+fn host(t: &Tensor) -> Result<Vec<f32>> {
+    Ok(t.flatten_all()?.to_vec1::<f32>()?)
+}
+
+/// `y = x · Wᵀ + b` with `weight [d_out, d_in]` (the checkpoint's layout).
+#[derive(Debug, Clone)]
+struct Dense {
+    weight: Vec<f32>,
+    bias: Vec<f32>,
+    d_in: usize,
+    d_out: usize,
+}
+
+impl Dense {
+    fn from_linear(layer: &Linear) -> Result<Self> {
+        let (d_out, d_in) = layer.weight().dims2()?;
+        let bias = match layer.bias() {
+            Some(b) => host(b)?,
+            None => vec![0.0; d_out],
+        };
+        Ok(Self {
+            weight: host(layer.weight())?,
+            bias,
+            d_in,
+            d_out,
+        })
+    }
+
+    /// Several layers of the same input stacked into one (`[q; k; v]`): one product.
+    fn stack(layers: &[&Linear]) -> Result<Self> {
+        let mut out = Dense::from_linear(layers[0])?;
+        for layer in &layers[1..] {
+            let next = Dense::from_linear(layer)?;
+            if next.d_in != out.d_in {
+                return Err(Error::data(
+                    "stacked layers of different input widths".into(),
+                ));
+            }
+            out.weight.extend(next.weight);
+            out.bias.extend(next.bias);
+            out.d_out += next.d_out;
+        }
+        Ok(out)
+    }
+
+    /// `out [n, d_out] = x [n, d_in] · Wᵀ + b`.
+    fn forward(&self, x: &[f32], n: usize, out: &mut [f32]) {
+        for row in out[..n * self.d_out].chunks_exact_mut(self.d_out) {
+            row.copy_from_slice(&self.bias);
+        }
+        matmul_accumulate(out, x, &self.weight, n, self.d_in, self.d_out);
+    }
+
+    /// `out [n, d_out] += x [n, d_in] · Wᵀ + b` (residual connections).
+    fn forward_add(&self, x: &[f32], n: usize, out: &mut [f32]) {
+        for row in out[..n * self.d_out].chunks_exact_mut(self.d_out) {
+            for (o, b) in row.iter_mut().zip(&self.bias) {
+                *o += b;
+            }
+        }
+        matmul_accumulate(out, x, &self.weight, n, self.d_in, self.d_out);
+    }
+}
+
+/// `out [m, n] += a [m, k] · bᵀ` for `b [n, k]`, all row-major, on the calling thread.
+#[allow(unsafe_code)] // gemm takes raw pointers and strides; the asserts bound them.
+fn matmul_accumulate(out: &mut [f32], a: &[f32], b: &[f32], m: usize, k: usize, n: usize) {
+    assert!(
+        out.len() >= m * n && a.len() >= m * k && b.len() >= n * k,
+        "matmul of [{m}, {k}] by [{k}, {n}]: buffers of {}, {} and {}",
+        a.len(),
+        b.len(),
+        out.len()
+    );
+    if m == 0 || n == 0 || k == 0 {
+        return;
+    }
+    // SAFETY: gemm reads lhs (p, q) at a + p·k + q for p < m, q < k; rhs (q, j) at
+    // b + j·k + q (bᵀ) for q < k, j < n; and reads and writes dst (p, j) at out + p·n + j. The
+    // assert above keeps every such offset inside its slice, and `out` is borrowed mutably
+    // while `a` and `b` are shared borrows, so they cannot alias.
+    unsafe {
+        gemm::gemm(
+            m,
+            n,
+            k,
+            out.as_mut_ptr(),
+            1,
+            n as isize,
+            true,
+            a.as_ptr(),
+            1,
+            k as isize,
+            b.as_ptr(),
+            k as isize,
+            1,
+            1.0,
+            1.0,
+            false,
+            false,
+            false,
+            gemm::Parallelism::None,
+        );
+    }
+}
+
+#[derive(Debug, Clone)]
+struct Norm {
+    weight: Vec<f32>,
+    bias: Vec<f32>,
+}
+
+impl Norm {
+    fn from_layer_norm(ln: &LayerNorm) -> Result<Self> {
+        let bias = ln
+            .bias()
+            .ok_or_else(|| Error::data("layer norm without a bias".into()))?;
+        Ok(Self {
+            weight: host(ln.weight())?,
+            bias: host(bias)?,
+        })
+    }
+
+    /// `out [n, D] = LN(x [n, D])`.
+    fn forward(&self, x: &[f32], out: &mut [f32]) {
+        let d = self.weight.len();
+        for (row, o) in x.chunks_exact(d).zip(out.chunks_exact_mut(d)) {
+            let mean = row.iter().sum::<f32>() / d as f32;
+            let var = row.iter().map(|v| (v - mean) * (v - mean)).sum::<f32>() / d as f32;
+            let inv = 1.0 / (var + LN_EPS).sqrt();
+            for i in 0..d {
+                o[i] = (row[i] - mean) * inv * self.weight[i] + self.bias[i];
+            }
+        }
+    }
+}
+
+#[derive(Debug, Clone)]
+struct FastBlock {
+    ln_time: Norm,
+    time_qkv: Dense,
+    time_o: Dense,
+    ln_agents: Norm,
+    agents_qkv: Dense,
+    agents_o: Dense,
+    ln_map: Norm,
+    map_q: Dense,
+    /// Applied to the map tokens once per scene set: `[k; v]`.
+    map_kv: Dense,
+    map_o: Dense,
+    ln_mlp: Norm,
+    mlp_in: Dense,
+    mlp_out: Dense,
+}
+
+fn qkv(a: &Attention) -> Result<Dense> {
+    Dense::stack(&[&a.q, &a.k, &a.v])
+}
+
+/// The denoiser's weights for the fast path (a copy of a [`Denoiser`]'s).
+#[derive(Debug)]
+pub struct FastDenoiser {
+    hidden: usize,
+    heads: usize,
+    slots: usize,
+    sigma_data: f32,
+    heading_scale: f32,
+    agent_frame: Option<AgentFrame>,
+    embed_state: Dense,
+    embed_noise: Dense,
+    embed_agent: Dense,
+    embed_relative: Option<Dense>,
+    slot_embedding: Vec<f32>, // [W, D]
+    blocks: Vec<FastBlock>,
+    ln_out: Norm,
+    head: Dense,
+    /// Worker threads a call may use (scenes are split between them).
+    threads: usize,
+    /// Scratch buffers, one set per worker, kept between calls.
+    scratch: Mutex<Vec<Scratch>>,
+}
+
+/// What a batch of scenes needs besides the states: computed once per scene set.
+#[derive(Debug, Clone, Default)]
+pub struct SceneCache {
+    pub scenes: usize,
+    pub agents: usize,
+    pub polylines: usize,
+    /// `[B, A, D]`: `embed_agent(features)`.
+    agent_embedding: Vec<f32>,
+    /// `[B, blocks, P, 2D]`: each block's map keys and values.
+    map_kv: Vec<f32>,
+    /// `[B, P]`.
+    map_valid: Vec<f32>,
+}
+
+/// Per-worker buffers for `N` tokens (resized, never shrunk).
+#[derive(Debug, Default)]
+struct Scratch {
+    h: Vec<f32>,      // [N, D]
+    t: Vec<f32>,      // [N, D]
+    qkv: Vec<f32>,    // [N, 3D]
+    att: Vec<f32>,    // [N, D]
+    hidden: Vec<f32>, // [N, M]
+    f: Vec<f32>,      // [N, 3]
+    rows: Vec<usize>,
+    bias: Vec<f32>,
+    scores: Vec<f32>,
+}
+
+/// One batch of states to denoise: the rows of `scene_ids` in the [`SceneCache`].
+#[derive(Debug, Clone, Copy)]
+pub struct FastInputs<'a> {
+    /// `[B, A, W, 3]`.
+    pub x: &'a [f32],
+    /// `[B, W]`.
+    pub sigma: &'a [f32],
+    /// `[B, A, W]`.
+    pub valid: &'a [f32],
+    /// Batch row b is scene `scene_ids[b]` of the cache.
+    pub scene_ids: &'a [usize],
+}
+
+impl FastDenoiser {
+    /// Copies the weights of `model`; `threads` workers at most per call (≥ 1).
+    pub fn new(model: &Denoiser, threads: usize) -> Result<Self> {
+        let c = &model.config;
+        let blocks = model
+            .blocks
+            .iter()
+            .map(|b| {
+                Ok(FastBlock {
+                    ln_time: Norm::from_layer_norm(&b.ln_time)?,
+                    time_qkv: qkv(&b.time)?,
+                    time_o: Dense::from_linear(&b.time.o)?,
+                    ln_agents: Norm::from_layer_norm(&b.ln_agents)?,
+                    agents_qkv: qkv(&b.agents)?,
+                    agents_o: Dense::from_linear(&b.agents.o)?,
+                    ln_map: Norm::from_layer_norm(&b.ln_map)?,
+                    map_q: Dense::from_linear(&b.map.q)?,
+                    map_kv: Dense::stack(&[&b.map.k, &b.map.v])?,
+                    map_o: Dense::from_linear(&b.map.o)?,
+                    ln_mlp: Norm::from_layer_norm(&b.ln_mlp)?,
+                    mlp_in: Dense::from_linear(&b.mlp_in)?,
+                    mlp_out: Dense::from_linear(&b.mlp_out)?,
+                })
+            })
+            .collect::<Result<Vec<_>>>()?;
+        Ok(Self {
+            hidden: c.hidden,
+            heads: c.heads,
+            slots: c.window_slots,
+            sigma_data: c.edm.sigma_data as f32,
+            heading_scale: c.heading_scale as f32,
+            agent_frame: c.agent_frame.clone(),
+            embed_state: Dense::from_linear(&model.embed_state)?,
+            embed_noise: Dense::from_linear(&model.embed_noise)?,
+            embed_agent: Dense::from_linear(&model.embed_agent)?,
+            embed_relative: model
+                .embed_relative
+                .as_ref()
+                .map(Dense::from_linear)
+                .transpose()?,
+            slot_embedding: host(&model.slot_embedding)?,
+            blocks,
+            ln_out: Norm::from_layer_norm(&model.ln_out)?,
+            head: Dense::from_linear(&model.head)?,
+            threads: threads.max(1),
+            scratch: Mutex::new(Vec::new()),
+        })
+    }
+
+    /// The static inputs of `scenes` scenes: `features [B, A, 6]`, `map_tokens [B, P, D]`
+    /// (the candle model's `encode_map`), `map_valid [B, P]`.
+    pub fn scene_cache(
+        &self,
+        scenes: usize,
+        agents: usize,
+        features: &[f32],
+        map_tokens: &[f32],
+        map_valid: &[f32],
+    ) -> Result<SceneCache> {
+        let d = self.hidden;
+        let polylines = map_valid.len() / scenes.max(1);
+        if features.len() != scenes * agents * self.embed_agent.d_in
+            || map_tokens.len() != scenes * polylines * d
+            || map_valid.len() != scenes * polylines
+        {
+            return Err(Error::data(format!(
+                "scene cache of {scenes} scenes × {agents} agents: {} feature values, {} map \
+                 token values, {} map flags",
+                features.len(),
+                map_tokens.len(),
+                map_valid.len()
+            )));
+        }
+        let mut agent_embedding = vec![0.0; scenes * agents * d];
+        self.embed_agent
+            .forward(features, scenes * agents, &mut agent_embedding);
+        let per_block = polylines * 2 * d;
+        let mut map_kv = vec![0.0; scenes * self.blocks.len() * per_block];
+        let mut kv = vec![0.0; per_block];
+        for b in 0..scenes {
+            let tokens = &map_tokens[b * polylines * d..][..polylines * d];
+            for (i, block) in self.blocks.iter().enumerate() {
+                block.map_kv.forward(tokens, polylines, &mut kv);
+                map_kv[(b * self.blocks.len() + i) * per_block..][..per_block].copy_from_slice(&kv);
+            }
+        }
+        Ok(SceneCache {
+            scenes,
+            agents,
+            polylines,
+            agent_embedding,
+            map_kv,
+            map_valid: map_valid.to_vec(),
+        })
+    }
+
+    /// `D(x; σ)` of every batch row into `out [B, A, W, 3]`.
+    pub fn denoise(
+        &self,
+        cache: &SceneCache,
+        inputs: &FastInputs<'_>,
+        out: &mut [f32],
+    ) -> Result<()> {
+        let (a, w) = (cache.agents, self.slots);
+        let b = inputs.scene_ids.len();
+        if inputs.x.len() != b * a * w * 3
+            || inputs.valid.len() != b * a * w
+            || inputs.sigma.len() != b * w
+            || out.len() != inputs.x.len()
+        {
+            return Err(Error::data(format!(
+                "fast denoise of {b} scenes × {a} agents × {w} slots: {} states, {} flags, {} σ, \
+                 {} outputs",
+                inputs.x.len(),
+                inputs.valid.len(),
+                inputs.sigma.len(),
+                out.len()
+            )));
+        }
+        if let Some(&bad) = inputs.scene_ids.iter().find(|&&s| s >= cache.scenes) {
+            return Err(Error::data(format!(
+                "scene {bad} is not in the cache of {} scenes",
+                cache.scenes
+            )));
+        }
+        if b == 0 {
+            return Ok(());
+        }
+        let workers = self.threads.min(b);
+        let per = b.div_ceil(workers);
+        let mut pool = std::mem::take(&mut *self.scratch.lock().expect("scratch lock"));
+        pool.resize_with(workers.max(pool.len()), Scratch::default);
+        let chunk = |start: usize, len: usize| FastInputs {
+            x: &inputs.x[start * a * w * 3..][..len * a * w * 3],
+            sigma: &inputs.sigma[start * w..][..len * w],
+            valid: &inputs.valid[start * a * w..][..len * a * w],
+            scene_ids: &inputs.scene_ids[start..start + len],
+        };
+        if workers == 1 {
+            self.forward(cache, &chunk(0, b), &mut pool[0], out);
+        } else {
+            std::thread::scope(|scope| {
+                let mut rest = &mut out[..];
+                for (i, scratch) in pool.iter_mut().take(workers).enumerate() {
+                    let start = i * per;
+                    let len = per.min(b - start);
+                    let (mine, tail) = rest.split_at_mut(len * a * w * 3);
+                    rest = tail;
+                    let part = chunk(start, len);
+                    scope.spawn(move || self.forward(cache, &part, scratch, mine));
+                }
+            });
+        }
+        *self.scratch.lock().expect("scratch lock") = pool;
+        Ok(())
+    }
+
+    /// The whole forward pass of a chunk of scenes on this thread.
+    fn forward(
+        &self,
+        cache: &SceneCache,
+        inputs: &FastInputs<'_>,
+        s: &mut Scratch,
+        out: &mut [f32],
+    ) {
+        let (a, w, d) = (cache.agents, self.slots, self.hidden);
+        let b = inputs.scene_ids.len();
+        let n = b * a * w;
+        let m = self.blocks.first().map_or(d, |blk| blk.mlp_in.d_out);
+        for (buf, len) in [
+            (&mut s.h, n * d),
+            (&mut s.t, n * d),
+            (&mut s.qkv, n * 3 * d),
+            (&mut s.att, n * d),
+            (&mut s.hidden, n * m),
+            (&mut s.f, n * 3),
+        ] {
+            buf.resize(len.max(buf.len()), 0.0);
+        }
+        self.embed(cache, inputs, &mut s.h[..n * d]);
+        let heads = self.heads;
+        let scale = 1.0 / ((d / heads) as f32).sqrt();
+        let p = cache.polylines;
+        for (block_index, blk) in self.blocks.iter().enumerate() {
+            // Time attention: the W slots of each agent.
+            blk.ln_time.forward(&s.h[..n * d], &mut s.t[..n * d]);
+            blk.time_qkv
+                .forward(&s.t[..n * d], n, &mut s.qkv[..n * 3 * d]);
+            for group in 0..b * a {
+                s.rows.clear();
+                s.rows.extend(group * w..(group + 1) * w);
+                s.bias.clear();
+                s.bias
+                    .extend(s.rows.iter().map(|&r| key_bias(inputs.valid[r])));
+                let kv = KeysValues {
+                    data: &s.qkv,
+                    stride: 3 * d,
+                    k_offset: d,
+                    v_offset: 2 * d,
+                    rows: &s.rows,
+                };
+                attend(
+                    &s.qkv,
+                    3 * d,
+                    &s.rows,
+                    &kv,
+                    &s.bias,
+                    heads,
+                    scale,
+                    &mut s.scores,
+                    &mut s.att,
+                );
+            }
+            blk.time_o
+                .forward_add(&s.att[..n * d], n, &mut s.h[..n * d]);
+
+            // Agent attention: the agents of each slot.
+            blk.ln_agents.forward(&s.h[..n * d], &mut s.t[..n * d]);
+            blk.agents_qkv
+                .forward(&s.t[..n * d], n, &mut s.qkv[..n * 3 * d]);
+            for scene in 0..b {
+                for slot in 0..w {
+                    s.rows.clear();
+                    s.rows
+                        .extend((0..a).map(|agent| (scene * a + agent) * w + slot));
+                    s.bias.clear();
+                    s.bias
+                        .extend(s.rows.iter().map(|&r| key_bias(inputs.valid[r])));
+                    let kv = KeysValues {
+                        data: &s.qkv,
+                        stride: 3 * d,
+                        k_offset: d,
+                        v_offset: 2 * d,
+                        rows: &s.rows,
+                    };
+                    attend(
+                        &s.qkv,
+                        3 * d,
+                        &s.rows,
+                        &kv,
+                        &s.bias,
+                        heads,
+                        scale,
+                        &mut s.scores,
+                        &mut s.att,
+                    );
+                }
+            }
+            blk.agents_o
+                .forward_add(&s.att[..n * d], n, &mut s.h[..n * d]);
+
+            // Map cross-attention: every token of a scene to that scene's polylines.
+            blk.ln_map.forward(&s.h[..n * d], &mut s.t[..n * d]);
+            blk.map_q.forward(&s.t[..n * d], n, &mut s.qkv[..n * d]);
+            let key_rows: Vec<usize> = (0..p).collect();
+            for (local, &scene) in inputs.scene_ids.iter().enumerate() {
+                s.rows.clear();
+                s.rows.extend(local * a * w..(local + 1) * a * w);
+                s.bias.clear();
+                s.bias.extend(
+                    cache.map_valid[scene * p..(scene + 1) * p]
+                        .iter()
+                        .map(|&v| key_bias(v)),
+                );
+                let kv = KeysValues {
+                    data: &cache.map_kv[(scene * self.blocks.len() + block_index) * p * 2 * d..]
+                        [..p * 2 * d],
+                    stride: 2 * d,
+                    k_offset: 0,
+                    v_offset: d,
+                    rows: &key_rows,
+                };
+                attend(
+                    &s.qkv,
+                    d,
+                    &s.rows,
+                    &kv,
+                    &s.bias,
+                    heads,
+                    scale,
+                    &mut s.scores,
+                    &mut s.att,
+                );
+            }
+            blk.map_o.forward_add(&s.att[..n * d], n, &mut s.h[..n * d]);
+
+            // MLP.
+            blk.ln_mlp.forward(&s.h[..n * d], &mut s.t[..n * d]);
+            blk.mlp_in.forward(&s.t[..n * d], n, &mut s.hidden[..n * m]);
+            for v in &mut s.hidden[..n * m] {
+                *v = v.max(0.0);
+            }
+            blk.mlp_out
+                .forward_add(&s.hidden[..n * m], n, &mut s.h[..n * d]);
+        }
+        self.ln_out.forward(&s.h[..n * d], &mut s.t[..n * d]);
+        self.head.forward(&s.t[..n * d], n, &mut s.f[..n * 3]);
+        self.precondition_output(inputs, a, &s.f[..n * 3], out);
+    }
+
+    /// Token embeddings `h [b, A, W, D]` (docs/checkpoint.md, step 2, with the agent frame).
+    fn embed(&self, cache: &SceneCache, inputs: &FastInputs<'_>, h: &mut [f32]) {
+        let (a, w, d) = (cache.agents, self.slots, self.hidden);
+        let sd = self.sigma_data;
+        for (local, &scene) in inputs.scene_ids.iter().enumerate() {
+            for agent in 0..a {
+                let agent_row = local * a + agent;
+                let agent_embedding = &cache.agent_embedding[(scene * a + agent) * d..][..d];
+                let anchor = self.anchor(inputs, agent_row);
+                for slot in 0..w {
+                    let token = agent_row * w + slot;
+                    let sigma = inputs.sigma[local * w + slot];
+                    let c_in = 1.0 / (sigma * sigma + sd * sd).sqrt();
+                    let c_noise = sigma.ln() * 0.25;
+                    let valid = inputs.valid[token];
+                    let x = &inputs.x[3 * token..][..3];
+                    let scaled = [
+                        x[0] * c_in * valid,
+                        x[1] * c_in * valid,
+                        x[2] * c_in * valid,
+                    ];
+                    let row = &mut h[token * d..][..d];
+                    let st = &self.embed_state;
+                    let nz = &self.embed_noise;
+                    let slot_row = &self.slot_embedding[slot * d..][..d];
+                    for i in 0..d {
+                        row[i] = st.weight[3 * i] * scaled[0]
+                            + st.weight[3 * i + 1] * scaled[1]
+                            + st.weight[3 * i + 2] * scaled[2]
+                            + st.bias[i]
+                            + nz.weight[i] * c_noise
+                            + nz.bias[i]
+                            + agent_embedding[i]
+                            + slot_row[i];
+                    }
+                    if let (Some(frame), Some(rel), Some(anchor)) =
+                        (&self.agent_frame, &self.embed_relative, &anchor)
+                    {
+                        let k = c_in * frame.relative_scale as f32 * valid * anchor.valid;
+                        let (dx, dy, dh) =
+                            (x[0] - anchor.x, x[1] - anchor.y, x[2] - anchor.heading);
+                        let features = [
+                            (anchor.cos * dx + anchor.sin * dy) * k,
+                            (anchor.cos * dy - anchor.sin * dx) * k,
+                            dh * k,
+                            anchor.valid,
+                        ];
+                        for i in 0..d {
+                            let wr = &rel.weight[4 * i..4 * i + 4];
+                            row[i] += wr[0] * features[0]
+                                + wr[1] * features[1]
+                                + wr[2] * features[2]
+                                + wr[3] * features[3]
+                                + rel.bias[i];
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    /// The agent frame's anchor of batch agent row `agent_row` (`None` without a frame).
+    fn anchor(&self, inputs: &FastInputs<'_>, agent_row: usize) -> Option<Anchor> {
+        let frame = self.agent_frame.as_ref()?;
+        let token = agent_row * self.slots + frame.anchor_slot;
+        let valid = inputs.valid[token];
+        let x = &inputs.x[3 * token..][..3];
+        let (x, y, heading) = (x[0] * valid, x[1] * valid, x[2] * valid);
+        let (sin, cos) = (heading / self.heading_scale).sin_cos();
+        Some(Anchor {
+            x,
+            y,
+            heading,
+            cos,
+            sin,
+            valid,
+        })
+    }
+
+    /// `D = c_skip · x + c_out · F · valid`, `F`'s position part turned back from the agent
+    /// frame (docs/checkpoint.md, step 5).
+    fn precondition_output(&self, inputs: &FastInputs<'_>, a: usize, f: &[f32], out: &mut [f32]) {
+        let w = self.slots;
+        let sd = self.sigma_data;
+        for agent_row in 0..inputs.scene_ids.len() * a {
+            let anchor = self.anchor(inputs, agent_row);
+            let local = agent_row / a;
+            for slot in 0..w {
+                let token = agent_row * w + slot;
+                let sigma = inputs.sigma[local * w + slot];
+                let denom = sigma * sigma + sd * sd;
+                let c_skip = sd * sd / denom;
+                let c_out = sigma * sd / denom.sqrt();
+                let mut ft = [f[3 * token], f[3 * token + 1], f[3 * token + 2]];
+                if let Some(anchor) = &anchor {
+                    ft = [
+                        anchor.cos * ft[0] - anchor.sin * ft[1],
+                        anchor.sin * ft[0] + anchor.cos * ft[1],
+                        ft[2],
+                    ];
+                }
+                let valid = inputs.valid[token];
+                for c in 0..3 {
+                    out[3 * token + c] = c_skip * inputs.x[3 * token + c] + c_out * ft[c] * valid;
+                }
+            }
+        }
+    }
+}
+
+#[derive(Debug, Clone, Copy)]
+struct Anchor {
+    x: f32,
+    y: f32,
+    heading: f32,
+    cos: f32,
+    sin: f32,
+    valid: f32,
+}
+
+fn key_bias(valid: f32) -> f32 {
+    (valid - 1.0) * -MASKED
+}
+
+/// Keys and values of one attention group: row `rows[j]` of `data` holds key j at `k_offset`
+/// and value j at `v_offset` (`D` values each).
+struct KeysValues<'a> {
+    data: &'a [f32],
+    stride: usize,
+    k_offset: usize,
+    v_offset: usize,
+    rows: &'a [usize],
+}
+
+/// Multi-head attention of the query rows `rows` of `q` (row stride `q_stride`, queries at
+/// offset 0) over `kv`, with an additive bias per key; writes `out [row, D]` for each query row.
+#[allow(clippy::too_many_arguments)]
+fn attend(
+    q: &[f32],
+    q_stride: usize,
+    rows: &[usize],
+    kv: &KeysValues<'_>,
+    bias: &[f32],
+    heads: usize,
+    scale: f32,
+    scores: &mut Vec<f32>,
+    out: &mut [f32],
+) {
+    let keys = kv.rows.len();
+    let d = kv.v_offset.abs_diff(kv.k_offset); // keys and values are D wide, side by side
+    let dh = d / heads;
+    scores.resize(keys, 0.0);
+    for &row in rows {
+        let query = &q[row * q_stride..][..d];
+        let o = &mut out[row * d..][..d];
+        for head in 0..heads {
+            let qh = &query[head * dh..][..dh];
+            let mut max = f32::NEG_INFINITY;
+            for (j, &key_row) in kv.rows.iter().enumerate() {
+                let kh = &kv.data[key_row * kv.stride + kv.k_offset + head * dh..][..dh];
+                let dot: f32 = qh.iter().zip(kh).map(|(a, b)| a * b).sum();
+                let sc = dot * scale + bias[j];
+                scores[j] = sc;
+                max = max.max(sc);
+            }
+            let mut sum = 0.0;
+            for sc in scores.iter_mut() {
+                *sc = (*sc - max).exp();
+                sum += *sc;
+            }
+            let inv = 1.0 / sum;
+            let oh = &mut o[head * dh..][..dh];
+            oh.fill(0.0);
+            for (j, &key_row) in kv.rows.iter().enumerate() {
+                let p = scores[j] * inv;
+                let vh = &kv.data[key_row * kv.stride + kv.v_offset + head * dh..][..dh];
+                for (acc, v) in oh.iter_mut().zip(vh) {
+                    *acc += p * v;
+                }
+            }
+        }
+    }
+}

@@ -1,0 +1,349 @@
+//! The fast CPU path against candle's denoiser (the reference), to the tolerance the WGSL
+//! engine meets: one evaluation on random padded batches, with and without the agent frame,
+//! over every scene or a subset; and whole rollouts through the driver on both engines.
+
+use candle_core::{Device, Tensor};
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+use road_model::batch::{AGENT_FEATURES, SceneInput};
+use road_model::fast::{FastDenoiser, FastInputs};
+use road_model::model::{self, Denoiser, Mode};
+use road_model::sample::{
+    CpuEngine, FastCpuEngine, RolloutDriver, RolloutScene, StepEngine, rollout_with,
+};
+use road_model::{AgentFrame, ModelConfig};
+use road_sched::PlannerSpec;
+
+/// Relative and absolute parts of the parity tolerance of one whole evaluation (f32 sums in
+/// another order through every block), as for the WGSL engine.
+const REL: f32 = 1e-4;
+const ABS: f32 = 1e-5;
+
+fn assert_close(got: &[f32], want: &[f32], rel: f32, abs: f32, what: &str) {
+    assert_eq!(got.len(), want.len(), "{what}: lengths");
+    let mut worst = (0usize, 0.0f32);
+    for (i, (g, w)) in got.iter().zip(want).enumerate() {
+        let excess = (g - w).abs() - (abs + rel * w.abs());
+        if excess > worst.1 {
+            worst = (i, excess);
+        }
+    }
+    assert!(
+        worst.1 <= 0.0,
+        "{what}: element {} is {} against {} (over the tolerance by {})",
+        worst.0,
+        got[worst.0],
+        want[worst.0],
+        worst.1
+    );
+}
+
+fn config(agent_frame: bool) -> ModelConfig {
+    ModelConfig {
+        hidden: 32,
+        heads: 4,
+        blocks: 2,
+        map_polylines: 6,
+        agent_frame: agent_frame.then_some(AgentFrame {
+            anchor_slot: 9,
+            relative_scale: 2.0,
+        }),
+        ..ModelConfig::default()
+    }
+}
+
+/// A random padded batch: scene b has `agents[b]` real agents (the rest padding), random
+/// validity gaps (one real agent missing at the anchor slot), `polylines[b]` real polylines,
+/// and its own σ per slot between σ_min and σ_max.
+struct RandomBatch {
+    scenes: usize,
+    agents: usize,
+    polylines: usize,
+    x: Vec<f32>,
+    sigma: Vec<f32>,
+    valid: Vec<f32>,
+    features: Vec<f32>,
+    map: Vec<f32>,
+    map_valid: Vec<f32>,
+}
+
+fn random_batch(c: &ModelConfig, seed: u64) -> RandomBatch {
+    let mut rng = StdRng::seed_from_u64(seed);
+    let real_agents = [5usize, 2, 4];
+    let real_polylines = [6usize, 3, 5];
+    let (b, a, w, p, q) = (3, 5, c.window_slots, 6, c.polyline_points);
+    let mut valid = vec![0.0; b * a * w];
+    for scene in 0..b {
+        for agent in 0..real_agents[scene] {
+            for slot in 0..w {
+                let gap = rng.random_bool(0.1);
+                valid[(scene * a + agent) * w + slot] = if gap { 0.0 } else { 1.0 };
+            }
+        }
+    }
+    valid[(a + 1) * w + 9] = 0.0; // scene 1, agent 1: not at the anchor slot
+    valid[(a + 1) * w + 10] = 1.0;
+    let x = (0..b * a * w * 3)
+        .map(|_| rng.random_range(-1.5f32..1.5))
+        .collect();
+    let sigma = (0..b * w)
+        .map(|_| c.edm.sigma(rng.random_range(0.0..1.0)) as f32)
+        .collect();
+    let features = (0..b * a * AGENT_FEATURES)
+        .map(|_| rng.random_range(0.0f32..1.0))
+        .collect();
+    let map = (0..b * p * q * 2)
+        .map(|_| rng.random_range(-1.0f32..1.0))
+        .collect();
+    let mut map_valid = vec![0.0; b * p];
+    for scene in 0..b {
+        for poly in 0..real_polylines[scene] {
+            map_valid[scene * p + poly] = 1.0;
+        }
+    }
+    RandomBatch {
+        scenes: b,
+        agents: a,
+        polylines: p,
+        x,
+        sigma,
+        valid,
+        features,
+        map,
+        map_valid,
+    }
+}
+
+fn candle_denoise(model: &Denoiser, r: &RandomBatch) -> Vec<f32> {
+    let c = &model.config;
+    let (b, a, w, p, q) = (
+        r.scenes,
+        r.agents,
+        c.window_slots,
+        r.polylines,
+        c.polyline_points,
+    );
+    let t = |v: &[f32], shape: &[usize]| Tensor::from_vec(v.to_vec(), shape, &Device::Cpu).unwrap();
+    let tokens = model
+        .encode_map(&t(&r.map, &[b, p, q, 2]), Mode::Infer)
+        .unwrap();
+    model
+        .denoise(
+            &t(&r.x, &[b, a, w, 3]),
+            &t(&r.sigma, &[b, w]),
+            &t(&r.valid, &[b, a, w]),
+            &t(&r.features, &[b, a, AGENT_FEATURES]),
+            &tokens,
+            &t(&r.map_valid, &[b, p]),
+            Mode::Infer,
+        )
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .to_vec1()
+        .unwrap()
+}
+
+fn fast_matches_candle(agent_frame: bool) {
+    let c = config(agent_frame);
+    let (_, model) = model::init_seeded(&c, &Device::Cpu, 7).unwrap();
+    let r = random_batch(&c, 3);
+    let want = candle_denoise(&model, &r);
+    let (a, w, p, q) = (r.agents, c.window_slots, r.polylines, c.polyline_points);
+    let tokens = model
+        .encode_map(
+            &Tensor::from_vec(r.map.clone(), (r.scenes, p, q, 2), &Device::Cpu).unwrap(),
+            Mode::Infer,
+        )
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .to_vec1::<f32>()
+        .unwrap();
+    for threads in [1, 2] {
+        let fast = FastDenoiser::new(&model, threads).unwrap();
+        let cache = fast
+            .scene_cache(r.scenes, a, &r.features, &tokens, &r.map_valid)
+            .unwrap();
+        let mut got = vec![0.0; r.x.len()];
+        let inputs = FastInputs {
+            x: &r.x,
+            sigma: &r.sigma,
+            valid: &r.valid,
+            scene_ids: &[0, 1, 2],
+        };
+        fast.denoise(&cache, &inputs, &mut got).unwrap();
+        assert_close(
+            &got,
+            &want,
+            REL,
+            ABS,
+            &format!("{threads} threads, every scene"),
+        );
+
+        // A subset, out of order: rows 2 and 0 of the batch.
+        let rows = [2usize, 0];
+        let pick = |v: &[f32], len: usize| -> Vec<f32> {
+            rows.iter()
+                .flat_map(|&s| v[s * len..(s + 1) * len].iter().copied())
+                .collect()
+        };
+        let (x, sigma, valid) = (
+            pick(&r.x, a * w * 3),
+            pick(&r.sigma, w),
+            pick(&r.valid, a * w),
+        );
+        let mut got = vec![0.0; x.len()];
+        let inputs = FastInputs {
+            x: &x,
+            sigma: &sigma,
+            valid: &valid,
+            scene_ids: &rows,
+        };
+        fast.denoise(&cache, &inputs, &mut got).unwrap();
+        assert_close(
+            &got,
+            &pick(&want, a * w * 3),
+            REL,
+            ABS,
+            &format!("{threads} threads, scenes 2 and 0"),
+        );
+    }
+}
+
+#[test]
+fn fast_denoiser_matches_candle() {
+    fast_matches_candle(false);
+}
+
+#[test]
+fn fast_denoiser_with_an_agent_frame_matches_candle() {
+    fast_matches_candle(true);
+}
+
+#[test]
+fn fast_denoiser_refuses_a_scene_outside_its_cache() {
+    let c = config(false);
+    let (_, model) = model::init_seeded(&c, &Device::Cpu, 7).unwrap();
+    let fast = FastDenoiser::new(&model, 1).unwrap();
+    let d = c.hidden;
+    let cache = fast
+        .scene_cache(1, 1, &[0.0; AGENT_FEATURES], &vec![0.0; d], &[1.0])
+        .unwrap();
+    let w = c.window_slots;
+    let (x, sigma, valid) = (vec![0.0; w * 3], vec![1.0; w], vec![1.0; w]);
+    let mut out = vec![0.0; w * 3];
+    let inputs = FastInputs {
+        x: &x,
+        sigma: &sigma,
+        valid: &valid,
+        scene_ids: &[1],
+    };
+    let err = fast.denoise(&cache, &inputs, &mut out).unwrap_err();
+    assert!(err.to_string().contains("scene 1"), "{err}");
+}
+
+/// Scenes of a synthetic lane: every agent drives along +x (or, with `turn`, along a heading
+/// that differs per scene, so the agent frame turns).
+fn scenes(c: &ModelConfig, count: usize) -> Vec<RolloutScene> {
+    let n = 10;
+    (0..count)
+        .map(|i| {
+            let agents = 2 + i % 3;
+            let heading = 0.4 * i as f32;
+            let (sin, cos) = heading.sin_cos();
+            let mut states = Vec::new();
+            for a in 0..agents {
+                for t in 0..n {
+                    let s = 0.02 * (a as f32 * 3.0 + t as f32) - 0.3;
+                    states.extend([cos * s, sin * s + 0.1 * a as f32, heading * 0.25]);
+                }
+            }
+            let q = c.polyline_points;
+            let map: Vec<f32> = (0..2)
+                .flat_map(|lane| {
+                    (0..q).flat_map(move |k| {
+                        let s = -0.5 + k as f32 / q as f32;
+                        [cos * s, sin * s + 0.1 * lane as f32]
+                    })
+                })
+                .collect();
+            RolloutScene {
+                history: SceneInput {
+                    agents,
+                    slots: n,
+                    states,
+                    valid: vec![true; agents * n],
+                    agent_features: (0..agents)
+                        .flat_map(|_| [0.9, 0.72, 1.0, 0.0, 0.0, 0.0])
+                        .collect(),
+                    polylines: 2,
+                    points: q,
+                    map,
+                },
+            }
+        })
+        .collect()
+}
+
+fn rollouts_agree(agent_frame: bool) {
+    let c = config(agent_frame);
+    let (_, model) = model::init_seeded(&c, &Device::Cpu, 5).unwrap();
+    let planner = PlannerSpec {
+        steps_per_diffusion: 10,
+        ..PlannerSpec::default()
+    };
+    let scenes = scenes(&c, 5);
+    let run = |engine: &mut dyn StepEngine| {
+        rollout_with(engine, &planner, &scenes, 6, &mut StdRng::seed_from_u64(9)).unwrap()
+    };
+    let reference = run(&mut CpuEngine::new(&model));
+    let fast = run(&mut FastCpuEngine::with_threads(&model, 2).unwrap());
+    assert_eq!(fast.nfe, reference.nfe);
+    for (f, r) in fast.states.iter().zip(&reference.states) {
+        assert_close(f, r, 1e-3, 1e-4, "rollout");
+    }
+}
+
+#[test]
+fn fast_engine_rollouts_match_candle() {
+    rollouts_agree(false);
+}
+
+#[test]
+fn fast_engine_rollouts_with_an_agent_frame_match_candle() {
+    rollouts_agree(true);
+}
+
+/// Mixed phases: scenes tick in different subsets, so the engines evaluate gathered rows.
+#[test]
+fn fast_engine_matches_candle_when_only_some_scenes_tick() {
+    let c = config(true);
+    let (_, model) = model::init_seeded(&c, &Device::Cpu, 5).unwrap();
+    let planner = PlannerSpec {
+        steps_per_diffusion: 10,
+        ..PlannerSpec::default()
+    };
+    let scenes = scenes(&c, 4);
+    let run = |engine: &mut dyn StepEngine| -> Vec<Vec<f32>> {
+        let mut driver =
+            RolloutDriver::new(engine, &planner, &scenes, 5, &mut StdRng::seed_from_u64(4))
+                .unwrap();
+        let mut out = Vec::new();
+        for which in [&[0usize, 1, 2, 3][..], &[1, 3], &[0, 2, 3], &[2], &[0, 1]] {
+            driver
+                .tick_scenes(engine, which, &mut |_, e| {
+                    out.push(e.to_vec());
+                    Ok(())
+                })
+                .unwrap();
+        }
+        out
+    };
+    let reference = run(&mut CpuEngine::new(&model));
+    let fast = run(&mut FastCpuEngine::with_threads(&model, 2).unwrap());
+    assert_eq!(fast.len(), reference.len());
+    for (f, r) in fast.iter().zip(&reference) {
+        assert_close(f, r, 1e-3, 1e-4, "mixed-phase tick");
+    }
+}
