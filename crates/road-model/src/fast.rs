@@ -17,8 +17,6 @@ use crate::config::AgentFrame;
 use crate::model::{Attention, Denoiser};
 use crate::{Error, Result};
 
-/// Additive bias of a masked key, as in the candle model: its weight is exactly zero.
-const MASKED: f32 = -1e9;
 const LN_EPS: f32 = 1e-5;
 
 fn host(t: &Tensor) -> Result<Vec<f32>> {
@@ -148,8 +146,8 @@ impl Norm {
     fn forward(&self, x: &[f32], out: &mut [f32]) {
         let d = self.weight.len();
         for (row, o) in x.chunks_exact(d).zip(out.chunks_exact_mut(d)) {
-            let mean = row.iter().sum::<f32>() / d as f32;
-            let var = row.iter().map(|v| (v - mean) * (v - mean)).sum::<f32>() / d as f32;
+            let mean = lane_sum(row.iter().copied()) / d as f32;
+            let var = lane_sum(row.iter().map(|v| (v - mean) * (v - mean))) / d as f32;
             let inv = 1.0 / (var + LN_EPS).sqrt();
             for i in 0..d {
                 o[i] = (row[i] - mean) * inv * self.weight[i] + self.bias[i];
@@ -226,8 +224,14 @@ struct Scratch {
     att: Vec<f32>,    // [N, D]
     hidden: Vec<f32>, // [N, M]
     f: Vec<f32>,      // [N, 3]
-    rows: Vec<usize>,
-    bias: Vec<f32>,
+    /// Compact agent index → batch agent row (agents with a valid slot only).
+    agent_rows: Vec<usize>,
+    /// Compact agent index where each scene of the chunk starts (one more entry at the end).
+    scene_starts: Vec<usize>,
+    /// Batch agent row → compact agent index (`usize::MAX`: not evaluated).
+    compact_of: Vec<usize>,
+    queries: Vec<usize>,
+    keys: Vec<usize>,
     scores: Vec<f32>,
 }
 
@@ -372,8 +376,8 @@ impl FastDenoiser {
         if b == 0 {
             return Ok(());
         }
-        let workers = self.threads.min(b);
-        let per = b.div_ceil(workers);
+        let per = b.div_ceil(self.threads.min(b));
+        let workers = b.div_ceil(per);
         let mut pool = std::mem::take(&mut *self.scratch.lock().expect("scratch lock"));
         pool.resize_with(workers.max(pool.len()), Scratch::default);
         let chunk = |start: usize, len: usize| FastInputs {
@@ -401,7 +405,12 @@ impl FastDenoiser {
         Ok(())
     }
 
-    /// The whole forward pass of a chunk of scenes on this thread.
+    /// The whole forward pass of a chunk of scenes on this thread. Agent rows with no valid
+    /// slot (padding, or agents absent from the whole window) are left out: they are masked
+    /// as keys everywhere and their output is `c_skip · x` whatever the network says, so
+    /// leaving them out changes nothing but the time taken. Masked keys are skipped for the
+    /// same reason (their softmax weight is exactly 0 in f32) unless every key of a group is
+    /// masked, where the candle model averages over all of them and so does this.
     fn forward(
         &self,
         cache: &SceneCache,
@@ -411,7 +420,24 @@ impl FastDenoiser {
     ) {
         let (a, w, d) = (cache.agents, self.slots, self.hidden);
         let b = inputs.scene_ids.len();
-        let n = b * a * w;
+        s.agent_rows.clear();
+        s.scene_starts.clear();
+        s.compact_of.clear();
+        s.compact_of.resize(b * a, usize::MAX);
+        for row in 0..b * a {
+            if row % a == 0 {
+                s.scene_starts.push(s.agent_rows.len());
+            }
+            if inputs.valid[row * w..(row + 1) * w]
+                .iter()
+                .any(|&v| v > 0.0)
+            {
+                s.compact_of[row] = s.agent_rows.len();
+                s.agent_rows.push(row);
+            }
+        }
+        s.scene_starts.push(s.agent_rows.len());
+        let n = s.agent_rows.len() * w;
         let m = self.blocks.first().map_or(d, |blk| blk.mlp_in.d_out);
         for (buf, len) in [
             (&mut s.h, n * d),
@@ -423,34 +449,35 @@ impl FastDenoiser {
         ] {
             buf.resize(len.max(buf.len()), 0.0);
         }
-        self.embed(cache, inputs, &mut s.h[..n * d]);
+        self.embed(cache, inputs, &s.agent_rows, &mut s.h[..n * d]);
+        let valid_token = |compact_token: usize| {
+            inputs.valid[s.agent_rows[compact_token / w] * w + compact_token % w] > 0.0
+        };
         let heads = self.heads;
         let scale = 1.0 / ((d / heads) as f32).sqrt();
         let p = cache.polylines;
+        let all_polylines: Vec<usize> = (0..p).collect();
         for (block_index, blk) in self.blocks.iter().enumerate() {
             // Time attention: the W slots of each agent.
             blk.ln_time.forward(&s.h[..n * d], &mut s.t[..n * d]);
             blk.time_qkv
                 .forward(&s.t[..n * d], n, &mut s.qkv[..n * 3 * d]);
-            for group in 0..b * a {
-                s.rows.clear();
-                s.rows.extend(group * w..(group + 1) * w);
-                s.bias.clear();
-                s.bias
-                    .extend(s.rows.iter().map(|&r| key_bias(inputs.valid[r])));
+            for agent in 0..s.agent_rows.len() {
+                s.queries.clear();
+                s.queries.extend(agent * w..(agent + 1) * w);
+                unmasked_keys(&s.queries, &valid_token, &mut s.keys);
                 let kv = KeysValues {
                     data: &s.qkv,
                     stride: 3 * d,
                     k_offset: d,
                     v_offset: 2 * d,
-                    rows: &s.rows,
                 };
                 attend(
                     &s.qkv,
                     3 * d,
-                    &s.rows,
+                    &s.queries,
                     &kv,
-                    &s.bias,
+                    &s.keys,
                     heads,
                     scale,
                     &mut s.scores,
@@ -465,26 +492,24 @@ impl FastDenoiser {
             blk.agents_qkv
                 .forward(&s.t[..n * d], n, &mut s.qkv[..n * 3 * d]);
             for scene in 0..b {
+                let agents = s.scene_starts[scene]..s.scene_starts[scene + 1];
                 for slot in 0..w {
-                    s.rows.clear();
-                    s.rows
-                        .extend((0..a).map(|agent| (scene * a + agent) * w + slot));
-                    s.bias.clear();
-                    s.bias
-                        .extend(s.rows.iter().map(|&r| key_bias(inputs.valid[r])));
+                    s.queries.clear();
+                    s.queries
+                        .extend(agents.clone().map(|agent| agent * w + slot));
+                    unmasked_keys(&s.queries, &valid_token, &mut s.keys);
                     let kv = KeysValues {
                         data: &s.qkv,
                         stride: 3 * d,
                         k_offset: d,
                         v_offset: 2 * d,
-                        rows: &s.rows,
                     };
                     attend(
                         &s.qkv,
                         3 * d,
-                        &s.rows,
+                        &s.queries,
                         &kv,
-                        &s.bias,
+                        &s.keys,
                         heads,
                         scale,
                         &mut s.scores,
@@ -498,15 +523,14 @@ impl FastDenoiser {
             // Map cross-attention: every token of a scene to that scene's polylines.
             blk.ln_map.forward(&s.h[..n * d], &mut s.t[..n * d]);
             blk.map_q.forward(&s.t[..n * d], n, &mut s.qkv[..n * d]);
-            let key_rows: Vec<usize> = (0..p).collect();
             for (local, &scene) in inputs.scene_ids.iter().enumerate() {
-                s.rows.clear();
-                s.rows.extend(local * a * w..(local + 1) * a * w);
-                s.bias.clear();
-                s.bias.extend(
-                    cache.map_valid[scene * p..(scene + 1) * p]
-                        .iter()
-                        .map(|&v| key_bias(v)),
+                s.queries.clear();
+                s.queries
+                    .extend(s.scene_starts[local] * w..s.scene_starts[local + 1] * w);
+                unmasked_keys(
+                    &all_polylines,
+                    &|k| cache.map_valid[scene * p + k] > 0.0,
+                    &mut s.keys,
                 );
                 let kv = KeysValues {
                     data: &cache.map_kv[(scene * self.blocks.len() + block_index) * p * 2 * d..]
@@ -514,14 +538,13 @@ impl FastDenoiser {
                     stride: 2 * d,
                     k_offset: 0,
                     v_offset: d,
-                    rows: &key_rows,
                 };
                 attend(
                     &s.qkv,
                     d,
-                    &s.rows,
+                    &s.queries,
                     &kv,
-                    &s.bias,
+                    &s.keys,
                     heads,
                     scale,
                     &mut s.scores,
@@ -541,64 +564,69 @@ impl FastDenoiser {
         }
         self.ln_out.forward(&s.h[..n * d], &mut s.t[..n * d]);
         self.head.forward(&s.t[..n * d], n, &mut s.f[..n * 3]);
-        self.precondition_output(inputs, a, &s.f[..n * 3], out);
+        self.precondition_output(inputs, a, &s.compact_of, &s.f[..n * 3], out);
     }
 
-    /// Token embeddings `h [b, A, W, D]` (docs/checkpoint.md, step 2, with the agent frame).
-    fn embed(&self, cache: &SceneCache, inputs: &FastInputs<'_>, h: &mut [f32]) {
+    /// Token embeddings `h [agents, W, D]` of the evaluated agent rows (docs/checkpoint.md,
+    /// step 2, with the agent frame).
+    fn embed(
+        &self,
+        cache: &SceneCache,
+        inputs: &FastInputs<'_>,
+        agent_rows: &[usize],
+        h: &mut [f32],
+    ) {
         let (a, w, d) = (cache.agents, self.slots, self.hidden);
         let sd = self.sigma_data;
-        for (local, &scene) in inputs.scene_ids.iter().enumerate() {
-            for agent in 0..a {
-                let agent_row = local * a + agent;
-                let agent_embedding = &cache.agent_embedding[(scene * a + agent) * d..][..d];
-                let anchor = self.anchor(inputs, agent_row);
-                for slot in 0..w {
-                    let token = agent_row * w + slot;
-                    let sigma = inputs.sigma[local * w + slot];
-                    let c_in = 1.0 / (sigma * sigma + sd * sd).sqrt();
-                    let c_noise = sigma.ln() * 0.25;
-                    let valid = inputs.valid[token];
-                    let x = &inputs.x[3 * token..][..3];
-                    let scaled = [
-                        x[0] * c_in * valid,
-                        x[1] * c_in * valid,
-                        x[2] * c_in * valid,
+        for (compact, &agent_row) in agent_rows.iter().enumerate() {
+            let (local, agent) = (agent_row / a, agent_row % a);
+            let scene = inputs.scene_ids[local];
+            let agent_embedding = &cache.agent_embedding[(scene * a + agent) * d..][..d];
+            let anchor = self.anchor(inputs, agent_row);
+            for slot in 0..w {
+                let token = agent_row * w + slot;
+                let sigma = inputs.sigma[local * w + slot];
+                let c_in = 1.0 / (sigma * sigma + sd * sd).sqrt();
+                let c_noise = sigma.ln() * 0.25;
+                let valid = inputs.valid[token];
+                let x = &inputs.x[3 * token..][..3];
+                let scaled = [
+                    x[0] * c_in * valid,
+                    x[1] * c_in * valid,
+                    x[2] * c_in * valid,
+                ];
+                let row = &mut h[(compact * w + slot) * d..][..d];
+                let st = &self.embed_state;
+                let nz = &self.embed_noise;
+                let slot_row = &self.slot_embedding[slot * d..][..d];
+                for i in 0..d {
+                    row[i] = st.weight[3 * i] * scaled[0]
+                        + st.weight[3 * i + 1] * scaled[1]
+                        + st.weight[3 * i + 2] * scaled[2]
+                        + st.bias[i]
+                        + nz.weight[i] * c_noise
+                        + nz.bias[i]
+                        + agent_embedding[i]
+                        + slot_row[i];
+                }
+                if let (Some(frame), Some(rel), Some(anchor)) =
+                    (&self.agent_frame, &self.embed_relative, &anchor)
+                {
+                    let k = c_in * frame.relative_scale as f32 * valid * anchor.valid;
+                    let (dx, dy, dh) = (x[0] - anchor.x, x[1] - anchor.y, x[2] - anchor.heading);
+                    let features = [
+                        (anchor.cos * dx + anchor.sin * dy) * k,
+                        (anchor.cos * dy - anchor.sin * dx) * k,
+                        dh * k,
+                        anchor.valid,
                     ];
-                    let row = &mut h[token * d..][..d];
-                    let st = &self.embed_state;
-                    let nz = &self.embed_noise;
-                    let slot_row = &self.slot_embedding[slot * d..][..d];
                     for i in 0..d {
-                        row[i] = st.weight[3 * i] * scaled[0]
-                            + st.weight[3 * i + 1] * scaled[1]
-                            + st.weight[3 * i + 2] * scaled[2]
-                            + st.bias[i]
-                            + nz.weight[i] * c_noise
-                            + nz.bias[i]
-                            + agent_embedding[i]
-                            + slot_row[i];
-                    }
-                    if let (Some(frame), Some(rel), Some(anchor)) =
-                        (&self.agent_frame, &self.embed_relative, &anchor)
-                    {
-                        let k = c_in * frame.relative_scale as f32 * valid * anchor.valid;
-                        let (dx, dy, dh) =
-                            (x[0] - anchor.x, x[1] - anchor.y, x[2] - anchor.heading);
-                        let features = [
-                            (anchor.cos * dx + anchor.sin * dy) * k,
-                            (anchor.cos * dy - anchor.sin * dx) * k,
-                            dh * k,
-                            anchor.valid,
-                        ];
-                        for i in 0..d {
-                            let wr = &rel.weight[4 * i..4 * i + 4];
-                            row[i] += wr[0] * features[0]
-                                + wr[1] * features[1]
-                                + wr[2] * features[2]
-                                + wr[3] * features[3]
-                                + rel.bias[i];
-                        }
+                        let wr = &rel.weight[4 * i..4 * i + 4];
+                        row[i] += wr[0] * features[0]
+                            + wr[1] * features[1]
+                            + wr[2] * features[2]
+                            + wr[3] * features[3]
+                            + rel.bias[i];
                     }
                 }
             }
@@ -624,12 +652,25 @@ impl FastDenoiser {
     }
 
     /// `D = c_skip · x + c_out · F · valid`, `F`'s position part turned back from the agent
-    /// frame (docs/checkpoint.md, step 5).
-    fn precondition_output(&self, inputs: &FastInputs<'_>, a: usize, f: &[f32], out: &mut [f32]) {
+    /// frame (docs/checkpoint.md, step 5); rows left out (`compact_of` = MAX) have `F · valid`
+    /// = 0 everywhere.
+    fn precondition_output(
+        &self,
+        inputs: &FastInputs<'_>,
+        a: usize,
+        compact_of: &[usize],
+        f: &[f32],
+        out: &mut [f32],
+    ) {
         let w = self.slots;
         let sd = self.sigma_data;
         for agent_row in 0..inputs.scene_ids.len() * a {
-            let anchor = self.anchor(inputs, agent_row);
+            let compact = compact_of[agent_row];
+            let anchor = if compact == usize::MAX {
+                None
+            } else {
+                self.anchor(inputs, agent_row)
+            };
             let local = agent_row / a;
             for slot in 0..w {
                 let token = agent_row * w + slot;
@@ -637,7 +678,16 @@ impl FastDenoiser {
                 let denom = sigma * sigma + sd * sd;
                 let c_skip = sd * sd / denom;
                 let c_out = sigma * sd / denom.sqrt();
-                let mut ft = [f[3 * token], f[3 * token + 1], f[3 * token + 2]];
+                let x = &inputs.x[3 * token..][..3];
+                let o = &mut out[3 * token..][..3];
+                if compact == usize::MAX {
+                    for c in 0..3 {
+                        o[c] = c_skip * x[c];
+                    }
+                    continue;
+                }
+                let ct = compact * w + slot;
+                let mut ft = [f[3 * ct], f[3 * ct + 1], f[3 * ct + 2]];
                 if let Some(anchor) = &anchor {
                     ft = [
                         anchor.cos * ft[0] - anchor.sin * ft[1],
@@ -647,7 +697,7 @@ impl FastDenoiser {
                 }
                 let valid = inputs.valid[token];
                 for c in 0..3 {
-                    out[3 * token + c] = c_skip * inputs.x[3 * token + c] + c_out * ft[c] * valid;
+                    o[c] = c_skip * x[c] + c_out * ft[c] * valid;
                 }
             }
         }
@@ -664,64 +714,93 @@ struct Anchor {
     valid: f32,
 }
 
-fn key_bias(valid: f32) -> f32 {
-    (valid - 1.0) * -MASKED
+/// The keys of a group that are not masked; all of them when every one is (then every key
+/// has the same bias, and softmax weighs them equally, as candle does).
+fn unmasked_keys(candidates: &[usize], is_valid: &dyn Fn(usize) -> bool, keys: &mut Vec<usize>) {
+    keys.clear();
+    keys.extend(candidates.iter().copied().filter(|&k| is_valid(k)));
+    if keys.is_empty() {
+        keys.extend_from_slice(candidates);
+    }
 }
 
-/// Keys and values of one attention group: row `rows[j]` of `data` holds key j at `k_offset`
-/// and value j at `v_offset` (`D` values each).
+/// Keys and values of attention: row r of `data` holds its key at `k_offset` and its value at
+/// `v_offset` (`D` values each).
 struct KeysValues<'a> {
     data: &'a [f32],
     stride: usize,
     k_offset: usize,
     v_offset: usize,
-    rows: &'a [usize],
 }
 
-/// Multi-head attention of the query rows `rows` of `q` (row stride `q_stride`, queries at
-/// offset 0) over `kv`, with an additive bias per key; writes `out [row, D]` for each query row.
+/// A sum in 8 independent lanes (so that it vectorises).
+fn lane_sum(values: impl Iterator<Item = f32>) -> f32 {
+    let mut lanes = [0.0f32; 8];
+    for (i, v) in values.enumerate() {
+        lanes[i % 8] += v;
+    }
+    lanes.iter().sum()
+}
+
+/// `Σ a·b` over two equal slices, in 8 independent lanes (so that it vectorises).
+fn dot(a: &[f32], b: &[f32]) -> f32 {
+    let mut lanes = [0.0f32; 8];
+    let (a8, b8) = (a.chunks_exact(8), b.chunks_exact(8));
+    let tail: f32 = a8
+        .remainder()
+        .iter()
+        .zip(b8.remainder())
+        .map(|(x, y)| x * y)
+        .sum();
+    for (x, y) in a8.zip(b8) {
+        for l in 0..8 {
+            lanes[l] += x[l] * y[l];
+        }
+    }
+    lanes.iter().sum::<f32>() + tail
+}
+
+/// Multi-head attention of the query rows `queries` of `q` (row stride `q_stride`, queries at
+/// offset 0) over key rows `keys` of `kv`; writes `out [row, D]` for each query row.
 #[allow(clippy::too_many_arguments)]
 fn attend(
     q: &[f32],
     q_stride: usize,
-    rows: &[usize],
+    queries: &[usize],
     kv: &KeysValues<'_>,
-    bias: &[f32],
+    keys: &[usize],
     heads: usize,
     scale: f32,
     scores: &mut Vec<f32>,
     out: &mut [f32],
 ) {
-    let keys = kv.rows.len();
     let d = kv.v_offset.abs_diff(kv.k_offset); // keys and values are D wide, side by side
     let dh = d / heads;
-    scores.resize(keys, 0.0);
-    for &row in rows {
+    scores.resize(keys.len(), 0.0);
+    for &row in queries {
         let query = &q[row * q_stride..][..d];
         let o = &mut out[row * d..][..d];
         for head in 0..heads {
             let qh = &query[head * dh..][..dh];
             let mut max = f32::NEG_INFINITY;
-            for (j, &key_row) in kv.rows.iter().enumerate() {
-                let kh = &kv.data[key_row * kv.stride + kv.k_offset + head * dh..][..dh];
-                let dot: f32 = qh.iter().zip(kh).map(|(a, b)| a * b).sum();
-                let sc = dot * scale + bias[j];
-                scores[j] = sc;
-                max = max.max(sc);
+            for (score, &key) in scores.iter_mut().zip(keys) {
+                let kh = &kv.data[key * kv.stride + kv.k_offset + head * dh..][..dh];
+                *score = dot(qh, kh) * scale;
+                max = max.max(*score);
             }
             let mut sum = 0.0;
-            for sc in scores.iter_mut() {
-                *sc = (*sc - max).exp();
-                sum += *sc;
+            for score in scores.iter_mut() {
+                *score = (*score - max).exp();
+                sum += *score;
             }
             let inv = 1.0 / sum;
             let oh = &mut o[head * dh..][..dh];
             oh.fill(0.0);
-            for (j, &key_row) in kv.rows.iter().enumerate() {
-                let p = scores[j] * inv;
-                let vh = &kv.data[key_row * kv.stride + kv.v_offset + head * dh..][..dh];
+            for (&score, &key) in scores.iter().zip(keys) {
+                let weight = score * inv;
+                let vh = &kv.data[key * kv.stride + kv.v_offset + head * dh..][..dh];
                 for (acc, v) in oh.iter_mut().zip(vh) {
-                    *acc += p * v;
+                    *acc += weight * v;
                 }
             }
         }

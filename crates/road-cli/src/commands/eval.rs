@@ -14,7 +14,7 @@ use road_model::batch::SceneInput;
 use road_model::sample::{CpuEngine, FastCpuEngine, RolloutScene, StepEngine, rollout_with};
 use road_sim::Pose;
 use road_sim::controllers::constant_velocity;
-use road_sim::metrics::scene_metrics;
+use road_sim::metrics::{BOOTSTRAP_RESAMPLES, Estimate, bootstrap_ratio, scene_metrics};
 
 use crate::commands::load_cache;
 use crate::commands::sample::Engine;
@@ -140,6 +140,25 @@ struct Totals {
     secs: f64,
     samples: usize,
     nfe_per_step: f64,
+    /// Every evaluated scene's figures (for the bootstrap intervals).
+    per_scene: Vec<road_sim::metrics::SceneMetrics>,
+    /// Filled in before the report: the figures with 95 % bootstrap intervals over scenes.
+    min_scene_ade_m: Option<Estimate>,
+    min_scene_fde_m: Option<Estimate>,
+    miss_rate: Option<Estimate>,
+}
+
+impl Totals {
+    /// The headline figures with their 95 % bootstrap intervals over scenes.
+    fn estimate(&mut self) {
+        let seed = 0x5eed;
+        let per = |f: fn(&road_sim::metrics::SceneMetrics) -> (f64, f64)| {
+            bootstrap_ratio(&self.per_scene.iter().map(f).collect::<Vec<_>>(), seed)
+        };
+        self.min_scene_ade_m = Some(per(|m| (m.min_scene_ade_m, 1.0)));
+        self.min_scene_fde_m = Some(per(|m| (m.min_scene_fde_m, 1.0)));
+        self.miss_rate = Some(per(|m| (m.missed_agents as f64, m.agents as f64)));
+    }
 }
 
 fn truth_of(window: &SceneWindow, reference: usize, steps: usize) -> Vec<Vec<Option<[f64; 2]>>> {
@@ -332,20 +351,23 @@ fn forecasting(args: EvalArgs) -> Result<ExitCode> {
         args.engine
     );
     out!(
-        "| model | minSceneADE (m) | minSceneFDE (m) | miss rate | time per sample (s) | NFE per simulated step |"
+        "| model | minSceneADE (m) [95 % CI] | minSceneFDE (m) [95 % CI] | miss rate [95 % CI] | time per sample (s) | NFE per simulated step |"
     );
     out!("|---|---:|---:|---:|---:|---:|");
-    for r in &results {
+    for r in &mut results {
+        r.estimate();
+        let show = |e: Option<Estimate>| e.map_or_else(String::new, |e| format!("{e:.3}"));
         out!(
-            "| {} | {:.3} | {:.3} | {:.3} | {:.3} | {:.1} |",
+            "| {} | {} | {} | {} | {:.3} | {:.1} |",
             r.model,
-            r.ade_sum / r.scenes as f64,
-            r.fde_sum / r.scenes as f64,
-            r.missed as f64 / r.agents.max(1) as f64,
+            show(r.min_scene_ade_m),
+            show(r.min_scene_fde_m),
+            show(r.miss_rate),
             r.secs / r.samples.max(1) as f64,
             r.nfe_per_step
         );
     }
+    out!("(intervals: 95 % percentile bootstrap over scenes, {BOOTSTRAP_RESAMPLES} resamples)");
     if let Some(path) = &args.json {
         let json = serde_json::json!({ "suite": "forecasting", "scenes": windows.len(), "eligible_scenes": eligible, "samples": sample_count, "results": results });
         std::fs::write(path, serde_json::to_string_pretty(&json)?)
@@ -406,4 +428,5 @@ fn accumulate(t: &mut Totals, m: &road_sim::metrics::SceneMetrics) {
     t.fde_sum += m.min_scene_fde_m;
     t.missed += m.missed_agents;
     t.agents += m.agents;
+    t.per_scene.push(*m);
 }
