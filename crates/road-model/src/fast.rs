@@ -620,13 +620,16 @@ impl FastDenoiser {
                         dh * k,
                         anchor.valid,
                     ];
-                    for i in 0..d {
-                        let wr = &rel.weight[4 * i..4 * i + 4];
-                        row[i] += wr[0] * features[0]
+                    for ((r, wr), bias) in row
+                        .iter_mut()
+                        .zip(rel.weight.chunks_exact(4))
+                        .zip(&rel.bias)
+                    {
+                        *r += wr[0] * features[0]
                             + wr[1] * features[1]
                             + wr[2] * features[2]
                             + wr[3] * features[3]
-                            + rel.bias[i];
+                            + bias;
                     }
                 }
             }
@@ -664,8 +667,11 @@ impl FastDenoiser {
     ) {
         let w = self.slots;
         let sd = self.sigma_data;
-        for agent_row in 0..inputs.scene_ids.len() * a {
-            let compact = compact_of[agent_row];
+        for (agent_row, &compact) in compact_of
+            .iter()
+            .enumerate()
+            .take(inputs.scene_ids.len() * a)
+        {
             let anchor = if compact == usize::MAX {
                 None
             } else {

@@ -82,7 +82,7 @@ impl Engines {
         Ok(match &self.gpu {
             Some((ctx, model)) => Engine::Gpu(Box::new(GpuStepEngine::new(ctx, model))),
             None if self.candle => Engine::Candle(CpuEngine::new(&self.cpu.model)),
-            None => Engine::Cpu(FastCpuEngine::new(&self.cpu.model)?),
+            None => Engine::Cpu(Box::new(FastCpuEngine::new(&self.cpu.model)?)),
         })
     }
 
@@ -97,7 +97,7 @@ impl Engines {
 
 /// One engine, any kind.
 pub enum Engine<'a> {
-    Cpu(FastCpuEngine<'a>),
+    Cpu(Box<FastCpuEngine<'a>>),
     Candle(CpuEngine<'a>),
     Gpu(Box<GpuStepEngine<'a>>),
 }
@@ -105,7 +105,7 @@ pub enum Engine<'a> {
 impl Engine<'_> {
     pub fn as_dyn(&mut self) -> &mut dyn StepEngine {
         match self {
-            Engine::Cpu(e) => e,
+            Engine::Cpu(e) => e.as_mut(),
             Engine::Candle(e) => e,
             Engine::Gpu(e) => e.as_mut(),
         }
