@@ -14,6 +14,7 @@ pub mod closed_loop;
 pub mod controllers;
 pub mod geometry;
 pub mod infractions;
+pub mod kinematics;
 pub mod metrics;
 pub mod procedural;
 

@@ -16,6 +16,9 @@ use road_sim::closed_loop::{
     ClosedLoop, Controller, NoExternal, SceneTick, SimScene, pick_adversary, simulate_scripted,
 };
 
+use road_sim::kinematics::{KinematicDivergence, Kinematics};
+use road_sim::metrics::{BOOTSTRAP_RESAMPLES, Estimate, bootstrap_ratio};
+
 use crate::commands::engine::{EngineChoice, Engines};
 use crate::commands::eval::{EvalArgs, SceneSelection, select_scenes};
 use crate::plot::{
@@ -39,10 +42,76 @@ struct Totals {
     secs: f64,
     nfe_per_step: f64,
     expected_nfe_per_step: Option<f64>,
+    /// Speed, acceleration and jerk of the driven agents that the log holds throughout.
+    #[serde(skip)]
+    kinematics: Kinematics,
+    /// Against the logged paths of the same agents over the same steps.
+    kinematic_divergence: Option<KinematicDivergence>,
+    /// Per simulation: (scene, adversary collided, any collision, driven agents, off road).
+    #[serde(skip)]
+    per_simulation: Vec<(usize, bool, bool, usize, usize)>,
+    /// The rates with 95 % bootstrap intervals over scenes (filled in before the report).
+    adversary_collision_rate: Option<Estimate>,
+    any_collision_rate: Option<Estimate>,
+    off_road_rate: Option<Estimate>,
 }
 
-/// What one simulation did.
-fn score(totals: &mut Totals, ticks: &[SceneTick], adversary: usize, agents: usize) {
+impl Totals {
+    fn estimate(&mut self, logged: &Kinematics) {
+        // Per scene: [simulations, adversary collisions, any collisions, driven, off road].
+        let scenes = self
+            .per_simulation
+            .iter()
+            .map(|s| s.0 + 1)
+            .max()
+            .unwrap_or(0);
+        let mut per_scene = vec![[0.0f64; 5]; scenes];
+        for &(k, adversary, any, driven, off) in &self.per_simulation {
+            let row = &mut per_scene[k];
+            row[0] += 1.0;
+            row[1] += f64::from(u8::from(adversary));
+            row[2] += f64::from(u8::from(any));
+            row[3] += driven as f64;
+            row[4] += off as f64;
+        }
+        per_scene.retain(|row| row[0] > 0.0);
+        let rate = |num: usize, den: usize| {
+            let pairs: Vec<(f64, f64)> = per_scene.iter().map(|r| (r[num], r[den])).collect();
+            bootstrap_ratio(&pairs, 0x5eed)
+        };
+        self.adversary_collision_rate = Some(rate(1, 0));
+        self.any_collision_rate = Some(rate(2, 0));
+        self.off_road_rate = Some(rate(4, 3));
+        self.kinematic_divergence = Some(self.kinematics.divergence_from(logged));
+    }
+}
+
+/// Paths (metres, from the last observed step on) of the driven agents that the log holds at
+/// every simulated step: the simulated ones and the logged ones, agent for agent.
+fn kinematic_paths(
+    w: &SceneWindow,
+    ticks: &[SceneTick],
+    adversary: usize,
+    reference: usize,
+) -> Vec<(Vec<[f64; 2]>, Vec<[f64; 2]>)> {
+    let logged_at = |a: usize, t: usize| w.state(a, t).map(|s| w.frame.to_metres([s[0], s[1]]));
+    (0..w.agents)
+        .filter(|&a| a != adversary)
+        .filter_map(|a| {
+            let logged: Option<Vec<[f64; 2]>> = (reference..=reference + ticks.len())
+                .map(|t| logged_at(a, t))
+                .collect();
+            let logged = logged?;
+            let simulated = std::iter::once(logged[0])
+                .chain(ticks.iter().map(|t| [t.poses[a].x_m, t.poses[a].y_m]))
+                .collect();
+            Some((simulated, logged))
+        })
+        .collect()
+}
+
+/// What one simulation did (`k`: the scene).
+fn score(totals: &mut Totals, k: usize, ticks: &[SceneTick], adversary: usize, agents: usize) {
     totals.simulations += 1;
     let pairs: BTreeSet<(usize, usize)> = ticks
         .iter()
@@ -58,6 +127,13 @@ fn score(totals: &mut Totals, ticks: &[SceneTick], adversary: usize, agents: usi
         .collect();
     totals.driven_agents += agents - 1;
     totals.off_road_agents += off.len();
+    totals.per_simulation.push((
+        k,
+        pairs.iter().any(|&(i, j)| i == adversary || j == adversary),
+        !pairs.is_empty(),
+        agents - 1,
+        off.len(),
+    ));
 }
 
 pub fn run(args: EvalArgs) -> Result<ExitCode> {
@@ -132,6 +208,8 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
     }
 
     let mut results = Vec::new();
+    // The logged kinematics of the driven agents (filled once, with the log-replay baseline).
+    let mut logged = Kinematics::default();
     // Non-reactive baselines: one deterministic sample each.
     for (name, others) in [
         ("log replay", Controller::Replay),
@@ -149,7 +227,13 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
                 controllers: controllers_with(k, others),
             };
             let ticks = simulate_scripted(&scene, Some(maps[k]), args.sim_steps)?;
-            score(&mut totals, &ticks, adversaries[k], w.agents);
+            score(&mut totals, k, &ticks, adversaries[k], w.agents);
+            for (simulated, logged_path) in kinematic_paths(w, &ticks, adversaries[k], reference) {
+                totals.kinematics.add_path(&simulated);
+                if name == "log replay" {
+                    logged.add_path(&logged_path);
+                }
+            }
             if k < args.figure_scenes {
                 draw(
                     &args.figures,
@@ -242,7 +326,11 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
             for (j, &k) in chunk.iter().enumerate() {
                 let ticks = &per_sim[j * samples..(j + 1) * samples];
                 for t in ticks {
-                    score(&mut totals, t, adversaries[k], windows[k].agents);
+                    score(&mut totals, k, t, adversaries[k], windows[k].agents);
+                    for (simulated, _) in kinematic_paths(&windows[k], t, adversaries[k], reference)
+                    {
+                        totals.kinematics.add_path(&simulated);
+                    }
                 }
                 if k < args.figure_scenes {
                     draw(
@@ -271,24 +359,33 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         args.engine
     );
     out!(
-        "| model | collision rate (adversary) | any collision | off-road rate | time per sample (s) | NFE per simulated step (expected) |"
+        "| model | collision rate (adversary) [95 % CI] | any collision [95 % CI] | off-road rate [95 % CI] | JS speed | JS accel. | JS jerk | time per sample (s) | NFE per simulated step (expected) |"
     );
-    out!("|---|---:|---:|---:|---:|---:|");
-    for r in &results {
+    out!("|---|---:|---:|---:|---:|---:|---:|---:|---:|");
+    for r in &mut results {
+        r.estimate(&logged);
         let sims = r.simulations.max(1) as f64;
         let nfe = match r.expected_nfe_per_step {
             Some(e) => format!("{:.1} ({e:.1})", r.nfe_per_step),
             None => "0 (scripted)".into(),
         };
+        let show = |e: Option<Estimate>| e.map_or_else(String::new, |e| format!("{e:.3}"));
+        let js = r.kinematic_divergence.expect("estimated above");
         out!(
-            "| {} | {:.3} | {:.3} | {:.3} | {:.3} | {nfe} |",
+            "| {} | {} | {} | {} | {:.3} | {:.3} | {:.3} | {:.3} | {nfe} |",
             r.model,
-            r.adversary_collisions as f64 / sims,
-            r.any_collisions as f64 / sims,
-            r.off_road_agents as f64 / r.driven_agents.max(1) as f64,
+            show(r.adversary_collision_rate),
+            show(r.any_collision_rate),
+            show(r.off_road_rate),
+            js.speed,
+            js.acceleration,
+            js.jerk,
             r.secs / sims,
         );
     }
+    out!(
+        "(intervals: 95 % percentile bootstrap over scenes, {BOOTSTRAP_RESAMPLES} resamples; JS: Jensen–Shannon divergence in bits of the driven agents' speed, acceleration and jerk histograms from the logged ones, agents the log holds throughout)"
+    );
     for s in &skipped {
         out!("not run: {s}");
     }

@@ -1,0 +1,183 @@
+//! Kinematic realism in the style of the Waymo Sim Agents metrics: the distributions of speed,
+//! longitudinal acceleration and jerk of the simulated agents against the logged ones, each
+//! compared by the Jensen–Shannon divergence over fixed histogram bins. Jitter (a stopped
+//! vehicle trembling in place, a path that zig-zags) shows up as mass in the high |jerk| bins.
+
+use serde::Serialize;
+
+/// The recordings' and the simulation's step.
+pub const STEP_SECS: f64 = 0.1;
+
+/// A histogram over fixed bins on `[lo, hi)`; values outside fall into the edge bins.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Histogram {
+    pub lo: f64,
+    pub hi: f64,
+    pub counts: Vec<f64>,
+}
+
+impl Histogram {
+    pub fn new(lo: f64, hi: f64, bins: usize) -> Self {
+        assert!(hi > lo && bins > 0, "histogram [{lo}, {hi}) of {bins} bins");
+        Self {
+            lo,
+            hi,
+            counts: vec![0.0; bins],
+        }
+    }
+
+    pub fn add(&mut self, value: f64) {
+        if !value.is_finite() {
+            return;
+        }
+        let bins = self.counts.len();
+        let at = ((value - self.lo) / (self.hi - self.lo) * bins as f64).floor();
+        let bin = at.clamp(0.0, (bins - 1) as f64) as usize;
+        self.counts[bin] += 1.0;
+    }
+
+    pub fn total(&self) -> f64 {
+        self.counts.iter().sum()
+    }
+
+    /// Jensen–Shannon divergence in bits (0 = the same distribution, 1 = disjoint support);
+    /// NaN when either histogram is empty.
+    pub fn js_divergence(&self, other: &Histogram) -> f64 {
+        assert_eq!(
+            self.counts.len(),
+            other.counts.len(),
+            "histograms of other bins"
+        );
+        let (tp, tq) = (self.total(), other.total());
+        if tp == 0.0 || tq == 0.0 {
+            return f64::NAN;
+        }
+        let kl_to_mid = |p: f64, m: f64| if p > 0.0 { p * (p / m).log2() } else { 0.0 };
+        self.counts
+            .iter()
+            .zip(&other.counts)
+            .map(|(&a, &b)| {
+                let (p, q) = (a / tp, b / tq);
+                let m = 0.5 * (p + q);
+                0.5 * kl_to_mid(p, m) + 0.5 * kl_to_mid(q, m)
+            })
+            .sum()
+    }
+}
+
+/// Speed (m/s), longitudinal acceleration (m/s², the rate of change of speed) and jerk (m/s³)
+/// of many paths.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Kinematics {
+    pub speed_mps: Histogram,
+    pub acceleration_mps2: Histogram,
+    pub jerk_mps3: Histogram,
+}
+
+impl Default for Kinematics {
+    fn default() -> Self {
+        Self {
+            speed_mps: Histogram::new(0.0, 30.0, 30),
+            // Odd bin counts: zero sits mid-bin, so steady motion's float noise stays in one.
+            acceleration_mps2: Histogram::new(-8.25, 8.25, 33),
+            jerk_mps3: Histogram::new(-41.25, 41.25, 33),
+        }
+    }
+}
+
+/// The Jensen–Shannon divergence of each quantity (bits).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct KinematicDivergence {
+    pub speed: f64,
+    pub acceleration: f64,
+    pub jerk: f64,
+}
+
+impl Kinematics {
+    /// One path of positions at `STEP_SECS` apart (metres): speeds from the second position
+    /// on, accelerations from the third, jerks from the fourth.
+    pub fn add_path(&mut self, xy_m: &[[f64; 2]]) {
+        let speeds: Vec<f64> = xy_m
+            .windows(2)
+            .map(|p| (p[1][0] - p[0][0]).hypot(p[1][1] - p[0][1]) / STEP_SECS)
+            .collect();
+        let accelerations: Vec<f64> = speeds
+            .windows(2)
+            .map(|v| (v[1] - v[0]) / STEP_SECS)
+            .collect();
+        for &v in &speeds {
+            self.speed_mps.add(v);
+        }
+        for &a in &accelerations {
+            self.acceleration_mps2.add(a);
+        }
+        for j in accelerations.windows(2) {
+            self.jerk_mps3.add((j[1] - j[0]) / STEP_SECS);
+        }
+    }
+
+    pub fn divergence_from(&self, reference: &Kinematics) -> KinematicDivergence {
+        KinematicDivergence {
+            speed: self.speed_mps.js_divergence(&reference.speed_mps),
+            acceleration: self
+                .acceleration_mps2
+                .js_divergence(&reference.acceleration_mps2),
+            jerk: self.jerk_mps3.js_divergence(&reference.jerk_mps3),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn straight(speed_mps: f64, steps: usize) -> Vec<[f64; 2]> {
+        (0..steps)
+            .map(|t| [speed_mps * STEP_SECS * t as f64, 0.0])
+            .collect()
+    }
+
+    #[test]
+    fn the_same_paths_diverge_by_nothing_and_disjoint_ones_by_one_bit() {
+        let (mut a, mut b, mut c) = (
+            Kinematics::default(),
+            Kinematics::default(),
+            Kinematics::default(),
+        );
+        a.add_path(&straight(5.5, 20));
+        b.add_path(&straight(5.5, 20));
+        c.add_path(&straight(20.5, 20));
+        let same = a.divergence_from(&b);
+        assert_eq!((same.speed, same.acceleration, same.jerk), (0.0, 0.0, 0.0));
+        let other = a.divergence_from(&c);
+        assert!((other.speed - 1.0).abs() < 1e-12, "{other:?}");
+        // Both drive at constant speed: acceleration and jerk agree.
+        assert_eq!((other.acceleration, other.jerk), (0.0, 0.0));
+    }
+
+    #[test]
+    fn jitter_shows_in_jerk() {
+        let (mut smooth, mut jittery) = (Kinematics::default(), Kinematics::default());
+        smooth.add_path(&straight(0.0, 30));
+        // A stopped car trembling by up to 20 cm, irregularly.
+        let trembling: Vec<[f64; 2]> = (0..30)
+            .map(|t| [0.05 * ((t * 7) % 5) as f64, 0.0])
+            .collect();
+        jittery.add_path(&trembling);
+        let d = jittery.divergence_from(&smooth);
+        assert!(d.jerk > 0.9, "{d:?}");
+        assert!(
+            d.speed > 0.0,
+            "1 m/s of trembling is not standing still: {d:?}"
+        );
+    }
+
+    #[test]
+    fn out_of_range_values_fall_into_the_edge_bins() {
+        let mut h = Histogram::new(0.0, 10.0, 5);
+        for v in [-3.0, 0.0, 9.99, 42.0, f64::NAN] {
+            h.add(v);
+        }
+        assert_eq!(h.counts, vec![2.0, 0.0, 0.0, 0.0, 2.0]);
+    }
+}
