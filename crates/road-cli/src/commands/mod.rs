@@ -7,6 +7,7 @@ pub mod gpu;
 pub mod reactivity;
 pub mod sample;
 pub mod sched;
+pub mod serve;
 pub mod train;
 
 /// Loads a split's cache from `cache_dir`, checked against the default window settings.
