@@ -182,7 +182,7 @@ fn a_map_with_no_lanelets_is_refused() {
     r.map = MapSource::Osm(osm(false));
     let e = create_err(&c, r);
     assert_refused(&e, ErrorCode::BadMap, Some("map.osm"));
-    assert!(e.message.contains("no lanelets"), "{e}");
+    assert!(e.message.contains("no lanelet"), "{e}");
 }
 
 #[test]
