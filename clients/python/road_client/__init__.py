@@ -100,6 +100,7 @@ class NpcTick:
     collisions: list[list[int]]
     off_road: list[int]
     latency_ms: float
+    compute_ms: float
     late_external: list[AgentState] = field(default_factory=list)
 
 

@@ -252,6 +252,8 @@ pub struct NpcTick {
     pub late_external: Vec<AgentState>,
     /// Milliseconds from the ego's arrival (or the deadline) to this publication.
     pub latency_ms: f64,
+    /// Milliseconds of engine compute for this tick (part of `latency_ms`).
+    pub compute_ms: f64,
 }
 
 /// Closes a scene (the `close` queryable's payload).

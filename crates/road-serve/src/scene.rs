@@ -803,6 +803,7 @@ impl LiveScene {
                 Vec::new()
             },
             latency_ms: 0.0,
+            compute_ms: compute_secs * 1e3,
         };
         Ok(TickOutput {
             npc,

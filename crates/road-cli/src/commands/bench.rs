@@ -57,6 +57,11 @@ pub struct ServeBenchArgs {
     pub cache: PathBuf,
     #[arg(long)]
     pub json: bool,
+    /// The whole front end instead: `road serve` in this process on loopback, one client
+    /// thread per scene over zenoh, the procedural roundabout (no dataset needed); round-trip
+    /// latency beside the engine compute of the same ticks (candle engine).
+    #[arg(long)]
+    pub zenoh: bool,
 }
 
 #[derive(Debug, Args)]
@@ -107,6 +112,16 @@ pub fn run(cmd: BenchCommand) -> Result<ExitCode> {
         BenchCommand::Train(args) => train_bench(&args),
         BenchCommand::Sched(args) => sched_bench(&args),
         BenchCommand::Engine(args) => engine_bench(&args),
+        BenchCommand::Serve(args) if args.zenoh => {
+            let rows =
+                crate::commands::zenoh_bench::run(&args.checkpoint, &args.scenes, args.ticks)?;
+            if args.json {
+                out!("{}", serde_json::to_string_pretty(&rows)?);
+            } else {
+                crate::commands::zenoh_bench::print(&rows);
+            }
+            Ok(())
+        }
         BenchCommand::Serve(args) => serve_bench(&args),
     }
     .map(|()| ExitCode::SUCCESS)

@@ -1,6 +1,7 @@
 pub mod bench;
 pub mod data;
 pub mod demo;
+pub mod demo_zenoh;
 pub mod engine;
 pub mod eval;
 pub mod gpu;
@@ -9,6 +10,7 @@ pub mod sample;
 pub mod sched;
 pub mod serve;
 pub mod train;
+pub mod zenoh_bench;
 
 /// Loads a split's cache from `cache_dir`, checked against the default window settings.
 pub(crate) fn load_cache(
