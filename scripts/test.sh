@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
-# The whole test suite, from a fresh Debian/Ubuntu machine with a Rust toolchain:
-# installs what the tests need (lavapipe), then formatting, clippy with -D warnings, and every
-# test of the workspace. The data tests read ../shared/data/interaction (or $ROAD_DATA).
+# The whole test suite, from a fresh Debian/Ubuntu machine with a Rust toolchain and Python 3:
+# installs what the tests need (lavapipe; a virtual environment .venv-test with eclipse-zenoh,
+# mcap, pytest and the Python client), then formatting, clippy with -D warnings, every test of
+# the workspace, and the Python client's tests against the `road` binary. The data tests read
+# ../shared/data/interaction (or $ROAD_DATA).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -26,4 +28,19 @@ start=$(date +%s)
 cargo fmt --all -- --check
 cargo clippy --workspace --all-targets --locked -- -D warnings
 cargo test --workspace --locked
+
+# The Python client (clients/python) against a real `road serve` on loopback.
+if ! python3 -m venv --help >/dev/null 2>&1 || ! python3 -c 'import ensurepip' >/dev/null 2>&1; then
+    SUDO=""
+    if [ "$(id -u)" -ne 0 ]; then SUDO="sudo"; fi
+    $SUDO apt-get install -y -q python3-venv
+fi
+if [ ! -x .venv-test/bin/python ]; then
+    python3 -m venv .venv-test
+fi
+.venv-test/bin/pip install -q "eclipse-zenoh==1.10.2" mcap pytest
+.venv-test/bin/pip install -q ./clients/python
+cargo build --locked -p road-cli
+ROAD_BIN="$(cargo metadata --format-version 1 --no-deps | python3 -c 'import json,sys; print(json.load(sys.stdin)["target_directory"])')/debug/road" \
+    .venv-test/bin/python -m pytest -q clients/python/tests
 echo "test suite finished in $(( $(date +%s) - start )) s"

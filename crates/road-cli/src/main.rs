@@ -36,6 +36,9 @@ enum Command {
     /// The main job on its embedded default: a procedural roundabout simulated closed loop with
     /// the default checkpoint and a scripted ego; prints ticks, time per tick and infractions.
     Demo(commands::demo::DemoArgs),
+    /// The networked NPC server over Eclipse Zenoh: ego stacks create scenes, put their ego
+    /// every tick and get the NPCs back; every scene recorded to MCAP (`docs/protocol.md`).
+    Serve(commands::serve::ServeArgs),
     /// INTERACTION data: statistics and binary caches for training.
     #[command(subcommand)]
     Data(commands::data::DataCommand),
@@ -86,6 +89,7 @@ fn main() -> std::process::ExitCode {
     }
     let result = match cli.command {
         Command::Demo(args) => commands::demo::run(args),
+        Command::Serve(args) => commands::serve::run(args),
         Command::Data(cmd) => commands::data::run(cmd),
         Command::Sched(cmd) => commands::sched::run(cmd),
         Command::Gpu(cmd) => commands::gpu::run(cmd),

@@ -48,6 +48,18 @@ pub struct SimScene {
 /// agent will have after the tick. `world` holds every agent's pose after the previous tick.
 pub trait ExternalDriver {
     fn pose(&mut self, scene: usize, agent: usize, tick: usize, world: &[Pose]) -> Result<Pose>;
+
+    /// Like [`Self::pose`], but the driver may decline for this tick (`None`): the model then
+    /// drives the agent this tick (a server's late ego). The default never declines.
+    fn drive(
+        &mut self,
+        scene: usize,
+        agent: usize,
+        tick: usize,
+        world: &[Pose],
+    ) -> Result<Option<Pose>> {
+        self.pose(scene, agent, tick, world).map(Some)
+    }
 }
 
 /// An [`ExternalDriver`] for simulations without external agents: asking it is an error.
@@ -289,15 +301,20 @@ impl<'m> ClosedLoop<'m> {
                 let pose = match s.controllers[a] {
                     Controller::Model => None,
                     Controller::External => {
-                        let p = external.pose(i, a, tick, &s.poses)?;
-                        if !(p.x_m.is_finite() && p.y_m.is_finite() && p.heading_rad.is_finite()) {
-                            return Err(Error::External {
-                                scene: i,
-                                agent: a,
-                                reason: format!("tick {tick}: pose {p:?} is not finite"),
-                            });
+                        let p = external.drive(i, a, tick, &s.poses)?;
+                        if let Some(p) = p {
+                            if !(p.x_m.is_finite()
+                                && p.y_m.is_finite()
+                                && p.heading_rad.is_finite())
+                            {
+                                return Err(Error::External {
+                                    scene: i,
+                                    agent: a,
+                                    reason: format!("tick {tick}: pose {p:?} is not finite"),
+                                });
+                            }
                         }
-                        Some(p)
+                        p
                     }
                     _ => Some(s.scripted[a][tick]),
                 };

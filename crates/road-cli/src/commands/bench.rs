@@ -57,6 +57,11 @@ pub struct ServeBenchArgs {
     pub cache: PathBuf,
     #[arg(long)]
     pub json: bool,
+    /// The whole front end instead: `road serve` in this process on loopback, one client
+    /// thread per scene over zenoh, the procedural roundabout (no dataset needed); round-trip
+    /// latency beside the engine compute of the same ticks (candle engine).
+    #[arg(long)]
+    pub zenoh: bool,
 }
 
 #[derive(Debug, Args)]
@@ -107,6 +112,16 @@ pub fn run(cmd: BenchCommand) -> Result<ExitCode> {
         BenchCommand::Train(args) => train_bench(&args),
         BenchCommand::Sched(args) => sched_bench(&args),
         BenchCommand::Engine(args) => engine_bench(&args),
+        BenchCommand::Serve(args) if args.zenoh => {
+            let rows =
+                crate::commands::zenoh_bench::run(&args.checkpoint, &args.scenes, args.ticks)?;
+            if args.json {
+                out!("{}", serde_json::to_string_pretty(&rows)?);
+            } else {
+                crate::commands::zenoh_bench::print(&rows);
+            }
+            Ok(())
+        }
         BenchCommand::Serve(args) => serve_bench(&args),
     }
     .map(|()| ExitCode::SUCCESS)
@@ -527,7 +542,11 @@ fn serve_bench(args: &ServeBenchArgs) -> Result<()> {
             f("ms_per_tick"),
             f("scene_ticks_per_sec"),
             f("scene_ticks_per_sec") / 10.0,
-            if f("ms_per_tick") <= 100.0 { "yes" } else { "no" },
+            if f("ms_per_tick") <= 100.0 {
+                "yes"
+            } else {
+                "no"
+            },
             f("nfe_per_scene_tick")
         );
     }

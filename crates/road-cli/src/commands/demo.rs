@@ -42,10 +42,25 @@ pub struct DemoArgs {
     /// Also write every tick (poses, collisions, off-road agents) as JSON here.
     #[arg(long)]
     pub json: Option<PathBuf>,
+    /// Run the product instead: `road serve` in this process and the scripted ego as a
+    /// client over zenoh on loopback; writes the server's recording to `--mcap`.
+    #[arg(long)]
+    pub zenoh: bool,
+    /// With `--zenoh`: where the scene's MCAP recording goes.
+    #[arg(long, default_value = "demo.mcap")]
+    pub mcap: PathBuf,
 }
 
 pub fn run(args: DemoArgs) -> Result<ExitCode> {
     anyhow::ensure!(args.steps > 0, "--steps must be at least 1");
+    if args.zenoh {
+        return crate::commands::demo_zenoh::run(
+            &args.checkpoint,
+            args.steps,
+            args.seed,
+            &args.mcap,
+        );
+    }
     let engines = Engines::load(&args.checkpoint, args.engine).with_context(|| {
         format!(
             "cannot load the demo checkpoint {} (run from the repository root, or pass --checkpoint)",

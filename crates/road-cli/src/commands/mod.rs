@@ -1,13 +1,16 @@
 pub mod bench;
 pub mod data;
 pub mod demo;
+pub mod demo_zenoh;
 pub mod engine;
 pub mod eval;
 pub mod gpu;
 pub mod reactivity;
 pub mod sample;
 pub mod sched;
+pub mod serve;
 pub mod train;
+pub mod zenoh_bench;
 
 /// Loads a split's cache from `cache_dir`, checked against the default window settings.
 pub(crate) fn load_cache(

@@ -86,6 +86,9 @@ impl Totals {
     }
 }
 
+/// Positions in metres, one per step.
+type Path2d = Vec<[f64; 2]>;
+
 /// Paths (metres, from the last observed step on) of the driven agents that the log holds at
 /// every simulated step: the simulated ones and the logged ones, agent for agent.
 fn kinematic_paths(
@@ -93,7 +96,7 @@ fn kinematic_paths(
     ticks: &[SceneTick],
     adversary: usize,
     reference: usize,
-) -> Vec<(Vec<[f64; 2]>, Vec<[f64; 2]>)> {
+) -> Vec<(Path2d, Path2d)> {
     let logged_at = |a: usize, t: usize| w.state(a, t).map(|s| w.frame.to_metres([s[0], s[1]]));
     (0..w.agents)
         .filter(|&a| a != adversary)

@@ -1,0 +1,135 @@
+//! `road demo --zenoh`: the whole product in one command. A `road serve` runs in this process
+//! on loopback (TCP 127.0.0.1, scouting off), a scripted ego client (the demo's ego, which
+//! does not yield) drives the procedural roundabout over zenoh, and the server's recording of
+//! the scene is kept as `demo.mcap` (Foxglove shows `/map` and `/agents`). Prints the round
+//! trip and engine time per tick and the infractions.
+
+use std::collections::BTreeSet;
+use std::path::Path;
+use std::process::ExitCode;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result};
+use road_client::protocol::{AgentState, CreateScene, DEFAULT_PREFIX, MapSource};
+use road_client::{Client, ZenohArgs};
+use road_data::WindowConfig;
+use road_serve::models::find_models_dir;
+use road_serve::server::percentiles;
+use road_serve::{ServeConfig, Server};
+use road_sim::closed_loop::ExternalDriver;
+use road_sim::procedural::{STEP_SECS, roundabout};
+
+pub fn run(checkpoint: &Path, steps: usize, seed: u64, mcap_out: &Path) -> Result<ExitCode> {
+    let name = checkpoint
+        .file_name()
+        .and_then(|n| n.to_str())
+        .with_context(|| format!("checkpoint {} has no folder name", checkpoint.display()))?;
+    let models = find_models_dir(checkpoint.parent())?;
+    let record = std::env::temp_dir().join(format!("road-demo-{}", std::process::id()));
+    let mut config = ServeConfig::new(models);
+    config.default_checkpoint = name.to_owned();
+    config.record_dir = Some(record.clone());
+    let port = std::net::TcpListener::bind("127.0.0.1:0")?
+        .local_addr()?
+        .port();
+    let endpoint = format!("tcp/127.0.0.1:{port}");
+    let server = Server::new(
+        config,
+        ZenohArgs::loopback(Some(&endpoint), None).to_config()?,
+    )
+    .start()
+    .with_context(|| {
+        format!(
+            "cannot start the demo server with checkpoint {}",
+            checkpoint.display()
+        )
+    })?;
+    let mut client = Client::open(
+        &ZenohArgs::loopback(None, Some(&endpoint)),
+        DEFAULT_PREFIX,
+        "demo-ego",
+    )?;
+    client.set_timeout(Duration::from_secs(120));
+    let mut scene = client.create(CreateScene {
+        map: MapSource::Procedural("roundabout".into()),
+        agents: None,
+        external: vec![1],
+        planner: None,
+        checkpoint: None,
+        seed,
+        client: None,
+        max_ticks: None,
+    })?;
+    // The same scripted ego as `road demo`: its route through the roundabout at constant speed.
+    let mut ego = roundabout(&WindowConfig::default(), 2)?.ego;
+    let mut rtt_ms = Vec::with_capacity(steps);
+    let mut compute_ms = Vec::with_capacity(steps);
+    let mut events = Vec::new();
+    let (mut seen_pairs, mut seen_off) = (BTreeSet::new(), BTreeSet::new());
+    let mut late = 0;
+    for t in 1..=steps as u64 {
+        let p = ego.pose(0, 0, (t - 1) as usize, &[])?;
+        let sent = Instant::now();
+        let npc = scene.step(
+            t,
+            vec![AgentState {
+                id: 1,
+                x_m: p.x_m,
+                y_m: p.y_m,
+                heading_rad: p.heading_rad,
+            }],
+        )?;
+        rtt_ms.push(sent.elapsed().as_secs_f64() * 1e3);
+        compute_ms.push(npc.compute_ms);
+        late += usize::from(!npc.late_external.is_empty());
+        let secs = t as f64 * STEP_SECS;
+        for pair in &npc.collisions {
+            if seen_pairs.insert(*pair) {
+                events.push(format!(
+                    "tick {t:>3} ({secs:4.1} s): collision of agents {} and {}",
+                    pair[0], pair[1]
+                ));
+            }
+        }
+        for a in &npc.off_road {
+            if seen_off.insert(*a) {
+                events.push(format!("tick {t:>3} ({secs:4.1} s): agent {a} off road"));
+            }
+        }
+    }
+    let closed = scene.close()?;
+    server.stop()?;
+    let recording = closed
+        .recording
+        .context("the demo server recorded nothing")?;
+    std::fs::copy(&recording, mcap_out)
+        .with_context(|| format!("cannot write {}", mcap_out.display()))?;
+    let _ = std::fs::remove_dir_all(&record);
+
+    let (r, c) = (percentiles(&rtt_ms[1..]), percentiles(&compute_ms[1..]));
+    out!(
+        "road demo over zenoh: procedural roundabout, 7 vehicles (ego 1 scripted by the client, 6 by {name}), {steps} ticks of {STEP_SECS:.1} s on loopback"
+    );
+    out!(
+        "first tick (with the warm-up): {:.1} ms round trip; then round trip p50 {:.2} ms, p99 {:.2} ms; engine p50 {:.2} ms, p99 {:.2} ms; late ticks {late}",
+        rtt_ms[0],
+        r.p50_ms,
+        r.p99_ms,
+        c.p50_ms,
+        c.p99_ms
+    );
+    if events.is_empty() {
+        out!("infractions: none (no collision, nobody off road)");
+    } else {
+        out!(
+            "infractions: {} collision pair(s), {} vehicle(s) off road",
+            seen_pairs.len(),
+            seen_off.len()
+        );
+        for e in &events {
+            out!("  {e}");
+        }
+    }
+    out!("recording: {}", mcap_out.display());
+    Ok(ExitCode::SUCCESS)
+}

@@ -1,0 +1,84 @@
+//! `road serve`: the networked NPC server (`road-serve`) over Eclipse Zenoh. With no
+//! arguments it runs the default checkpoint `road20` from `models/` (in the working directory,
+//! next to the binary, or `--models` / `ROAD_MODELS`), peer mode with zenoh's defaults, and
+//! records every scene under `recordings/`.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::time::Duration;
+
+use anyhow::{Context, Result};
+use clap::Args;
+use road_serve::models::find_models_dir;
+use road_serve::{ServeConfig, Server, ZenohArgs};
+
+#[derive(Debug, Args)]
+pub struct ServeArgs {
+    #[command(flatten)]
+    pub zenoh: ZenohArgs,
+    /// Key expressions live under this prefix.
+    #[arg(long, default_value = road_protocol::DEFAULT_PREFIX)]
+    pub prefix: String,
+    /// The checkpoints' folder (default: `models/` here or next to the binary).
+    #[arg(long, env = "ROAD_MODELS")]
+    pub models: Option<PathBuf>,
+    /// The checkpoint of requests that name none.
+    #[arg(long, default_value = "road20")]
+    pub checkpoint: String,
+    /// Where scenes are recorded (`scene-<id>.mcap`).
+    #[arg(long, default_value = "recordings")]
+    pub record: PathBuf,
+    /// Do not record.
+    #[arg(long)]
+    pub no_record: bool,
+    /// Live scenes at most.
+    #[arg(long, default_value_t = 256)]
+    pub capacity: usize,
+    /// Milliseconds to wait for a tick's ego before the model drives it (flagged); 0 waits
+    /// forever.
+    #[arg(long, default_value_t = 1000)]
+    pub late_ego_ms: u64,
+    /// Seconds without a word from a scene's client before the scene is closed.
+    #[arg(long, default_value_t = 30.0)]
+    pub idle_timeout_s: f64,
+    /// Largest payload accepted, bytes.
+    #[arg(long, default_value_t = 8 << 20)]
+    pub max_payload_bytes: usize,
+    /// A Lanelet2 map requests may name (`map.file`): `NAME=FILE.osm`; repeatable.
+    #[arg(long = "map", value_name = "NAME=FILE")]
+    pub maps: Vec<String>,
+}
+
+pub fn run(args: ServeArgs) -> Result<ExitCode> {
+    let models = find_models_dir(args.models.as_deref())?;
+    let mut config = ServeConfig::new(models);
+    config.prefix = args.prefix;
+    config.default_checkpoint = args.checkpoint;
+    config.record_dir = (!args.no_record).then_some(args.record);
+    config.capacity = args.capacity;
+    config.late_ego_deadline = Duration::from_millis(args.late_ego_ms);
+    anyhow::ensure!(
+        args.idle_timeout_s.is_finite() && args.idle_timeout_s > 0.0,
+        "--idle-timeout-s must be positive, got {}",
+        args.idle_timeout_s
+    );
+    config.idle_timeout = Duration::from_secs_f64(args.idle_timeout_s);
+    config.max_payload_bytes = args.max_payload_bytes;
+    for item in &args.maps {
+        let (name, path) = item
+            .split_once('=')
+            .with_context(|| format!("--map {item}: expected NAME=FILE"))?;
+        config
+            .map_files
+            .push((name.to_owned(), PathBuf::from(path)));
+    }
+    let zenoh = args.zenoh.to_config()?;
+    let server = Server::new(config, zenoh)
+        .start()
+        .context("cannot start the server")?;
+    for endpoint in server.listen_endpoints() {
+        out!("road serve: listening on {endpoint}");
+    }
+    server.join()?;
+    Ok(ExitCode::SUCCESS)
+}

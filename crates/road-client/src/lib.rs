@@ -1,0 +1,434 @@
+//! A typed Rust client of road's NPC server (`road serve`): create a scene, step it tick by
+//! tick with the ego's poses, close it. The messages are `road-protocol`'s (re-exported here);
+//! `docs/protocol.md` documents the keys and the JSON.
+//!
+//! ```no_run
+//! use road_client::{Client, ZenohArgs, protocol::*};
+//! # fn main() -> Result<(), road_client::Error> {
+//! let client = Client::open(&ZenohArgs::default(), DEFAULT_PREFIX, "my-ego")?;
+//! let mut scene = client.create(CreateScene {
+//!     map: MapSource::Procedural("roundabout".into()),
+//!     agents: None,
+//!     external: vec![1],
+//!     planner: None,
+//!     checkpoint: None,
+//!     seed: 0,
+//!     client: None,
+//!     max_ticks: None,
+//! })?;
+//! let start = scene.created().agents[0].history.last().copied().unwrap();
+//! let npcs = scene.step(1, vec![AgentState { id: 1, x_m: start.x_m, y_m: start.y_m + 0.7, heading_rad: start.heading_rad }])?;
+//! println!("{} NPCs at tick {}", npcs.npcs.len(), npcs.tick);
+//! scene.close()?;
+//! # Ok(()) }
+//! ```
+
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+use zenoh::Wait;
+use zenoh::handlers::FifoChannelHandler;
+use zenoh::liveliness::LivelinessToken;
+use zenoh::pubsub::Subscriber;
+use zenoh::sample::Sample;
+
+pub use road_protocol as protocol;
+use road_protocol::{
+    AgentState, CloseScene, CreateScene, EgoTick, ErrorReply, Keys, NpcTick, SceneClosed,
+    SceneCreated, Status,
+};
+
+/// Errors of the client: the server refused (its [`ErrorReply`]), nothing came in time, or
+/// zenoh failed.
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    #[error("the server refused: {0}")]
+    Refused(ErrorReply),
+    #[error("no answer within {timeout:?} to {what}")]
+    Timeout { what: String, timeout: Duration },
+    #[error("zenoh: {0}")]
+    Zenoh(String),
+    #[error("bad zenoh config: {reason} ({input})")]
+    Config { input: String, reason: String },
+    #[error("unreadable reply on {key}: {reason}")]
+    Reply { key: String, reason: String },
+}
+
+pub type Result<T, E = Error> = std::result::Result<T, E>;
+
+impl From<zenoh::Error> for Error {
+    fn from(e: zenoh::Error) -> Self {
+        Error::Zenoh(e.to_string())
+    }
+}
+
+/// The zenoh session's config: a json5 file plus the overrides the zenoh examples take, with
+/// the same flags.
+#[derive(Debug, Clone, Default, clap::Args)]
+pub struct ZenohArgs {
+    /// A zenoh json5 config file.
+    #[arg(short = 'c', long = "config")]
+    pub config: Option<PathBuf>,
+    /// Per-key overrides of the config, `KEY:VALUE` with VALUE in json5
+    /// (`--cfg 'scouting/multicast/enabled:false'`).
+    #[arg(long = "cfg")]
+    pub cfg: Vec<String>,
+    /// Endpoints to connect to (`tcp/127.0.0.1:7447`).
+    #[arg(short = 'e', long = "connect")]
+    pub connect: Vec<String>,
+    /// Endpoints to listen on (`tcp/127.0.0.1:0` picks a free port).
+    #[arg(short = 'l', long = "listen")]
+    pub listen: Vec<String>,
+    /// `peer`, `client` or `router`.
+    #[arg(short = 'm', long = "mode")]
+    pub mode: Option<String>,
+    /// Turn multicast scouting off (tests, containers).
+    #[arg(long = "no-multicast-scouting")]
+    pub no_multicast_scouting: bool,
+}
+
+impl ZenohArgs {
+    /// The zenoh config these arguments describe.
+    pub fn to_config(&self) -> Result<zenoh::Config> {
+        let bad = |input: &str, e: &dyn std::fmt::Display| Error::Config {
+            input: input.to_owned(),
+            reason: e.to_string(),
+        };
+        let mut config = match &self.config {
+            Some(path) => zenoh::Config::from_file(path)
+                .map_err(|e| bad(&format!("--config {}", path.display()), &e))?,
+            None => zenoh::Config::default(),
+        };
+        if let Some(mode) = &self.mode {
+            if !["peer", "client", "router"].contains(&mode.as_str()) {
+                return Err(bad(
+                    &format!("--mode {mode}"),
+                    &"expected peer, client or router",
+                ));
+            }
+            config
+                .insert_json5("mode", &format!("\"{mode}\""))
+                .map_err(|e| bad(&format!("--mode {mode}"), &e))?;
+        }
+        let list =
+            |items: &[String]| serde_json::to_string(items).expect("a list of strings serialises");
+        if !self.connect.is_empty() {
+            config
+                .insert_json5("connect/endpoints", &list(&self.connect))
+                .map_err(|e| bad(&format!("--connect {}", self.connect.join(",")), &e))?;
+        }
+        if !self.listen.is_empty() {
+            config
+                .insert_json5("listen/endpoints", &list(&self.listen))
+                .map_err(|e| bad(&format!("--listen {}", self.listen.join(",")), &e))?;
+        }
+        if self.no_multicast_scouting {
+            config
+                .insert_json5("scouting/multicast/enabled", "false")
+                .map_err(|e| bad("--no-multicast-scouting", &e))?;
+        }
+        for item in &self.cfg {
+            let (key, value) = item
+                .split_once(':')
+                .ok_or_else(|| bad(&format!("--cfg {item}"), &"expected KEY:VALUE"))?;
+            config
+                .insert_json5(key, value)
+                .map_err(|e| bad(&format!("--cfg {item}"), &e))?;
+        }
+        Ok(config)
+    }
+
+    /// Loopback only: listen on `listen` (or nowhere), connect to `connect`, scouting off.
+    pub fn loopback(listen: Option<&str>, connect: Option<&str>) -> Self {
+        Self {
+            listen: listen.map(str::to_owned).into_iter().collect(),
+            connect: connect.map(str::to_owned).into_iter().collect(),
+            mode: Some("peer".into()),
+            no_multicast_scouting: true,
+            ..Self::default()
+        }
+    }
+}
+
+/// A client of one server: its session, its id and its liveliness token (while the client
+/// lives, the server keeps its scenes).
+#[derive(Debug)]
+pub struct Client {
+    session: zenoh::Session,
+    keys: Keys,
+    id: String,
+    timeout: Duration,
+    _token: LivelinessToken,
+}
+
+impl Client {
+    /// Opens a session from `args` (see [`ZenohArgs`]) and announces the client `id`.
+    pub fn open(args: &ZenohArgs, prefix: &str, id: &str) -> Result<Self> {
+        let session = zenoh::open(args.to_config()?).wait()?;
+        Self::with_session(session, prefix, id)
+    }
+
+    /// A client on an open session.
+    pub fn with_session(session: zenoh::Session, prefix: &str, id: &str) -> Result<Self> {
+        if !road_protocol::valid_client_id(id) {
+            return Err(Error::Config {
+                input: format!("client id {id:?}"),
+                reason: "expected 1 to 64 ASCII letters, digits, '-' or '_'".into(),
+            });
+        }
+        let keys = Keys::new(prefix);
+        let token = session
+            .liveliness()
+            .declare_token(keys.client_alive(id))
+            .wait()?;
+        Ok(Self {
+            session,
+            keys,
+            id: id.to_owned(),
+            timeout: Duration::from_secs(30),
+            _token: token,
+        })
+    }
+
+    /// How long a request or a tick may take before [`Error::Timeout`] (30 s by default: a
+    /// scene's first tick includes the model's warm-up).
+    pub fn set_timeout(&mut self, timeout: Duration) {
+        self.timeout = timeout;
+    }
+
+    pub fn id(&self) -> &str {
+        &self.id
+    }
+
+    pub fn keys(&self) -> &Keys {
+        &self.keys
+    }
+
+    pub fn session(&self) -> &zenoh::Session {
+        &self.session
+    }
+
+    /// Sends `payload` to the queryable at `key`: its reply's bytes, or its error reply.
+    pub fn query_raw(&self, key: &str, payload: Vec<u8>) -> Result<Result<Vec<u8>, ErrorReply>> {
+        query_raw(&self.session, key, payload, self.timeout)
+    }
+
+    fn query<T: serde::de::DeserializeOwned>(&self, key: &str, payload: Vec<u8>) -> Result<T> {
+        let bytes = self.query_raw(key, payload)?.map_err(Error::Refused)?;
+        parse_reply(key, &bytes)
+    }
+
+    /// Creates a scene (the request's `client` is set to this client) and subscribes to its
+    /// NPC states and errors.
+    pub fn create(&self, mut request: CreateScene) -> Result<Scene> {
+        request.client = Some(self.id.clone());
+        let payload = serde_json::to_vec(&request).expect("requests serialise");
+        let created: SceneCreated = self.query(&self.keys.create(), payload)?;
+        self.attach(created)
+    }
+
+    /// A handle on a scene created elsewhere (its reply known).
+    pub fn attach(&self, created: SceneCreated) -> Result<Scene> {
+        let npc = self
+            .session
+            .declare_subscriber(created.npc_key.clone())
+            .wait()?;
+        let errors = self
+            .session
+            .declare_subscriber(created.error_key.clone())
+            .wait()?;
+        Ok(Scene {
+            session: self.session.clone(),
+            keys: self.keys.clone(),
+            client: self.id.clone(),
+            timeout: self.timeout,
+            created,
+            npc,
+            errors,
+            last: None,
+        })
+    }
+
+    /// The server's status.
+    pub fn status(&self) -> Result<Status> {
+        self.query(&self.keys.status(), Vec::new())
+    }
+
+    /// Closes a scene by id.
+    pub fn close_scene(&self, scene: u64) -> Result<SceneClosed> {
+        let payload = serde_json::to_vec(&CloseScene {
+            scene,
+            client: Some(self.id.clone()),
+        })
+        .expect("requests serialise");
+        self.query(&self.keys.close(), payload)
+    }
+}
+
+/// One live scene: put the ego, read the NPCs.
+#[derive(Debug)]
+pub struct Scene {
+    session: zenoh::Session,
+    keys: Keys,
+    client: String,
+    timeout: Duration,
+    created: SceneCreated,
+    npc: Subscriber<FifoChannelHandler<Sample>>,
+    errors: Subscriber<FifoChannelHandler<Sample>>,
+    last: Option<NpcTick>,
+}
+
+impl Scene {
+    /// The creation reply: scene id, agents, keys.
+    pub fn created(&self) -> &SceneCreated {
+        &self.created
+    }
+
+    pub fn id(&self) -> u64 {
+        self.created.scene
+    }
+
+    /// The last NPC tick received.
+    pub fn last(&self) -> Option<&NpcTick> {
+        self.last.as_ref()
+    }
+
+    /// Puts the external agents' poses for `tick` without waiting.
+    pub fn put(&self, tick: u64, agents: Vec<AgentState>) -> Result<()> {
+        let msg = EgoTick {
+            tick,
+            agents,
+            client: Some(self.client.clone()),
+        };
+        self.put_raw(serde_json::to_vec(&msg).expect("ticks serialise"))
+    }
+
+    /// Puts any payload on the scene's ego key (tests of the server's input checks).
+    pub fn put_raw(&self, payload: Vec<u8>) -> Result<()> {
+        self.session
+            .put(self.keys.ego(self.created.scene), payload)
+            .wait()?;
+        Ok(())
+    }
+
+    /// Puts the external agents' poses for `tick` and waits for the NPCs of that tick; an
+    /// error the server publishes for this scene meanwhile is returned as
+    /// [`Error::Refused`].
+    pub fn step(&mut self, tick: u64, agents: Vec<AgentState>) -> Result<NpcTick> {
+        self.put(tick, agents)?;
+        self.wait_tick(tick)
+    }
+
+    /// Waits for the NPCs of `tick` (skipping older ticks).
+    pub fn wait_tick(&mut self, tick: u64) -> Result<NpcTick> {
+        let deadline = Instant::now() + self.timeout;
+        loop {
+            if let Some(err) = self.try_error()? {
+                return Err(Error::Refused(err));
+            }
+            let sample = self
+                .npc
+                .recv_timeout(Duration::from_millis(20))
+                .map_err(|e| Error::Zenoh(e.to_string()))?;
+            if let Some(sample) = sample {
+                let bytes = sample.payload().to_bytes();
+                let npc: NpcTick = serde_json::from_slice(&bytes).map_err(|e| Error::Reply {
+                    key: self.created.npc_key.clone(),
+                    reason: e.to_string(),
+                })?;
+                let done = npc.tick >= tick;
+                self.last = Some(npc);
+                if done {
+                    return Ok(self.last.clone().expect("just set"));
+                }
+            } else if Instant::now() > deadline {
+                return Err(Error::Timeout {
+                    what: format!("tick {tick} of scene {}", self.created.scene),
+                    timeout: self.timeout,
+                });
+            }
+        }
+    }
+
+    /// An error the server published for this scene, if one is waiting.
+    pub fn try_error(&self) -> Result<Option<ErrorReply>> {
+        match self
+            .errors
+            .try_recv()
+            .map_err(|e| Error::Zenoh(e.to_string()))?
+        {
+            Some(sample) => {
+                let bytes = sample.payload().to_bytes();
+                serde_json::from_slice(&bytes)
+                    .map(Some)
+                    .map_err(|e| Error::Reply {
+                        key: self.created.error_key.clone(),
+                        reason: e.to_string(),
+                    })
+            }
+            None => Ok(None),
+        }
+    }
+
+    /// Waits up to `timeout` for an error on this scene's error key.
+    pub fn wait_error(&self, timeout: Duration) -> Result<Option<ErrorReply>> {
+        let deadline = Instant::now() + timeout;
+        loop {
+            if let Some(e) = self.try_error()? {
+                return Ok(Some(e));
+            }
+            if Instant::now() > deadline {
+                return Ok(None);
+            }
+            std::thread::sleep(Duration::from_millis(5));
+        }
+    }
+
+    /// Closes the scene.
+    pub fn close(self) -> Result<SceneClosed> {
+        let payload = serde_json::to_vec(&CloseScene {
+            scene: self.created.scene,
+            client: Some(self.client.clone()),
+        })
+        .expect("requests serialise");
+        let key = self.keys.close();
+        let bytes =
+            query_raw(&self.session, &key, payload, self.timeout)?.map_err(Error::Refused)?;
+        parse_reply(&key, &bytes)
+    }
+}
+
+fn parse_reply<T: serde::de::DeserializeOwned>(key: &str, bytes: &[u8]) -> Result<T> {
+    serde_json::from_slice(bytes).map_err(|e| Error::Reply {
+        key: key.to_owned(),
+        reason: format!(
+            "{e}: {}",
+            String::from_utf8_lossy(bytes)
+                .chars()
+                .take(200)
+                .collect::<String>()
+        ),
+    })
+}
+
+/// Sends `payload` to the queryable at `key` and waits for its one reply: the reply's bytes,
+/// or the server's error reply.
+fn query_raw(
+    session: &zenoh::Session,
+    key: &str,
+    payload: Vec<u8>,
+    timeout: Duration,
+) -> Result<Result<Vec<u8>, ErrorReply>> {
+    let replies = session.get(key).payload(payload).timeout(timeout).wait()?;
+    let reply = replies
+        .recv_timeout(timeout + Duration::from_secs(1))
+        .map_err(|e| Error::Zenoh(e.to_string()))?
+        .ok_or_else(|| Error::Timeout {
+            what: format!("the query on {key}"),
+            timeout,
+        })?;
+    match reply.into_result() {
+        Ok(sample) => Ok(Ok(sample.payload().to_bytes().into_owned())),
+        Err(e) => Ok(Err(parse_reply(key, &e.payload().to_bytes())?)),
+    }
+}

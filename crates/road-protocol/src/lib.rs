@@ -1,0 +1,481 @@
+//! The messages of road's zenoh protocol, shared by the server (`road-serve`) and its clients
+//! (`road-client`, the Python package in `clients/python/`). Every payload is UTF-8 JSON;
+//! `docs/protocol.md` lists the key expressions, the JSON schemas and the error table.
+//!
+//! Poses are metres and radians in the map's frame (for a Lanelet2 `.osm`, `road-data`'s
+//! projection: UTM zone 31 minus the projection of (0, 0)). Step `0` is the last step of the
+//! histories given at creation; step `t ≥ 1` is `t · step_secs` later.
+//!
+//! Requests refuse unknown fields (`#[serde(deny_unknown_fields)]`): a misspelt optional field
+//! would otherwise be silently ignored.
+
+use serde::{Deserialize, Serialize};
+
+/// Version of this protocol, in the status and creation replies.
+pub const PROTOCOL_VERSION: u32 = 1;
+
+/// The key prefix a server uses unless configured otherwise.
+pub const DEFAULT_PREFIX: &str = "road";
+
+/// The key expressions of one server, under its prefix.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Keys {
+    prefix: String,
+}
+
+impl Keys {
+    /// Keys under `prefix` (no leading or trailing `/`).
+    pub fn new(prefix: &str) -> Self {
+        Self {
+            prefix: prefix.trim_matches('/').to_owned(),
+        }
+    }
+
+    pub fn prefix(&self) -> &str {
+        &self.prefix
+    }
+
+    /// Queryable: [`CreateScene`] → [`SceneCreated`] or [`ErrorReply`].
+    pub fn create(&self) -> String {
+        format!("{}/scenes/create", self.prefix)
+    }
+
+    /// Queryable: [`CloseScene`] → [`SceneClosed`] or [`ErrorReply`].
+    pub fn close(&self) -> String {
+        format!("{}/scenes/close", self.prefix)
+    }
+
+    /// Queryable: no payload → [`Status`].
+    pub fn status(&self) -> String {
+        format!("{}/status", self.prefix)
+    }
+
+    /// The client puts [`EgoTick`] here.
+    pub fn ego(&self, scene: u64) -> String {
+        format!("{}/scene/{scene}/ego", self.prefix)
+    }
+
+    /// Every scene's ego key (the server's subscription).
+    pub fn ego_any(&self) -> String {
+        format!("{}/scene/*/ego", self.prefix)
+    }
+
+    /// The server publishes [`NpcTick`] here.
+    pub fn npc(&self, scene: u64) -> String {
+        format!("{}/scene/{scene}/npc", self.prefix)
+    }
+
+    /// The server publishes [`ErrorReply`] here for puts it refused (ticks have no reply of
+    /// their own). `scene` is the key chunk the bad put used, even when it names no scene.
+    pub fn error(&self, scene: &str) -> String {
+        format!("{}/scene/{scene}/error", self.prefix)
+    }
+
+    /// The server's liveliness token.
+    pub fn server_alive(&self) -> String {
+        format!("{}/alive/server", self.prefix)
+    }
+
+    /// A client's liveliness token: when it goes, the server closes the client's scenes.
+    pub fn client_alive(&self, client: &str) -> String {
+        format!("{}/alive/client/{client}", self.prefix)
+    }
+
+    /// Every client's liveliness token (the server's liveliness subscription).
+    pub fn client_alive_any(&self) -> String {
+        format!("{}/alive/client/*", self.prefix)
+    }
+}
+
+/// Whether `id` can be a client id: one key chunk of 1 to 64 ASCII letters, digits, `-` or
+/// `_`.
+pub fn valid_client_id(id: &str) -> bool {
+    !id.is_empty()
+        && id.len() <= 64
+        && id
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || b == b'-' || b == b'_')
+}
+
+/// A pose: metres and radians in the map's frame.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Pose {
+    pub x_m: f64,
+    pub y_m: f64,
+    pub heading_rad: f64,
+}
+
+/// Where a scene's map comes from (exactly one key).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case", deny_unknown_fields)]
+pub enum MapSource {
+    /// A map built from code, by name (`"roundabout"`).
+    Procedural(String),
+    /// A Lanelet2 `.osm` document, by value.
+    Osm(String),
+    /// A map file the server was started with (`--map NAME=FILE`), by name.
+    File(String),
+}
+
+/// One agent at creation: its box and its observed history, oldest first, `step_secs`
+/// apart, the last entry at step 0.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AgentInit {
+    pub id: u32,
+    pub length_m: f64,
+    pub width_m: f64,
+    pub history: Vec<Pose>,
+}
+
+/// Creates a scene (the `create` queryable's payload).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CreateScene {
+    pub map: MapSource,
+    /// The agents and their histories (at least the planner's `n` observed steps each).
+    /// Omitted: the procedural map's own vehicles (only for `map.procedural`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub agents: Option<Vec<AgentInit>>,
+    /// Ids of the agents the client drives (its ego stack's); the model drives the others.
+    #[serde(default)]
+    pub external: Vec<u32>,
+    /// A planner of `configs/planners.toml`; omitted: the checkpoint's own.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub planner: Option<String>,
+    /// A checkpoint folder name under the server's models folder; omitted: the server's
+    /// default.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub checkpoint: Option<String>,
+    /// Seeds the scene's noise: same request, same seed, same NPCs.
+    #[serde(default)]
+    pub seed: u64,
+    /// The client's id (see [`valid_client_id`]): its ticks must carry it, and the scene is
+    /// closed when the client's liveliness token goes.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub client: Option<String>,
+    /// Ticks after which the scene refuses more; omitted: the server's limit.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub max_ticks: Option<u64>,
+}
+
+/// What the server made of an agent.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AgentInfo {
+    pub id: u32,
+    pub length_m: f64,
+    pub width_m: f64,
+    pub external: bool,
+    /// The history the scene starts from, oldest first, the last entry at step 0.
+    pub history: Vec<Pose>,
+}
+
+/// The `create` queryable's reply.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SceneCreated {
+    pub protocol: u32,
+    pub scene: u64,
+    pub agents: Vec<AgentInfo>,
+    pub planner: String,
+    pub checkpoint: String,
+    /// History steps the model observes (n).
+    pub observed_steps: usize,
+    pub step_secs: f64,
+    pub max_ticks: u64,
+    /// How long after publishing tick t − 1 the server waits for tick t's ego before the
+    /// model drives the external agents for that tick; 0: it waits forever.
+    pub late_ego_deadline_ms: u64,
+    /// Where to put ticks, where NPC states and errors come.
+    pub ego_key: String,
+    pub npc_key: String,
+    pub error_key: String,
+    /// The MCAP file recording the scene, on the server's machine.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub recording: Option<String>,
+}
+
+/// An agent's state at one step.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AgentState {
+    pub id: u32,
+    pub x_m: f64,
+    pub y_m: f64,
+    pub heading_rad: f64,
+}
+
+impl AgentState {
+    pub fn pose(&self) -> Pose {
+        Pose {
+            x_m: self.x_m,
+            y_m: self.y_m,
+            heading_rad: self.heading_rad,
+        }
+    }
+}
+
+/// The client's external agents at step `tick` (put on the scene's ego key).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EgoTick {
+    /// The step these poses are at: one more than the last tick the server published.
+    pub tick: u64,
+    /// Every external agent of the scene, once each.
+    pub agents: Vec<AgentState>,
+    /// The scene's client id, when the scene was created with one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub client: Option<String>,
+}
+
+/// Every NPC at step `tick` (published on the scene's npc key), with the step's
+/// infractions.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct NpcTick {
+    pub scene: u64,
+    pub tick: u64,
+    pub time_s: f64,
+    /// The model's agents.
+    pub npcs: Vec<AgentState>,
+    /// Pairs of agent ids (smaller first) whose boxes overlap at this step (pairs that
+    /// overlapped at step 0 are not counted).
+    pub collisions: Vec<[u32; 2]>,
+    /// Agents whose centre is off every lane at this step (agents off-road at step 0 are not
+    /// counted). Empty on maps without lanes.
+    pub off_road: Vec<u32>,
+    /// The tick's ego came after the deadline (or not at all): the model drove the external
+    /// agents this step; their poses are here.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub late_external: Vec<AgentState>,
+    /// Milliseconds from the ego's arrival (or the deadline) to this publication.
+    pub latency_ms: f64,
+    /// Milliseconds of engine compute for this tick (part of `latency_ms`).
+    pub compute_ms: f64,
+}
+
+/// Closes a scene (the `close` queryable's payload).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CloseScene {
+    pub scene: u64,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub client: Option<String>,
+}
+
+/// The `close` queryable's reply.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SceneClosed {
+    pub scene: u64,
+    pub ticks: u64,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub recording: Option<String>,
+}
+
+/// Percentiles of a latency sample, milliseconds.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Percentiles {
+    pub count: u64,
+    pub p50_ms: f64,
+    pub p90_ms: f64,
+    pub p99_ms: f64,
+    pub max_ms: f64,
+}
+
+/// One live scene in the status.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SceneStatus {
+    pub scene: u64,
+    pub tick: u64,
+    pub agents: usize,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub client: Option<String>,
+    /// Seconds since the scene last heard from its client.
+    pub idle_s: f64,
+    pub late_ticks: u64,
+}
+
+/// The `status` queryable's reply.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Status {
+    pub protocol: u32,
+    pub engine: String,
+    pub checkpoint: String,
+    pub capacity: usize,
+    pub scenes: Vec<SceneStatus>,
+    /// Engine rounds so far, and how many scenes ticked in each (last, mean, max).
+    pub rounds: u64,
+    pub last_batch: usize,
+    pub mean_batch: f64,
+    pub max_batch: usize,
+    /// Ego arrival to NPC publication, over the last 4096 scene-ticks.
+    pub tick_latency: Percentiles,
+    /// Engine compute per scene-tick, over the same ticks.
+    pub compute: Percentiles,
+}
+
+/// What went wrong, by kind; `docs/protocol.md` has one row per kind.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ErrorCode {
+    /// The payload is not UTF-8 JSON of the expected shape (garbage, a missing or mistyped
+    /// field).
+    MalformedJson,
+    /// A field the message does not have.
+    UnknownField,
+    /// The payload is larger than the server's limit.
+    PayloadTooLarge,
+    /// A value out of range or inconsistent (NaN, sizes, counts, duplicate ids, ...).
+    InvalidField,
+    /// The map cannot be used (unknown name, unparsable `.osm`, no lanelets).
+    BadMap,
+    /// An unknown planner or checkpoint, or one that does not fit the other.
+    BadModel,
+    /// The server holds as many scenes as it may.
+    Capacity,
+    /// No scene has this id (never had, or closed).
+    UnknownScene,
+    /// The tick does not fit the scene's sequence or its agents.
+    BadTick,
+    /// A client other than the scene's owner.
+    NotOwner,
+    /// The server failed; the scene is closed.
+    Internal,
+}
+
+/// An error reply (a query's error reply, or a message on a scene's error key).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ErrorReply {
+    pub code: ErrorCode,
+    /// The input at fault, as a JSON path (`agents[2].history[0].x_m`, `map.osm`, `tick`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub field: Option<String>,
+    pub message: String,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub scene: Option<u64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tick: Option<u64>,
+}
+
+impl ErrorReply {
+    pub fn new(code: ErrorCode, field: Option<&str>, message: impl Into<String>) -> Self {
+        Self {
+            code,
+            field: field.map(str::to_owned),
+            message: message.into(),
+            scene: None,
+            tick: None,
+        }
+    }
+}
+
+impl std::fmt::Display for ErrorReply {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{:?}: {}", self.code, self.message)?;
+        if let Some(field) = &self.field {
+            write!(f, " (field {field})")?;
+        }
+        if let Some(scene) = self.scene {
+            write!(f, " (scene {scene})")?;
+        }
+        if let Some(tick) = self.tick {
+            write!(f, " (tick {tick})")?;
+        }
+        Ok(())
+    }
+}
+
+impl std::error::Error for ErrorReply {}
+
+/// Parses a JSON payload into `T`, mapping serde's complaint to an [`ErrorReply`] that names
+/// the field where serde knows it.
+pub fn parse<T: serde::de::DeserializeOwned>(payload: &[u8]) -> Result<T, ErrorReply> {
+    let text = std::str::from_utf8(payload).map_err(|e| {
+        ErrorReply::new(
+            ErrorCode::MalformedJson,
+            None,
+            format!("the payload is not UTF-8 text: {e}"),
+        )
+    })?;
+    serde_json::from_str(text).map_err(|e| {
+        let message = e.to_string();
+        // serde_json words these `unknown field `x`, expected ...` and `missing field `x``.
+        let quoted = message.split('`').nth(1).map(str::to_owned);
+        if message.starts_with("unknown field") || message.starts_with("unknown variant") {
+            ErrorReply {
+                field: quoted,
+                ..ErrorReply::new(ErrorCode::UnknownField, None, message)
+            }
+        } else if message.starts_with("missing field") {
+            ErrorReply {
+                field: quoted,
+                ..ErrorReply::new(ErrorCode::MalformedJson, None, message)
+            }
+        } else {
+            ErrorReply::new(ErrorCode::MalformedJson, None, message)
+        }
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn requests_round_trip() {
+        let create = CreateScene {
+            map: MapSource::Procedural("roundabout".into()),
+            agents: Some(vec![AgentInit {
+                id: 7,
+                length_m: 4.5,
+                width_m: 1.8,
+                history: vec![Pose {
+                    x_m: 1.0,
+                    y_m: 2.0,
+                    heading_rad: 0.5,
+                }],
+            }]),
+            external: vec![7],
+            planner: None,
+            checkpoint: Some("road20".into()),
+            seed: 3,
+            client: Some("ego-1".into()),
+            max_ticks: None,
+        };
+        let json = serde_json::to_vec(&create).unwrap();
+        assert_eq!(parse::<CreateScene>(&json).unwrap(), create);
+        let text = String::from_utf8(json).unwrap();
+        assert!(
+            text.contains(r#""map":{"procedural":"roundabout"}"#),
+            "{text}"
+        );
+    }
+
+    #[test]
+    fn parse_errors_name_the_field() {
+        let e = parse::<CreateScene>(br#"{"map":{"procedural":"x"},"sede":1}"#).unwrap_err();
+        assert_eq!(e.code, ErrorCode::UnknownField);
+        assert_eq!(e.field.as_deref(), Some("sede"));
+        let e = parse::<CreateScene>(br#"{"external":[]}"#).unwrap_err();
+        assert_eq!(e.code, ErrorCode::MalformedJson);
+        assert_eq!(e.field.as_deref(), Some("map"));
+        let e = parse::<EgoTick>(&[0xff, 0xfe, 0x00]).unwrap_err();
+        assert_eq!(e.code, ErrorCode::MalformedJson);
+        assert!(e.message.contains("UTF-8"), "{e}");
+    }
+
+    #[test]
+    fn client_ids_are_single_key_chunks() {
+        assert!(valid_client_id("ego-1_a"));
+        for bad in ["", "a/b", "*", "a$", &"x".repeat(65)] {
+            assert!(!valid_client_id(bad), "{bad}");
+        }
+    }
+}

@@ -1,0 +1,68 @@
+//! `road-serve`: the networked NPC server. Ego stacks create scenes over Eclipse Zenoh, put
+//! their external agents' poses every tick and get every NPC's next state back; every scene is
+//! recorded to MCAP.
+//!
+//! - [`config`]: the server's settings and the zenoh session's config (json5 file plus the
+//!   zenoh examples' command-line overrides);
+//! - [`models`]: finding `models/`, loading checkpoints once, the planners of
+//!   `configs/planners.toml` (embedded);
+//! - [`scene`]: a creation request checked field by field and turned into a simulation;
+//!   a live scene's tick and its late-ego policy;
+//! - [`record`]: one MCAP file per scene (raw protocol messages and `foxglove.SceneUpdate`);
+//! - [`server`]: the zenoh front end and the core loop that batches the scenes whose ego has
+//!   arrived.
+//!
+//! The protocol's messages live in `road-protocol` (shared with the clients);
+//! `docs/protocol.md` documents them.
+
+pub mod config;
+pub mod models;
+pub mod record;
+pub mod scene;
+pub mod server;
+
+pub use config::{ServeConfig, ZenohArgs};
+pub use server::{Server, ServerHandle};
+
+/// Errors of the server (setting up, running); bad client input is not an error of the
+/// server but an [`road_protocol::ErrorReply`] to the client.
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    #[error("zenoh: {0}")]
+    Zenoh(String),
+    #[error("bad zenoh config: {reason} ({input})")]
+    ZenohConfig { input: String, reason: String },
+    #[error("no models folder: tried {tried}; pass --models DIR or set ROAD_MODELS")]
+    NoModels { tried: String },
+    #[error("cannot load checkpoint {path}")]
+    Checkpoint {
+        path: std::path::PathBuf,
+        source: road_model::Error,
+    },
+    #[error("bad server config: {0}")]
+    Config(String),
+    #[error("cannot read or write {path}")]
+    Io {
+        path: std::path::PathBuf,
+        source: std::io::Error,
+    },
+    #[error("recording {path}: {reason}")]
+    Record {
+        path: std::path::PathBuf,
+        reason: String,
+    },
+    #[error(transparent)]
+    Sim(#[from] road_sim::Error),
+    #[error(transparent)]
+    Data(#[from] road_data::Error),
+    #[error(transparent)]
+    Model(#[from] road_model::Error),
+}
+
+pub type Result<T, E = Error> = std::result::Result<T, E>;
+
+impl From<zenoh::Error> for Error {
+    fn from(e: zenoh::Error) -> Self {
+        Error::Zenoh(e.to_string())
+    }
+}

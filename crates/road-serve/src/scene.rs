@@ -1,0 +1,829 @@
+//! Scenes: a creation request checked field by field and turned into a closed-loop simulation
+//! ([`setup`], [`LiveScene::new`]); a live scene's ego inputs checked ([`LiveScene::check_ego`])
+//! and its ticks ([`LiveScene::tick`]) with the late-ego policy: when the ego of a tick does
+//! not come in time the model drives the external agents for that tick, and the reply says so.
+
+use std::collections::{BTreeMap, HashSet};
+use std::path::Path;
+use std::sync::Arc;
+use std::time::Instant;
+
+use glam::DVec2;
+use rand::SeedableRng;
+use road_data::geometry::{dist, resample};
+use road_data::{AgentType, LaneletMap, SceneFrame, SceneWindow, WindowConfig, wrap_angle};
+use road_model::checkpoint::LoadedModel;
+use road_model::sample::FastCpuEngine;
+use road_protocol::{
+    AgentInfo, AgentInit, AgentState, CreateScene, EgoTick, ErrorCode, ErrorReply, MapSource,
+    NpcTick, Pose,
+};
+use road_sched::PlannerSpec;
+use road_sim::Pose as SimPose;
+use road_sim::closed_loop::{ClosedLoop, Controller, ExternalDriver, SceneTick, SimScene};
+use road_sim::geometry::OrientedBox;
+use road_sim::infractions::off_road;
+use road_sim::procedural::{STEP_SECS, roundabout};
+
+use crate::config::ServeConfig;
+use crate::models::Checkpoints;
+
+/// Procedural maps a request may name.
+pub const PROCEDURAL_MAPS: &[&str] = &["roundabout"];
+
+/// Box sizes beyond these are refused as absurd (a semi-trailer is ≈ 25 m by 2.6 m).
+const MAX_LENGTH_M: f64 = 30.0;
+const MAX_WIDTH_M: f64 = 5.0;
+
+/// What [`setup`] needs besides the request.
+#[derive(Debug)]
+pub struct SetupContext<'a> {
+    pub config: &'a ServeConfig,
+    pub checkpoints: &'a mut Checkpoints,
+    pub planners: &'a BTreeMap<String, PlannerSpec>,
+    /// Maps the server was started with, by name.
+    pub map_files: &'a BTreeMap<String, Arc<LaneletMap>>,
+}
+
+/// A checked request: everything a [`LiveScene`] is built from.
+#[derive(Debug)]
+pub struct SceneSetup {
+    pub window: SceneWindow,
+    pub map: Option<Arc<LaneletMap>>,
+    pub agents: Vec<AgentInfo>,
+    pub planner_name: String,
+    pub planner: PlannerSpec,
+    pub checkpoint_name: String,
+    pub model: &'static LoadedModel,
+    pub seed: u64,
+    pub max_ticks: u64,
+    pub client: Option<String>,
+}
+
+fn invalid(field: impl Into<String>, message: impl Into<String>) -> ErrorReply {
+    ErrorReply {
+        field: Some(field.into()),
+        ..ErrorReply::new(ErrorCode::InvalidField, None, message)
+    }
+}
+
+fn refuse(code: ErrorCode, field: &str, message: impl Into<String>) -> ErrorReply {
+    ErrorReply::new(code, Some(field), message)
+}
+
+fn finite_pose(p: &Pose) -> Option<&'static str> {
+    if !p.x_m.is_finite() {
+        Some("x_m")
+    } else if !p.y_m.is_finite() {
+        Some("y_m")
+    } else if !p.heading_rad.is_finite() {
+        Some("heading_rad")
+    } else {
+        None
+    }
+}
+
+/// Checks `req` field by field (the first fault is reported, naming its field) and loads what
+/// it names.
+pub fn setup(req: &CreateScene, ctx: &mut SetupContext<'_>) -> Result<SceneSetup, ErrorReply> {
+    if let Some(client) = &req.client {
+        if !road_protocol::valid_client_id(client) {
+            return Err(invalid(
+                "client",
+                format!("client id {client:?}: expected 1 to 64 ASCII letters, digits, '-' or '_'"),
+            ));
+        }
+    }
+    let max_ticks = match req.max_ticks {
+        None => ctx.config.max_ticks,
+        Some(0) => return Err(invalid("max_ticks", "max_ticks must be at least 1")),
+        Some(t) if t > ctx.config.max_ticks => {
+            return Err(invalid(
+                "max_ticks",
+                format!(
+                    "max_ticks {t} exceeds the server's limit {}",
+                    ctx.config.max_ticks
+                ),
+            ));
+        }
+        Some(t) => t,
+    };
+
+    // The model: checkpoint, then planner (n and W come from them).
+    let checkpoint_name = req
+        .checkpoint
+        .clone()
+        .unwrap_or_else(|| ctx.config.default_checkpoint.clone());
+    if !ctx.checkpoints.exists(&checkpoint_name) {
+        return Err(refuse(
+            ErrorCode::BadModel,
+            "checkpoint",
+            format!(
+                "unknown checkpoint {checkpoint_name:?} (no such folder with a config.toml under {})",
+                ctx.checkpoints.dir().display()
+            ),
+        ));
+    }
+    let model = ctx.checkpoints.get(&checkpoint_name).map_err(|e| {
+        refuse(
+            ErrorCode::BadModel,
+            "checkpoint",
+            format!("checkpoint {checkpoint_name:?} does not load: {e}"),
+        )
+    })?;
+    let (planner_name, planner) = match &req.planner {
+        None => (model.meta.run.name.clone(), model.meta.run.planner.clone()),
+        Some(name) => match ctx.planners.get(name) {
+            Some(p) => (name.clone(), p.clone()),
+            None => {
+                return Err(refuse(
+                    ErrorCode::BadModel,
+                    "planner",
+                    format!(
+                        "unknown planner {name:?}; known: {}",
+                        ctx.planners.keys().cloned().collect::<Vec<_>>().join(", ")
+                    ),
+                ));
+            }
+        },
+    };
+    let model_w = model.meta.run.model.window_slots;
+    if planner.window_slots() != model_w || planner.obs_slots != model.meta.run.planner.obs_slots {
+        return Err(refuse(
+            ErrorCode::BadModel,
+            "planner",
+            format!(
+                "planner {planner_name:?} has W = {} and n = {}; checkpoint {checkpoint_name:?} runs W = {model_w} and n = {}",
+                planner.window_slots(),
+                planner.obs_slots,
+                model.meta.run.planner.obs_slots
+            ),
+        ));
+    }
+    let n = planner.obs_slots;
+    let mc = &model.meta.run.model;
+    let window_config = WindowConfig {
+        position_scale_m: mc.position_scale_m,
+        polyline_points: mc.polyline_points,
+        ..WindowConfig::default()
+    };
+
+    // The map, and the procedural map's own vehicles.
+    let (map, builtin): (Option<Arc<LaneletMap>>, Option<Vec<AgentInit>>) = match &req.map {
+        MapSource::Procedural(name) => match name.as_str() {
+            "roundabout" => {
+                let scene = roundabout(&window_config, n)
+                    .map_err(|e| refuse(ErrorCode::BadMap, "map.procedural", e.to_string()))?;
+                let agents = window_agents(&scene.window);
+                (Some(Arc::new(scene.map)), Some(agents))
+            }
+            other => {
+                return Err(refuse(
+                    ErrorCode::BadMap,
+                    "map.procedural",
+                    format!(
+                        "unknown procedural map {other:?}; known: {}",
+                        PROCEDURAL_MAPS.join(", ")
+                    ),
+                ));
+            }
+        },
+        MapSource::Osm(text) => {
+            let map = LaneletMap::parse(text, Path::new("map.osm"), "request").map_err(|e| {
+                refuse(
+                    ErrorCode::BadMap,
+                    "map.osm",
+                    format!("the .osm does not parse: {e}"),
+                )
+            })?;
+            if map.lanelets.is_empty() {
+                return Err(refuse(
+                    ErrorCode::BadMap,
+                    "map.osm",
+                    "the .osm has no lanelets (relations with type=lanelet and a left and right way)",
+                ));
+            }
+            (Some(Arc::new(map)), None)
+        }
+        MapSource::File(name) => match ctx.map_files.get(name) {
+            Some(map) => (Some(Arc::clone(map)), None),
+            None => {
+                return Err(refuse(
+                    ErrorCode::BadMap,
+                    "map.file",
+                    format!(
+                        "unknown map file {name:?}; the server was started with: {}",
+                        if ctx.map_files.is_empty() {
+                            "none".to_owned()
+                        } else {
+                            ctx.map_files.keys().cloned().collect::<Vec<_>>().join(", ")
+                        }
+                    ),
+                ));
+            }
+        },
+    };
+
+    // The agents.
+    let agents: &[AgentInit] = match (&req.agents, &builtin) {
+        (Some(a), _) => a,
+        (None, Some(b)) => b,
+        (None, None) => {
+            return Err(invalid(
+                "agents",
+                "agents are required unless the map is procedural",
+            ));
+        }
+    };
+    if agents.is_empty() {
+        return Err(invalid("agents", "a scene needs at least one agent"));
+    }
+    if agents.len() > ctx.config.max_agents {
+        return Err(invalid(
+            "agents",
+            format!(
+                "{} agents; the model takes at most {}",
+                agents.len(),
+                ctx.config.max_agents
+            ),
+        ));
+    }
+    let mut seen = HashSet::new();
+    for (i, a) in agents.iter().enumerate() {
+        if !seen.insert(a.id) {
+            return Err(invalid(
+                format!("agents[{i}].id"),
+                format!("agent id {} appears twice", a.id),
+            ));
+        }
+        for (name, v, max) in [
+            ("length_m", a.length_m, MAX_LENGTH_M),
+            ("width_m", a.width_m, MAX_WIDTH_M),
+        ] {
+            if !(v.is_finite() && v > 0.0 && v <= max) {
+                return Err(invalid(
+                    format!("agents[{i}].{name}"),
+                    format!("{name} {v} of agent {} is not in (0, {max}]", a.id),
+                ));
+            }
+        }
+        if a.history.len() < n {
+            return Err(invalid(
+                format!("agents[{i}].history"),
+                format!(
+                    "agent {} has {} history steps; the planner observes {n}",
+                    a.id,
+                    a.history.len()
+                ),
+            ));
+        }
+        for (k, p) in a.history.iter().enumerate() {
+            if let Some(f) = finite_pose(p) {
+                return Err(invalid(
+                    format!("agents[{i}].history[{k}].{f}"),
+                    format!("agent {} history step {k}: {f} is not finite", a.id),
+                ));
+            }
+        }
+    }
+    let mut external_seen = HashSet::new();
+    for (j, id) in req.external.iter().enumerate() {
+        if !seen.contains(id) {
+            return Err(invalid(
+                format!("external[{j}]"),
+                format!("external agent {id} is not among the scene's agents"),
+            ));
+        }
+        if !external_seen.insert(*id) {
+            return Err(invalid(
+                format!("external[{j}]"),
+                format!("external agent {id} is listed twice"),
+            ));
+        }
+    }
+
+    let histories: Vec<Vec<Pose>> = agents
+        .iter()
+        .map(|a| a.history[a.history.len() - n..].to_vec())
+        .collect();
+    let window = build_window(map.as_deref(), agents, &histories, &window_config, &req.map);
+    let infos = agents
+        .iter()
+        .zip(histories)
+        .map(|(a, history)| AgentInfo {
+            id: a.id,
+            length_m: a.length_m,
+            width_m: a.width_m,
+            external: external_seen.contains(&a.id),
+            history,
+        })
+        .collect();
+    Ok(SceneSetup {
+        window,
+        map,
+        agents: infos,
+        planner_name,
+        planner,
+        checkpoint_name,
+        model,
+        seed: req.seed,
+        max_ticks,
+        client: req.client.clone(),
+    })
+}
+
+/// A window's agents as a request would give them (the procedural map's own vehicles).
+fn window_agents(w: &SceneWindow) -> Vec<AgentInit> {
+    (0..w.agents)
+        .map(|a| AgentInit {
+            id: w.track_ids[a],
+            length_m: f64::from(w.length_m[a]),
+            width_m: f64::from(w.width_m[a]),
+            history: (0..w.steps)
+                .filter_map(|t| w.state(a, t))
+                .map(|s| {
+                    let p = w.frame.to_metres([s[0], s[1]]);
+                    Pose {
+                        x_m: p[0],
+                        y_m: p[1],
+                        heading_rad: f64::from(wrap_angle(s[2])),
+                    }
+                })
+                .collect(),
+        })
+        .collect()
+}
+
+/// A window of `histories` (each the last n steps of its agent), normalised around the agents'
+/// mean position at step 0, with the map's lanes nearest to it as polylines, as the data
+/// pipeline cuts INTERACTION windows.
+fn build_window(
+    map: Option<&LaneletMap>,
+    agents: &[AgentInit],
+    histories: &[Vec<Pose>],
+    config: &WindowConfig,
+    source: &MapSource,
+) -> SceneWindow {
+    let steps = histories[0].len();
+    let count = histories.len() as f64;
+    let centre = histories
+        .iter()
+        .map(|h| {
+            let p = h.last().expect("histories have n ≥ 1 steps");
+            DVec2::new(p.x_m, p.y_m)
+        })
+        .fold(DVec2::ZERO, |acc, p| acc + p / count);
+    let frame = SceneFrame {
+        origin_m: centre.to_array(),
+        scale_m: config.position_scale_m,
+    };
+    let mut states = Vec::with_capacity(histories.len() * steps * 3);
+    for h in histories {
+        // Headings unwrapped along the history: the model's state is continuous.
+        let mut previous: Option<f32> = None;
+        for p in h {
+            let xy = frame.to_norm([p.x_m, p.y_m]);
+            let raw = p.heading_rad as f32;
+            let heading = match previous {
+                None => wrap_angle(raw),
+                Some(prev) => prev + wrap_angle(raw - prev),
+            };
+            previous = Some(heading);
+            states.extend([xy[0], xy[1], heading]);
+        }
+    }
+    let mut polylines = Vec::new();
+    let mut polyline_lanelet_ids = Vec::new();
+    if let Some(map) = map {
+        let origin = centre.to_array();
+        let mut near: Vec<(f64, usize)> = map
+            .lanelets
+            .iter()
+            .enumerate()
+            .map(|(i, l)| {
+                let d = l
+                    .centre_m
+                    .iter()
+                    .map(|&p| dist(p, origin))
+                    .fold(f64::INFINITY, f64::min);
+                (d, i)
+            })
+            .filter(|&(d, _)| d <= config.map_radius_m)
+            .collect();
+        near.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        near.truncate(config.max_polylines);
+        for &(_, i) in &near {
+            let l = &map.lanelets[i];
+            if l.centre_m.len() < 2 {
+                continue;
+            }
+            for p in resample(&l.centre_m, config.polyline_points) {
+                polylines.extend_from_slice(&frame.to_norm(p));
+            }
+            polyline_lanelet_ids.push(l.id);
+        }
+    }
+    let location = match source {
+        MapSource::Procedural(name) => format!("procedural_{name}"),
+        MapSource::Osm(_) => "osm".into(),
+        MapSource::File(name) => name.clone(),
+    };
+    SceneWindow {
+        location,
+        file: "request".into(),
+        start_frame: 0,
+        frame,
+        agents: histories.len(),
+        steps,
+        states,
+        valid: vec![true; histories.len() * steps],
+        track_ids: agents.iter().map(|a| a.id).collect(),
+        agent_types: vec![AgentType::Car; histories.len()],
+        length_m: agents.iter().map(|a| a.length_m as f32).collect(),
+        width_m: agents.iter().map(|a| a.width_m as f32).collect(),
+        polyline_points: config.polyline_points,
+        polylines,
+        polyline_lanelet_ids,
+    }
+}
+
+/// A tick's ego, checked and waiting for the scene's next round.
+#[derive(Debug, Clone)]
+pub struct PendingEgo {
+    pub tick: u64,
+    /// Per agent index: the external agents' poses.
+    pub poses: Vec<Option<SimPose>>,
+    pub received: Instant,
+}
+
+/// The external driver of one tick: the pending ego's poses, or none (late: the model
+/// drives).
+struct TickDriver<'a> {
+    poses: Option<&'a [Option<SimPose>]>,
+}
+
+impl ExternalDriver for TickDriver<'_> {
+    fn pose(
+        &mut self,
+        scene: usize,
+        agent: usize,
+        tick: usize,
+        world: &[SimPose],
+    ) -> road_sim::Result<SimPose> {
+        self.drive(scene, agent, tick, world)?
+            .ok_or_else(|| road_sim::Error::External {
+                scene,
+                agent,
+                reason: format!("tick {tick}: no pose"),
+            })
+    }
+
+    fn drive(
+        &mut self,
+        _scene: usize,
+        agent: usize,
+        _tick: usize,
+        _world: &[SimPose],
+    ) -> road_sim::Result<Option<SimPose>> {
+        Ok(self.poses.and_then(|p| p[agent]))
+    }
+}
+
+/// What one tick of a scene produced.
+#[derive(Debug, Clone)]
+pub struct TickOutput {
+    pub npc: NpcTick,
+    /// Every agent's pose after the tick, by agent index.
+    pub poses: Vec<SimPose>,
+    pub compute_secs: f64,
+}
+
+/// A scene being served: its simulation on its own engine state, its agents, and where it
+/// stands in the tick sequence.
+pub struct LiveScene {
+    pub id: u64,
+    pub client: Option<String>,
+    pub agents: Vec<AgentInfo>,
+    pub map: Option<Arc<LaneletMap>>,
+    pub planner_name: String,
+    pub checkpoint_name: String,
+    sim: ClosedLoop<'static>,
+    engine: FastCpuEngine<'static>,
+    initially_on_road: Vec<bool>,
+    index_of: BTreeMap<u32, usize>,
+    /// Ticks simulated and published so far.
+    pub tick: u64,
+    pub max_ticks: u64,
+    pub pending: Option<PendingEgo>,
+    /// When the last tick was published (or the scene created): the late-ego clock.
+    pub waiting_since: Instant,
+    /// When the client was last heard from (creation, an ego put).
+    pub last_heard: Instant,
+    pub late_ticks: u64,
+    out: Vec<SceneTick>,
+}
+
+impl std::fmt::Debug for LiveScene {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("LiveScene")
+            .field("id", &self.id)
+            .field("client", &self.client)
+            .field("tick", &self.tick)
+            .field("agents", &self.agents.len())
+            .finish_non_exhaustive()
+    }
+}
+
+impl LiveScene {
+    /// Builds the scene's simulation (its first window, with the seed's noise).
+    pub fn new(id: u64, setup: SceneSetup, now: Instant) -> crate::Result<Self> {
+        let model = setup.model;
+        // The fast CPU engine (candle's results to 1e-4; scenes run one by one for now).
+        let mut engine = FastCpuEngine::new(&model.model)?;
+        let controllers = setup
+            .agents
+            .iter()
+            .map(|a| {
+                if a.external {
+                    Controller::External
+                } else {
+                    Controller::Model
+                }
+            })
+            .collect();
+        let observed = setup.window.steps;
+        let mut rng = rand::rngs::StdRng::seed_from_u64(setup.seed);
+        let steps = usize::try_from(setup.max_ticks).unwrap_or(usize::MAX);
+        let sim = ClosedLoop::new(
+            &mut engine,
+            &model.meta.run.model,
+            &setup.planner,
+            vec![SimScene {
+                window: setup.window,
+                observed_steps: observed,
+                controllers,
+            }],
+            // Off-road is checked here (the map is shared, not borrowed for 'static).
+            vec![None],
+            steps,
+            &mut rng,
+        )?;
+        let start: Vec<SimPose> = sim.poses(0).to_vec();
+        let initially_on_road = match &setup.map {
+            Some(map) => {
+                let off = off_road(&boxes(&setup.agents, &start), map);
+                (0..start.len()).map(|a| !off.contains(&a)).collect()
+            }
+            None => vec![false; start.len()],
+        };
+        Ok(Self {
+            id,
+            client: setup.client,
+            index_of: setup
+                .agents
+                .iter()
+                .enumerate()
+                .map(|(i, a)| (a.id, i))
+                .collect(),
+            agents: setup.agents,
+            map: setup.map,
+            planner_name: setup.planner_name,
+            checkpoint_name: setup.checkpoint_name,
+            sim,
+            engine,
+            initially_on_road,
+            tick: 0,
+            max_ticks: setup.max_ticks,
+            pending: None,
+            waiting_since: now,
+            last_heard: now,
+            late_ticks: 0,
+            out: Vec::with_capacity(1),
+        })
+    }
+
+    /// Every agent's pose after the last tick, by agent index.
+    pub fn poses(&self) -> &[SimPose] {
+        self.sim.poses(0)
+    }
+
+    /// Checks an ego input against the scene: owner, tick sequence, agents, values, motion.
+    pub fn check_ego(
+        &self,
+        msg: &EgoTick,
+        max_speed_mps: f64,
+        received: Instant,
+    ) -> Result<PendingEgo, ErrorReply> {
+        let bad = |code: ErrorCode, field: &str, message: String| ErrorReply {
+            scene: Some(self.id),
+            tick: Some(msg.tick),
+            ..ErrorReply::new(code, Some(field), message)
+        };
+        if let Some(owner) = &self.client {
+            if msg.client.as_deref() != Some(owner.as_str()) {
+                return Err(bad(
+                    ErrorCode::NotOwner,
+                    "client",
+                    format!(
+                        "scene {} belongs to client {owner:?}; this tick names {:?}",
+                        self.id, msg.client
+                    ),
+                ));
+            }
+        }
+        let expected = self.tick + 1;
+        if msg.tick <= self.tick {
+            return Err(bad(
+                ErrorCode::BadTick,
+                "tick",
+                format!(
+                    "tick {} is in the past: the scene has simulated up to tick {}; send tick {expected}",
+                    msg.tick, self.tick
+                ),
+            ));
+        }
+        if let Some(p) = &self.pending {
+            if p.tick == msg.tick {
+                return Err(bad(
+                    ErrorCode::BadTick,
+                    "tick",
+                    format!(
+                        "tick {} was already sent; it runs in the next round",
+                        msg.tick
+                    ),
+                ));
+            }
+        }
+        if msg.tick > expected {
+            return Err(bad(
+                ErrorCode::BadTick,
+                "tick",
+                format!("tick {} skips ahead: the next tick is {expected}", msg.tick),
+            ));
+        }
+        if msg.tick > self.max_ticks {
+            return Err(bad(
+                ErrorCode::BadTick,
+                "tick",
+                format!(
+                    "tick {} is beyond the scene's max_ticks {}",
+                    msg.tick, self.max_ticks
+                ),
+            ));
+        }
+        let world = self.poses();
+        let mut poses: Vec<Option<SimPose>> = vec![None; self.agents.len()];
+        let max_step_m = max_speed_mps * STEP_SECS;
+        for (i, a) in msg.agents.iter().enumerate() {
+            let Some(&index) = self.index_of.get(&a.id) else {
+                return Err(bad(
+                    ErrorCode::BadTick,
+                    &format!("agents[{i}].id"),
+                    format!("scene {} has no agent {}", self.id, a.id),
+                ));
+            };
+            if !self.agents[index].external {
+                return Err(bad(
+                    ErrorCode::BadTick,
+                    &format!("agents[{i}].id"),
+                    format!(
+                        "agent {} is the model's, not external; only external agents are put",
+                        a.id
+                    ),
+                ));
+            }
+            if poses[index].is_some() {
+                return Err(bad(
+                    ErrorCode::BadTick,
+                    &format!("agents[{i}].id"),
+                    format!("agent {} appears twice in the tick", a.id),
+                ));
+            }
+            if let Some(f) = finite_pose(&a.pose()) {
+                return Err(bad(
+                    ErrorCode::InvalidField,
+                    &format!("agents[{i}].{f}"),
+                    format!("agent {}: {f} is not finite", a.id),
+                ));
+            }
+            let from = DVec2::new(world[index].x_m, world[index].y_m);
+            let moved_m = from.distance(DVec2::new(a.x_m, a.y_m));
+            if moved_m > max_step_m {
+                return Err(bad(
+                    ErrorCode::InvalidField,
+                    &format!("agents[{i}]"),
+                    format!(
+                        "agent {} moved {moved_m:.1} m in one {STEP_SECS} s step; at most {max_step_m:.1} m ({max_speed_mps} m/s)",
+                        a.id
+                    ),
+                ));
+            }
+            poses[index] = Some(SimPose {
+                x_m: a.x_m,
+                y_m: a.y_m,
+                heading_rad: a.heading_rad,
+            });
+        }
+        if let Some(missing) = self
+            .agents
+            .iter()
+            .enumerate()
+            .find(|(i, a)| a.external && poses[*i].is_none())
+        {
+            return Err(bad(
+                ErrorCode::BadTick,
+                "agents",
+                format!("the tick lacks external agent {}", missing.1.id),
+            ));
+        }
+        Ok(PendingEgo {
+            tick: msg.tick,
+            poses,
+            received,
+        })
+    }
+
+    /// Simulates the next tick with the pending ego, or (late) with the model driving the
+    /// external agents. Clears the pending ego.
+    pub fn tick(&mut self) -> crate::Result<TickOutput> {
+        let started = Instant::now();
+        let pending = self.pending.take();
+        let late = pending.is_none();
+        let mut driver = TickDriver {
+            poses: pending.as_ref().map(|p| p.poses.as_slice()),
+        };
+        self.sim
+            .tick(&mut self.engine, &mut driver, &mut self.out)?;
+        let compute_secs = started.elapsed().as_secs_f64();
+        self.tick += 1;
+        if late {
+            self.late_ticks += 1;
+        }
+        let result = &self.out[0];
+        let id_of = |i: usize| self.agents[i].id;
+        let state = |i: usize| {
+            let p = result.poses[i];
+            AgentState {
+                id: id_of(i),
+                x_m: p.x_m,
+                y_m: p.y_m,
+                heading_rad: p.heading_rad,
+            }
+        };
+        let off = match &self.map {
+            Some(map) => {
+                let mut off = off_road(&boxes(&self.agents, &result.poses), map);
+                off.retain(|&a| self.initially_on_road[a]);
+                off
+            }
+            None => Vec::new(),
+        };
+        let npc = NpcTick {
+            scene: self.id,
+            tick: self.tick,
+            time_s: self.tick as f64 * STEP_SECS,
+            npcs: (0..self.agents.len())
+                .filter(|&i| !self.agents[i].external)
+                .map(state)
+                .collect(),
+            collisions: result
+                .collisions
+                .iter()
+                .map(|&(i, j)| {
+                    let (a, b) = (id_of(i), id_of(j));
+                    [a.min(b), a.max(b)]
+                })
+                .collect(),
+            off_road: off.into_iter().map(id_of).collect(),
+            late_external: if late {
+                (0..self.agents.len())
+                    .filter(|&i| self.agents[i].external)
+                    .map(state)
+                    .collect()
+            } else {
+                Vec::new()
+            },
+            latency_ms: 0.0,
+            compute_ms: compute_secs * 1e3,
+        };
+        Ok(TickOutput {
+            npc,
+            poses: result.poses.clone(),
+            compute_secs,
+        })
+    }
+}
+
+fn boxes(agents: &[AgentInfo], poses: &[SimPose]) -> Vec<Option<OrientedBox>> {
+    agents
+        .iter()
+        .zip(poses)
+        .map(|(a, &pose)| {
+            Some(OrientedBox {
+                pose,
+                length_m: a.length_m,
+                width_m: a.width_m,
+            })
+        })
+        .collect()
+}

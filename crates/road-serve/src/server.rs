@@ -1,0 +1,854 @@
+//! The zenoh front end and the core loop.
+//!
+//! Zenoh's callbacks (queryables for create, close and status; the subscriber of every scene's
+//! ego key; the liveliness subscriber of clients) only stamp what arrived and hand it to one
+//! core thread over a channel. The core thread owns every scene and the engine state: it
+//! drains the channel, then runs one round over the scenes that are ready (their ego for the
+//! next tick arrived, or their late-ego deadline passed) and publishes each one's NPCs as
+//! soon as it is computed. A scene whose ego has not come is simply not in the round: it
+//! never holds up another scene. Bad input is answered with an [`ErrorReply`] (the query's
+//! error reply, or a message on the scene's error key) and changes nothing.
+
+use std::collections::{BTreeMap, BTreeSet, VecDeque};
+use std::sync::Arc;
+use std::sync::mpsc::{self, Receiver, RecvTimeoutError, Sender};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant, SystemTime};
+
+use road_data::LaneletMap;
+use road_protocol::{
+    CloseScene, CreateScene, ErrorCode, ErrorReply, Keys, PROTOCOL_VERSION, Percentiles,
+    SceneClosed, SceneCreated, SceneStatus, Status, parse,
+};
+use zenoh::Wait;
+use zenoh::liveliness::LivelinessToken;
+use zenoh::query::Query;
+use zenoh::sample::SampleKind;
+
+use crate::config::ServeConfig;
+use crate::models::{Checkpoints, find_models_dir, planners};
+use crate::record::{Recorder, topics};
+use crate::scene::{LiveScene, SetupContext, setup};
+use crate::{Error, Result};
+
+/// Latency samples kept for the status percentiles.
+const LATENCY_WINDOW: usize = 4096;
+
+/// What the zenoh callbacks hand to the core thread.
+enum Event {
+    Create(Query, SystemTime),
+    Close(Query),
+    Status(Query),
+    Ego {
+        scene: String,
+        payload: Vec<u8>,
+        /// The payload's size as received (the payload is dropped when over the limit).
+        size: usize,
+        received: Instant,
+        at: SystemTime,
+    },
+    ClientGone(String),
+    Stop,
+}
+
+/// A server about to start.
+#[derive(Debug)]
+pub struct Server {
+    config: ServeConfig,
+    zenoh: zenoh::Config,
+}
+
+/// A running server: its session (for the addresses it listens on) and its core thread.
+pub struct ServerHandle {
+    session: zenoh::Session,
+    listen: Vec<String>,
+    events: Sender<Event>,
+    core: Option<JoinHandle<Result<()>>>,
+    _token: LivelinessToken,
+}
+
+impl std::fmt::Debug for ServerHandle {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ServerHandle")
+            .field("zid", &self.session.zid())
+            .finish_non_exhaustive()
+    }
+}
+
+impl Server {
+    pub fn new(config: ServeConfig, zenoh: zenoh::Config) -> Self {
+        Self { config, zenoh }
+    }
+
+    /// Checks the config, loads the default checkpoint and the map files, opens the zenoh
+    /// session, declares the keys and starts the core thread.
+    pub fn start(self) -> Result<ServerHandle> {
+        let config = self.config;
+        config.validate()?;
+        let models_dir = find_models_dir(Some(&config.models_dir))?;
+        let mut checkpoints = Checkpoints::new(models_dir);
+        let default = checkpoints.get(&config.default_checkpoint)?;
+        tracing::info!(
+            checkpoint = %config.default_checkpoint,
+            planner = %default.meta.run.name,
+            "default checkpoint loaded"
+        );
+        let mut map_files = BTreeMap::new();
+        for (name, path) in &config.map_files {
+            let map = LaneletMap::load(path, name)?;
+            if map.lanelets.is_empty() {
+                return Err(Error::Config(format!(
+                    "map file {} ({name}) has no lanelets",
+                    path.display()
+                )));
+            }
+            map_files.insert(name.clone(), Arc::new(map));
+        }
+        let planners = planners()?;
+        let keys = Keys::new(&config.prefix);
+        let listen = self
+            .zenoh
+            .get_json("listen/endpoints")
+            .ok()
+            .and_then(|json| serde_json::from_str::<Vec<String>>(&json).ok())
+            .unwrap_or_default();
+        let session = zenoh::open(self.zenoh).wait()?;
+        let (tx, rx) = mpsc::channel::<Event>();
+
+        let sender = tx.clone();
+        session
+            .declare_queryable(keys.create())
+            .callback(move |q| {
+                let _ = sender.send(Event::Create(q, SystemTime::now()));
+            })
+            .background()
+            .wait()?;
+        let sender = tx.clone();
+        session
+            .declare_queryable(keys.close())
+            .callback(move |q| {
+                let _ = sender.send(Event::Close(q));
+            })
+            .background()
+            .wait()?;
+        let sender = tx.clone();
+        session
+            .declare_queryable(keys.status())
+            .callback(move |q| {
+                let _ = sender.send(Event::Status(q));
+            })
+            .background()
+            .wait()?;
+        let sender = tx.clone();
+        let max_payload = config.max_payload_bytes;
+        session
+            .declare_subscriber(keys.ego_any())
+            .callback(move |sample| {
+                let received = Instant::now();
+                let at = SystemTime::now();
+                // `<prefix>/scene/<id>/ego`: the chunk before `ego`.
+                let key = sample.key_expr().as_str();
+                let scene = key.rsplit('/').nth(1).unwrap_or_default().to_owned();
+                let payload = sample.payload();
+                let size = payload.len();
+                // Oversized payloads are not copied, only refused by their size.
+                let payload = if size > max_payload {
+                    Vec::new()
+                } else {
+                    payload.to_bytes().into_owned()
+                };
+                let _ = sender.send(Event::Ego {
+                    scene,
+                    payload,
+                    size,
+                    received,
+                    at,
+                });
+            })
+            .background()
+            .wait()?;
+        let sender = tx.clone();
+        session
+            .liveliness()
+            .declare_subscriber(keys.client_alive_any())
+            .callback(move |sample| {
+                if sample.kind() == SampleKind::Delete {
+                    if let Some(client) = sample.key_expr().as_str().rsplit('/').next() {
+                        let _ = sender.send(Event::ClientGone(client.to_owned()));
+                    }
+                }
+            })
+            .background()
+            .wait()?;
+        let token = session
+            .liveliness()
+            .declare_token(keys.server_alive())
+            .wait()?;
+
+        let core = Core {
+            engine: "candle CPU reference (an engine state per scene)".into(),
+            config,
+            keys,
+            session: session.clone(),
+            checkpoints,
+            planners,
+            map_files,
+            scenes: BTreeMap::new(),
+            closed: BTreeSet::new(),
+            next_id: 1,
+            stats: Stats::default(),
+            last_flush: Instant::now(),
+        };
+        let handle = std::thread::Builder::new()
+            .name("road-serve-core".into())
+            .spawn(move || core.run(rx))
+            .map_err(|e| Error::Config(format!("cannot start the core thread: {e}")))?;
+        Ok(ServerHandle {
+            session,
+            listen,
+            events: tx,
+            core: Some(handle),
+            _token: token,
+        })
+    }
+}
+
+impl ServerHandle {
+    /// The endpoints the session was configured to listen on (as given: a port 0 stays 0;
+    /// zenoh's API for the bound addresses is unstable and leaves loopback out).
+    pub fn listen_endpoints(&self) -> Vec<String> {
+        self.listen.clone()
+    }
+
+    pub fn session(&self) -> &zenoh::Session {
+        &self.session
+    }
+
+    /// Whether the core thread still runs.
+    pub fn is_running(&self) -> bool {
+        self.core.as_ref().is_some_and(|c| !c.is_finished())
+    }
+
+    /// Stops the core thread (finishing every recording) and closes the session.
+    pub fn stop(mut self) -> Result<()> {
+        self.shutdown()
+    }
+
+    /// Blocks until the core thread ends (it ends on [`Self::stop`] or an internal error).
+    pub fn join(mut self) -> Result<()> {
+        let result = match self.core.take() {
+            Some(core) => core
+                .join()
+                .unwrap_or_else(|_| Err(Error::Config("the core thread panicked".into()))),
+            None => Ok(()),
+        };
+        self.session.close().wait()?;
+        result
+    }
+
+    fn shutdown(&mut self) -> Result<()> {
+        let _ = self.events.send(Event::Stop);
+        let result = match self.core.take() {
+            Some(core) => core
+                .join()
+                .unwrap_or_else(|_| Err(Error::Config("the core thread panicked".into()))),
+            None => Ok(()),
+        };
+        self.session.close().wait()?;
+        result
+    }
+}
+
+impl Drop for ServerHandle {
+    fn drop(&mut self) {
+        if self.core.is_some() {
+            if let Err(e) = self.shutdown() {
+                tracing::warn!("stopping the server: {e}");
+            }
+        }
+    }
+}
+
+/// Round and latency statistics for the status.
+#[derive(Debug, Default)]
+struct Stats {
+    rounds: u64,
+    last_batch: usize,
+    batch_sum: u64,
+    max_batch: usize,
+    latency_ms: VecDeque<f64>,
+    compute_ms: VecDeque<f64>,
+}
+
+impl Stats {
+    fn push(window: &mut VecDeque<f64>, v: f64) {
+        if window.len() == LATENCY_WINDOW {
+            window.pop_front();
+        }
+        window.push_back(v);
+    }
+}
+
+/// Percentiles (nearest rank) of a sample.
+pub fn percentiles(sample: &[f64]) -> Percentiles {
+    if sample.is_empty() {
+        return Percentiles::default();
+    }
+    let mut sorted = sample.to_vec();
+    sorted.sort_by(f64::total_cmp);
+    let at = |q: f64| {
+        let rank = ((q * sorted.len() as f64).ceil() as usize).clamp(1, sorted.len());
+        sorted[rank - 1]
+    };
+    Percentiles {
+        count: sorted.len() as u64,
+        p50_ms: at(0.50),
+        p90_ms: at(0.90),
+        p99_ms: at(0.99),
+        max_ms: sorted[sorted.len() - 1],
+    }
+}
+
+struct SceneEntry {
+    live: LiveScene,
+    recorder: Option<Recorder>,
+}
+
+/// The core thread's state: every scene, the checkpoints, the statistics.
+struct Core {
+    engine: String,
+    config: ServeConfig,
+    keys: Keys,
+    session: zenoh::Session,
+    checkpoints: Checkpoints,
+    planners: BTreeMap<String, road_sched::PlannerSpec>,
+    map_files: BTreeMap<String, Arc<LaneletMap>>,
+    scenes: BTreeMap<u64, SceneEntry>,
+    /// Ids of closed scenes, to tell "closed" from "never existed".
+    closed: BTreeSet<u64>,
+    next_id: u64,
+    stats: Stats,
+    last_flush: Instant,
+}
+
+fn payload_of(query: &Query) -> Vec<u8> {
+    query
+        .payload()
+        .map(|p| p.to_bytes().into_owned())
+        .unwrap_or_default()
+}
+
+fn reply_ok<T: serde::Serialize>(query: &Query, value: &T) {
+    let json = serde_json::to_vec(value).expect("replies serialise");
+    if let Err(e) = query.reply(query.key_expr().clone(), json).wait() {
+        tracing::warn!(key = %query.key_expr(), "cannot reply: {e}");
+    }
+}
+
+fn reply_err(query: &Query, error: &ErrorReply) {
+    tracing::debug!(key = %query.key_expr(), "refused: {error}");
+    let json = serde_json::to_vec(error).expect("errors serialise");
+    if let Err(e) = query.reply_err(json).wait() {
+        tracing::warn!(key = %query.key_expr(), "cannot reply: {e}");
+    }
+}
+
+impl Core {
+    fn run(mut self, events: Receiver<Event>) -> Result<()> {
+        loop {
+            let wait = self.next_wakeup();
+            let mut stop = false;
+            match events.recv_timeout(wait) {
+                Ok(event) => stop |= !self.handle(event),
+                Err(RecvTimeoutError::Timeout) => {}
+                Err(RecvTimeoutError::Disconnected) => stop = true,
+            }
+            // Everything that arrived meanwhile joins this round.
+            while !stop {
+                match events.try_recv() {
+                    Ok(event) => stop |= !self.handle(event),
+                    Err(_) => break,
+                }
+            }
+            if stop {
+                break;
+            }
+            self.round();
+            self.housekeeping();
+        }
+        let ids: Vec<u64> = self.scenes.keys().copied().collect();
+        for id in ids {
+            self.close(id, "the server stops");
+        }
+        Ok(())
+    }
+
+    /// How long the core may sleep: until the nearest late-ego deadline or recording flush,
+    /// at most 100 ms (idle checks).
+    fn next_wakeup(&self) -> Duration {
+        let now = Instant::now();
+        let mut wait = Duration::from_millis(100);
+        let deadline = self.config.late_ego_deadline;
+        if !deadline.is_zero() {
+            for entry in self.scenes.values() {
+                let s = &entry.live;
+                if s.pending.is_none() && s.tick < s.max_ticks {
+                    wait = wait.min((s.waiting_since + deadline).saturating_duration_since(now));
+                }
+            }
+        }
+        let flush = (self.last_flush + self.config.flush_interval).saturating_duration_since(now);
+        wait.min(flush)
+    }
+
+    /// Handles one event; `false` to stop.
+    fn handle(&mut self, event: Event) -> bool {
+        match event {
+            Event::Create(query, at) => self.on_create(&query, at),
+            Event::Close(query) => self.on_close(&query),
+            Event::Status(query) => reply_ok(&query, &self.status()),
+            Event::Ego {
+                scene,
+                payload,
+                size,
+                received,
+                at,
+            } => self.on_ego(&scene, &payload, size, received, at),
+            Event::ClientGone(client) => {
+                let ids: Vec<u64> = self
+                    .scenes
+                    .iter()
+                    .filter(|(_, e)| e.live.client.as_deref() == Some(client.as_str()))
+                    .map(|(&id, _)| id)
+                    .collect();
+                for id in ids {
+                    self.close(id, &format!("client {client} went away"));
+                }
+            }
+            Event::Stop => return false,
+        }
+        true
+    }
+
+    fn too_large(&self, size: usize) -> Option<ErrorReply> {
+        (size > self.config.max_payload_bytes).then(|| {
+            ErrorReply::new(
+                ErrorCode::PayloadTooLarge,
+                None,
+                format!(
+                    "the payload has {size} bytes; the limit is {}",
+                    self.config.max_payload_bytes
+                ),
+            )
+        })
+    }
+
+    fn on_create(&mut self, query: &Query, at: SystemTime) {
+        let payload = payload_of(query);
+        if let Some(e) = self.too_large(payload.len()) {
+            return reply_err(query, &e);
+        }
+        let request: CreateScene = match parse(&payload) {
+            Ok(r) => r,
+            Err(e) => return reply_err(query, &e),
+        };
+        if self.scenes.len() >= self.config.capacity {
+            return reply_err(
+                query,
+                &ErrorReply::new(
+                    ErrorCode::Capacity,
+                    None,
+                    format!(
+                        "the server holds {} live scenes, its capacity",
+                        self.config.capacity
+                    ),
+                ),
+            );
+        }
+        let mut ctx = SetupContext {
+            config: &self.config,
+            checkpoints: &mut self.checkpoints,
+            planners: &self.planners,
+            map_files: &self.map_files,
+        };
+        let scene_setup = match setup(&request, &mut ctx) {
+            Ok(s) => s,
+            Err(e) => return reply_err(query, &e),
+        };
+        let id = self.next_id;
+        let map = scene_setup.map.clone();
+        let live = match LiveScene::new(id, scene_setup, Instant::now()) {
+            Ok(l) => l,
+            Err(e) => {
+                return reply_err(
+                    query,
+                    &ErrorReply::new(
+                        ErrorCode::Internal,
+                        None,
+                        format!("cannot build the scene: {e}"),
+                    ),
+                );
+            }
+        };
+        self.next_id += 1;
+        let recording = self
+            .config
+            .record_dir
+            .as_ref()
+            .map(|d| d.join(format!("scene-{id}.mcap")));
+        let created = SceneCreated {
+            protocol: PROTOCOL_VERSION,
+            scene: id,
+            agents: live.agents.clone(),
+            planner: live.planner_name.clone(),
+            checkpoint: live.checkpoint_name.clone(),
+            observed_steps: live.agents[0].history.len(),
+            step_secs: road_sim::procedural::STEP_SECS,
+            max_ticks: live.max_ticks,
+            late_ego_deadline_ms: self.config.late_ego_deadline.as_millis() as u64,
+            ego_key: self.keys.ego(id),
+            npc_key: self.keys.npc(id),
+            error_key: self.keys.error(&id.to_string()),
+            recording: recording.as_ref().map(|p| p.display().to_string()),
+        };
+        let created_json = serde_json::to_vec(&created).expect("replies serialise");
+        let recorder = match &self.config.record_dir {
+            Some(dir) => {
+                match Recorder::start(dir, id, &payload, &created_json, map.as_deref(), at) {
+                    Ok(mut r) => {
+                        let start: Vec<road_sim::Pose> = live.poses().to_vec();
+                        if let Err(e) = r.agents(&live.agents, &start, false, at) {
+                            tracing::warn!(scene = id, "recording: {e}");
+                        }
+                        Some(r)
+                    }
+                    Err(e) => {
+                        return reply_err(
+                            query,
+                            &ErrorReply::new(
+                                ErrorCode::Internal,
+                                None,
+                                format!("cannot record the scene: {e}"),
+                            ),
+                        );
+                    }
+                }
+            }
+            None => None,
+        };
+        tracing::info!(
+            scene = id,
+            client = live.client.as_deref().unwrap_or("-"),
+            agents = live.agents.len(),
+            planner = %live.planner_name,
+            "scene created"
+        );
+        let mut live = live;
+        // The late-ego clock starts when the client has the reply.
+        live.waiting_since = Instant::now();
+        self.scenes.insert(id, SceneEntry { live, recorder });
+        reply_ok(query, &created);
+    }
+
+    fn on_close(&mut self, query: &Query) {
+        let payload = payload_of(query);
+        if let Some(e) = self.too_large(payload.len()) {
+            return reply_err(query, &e);
+        }
+        let request: CloseScene = match parse(&payload) {
+            Ok(r) => r,
+            Err(e) => return reply_err(query, &e),
+        };
+        let Some(entry) = self.scenes.get(&request.scene) else {
+            let message = if self.closed.contains(&request.scene) {
+                format!("scene {} is already closed", request.scene)
+            } else {
+                format!("no scene {}", request.scene)
+            };
+            return reply_err(
+                query,
+                &ErrorReply {
+                    scene: Some(request.scene),
+                    ..ErrorReply::new(ErrorCode::UnknownScene, Some("scene"), message)
+                },
+            );
+        };
+        if let Some(owner) = &entry.live.client {
+            if request.client.as_deref() != Some(owner.as_str()) {
+                return reply_err(
+                    query,
+                    &ErrorReply {
+                        scene: Some(request.scene),
+                        ..ErrorReply::new(
+                            ErrorCode::NotOwner,
+                            Some("client"),
+                            format!(
+                                "scene {} belongs to client {owner:?}; the request names {:?}",
+                                request.scene, request.client
+                            ),
+                        )
+                    },
+                );
+            }
+        }
+        let closed = self.close(request.scene, "the client closed it");
+        match closed {
+            Some(c) => reply_ok(query, &c),
+            None => reply_err(
+                query,
+                &ErrorReply::new(ErrorCode::UnknownScene, Some("scene"), "no such scene"),
+            ),
+        }
+    }
+
+    /// Removes a scene and finishes its recording.
+    fn close(&mut self, id: u64, why: &str) -> Option<SceneClosed> {
+        let entry = self.scenes.remove(&id)?;
+        self.closed.insert(id);
+        let recording = entry.recorder.and_then(|r| match r.finish() {
+            Ok(path) => Some(path.display().to_string()),
+            Err(e) => {
+                tracing::warn!(scene = id, "recording: {e}");
+                None
+            }
+        });
+        tracing::info!(scene = id, ticks = entry.live.tick, "scene closed: {why}");
+        Some(SceneClosed {
+            scene: id,
+            ticks: entry.live.tick,
+            recording,
+        })
+    }
+
+    /// Publishes an error for a put on `<prefix>/scene/<chunk>/ego` (and records it when the
+    /// chunk is a live scene).
+    fn publish_error(&mut self, chunk: &str, error: &ErrorReply) {
+        tracing::debug!(scene = chunk, "refused: {error}");
+        let json = serde_json::to_vec(error).expect("errors serialise");
+        if let Ok(id) = chunk.parse::<u64>() {
+            if let Some(rec) = self.scenes.get_mut(&id).and_then(|e| e.recorder.as_mut()) {
+                if let Err(e) = rec.write(topics::ERROR, &json, SystemTime::now()) {
+                    tracing::warn!(scene = id, "recording: {e}");
+                }
+            }
+        }
+        // A chunk that is not a key chunk (it came from a key, so it is one) cannot fail here.
+        if let Err(e) = self.session.put(self.keys.error(chunk), json).wait() {
+            tracing::warn!(scene = chunk, "cannot publish an error: {e}");
+        }
+    }
+
+    fn on_ego(
+        &mut self,
+        chunk: &str,
+        payload: &[u8],
+        size: usize,
+        received: Instant,
+        at: SystemTime,
+    ) {
+        if let Some(e) = self.too_large(size) {
+            return self.publish_error(chunk, &e);
+        }
+        let Ok(id) = chunk.parse::<u64>() else {
+            return self.publish_error(
+                chunk,
+                &ErrorReply::new(
+                    ErrorCode::UnknownScene,
+                    Some("key"),
+                    format!("{chunk:?} in the key is not a scene id"),
+                ),
+            );
+        };
+        let msg = match parse::<road_protocol::EgoTick>(payload) {
+            Ok(m) => m,
+            Err(e) => {
+                return self.publish_error(
+                    chunk,
+                    &ErrorReply {
+                        scene: Some(id),
+                        ..e
+                    },
+                );
+            }
+        };
+        let Some(entry) = self.scenes.get_mut(&id) else {
+            let message = if self.closed.contains(&id) {
+                format!("scene {id} is closed")
+            } else {
+                format!("no scene {id}")
+            };
+            return self.publish_error(
+                chunk,
+                &ErrorReply {
+                    scene: Some(id),
+                    tick: Some(msg.tick),
+                    ..ErrorReply::new(ErrorCode::UnknownScene, Some("key"), message)
+                },
+            );
+        };
+        match entry
+            .live
+            .check_ego(&msg, self.config.max_external_speed_mps, received)
+        {
+            Ok(pending) => {
+                entry.live.pending = Some(pending);
+                entry.live.last_heard = received;
+                if let Some(rec) = entry.recorder.as_mut() {
+                    if let Err(e) = rec.write(topics::EGO, payload, at) {
+                        tracing::warn!(scene = id, "recording: {e}");
+                    }
+                }
+            }
+            Err(e) => self.publish_error(chunk, &e),
+        }
+    }
+
+    /// One round: every scene whose ego arrived, or whose deadline passed, ticks; each
+    /// publishes as soon as it is done.
+    fn round(&mut self) {
+        let now = Instant::now();
+        let deadline = self.config.late_ego_deadline;
+        let ready: Vec<u64> = self
+            .scenes
+            .iter()
+            .filter(|(_, e)| {
+                let s = &e.live;
+                s.tick < s.max_ticks
+                    && (s.pending.is_some()
+                        || (!deadline.is_zero() && now >= s.waiting_since + deadline))
+            })
+            .map(|(&id, _)| id)
+            .collect();
+        if ready.is_empty() {
+            return;
+        }
+        self.stats.rounds += 1;
+        self.stats.last_batch = ready.len();
+        self.stats.batch_sum += ready.len() as u64;
+        self.stats.max_batch = self.stats.max_batch.max(ready.len());
+        let mut failed = Vec::new();
+        for id in ready {
+            let entry = self.scenes.get_mut(&id).expect("ready scenes are live");
+            // Latency runs from the ego's arrival, or from the deadline for a late tick.
+            let started = entry
+                .live
+                .pending
+                .as_ref()
+                .map(|p| p.received)
+                .unwrap_or(entry.live.waiting_since + deadline);
+            let out = match entry.live.tick() {
+                Ok(out) => out,
+                Err(e) => {
+                    tracing::error!(scene = id, "tick failed: {e}");
+                    failed.push((id, e.to_string()));
+                    continue;
+                }
+            };
+            let mut npc = out.npc;
+            let published = Instant::now();
+            npc.latency_ms = published.saturating_duration_since(started).as_secs_f64() * 1e3;
+            let json = serde_json::to_vec(&npc).expect("ticks serialise");
+            let at = SystemTime::now();
+            if let Err(e) = self.session.put(self.keys.npc(id), json.clone()).wait() {
+                tracing::warn!(scene = id, "cannot publish: {e}");
+            }
+            entry.live.waiting_since = Instant::now();
+            if let Some(rec) = entry.recorder.as_mut() {
+                let late = !npc.late_external.is_empty();
+                let written = rec
+                    .write(topics::NPC, &json, at)
+                    .and_then(|()| rec.agents(&entry.live.agents, &out.poses, late, at));
+                if let Err(e) = written {
+                    tracing::warn!(scene = id, "recording: {e}");
+                }
+            }
+            Stats::push(&mut self.stats.latency_ms, npc.latency_ms);
+            Stats::push(&mut self.stats.compute_ms, out.compute_secs * 1e3);
+        }
+        for (id, message) in failed {
+            let error = ErrorReply {
+                scene: Some(id),
+                ..ErrorReply::new(
+                    ErrorCode::Internal,
+                    None,
+                    format!("the tick failed and the scene is closed: {message}"),
+                )
+            };
+            self.publish_error(&id.to_string(), &error);
+            self.close(id, "its tick failed");
+        }
+    }
+
+    /// Flushes recordings that are due and closes idle scenes.
+    fn housekeeping(&mut self) {
+        if self.last_flush.elapsed() >= self.config.flush_interval {
+            self.last_flush = Instant::now();
+            for (id, entry) in &mut self.scenes {
+                if let Some(rec) = entry.recorder.as_mut() {
+                    if let Err(e) = rec.flush_if_due(Duration::ZERO) {
+                        tracing::warn!(scene = id, "recording: {e}");
+                    }
+                }
+            }
+        }
+        let idle: Vec<u64> = self
+            .scenes
+            .iter()
+            .filter(|(_, e)| e.live.last_heard.elapsed() > self.config.idle_timeout)
+            .map(|(&id, _)| id)
+            .collect();
+        for id in idle {
+            self.close(id, "idle timeout");
+        }
+    }
+
+    fn status(&self) -> Status {
+        let latency: Vec<f64> = self.stats.latency_ms.iter().copied().collect();
+        let compute: Vec<f64> = self.stats.compute_ms.iter().copied().collect();
+        Status {
+            protocol: PROTOCOL_VERSION,
+            engine: self.engine.clone(),
+            checkpoint: self.config.default_checkpoint.clone(),
+            capacity: self.config.capacity,
+            scenes: self
+                .scenes
+                .values()
+                .map(|e| SceneStatus {
+                    scene: e.live.id,
+                    tick: e.live.tick,
+                    agents: e.live.agents.len(),
+                    client: e.live.client.clone(),
+                    idle_s: e.live.last_heard.elapsed().as_secs_f64(),
+                    late_ticks: e.live.late_ticks,
+                })
+                .collect(),
+            rounds: self.stats.rounds,
+            last_batch: self.stats.last_batch,
+            mean_batch: if self.stats.rounds == 0 {
+                0.0
+            } else {
+                self.stats.batch_sum as f64 / self.stats.rounds as f64
+            },
+            max_batch: self.stats.max_batch,
+            tick_latency: percentiles(&latency),
+            compute: percentiles(&compute),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn percentiles_by_nearest_rank() {
+        let sample: Vec<f64> = (1..=100).map(f64::from).collect();
+        let p = percentiles(&sample);
+        assert_eq!(
+            (p.p50_ms, p.p90_ms, p.p99_ms, p.max_ms),
+            (50.0, 90.0, 99.0, 100.0)
+        );
+        assert_eq!(p.count, 100);
+        assert_eq!(percentiles(&[]).count, 0);
+    }
+}

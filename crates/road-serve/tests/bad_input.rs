@@ -1,0 +1,519 @@
+//! The bad-input catalogue of `docs/protocol.md`, one test per row: each gets an error reply
+//! naming the input (a query's error reply, or a message on the scene's error key), and the
+//! scene it was aimed at still ticks afterwards.
+
+mod common;
+
+use std::sync::OnceLock;
+use std::time::Duration;
+
+use road_client::protocol::{
+    AgentState, CreateScene, ErrorCode, ErrorReply, MapSource, NpcTick, Pose,
+};
+use road_client::{Client, Error, Scene};
+use road_serve::ServerHandle;
+
+/// One server for the file; payloads over 64 KiB are refused; the late-ego deadline is off
+/// so that slow debug ticks never turn late.
+fn server() -> &'static ServerHandle {
+    static SERVER: OnceLock<ServerHandle> = OnceLock::new();
+    SERVER.get_or_init(|| {
+        let dir = common::temp_dir("bad-input");
+        let mut config = common::config(&dir);
+        config.max_payload_bytes = 64 << 10;
+        config.late_ego_deadline = Duration::ZERO;
+        common::start(config)
+    })
+}
+
+fn client(id: &str) -> Client {
+    common::client(server(), id)
+}
+
+/// The error of a creation request given as raw bytes.
+fn create_raw(client: &Client, payload: Vec<u8>) -> ErrorReply {
+    client
+        .query_raw(&client.keys().create(), payload)
+        .unwrap()
+        .expect_err("the request must be refused")
+}
+
+fn create_err(client: &Client, request: CreateScene) -> ErrorReply {
+    match client.create(request) {
+        Err(Error::Refused(e)) => e,
+        other => panic!("expected a refusal, got {other:?}"),
+    }
+}
+
+fn assert_refused(e: &ErrorReply, code: ErrorCode, field: Option<&str>) {
+    assert_eq!(e.code, code, "{e}");
+    assert_eq!(e.field.as_deref(), field, "{e}");
+    assert!(!e.message.is_empty());
+}
+
+fn osm(lanelets: bool) -> String {
+    let mut s = String::from("<?xml version=\"1.0\"?>\n<osm version=\"0.6\">\n");
+    for (id, lat, lon) in [
+        (1, 0.0, 0.0),
+        (2, 0.0, 0.001),
+        (3, 0.00004, 0.0),
+        (4, 0.00004, 0.001),
+    ] {
+        s += &format!("  <node id=\"{id}\" lat=\"{lat}\" lon=\"{lon}\"/>\n");
+    }
+    s += "  <way id=\"10\"><nd ref=\"3\"/><nd ref=\"4\"/></way>\n";
+    s += "  <way id=\"11\"><nd ref=\"1\"/><nd ref=\"2\"/></way>\n";
+    if lanelets {
+        s += "  <relation id=\"100\"><member type=\"way\" ref=\"10\" role=\"left\"/><member type=\"way\" ref=\"11\" role=\"right\"/><tag k=\"type\" v=\"lanelet\"/><tag k=\"subtype\" v=\"road\"/></relation>\n";
+    }
+    s += "</osm>\n";
+    s
+}
+
+fn agents_request(agents: Vec<road_client::protocol::AgentInit>) -> CreateScene {
+    CreateScene {
+        map: MapSource::Osm(osm(true)),
+        agents: Some(agents),
+        external: vec![],
+        ..common::roundabout()
+    }
+}
+
+/// A live roundabout scene of `client` with its ego's history.
+fn live_scene(client: &Client) -> (Scene, Vec<Pose>) {
+    let scene = client.create(common::roundabout()).unwrap();
+    let history = scene.created().agents[0].history.clone();
+    (scene, history)
+}
+
+fn ego_at(history: &[Pose], tick: u64) -> AgentState {
+    common::replay(history, 1, tick)
+}
+
+/// The error the server publishes for the scene after a put.
+fn tick_err(scene: &Scene) -> ErrorReply {
+    scene
+        .wait_error(Duration::from_secs(30))
+        .unwrap()
+        .expect("the server must publish an error")
+}
+
+/// The scene still ticks: tick `t` is answered.
+fn still_ticks(scene: &mut Scene, history: &[Pose], t: u64) -> NpcTick {
+    let npc = scene.step(t, vec![ego_at(history, t)]).unwrap();
+    assert_eq!(npc.tick, t);
+    npc
+}
+
+#[test]
+fn malformed_json_is_refused() {
+    let c = client("malformed");
+    let e = create_raw(&c, b"{\"map\": {\"procedural\": \"roundabout\"".to_vec());
+    assert_refused(&e, ErrorCode::MalformedJson, None);
+}
+
+#[test]
+fn binary_garbage_is_refused_on_create_and_on_a_tick() {
+    let c = client("garbage");
+    let e = create_raw(&c, vec![0xff, 0x00, 0xfe, 0x13, 0x37]);
+    assert_refused(&e, ErrorCode::MalformedJson, None);
+    assert!(e.message.contains("UTF-8"), "{e}");
+    let (mut scene, history) = live_scene(&c);
+    scene.put_raw(vec![0xde, 0xad, 0xbe, 0xef]).unwrap();
+    assert_refused(&tick_err(&scene), ErrorCode::MalformedJson, None);
+    still_ticks(&mut scene, &history, 1);
+}
+
+#[test]
+fn an_oversized_payload_is_refused() {
+    let c = client("oversized");
+    let e = create_raw(&c, vec![b' '; 100 << 10]);
+    assert_refused(&e, ErrorCode::PayloadTooLarge, None);
+    let (mut scene, history) = live_scene(&c);
+    scene.put_raw(vec![b' '; 100 << 10]).unwrap();
+    assert_refused(&tick_err(&scene), ErrorCode::PayloadTooLarge, None);
+    still_ticks(&mut scene, &history, 1);
+}
+
+#[test]
+fn unknown_fields_are_refused() {
+    let c = client("unknown-field");
+    let e = create_raw(
+        &c,
+        br#"{"map":{"procedural":"roundabout"},"external":[1],"sede":3}"#.to_vec(),
+    );
+    assert_refused(&e, ErrorCode::UnknownField, Some("sede"));
+}
+
+#[test]
+fn a_missing_map_is_refused() {
+    let c = client("missing-map");
+    let e = create_raw(&c, br#"{"external":[]}"#.to_vec());
+    assert_refused(&e, ErrorCode::MalformedJson, Some("map"));
+}
+
+#[test]
+fn an_unknown_map_name_is_refused() {
+    let c = client("unknown-map");
+    let mut r = common::roundabout();
+    r.map = MapSource::Procedural("atlantis".into());
+    assert_refused(
+        &create_err(&c, r),
+        ErrorCode::BadMap,
+        Some("map.procedural"),
+    );
+    let mut r = common::roundabout();
+    r.map = MapSource::File("atlantis".into());
+    assert_refused(&create_err(&c, r), ErrorCode::BadMap, Some("map.file"));
+}
+
+#[test]
+fn an_osm_that_does_not_parse_is_refused() {
+    let c = client("bad-osm");
+    let mut r = agents_request(vec![common::straight_agent(1, 10.0, 2.0)]);
+    r.map = MapSource::Osm("<osm><node id=\"1\"".into());
+    assert_refused(&create_err(&c, r), ErrorCode::BadMap, Some("map.osm"));
+}
+
+#[test]
+fn a_map_with_no_lanelets_is_refused() {
+    let c = client("no-lanelets");
+    let mut r = agents_request(vec![common::straight_agent(1, 10.0, 2.0)]);
+    r.map = MapSource::Osm(osm(false));
+    let e = create_err(&c, r);
+    assert_refused(&e, ErrorCode::BadMap, Some("map.osm"));
+    assert!(e.message.contains("no lanelet"), "{e}");
+}
+
+#[test]
+fn an_osm_map_by_value_runs() {
+    let c = client("osm-ok");
+    let mut r = agents_request(vec![
+        common::straight_agent(1, 10.0, 2.0),
+        common::straight_agent(2, 30.0, 2.0),
+    ]);
+    r.external = vec![1];
+    let mut scene = c.create(r).unwrap();
+    let history = scene.created().agents[0].history.clone();
+    let npc = still_ticks(&mut scene, &history, 1);
+    assert_eq!(npc.npcs.len(), 1);
+    assert_eq!(npc.npcs[0].id, 2);
+    scene.close().unwrap();
+}
+
+#[test]
+fn zero_agents_are_refused() {
+    let c = client("zero-agents");
+    assert_refused(
+        &create_err(&c, agents_request(vec![])),
+        ErrorCode::InvalidField,
+        Some("agents"),
+    );
+}
+
+#[test]
+fn more_agents_than_the_model_takes_are_refused() {
+    let c = client("many-agents");
+    let agents = (0..33)
+        .map(|i| common::straight_agent(i, 5.0 * f64::from(i), 2.0))
+        .collect();
+    let e = create_err(&c, agents_request(agents));
+    assert_refused(&e, ErrorCode::InvalidField, Some("agents"));
+    assert!(e.message.contains("32"), "{e}");
+}
+
+#[test]
+fn a_short_history_is_refused() {
+    let c = client("short-history");
+    let mut a = common::straight_agent(1, 10.0, 2.0);
+    a.history.truncate(4);
+    let e = create_err(&c, agents_request(vec![a]));
+    assert_refused(&e, ErrorCode::InvalidField, Some("agents[0].history"));
+}
+
+#[test]
+fn nan_or_infinite_history_values_are_refused() {
+    let c = client("nan-history");
+    // JSON has no NaN or infinity: such payloads are malformed JSON.
+    let mut r = serde_json::to_value(agents_request(vec![common::straight_agent(1, 10.0, 2.0)]))
+        .unwrap()
+        .to_string();
+    r = r.replacen("\"x_m\":10.0", "\"x_m\":NaN", 1);
+    assert!(r.contains("NaN"));
+    assert_refused(
+        &create_raw(&c, r.into_bytes()),
+        ErrorCode::MalformedJson,
+        None,
+    );
+    let r = serde_json::to_value(agents_request(vec![common::straight_agent(1, 10.0, 2.0)]))
+        .unwrap()
+        .to_string()
+        .replacen("\"y_m\":2.0", "\"y_m\":1e999", 1);
+    assert_refused(
+        &create_raw(&c, r.into_bytes()),
+        ErrorCode::MalformedJson,
+        None,
+    );
+}
+
+#[test]
+fn non_positive_or_absurd_box_sizes_are_refused() {
+    let c = client("box-sizes");
+    for (length, width, field) in [
+        (0.0, 1.8, "agents[0].length_m"),
+        (-4.0, 1.8, "agents[0].length_m"),
+        (400.0, 1.8, "agents[0].length_m"),
+        (4.5, 0.0, "agents[0].width_m"),
+        (4.5, 12.0, "agents[0].width_m"),
+    ] {
+        let mut a = common::straight_agent(1, 10.0, 2.0);
+        a.length_m = length;
+        a.width_m = width;
+        let e = create_err(&c, agents_request(vec![a]));
+        assert_refused(&e, ErrorCode::InvalidField, Some(field));
+    }
+}
+
+#[test]
+fn duplicate_agent_ids_are_refused() {
+    let c = client("duplicate-ids");
+    let e = create_err(
+        &c,
+        agents_request(vec![
+            common::straight_agent(4, 10.0, 2.0),
+            common::straight_agent(4, 30.0, 2.0),
+        ]),
+    );
+    assert_refused(&e, ErrorCode::InvalidField, Some("agents[1].id"));
+}
+
+#[test]
+fn an_external_agent_not_in_the_scene_is_refused() {
+    let c = client("external-missing");
+    let mut r = common::roundabout();
+    r.external = vec![99];
+    assert_refused(
+        &create_err(&c, r),
+        ErrorCode::InvalidField,
+        Some("external[0]"),
+    );
+}
+
+#[test]
+fn an_unknown_planner_is_refused() {
+    let c = client("unknown-planner");
+    let mut r = common::roundabout();
+    r.planner = Some("road99".into());
+    assert_refused(&create_err(&c, r), ErrorCode::BadModel, Some("planner"));
+}
+
+#[test]
+fn an_unknown_checkpoint_is_refused() {
+    let c = client("unknown-checkpoint");
+    for name in ["road99", "../models/road20"] {
+        let mut r = common::roundabout();
+        r.checkpoint = Some(name.into());
+        assert_refused(&create_err(&c, r), ErrorCode::BadModel, Some("checkpoint"));
+    }
+}
+
+#[test]
+fn a_checkpoint_whose_window_does_not_fit_the_planner_is_refused() {
+    let c = client("window-mismatch");
+    let mut r = common::roundabout();
+    r.planner = Some("road15".into()); // W = 15 on road20's W = 20
+    let e = create_err(&c, r);
+    assert_refused(&e, ErrorCode::BadModel, Some("planner"));
+    assert!(e.message.contains("W = 15"), "{e}");
+}
+
+#[test]
+fn more_scenes_than_the_capacity_are_refused() {
+    // A server of its own with room for one scene.
+    let dir = common::temp_dir("capacity");
+    let mut config = common::config(&dir);
+    config.capacity = 1;
+    config.late_ego_deadline = Duration::ZERO;
+    let small = common::start(config);
+    let c = common::client(&small, "capacity");
+    let (mut first, history) = live_scene(&c);
+    let e = create_err(&c, common::roundabout());
+    assert_refused(&e, ErrorCode::Capacity, None);
+    still_ticks(&mut first, &history, 1);
+    first.close().unwrap();
+    // Room again.
+    c.create(common::roundabout()).unwrap().close().unwrap();
+    small.stop().unwrap();
+}
+
+#[test]
+fn a_tick_for_an_unknown_scene_is_refused() {
+    let c = client("unknown-scene");
+    let (scene, _) = live_scene(&c);
+    let ghost = road_client::protocol::SceneCreated {
+        scene: 987_654,
+        ego_key: c.keys().ego(987_654),
+        npc_key: c.keys().npc(987_654),
+        error_key: c.keys().error("987654"),
+        ..scene.created().clone()
+    };
+    let ghost = c.attach(ghost).unwrap();
+    ghost.put(1, vec![]).unwrap();
+    let e = tick_err(&ghost);
+    assert_refused(&e, ErrorCode::UnknownScene, Some("key"));
+    assert_eq!(e.scene, Some(987_654));
+}
+
+#[test]
+fn a_tick_for_a_closed_scene_is_refused() {
+    let c = client("closed-scene");
+    let (scene, history) = live_scene(&c);
+    let created = scene.created().clone();
+    scene.close().unwrap();
+    let again = c.attach(created).unwrap();
+    again.put(1, vec![ego_at(&history, 1)]).unwrap();
+    let e = tick_err(&again);
+    assert_refused(&e, ErrorCode::UnknownScene, Some("key"));
+    assert!(e.message.contains("closed"), "{e}");
+}
+
+#[test]
+fn a_tick_naming_a_non_external_agent_is_refused() {
+    let c = client("not-external");
+    let (mut scene, history) = live_scene(&c);
+    let mut npc = ego_at(&history, 1);
+    npc.id = 2;
+    scene.put(1, vec![ego_at(&history, 1), npc]).unwrap();
+    assert_refused(&tick_err(&scene), ErrorCode::BadTick, Some("agents[1].id"));
+    still_ticks(&mut scene, &history, 1);
+}
+
+#[test]
+fn a_tick_missing_an_external_agent_is_refused() {
+    let c = client("missing-external");
+    let mut r = common::roundabout();
+    r.external = vec![1, 2];
+    let mut scene = c.create(r).unwrap();
+    let history = scene.created().agents[0].history.clone();
+    scene.put(1, vec![ego_at(&history, 1)]).unwrap();
+    let e = tick_err(&scene);
+    assert_refused(&e, ErrorCode::BadTick, Some("agents"));
+    assert!(e.message.contains('2'), "{e}");
+    let second = scene.created().agents[1].history.clone();
+    let npc = scene
+        .step(1, vec![ego_at(&history, 1), common::replay(&second, 2, 1)])
+        .unwrap();
+    assert_eq!(npc.tick, 1);
+}
+
+#[test]
+fn the_same_agent_twice_in_a_tick_is_refused() {
+    let c = client("twice");
+    let (mut scene, history) = live_scene(&c);
+    scene
+        .put(1, vec![ego_at(&history, 1), ego_at(&history, 1)])
+        .unwrap();
+    assert_refused(&tick_err(&scene), ErrorCode::BadTick, Some("agents[1].id"));
+    still_ticks(&mut scene, &history, 1);
+}
+
+#[test]
+fn a_nan_or_infinite_ego_state_is_refused() {
+    let c = client("nan-ego");
+    let (mut scene, history) = live_scene(&c);
+    let good = serde_json::json!({
+        "tick": 1, "client": "nan-ego",
+        "agents": [{"id": 1, "x_m": 0.0, "y_m": 0.0, "heading_rad": 0.0}],
+    })
+    .to_string();
+    for bad in ["NaN", "Infinity", "1e999"] {
+        scene
+            .put_raw(
+                good.replace("\"x_m\":0.0", &format!("\"x_m\":{bad}"))
+                    .into_bytes(),
+            )
+            .unwrap();
+        assert_refused(&tick_err(&scene), ErrorCode::MalformedJson, None);
+    }
+    still_ticks(&mut scene, &history, 1);
+}
+
+#[test]
+fn ticks_in_the_past_repeated_or_skipping_ahead_are_refused() {
+    let c = client("tick-order");
+    let (mut scene, history) = live_scene(&c);
+    scene.put(2, vec![ego_at(&history, 2)]).unwrap();
+    let e = tick_err(&scene);
+    assert_refused(&e, ErrorCode::BadTick, Some("tick"));
+    assert!(e.message.contains("skips ahead"), "{e}");
+    still_ticks(&mut scene, &history, 1);
+    scene.put(1, vec![ego_at(&history, 1)]).unwrap();
+    let e = tick_err(&scene);
+    assert_refused(&e, ErrorCode::BadTick, Some("tick"));
+    assert!(e.message.contains("past"), "{e}");
+    scene.put(0, vec![ego_at(&history, 0)]).unwrap();
+    assert_refused(&tick_err(&scene), ErrorCode::BadTick, Some("tick"));
+    still_ticks(&mut scene, &history, 2);
+}
+
+#[test]
+fn an_ego_that_jumps_too_far_is_refused() {
+    let c = client("jump");
+    let (mut scene, history) = live_scene(&c);
+    let mut far = ego_at(&history, 1);
+    far.x_m += 50.0;
+    scene.put(1, vec![far]).unwrap();
+    let e = tick_err(&scene);
+    assert_refused(&e, ErrorCode::InvalidField, Some("agents[0]"));
+    assert!(e.message.contains("moved"), "{e}");
+    still_ticks(&mut scene, &history, 1);
+}
+
+#[test]
+fn a_second_client_claiming_the_ego_is_refused() {
+    let owner = client("owner");
+    let (mut scene, history) = live_scene(&owner);
+    let intruder = client("intruder");
+    let theirs = intruder.attach(scene.created().clone()).unwrap();
+    theirs.put(1, vec![ego_at(&history, 1)]).unwrap();
+    let e = tick_err(&theirs);
+    assert_refused(&e, ErrorCode::NotOwner, Some("client"));
+    // The owner saw the refusal too (same error key); it goes on.
+    let _ = scene.wait_error(Duration::from_secs(5)).unwrap();
+    still_ticks(&mut scene, &history, 1);
+    let e = match intruder.close_scene(scene.id()) {
+        Err(Error::Refused(e)) => e,
+        other => panic!("expected a refusal, got {other:?}"),
+    };
+    assert_refused(&e, ErrorCode::NotOwner, Some("client"));
+}
+
+#[test]
+fn closing_an_unknown_scene_is_refused() {
+    let c = client("close-unknown");
+    let e = match c.close_scene(424_242) {
+        Err(Error::Refused(e)) => e,
+        other => panic!("expected a refusal, got {other:?}"),
+    };
+    assert_refused(&e, ErrorCode::UnknownScene, Some("scene"));
+}
+
+#[test]
+fn bad_input_loses_nothing_recorded() {
+    let c = client("recorded");
+    let (mut scene, history) = live_scene(&c);
+    still_ticks(&mut scene, &history, 1);
+    scene.put(5, vec![ego_at(&history, 5)]).unwrap();
+    let _ = tick_err(&scene);
+    still_ticks(&mut scene, &history, 2);
+    let closed = scene.close().unwrap();
+    let bytes = std::fs::read(closed.recording.unwrap()).unwrap();
+    let topics: Vec<String> = mcap::MessageStream::new(&bytes)
+        .unwrap()
+        .map(|m| m.unwrap().channel.topic.clone())
+        .collect();
+    let count = |t: &str| topics.iter().filter(|x| *x == t).count();
+    assert_eq!(count("/road/ego"), 2);
+    assert_eq!(count("/road/npc"), 2);
+    assert_eq!(count("/road/error"), 1);
+}

@@ -1,0 +1,109 @@
+//! Sixteen scenes at once over loopback, joining and leaving at different ticks, each driven
+//! by its own client thread: every tick is answered in order, NPC states stay finite and on
+//! the map, the core batches several scenes per round, and every scene's recording holds its
+//! ticks. Then the late-ego policy: a client that stops sending gets model-driven, flagged
+//! ticks, and its scene is closed when its liveliness token goes.
+
+mod common;
+
+use std::sync::{Arc, Barrier};
+use std::time::{Duration, Instant};
+
+use road_client::protocol::NpcTick;
+
+#[test]
+fn sixteen_scenes_join_and_leave() {
+    let dir = common::temp_dir("many");
+    let mut config = common::config(&dir);
+    config.late_ego_deadline = Duration::ZERO; // a slow debug build must not turn ticks late
+    let server = common::start(config);
+    let scenes = 16u64;
+    let start = Arc::new(Barrier::new(scenes as usize));
+    let threads: Vec<_> = (0..scenes)
+        .map(|i| {
+            let client = common::client(&server, &format!("ego-{i}"));
+            let start = Arc::clone(&start);
+            std::thread::spawn(move || {
+                start.wait();
+                // Scenes join in waves and run for different lengths.
+                std::thread::sleep(Duration::from_millis(150 * (i % 4)));
+                let mut request = common::roundabout();
+                request.seed = i;
+                let mut scene = client.create(request).unwrap();
+                let ego = scene.created().agents[0].clone();
+                assert!(ego.external);
+                let ticks = 3 + i % 5;
+                let mut answered: Vec<NpcTick> = Vec::new();
+                for t in 1..=ticks {
+                    let npc = scene
+                        .step(t, vec![common::replay(&ego.history, 1, t)])
+                        .unwrap();
+                    assert_eq!(npc.tick, t);
+                    assert_eq!(npc.npcs.len(), 6);
+                    assert!(npc.late_external.is_empty());
+                    common::assert_sane(&npc, 300.0);
+                    answered.push(npc);
+                }
+                let closed = scene.close().unwrap();
+                assert_eq!(closed.ticks, ticks);
+                (ticks, closed.recording.unwrap())
+            })
+        })
+        .collect();
+    let mut total = 0;
+    for t in threads {
+        let (ticks, recording) = t.join().expect("a client thread failed");
+        total += ticks;
+        let bytes = std::fs::read(&recording).unwrap();
+        let npc = mcap::MessageStream::new(&bytes)
+            .unwrap()
+            .map(|m| m.unwrap())
+            .filter(|m| m.channel.topic == "/road/npc")
+            .count();
+        assert_eq!(npc as u64, ticks, "{recording}");
+    }
+    let status = common::client(&server, "observer").status().unwrap();
+    assert!(status.scenes.is_empty(), "{:?}", status.scenes);
+    assert_eq!(status.tick_latency.count, total);
+    assert!(status.max_batch > 1, "never more than one scene per round");
+    server.stop().unwrap();
+}
+
+#[test]
+fn a_late_ego_is_driven_by_the_model_and_flagged() {
+    let dir = common::temp_dir("late");
+    let mut config = common::config(&dir);
+    config.late_ego_deadline = Duration::from_millis(300);
+    let server = common::start(config);
+    let client = common::client(&server, "late-ego");
+    let mut scene = client.create(common::roundabout()).unwrap();
+    let history = scene.created().agents[0].history.clone();
+    let on_time = scene.step(1, vec![common::replay(&history, 1, 1)]).unwrap();
+    assert!(on_time.late_external.is_empty());
+    // No ego for tick 2: after the deadline the model drives it, flagged.
+    let late = scene.wait_tick(2).unwrap();
+    assert_eq!(late.late_external.len(), 1);
+    assert_eq!(late.late_external[0].id, 1);
+    // Tick 2 is gone; the client goes on with tick 3 (or later, if more went late).
+    let next = scene.last().unwrap().tick + 1;
+    let npc = scene
+        .step(next, vec![common::replay(&history, 1, next)])
+        .unwrap();
+    assert_eq!(npc.tick, next);
+
+    // The client vanishes: its liveliness token goes, and so does its scene.
+    let id = scene.id();
+    drop(scene);
+    drop(client);
+    let observer = common::client(&server, "observer");
+    let deadline = Instant::now() + Duration::from_secs(20);
+    loop {
+        let status = observer.status().unwrap();
+        if status.scenes.iter().all(|s| s.scene != id) {
+            break;
+        }
+        assert!(Instant::now() < deadline, "scene {id} outlived its client");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    server.stop().unwrap();
+}
