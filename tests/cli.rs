@@ -294,7 +294,8 @@ fn sample_and_eval_run_with_the_shipped_checkpoint() {
     // RoAD-20 over 30 steps: 80 warm-up NFE + 29 rolling stages of 8.
     assert!((road20["nfe_per_step"].as_f64().unwrap() - 312.0 / 30.0).abs() < 1e-9);
 
-    // Serving through the scheduler on both engines, lockstep and with a scene joining.
+    // Serving through the scheduler on every engine (candle, fast CPU, WGSL), lockstep and
+    // with a scene joining.
     let o = road(&[
         "bench",
         "serve",
@@ -311,11 +312,20 @@ fn sample_and_eval_run_with_the_shipped_checkpoint() {
     assert!(o.status.success(), "{}", stderr(&o));
     let v: serde_json::Value = serde_json::from_str(&stdout(&o)).unwrap();
     let rows = v["rows"].as_array().unwrap();
-    assert_eq!(rows.len(), 4, "{v}");
-    // Lockstep RoAD-20 rolling ticks: K/F = 4 steps, 8 NFE; a joining scene adds its warm-up.
+    assert_eq!(rows.len(), 6, "{v}");
+    let engines: Vec<&str> = rows.iter().map(|r| r["engine"].as_str().unwrap()).collect();
+    assert!(
+        engines[0].contains("candle") && engines[2].contains("fast") && engines[4].contains("WGSL"),
+        "{engines:?}"
+    );
+    // Lockstep RoAD-20 rolling ticks: K/F = 4 steps, 8 NFE; a joining scene adds its warm-up;
+    // every engine runs the same schedule.
     assert_eq!(rows[0]["nfe_per_scene_tick"], 8.0);
     assert!(rows[1]["nfe_per_scene_tick"].as_f64().unwrap() > 8.0);
-    assert_eq!(rows[0]["nfe_per_scene_tick"], rows[2]["nfe_per_scene_tick"]);
+    for pair in rows.chunks(2).skip(1) {
+        assert_eq!(rows[0]["nfe_per_scene_tick"], pair[0]["nfe_per_scene_tick"]);
+        assert_eq!(rows[1]["nfe_per_scene_tick"], pair[1]["nfe_per_scene_tick"]);
+    }
     std::fs::remove_dir_all(&dir).ok();
 }
 
