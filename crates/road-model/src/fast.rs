@@ -466,12 +466,7 @@ impl FastDenoiser {
                 s.queries.clear();
                 s.queries.extend(agent * w..(agent + 1) * w);
                 unmasked_keys(&s.queries, &valid_token, &mut s.keys);
-                let kv = KeysValues {
-                    data: &s.qkv,
-                    stride: 3 * d,
-                    k_offset: d,
-                    v_offset: 2 * d,
-                };
+                let kv = KeysValues::stacked(&s.qkv, d);
                 attend(
                     &s.qkv,
                     3 * d,
@@ -498,12 +493,7 @@ impl FastDenoiser {
                     s.queries
                         .extend(agents.clone().map(|agent| agent * w + slot));
                     unmasked_keys(&s.queries, &valid_token, &mut s.keys);
-                    let kv = KeysValues {
-                        data: &s.qkv,
-                        stride: 3 * d,
-                        k_offset: d,
-                        v_offset: 2 * d,
-                    };
+                    let kv = KeysValues::stacked(&s.qkv, d);
                     attend(
                         &s.qkv,
                         3 * d,
@@ -746,6 +736,18 @@ fn lane_sum(values: impl Iterator<Item = f32>) -> f32 {
         lanes[i % 8] += v;
     }
     lanes.iter().sum()
+}
+
+impl<'a> KeysValues<'a> {
+    /// Self-attention: rows of `[q; k; v]` from one stacked product, `3D` wide.
+    fn stacked(qkv: &'a [f32], d: usize) -> Self {
+        Self {
+            data: qkv,
+            stride: 3 * d,
+            k_offset: d,
+            v_offset: 2 * d,
+        }
+    }
 }
 
 /// `Σ a·b` over two equal slices, in 8 independent lanes (so that it vectorises).
