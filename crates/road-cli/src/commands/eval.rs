@@ -335,6 +335,7 @@ fn forecasting(args: EvalArgs) -> Result<ExitCode> {
                 }
             }
             bar.inc(chunk.len() as u64);
+            progress(&bar, &run.name, windows.len(), started);
         }
         bar.finish_and_clear();
         totals.secs = started.elapsed().as_secs_f64();
@@ -417,6 +418,24 @@ fn draw_forecast(
         (w.frame.origin_m[0], w.frame.origin_m[1]),
         45.0,
     )
+}
+
+/// Progress for logs, where the bar is hidden (stderr not a terminal): scenes done, elapsed
+/// and expected seconds.
+pub(crate) fn progress(bar: &indicatif::ProgressBar, model: &str, scenes: usize, started: Instant) {
+    if !bar.is_hidden() {
+        return;
+    }
+    let done = bar.position() as usize;
+    let secs = started.elapsed().as_secs_f64();
+    tracing::info!(
+        model,
+        done,
+        scenes,
+        elapsed_secs = secs.round(),
+        remaining_secs = (secs / done.max(1) as f64 * scenes.saturating_sub(done) as f64).round(),
+        "evaluating"
+    );
 }
 
 fn accumulate(t: &mut Totals, m: &road_sim::metrics::SceneMetrics) {

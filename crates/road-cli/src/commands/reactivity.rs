@@ -20,7 +20,7 @@ use road_sim::kinematics::{KinematicDivergence, Kinematics};
 use road_sim::metrics::{BOOTSTRAP_RESAMPLES, Estimate, bootstrap_ratio};
 
 use crate::commands::engine::{EngineChoice, Engines};
-use crate::commands::eval::{EvalArgs, SceneSelection, select_scenes};
+use crate::commands::eval::{EvalArgs, SceneSelection, progress, select_scenes};
 use crate::plot::{
     ADVERSARY, LOGGED, PREDICTED, Ring, Stroke, figure_png, window_map_strokes,
     window_path_strokes, window_point_m,
@@ -348,6 +348,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
                 }
             }
             bar.inc(chunk.len() as u64);
+            progress(&bar, &run.name, windows.len(), started);
         }
         bar.finish_and_clear();
         totals.secs = started.elapsed().as_secs_f64();
