@@ -185,6 +185,17 @@ impl GpuDenoiser {
                 .get(name)
                 .ok_or_else(|| Error::Checkpoint(format!("missing tensor `{name}`")))
         };
+        if config
+            .agent_frame
+            .as_ref()
+            .is_some_and(|f| f.residual_scale.is_some())
+        {
+            return Err(Error::Checkpoint(
+                "model.agent_frame.residual_scale (the constant-velocity reference) is not in \
+                 the WGSL kernels yet; use the CPU engines (`--engine cpu` or `candle`)"
+                    .into(),
+            ));
+        }
         // Packed small tensors the embedding kernels read from one binding.
         let mut packed: Vec<(String, Vec<f32>)> = Vec::new();
         let mut embed_parts = vec![

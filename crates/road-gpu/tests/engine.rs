@@ -150,6 +150,7 @@ fn whole_denoiser_with_an_agent_frame_matches_candle() {
         agent_frame: Some(road_model::AgentFrame {
             anchor_slot: 9,
             relative_scale: 2.0,
+            residual_scale: None,
         }),
         ..test_config()
     };

@@ -52,6 +52,23 @@ pub struct AgentFrame {
     /// Multiplier of the relative features after `c_in`: 2 shows motion at 20 m per unit
     /// (where the scene-frame input has 40 m).
     pub relative_scale: f64,
+    /// Denoise each agent's deviation from its constant-velocity extrapolation instead of its
+    /// scene-frame state (see [`AgentFrame::residual_scale`] in `docs/checkpoint.md`): the
+    /// reference for slot `w` is the anchor pose moved by `(w − anchor)` times the last observed
+    /// step (positions; heading held), a function of the noisy input like the frame itself,
+    /// so `D(x; σ)` stays a denoiser of the scene-frame state. The residual is multiplied by
+    /// this scale (40 = metres) and preconditioned at the matching σ·scale, so that its spread
+    /// sits near `sigma_data`. Absent = no reference (the frame's features only).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub residual_scale: Option<f64>,
+}
+
+impl AgentFrame {
+    /// Width of the relative features: (forward, left, heading, anchor valid), plus the last
+    /// observed step (forward, left) with a constant-velocity reference.
+    pub fn relative_features(&self) -> usize {
+        if self.residual_scale.is_some() { 6 } else { 4 }
+    }
 }
 
 impl Default for ModelConfig {
@@ -102,6 +119,20 @@ impl ModelConfig {
             }
             if !(frame.relative_scale > 0.0 && frame.relative_scale.is_finite()) {
                 return Err("agent_frame.relative_scale must be positive".into());
+            }
+            if let Some(scale) = frame.residual_scale {
+                if !(scale > 0.0 && scale.is_finite()) {
+                    return Err(format!(
+                        "agent_frame.residual_scale must be positive and finite, got {scale}"
+                    ));
+                }
+                if frame.anchor_slot == 0 {
+                    return Err(
+                        "agent_frame.residual_scale needs an observed slot before the anchor \
+                         (anchor_slot ≥ 1) for the constant-velocity reference"
+                            .into(),
+                    );
+                }
             }
         }
         Ok(())

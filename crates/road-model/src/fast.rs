@@ -602,28 +602,58 @@ impl FastDenoiser {
                 if let (Some(frame), Some(rel), Some(anchor)) =
                     (&self.agent_frame, &self.embed_relative, &anchor)
                 {
-                    let k = c_in * frame.relative_scale as f32 * valid * anchor.valid;
-                    let (dx, dy, dh) = (x[0] - anchor.x, x[1] - anchor.y, x[2] - anchor.heading);
-                    let features = [
+                    // The displacement the features rotate, and its c_in: from the anchor in
+                    // the scene's units, or the scaled residual at σ·scale.
+                    let (d3, c_in_rel) = match anchor.residual_scale {
+                        None => ([x[0] - anchor.x, x[1] - anchor.y, x[2] - anchor.heading], c_in),
+                        Some(scale) => {
+                            let r = anchor.reference(slot, self.anchor_slot());
+                            let sigma_y = sigma * scale;
+                            (
+                                [
+                                    (x[0] - r[0]) * scale,
+                                    (x[1] - r[1]) * scale,
+                                    (x[2] - r[2]) * scale,
+                                ],
+                                1.0 / (sigma_y * sigma_y + sd * sd).sqrt(),
+                            )
+                        }
+                    };
+                    let k = c_in_rel * frame.relative_scale as f32 * valid * anchor.valid;
+                    let [dx, dy, dh] = d3;
+                    let mut features = [0.0f32; 6];
+                    features[..4].copy_from_slice(&[
                         (anchor.cos * dx + anchor.sin * dy) * k,
                         (anchor.cos * dy - anchor.sin * dx) * k,
                         dh * k,
                         anchor.valid,
-                    ];
+                    ]);
+                    if let Some(scale) = frame.residual_scale {
+                        let scale = scale as f32;
+                        let [sx, sy] = anchor.step;
+                        features[4] = (anchor.cos * sx + anchor.sin * sy) * scale;
+                        features[5] = (anchor.cos * sy - anchor.sin * sx) * scale;
+                    }
+                    let width = rel.d_in;
                     for ((r, wr), bias) in row
                         .iter_mut()
-                        .zip(rel.weight.chunks_exact(4))
+                        .zip(rel.weight.chunks_exact(width))
                         .zip(&rel.bias)
                     {
-                        *r += wr[0] * features[0]
-                            + wr[1] * features[1]
-                            + wr[2] * features[2]
-                            + wr[3] * features[3]
+                        *r += wr
+                            .iter()
+                            .zip(&features[..width])
+                            .map(|(w, f)| w * f)
+                            .sum::<f32>()
                             + bias;
                     }
                 }
             }
         }
+    }
+
+    fn anchor_slot(&self) -> usize {
+        self.agent_frame.as_ref().map_or(0, |f| f.anchor_slot)
     }
 
     /// The agent frame's anchor of batch agent row `agent_row` (`None` without a frame).
@@ -632,21 +662,32 @@ impl FastDenoiser {
         let token = agent_row * self.slots + frame.anchor_slot;
         let valid = inputs.valid[token];
         let x = &inputs.x[3 * token..][..3];
-        let (x, y, heading) = (x[0] * valid, x[1] * valid, x[2] * valid);
+        let (x0, y0, heading) = (x[0] * valid, x[1] * valid, x[2] * valid);
         let (sin, cos) = (heading / self.heading_scale).sin_cos();
+        let (mut step, mut residual_scale) = ([0.0; 2], None);
+        if let Some(scale) = frame.residual_scale {
+            // The scene frame (reference 0, scale 1) for an agent without an anchor.
+            residual_scale = Some(if valid > 0.0 { scale as f32 } else { 1.0 });
+            let both = valid * inputs.valid[token - 1];
+            let before = &inputs.x[3 * (token - 1)..][..2];
+            step = [(x[0] - before[0]) * both, (x[1] - before[1]) * both];
+        }
         Some(Anchor {
-            x,
-            y,
+            x: x0,
+            y: y0,
             heading,
             cos,
             sin,
             valid,
+            step,
+            residual_scale,
         })
     }
 
     /// `D = c_skip · x + c_out · F · valid`, `F`'s position part turned back from the agent
-    /// frame (docs/checkpoint.md, step 5); rows left out (`compact_of` = MAX) have `F · valid`
-    /// = 0 everywhere.
+    /// frame (docs/checkpoint.md, step 5); with a constant-velocity reference `r` and scale
+    /// `s`, `D = r + (c_skip(σs) · s(x − r) + c_out(σs) · F · valid) / s`. Rows left out
+    /// (`compact_of` = MAX) have no valid slot, hence no anchor, and `F · valid` = 0.
     fn precondition_output(
         &self,
         inputs: &FastInputs<'_>,
@@ -670,11 +711,18 @@ impl FastDenoiser {
             let local = agent_row / a;
             for slot in 0..w {
                 let token = agent_row * w + slot;
-                let sigma = inputs.sigma[local * w + slot];
+                let x = &inputs.x[3 * token..][..3];
+                let (reference, scale) = match &anchor {
+                    Some(anchor) if anchor.residual_scale.is_some() => (
+                        anchor.reference(slot, self.anchor_slot()),
+                        anchor.residual_scale.unwrap_or(1.0),
+                    ),
+                    _ => ([0.0; 3], 1.0),
+                };
+                let sigma = inputs.sigma[local * w + slot] * scale;
                 let denom = sigma * sigma + sd * sd;
                 let c_skip = sd * sd / denom;
                 let c_out = sigma * sd / denom.sqrt();
-                let x = &inputs.x[3 * token..][..3];
                 let o = &mut out[3 * token..][..3];
                 if compact == usize::MAX {
                     for c in 0..3 {
@@ -692,8 +740,15 @@ impl FastDenoiser {
                     ];
                 }
                 let valid = inputs.valid[token];
-                for c in 0..3 {
-                    o[c] = c_skip * x[c] + c_out * ft[c] * valid;
+                if scale == 1.0 && reference == [0.0; 3] {
+                    for c in 0..3 {
+                        o[c] = c_skip * x[c] + c_out * ft[c] * valid;
+                    }
+                } else {
+                    for c in 0..3 {
+                        let y = (x[c] - reference[c]) * scale;
+                        o[c] = reference[c] + (c_skip * y + c_out * ft[c] * valid) / scale;
+                    }
                 }
             }
         }
@@ -708,6 +763,22 @@ struct Anchor {
     cos: f32,
     sin: f32,
     valid: f32,
+    /// The last observed step (positions; zero unless both slots are valid).
+    step: [f32; 2],
+    /// With a constant-velocity reference: its scale (1 for an agent without an anchor).
+    residual_scale: Option<f32>,
+}
+
+impl Anchor {
+    /// The constant-velocity reference at `slot` (zero for an agent without an anchor).
+    fn reference(&self, slot: usize, anchor_slot: usize) -> [f32; 3] {
+        let t = slot as f32 - anchor_slot as f32;
+        [
+            self.x + t * self.step[0],
+            self.y + t * self.step[1],
+            self.heading,
+        ]
+    }
 }
 
 /// The keys of a group that are not masked; all of them when every one is (then every key

@@ -183,7 +183,8 @@ pub struct Denoiser {
     pub(crate) embed_state: Linear,
     pub(crate) embed_noise: Linear,
     pub(crate) embed_agent: Linear,
-    /// With an agent frame: relative (x, y, heading) and the anchor's validity → D.
+    /// With an agent frame: relative (x, y, heading), the anchor's validity and, with a
+    /// constant-velocity reference, the last observed step → D.
     pub(crate) embed_relative: Option<Linear>,
     pub(crate) slot_embedding: Tensor, // [W, D]
     pub(crate) map_point: Linear,
@@ -206,8 +207,12 @@ impl Denoiser {
             embed_state: linear(3, d, vb.pp("embed_state"))?,
             embed_noise: linear(1, d, vb.pp("embed_noise"))?,
             embed_agent: linear(AGENT_FEATURES, d, vb.pp("embed_agent"))?,
-            embed_relative: match config.agent_frame {
-                Some(_) => Some(linear(4, d, vb.pp("embed_relative"))?),
+            embed_relative: match &config.agent_frame {
+                Some(frame) => Some(linear(
+                    frame.relative_features(),
+                    d,
+                    vb.pp("embed_relative"),
+                )?),
                 None => None,
             },
             slot_embedding: vb.get_with_hints((config.window_slots, d), "slot_embedding", init)?,
@@ -250,7 +255,7 @@ impl Denoiser {
         map_valid: &Tensor,
         mode: Mode,
     ) -> Result<Tensor> {
-        let f = self.raw_output(
+        let out = self.forward(
             x_noisy,
             sigma,
             valid,
@@ -259,28 +264,43 @@ impl Denoiser {
             map_valid,
             mode,
         )?;
-        let (c_skip, c_out, _, _) = self.preconditioning(sigma)?;
-        Ok((x_noisy.broadcast_mul(&c_skip)? + f.broadcast_mul(&c_out)?)?)
+        match &out.residual {
+            None => {
+                let (c_skip, c_out, _, _) = self.preconditioning(sigma)?;
+                Ok((x_noisy.broadcast_mul(&c_skip)? + out.raw.broadcast_mul(&c_out)?)?)
+            }
+            // D = reference + (c_skip(σ·s)·y + c_out(σ·s)·F) / s, with y = s·(x − reference).
+            Some(r) => {
+                let y = (r.y.broadcast_mul(&r.c_skip)? + out.raw.broadcast_mul(&r.c_out)?)?;
+                Ok((&r.reference + y.broadcast_div(&r.scale)?)?)
+            }
+        }
     }
 
     /// EDM coefficients as `[B, 1, W, 1]` tensors: (c_skip, c_out, c_in, c_noise).
     pub fn preconditioning(&self, sigma: &Tensor) -> Result<(Tensor, Tensor, Tensor, Tensor)> {
         let (b, w) = sigma.dims2()?;
-        let sd = self.config.edm.sigma_data;
-        let s2 = sigma.sqr()?;
-        let denom = (&s2 + sd * sd)?; // σ² + σd²
-        let root = denom.sqrt()?;
         let shape = (b, 1, w, 1);
-        let c_skip = (denom.recip()? * (sd * sd))?.reshape(shape)?;
-        let c_out = ((sigma * sd)? / &root)?.reshape(shape)?;
-        let c_in = root.recip()?.reshape(shape)?;
+        let (c_skip, c_out, c_in) = self.skip_out_in(&sigma.reshape(shape)?)?;
         let c_noise = (sigma.log()? * 0.25)?.reshape(shape)?;
         Ok((c_skip, c_out, c_in, c_noise))
     }
 
-    /// The network `F(c_in·x; c_noise, …)` before preconditioning: `[B, A, W, 3]`.
+    /// EDM's c_skip, c_out and c_in of a σ tensor of any shape.
+    fn skip_out_in(&self, sigma: &Tensor) -> Result<(Tensor, Tensor, Tensor)> {
+        let sd = self.config.edm.sigma_data;
+        let denom = (sigma.sqr()? + sd * sd)?; // σ² + σd²
+        let root = denom.sqrt()?;
+        let c_skip = (denom.recip()? * (sd * sd))?;
+        let c_out = ((sigma * sd)? / &root)?;
+        let c_in = root.recip()?;
+        Ok((c_skip, c_out, c_in))
+    }
+
+    /// The network `F` before preconditioning (`[B, A, W, 3]`, in the scene frame's
+    /// orientation) and, with a constant-velocity reference, the terms that turn it into `D`.
     #[allow(clippy::too_many_arguments)]
-    pub fn raw_output(
+    fn forward(
         &self,
         x_noisy: &Tensor,
         sigma: &Tensor,
@@ -289,7 +309,7 @@ impl Denoiser {
         map_tokens: &Tensor,
         map_valid: &Tensor,
         mode: Mode,
-    ) -> Result<Tensor> {
+    ) -> Result<NetworkOutput> {
         let w = x_noisy.dim(2)?;
         let d = self.config.hidden;
         let (_, _, c_in, c_noise) = self.preconditioning(sigma)?;
@@ -304,12 +324,30 @@ impl Denoiser {
             .broadcast_add(&noise)?
             .broadcast_add(&agent)?
             .broadcast_add(&slots)?;
+        let mut residual = None;
         let frame = match (&self.config.agent_frame, &self.embed_relative) {
             (Some(spec), Some(embed)) => {
-                let frame =
-                    AnchorFrame::new(x_noisy, valid, spec.anchor_slot, self.config.heading_scale)?;
-                let scale = (c_in * spec.relative_scale)?.broadcast_mul(&valid4)?; // [B, A, W, 1]
-                let rel = frame.relative_features(x_noisy, &scale)?; // [B, A, W, 4]
+                let frame = AnchorFrame::new(
+                    x_noisy,
+                    valid,
+                    spec.anchor_slot,
+                    self.config.heading_scale,
+                    spec.residual_scale.is_some(),
+                )?;
+                let rel = match spec.residual_scale {
+                    None => {
+                        let scale = (c_in * spec.relative_scale)?.broadcast_mul(&valid4)?;
+                        frame.relative_features(&x_noisy.broadcast_sub(&frame.anchor)?, &scale)?
+                    }
+                    Some(s) => {
+                        let r = frame.residual(x_noisy, sigma, s, self)?;
+                        let scale = (&r.c_in * spec.relative_scale)?.broadcast_mul(&valid4)?;
+                        let rel = frame.relative_features(&r.y, &scale)?; // [B, A, W, 4]
+                        let step = frame.step_features(s, w)?; // [B, A, W, 2]
+                        residual = Some(r);
+                        Tensor::cat(&[rel, step], 3)?
+                    }
+                };
                 h = (h + lin(embed, &rel)?)?;
                 Some(frame)
             }
@@ -324,8 +362,30 @@ impl Denoiser {
             Some(frame) => frame.rotate_to_scene(&out)?,
             None => out,
         };
-        Ok(out.broadcast_mul(&valid4)?)
+        Ok(NetworkOutput {
+            raw: out.broadcast_mul(&valid4)?,
+            residual,
+        })
     }
+}
+
+/// What [`Denoiser::forward`] returns.
+struct NetworkOutput {
+    /// `F [B, A, W, 3]`, zero at invalid tokens.
+    raw: Tensor,
+    residual: Option<Residual>,
+}
+
+/// The constant-velocity reference of `AgentFrame::residual_scale` and its preconditioning.
+/// Agents not valid at the anchor keep the plain scene-frame denoiser (reference 0, scale 1).
+#[derive(Debug)]
+struct Residual {
+    reference: Tensor, // [B, A, W, 3]
+    scale: Tensor,     // [B, A, 1, 1]: s, or 1 without an anchor
+    y: Tensor,         // [B, A, W, 3]: scale · (x − reference)
+    c_skip: Tensor,    // [B, A, W, 1] at σ·scale
+    c_out: Tensor,     // [B, A, W, 1]
+    c_in: Tensor,      // [B, A, W, 1]
 }
 
 /// Each agent's anchor pose (its state at the anchor slot, in the noisy input): the frame of
@@ -336,25 +396,44 @@ struct AnchorFrame {
     anchor_valid: Tensor, // [B, A, 1, 1]
     cos: Tensor,          // [B, A, 1, 1] of the anchor heading
     sin: Tensor,          // [B, A, 1, 1]
+    /// The last observed step, anchor − (anchor − 1), positions only (heading 0); zero unless
+    /// both slots are valid. Only with a constant-velocity reference. `[B, A, 1, 3]`
+    step: Option<Tensor>,
+    anchor_slot: usize,
 }
 
 impl AnchorFrame {
-    fn new(x: &Tensor, valid: &Tensor, slot: usize, heading_scale: f64) -> Result<Self> {
+    fn new(
+        x: &Tensor,
+        valid: &Tensor,
+        slot: usize,
+        heading_scale: f64,
+        with_step: bool,
+    ) -> Result<Self> {
         let anchor_valid = valid.narrow(2, slot, 1)?.unsqueeze(3)?; // [B, A, 1, 1]
         let anchor = x.narrow(2, slot, 1)?.broadcast_mul(&anchor_valid)?; // [B, A, 1, 3]
         let heading_rad = (anchor.narrow(3, 2, 1)? / heading_scale)?;
+        let step = if with_step {
+            let both = (valid.narrow(2, slot - 1, 1)?.unsqueeze(3)? * &anchor_valid)?;
+            let delta = (x.narrow(2, slot, 1)? - x.narrow(2, slot - 1, 1)?)?;
+            let positions = delta.narrow(3, 0, 2)?.broadcast_mul(&both)?;
+            Some(Tensor::cat(&[positions, both.zeros_like()?], 3)?)
+        } else {
+            None
+        };
         Ok(Self {
             cos: heading_rad.cos()?,
             sin: heading_rad.sin()?,
             anchor,
             anchor_valid,
+            step,
+            anchor_slot: slot,
         })
     }
 
-    /// `x [B, A, W, 3]` relative to the anchor, rotated into its heading, times `scale
-    /// [B, A, W, 1]`; the anchor's validity as a fourth feature: `[B, A, W, 4]`.
-    fn relative_features(&self, x: &Tensor, scale: &Tensor) -> Result<Tensor> {
-        let d = x.broadcast_sub(&self.anchor)?; // [B, A, W, 3]
+    /// `d [B, A, W, 3]` (a displacement from the anchor) rotated into its heading, times
+    /// `scale [B, A, W, 1]`; the anchor's validity as a fourth feature: `[B, A, W, 4]`.
+    fn relative_features(&self, d: &Tensor, scale: &Tensor) -> Result<Tensor> {
         let (dx, dy, dh) = (d.narrow(3, 0, 1)?, d.narrow(3, 1, 1)?, d.narrow(3, 2, 1)?);
         let forward = (dx.broadcast_mul(&self.cos)? + dy.broadcast_mul(&self.sin)?)?;
         let left = (dy.broadcast_mul(&self.cos)? - dx.broadcast_mul(&self.sin)?)?;
@@ -371,6 +450,48 @@ impl AnchorFrame {
         )?)
     }
 
+    /// The last observed step in the anchor's heading, times `scale` (40: metres per step),
+    /// the same for every slot: `[B, A, W, 2]`.
+    fn step_features(&self, scale: f64, w: usize) -> Result<Tensor> {
+        let step = self.step.as_ref().expect("a residual frame carries its step");
+        let (dx, dy) = (step.narrow(3, 0, 1)?, step.narrow(3, 1, 1)?);
+        let forward = (dx.broadcast_mul(&self.cos)? + dy.broadcast_mul(&self.sin)?)?;
+        let left = (dy.broadcast_mul(&self.cos)? - dx.broadcast_mul(&self.sin)?)?;
+        let (b, a, _, _) = step.dims4()?;
+        Ok((Tensor::cat(&[forward, left], 3)? * scale)?
+            .broadcast_as((b, a, w, 2))?
+            .contiguous()?)
+    }
+
+    /// The constant-velocity reference of `x [B, A, W, 3]` at noise `sigma [B, W]`.
+    fn residual(
+        &self,
+        x: &Tensor,
+        sigma: &Tensor,
+        residual_scale: f64,
+        model: &Denoiser,
+    ) -> Result<Residual> {
+        let (b, _, w, _) = x.dims4()?;
+        let step = self.step.as_ref().expect("a residual frame carries its step");
+        let offsets: Vec<f32> = (0..w)
+            .map(|slot| slot as f32 - self.anchor_slot as f32)
+            .collect();
+        let offsets = Tensor::from_vec(offsets, (1, 1, w, 1), x.device())?;
+        let reference = self.anchor.broadcast_add(&step.broadcast_mul(&offsets)?)?;
+        let scale = ((&self.anchor_valid * (residual_scale - 1.0))? + 1.0)?;
+        let y = (x - &reference)?.broadcast_mul(&scale)?;
+        let sigma_y = sigma.reshape((b, 1, w, 1))?.broadcast_mul(&scale)?; // [B, A, W, 1]
+        let (c_skip, c_out, c_in) = model.skip_out_in(&sigma_y)?;
+        Ok(Residual {
+            reference,
+            scale,
+            y,
+            c_skip,
+            c_out,
+            c_in,
+        })
+    }
+
     /// `f [B, A, W, 3]` from the anchor frame back to the scene frame (heading unchanged).
     fn rotate_to_scene(&self, f: &Tensor) -> Result<Tensor> {
         let (f0, f1, f2) = (f.narrow(3, 0, 1)?, f.narrow(3, 1, 1)?, f.narrow(3, 2, 1)?);
@@ -380,8 +501,8 @@ impl AnchorFrame {
     }
 }
 
-/// The EDM training loss: `λ(σ)·|D − x0|²` = `|F − (x0 − c_skip·x)/c_out|²`, averaged over
-/// valid agent-slots. Returns a scalar tensor.
+/// The EDM training loss: `λ(σ)·|D − x0|²`, averaged over valid agent-slots. Returns a scalar
+/// tensor.
 pub fn edm_loss(
     model: &Denoiser,
     batch: &crate::batch::Batch,
@@ -394,13 +515,18 @@ pub fn edm_loss(
 
 /// The EDM loss's numerator and denominator: the squared error summed over valid
 /// agent-slots, and the number of values summed (3 per valid agent-slot). Scalar tensors.
+///
+/// Written on `F` so that no cancellation of `D − x0` enters at small σ: without a reference
+/// `λ(σ)·|D − x0|² = |F − (x0 − c_skip·x)/c_out|²`; with one (`D = r + (c_skip'·y + c_out'·F)/s`,
+/// coefficients at σ·s) it is `λ(σ)·(c_out'/s)²·|F − (s·(x0 − r) − c_skip'·y)/c_out'|²`: the
+/// same objective in the scene frame's units, so validation losses stay comparable.
 pub fn edm_error_sum(
     model: &Denoiser,
     batch: &crate::batch::Batch,
     map_tokens: &Tensor,
     mode: Mode,
 ) -> Result<(Tensor, Tensor)> {
-    let f = model.raw_output(
+    let out = model.forward(
         &batch.x_noisy,
         &batch.sigma,
         &batch.valid,
@@ -409,10 +535,30 @@ pub fn edm_error_sum(
         &batch.map_valid,
         mode,
     )?;
-    let (c_skip, c_out, _, _) = model.preconditioning(&batch.sigma)?;
-    let target = (&batch.x0 - batch.x_noisy.broadcast_mul(&c_skip)?)?.broadcast_div(&c_out)?;
     let valid4 = batch.valid.unsqueeze(3)?;
-    let err = (f - target)?.sqr()?.broadcast_mul(&valid4)?;
+    let err = match &out.residual {
+        None => {
+            let (c_skip, c_out, _, _) = model.preconditioning(&batch.sigma)?;
+            let target =
+                (&batch.x0 - batch.x_noisy.broadcast_mul(&c_skip)?)?.broadcast_div(&c_out)?;
+            (out.raw - target)?.sqr()?
+        }
+        Some(r) => {
+            let x0 = (&batch.x0 - &r.reference)?.broadcast_mul(&r.scale)?;
+            let target = (x0 - r.y.broadcast_mul(&r.c_skip)?)?.broadcast_div(&r.c_out)?;
+            let sd = model.config.edm.sigma_data;
+            let (b, w) = batch.sigma.dims2()?;
+            let s2 = batch.sigma.sqr()?.reshape((b, 1, w, 1))?;
+            let lambda = ((&s2 + sd * sd)? / (s2 * (sd * sd))?)?; // [B, 1, W, 1]
+            let weight = r
+                .c_out
+                .broadcast_div(&r.scale)?
+                .sqr()?
+                .broadcast_mul(&lambda)?; // [B, A, W, 1]
+            (out.raw - target)?.sqr()?.broadcast_mul(&weight)?
+        }
+    };
+    let err = err.broadcast_mul(&valid4)?;
     let count = (batch.valid.sum_all()? * 3.0)?;
     Ok((err.sum_all()?, count))
 }
@@ -505,7 +651,7 @@ mod tests {
         .unwrap();
         let valid =
             Tensor::from_vec(vec![1f32, 1., 1., 1., 0., 1.], (1, 2, 3), &Device::Cpu).unwrap();
-        let frame = AnchorFrame::new(&x, &valid, 1, f64::from(heading_scale)).unwrap();
+        let frame = AnchorFrame::new(&x, &valid, 1, f64::from(heading_scale), true).unwrap();
         (x, frame)
     }
 
@@ -513,7 +659,8 @@ mod tests {
     fn relative_features_put_the_anchor_heading_along_x() {
         let (x, frame) = frame();
         let scale = Tensor::full(2f32, (1, 2, 3, 1), &Device::Cpu).unwrap();
-        let rel = values(&frame.relative_features(&x, &scale).unwrap()); // [1, 2, 3, 4]
+        let d = x.broadcast_sub(&frame.anchor).unwrap();
+        let rel = values(&frame.relative_features(&d, &scale).unwrap()); // [1, 2, 3, 4]
         let agent0 = &rel[..12];
         // One unit behind, at the anchor, one unit ahead (heading +0.1), all scaled by 2.
         let want0 = [-2.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 2.0, 0.0, 0.2, 1.0];
@@ -529,6 +676,45 @@ mod tests {
             "agent 1: {:?}",
             &rel[12..]
         );
+    }
+
+    /// The constant-velocity reference: agent 0 moves one unit along +y per slot, so its
+    /// reference is its own path and only the heading change at slot 2 is left as residual;
+    /// agent 1 has no anchor and keeps the scene frame (reference 0, scale 1).
+    #[test]
+    fn the_residual_is_the_deviation_from_constant_velocity() {
+        let (x, frame) = frame();
+        let model = crate::model::init(
+            &crate::ModelConfig {
+                hidden: 8,
+                heads: 2,
+                blocks: 1,
+                window_slots: 3,
+                ..crate::ModelConfig::default()
+            },
+            &Device::Cpu,
+        )
+        .unwrap()
+        .1;
+        let sigma = Tensor::from_vec(vec![0.002f32, 0.1, 1.0], (1, 3), &Device::Cpu).unwrap();
+        let r = frame.residual(&x, &sigma, 40.0, &model).unwrap();
+        let y = values(&r.y);
+        let want0 = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 4.0];
+        for (got, want) in y[..9].iter().zip(want0) {
+            assert!((got - want).abs() < 1e-4, "agent 0: {:?}", &y[..9]);
+        }
+        assert_eq!(values(&r.scale), [40.0, 1.0]);
+        assert_eq!(&values(&r.reference)[9..], [0.0; 9]);
+        assert_eq!(&y[9..], &values(&x)[9..]);
+        // Agent 0 is preconditioned at σ·40, agent 1 at σ.
+        let c_in = values(&r.c_in);
+        let want_c_in = |s: f32| 1.0 / (s * s + 0.25).sqrt();
+        assert!((c_in[1] - want_c_in(4.0)).abs() < 1e-6);
+        assert!((c_in[4] - want_c_in(0.1)).abs() < 1e-6);
+        // The step features: one unit along the anchor heading, in metres at scale 40.
+        let step = values(&frame.step_features(40.0, 3).unwrap());
+        assert!((step[0] - 40.0).abs() < 1e-4 && step[1].abs() < 1e-4, "{step:?}");
+        assert!(step[6..].iter().all(|&v| v == 0.0), "{step:?}");
     }
 
     #[test]

@@ -1,6 +1,7 @@
 //! The fast CPU path against candle's denoiser (the reference), to the tolerance the WGSL
-//! engine meets: one evaluation on random padded batches, with and without the agent frame,
-//! over every scene or a subset; and whole rollouts through the driver on both engines.
+//! engine meets: one evaluation on random padded batches (scene frame, agent frame, and the
+//! constant-velocity reference), over every scene or a subset; and whole rollouts through the
+//! driver on both engines.
 
 use candle_core::{Device, Tensor};
 use rand::rngs::StdRng;
@@ -38,16 +39,36 @@ fn assert_close(got: &[f32], want: &[f32], rel: f32, abs: f32, what: &str) {
     );
 }
 
-fn config(agent_frame: bool) -> ModelConfig {
+/// Which per-agent frame the test model has.
+#[derive(Debug, Clone, Copy)]
+enum Frame {
+    /// The paper's scene-frame states only.
+    Scene,
+    /// Relative features, rotated output.
+    Relative,
+    /// Also the constant-velocity reference (`residual_scale`).
+    Residual,
+}
+
+fn config(frame: Frame) -> ModelConfig {
     ModelConfig {
         hidden: 32,
         heads: 4,
         blocks: 2,
         map_polylines: 6,
-        agent_frame: agent_frame.then_some(AgentFrame {
-            anchor_slot: 9,
-            relative_scale: 2.0,
-        }),
+        agent_frame: match frame {
+            Frame::Scene => None,
+            Frame::Relative => Some(AgentFrame {
+                anchor_slot: 9,
+                relative_scale: 2.0,
+                residual_scale: None,
+            }),
+            Frame::Residual => Some(AgentFrame {
+                anchor_slot: 9,
+                relative_scale: 1.0,
+                residual_scale: Some(40.0),
+            }),
+        },
         ..ModelConfig::default()
     }
 }
@@ -144,8 +165,8 @@ fn candle_denoise(model: &Denoiser, r: &RandomBatch) -> Vec<f32> {
         .unwrap()
 }
 
-fn fast_matches_candle(agent_frame: bool) {
-    let c = config(agent_frame);
+fn fast_matches_candle(frame: Frame) {
+    let c = config(frame);
     let (_, model) = model::init_seeded(&c, &Device::Cpu, 7).unwrap();
     let r = random_batch(&c, 3);
     let want = candle_denoise(&model, &r);
@@ -213,17 +234,22 @@ fn fast_matches_candle(agent_frame: bool) {
 
 #[test]
 fn fast_denoiser_matches_candle() {
-    fast_matches_candle(false);
+    fast_matches_candle(Frame::Scene);
 }
 
 #[test]
 fn fast_denoiser_with_an_agent_frame_matches_candle() {
-    fast_matches_candle(true);
+    fast_matches_candle(Frame::Relative);
+}
+
+#[test]
+fn fast_denoiser_with_a_constant_velocity_reference_matches_candle() {
+    fast_matches_candle(Frame::Residual);
 }
 
 #[test]
 fn fast_denoiser_refuses_a_scene_outside_its_cache() {
-    let c = config(false);
+    let c = config(Frame::Scene);
     let (_, model) = model::init_seeded(&c, &Device::Cpu, 7).unwrap();
     let fast = FastDenoiser::new(&model, 1).unwrap();
     let d = c.hidden;
@@ -286,8 +312,8 @@ fn scenes(c: &ModelConfig, count: usize) -> Vec<RolloutScene> {
         .collect()
 }
 
-fn rollouts_agree(agent_frame: bool) {
-    let c = config(agent_frame);
+fn rollouts_agree(frame: Frame) {
+    let c = config(frame);
     let (_, model) = model::init_seeded(&c, &Device::Cpu, 5).unwrap();
     let planner = PlannerSpec {
         steps_per_diffusion: 10,
@@ -307,18 +333,23 @@ fn rollouts_agree(agent_frame: bool) {
 
 #[test]
 fn fast_engine_rollouts_match_candle() {
-    rollouts_agree(false);
+    rollouts_agree(Frame::Scene);
 }
 
 #[test]
 fn fast_engine_rollouts_with_an_agent_frame_match_candle() {
-    rollouts_agree(true);
+    rollouts_agree(Frame::Relative);
+}
+
+#[test]
+fn fast_engine_rollouts_with_a_constant_velocity_reference_match_candle() {
+    rollouts_agree(Frame::Residual);
 }
 
 /// Mixed phases: scenes tick in different subsets, so the engines evaluate gathered rows.
 #[test]
 fn fast_engine_matches_candle_when_only_some_scenes_tick() {
-    let c = config(true);
+    let c = config(Frame::Residual);
     let (_, model) = model::init_seeded(&c, &Device::Cpu, 5).unwrap();
     let planner = PlannerSpec {
         steps_per_diffusion: 10,

@@ -211,6 +211,77 @@ fn an_invalid_agent_never_influences_a_valid_one() {
     assert_ne!(run_once(&moved, &noise)[3 * w..], before[3 * w..]);
 }
 
+/// The loss written on `F` is EDM's `λ(σ)·|D − x0|²` of the denoiser itself, for the scene
+/// frame, the agent frame and the constant-velocity residual: training optimises what
+/// sampling uses.
+#[test]
+fn the_loss_is_the_weighted_error_of_the_denoiser_for_every_parameterisation() {
+    let frames = [
+        None,
+        Some(road_model::AgentFrame {
+            anchor_slot: 9,
+            relative_scale: 2.0,
+            residual_scale: None,
+        }),
+        Some(road_model::AgentFrame {
+            anchor_slot: 9,
+            relative_scale: 1.0,
+            residual_scale: Some(40.0),
+        }),
+    ];
+    let ds = dataset(Split::Train);
+    for frame in frames {
+        let mut run = run_config();
+        run.model.agent_frame = frame.clone();
+        let (_, model) = model::init_seeded(&run.model, &Device::Cpu, 4).unwrap();
+        let mut rng = StdRng::seed_from_u64(5);
+        let batch = sample_batch(&run, &ds, 4, None, &mut rng, &Device::Cpu).unwrap();
+        let map = model.encode_map(&batch.map, Mode::Infer).unwrap();
+        let loss = edm_loss(&model, &batch, &map, Mode::Infer)
+            .unwrap()
+            .to_scalar::<f32>()
+            .unwrap();
+        let d = model
+            .denoise(
+                &batch.x_noisy,
+                &batch.sigma,
+                &batch.valid,
+                &batch.agent_features,
+                &map,
+                &batch.map_valid,
+                Mode::Infer,
+            )
+            .unwrap();
+        let (b, a, w, _) = d.dims4().unwrap();
+        let flat = |t: &Tensor| t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        let (d, x0, sigma, valid) = (
+            flat(&d),
+            flat(&batch.x0),
+            flat(&batch.sigma),
+            flat(&batch.valid),
+        );
+        let sd = 0.5f64;
+        let (mut sum, mut count) = (0f64, 0f64);
+        for token in 0..b * a * w {
+            if valid[token] == 0.0 {
+                continue;
+            }
+            let s = f64::from(sigma[(token / (a * w)) * w + token % w]);
+            let lambda = (s * s + sd * sd) / (s * sd).powi(2);
+            for c in 0..3 {
+                let e = f64::from(d[3 * token + c]) - f64::from(x0[3 * token + c]);
+                sum += lambda * e * e;
+                count += 1.0;
+            }
+        }
+        let want = sum / count;
+        assert!(
+            (f64::from(loss) - want).abs() < 2e-3 * want,
+            "{frame:?}: loss {loss} against λ·|D − x0|² {want}"
+        );
+    }
+}
+
 #[test]
 fn one_training_step_lowers_the_loss_on_a_fixed_batch() {
     let run = run_config();
