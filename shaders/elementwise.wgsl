@@ -10,7 +10,7 @@ struct Params {
     points: u32,     // Q (point embeddings) or unused
     anchor_slot: u32, // precondition_output: the agent frame's anchor slot, or NO_FRAME
     heading_scale: f32, // precondition_output with an agent frame: state units per radian
-    _pad0: u32,
+    residual_scale: f32, // precondition_output: the constant-velocity reference's scale, 0 without
     _pad1: u32,
 }
 
@@ -39,7 +39,10 @@ fn add_in_place(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
 
 // D = c_skip · x + c_out · F · valid. a = x [B, A, W, 3], b = F [B, A, W, 3], c = σ [B, W],
 // e = valid [B, A, W]. With an agent frame, F's (x, y) is first rotated from the anchor's
-// heading back to the scene frame (model.rs `AnchorFrame::rotate_to_scene`).
+// heading back to the scene frame (model.rs `AnchorFrame::rotate_to_scene`). With a
+// constant-velocity reference r (the anchor moved by the last observed step per slot) and
+// scale s: D = r + (c_skip(σs) · s(x − r) + c_out(σs) · F · valid) / s; an agent without an
+// anchor keeps r = 0, s = 1.
 @compute @workgroup_size(64)
 fn precondition_output(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let i = flat_index(gid, groups);
@@ -49,21 +52,37 @@ fn precondition_output(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(n
     let token = i / 3u; // (b, a, w)
     let w = token % params.slots;
     let scene = token / (params.slots * params.agents);
-    let s = c[scene * params.slots + w];
+    var s = c[scene * params.slots + w];
     let sd = params.sigma_data;
-    let denom = s * s + sd * sd;
     var f = b[i];
     let component = i % 3u;
-    if (params.anchor_slot != NO_FRAME && component < 2u) {
+    var reference = 0.0;
+    var scale = 1.0;
+    if (params.anchor_slot != NO_FRAME) {
         let anchor = (token / params.slots) * params.slots + params.anchor_slot;
-        let heading_rad = a[anchor * 3u + 2u] * e[anchor] / params.heading_scale;
+        let anchor_valid = e[anchor];
+        let heading_rad = a[anchor * 3u + 2u] * anchor_valid / params.heading_scale;
         let cs = cos(heading_rad);
         let sn = sin(heading_rad);
-        let f0 = b[token * 3u];
-        let f1 = b[token * 3u + 1u];
-        f = select(sn * f0 + cs * f1, cs * f0 - sn * f1, component == 0u);
+        if (component < 2u) {
+            let f0 = b[token * 3u];
+            let f1 = b[token * 3u + 1u];
+            f = select(sn * f0 + cs * f1, cs * f0 - sn * f1, component == 0u);
+        }
+        if (params.residual_scale > 0.0 && anchor_valid > 0.0) {
+            scale = params.residual_scale;
+            reference = a[anchor * 3u + component];
+            if (component < 2u) {
+                let previous = anchor - 1u;
+                let step = (a[anchor * 3u + component] - a[previous * 3u + component]) * e[previous];
+                reference += (f32(w) - f32(params.anchor_slot)) * step;
+            }
+        }
     }
-    out[i] = sd * sd / denom * a[i] + s * sd * inverseSqrt(denom) * f * e[token];
+    s = s * scale;
+    let denom = s * s + sd * sd;
+    let y = (a[i] - reference) * scale;
+    out[i] = reference + (sd * sd / denom * y + s * sd * inverseSqrt(denom) * f * e[token]) / scale;
 }
 
 // Map points: out[b, p, q, :] = relu(W · point + bias + point_embedding[q, :]).

@@ -12,7 +12,8 @@ struct Params {
     anchor_slot: u32,
     heading_scale: f32,   // state units per radian
     relative_scale: f32,  // multiplier of the relative features after c_in
-    _pad0: u32,
+    // The constant-velocity reference's scale (AgentFrame::residual_scale), 0 without one.
+    residual_scale: f32,
     _pad1: u32,
 }
 
@@ -25,12 +26,15 @@ const NO_FRAME: u32 = 0xffffffffu;
 //                              (+ W_rel · rel + b_rel with an agent frame: rel = the state
 //                              relative to the agent's anchor state, rotated into the anchor's
 //                              heading, times c_in · relative_scale · valid · anchor_valid, and
-//                              anchor_valid; model.rs `AnchorFrame`)
+//                              anchor_valid; model.rs `AnchorFrame`). With a constant-velocity
+//                              reference the rotated displacement is y = s · (x − reference) at
+//                              c_in(σ·s), and two more features: the last observed step, rotated,
+//                              times s.
 @group(0) @binding(1) var<storage, read> x: array<f32>;          // [B, A, W, 3]
 @group(0) @binding(2) var<storage, read> sigma: array<f32>;      // [B, W]
 @group(0) @binding(3) var<storage, read> valid: array<f32>;      // [B, A, W]
 @group(0) @binding(4) var<storage, read> agent: array<f32>;      // [B, A, D] (embed_agent output)
-@group(0) @binding(5) var<storage, read> w_state: array<f32>;    // [D, 3] then b_state [D], w_noise [D], b_noise [D], slot [W, D] (, w_rel [D, 4], b_rel [D])
+@group(0) @binding(5) var<storage, read> w_state: array<f32>;    // [D, 3] then b_state [D], w_noise [D], b_noise [D], slot [W, D] (, w_rel [D, 4 or 6], b_rel [D])
 @group(0) @binding(6) var<storage, read_write> h: array<f32>;    // [B, A, W, D]
 
 @compute @workgroup_size(64)
@@ -68,17 +72,40 @@ fn embed_tokens(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
         let heading_rad = xa.z / params.heading_scale;
         let cs = cos(heading_rad);
         let sn = sin(heading_rad);
-        let dx = x[xb] - xa.x;
-        let dy = x[xb + 1u] - xa.y;
-        let dh = x[xb + 2u] - xa.z;
-        let k = c_in * params.relative_scale * valid[token] * anchor_valid;
+        var dx = x[xb] - xa.x;
+        var dy = x[xb + 1u] - xa.y;
+        var dh = x[xb + 2u] - xa.z;
+        var k = c_in * params.relative_scale * valid[token] * anchor_valid;
+        var width = 4u;
+        var step_forward = 0.0;
+        var step_left = 0.0;
+        if (params.residual_scale > 0.0) {
+            let rs = params.residual_scale;
+            let previous = anchor - 1u;
+            let both = valid[previous] * anchor_valid;
+            let step_x = (x[anchor * 3u] - x[previous * 3u]) * both;
+            let step_y = (x[anchor * 3u + 1u] - x[previous * 3u + 1u]) * both;
+            let t = f32(w) - f32(params.anchor_slot);
+            dx = (dx - t * step_x) * rs;
+            dy = (dy - t * step_y) * rs;
+            dh = dh * rs;
+            let s_y = s * rs;
+            k = inverseSqrt(s_y * s_y + sd * sd) * params.relative_scale * valid[token] * anchor_valid;
+            width = 6u;
+            step_forward = (cs * step_x + sn * step_y) * rs;
+            step_left = (cs * step_y - sn * step_x) * rs;
+        }
         let w_rel = slot + params.slots * d_count;
-        let b_rel = w_rel + 4u * d_count;
-        acc += w_state[w_rel + 4u * d] * (cs * dx + sn * dy) * k
-            + w_state[w_rel + 4u * d + 1u] * (cs * dy - sn * dx) * k
-            + w_state[w_rel + 4u * d + 2u] * dh * k
-            + w_state[w_rel + 4u * d + 3u] * anchor_valid
+        let b_rel = w_rel + width * d_count;
+        let row = w_rel + width * d;
+        acc += w_state[row] * (cs * dx + sn * dy) * k
+            + w_state[row + 1u] * (cs * dy - sn * dx) * k
+            + w_state[row + 2u] * dh * k
+            + w_state[row + 3u] * anchor_valid
             + w_state[b_rel + d];
+        if (width == 6u) {
+            acc += w_state[row + 4u] * step_forward + w_state[row + 5u] * step_left;
+        }
     }
     h[index] = acc;
 }

@@ -35,11 +35,21 @@ struct EmbedParams {
     anchor_slot: u32,
     heading_scale: f32,
     relative_scale: f32,
-    _pad: [u32; 2],
+    /// `AgentFrame::residual_scale`, 0 without a constant-velocity reference.
+    residual_scale: f32,
+    _pad: u32,
 }
 
 /// `anchor_slot` of the kernels' params when the model has no agent frame.
 const NO_FRAME: u32 = u32::MAX;
+
+/// The kernels' `residual_scale`: 0 without a constant-velocity reference.
+fn residual_scale(c: &road_model::ModelConfig) -> f32 {
+    c.agent_frame
+        .as_ref()
+        .and_then(|f| f.residual_scale)
+        .map_or(0.0, |s| s as f32)
+}
 
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
@@ -53,7 +63,9 @@ struct ElementwiseParams {
     points: u32,
     anchor_slot: u32,
     heading_scale: f32,
-    _pad: [u32; 3],
+    /// `AgentFrame::residual_scale`, 0 without a constant-velocity reference.
+    residual_scale: f32,
+    _pad: [u32; 2],
 }
 
 #[repr(C)]
@@ -185,17 +197,6 @@ impl GpuDenoiser {
                 .get(name)
                 .ok_or_else(|| Error::Checkpoint(format!("missing tensor `{name}`")))
         };
-        if config
-            .agent_frame
-            .as_ref()
-            .is_some_and(|f| f.residual_scale.is_some())
-        {
-            return Err(Error::Checkpoint(
-                "model.agent_frame.residual_scale (the constant-velocity reference) is not in \
-                 the WGSL kernels yet; use the CPU engines (`--engine cpu` or `candle`)"
-                    .into(),
-            ));
-        }
         // Packed small tensors the embedding kernels read from one binding.
         let mut packed: Vec<(String, Vec<f32>)> = Vec::new();
         let mut embed_parts = vec![
@@ -354,7 +355,8 @@ impl GpuDenoiser {
             points: 0,
             anchor_slot: NO_FRAME,
             heading_scale: 1.0,
-            _pad: [0; 3],
+            residual_scale: 0.0,
+            _pad: [0; 2],
         };
         let params = Self::params(ctx, &p);
         let bound = [(1, from.as_entire_binding()), (5, into.as_entire_binding())];
@@ -406,7 +408,8 @@ impl GpuDenoiser {
             points: q as u32,
             anchor_slot: NO_FRAME,
             heading_scale: 1.0,
-            _pad: [0; 3],
+            residual_scale: 0.0,
+            _pad: [0; 2],
         };
         let params = Self::params(ctx, &p);
         // Bindings a, b and out of the elementwise family (c and e are unused by this entry).
@@ -573,7 +576,8 @@ impl GpuDenoiser {
                 .agent_frame
                 .as_ref()
                 .map_or(1.0, |f| f.relative_scale as f32),
-            _pad: [0; 2],
+            residual_scale: residual_scale(c),
+            _pad: 0,
         };
         let params = Self::params(ctx, &p);
         let resources = [
@@ -793,7 +797,8 @@ impl GpuDenoiser {
                 .as_ref()
                 .map_or(NO_FRAME, |f| f.anchor_slot as u32),
             heading_scale: c.heading_scale as f32,
-            _pad: [0; 3],
+            residual_scale: residual_scale(c),
+            _pad: [0; 2],
         };
         let params = Self::params(ctx, &p);
         ops.push(self.pipelines.precondition_output.prepare_buffers(

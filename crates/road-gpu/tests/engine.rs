@@ -157,6 +157,21 @@ fn whole_denoiser_with_an_agent_frame_matches_candle() {
     whole_denoiser_matches_candle(&config, "denoiser-frame");
 }
 
+/// The constant-velocity reference (residual denoising at σ·scale, the last observed step as
+/// features), with the same agent missing at the anchor slot.
+#[test]
+fn whole_denoiser_with_a_constant_velocity_reference_matches_candle() {
+    let config = ModelConfig {
+        agent_frame: Some(road_model::AgentFrame {
+            anchor_slot: 9,
+            relative_scale: 1.0,
+            residual_scale: Some(40.0),
+        }),
+        ..test_config()
+    };
+    whole_denoiser_matches_candle(&config, "denoiser-residual");
+}
+
 fn whole_denoiser_matches_candle(config: &ModelConfig, name: &str) {
     let ctx = context();
     let (dir, reference) = checkpoint_dir(config, name);
