@@ -257,7 +257,7 @@ fn window_kernels_match_the_cpu_reference() {
         // Shift: every other scene, with fewer real agents than the padded count.
         let shape = ShiftShape {
             observed: n,
-            obs_sigma: 0.002,
+            obs_noise: 0.002,
             sigma_max: 80.0,
         };
         let edits: Vec<(usize, Vec<f32>, Vec<f32>)> = (0..b)

@@ -605,7 +605,10 @@ impl FastDenoiser {
                     // The displacement the features rotate, and its c_in: from the anchor in
                     // the scene's units, or the scaled residual at σ·scale.
                     let (d3, c_in_rel) = match anchor.residual_scale {
-                        None => ([x[0] - anchor.x, x[1] - anchor.y, x[2] - anchor.heading], c_in),
+                        None => (
+                            [x[0] - anchor.x, x[1] - anchor.y, x[2] - anchor.heading],
+                            c_in,
+                        ),
                         Some(scale) => {
                             let r = anchor.reference(slot, self.anchor_slot());
                             let sigma_y = sigma * scale;

@@ -453,7 +453,10 @@ impl AnchorFrame {
     /// The last observed step in the anchor's heading, times `scale` (40: metres per step),
     /// the same for every slot: `[B, A, W, 2]`.
     fn step_features(&self, scale: f64, w: usize) -> Result<Tensor> {
-        let step = self.step.as_ref().expect("a residual frame carries its step");
+        let step = self
+            .step
+            .as_ref()
+            .expect("a residual frame carries its step");
         let (dx, dy) = (step.narrow(3, 0, 1)?, step.narrow(3, 1, 1)?);
         let forward = (dx.broadcast_mul(&self.cos)? + dy.broadcast_mul(&self.sin)?)?;
         let left = (dy.broadcast_mul(&self.cos)? - dx.broadcast_mul(&self.sin)?)?;
@@ -472,7 +475,10 @@ impl AnchorFrame {
         model: &Denoiser,
     ) -> Result<Residual> {
         let (b, _, w, _) = x.dims4()?;
-        let step = self.step.as_ref().expect("a residual frame carries its step");
+        let step = self
+            .step
+            .as_ref()
+            .expect("a residual frame carries its step");
         let offsets: Vec<f32> = (0..w)
             .map(|slot| slot as f32 - self.anchor_slot as f32)
             .collect();
@@ -713,7 +719,10 @@ mod tests {
         assert!((c_in[4] - want_c_in(0.1)).abs() < 1e-6);
         // The step features: one unit along the anchor heading, in metres at scale 40.
         let step = values(&frame.step_features(40.0, 3).unwrap());
-        assert!((step[0] - 40.0).abs() < 1e-4 && step[1].abs() < 1e-4, "{step:?}");
+        assert!(
+            (step[0] - 40.0).abs() < 1e-4 && step[1].abs() < 1e-4,
+            "{step:?}"
+        );
         assert!(step[6..].iter().all(|&v| v == 0.0), "{step:?}");
     }
 

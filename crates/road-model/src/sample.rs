@@ -103,7 +103,7 @@ pub struct ShiftEdit<'a> {
 pub struct ShiftShape {
     /// n: observed slots.
     pub observed: usize,
-    pub obs_sigma: f32,
+    pub obs_noise: f32,
     pub sigma_max: f32,
 }
 
@@ -128,7 +128,7 @@ pub fn window_emitted(
 }
 
 /// The window after an emission from slot n of scene `scene` (`window [A, W, 3]` of that scene):
-/// slots move up by one, slot n − 1 = emitted + σ_obs·noise, slot W − 1 = σ_max·noise (agents past
+/// slots move up by one, slot n − 1 = emitted + obs_noise·noise, slot W − 1 = σ_max·noise (agents past
 /// `emitted`'s count are padding and untouched but for the move). The reference of the
 /// `window_shift` kernel.
 pub fn window_shift(window: &mut [f32], w: usize, edit: &ShiftEdit<'_>, shape: ShiftShape) {
@@ -147,7 +147,7 @@ pub fn window_shift(window: &mut [f32], w: usize, edit: &ShiftEdit<'_>, shape: S
             } else {
                 (0.0, 0.0, 0.0)
             };
-            window[3 * (row + shape.observed - 1) + d] = e + shape.obs_sigma * obs;
+            window[3 * (row + shape.observed - 1) + d] = e + shape.obs_noise * obs;
             window[3 * (row + w - 1) + d] = shape.sigma_max * new;
         }
     }
@@ -202,7 +202,7 @@ pub struct RolloutDriver {
     n: usize,
     w: usize,
     a_max: usize,
-    obs_sigma: f32,
+    obs_noise: f32,
     sigma_max: f32,
     states: Vec<SceneState>,
     rngs: Vec<StdRng>,
@@ -274,7 +274,8 @@ impl RolloutDriver {
             .max(1);
         let q = scenes[0].history.points;
         let sigma_max = planner.edm.sigma_max as f32;
-        let obs_sigma = planner.obs_sigma() as f32;
+        // The noise added to observations (the σ rows tell the model `obs_sigma`).
+        let obs_noise = planner.obs_noise() as f32;
 
         // Static inputs, once: agent features and the map.
         let mut feats = vec![0.0f32; b * a_max * AGENT_FEATURES];
@@ -337,7 +338,7 @@ impl RolloutDriver {
             })
             .collect();
         for (s, r) in states.iter_mut().zip(&mut rngs) {
-            rebuild_window(s, n, w, obs_sigma, sigma_max, r);
+            rebuild_window(s, n, w, obs_noise, sigma_max, r);
         }
         let packed: Vec<f32> = states
             .iter()
@@ -370,7 +371,7 @@ impl RolloutDriver {
             n,
             w,
             a_max,
-            obs_sigma,
+            obs_noise,
             sigma_max,
             states,
             rngs,
@@ -461,7 +462,7 @@ impl RolloutDriver {
             &mut self.states[scene],
             self.n,
             self.w,
-            self.obs_sigma,
+            self.obs_noise,
             self.sigma_max,
             &mut self.rngs[scene],
         );
@@ -539,7 +540,7 @@ impl RolloutDriver {
         engine.read_emitted(&self.emit_slots, &mut self.emitted)?;
         let shape = ShiftShape {
             observed: n,
-            obs_sigma: self.obs_sigma,
+            obs_noise: self.obs_noise,
             sigma_max: self.sigma_max,
         };
         // (scene, emitted [agents·3], noise [agents·6]) of the scenes that shift.
@@ -569,7 +570,7 @@ impl RolloutDriver {
                     shifts.push((i, emitted, noise));
                 }
                 WindowUpdate::Rebuild => {
-                    rebuild_window(s, n, w, self.obs_sigma, self.sigma_max, rng);
+                    rebuild_window(s, n, w, self.obs_noise, self.sigma_max, rng);
                     self.needs_load[i] = true;
                 }
                 WindowUpdate::Hold | WindowUpdate::Exhausted => {}
@@ -635,12 +636,13 @@ impl RolloutDriver {
     }
 }
 
-/// Window from the newest `n` history states (observations at `obs_sigma`) and pure noise.
+/// Window from the newest `n` history states (observations plus `obs_noise` · N(0, 1)) and
+/// pure noise.
 fn rebuild_window(
     s: &mut SceneState,
     n: usize,
     w: usize,
-    obs_sigma: f32,
+    obs_noise: f32,
     sigma_max: f32,
     rng: &mut StdRng,
 ) {
@@ -655,7 +657,7 @@ fn rebuild_window(
                 let t = len - n + slot;
                 if s.history_valid[a][t] {
                     for d in 0..3 {
-                        s.window[3 * k + d] = s.history[a][t][d] + obs_sigma * noise[3 * k + d];
+                        s.window[3 * k + d] = s.history[a][t][d] + obs_noise * noise[3 * k + d];
                     }
                     s.valid[k] = 1.0;
                 }

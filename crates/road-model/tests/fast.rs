@@ -10,7 +10,8 @@ use road_model::batch::{AGENT_FEATURES, SceneInput};
 use road_model::fast::{FastDenoiser, FastInputs};
 use road_model::model::{self, Denoiser, Mode};
 use road_model::sample::{
-    CpuEngine, FastCpuEngine, RolloutDriver, RolloutScene, StepEngine, rollout_with,
+    CpuEngine, FastCpuEngine, RolloutDriver, RolloutScene, ShiftEdit, ShiftShape, StepEngine,
+    rollout_with,
 };
 use road_model::{AgentFrame, ModelConfig};
 use road_sched::PlannerSpec;
@@ -376,5 +377,106 @@ fn fast_engine_matches_candle_when_only_some_scenes_tick() {
     assert_eq!(fast.len(), reference.len());
     for (f, r) in fast.iter().zip(&reference) {
         assert_close(f, r, 1e-3, 1e-4, "mixed-phase tick");
+    }
+}
+
+/// The CPU engine, recording the windows it is loaded with and the shifts' noise scale.
+struct Recorder<'a> {
+    inner: CpuEngine<'a>,
+    loaded: Vec<Vec<f32>>,
+    shift_noise: Vec<f32>,
+}
+
+impl StepEngine for Recorder<'_> {
+    fn window_slots(&self) -> usize {
+        self.inner.window_slots()
+    }
+    fn prepare(
+        &mut self,
+        scenes: usize,
+        agents: usize,
+        features: &[f32],
+        polylines: usize,
+        map: &[f32],
+        map_valid: &[f32],
+    ) -> road_model::Result<()> {
+        self.inner
+            .prepare(scenes, agents, features, polylines, map, map_valid)
+    }
+    fn load(&mut self, windows: &[f32], valid: &[f32]) -> road_model::Result<()> {
+        self.loaded.push(windows.to_vec());
+        self.inner.load(windows, valid)
+    }
+    fn load_scene(
+        &mut self,
+        scene: usize,
+        window: &[f32],
+        valid: &[f32],
+    ) -> road_model::Result<()> {
+        self.inner.load_scene(scene, window, valid)
+    }
+    fn step(&mut self, cur: &[f32], next: &[f32], second: bool) -> road_model::Result<()> {
+        self.inner.step(cur, next, second)
+    }
+    fn read_emitted(&mut self, slots: &[Option<usize>], out: &mut [f32]) -> road_model::Result<()> {
+        self.inner.read_emitted(slots, out)
+    }
+    fn shift(&mut self, edits: &[ShiftEdit<'_>], shape: ShiftShape) -> road_model::Result<()> {
+        self.shift_noise.push(shape.obs_noise);
+        self.inner.shift(edits, shape)
+    }
+}
+
+/// `obs_noise` sets the noise added to observations (the first window and every joining
+/// emission); the σ the model is told stays `obs_sigma`.
+#[test]
+fn observations_carry_the_planner_s_obs_noise() {
+    let c = config(Frame::Scene);
+    let (_, model) = model::init_seeded(&c, &Device::Cpu, 5).unwrap();
+    let scenes = scenes(&c, 1);
+    let history = &scenes[0].history;
+    let n = history.slots;
+    let w = c.window_slots;
+    for obs_noise in [None, Some(0.0)] {
+        let planner = PlannerSpec {
+            steps_per_diffusion: 10,
+            obs_noise,
+            ..PlannerSpec::default()
+        };
+        let mut engine = Recorder {
+            inner: CpuEngine::new(&model),
+            loaded: Vec::new(),
+            shift_noise: Vec::new(),
+        };
+        rollout_with(
+            &mut engine,
+            &planner,
+            &scenes,
+            3,
+            &mut StdRng::seed_from_u64(2),
+        )
+        .unwrap();
+        let window = &engine.loaded[0];
+        let mut largest = 0f32;
+        for a in 0..history.agents {
+            for slot in 0..n {
+                for d in 0..3 {
+                    let fed = window[3 * (a * w + slot) + d];
+                    let logged = history.states[3 * (a * n + slot) + d];
+                    largest = largest.max((fed - logged).abs());
+                }
+            }
+        }
+        let want = planner.obs_noise() as f32;
+        if want == 0.0 {
+            assert_eq!(largest, 0.0, "clean observations");
+        } else {
+            assert!(
+                largest > 0.1 * want && largest < 6.0 * want,
+                "noise {largest}"
+            );
+        }
+        assert!(!engine.shift_noise.is_empty());
+        assert!(engine.shift_noise.iter().all(|&s| s == want));
     }
 }

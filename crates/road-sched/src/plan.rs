@@ -37,6 +37,11 @@ pub struct PlannerSpec {
     /// Noise level of observed slots at test time; EDM's σ_min when absent.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub obs_sigma: Option<f64>,
+    /// Standard deviation of the noise actually added to observations at test time; `obs_sigma`
+    /// when absent (the paper's minimal augmentation). 0 feeds the observations clean while the
+    /// model is still told `obs_sigma`, the lowest level it was trained on.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub obs_noise: Option<f64>,
     #[serde(default)]
     pub edm: EdmSchedule,
 }
@@ -50,6 +55,7 @@ impl Default for PlannerSpec {
             steps_per_diffusion: 40,
             replan_every: None,
             obs_sigma: None,
+            obs_noise: None,
             edm: EdmSchedule::default(),
         }
     }
@@ -63,6 +69,11 @@ impl PlannerSpec {
 
     pub fn obs_sigma(&self) -> f64 {
         self.obs_sigma.unwrap_or(self.edm.sigma_min)
+    }
+
+    /// The noise added to observations: `obs_noise`, else `obs_sigma()`.
+    pub fn obs_noise(&self) -> f64 {
+        self.obs_noise.unwrap_or_else(|| self.obs_sigma())
     }
 
     /// Steps of a rolling stage: `K/F`.
@@ -91,6 +102,12 @@ impl PlannerSpec {
         if !(obs_sigma.is_finite() && obs_sigma > 0.0) {
             return bad(format!(
                 "obs_sigma must be positive and finite, got {obs_sigma}"
+            ));
+        }
+        let obs_noise = self.obs_noise();
+        if !(obs_noise.is_finite() && obs_noise >= 0.0) {
+            return bad(format!(
+                "obs_noise must be zero or positive and finite, got {obs_noise}"
             ));
         }
         let e = &self.edm;

@@ -14,6 +14,7 @@ fn spec(kind: PlannerKind, n: usize, f: usize, k: usize, x: Option<usize>) -> Pl
         steps_per_diffusion: k,
         replan_every: x,
         obs_sigma: None,
+        obs_noise: None,
         edm: EdmSchedule::default(),
     }
 }

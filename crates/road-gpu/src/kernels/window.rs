@@ -208,7 +208,7 @@ impl WindowOps {
             slots: self.slots as u32,
             agents: self.agents as u32,
             observed: shape.observed as u32,
-            obs_sigma: shape.obs_sigma,
+            obs_sigma: shape.obs_noise,
             sigma_max: shape.sigma_max,
             _pad0: 0,
             _pad1: 0,
