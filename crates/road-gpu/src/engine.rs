@@ -186,6 +186,13 @@ impl GpuDenoiser {
         tensors: &HashMap<String, Vec<f32>>,
     ) -> Result<Self> {
         let d = config.hidden;
+        if config.agent_map.is_some() {
+            return Err(Error::Checkpoint(
+                "agent maps (`model.agent_map`) have no WGSL kernels yet: run this checkpoint \
+                 on the CPU engines (`--engine cpu`)"
+                    .into(),
+            ));
+        }
         if d / config.heads > MAX_HEAD_DIM as usize {
             return Err(Error::Checkpoint(format!(
                 "head size {} exceeds the kernel's {MAX_HEAD_DIM}",

@@ -35,6 +35,24 @@ pub struct ModelConfig {
     /// checkpoints trained before it saw the scene frame only.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub agent_frame: Option<AgentFrame>,
+    /// Agent-centric map tokens (see [`AgentMap`]). Absent = one scene-frame token per
+    /// polyline, shared by every agent (the paper's and every checkpoint's before it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub agent_map: Option<AgentMap>,
+}
+
+/// Each agent attends to its own map: the `polylines` lane polylines (of the scene's
+/// `map_polylines`) nearest its anchor position, their points translated and rotated into its
+/// anchor frame before the point encoder. "The lane ahead bends left" then reads the same in
+/// every orientation and at every place of the scene, where scene-frame tokens leave it to
+/// dot-product attention to find the agent's lane among all of them. The same weights as the
+/// scene-frame map (`map_point`, `map_mix`, …); only their input changes. Needs an agent frame.
+/// Agents without an anchor get the polylines nearest the scene centre, in the scene frame.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AgentMap {
+    /// Polylines per agent K (≤ `map_polylines`).
+    pub polylines: usize,
 }
 
 /// Each token also sees its state relative to its agent's anchor pose (translated and rotated
@@ -85,6 +103,7 @@ impl Default for ModelConfig {
             position_scale_m: 40.0,
             edm: EdmSchedule::default(),
             agent_frame: None,
+            agent_map: None,
         }
     }
 }
@@ -135,6 +154,17 @@ impl ModelConfig {
                 }
             }
         }
+        if let Some(map) = &self.agent_map {
+            if self.agent_frame.is_none() {
+                return Err("agent_map needs an agent_frame (its anchors place the maps)".into());
+            }
+            if map.polylines == 0 || map.polylines > self.map_polylines {
+                return Err(format!(
+                    "agent_map.polylines ({}) must lie in 1..=map_polylines ({})",
+                    map.polylines, self.map_polylines
+                ));
+            }
+        }
         Ok(())
     }
 }
@@ -173,6 +203,12 @@ pub struct TrainConfig {
     /// Rotate every training scene about its centre by a uniform random angle (positions, map
     /// and headings together): the scene frame has no preferred orientation at inference.
     pub rotation_augmentation: bool,
+    /// Start from another checkpoint's (EMA) weights instead of a fresh initialisation: a
+    /// folder under `models/`, relative to the working directory. Every tensor must exist
+    /// there with this model's shape (e.g. a lever that changes only what a layer sees).
+    /// The optimiser's moments and the schedule start afresh.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub init_from: Option<std::path::PathBuf>,
 }
 
 impl Default for TrainConfig {
@@ -195,6 +231,7 @@ impl Default for TrainConfig {
             bucket_by_agents: true,
             workers: 2,
             rotation_augmentation: false,
+            init_from: None,
         }
     }
 }
@@ -299,4 +336,45 @@ pub enum TaskKind {
     Rolling,
     /// Every future slot at the same u = τ (AR, DJINN).
     Full,
+}
+
+#[cfg(test)]
+mod tests {
+    use std::path::Path;
+
+    use super::*;
+
+    /// Every run config under `configs/` (the files with a `name`) parses and validates.
+    #[test]
+    fn every_shipped_run_config_validates() {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs");
+        let mut runs = 0;
+        for entry in std::fs::read_dir(&dir).unwrap() {
+            let path = entry.unwrap().path();
+            let text = std::fs::read_to_string(&path).unwrap();
+            let is_run = text.lines().any(|l| l.starts_with("name = "));
+            if path.extension().is_some_and(|e| e == "toml") && is_run {
+                RunConfig::parse(&text, &path).unwrap_or_else(|e| panic!("{e}"));
+                runs += 1;
+            }
+        }
+        assert!(runs >= 10, "{runs} run configs in {}", dir.display());
+    }
+
+    #[test]
+    fn agent_maps_need_an_agent_frame_and_at_most_the_scene_s_polylines() {
+        let mut model = ModelConfig {
+            agent_map: Some(AgentMap { polylines: 8 }),
+            ..ModelConfig::default()
+        };
+        assert!(model.validate().unwrap_err().contains("agent_frame"));
+        model.agent_frame = Some(AgentFrame {
+            anchor_slot: 9,
+            relative_scale: 1.0,
+            residual_scale: Some(40.0),
+        });
+        assert_eq!(model.validate(), Ok(()));
+        model.agent_map = Some(AgentMap { polylines: 33 });
+        assert!(model.validate().unwrap_err().contains("map_polylines (32)"));
+    }
 }

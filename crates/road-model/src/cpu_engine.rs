@@ -7,9 +7,9 @@
 use candle_core::{Device, Tensor};
 
 use crate::batch::AGENT_FEATURES;
-use crate::fast::{FastDenoiser, FastInputs, SceneCache};
+use crate::fast::{FastDenoiser, FastInputs, SceneCache, SceneMap};
 use crate::heun::{changing_scenes, gather_rows, heun_update, scatter_rows};
-use crate::model::{Denoiser, Mode};
+use crate::model::{Denoiser, MapTokens, Mode};
 use crate::sample::{ShiftEdit, ShiftShape, StepEngine, window_emitted, window_shift};
 use crate::{Error, Result};
 
@@ -134,7 +134,7 @@ pub struct CpuEngine<'a> {
     model: &'a Denoiser,
     host: HostWindows,
     features: Option<Tensor>,
-    map_tokens: Option<Tensor>,
+    map_tokens: Option<MapTokens>,
     map_valid: Option<Tensor>,
 }
 
@@ -227,7 +227,7 @@ impl StepEngine for CpuEngine<'_> {
                     )?;
                     (
                         features.index_select(&index, 0)?,
-                        map_tokens.index_select(&index, 0)?,
+                        map_tokens.index_select(&index)?,
                         map_valid.index_select(&index, 0)?,
                     )
                 };
@@ -304,17 +304,32 @@ impl StepEngine for FastCpuEngine<'_> {
             slots: self.model.config.window_slots,
             ..HostWindows::default()
         };
-        // The map encoder runs once per scene set: candle's is fast enough there.
-        let map = Tensor::from_vec(map.to_vec(), (scenes, polylines, q, 2), &Device::Cpu)?;
-        let tokens = self
-            .model
-            .encode_map(&map, Mode::Infer)?
-            .flatten_all()?
-            .to_vec1::<f32>()?;
-        self.cache = Some(
-            self.fast
-                .scene_cache(scenes, agents, features, &tokens, map_valid)?,
-        );
+        let cache = if self.model.config.agent_map.is_some() {
+            // Each forward picks and encodes every agent's own polylines.
+            self.fast.scene_cache(
+                scenes,
+                agents,
+                features,
+                SceneMap::Polylines(map),
+                map_valid,
+            )?
+        } else {
+            // The scene-frame map encoder runs once per scene set: candle's is fast enough there.
+            let map = Tensor::from_vec(map.to_vec(), (scenes, polylines, q, 2), &Device::Cpu)?;
+            let tokens = self
+                .model
+                .encode_polylines(&map, Mode::Infer)?
+                .flatten_all()?
+                .to_vec1::<f32>()?;
+            self.fast.scene_cache(
+                scenes,
+                agents,
+                features,
+                SceneMap::Tokens(&tokens),
+                map_valid,
+            )?
+        };
+        self.cache = Some(cache);
         Ok(())
     }
 

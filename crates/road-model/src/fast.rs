@@ -13,6 +13,7 @@ use std::sync::Mutex;
 use candle_core::Tensor;
 use candle_nn::{LayerNorm, Linear};
 
+use crate::agent_map::{MapAnchor, agent_map, polylines_per_agent};
 use crate::config::AgentFrame;
 use crate::model::{Attention, Denoiser};
 use crate::{Error, Result};
@@ -195,6 +196,8 @@ pub struct FastDenoiser {
     blocks: Vec<FastBlock>,
     ln_out: Norm,
     head: Dense,
+    /// With an agent map: the polyline encoder and the polylines per agent K wanted.
+    agent_map: Option<(PolylineEncoder, usize)>,
     /// Worker threads a call may use (scenes are split between them).
     threads: usize,
     /// Scratch buffers, one set per worker, kept between calls.
@@ -209,10 +212,67 @@ pub struct SceneCache {
     pub polylines: usize,
     /// `[B, A, D]`: `embed_agent(features)`.
     agent_embedding: Vec<f32>,
-    /// `[B, blocks, P, 2D]`: each block's map keys and values.
+    /// `[B, blocks, P, 2D]`: each block's map keys and values (scene-frame map tokens only).
     map_kv: Vec<f32>,
+    /// `[B, P, Q, 2]`: the polylines each agent picks its own from (agent maps only).
+    map_points: Vec<f32>,
     /// `[B, P]`.
     map_valid: Vec<f32>,
+}
+
+/// The scene's map as [`FastDenoiser::scene_cache`] takes it.
+#[derive(Debug, Clone, Copy)]
+pub enum SceneMap<'a> {
+    /// Scene-frame tokens `[B, P, D]` (the candle model's `encode_map`).
+    Tokens(&'a [f32]),
+    /// The polylines `[B, P, Q, 2]`, for a model with an agent map.
+    Polylines(&'a [f32]),
+}
+
+/// The polyline encoder (`Denoiser::encode_polylines`) on plain buffers.
+#[derive(Debug, Clone)]
+struct PolylineEncoder {
+    point: Dense,
+    point_embedding: Vec<f32>, // [Q, D]
+    mix: Dense,
+    ln: Norm,
+}
+
+impl PolylineEncoder {
+    /// `tokens [n, D]` of `points [n, Q, 2]`; `hidden` and `mixed` are scratch of `n·Q·D`.
+    fn forward(
+        &self,
+        points: &[f32],
+        n: usize,
+        hidden: &mut Vec<f32>,
+        mixed: &mut Vec<f32>,
+        tokens: &mut [f32],
+    ) {
+        let d = self.point.d_out;
+        let q = self.point_embedding.len() / d;
+        let rows = n * q;
+        hidden.resize(rows * d, 0.0);
+        mixed.resize(rows * d, 0.0);
+        self.point.forward(points, rows, hidden);
+        for (row, h) in hidden[..rows * d].chunks_exact_mut(d).enumerate() {
+            let e = &self.point_embedding[(row % q) * d..][..d];
+            for (v, e) in h.iter_mut().zip(e) {
+                *v = (*v + e).max(0.0);
+            }
+        }
+        self.mix.forward(&hidden[..rows * d], rows, mixed);
+        // Max over each polyline's points, then the layer norm (in place, row by row).
+        for (poly, token) in tokens[..n * d].chunks_exact_mut(d).enumerate() {
+            token.fill(f32::NEG_INFINITY);
+            for point in mixed[poly * q * d..][..q * d].chunks_exact(d) {
+                for (t, v) in token.iter_mut().zip(point) {
+                    *t = t.max(*v);
+                }
+            }
+        }
+        let pooled = tokens[..n * d].to_vec();
+        self.ln.forward(&pooled, &mut tokens[..n * d]);
+    }
 }
 
 /// Per-worker buffers for `N` tokens (resized, never shrunk).
@@ -233,6 +293,15 @@ struct Scratch {
     queries: Vec<usize>,
     keys: Vec<usize>,
     scores: Vec<f32>,
+    /// Agent maps: per evaluated agent, its polylines `[K, Q, 2]` in its frame, their flags
+    /// `[K]`, the encoder's scratch, the tokens `[K, D]` and each block's `[K, 2D]` keys and
+    /// values (`[agents, blocks, K, 2D]`).
+    agent_points: Vec<f32>,
+    agent_map_valid: Vec<f32>,
+    agent_hidden: Vec<f32>,
+    agent_mixed: Vec<f32>,
+    agent_tokens: Vec<f32>,
+    agent_map_kv: Vec<f32>,
 }
 
 /// One batch of states to denoise: the rows of `scene_ids` in the [`SceneCache`].
@@ -292,47 +361,78 @@ impl FastDenoiser {
             blocks,
             ln_out: Norm::from_layer_norm(&model.ln_out)?,
             head: Dense::from_linear(&model.head)?,
+            agent_map: match &c.agent_map {
+                None => None,
+                Some(spec) => Some((
+                    PolylineEncoder {
+                        point: Dense::from_linear(&model.map_point)?,
+                        point_embedding: host(&model.map_point_embedding)?,
+                        mix: Dense::from_linear(&model.map_mix)?,
+                        ln: Norm::from_layer_norm(&model.ln_map_out)?,
+                    },
+                    spec.polylines,
+                )),
+            },
             threads: threads.max(1),
             scratch: Mutex::new(Vec::new()),
         })
     }
 
-    /// The static inputs of `scenes` scenes: `features [B, A, 6]`, `map_tokens [B, P, D]`
-    /// (the candle model's `encode_map`), `map_valid [B, P]`.
+    /// The static inputs of `scenes` scenes: `features [B, A, 6]`, the map (scene-frame tokens,
+    /// or the polylines for a model with an agent map), `map_valid [B, P]`.
     pub fn scene_cache(
         &self,
         scenes: usize,
         agents: usize,
         features: &[f32],
-        map_tokens: &[f32],
+        map: SceneMap<'_>,
         map_valid: &[f32],
     ) -> Result<SceneCache> {
         let d = self.hidden;
         let polylines = map_valid.len() / scenes.max(1);
+        let (map_values, per_polyline) = match (map, &self.agent_map) {
+            (SceneMap::Tokens(t), None) => (t.len(), d),
+            (SceneMap::Polylines(p), Some((encoder, _))) => {
+                (p.len(), encoder.point_embedding.len() / d * 2)
+            }
+            (SceneMap::Tokens(_), Some(_)) | (SceneMap::Polylines(_), None) => {
+                return Err(Error::data(
+                    "scene cache: a model with an agent map takes the polylines, any other the \
+                     scene-frame tokens"
+                        .into(),
+                ));
+            }
+        };
         if features.len() != scenes * agents * self.embed_agent.d_in
-            || map_tokens.len() != scenes * polylines * d
+            || map_values != scenes * polylines * per_polyline
             || map_valid.len() != scenes * polylines
         {
             return Err(Error::data(format!(
-                "scene cache of {scenes} scenes × {agents} agents: {} feature values, {} map \
-                 token values, {} map flags",
+                "scene cache of {scenes} scenes × {agents} agents: {} feature values, {map_values} \
+                 map values ({per_polyline} per polyline), {} map flags",
                 features.len(),
-                map_tokens.len(),
                 map_valid.len()
             )));
         }
         let mut agent_embedding = vec![0.0; scenes * agents * d];
         self.embed_agent
             .forward(features, scenes * agents, &mut agent_embedding);
-        let per_block = polylines * 2 * d;
-        let mut map_kv = vec![0.0; scenes * self.blocks.len() * per_block];
-        let mut kv = vec![0.0; per_block];
-        for b in 0..scenes {
-            let tokens = &map_tokens[b * polylines * d..][..polylines * d];
-            for (i, block) in self.blocks.iter().enumerate() {
-                block.map_kv.forward(tokens, polylines, &mut kv);
-                map_kv[(b * self.blocks.len() + i) * per_block..][..per_block].copy_from_slice(&kv);
+        let (mut map_kv, mut map_points) = (Vec::new(), Vec::new());
+        match map {
+            SceneMap::Tokens(map_tokens) => {
+                let per_block = polylines * 2 * d;
+                map_kv = vec![0.0; scenes * self.blocks.len() * per_block];
+                for b in 0..scenes {
+                    let tokens = &map_tokens[b * polylines * d..][..polylines * d];
+                    for (i, block) in self.blocks.iter().enumerate() {
+                        let kv = &mut map_kv[(b * self.blocks.len() + i) * per_block..];
+                        block
+                            .map_kv
+                            .forward(tokens, polylines, &mut kv[..per_block]);
+                    }
+                }
             }
+            SceneMap::Polylines(points) => map_points = points.to_vec(),
         }
         Ok(SceneCache {
             scenes,
@@ -340,8 +440,63 @@ impl FastDenoiser {
             polylines,
             agent_embedding,
             map_kv,
+            map_points,
             map_valid: map_valid.to_vec(),
         })
+    }
+
+    /// Every evaluated agent's own map (agent-map models): its polylines picked and encoded
+    /// in its anchor frame, then each block's keys and values, into the scratch's
+    /// `agent_map_kv [agents, blocks, K, 2D]` and `agent_map_valid [agents, K]`. Returns K.
+    fn agent_maps(&self, cache: &SceneCache, inputs: &FastInputs<'_>, s: &mut Scratch) -> usize {
+        let Some((encoder, wanted)) = &self.agent_map else {
+            return 0;
+        };
+        let (a, d) = (cache.agents, self.hidden);
+        let p = cache.polylines;
+        let q = encoder.point_embedding.len() / d;
+        let k = polylines_per_agent(*wanted, p);
+        let n = s.agent_rows.len();
+        s.agent_points.resize(n * k * q * 2, 0.0);
+        s.agent_map_valid.resize(n * k, 0.0);
+        for (compact, &agent_row) in s.agent_rows.iter().enumerate() {
+            let scene = inputs.scene_ids[agent_row / a];
+            let anchor = self
+                .anchor(inputs, agent_row)
+                .map_or(MapAnchor::SCENE, |an| MapAnchor {
+                    x: an.x,
+                    y: an.y,
+                    cos: an.cos,
+                    sin: an.sin,
+                });
+            agent_map(
+                anchor,
+                &cache.map_points[scene * p * q * 2..][..p * q * 2],
+                &cache.map_valid[scene * p..][..p],
+                q,
+                &mut s.agent_points[compact * k * q * 2..][..k * q * 2],
+                &mut s.agent_map_valid[compact * k..][..k],
+            );
+        }
+        s.agent_tokens.resize(n * k * d, 0.0);
+        encoder.forward(
+            &s.agent_points[..n * k * q * 2],
+            n * k,
+            &mut s.agent_hidden,
+            &mut s.agent_mixed,
+            &mut s.agent_tokens,
+        );
+        let blocks = self.blocks.len();
+        let per_block = k * 2 * d;
+        s.agent_map_kv.resize(n * blocks * per_block, 0.0);
+        for compact in 0..n {
+            let tokens = &s.agent_tokens[compact * k * d..][..k * d];
+            for (i, block) in self.blocks.iter().enumerate() {
+                let kv = &mut s.agent_map_kv[(compact * blocks + i) * per_block..];
+                block.map_kv.forward(tokens, k, &mut kv[..per_block]);
+            }
+        }
+        k
     }
 
     /// `D(x; σ)` of every batch row into `out [B, A, W, 3]`.
@@ -450,6 +605,7 @@ impl FastDenoiser {
             buf.resize(len.max(buf.len()), 0.0);
         }
         self.embed(cache, inputs, &s.agent_rows, &mut s.h[..n * d]);
+        let k = self.agent_maps(cache, inputs, s);
         let valid_token = |compact_token: usize| {
             inputs.valid[s.agent_rows[compact_token / w] * w + compact_token % w] > 0.0
         };
@@ -457,6 +613,7 @@ impl FastDenoiser {
         let scale = 1.0 / ((d / heads) as f32).sqrt();
         let p = cache.polylines;
         let all_polylines: Vec<usize> = (0..p).collect();
+        let agent_polylines: Vec<usize> = (0..k).collect();
         for (block_index, blk) in self.blocks.iter().enumerate() {
             // Time attention: the W slots of each agent.
             blk.ln_time.forward(&s.h[..n * d], &mut s.t[..n * d]);
@@ -510,10 +667,36 @@ impl FastDenoiser {
             blk.agents_o
                 .forward_add(&s.att[..n * d], n, &mut s.h[..n * d]);
 
-            // Map cross-attention: every token of a scene to that scene's polylines.
+            // Map cross-attention: every token of a scene to that scene's polylines, or to its
+            // agent's own.
             blk.ln_map.forward(&s.h[..n * d], &mut s.t[..n * d]);
             blk.map_q.forward(&s.t[..n * d], n, &mut s.qkv[..n * d]);
-            for (local, &scene) in inputs.scene_ids.iter().enumerate() {
+            let blocks = self.blocks.len();
+            for agent in 0..s.agent_rows.len() * usize::from(k > 0) {
+                s.queries.clear();
+                s.queries.extend(agent * w..(agent + 1) * w);
+                let flags = &s.agent_map_valid[agent * k..][..k];
+                unmasked_keys(&agent_polylines, &|key| flags[key] > 0.0, &mut s.keys);
+                let kv = KeysValues {
+                    data: &s.agent_map_kv[(agent * blocks + block_index) * k * 2 * d..]
+                        [..k * 2 * d],
+                    stride: 2 * d,
+                    k_offset: 0,
+                    v_offset: d,
+                };
+                attend(
+                    &s.qkv,
+                    d,
+                    &s.queries,
+                    &kv,
+                    &s.keys,
+                    heads,
+                    scale,
+                    &mut s.scores,
+                    &mut s.att,
+                );
+            }
+            for (local, &scene) in inputs.scene_ids.iter().enumerate().filter(|_| k == 0) {
                 s.queries.clear();
                 s.queries
                     .extend(s.scene_starts[local] * w..s.scene_starts[local + 1] * w);

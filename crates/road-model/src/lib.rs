@@ -6,6 +6,7 @@
 //! - [`train`]: AdamW, EMA, validation, checkpoints and exact resume;
 //! - [`checkpoint`]: the on-disk format (`docs/checkpoint.md`).
 
+pub mod agent_map;
 pub mod batch;
 pub mod checkpoint;
 pub mod config;
@@ -19,8 +20,8 @@ pub mod train;
 
 use std::path::{Path, PathBuf};
 
-pub use config::{AgentFrame, ModelConfig, RunConfig, TrainConfig};
-pub use model::{Denoiser, Mode};
+pub use config::{AgentFrame, AgentMap, ModelConfig, RunConfig, TrainConfig};
+pub use model::{Denoiser, MapTokens, Mode};
 
 /// Errors of the model layer.
 #[derive(Debug, thiserror::Error)]

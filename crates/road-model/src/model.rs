@@ -8,6 +8,7 @@ use candle_core::{DType, Module, Tensor};
 use candle_nn::{LayerNorm, Linear, VarBuilder, layer_norm, linear};
 
 use crate::Result;
+use crate::agent_map::MapAnchor;
 use crate::batch::AGENT_FEATURES;
 use crate::config::ModelConfig;
 
@@ -123,8 +124,8 @@ impl Block {
         })
     }
 
-    /// `h [B, A, W, D]`; biases from [`Masks`]; `map_tokens [B, P, D]`.
-    fn forward(&self, h: &Tensor, m: &Masks, map_tokens: &Tensor, mode: Mode) -> Result<Tensor> {
+    /// `h [B, A, W, D]`; biases from [`Masks`]; the map keys of [`MapKeys`].
+    fn forward(&self, h: &Tensor, m: &Masks, map: &MapKeys, mode: Mode) -> Result<Tensor> {
         let (b, a, w, d) = h.dims4()?;
         // Time attention within each agent: [B·A, W, D].
         let x = norm(&self.ln_time, h, mode)?.reshape((b * a, w, d))?;
@@ -143,11 +144,17 @@ impl Block {
             .reshape((b, w, a, d))?
             .transpose(1, 2)?;
         let h = (h + y)?;
-        // Cross-attention to the map: [B, A·W, D] → [B, P, D].
-        let x = norm(&self.ln_map, &h, mode)?.reshape((b, a * w, d))?;
+        // Cross-attention to the map: [B, A·W, D] → [B, P, D] (the scene's tokens), or
+        // [B·A, W, D] → [B·A, K, D] (each agent's own).
+        let x = norm(&self.ln_map, &h, mode)?;
+        let x = match map {
+            MapKeys::Scene { .. } => x.reshape((b, a * w, d))?,
+            MapKeys::PerAgent { .. } => x.reshape((b * a, w, d))?,
+        };
+        let (tokens, bias) = map.tokens_and_bias();
         let h = (h + self
             .map
-            .forward(&x, map_tokens, &m.map_bias, mode)?
+            .forward(&x, tokens, bias, mode)?
             .reshape((b, a, w, d))?)?;
         let x = norm(&self.ln_mlp, &h, mode)?;
         let y = lin(&self.mlp_out, &lin(&self.mlp_in, &x)?.relu()?)?;
@@ -155,24 +162,68 @@ impl Block {
     }
 }
 
+/// The additive attention bias of validity flags: 0 where valid, [`MASKED`] where not.
+fn key_bias(flags: &Tensor) -> Result<Tensor> {
+    Ok(((flags - 1.0)? * -MASKED)?)
+}
+
 /// Attention biases built once per forward.
 #[derive(Debug)]
 struct Masks {
     time_bias: Tensor,  // [B·A, 1, 1, W]
     agent_bias: Tensor, // [B·W, 1, 1, A]
-    map_bias: Tensor,   // [B, 1, 1, P]
 }
 
 impl Masks {
-    fn new(valid: &Tensor, map_valid: &Tensor) -> Result<Self> {
+    fn new(valid: &Tensor) -> Result<Self> {
         let (b, a, w) = valid.dims3()?;
-        let p = map_valid.dim(1)?;
-        let bias = |m: &Tensor| -> Result<Tensor> { Ok(((m - 1.0)? * -MASKED)?) };
         Ok(Self {
-            time_bias: bias(valid)?.reshape((b * a, 1, 1, w))?,
-            agent_bias: bias(&valid.transpose(1, 2)?.contiguous()?)?.reshape((b * w, 1, 1, a))?,
-            map_bias: bias(map_valid)?.reshape((b, 1, 1, p))?,
+            time_bias: key_bias(valid)?.reshape((b * a, 1, 1, w))?,
+            agent_bias: key_bias(&valid.transpose(1, 2)?.contiguous()?)?.reshape((
+                b * w,
+                1,
+                1,
+                a,
+            ))?,
         })
+    }
+}
+
+/// What the map cross-attention attends to, as [`Denoiser::encode_map`] prepares it once per
+/// scene set.
+#[derive(Debug, Clone)]
+pub enum MapTokens {
+    /// One token per polyline in the scene frame, shared by every agent: `[B, P, D]`.
+    Scene(Tensor),
+    /// With [`crate::config::AgentMap`]: the polylines themselves (`[B, P, Q, 2]`, scene
+    /// frame); each forward picks and encodes every agent's own from its anchor.
+    PerAgent(Tensor),
+}
+
+impl MapTokens {
+    /// The rows `index` (scenes) of the map.
+    pub fn index_select(&self, index: &Tensor) -> Result<Self> {
+        Ok(match self {
+            Self::Scene(t) => Self::Scene(t.index_select(index, 0)?),
+            Self::PerAgent(t) => Self::PerAgent(t.index_select(index, 0)?),
+        })
+    }
+}
+
+/// The keys of one forward's map cross-attention and their bias.
+#[derive(Debug)]
+enum MapKeys {
+    /// `tokens [B, P, D]`, `bias [B, 1, 1, P]`.
+    Scene { tokens: Tensor, bias: Tensor },
+    /// `tokens [B·A, K, D]`, `bias [B·A, 1, 1, K]`.
+    PerAgent { tokens: Tensor, bias: Tensor },
+}
+
+impl MapKeys {
+    fn tokens_and_bias(&self) -> (&Tensor, &Tensor) {
+        match self {
+            Self::Scene { tokens, bias } | Self::PerAgent { tokens, bias } => (tokens, bias),
+        }
     }
 }
 
@@ -233,17 +284,68 @@ impl Denoiser {
         })
     }
 
-    /// Map tokens, once per scene: `map [B, P, Q, 2]` → `[B, P, D]` (per-point MLP, max-pool).
-    pub fn encode_map(&self, map: &Tensor, mode: Mode) -> Result<Tensor> {
-        let x = lin(&self.map_point, map)?
+    /// Map tokens, once per scene set: `map [B, P, Q, 2]` → scene-frame tokens `[B, P, D]`,
+    /// or, with an agent map, the polylines kept for each forward to pick from.
+    pub fn encode_map(&self, map: &Tensor, mode: Mode) -> Result<MapTokens> {
+        Ok(match self.config.agent_map {
+            None => MapTokens::Scene(self.encode_polylines(map, mode)?),
+            Some(_) => MapTokens::PerAgent(map.clone()),
+        })
+    }
+
+    /// The polyline encoder: `points [N, P, Q, 2]` → `[N, P, D]` (per-point MLP, max-pool).
+    pub fn encode_polylines(&self, points: &Tensor, mode: Mode) -> Result<Tensor> {
+        let x = lin(&self.map_point, points)?
             .broadcast_add(&self.map_point_embedding)?
-            .relu()?; // [B, P, Q, D]
-        let x = lin(&self.map_mix, &x)?.max(2)?; // [B, P, D]
+            .relu()?; // [N, P, Q, D]
+        let x = lin(&self.map_mix, &x)?.max(2)?; // [N, P, D]
         norm(&self.ln_map_out, &x, mode)
     }
 
+    /// Each agent's own map tokens (`[B·A, K, D]`) and their bias (`[B·A, 1, 1, K]`), from the
+    /// anchors of `frame` and the scene's polylines `map [B, P, Q, 2]`, `map_valid [B, P]`.
+    fn agent_map_keys(
+        &self,
+        frame: &AnchorFrame,
+        map: &Tensor,
+        map_valid: &Tensor,
+        polylines: usize,
+        mode: Mode,
+    ) -> Result<MapKeys> {
+        let (b, a, _, _) = frame.anchor.dims4()?;
+        let (_, _, q, _) = map.dims4()?;
+        let anchor = frame.anchor.flatten_all()?.to_vec1::<f32>()?; // [B·A·3]
+        let cos = frame.cos.flatten_all()?.to_vec1::<f32>()?;
+        let sin = frame.sin.flatten_all()?.to_vec1::<f32>()?;
+        let anchors: Vec<MapAnchor> = (0..b * a)
+            .map(|row| MapAnchor {
+                x: anchor[3 * row],
+                y: anchor[3 * row + 1],
+                cos: cos[row],
+                sin: sin[row],
+            })
+            .collect();
+        let (points, valid) = crate::agent_map::agent_maps(
+            &anchors,
+            a,
+            &map.flatten_all()?.to_vec1::<f32>()?,
+            &map_valid.flatten_all()?.to_vec1::<f32>()?,
+            q,
+            polylines,
+        );
+        let k = valid.len() / (b * a).max(1);
+        let device = map.device();
+        let points = Tensor::from_vec(points, (b * a, k, q, 2), device)?;
+        let valid = Tensor::from_vec(valid, (b * a, 1, 1, k), device)?;
+        Ok(MapKeys::PerAgent {
+            tokens: self.encode_polylines(&points, mode)?,
+            bias: key_bias(&valid)?,
+        })
+    }
+
     /// `D(x; σ)`: `x_noisy [B, A, W, 3]`, `sigma [B, W]` (> 0), `valid [B, A, W]`,
-    /// `agent_features [B, A, 6]`, `map_tokens [B, P, D]`, `map_valid [B, P]` → `[B, A, W, 3]`.
+    /// `agent_features [B, A, 6]`, `map_tokens` of [`Self::encode_map`], `map_valid [B, P]` →
+    /// `[B, A, W, 3]`.
     #[allow(clippy::too_many_arguments)]
     pub fn denoise(
         &self,
@@ -251,7 +353,7 @@ impl Denoiser {
         sigma: &Tensor,
         valid: &Tensor,
         agent_features: &Tensor,
-        map_tokens: &Tensor,
+        map_tokens: &MapTokens,
         map_valid: &Tensor,
         mode: Mode,
     ) -> Result<Tensor> {
@@ -306,7 +408,7 @@ impl Denoiser {
         sigma: &Tensor,
         valid: &Tensor,
         agent_features: &Tensor,
-        map_tokens: &Tensor,
+        map_tokens: &MapTokens,
         map_valid: &Tensor,
         mode: Mode,
     ) -> Result<NetworkOutput> {
@@ -353,9 +455,27 @@ impl Denoiser {
             }
             _ => None,
         };
-        let masks = Masks::new(valid, map_valid)?;
+        let masks = Masks::new(valid)?;
+        let map = match (map_tokens, &self.config.agent_map, &frame) {
+            (MapTokens::Scene(tokens), None, _) => {
+                let (b, p) = map_valid.dims2()?;
+                MapKeys::Scene {
+                    tokens: tokens.clone(),
+                    bias: key_bias(map_valid)?.reshape((b, 1, 1, p))?,
+                }
+            }
+            (MapTokens::PerAgent(points), Some(spec), Some(frame)) => {
+                self.agent_map_keys(frame, points, map_valid, spec.polylines, mode)?
+            }
+            _ => {
+                return Err(crate::Error::data(
+                    "map tokens of another model: encode the map with this model's encode_map"
+                        .into(),
+                ));
+            }
+        };
         for block in &self.blocks {
-            h = block.forward(&h, &masks, map_tokens, mode)?;
+            h = block.forward(&h, &masks, &map, mode)?;
         }
         let out = lin(&self.head, &norm(&self.ln_out, &h, mode)?)?; // [B, A, W, 3]
         let out = match &frame {
@@ -512,7 +632,7 @@ impl AnchorFrame {
 pub fn edm_loss(
     model: &Denoiser,
     batch: &crate::batch::Batch,
-    map_tokens: &Tensor,
+    map_tokens: &MapTokens,
     mode: Mode,
 ) -> Result<Tensor> {
     let (error_sum, count) = edm_error_sum(model, batch, map_tokens, mode)?;
@@ -529,7 +649,7 @@ pub fn edm_loss(
 pub fn edm_error_sum(
     model: &Denoiser,
     batch: &crate::batch::Batch,
-    map_tokens: &Tensor,
+    map_tokens: &MapTokens,
     mode: Mode,
 ) -> Result<(Tensor, Tensor)> {
     let out = model.forward(

@@ -484,7 +484,12 @@ impl Trainer {
         };
         match resume_from {
             Some(dir) => trainer.restore(dir)?,
-            None => trainer.untrained_validation_loss = Some(trainer.validate()?),
+            None => {
+                if let Some(dir) = trainer.run.train.init_from.clone() {
+                    trainer.initialise_from(&dir)?;
+                }
+                trainer.untrained_validation_loss = Some(trainer.validate()?);
+            }
         }
         Ok(trainer)
     }
@@ -672,6 +677,18 @@ impl Trainer {
             untrained_validation_loss: self.untrained_validation_loss,
         }
         .save(dir)
+    }
+
+    /// `train.init_from`: the weights (and their EMA) of another checkpoint.
+    fn initialise_from(&mut self, dir: &Path) -> Result<()> {
+        let path = dir.join(WEIGHTS_FILE);
+        let weights = checkpoint::load_tensors(&path, &self.device)?;
+        checkpoint::check_against(&self.varmap, &weights, &path)?;
+        for (i, name) in self.names.iter().enumerate() {
+            self.vars[i].set(&weights[name])?;
+            self.ema[i] = weights[name].copy()?;
+        }
+        Ok(())
     }
 
     fn restore(&mut self, dir: &Path) -> Result<()> {

@@ -1,19 +1,19 @@
 //! The fast CPU path against candle's denoiser (the reference), to the tolerance the WGSL
-//! engine meets: one evaluation on random padded batches (scene frame, agent frame, and the
-//! constant-velocity reference), over every scene or a subset; and whole rollouts through the
-//! driver on both engines.
+//! engine meets: one evaluation on random padded batches (scene frame, agent frame, the
+//! constant-velocity reference, agent maps), over every scene or a subset; and whole rollouts
+//! through the driver on both engines.
 
 use candle_core::{Device, Tensor};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use road_model::batch::{AGENT_FEATURES, SceneInput};
-use road_model::fast::{FastDenoiser, FastInputs};
+use road_model::fast::{FastDenoiser, FastInputs, SceneMap};
 use road_model::model::{self, Denoiser, Mode};
 use road_model::sample::{
     CpuEngine, FastCpuEngine, RolloutDriver, RolloutScene, ShiftEdit, ShiftShape, StepEngine,
     rollout_with,
 };
-use road_model::{AgentFrame, ModelConfig};
+use road_model::{AgentFrame, AgentMap, MapTokens, ModelConfig};
 use road_sched::PlannerSpec;
 
 /// Relative and absolute parts of the parity tolerance of one whole evaluation (f32 sums in
@@ -49,6 +49,8 @@ enum Frame {
     Relative,
     /// Also the constant-velocity reference (`residual_scale`).
     Residual,
+    /// Also each agent's own map (`agent_map`): 4 of the scene's 6 polylines.
+    AgentMap,
 }
 
 fn config(frame: Frame) -> ModelConfig {
@@ -64,12 +66,13 @@ fn config(frame: Frame) -> ModelConfig {
                 relative_scale: 2.0,
                 residual_scale: None,
             }),
-            Frame::Residual => Some(AgentFrame {
+            Frame::Residual | Frame::AgentMap => Some(AgentFrame {
                 anchor_slot: 9,
                 relative_scale: 1.0,
                 residual_scale: Some(40.0),
             }),
         },
+        agent_map: matches!(frame, Frame::AgentMap).then_some(AgentMap { polylines: 4 }),
         ..ModelConfig::default()
     }
 }
@@ -172,20 +175,24 @@ fn fast_matches_candle(frame: Frame) {
     let r = random_batch(&c, 3);
     let want = candle_denoise(&model, &r);
     let (a, w, p, q) = (r.agents, c.window_slots, r.polylines, c.polyline_points);
-    let tokens = model
+    let encoded = model
         .encode_map(
             &Tensor::from_vec(r.map.clone(), (r.scenes, p, q, 2), &Device::Cpu).unwrap(),
             Mode::Infer,
         )
-        .unwrap()
-        .flatten_all()
-        .unwrap()
-        .to_vec1::<f32>()
         .unwrap();
+    let tokens = match &encoded {
+        MapTokens::Scene(t) => t.flatten_all().unwrap().to_vec1::<f32>().unwrap(),
+        MapTokens::PerAgent(_) => Vec::new(),
+    };
+    let map = match encoded {
+        MapTokens::Scene(_) => SceneMap::Tokens(&tokens),
+        MapTokens::PerAgent(_) => SceneMap::Polylines(&r.map),
+    };
     for threads in [1, 2] {
         let fast = FastDenoiser::new(&model, threads).unwrap();
         let cache = fast
-            .scene_cache(r.scenes, a, &r.features, &tokens, &r.map_valid)
+            .scene_cache(r.scenes, a, &r.features, map, &r.map_valid)
             .unwrap();
         let mut got = vec![0.0; r.x.len()];
         let inputs = FastInputs {
@@ -249,13 +256,42 @@ fn fast_denoiser_with_a_constant_velocity_reference_matches_candle() {
 }
 
 #[test]
+fn fast_denoiser_with_agent_maps_matches_candle() {
+    fast_matches_candle(Frame::AgentMap);
+}
+
+#[test]
+fn fast_denoiser_refuses_a_map_of_the_other_kind() {
+    let c = config(Frame::AgentMap);
+    let (_, model) = model::init_seeded(&c, &Device::Cpu, 7).unwrap();
+    let fast = FastDenoiser::new(&model, 1).unwrap();
+    let tokens = vec![0.0; c.hidden];
+    let err = fast
+        .scene_cache(
+            1,
+            1,
+            &[0.0; AGENT_FEATURES],
+            SceneMap::Tokens(&tokens),
+            &[1.0],
+        )
+        .unwrap_err();
+    assert!(err.to_string().contains("agent map"), "{err}");
+}
+
+#[test]
 fn fast_denoiser_refuses_a_scene_outside_its_cache() {
     let c = config(Frame::Scene);
     let (_, model) = model::init_seeded(&c, &Device::Cpu, 7).unwrap();
     let fast = FastDenoiser::new(&model, 1).unwrap();
     let d = c.hidden;
     let cache = fast
-        .scene_cache(1, 1, &[0.0; AGENT_FEATURES], &vec![0.0; d], &[1.0])
+        .scene_cache(
+            1,
+            1,
+            &[0.0; AGENT_FEATURES],
+            SceneMap::Tokens(&vec![0.0; d]),
+            &[1.0],
+        )
         .unwrap();
     let w = c.window_slots;
     let (x, sigma, valid) = (vec![0.0; w * 3], vec![1.0; w], vec![1.0; w]);
@@ -345,6 +381,11 @@ fn fast_engine_rollouts_with_an_agent_frame_match_candle() {
 #[test]
 fn fast_engine_rollouts_with_a_constant_velocity_reference_match_candle() {
     rollouts_agree(Frame::Residual);
+}
+
+#[test]
+fn fast_engine_rollouts_with_agent_maps_match_candle() {
+    rollouts_agree(Frame::AgentMap);
 }
 
 /// Mixed phases: scenes tick in different subsets, so the engines evaluate gathered rows.

@@ -284,7 +284,23 @@ fn the_loss_is_the_weighted_error_of_the_denoiser_for_every_parameterisation() {
 
 #[test]
 fn one_training_step_lowers_the_loss_on_a_fixed_batch() {
-    let run = run_config();
+    one_training_step_lowers_the_loss(run_config());
+}
+
+/// The agent maps' path (pick, frame, encoder, per-agent attention) is differentiable too.
+#[test]
+fn one_training_step_with_agent_maps_lowers_the_loss() {
+    let mut run = run_config();
+    run.model.agent_frame = Some(road_model::AgentFrame {
+        anchor_slot: 9,
+        relative_scale: 1.0,
+        residual_scale: Some(40.0),
+    });
+    run.model.agent_map = Some(road_model::AgentMap { polylines: 1 });
+    one_training_step_lowers_the_loss(run);
+}
+
+fn one_training_step_lowers_the_loss(run: RunConfig) {
     let ds = dataset(Split::Train);
     let (varmap, model) = model::init_seeded(&run.model, &Device::Cpu, 4).unwrap();
     let mut rng = StdRng::seed_from_u64(5);
@@ -379,6 +395,59 @@ fn checkpoints_round_trip_exactly_and_refuse_mismatches() {
         err.contains("weights do not match the config") && err.contains("weights.safetensors"),
         "{err}"
     );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// `train.init_from` starts a run from another checkpoint's EMA weights, and refuses one
+/// whose tensors do not fit, naming the file.
+#[test]
+fn a_run_can_start_from_another_checkpoint_s_weights() {
+    let run = run_config();
+    let ds = dataset(Split::Train);
+    let dir = temp_dir("init-from");
+    let mut first = Trainer::new(run.clone(), &ds, identity(), None).unwrap();
+    first.run_until(&ds, &dir, 3, "test", |_| {}).unwrap();
+    let saved =
+        checkpoint::load_tensors(&dir.join(checkpoint::WEIGHTS_FILE), &Device::Cpu).unwrap();
+
+    let mut next = run.clone();
+    next.train.init_from = Some(dir.clone());
+    let second = Trainer::new(next.clone(), &ds, identity(), None).unwrap();
+    assert_eq!(second.step, 0);
+    let started = second.ema_model().unwrap();
+    let fresh = Trainer::new(run, &ds, identity(), None).unwrap();
+    assert!(
+        second.untrained_validation_loss().unwrap() < fresh.untrained_validation_loss().unwrap(),
+        "the starting loss is the trained weights'"
+    );
+    let loaded = checkpoint::load(&dir, &Device::Cpu).unwrap().model;
+    let mut rng = StdRng::seed_from_u64(9);
+    let batch = sample_batch(&next, &ds, 2, None, &mut rng, &Device::Cpu).unwrap();
+    let eval = |m: &road_model::Denoiser| {
+        let map = m.encode_map(&batch.map, Mode::Infer).unwrap();
+        m.denoise(
+            &batch.x_noisy,
+            &batch.sigma,
+            &batch.valid,
+            &batch.agent_features,
+            &map,
+            &batch.map_valid,
+            Mode::Infer,
+        )
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .to_vec1::<f32>()
+        .unwrap()
+    };
+    assert_eq!(eval(&started), eval(&loaded));
+    assert!(!saved.is_empty());
+
+    next.model.hidden = 32;
+    let err = Trainer::new(next, &ds, identity(), None)
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("weights.safetensors"), "{err}");
     std::fs::remove_dir_all(&dir).ok();
 }
 

@@ -98,7 +98,7 @@ validation: {val_windows} windows.\n\n\
 | hardware (the last session's) | {hardware}; {workers} |\n\
 | conditioning augmentation | r = {r}, warm-up task probability β = {beta} |\n\
 | validation denoising loss (EMA weights) | {val} |\n\
-| same, untrained model | {untrained} |\n\n\
+| same, {start} | {untrained} |\n\n\
 The loss is EDM's weighted denoising loss, averaged over valid agent-slots of fixed validation batches \
 (`train_log.csv`, `loss.png`). Files: `weights.safetensors` (EMA weights, format in `docs/checkpoint.md`), \
 `config.toml` (every hyperparameter), `train_state.safetensors` (for `road train --resume`).\n\n\
@@ -136,6 +136,10 @@ trainings): it is not this model's alone; `train_log.csv` gives samples/s for ea
         beta = r.train.warmup_task_prob,
         val = loss(meta.validation_loss),
         untrained = loss(meta.untrained_validation_loss),
+        start = match &r.train.init_from {
+            None => "untrained model".to_owned(),
+            Some(dir) => format!("at the start (the weights of `{}`)", dir.display()),
+        },
     );
     std::fs::write(dir.join("README.md"), card)
         .with_context(|| format!("cannot write the model card in {}", dir.display()))
