@@ -438,3 +438,61 @@ fn reactivity_suite_runs_with_the_shipped_checkpoint() {
     }
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// `road compare` pairs scenes by validation window across files: a model 0.5 m worse on every
+/// shared scene shows +0.5 with a zero-width interval, whatever the order of the scenes; mixed
+/// suites and files without per-scene figures are refused, naming the file.
+#[test]
+fn compare_pairs_scenes_across_eval_files() {
+    let dir = std::env::temp_dir().join(format!("road-compare-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let scene = |window: usize, ade: f64, missed: usize| {
+        serde_json::json!({ "window": window, "agents": 4, "min_scene_ade_m": ade,
+            "min_scene_fde_m": 2.0 * ade, "missed_agents": missed })
+    };
+    let file = |name: &str, model: &str, per_scene: Vec<serde_json::Value>| {
+        let path = dir.join(name);
+        let json = serde_json::json!({ "suite": "forecasting", "results": [
+            { "model": model, "per_scene": per_scene } ] });
+        std::fs::write(&path, json.to_string()).unwrap();
+        path.to_str().unwrap().to_owned()
+    };
+    let base = file(
+        "base.json",
+        "cv",
+        vec![scene(3, 1.0, 1), scene(7, 2.0, 2), scene(9, 1.5, 0)],
+    );
+    // Scene 9 missing, the other two in another order: two pairs.
+    let worse = file(
+        "worse.json",
+        "lever",
+        vec![scene(7, 2.5, 2), scene(3, 1.5, 3)],
+    );
+    let o = road(&["compare", &base, &worse]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = stdout(&o);
+    assert!(
+        out.contains("| lever | 2 | +0.500 [+0.500, +0.500] | +1.000 [+1.000, +1.000] | +0.250"),
+        "{out}"
+    );
+
+    let reactivity = dir.join("reactivity.json");
+    std::fs::write(&reactivity, r#"{"suite": "reactivity", "results": []}"#).unwrap();
+    let o = road(&["compare", &base, reactivity.to_str().unwrap()]);
+    assert!(!o.status.success());
+    assert!(stderr(&o).contains("reactivity.json"), "{}", stderr(&o));
+
+    let old = dir.join("old.json");
+    std::fs::write(
+        &old,
+        r#"{"suite": "forecasting", "results": [{"model": "x"}]}"#,
+    )
+    .unwrap();
+    let o = road(&["compare", &base, old.to_str().unwrap()]);
+    assert!(
+        stderr(&o).contains("old.json") && stderr(&o).contains("per_scene"),
+        "{}",
+        stderr(&o)
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}

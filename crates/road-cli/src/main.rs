@@ -51,6 +51,9 @@ enum Command {
     Sample(commands::sample::SampleArgs),
     /// The paper's evaluation on validation scenes: forecasting and reactivity suites.
     Eval(commands::eval::EvalArgs),
+    /// Paired per-scene differences between models of `road eval --json` files (same scenes),
+    /// against a baseline, with bootstrap intervals.
+    Compare(commands::compare::CompareArgs),
     /// Throughput benchmarks (training, scheduler), each against a baseline from the same run.
     #[command(subcommand)]
     Bench(commands::bench::BenchCommand),
@@ -97,6 +100,7 @@ fn main() -> std::process::ExitCode {
         Command::Sample(args) => commands::sample::run(args),
         Command::Bench(cmd) => commands::bench::run(cmd),
         Command::Eval(args) => commands::eval::run(args),
+        Command::Compare(args) => commands::compare::run(args),
     };
     match result {
         Ok(code) => code,

@@ -140,12 +140,20 @@ struct Totals {
     secs: f64,
     samples: usize,
     nfe_per_step: f64,
-    /// Every evaluated scene's figures (for the bootstrap intervals).
-    per_scene: Vec<road_sim::metrics::SceneMetrics>,
+    /// Every evaluated scene's figures (for the bootstrap intervals and `road compare`).
+    per_scene: Vec<SceneRow>,
     /// Filled in before the report: the figures with 95 % bootstrap intervals over scenes.
     min_scene_ade_m: Option<Estimate>,
     min_scene_fde_m: Option<Estimate>,
     miss_rate: Option<Estimate>,
+}
+
+/// One evaluated scene: its validation window (what `road compare` pairs on) and figures.
+#[derive(Debug, Clone, Copy, serde::Serialize)]
+struct SceneRow {
+    window: usize,
+    #[serde(flatten)]
+    metrics: road_sim::metrics::SceneMetrics,
 }
 
 impl Totals {
@@ -153,7 +161,14 @@ impl Totals {
     fn estimate(&mut self) {
         let seed = 0x5eed;
         let per = |f: fn(&road_sim::metrics::SceneMetrics) -> (f64, f64)| {
-            bootstrap_ratio(&self.per_scene.iter().map(f).collect::<Vec<_>>(), seed)
+            bootstrap_ratio(
+                &self
+                    .per_scene
+                    .iter()
+                    .map(|r| f(&r.metrics))
+                    .collect::<Vec<_>>(),
+                seed,
+            )
         };
         self.min_scene_ade_m = Some(per(|m| (m.min_scene_ade_m, 1.0)));
         self.min_scene_fde_m = Some(per(|m| (m.min_scene_fde_m, 1.0)));
@@ -214,7 +229,7 @@ fn forecasting(args: EvalArgs) -> Result<ExitCode> {
         model: "constant velocity".into(),
         ..Totals::default()
     };
-    for w in &windows {
+    for (&window, w) in scenes.iter().zip(&windows) {
         let samples = vec![
             (0..w.agents)
                 .map(|a| {
@@ -239,6 +254,7 @@ fn forecasting(args: EvalArgs) -> Result<ExitCode> {
         ];
         accumulate(
             &mut cv,
+            window,
             &scene_metrics(
                 &samples,
                 &truth_of(w, reference, steps),
@@ -321,15 +337,16 @@ fn forecasting(args: EvalArgs) -> Result<ExitCode> {
                             .collect()
                     })
                     .collect();
+                let index = c * batch_scenes + k;
                 accumulate(
                     &mut totals,
+                    scenes[index],
                     &scene_metrics(
                         &samples,
                         &truth_of(w, reference, steps),
                         args.miss_threshold_m,
                     ),
                 );
-                let index = c * batch_scenes + k;
                 if index < args.figure_scenes {
                     draw_forecast(&args.figures, &run.name, index, w, &samples, reference)?;
                 }
@@ -438,7 +455,7 @@ pub(crate) fn progress(bar: &indicatif::ProgressBar, model: &str, scenes: usize,
     );
 }
 
-fn accumulate(t: &mut Totals, m: &road_sim::metrics::SceneMetrics) {
+fn accumulate(t: &mut Totals, window: usize, m: &road_sim::metrics::SceneMetrics) {
     if m.agents == 0 {
         return;
     }
@@ -447,5 +464,8 @@ fn accumulate(t: &mut Totals, m: &road_sim::metrics::SceneMetrics) {
     t.fde_sum += m.min_scene_fde_m;
     t.missed += m.missed_agents;
     t.agents += m.agents;
-    t.per_scene.push(*m);
+    t.per_scene.push(SceneRow {
+        window,
+        metrics: *m,
+    });
 }

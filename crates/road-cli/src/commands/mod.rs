@@ -1,4 +1,5 @@
 pub mod bench;
+pub mod compare;
 pub mod data;
 pub mod demo;
 pub mod demo_zenoh;

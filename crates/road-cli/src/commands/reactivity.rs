@@ -50,38 +50,58 @@ struct Totals {
     /// Per simulation: (scene, adversary collided, any collision, driven agents, off road).
     #[serde(skip)]
     per_simulation: Vec<(usize, bool, bool, usize, usize)>,
+    /// Per scene (filled in before the report; what `road compare` pairs on).
+    per_scene: Vec<SceneCounts>,
     /// The rates with 95 % bootstrap intervals over scenes (filled in before the report).
     adversary_collision_rate: Option<Estimate>,
     any_collision_rate: Option<Estimate>,
     off_road_rate: Option<Estimate>,
 }
 
+/// One scene's simulations, summed: its validation window and the counts of [`Totals`].
+#[derive(Debug, Default, Clone, Copy, serde::Serialize)]
+pub(crate) struct SceneCounts {
+    window: usize,
+    simulations: usize,
+    adversary_collisions: usize,
+    any_collisions: usize,
+    driven_agents: usize,
+    off_road_agents: usize,
+}
+
 impl Totals {
-    fn estimate(&mut self, logged: &Kinematics) {
-        // Per scene: [simulations, adversary collisions, any collisions, driven, off road].
-        let scenes = self
-            .per_simulation
+    /// `windows[k]`: the validation window of scene k.
+    fn estimate(&mut self, logged: &Kinematics, windows: &[usize]) {
+        let mut per_scene: Vec<SceneCounts> = windows
             .iter()
-            .map(|s| s.0 + 1)
-            .max()
-            .unwrap_or(0);
-        let mut per_scene = vec![[0.0f64; 5]; scenes];
+            .map(|&window| SceneCounts {
+                window,
+                ..SceneCounts::default()
+            })
+            .collect();
         for &(k, adversary, any, driven, off) in &self.per_simulation {
             let row = &mut per_scene[k];
-            row[0] += 1.0;
-            row[1] += f64::from(u8::from(adversary));
-            row[2] += f64::from(u8::from(any));
-            row[3] += driven as f64;
-            row[4] += off as f64;
+            row.simulations += 1;
+            row.adversary_collisions += usize::from(adversary);
+            row.any_collisions += usize::from(any);
+            row.driven_agents += driven;
+            row.off_road_agents += off;
         }
-        per_scene.retain(|row| row[0] > 0.0);
-        let rate = |num: usize, den: usize| {
-            let pairs: Vec<(f64, f64)> = per_scene.iter().map(|r| (r[num], r[den])).collect();
+        per_scene.retain(|row| row.simulations > 0);
+        let rate = |f: fn(&SceneCounts) -> (usize, usize)| {
+            let pairs: Vec<(f64, f64)> = per_scene
+                .iter()
+                .map(|r| {
+                    let (num, den) = f(r);
+                    (num as f64, den as f64)
+                })
+                .collect();
             bootstrap_ratio(&pairs, 0x5eed)
         };
-        self.adversary_collision_rate = Some(rate(1, 0));
-        self.any_collision_rate = Some(rate(2, 0));
-        self.off_road_rate = Some(rate(4, 3));
+        self.adversary_collision_rate = Some(rate(|r| (r.adversary_collisions, r.simulations)));
+        self.any_collision_rate = Some(rate(|r| (r.any_collisions, r.simulations)));
+        self.off_road_rate = Some(rate(|r| (r.off_road_agents, r.driven_agents)));
+        self.per_scene = per_scene;
         self.kinematic_divergence = Some(self.kinematics.divergence_from(logged));
     }
 }
@@ -367,7 +387,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
     );
     out!("|---|---:|---:|---:|---:|---:|---:|---:|---:|");
     for r in &mut results {
-        r.estimate(&logged);
+        r.estimate(&logged, &scenes);
         let sims = r.simulations.max(1) as f64;
         let nfe = match r.expected_nfe_per_step {
             Some(e) => format!("{:.1} ({e:.1})", r.nfe_per_step),
