@@ -1,6 +1,7 @@
 //! The denoiser `D(x; σ)` of a checkpoint in WGSL kernels, for many scenes at once, each with
 //! its own per-slot noise vector σ[W]. Weights are uploaded once into one buffer (each tensor
-//! at an aligned offset); map tokens are computed once per scene set.
+//! at an aligned offset); map tokens are computed once per scene set, or, with agent maps, each
+//! agent's own every evaluation (`agent_map.wgsl` picks them from the anchors).
 //!
 //! The forward pass is the one of `docs/checkpoint.md`, kernel by kernel:
 //! `linear` (embed_agent) → `embed_tokens` → per block: `layer_norm`, `linear` q/k/v,
@@ -13,6 +14,7 @@ use std::path::Path;
 use bytemuck::{Pod, Zeroable};
 use road_model::ModelConfig;
 
+use crate::kernels::agent_map::AgentMapParams;
 use crate::kernels::attention::{AttentionParams, MAX_HEAD_DIM, TokenLayout};
 use crate::kernels::layer_norm::LayerNormParams;
 use crate::kernels::linear::LinearParams;
@@ -90,6 +92,7 @@ struct Pipelines {
     max_over_points: Pipeline,
     heun_euler: Pipeline,
     heun_correct: Pipeline,
+    pick_agent_maps: Pipeline,
 }
 
 impl Pipelines {
@@ -105,6 +108,7 @@ impl Pipelines {
             max_over_points: Pipeline::new(ctx, Shader::Elementwise, "max_over_points"),
             heun_euler: Pipeline::new(ctx, Shader::Heun, "heun_euler"),
             heun_correct: Pipeline::new(ctx, Shader::Heun, "heun_correct"),
+            pick_agent_maps: Pipeline::new(ctx, Shader::AgentMap, "pick_agent_maps"),
         }
     }
 }
@@ -116,13 +120,18 @@ struct Slice {
     size: u64,
 }
 
-/// Map tokens of a set of scenes, on the GPU.
+/// The map of a set of scenes, on the GPU: scene-frame tokens, or (agent maps) the polylines
+/// every evaluation picks each agent's own from.
 #[derive(Debug)]
 pub struct MapTokens {
-    tokens: wgpu::Buffer, // [B, P, D]
-    valid: wgpu::Buffer,  // [B, P]
+    /// `[B, P, per_polyline]`: tokens (`D`) or points (`Q · 2`).
+    data: wgpu::Buffer,
+    valid: wgpu::Buffer, // [B, P]
     pub scenes: usize,
     pub polylines: usize,
+    per_polyline: usize,
+    /// Agent maps: the polylines K each agent picks (`≤ polylines`).
+    picked: Option<usize>,
 }
 
 /// Inputs of one batched evaluation, host side.
@@ -186,12 +195,15 @@ impl GpuDenoiser {
         tensors: &HashMap<String, Vec<f32>>,
     ) -> Result<Self> {
         let d = config.hidden;
-        if config.agent_map.is_some() {
-            return Err(Error::Checkpoint(
-                "agent maps (`model.agent_map`) have no WGSL kernels yet: run this checkpoint \
-                 on the CPU engines (`--engine cpu`)"
-                    .into(),
-            ));
+        if config.agent_map.is_some()
+            && config.map_polylines > crate::kernels::agent_map::MAX_POLYLINES
+        {
+            return Err(Error::Checkpoint(format!(
+                "agent maps pick from at most {} polylines per scene on the GPU, the model \
+                 takes {}",
+                crate::kernels::agent_map::MAX_POLYLINES,
+                config.map_polylines
+            )));
         }
         if d / config.heads > MAX_HEAD_DIM as usize {
             return Err(Error::Checkpoint(format!(
@@ -374,7 +386,8 @@ impl GpuDenoiser {
         );
     }
 
-    /// Map tokens of `scenes` scenes: `map [B, P, Q, 2]` (normalised), `map_valid [B, P]`.
+    /// The map of `scenes` scenes: `map [B, P, Q, 2]` (normalised), `map_valid [B, P]`:
+    /// scene-frame tokens, or the polylines themselves for a model with agent maps.
     pub fn encode_map(
         &self,
         ctx: &GpuContext,
@@ -391,7 +404,7 @@ impl GpuDenoiser {
             ctx,
             "map.points",
             bytemuck::cast_slice(map),
-            wgpu::BufferUsages::STORAGE,
+            wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
         );
         let valid = upload(
             ctx,
@@ -399,12 +412,54 @@ impl GpuDenoiser {
             bytemuck::cast_slice(map_valid),
             wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
         );
-        let n_points = scenes * polylines * q;
-        let embedded = storage_buffer(ctx, "map.embedded", (n_points * d * 4) as u64);
-        let mixed = storage_buffer(ctx, "map.mixed", (n_points * d * 4) as u64);
-        let pooled = storage_buffer(ctx, "map.pooled", (scenes * polylines * d * 4) as u64);
-        let tokens = storage_buffer(ctx, "map.tokens", (scenes * polylines * d * 4) as u64);
+        if let Some(spec) = &self.config.agent_map {
+            if polylines > crate::kernels::agent_map::MAX_POLYLINES {
+                return Err(Error::Input(format!(
+                    "{polylines} polylines per scene: agent maps pick from at most {}",
+                    crate::kernels::agent_map::MAX_POLYLINES
+                )));
+            }
+            return Ok(MapTokens {
+                data: points,
+                valid,
+                scenes,
+                polylines,
+                per_polyline: q * 2,
+                picked: Some(road_model::agent_map::polylines_per_agent(
+                    spec.polylines,
+                    polylines,
+                )),
+            });
+        }
+        let encoder = PolylineScratch::new(ctx, scenes * polylines, q, d);
         let mut ops = Vec::new();
+        self.prepare_polyline_encoder(ctx, &mut ops, &points, &encoder)?;
+        let mut enc = ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("map") });
+        record_all(&mut enc, "map", &ops);
+        ctx.queue.submit([enc.finish()]);
+        Ok(MapTokens {
+            data: encoder.tokens,
+            valid,
+            scenes,
+            polylines,
+            per_polyline: d,
+            picked: None,
+        })
+    }
+
+    /// The polyline encoder's dispatches (`docs/checkpoint.md`, step 3): `points [n, Q, 2]` →
+    /// `scratch.tokens [n, D]`.
+    fn prepare_polyline_encoder(
+        &self,
+        ctx: &GpuContext,
+        ops: &mut Vec<Dispatch>,
+        points: &wgpu::Buffer,
+        scratch: &PolylineScratch,
+    ) -> Result<()> {
+        let (n, q, d) = (scratch.polylines, scratch.points, self.config.hidden);
+        let n_points = n * q;
         let p = ElementwiseParams {
             count: (n_points * d) as u32,
             slots: 0,
@@ -423,7 +478,7 @@ impl GpuDenoiser {
         let bound = [
             (1, points.as_entire_binding()),
             (2, self.w("packed.map_points")?),
-            (5, embedded.as_entire_binding()),
+            (5, scratch.embedded.as_entire_binding()),
         ];
         ops.push(
             self.pipelines
@@ -431,43 +486,31 @@ impl GpuDenoiser {
                 .prepare(ctx, &params, &bound, p.count),
         );
         self.linear(
-            ctx, &mut ops, "map_mix", &embedded, &mixed, n_points, d, d, false,
+            ctx,
+            ops,
+            "map_mix",
+            &scratch.embedded,
+            &scratch.mixed,
+            n_points,
+            d,
+            d,
+            false,
         )?;
         let p = ElementwiseParams {
-            count: (scenes * polylines * d) as u32,
-            hidden: d as u32,
-            points: q as u32,
+            count: (n * d) as u32,
             ..p
         };
         let params = Self::params(ctx, &p);
         let bound = [
-            (1, mixed.as_entire_binding()),
-            (5, pooled.as_entire_binding()),
+            (1, scratch.mixed.as_entire_binding()),
+            (5, scratch.pooled.as_entire_binding()),
         ];
         ops.push(
             self.pipelines
                 .max_over_points
                 .prepare(ctx, &params, &bound, p.count),
         );
-        self.layer_norm(
-            ctx,
-            &mut ops,
-            "ln_map_out",
-            &pooled,
-            &tokens,
-            scenes * polylines,
-        )?;
-        let mut enc = ctx
-            .device
-            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("map") });
-        record_all(&mut enc, "map", &ops);
-        ctx.queue.submit([enc.finish()]);
-        Ok(MapTokens {
-            tokens,
-            valid,
-            scenes,
-            polylines,
-        })
+        self.layer_norm(ctx, ops, "ln_map_out", &scratch.pooled, &scratch.tokens, n)
     }
 
     /// Uploads one evaluation's inputs and embeds the agents' static features.
@@ -564,6 +607,7 @@ impl GpuDenoiser {
             mk,
             mv,
             f,
+            agent_maps,
         } = scratch;
 
         let p = EmbedParams {
@@ -601,6 +645,36 @@ impl GpuDenoiser {
             &resources,
             (tokens * d) as u32,
         ));
+
+        // Agent maps: every agent's polylines, picked from its anchor in this `x`, encoded.
+        if let (Some(k), Some(maps), Some(frame)) = (map.picked, agent_maps, &c.agent_frame) {
+            let p = AgentMapParams {
+                rows: (b * a) as u32,
+                agents: a as u32,
+                slots: w as u32,
+                anchor_slot: frame.anchor_slot as u32,
+                polylines: map.polylines as u32,
+                points: c.polyline_points as u32,
+                picked: k as u32,
+                heading_scale: c.heading_scale as f32,
+            };
+            p.check()?;
+            let params = Self::params(ctx, &p);
+            ops.push(self.pipelines.pick_agent_maps.prepare_buffers(
+                ctx,
+                &params,
+                &[
+                    x,
+                    &batch.valid,
+                    &map.data,
+                    &map.valid,
+                    &maps.points,
+                    &maps.valid,
+                ],
+                p.rows,
+            ));
+            self.prepare_polyline_encoder(ctx, ops, &maps.points, &maps.encoder)?;
+        }
 
         let heads = c.heads as u32;
         let head_dim = (d / c.heads) as u32;
@@ -709,46 +783,60 @@ impl GpuDenoiser {
                 )?;
                 self.add(ctx, ops, y, h, tokens * d);
             }
-            // Map cross-attention: queries [B, A·W, D], keys [B, P, D].
-            let pl = map.polylines as u32;
+            // Map cross-attention: queries [B, A·W, D], keys [B, P, D]; with agent maps each
+            // agent's W queries [B·A, W, D] to its own keys [B·A, K, D].
             self.layer_norm(ctx, ops, &format!("{blk}.ln_map"), h, t, tokens)?;
             self.linear(ctx, ops, &format!("{blk}.map.q"), t, q, tokens, d, d, false)?;
-            self.linear(
-                ctx,
-                ops,
-                &format!("{blk}.map.k"),
-                &map.tokens,
-                mk,
-                b * map.polylines,
-                d,
-                d,
-                false,
-            )?;
-            self.linear(
-                ctx,
-                ops,
-                &format!("{blk}.map.v"),
-                &map.tokens,
-                mv,
-                b * map.polylines,
-                d,
-                d,
-                false,
-            )?;
-            let attn = AttentionParams {
-                groups: b32,
-                queries: a32 * w32,
-                keys: pl,
-                q_layout: TokenLayout::contiguous(a32 * w32),
-                kv_layout: TokenLayout::contiguous(pl),
-                mask_layout: TokenLayout::contiguous(pl),
-                ..base
+            let (keys, key_rows) = match (agent_maps, map.picked) {
+                (Some(maps), Some(k)) => (&maps.encoder.tokens, b * a * k),
+                _ => (&map.data, b * map.polylines),
+            };
+            for (part, into) in [("k", mk), ("v", mv)] {
+                self.linear(
+                    ctx,
+                    ops,
+                    &format!("{blk}.map.{part}"),
+                    keys,
+                    into,
+                    key_rows,
+                    d,
+                    d,
+                    false,
+                )?;
+            }
+            let (attn, key_valid) = match (agent_maps, map.picked) {
+                (Some(maps), Some(k)) => {
+                    let k = k as u32;
+                    let attn = AttentionParams {
+                        groups: b32 * a32,
+                        queries: w32,
+                        keys: k,
+                        q_layout: time,
+                        kv_layout: TokenLayout::contiguous(k),
+                        mask_layout: TokenLayout::contiguous(k),
+                        ..base
+                    };
+                    (attn, &maps.valid)
+                }
+                _ => {
+                    let pl = map.polylines as u32;
+                    let attn = AttentionParams {
+                        groups: b32,
+                        queries: a32 * w32,
+                        keys: pl,
+                        q_layout: TokenLayout::contiguous(a32 * w32),
+                        kv_layout: TokenLayout::contiguous(pl),
+                        mask_layout: TokenLayout::contiguous(pl),
+                        ..base
+                    };
+                    (attn, &map.valid)
+                }
             };
             let params = Self::params(ctx, &attn);
             ops.push(self.pipelines.attention.prepare_buffers(
                 ctx,
                 &params,
-                &[q, mk, mv, &map.valid, att],
+                &[q, mk, mv, key_valid, att],
                 attn.threads(),
             ));
             self.linear(
@@ -827,7 +915,7 @@ impl GpuDenoiser {
         let batch = self.upload_batch(ctx, inputs)?;
         let len = (inputs.x.len() * 4) as u64;
         let out = storage_buffer(ctx, "denoised", len);
-        let scratch = Scratch::new(ctx, &self.config, batch.scenes, batch.agents, map.polylines);
+        let scratch = Scratch::new(ctx, &self.config, batch.scenes, batch.agents, map);
         let mut ops = Vec::new();
         self.prepare_denoise(
             ctx,
@@ -869,7 +957,7 @@ impl GpuDenoiser {
             storage_buffer(ctx, "D2", len),
             storage_buffer(ctx, "x_e", len),
         );
-        let scratch = Scratch::new(ctx, &self.config, b, a, map.polylines);
+        let scratch = Scratch::new(ctx, &self.config, b, a, map);
         let p = HeunParams {
             count: count as u32,
             slots: w as u32,
@@ -954,6 +1042,40 @@ struct Scratch {
     mk: wgpu::Buffer,
     mv: wgpu::Buffer,
     f: wgpu::Buffer,
+    agent_maps: Option<AgentMapScratch>,
+}
+
+/// The polyline encoder's activations for `polylines` polylines of `points` points.
+#[derive(Debug)]
+struct PolylineScratch {
+    polylines: usize,
+    points: usize,
+    embedded: wgpu::Buffer, // [n, Q, D]
+    mixed: wgpu::Buffer,    // [n, Q, D]
+    pooled: wgpu::Buffer,   // [n, D]
+    tokens: wgpu::Buffer,   // [n, D]
+}
+
+impl PolylineScratch {
+    fn new(ctx: &GpuContext, polylines: usize, points: usize, d: usize) -> Self {
+        let buf = |label: &str, floats: usize| storage_buffer(ctx, label, (floats * 4) as u64);
+        Self {
+            polylines,
+            points,
+            embedded: buf("map.embedded", polylines * points * d),
+            mixed: buf("map.mixed", polylines * points * d),
+            pooled: buf("map.pooled", polylines * d),
+            tokens: buf("map.tokens", polylines * d),
+        }
+    }
+}
+
+/// Every agent's own map of one evaluation: its picked polylines and their tokens.
+#[derive(Debug)]
+struct AgentMapScratch {
+    points: wgpu::Buffer, // [B·A, K, Q, 2]
+    valid: wgpu::Buffer,  // [B·A, K]
+    encoder: PolylineScratch,
 }
 
 impl Scratch {
@@ -962,11 +1084,23 @@ impl Scratch {
         c: &ModelConfig,
         scenes: usize,
         agents: usize,
-        polylines: usize,
+        map: &MapTokens,
     ) -> Self {
         let tokens = scenes * agents * c.window_slots;
         let d = c.hidden;
         let buf = |label: &str, floats: usize| storage_buffer(ctx, label, (floats * 4) as u64);
+        let (key_rows, agent_maps) = match map.picked {
+            None => (scenes * map.polylines, None),
+            Some(k) => {
+                let (rows, q) = (scenes * agents * k, c.polyline_points);
+                let maps = AgentMapScratch {
+                    points: buf("agent map points", rows * q * 2),
+                    valid: buf("agent map valid", rows),
+                    encoder: PolylineScratch::new(ctx, rows, q, d),
+                };
+                (rows, Some(maps))
+            }
+        };
         Self {
             h: buf("h", tokens * d),
             t: buf("normed", tokens * d),
@@ -976,9 +1110,10 @@ impl Scratch {
             att: buf("attention", tokens * d),
             y: buf("y", tokens * d),
             hidden: buf("mlp", tokens * d * c.mlp_ratio),
-            mk: buf("map k", scenes * polylines * d),
-            mv: buf("map v", scenes * polylines * d),
+            mk: buf("map k", key_rows * d),
+            mv: buf("map v", key_rows * d),
             f: buf("F", tokens * 3),
+            agent_maps,
         }
     }
 }
@@ -1101,12 +1236,13 @@ struct Compact {
 }
 
 impl Compact {
+    /// `like`: the scene set's map (its polylines and what each holds).
     fn new(
         ctx: &GpuContext,
         model: &GpuDenoiser,
         capacity: usize,
         agents: usize,
-        polylines: usize,
+        like: &MapTokens,
     ) -> Result<Self> {
         let (w, d) = (model.config.window_slots, model.config.hidden);
         let buffer = |label, floats: usize| storage_buffer(ctx, label, (floats * 4) as u64);
@@ -1118,11 +1254,14 @@ impl Compact {
             valid: buffer("compact.valid", capacity * agents * w),
             agent_embedding: buffer("compact.agent_embedding", capacity * agents * d),
         };
+        let polylines = like.polylines;
         let map = MapTokens {
-            tokens: buffer("compact.map.tokens", capacity * polylines * d),
+            data: buffer("compact.map.data", capacity * polylines * like.per_polyline),
             valid: buffer("compact.map.valid", capacity * polylines),
             scenes: capacity,
             polylines,
+            per_polyline: like.per_polyline,
+            picked: like.picked,
         };
         let plan = model.heun_plan(ctx, &batch, &map)?;
         Ok(Self {
@@ -1282,7 +1421,7 @@ impl road_model::sample::StepEngine for GpuStepEngine<'_> {
         // sub-batch, step it, copy the states back.
         let capacity = active.len().next_power_of_two();
         if !self.compact.iter().any(|c| c.batch.scenes == capacity) {
-            let c = Compact::new(self.ctx, self.model, capacity, self.agents, map.polylines)
+            let c = Compact::new(self.ctx, self.model, capacity, self.agents, map)
                 .map_err(engine_err)?;
             self.compact.push(c);
         }
@@ -1303,7 +1442,7 @@ impl road_model::sample::StepEngine for GpuStepEngine<'_> {
                 &compact.batch.agent_embedding,
                 a * d,
             ),
-            (&map.tokens, &compact.map.tokens, p * d),
+            (&map.data, &compact.map.data, p * map.per_polyline),
             (&map.valid, &compact.map.valid, p),
         ];
         let mut enc = self

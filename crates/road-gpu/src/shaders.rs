@@ -20,10 +20,12 @@ pub enum Shader {
     Heun,
     /// Window updates on the device: gather the emitted slot, shift after an emission.
     Window,
+    /// Agent-centric maps: each agent's nearest polylines in its anchor frame.
+    AgentMap,
 }
 
 impl Shader {
-    pub const ALL: [Shader; 8] = [
+    pub const ALL: [Shader; 9] = [
         Shader::Edm,
         Shader::Linear,
         Shader::LayerNorm,
@@ -32,6 +34,7 @@ impl Shader {
         Shader::Elementwise,
         Shader::Heun,
         Shader::Window,
+        Shader::AgentMap,
     ];
 
     /// File name under `shaders/`.
@@ -45,6 +48,7 @@ impl Shader {
             Shader::Elementwise => "elementwise.wgsl",
             Shader::Heun => "heun.wgsl",
             Shader::Window => "window.wgsl",
+            Shader::AgentMap => "agent_map.wgsl",
         }
     }
 
@@ -58,6 +62,7 @@ impl Shader {
             Shader::Elementwise => include_str!("../../../shaders/elementwise.wgsl"),
             Shader::Heun => include_str!("../../../shaders/heun.wgsl"),
             Shader::Window => include_str!("../../../shaders/window.wgsl"),
+            Shader::AgentMap => include_str!("../../../shaders/agent_map.wgsl"),
         }
     }
 

@@ -172,6 +172,25 @@ fn whole_denoiser_with_a_constant_velocity_reference_matches_candle() {
     whole_denoiser_matches_candle(&config, "denoiser-residual");
 }
 
+/// Agent maps: each agent's 8 nearest polylines in its frame, picked on the device from the
+/// anchors of the evaluated `x`.
+#[test]
+fn whole_denoiser_with_agent_maps_matches_candle() {
+    whole_denoiser_matches_candle(&agent_map_config(), "denoiser-agent-map");
+}
+
+fn agent_map_config() -> ModelConfig {
+    ModelConfig {
+        agent_frame: Some(road_model::AgentFrame {
+            anchor_slot: 9,
+            relative_scale: 1.0,
+            residual_scale: Some(40.0),
+        }),
+        agent_map: Some(road_model::AgentMap { polylines: 8 }),
+        ..test_config()
+    }
+}
+
 fn whole_denoiser_matches_candle(config: &ModelConfig, name: &str) {
     let ctx = context();
     let (dir, reference) = checkpoint_dir(config, name);
@@ -400,12 +419,22 @@ fn gpu_and_cpu_rollouts_agree_for_a_seed() {
 /// rows, idle scenes holding still); the GPU engine agrees with the candle reference.
 #[test]
 fn mixed_phase_batches_agree_with_the_reference() {
+    mixed_phase_batches_agree(&test_config(), "mixed");
+}
+
+/// The same with agent maps: compact sub-batches carry each scene's polylines.
+#[test]
+fn mixed_phase_batches_with_agent_maps_agree_with_the_reference() {
+    mixed_phase_batches_agree(&agent_map_config(), "mixed-agent-map");
+}
+
+fn mixed_phase_batches_agree(config: &ModelConfig, name: &str) {
     use road_gpu::engine::GpuStepEngine;
     use road_model::sample::{CpuEngine, RolloutDriver, RolloutScene, StepEngine};
     use road_sched::{PlannerKind, PlannerSpec};
     let ctx = context();
-    let config = test_config();
-    let (dir, reference) = checkpoint_dir(&config, "mixed");
+    let config = config.clone();
+    let (dir, reference) = checkpoint_dir(&config, name);
     let gpu = GpuDenoiser::from_checkpoint(&ctx, &dir).unwrap();
     let ds = validation_set();
     let scenes: Vec<RolloutScene> = [3usize, 1200, 2500]

@@ -295,3 +295,70 @@ fn window_kernels_match_the_cpu_reference() {
         }
     }
 }
+
+/// Each agent's nearest polylines in its anchor frame: the same pick (padding last, then
+/// distance, then index) and the same points as the CPU engines' reference, with agents
+/// missing at the anchor slot (scene frame) and scenes of padded polylines.
+#[test]
+fn agent_maps_match_the_cpu_reference() {
+    use road_gpu::kernels::agent_map::{AgentMap, AgentMapParams};
+    use road_model::agent_map::{agent_maps, anchors_of, polylines_per_agent};
+    let ctx = context();
+    let kernel = AgentMap::new(&ctx);
+    let mut rng = rand::rngs::StdRng::seed_from_u64(21);
+    for (b, a, w, p, q, k) in [
+        (1, 1, 3, 1, 2, 4),
+        (2, 5, 20, 6, 20, 4),
+        (3, 7, 20, 32, 20, 12),
+        (2, 3, 4, 128, 3, 128),
+    ] {
+        let anchor_slot = w / 2;
+        let x = random(&mut rng, b * a * w * 3, 1.5);
+        let valid: Vec<f32> = (0..b * a * w)
+            .map(|_| f32::from(u8::from(rng.random_bool(0.8))))
+            .collect();
+        let map = random(&mut rng, b * p * q * 2, 1.0);
+        let map_valid: Vec<f32> = (0..b * p)
+            .map(|i| f32::from(u8::from(i % p < p - p / 3)))
+            .collect();
+        let k = polylines_per_agent(k, p);
+        let params = AgentMapParams {
+            rows: (b * a) as u32,
+            agents: a as u32,
+            slots: w as u32,
+            anchor_slot: anchor_slot as u32,
+            polylines: p as u32,
+            points: q as u32,
+            picked: k as u32,
+            heading_scale: 0.25,
+        };
+        let (points, flags) = kernel
+            .run(&ctx, params, &x, &valid, &map, &map_valid)
+            .unwrap();
+        let anchors = anchors_of(&x, &valid, w, anchor_slot, 0.25);
+        let (want_points, want_flags) = agent_maps(&anchors, a, &map, &map_valid, q, k);
+        assert_eq!(flags, want_flags, "{b}×{a} agents, {p} polylines: flags");
+        let tol = Tolerance {
+            rel: 1e-4,
+            abs: 1e-5,
+        };
+        if let Err(m) = tol.check(&points, &want_points) {
+            panic!("{b}×{a} agents, {p} polylines of {q} points, K = {k}: {m}");
+        }
+    }
+    // More polylines than the kernel holds: a clear error, not a wrong pick.
+    let too_many = AgentMapParams {
+        rows: 1,
+        agents: 1,
+        slots: 1,
+        anchor_slot: 0,
+        polylines: 129,
+        points: 1,
+        picked: 1,
+        heading_scale: 0.25,
+    };
+    let err = kernel
+        .run(&ctx, too_many, &[0.0; 3], &[1.0], &[0.0; 258], &[1.0; 129])
+        .unwrap_err();
+    assert!(err.to_string().contains("128"), "{err}");
+}

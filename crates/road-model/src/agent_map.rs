@@ -22,6 +22,33 @@ impl MapAnchor {
     };
 }
 
+/// Every agent row's anchor in noisy windows `x [B, A, W, 3]` with flags `valid [B, A, W]`:
+/// its state at `anchor_slot` times its validity there (so an agent without an anchor sits at
+/// the scene centre with heading 0), heading `x.heading / heading_scale`. `[B·A]`.
+pub fn anchors_of(
+    x: &[f32],
+    valid: &[f32],
+    slots: usize,
+    anchor_slot: usize,
+    heading_scale: f32,
+) -> Vec<MapAnchor> {
+    valid
+        .chunks_exact(slots)
+        .enumerate()
+        .map(|(row, flags)| {
+            let v = flags[anchor_slot];
+            let state = &x[3 * (row * slots + anchor_slot)..][..3];
+            let (sin, cos) = (state[2] * v / heading_scale).sin_cos();
+            MapAnchor {
+                x: state[0] * v,
+                y: state[1] * v,
+                cos,
+                sin,
+            }
+        })
+        .collect()
+}
+
 /// The number of polylines each agent gets when a scene offers `available` (padding included)
 /// and the model asks for `wanted`.
 pub fn polylines_per_agent(wanted: usize, available: usize) -> usize {

@@ -8,7 +8,6 @@ use candle_core::{DType, Module, Tensor};
 use candle_nn::{LayerNorm, Linear, VarBuilder, layer_norm, linear};
 
 use crate::Result;
-use crate::agent_map::MapAnchor;
 use crate::batch::AGENT_FEATURES;
 use crate::config::ModelConfig;
 
@@ -303,28 +302,28 @@ impl Denoiser {
     }
 
     /// Each agent's own map tokens (`[B·A, K, D]`) and their bias (`[B·A, 1, 1, K]`), from the
-    /// anchors of `frame` and the scene's polylines `map [B, P, Q, 2]`, `map_valid [B, P]`.
+    /// anchors of the noisy input `x [B, A, W, 3]` and the scene's polylines
+    /// `map [B, P, Q, 2]`, `map_valid [B, P]`.
+    #[allow(clippy::too_many_arguments)]
     fn agent_map_keys(
         &self,
-        frame: &AnchorFrame,
+        x: &Tensor,
+        valid: &Tensor,
+        anchor_slot: usize,
         map: &Tensor,
         map_valid: &Tensor,
         polylines: usize,
         mode: Mode,
     ) -> Result<MapKeys> {
-        let (b, a, _, _) = frame.anchor.dims4()?;
+        let (b, a, w, _) = x.dims4()?;
         let (_, _, q, _) = map.dims4()?;
-        let anchor = frame.anchor.flatten_all()?.to_vec1::<f32>()?; // [B·A·3]
-        let cos = frame.cos.flatten_all()?.to_vec1::<f32>()?;
-        let sin = frame.sin.flatten_all()?.to_vec1::<f32>()?;
-        let anchors: Vec<MapAnchor> = (0..b * a)
-            .map(|row| MapAnchor {
-                x: anchor[3 * row],
-                y: anchor[3 * row + 1],
-                cos: cos[row],
-                sin: sin[row],
-            })
-            .collect();
+        let anchors = crate::agent_map::anchors_of(
+            &x.flatten_all()?.to_vec1::<f32>()?,
+            &valid.flatten_all()?.to_vec1::<f32>()?,
+            w,
+            anchor_slot,
+            self.config.heading_scale as f32,
+        );
         let (points, valid) = crate::agent_map::agent_maps(
             &anchors,
             a,
@@ -456,7 +455,7 @@ impl Denoiser {
             _ => None,
         };
         let masks = Masks::new(valid)?;
-        let map = match (map_tokens, &self.config.agent_map, &frame) {
+        let map = match (map_tokens, &self.config.agent_map, &self.config.agent_frame) {
             (MapTokens::Scene(tokens), None, _) => {
                 let (b, p) = map_valid.dims2()?;
                 MapKeys::Scene {
@@ -464,9 +463,15 @@ impl Denoiser {
                     bias: key_bias(map_valid)?.reshape((b, 1, 1, p))?,
                 }
             }
-            (MapTokens::PerAgent(points), Some(spec), Some(frame)) => {
-                self.agent_map_keys(frame, points, map_valid, spec.polylines, mode)?
-            }
+            (MapTokens::PerAgent(points), Some(spec), Some(frame)) => self.agent_map_keys(
+                x_noisy,
+                valid,
+                frame.anchor_slot,
+                points,
+                map_valid,
+                spec.polylines,
+                mode,
+            )?,
             _ => {
                 return Err(crate::Error::data(
                     "map tokens of another model: encode the map with this model's encode_map"

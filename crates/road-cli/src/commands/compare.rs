@@ -31,11 +31,14 @@ struct ModelRows {
     scenes: Vec<(Option<usize>, Vec<f64>)>,
 }
 
+/// Per-scene (weighted difference, weight) from the two models' fields.
+type Difference = fn(&[f64], &[f64]) -> (f64, f64);
+
 /// A suite's per-scene fields and the differences `road compare` reports.
 struct Suite {
     fields: &'static [&'static str],
-    /// (column title, per-scene (weighted difference, weight) from the two models' fields).
-    columns: &'static [(&'static str, fn(&[f64], &[f64]) -> (f64, f64))],
+    /// (column title, difference).
+    columns: &'static [(&'static str, Difference)],
 }
 
 const FORECASTING: Suite = Suite {

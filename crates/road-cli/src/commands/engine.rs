@@ -52,10 +52,6 @@ impl Engines {
                 let model = GpuDenoiser::from_checkpoint(&ctx, dir)?;
                 Some((ctx, model))
             }
-            EngineChoice::Auto if cpu.model.config.agent_map.is_some() => {
-                tracing::info!("agent maps have no WGSL kernels yet: running the fast CPU engine");
-                None
-            }
             EngineChoice::Auto => match GpuContext::new(&ContextOptions::default()) {
                 Ok(ctx) if !ctx.is_software() => {
                     let model = GpuDenoiser::from_checkpoint(&ctx, dir)?;

@@ -2,6 +2,7 @@
 //! tests and self-tests (upload, dispatch, read back); `encode` records into an existing
 //! command encoder so that the engine can chain kernels without readbacks.
 
+pub mod agent_map;
 pub mod attention;
 pub mod edm;
 pub mod layer_norm;
