@@ -348,6 +348,25 @@ fn the_model_overfits_a_tiny_dataset() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// `D(x; σ)` of a batch's noisy states, flattened.
+fn denoise_flat(m: &road_model::Denoiser, batch: &road_model::batch::Batch) -> Vec<f32> {
+    let map = m.encode_map(&batch.map, Mode::Infer).unwrap();
+    m.denoise(
+        &batch.x_noisy,
+        &batch.sigma,
+        &batch.valid,
+        &batch.agent_features,
+        &map,
+        &batch.map_valid,
+        Mode::Infer,
+    )
+    .unwrap()
+    .flatten_all()
+    .unwrap()
+    .to_vec1::<f32>()
+    .unwrap()
+}
+
 /// Save → load gives the same weights bit for bit, and a checkpoint whose tensors do not
 /// match its config is refused with a clear error.
 #[test]
@@ -364,23 +383,7 @@ fn checkpoints_round_trip_exactly_and_refuse_mismatches() {
     let ema = trainer.ema_model().unwrap();
     let mut rng = StdRng::seed_from_u64(9);
     let batch = sample_batch(&run, &ds, 2, None, &mut rng, &Device::Cpu).unwrap();
-    let eval = |m: &road_model::Denoiser| {
-        let map = m.encode_map(&batch.map, Mode::Infer).unwrap();
-        m.denoise(
-            &batch.x_noisy,
-            &batch.sigma,
-            &batch.valid,
-            &batch.agent_features,
-            &map,
-            &batch.map_valid,
-            Mode::Infer,
-        )
-        .unwrap()
-        .flatten_all()
-        .unwrap()
-        .to_vec1::<f32>()
-        .unwrap()
-    };
+    let eval = |m: &road_model::Denoiser| denoise_flat(m, &batch);
     assert_eq!(eval(&loaded.model), eval(&ema));
     assert!(!saved.is_empty());
 
@@ -423,23 +426,7 @@ fn a_run_can_start_from_another_checkpoint_s_weights() {
     let loaded = checkpoint::load(&dir, &Device::Cpu).unwrap().model;
     let mut rng = StdRng::seed_from_u64(9);
     let batch = sample_batch(&next, &ds, 2, None, &mut rng, &Device::Cpu).unwrap();
-    let eval = |m: &road_model::Denoiser| {
-        let map = m.encode_map(&batch.map, Mode::Infer).unwrap();
-        m.denoise(
-            &batch.x_noisy,
-            &batch.sigma,
-            &batch.valid,
-            &batch.agent_features,
-            &map,
-            &batch.map_valid,
-            Mode::Infer,
-        )
-        .unwrap()
-        .flatten_all()
-        .unwrap()
-        .to_vec1::<f32>()
-        .unwrap()
-    };
+    let eval = |m: &road_model::Denoiser| denoise_flat(m, &batch);
     assert_eq!(eval(&started), eval(&loaded));
     assert!(!saved.is_empty());
 

@@ -6,6 +6,10 @@ use std::time::Duration;
 
 pub use road_client::ZenohArgs;
 
+/// The checkpoint (a folder under `models/`) of requests that name none: RoAD-20 with agent maps
+/// and the constant-velocity residual, the best of the shipped ones (`docs/results.md`).
+pub const DEFAULT_CHECKPOINT: &str = "road20-cvmap";
+
 /// What a server allows and where it records. `Default` is what `road serve` runs with.
 #[derive(Debug, Clone)]
 pub struct ServeConfig {
@@ -52,7 +56,7 @@ impl ServeConfig {
             record_dir: None,
             flush_interval: Duration::from_secs(1),
             models_dir,
-            default_checkpoint: "road20".into(),
+            default_checkpoint: DEFAULT_CHECKPOINT.into(),
             map_files: Vec::new(),
         }
     }

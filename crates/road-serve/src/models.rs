@@ -31,7 +31,9 @@ pub fn find_models_dir(explicit: Option<&Path>) -> Result<PathBuf> {
         candidates.extend(exe.ancestors().skip(1).take(4).map(|d| d.join("models")));
     }
     for dir in candidates {
-        if dir.join("road20").is_dir() || dir.is_dir() && has_checkpoint(&dir) {
+        if dir.join(crate::config::DEFAULT_CHECKPOINT).is_dir()
+            || dir.is_dir() && has_checkpoint(&dir)
+        {
             return Ok(dir);
         }
         tried.push(dir.display().to_string());

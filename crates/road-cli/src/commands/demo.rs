@@ -22,8 +22,9 @@ use crate::plot::{
 
 #[derive(Debug, Args)]
 pub struct DemoArgs {
-    /// Checkpoint folder; the default is the shipped RoAD-20.
-    #[arg(long, default_value = "models/road20")]
+    /// Checkpoint folder; the default is the shipped default, RoAD-20 with agent maps and the
+    /// constant-velocity residual (`models/road20-cvmap`, docs/results.md).
+    #[arg(long, default_value = "models/road20-cvmap")]
     pub checkpoint: PathBuf,
     /// Simulated steps (10 Hz).
     #[arg(long, default_value_t = 60)]

@@ -1,5 +1,5 @@
 //! `road serve`: the networked NPC server (`road-serve`) over Eclipse Zenoh. With no
-//! arguments it runs the default checkpoint `road20` from `models/` (in the working directory,
+//! arguments it runs the default checkpoint `road20-cvmap` from `models/` (in the working directory,
 //! next to the binary, or `--models` / `ROAD_MODELS`), peer mode with zenoh's defaults, and
 //! records every scene under `recordings/`.
 
@@ -23,7 +23,7 @@ pub struct ServeArgs {
     #[arg(long, env = "ROAD_MODELS")]
     pub models: Option<PathBuf>,
     /// The checkpoint of requests that name none.
-    #[arg(long, default_value = "road20")]
+    #[arg(long, default_value = road_serve::config::DEFAULT_CHECKPOINT)]
     pub checkpoint: String,
     /// Where scenes are recorded (`scene-<id>.mcap`).
     #[arg(long, default_value = "recordings")]
