@@ -261,8 +261,9 @@ impl PolylineEncoder {
             }
         }
         self.mix.forward(&hidden[..rows * d], rows, mixed);
-        // Max over each polyline's points, then the layer norm (in place, row by row).
-        for (poly, token) in tokens[..n * d].chunks_exact_mut(d).enumerate() {
+        // Max over each polyline's points into `hidden` (free again), then the layer norm.
+        let pooled = &mut hidden[..n * d];
+        for (poly, token) in pooled.chunks_exact_mut(d).enumerate() {
             token.fill(f32::NEG_INFINITY);
             for point in mixed[poly * q * d..][..q * d].chunks_exact(d) {
                 for (t, v) in token.iter_mut().zip(point) {
@@ -270,8 +271,7 @@ impl PolylineEncoder {
                 }
             }
         }
-        let pooled = tokens[..n * d].to_vec();
-        self.ln.forward(&pooled, &mut tokens[..n * d]);
+        self.ln.forward(pooled, &mut tokens[..n * d]);
     }
 }
 
@@ -672,45 +672,35 @@ impl FastDenoiser {
             blk.ln_map.forward(&s.h[..n * d], &mut s.t[..n * d]);
             blk.map_q.forward(&s.t[..n * d], n, &mut s.qkv[..n * d]);
             let blocks = self.blocks.len();
-            for agent in 0..s.agent_rows.len() * usize::from(k > 0) {
+            // Query groups: each agent's W tokens (agent maps), or each scene's tokens.
+            let groups = if k > 0 {
+                s.agent_rows.len()
+            } else {
+                inputs.scene_ids.len()
+            };
+            for group in 0..groups {
                 s.queries.clear();
-                s.queries.extend(agent * w..(agent + 1) * w);
-                let flags = &s.agent_map_valid[agent * k..][..k];
-                unmasked_keys(&agent_polylines, &|key| flags[key] > 0.0, &mut s.keys);
-                let kv = KeysValues {
-                    data: &s.agent_map_kv[(agent * blocks + block_index) * k * 2 * d..]
-                        [..k * 2 * d],
-                    stride: 2 * d,
-                    k_offset: 0,
-                    v_offset: d,
-                };
-                attend(
-                    &s.qkv,
-                    d,
-                    &s.queries,
-                    &kv,
-                    &s.keys,
-                    heads,
-                    scale,
-                    &mut s.scores,
-                    &mut s.att,
-                );
-            }
-            for (local, &scene) in inputs.scene_ids.iter().enumerate().filter(|_| k == 0) {
-                s.queries.clear();
-                s.queries
-                    .extend(s.scene_starts[local] * w..s.scene_starts[local + 1] * w);
-                unmasked_keys(
-                    &all_polylines,
-                    &|k| cache.map_valid[scene * p + k] > 0.0,
-                    &mut s.keys,
-                );
-                let kv = KeysValues {
-                    data: &cache.map_kv[(scene * self.blocks.len() + block_index) * p * 2 * d..]
-                        [..p * 2 * d],
-                    stride: 2 * d,
-                    k_offset: 0,
-                    v_offset: d,
+                let kv = if k > 0 {
+                    s.queries.extend(group * w..(group + 1) * w);
+                    let flags = &s.agent_map_valid[group * k..][..k];
+                    unmasked_keys(&agent_polylines, &|key| flags[key] > 0.0, &mut s.keys);
+                    KeysValues::side_by_side(
+                        &s.agent_map_kv[(group * blocks + block_index) * k * 2 * d..][..k * 2 * d],
+                        d,
+                    )
+                } else {
+                    let scene = inputs.scene_ids[group];
+                    s.queries
+                        .extend(s.scene_starts[group] * w..s.scene_starts[group + 1] * w);
+                    unmasked_keys(
+                        &all_polylines,
+                        &|key| cache.map_valid[scene * p + key] > 0.0,
+                        &mut s.keys,
+                    );
+                    KeysValues::side_by_side(
+                        &cache.map_kv[(scene * blocks + block_index) * p * 2 * d..][..p * 2 * d],
+                        d,
+                    )
                 };
                 attend(
                     &s.qkv,
@@ -996,6 +986,16 @@ fn lane_sum(values: impl Iterator<Item = f32>) -> f32 {
 }
 
 impl<'a> KeysValues<'a> {
+    /// Cross-attention: rows of `[k; v]` from one stacked product, `2D` wide.
+    fn side_by_side(kv: &'a [f32], d: usize) -> Self {
+        Self {
+            data: kv,
+            stride: 2 * d,
+            k_offset: 0,
+            v_offset: d,
+        }
+    }
+
     /// Self-attention: rows of `[q; k; v]` from one stacked product, `3D` wide.
     fn stacked(qkv: &'a [f32], d: usize) -> Self {
         Self {

@@ -146,14 +146,14 @@ impl Block {
         // Cross-attention to the map: [B, A·W, D] → [B, P, D] (the scene's tokens), or
         // [B·A, W, D] → [B·A, K, D] (each agent's own).
         let x = norm(&self.ln_map, &h, mode)?;
-        let x = match map {
-            MapKeys::Scene { .. } => x.reshape((b, a * w, d))?,
-            MapKeys::PerAgent { .. } => x.reshape((b * a, w, d))?,
+        let x = if map.per_agent {
+            x.reshape((b * a, w, d))?
+        } else {
+            x.reshape((b, a * w, d))?
         };
-        let (tokens, bias) = map.tokens_and_bias();
         let h = (h + self
             .map
-            .forward(&x, tokens, bias, mode)?
+            .forward(&x, &map.tokens, &map.bias, mode)?
             .reshape((b, a, w, d))?)?;
         let x = norm(&self.ln_mlp, &h, mode)?;
         let y = lin(&self.mlp_out, &lin(&self.mlp_in, &x)?.relu()?)?;
@@ -209,21 +209,14 @@ impl MapTokens {
     }
 }
 
-/// The keys of one forward's map cross-attention and their bias.
+/// The keys of one forward's map cross-attention and their bias: the scene's
+/// (`tokens [B, P, D]`, `bias [B, 1, 1, P]`) or, `per_agent`, each agent's own
+/// (`[B·A, K, D]`, `[B·A, 1, 1, K]`).
 #[derive(Debug)]
-enum MapKeys {
-    /// `tokens [B, P, D]`, `bias [B, 1, 1, P]`.
-    Scene { tokens: Tensor, bias: Tensor },
-    /// `tokens [B·A, K, D]`, `bias [B·A, 1, 1, K]`.
-    PerAgent { tokens: Tensor, bias: Tensor },
-}
-
-impl MapKeys {
-    fn tokens_and_bias(&self) -> (&Tensor, &Tensor) {
-        match self {
-            Self::Scene { tokens, bias } | Self::PerAgent { tokens, bias } => (tokens, bias),
-        }
-    }
+struct MapKeys {
+    tokens: Tensor,
+    bias: Tensor,
+    per_agent: bool,
 }
 
 /// The denoiser `D(x; σ)`.
@@ -336,9 +329,10 @@ impl Denoiser {
         let device = map.device();
         let points = Tensor::from_vec(points, (b * a, k, q, 2), device)?;
         let valid = Tensor::from_vec(valid, (b * a, 1, 1, k), device)?;
-        Ok(MapKeys::PerAgent {
+        Ok(MapKeys {
             tokens: self.encode_polylines(&points, mode)?,
             bias: key_bias(&valid)?,
+            per_agent: true,
         })
     }
 
@@ -458,9 +452,10 @@ impl Denoiser {
         let map = match (map_tokens, &self.config.agent_map, &self.config.agent_frame) {
             (MapTokens::Scene(tokens), None, _) => {
                 let (b, p) = map_valid.dims2()?;
-                MapKeys::Scene {
+                MapKeys {
                     tokens: tokens.clone(),
                     bias: key_bias(map_valid)?.reshape((b, 1, 1, p))?,
+                    per_agent: false,
                 }
             }
             (MapTokens::PerAgent(points), Some(spec), Some(frame)) => self.agent_map_keys(
