@@ -5,7 +5,7 @@
 //!
 //! The forward pass is the one of `docs/checkpoint.md`, kernel by kernel:
 //! `linear` (embed_agent) → `embed_tokens` → per block: `layer_norm`, `linear` q/k/v,
-//! `attention` (time, agents, map layouts), `linear` o, `add_in_place`, MLP → `layer_norm`,
+//! `attention` (time, agents, map layouts; `pair_attention` for agents with agent pairs), `linear` o, `add_in_place`, MLP → `layer_norm`,
 //! `linear` head → `precondition_output`.
 
 use std::collections::HashMap;
@@ -15,6 +15,7 @@ use bytemuck::{Pod, Zeroable};
 use road_model::ModelConfig;
 
 use crate::kernels::agent_map::AgentMapParams;
+use crate::kernels::agent_pairs::PairAttentionParams;
 use crate::kernels::attention::{AttentionParams, MAX_HEAD_DIM, TokenLayout};
 use crate::kernels::layer_norm::LayerNormParams;
 use crate::kernels::linear::LinearParams;
@@ -93,6 +94,7 @@ struct Pipelines {
     heun_euler: Pipeline,
     heun_correct: Pipeline,
     pick_agent_maps: Pipeline,
+    pair_attention: Pipeline,
 }
 
 impl Pipelines {
@@ -109,6 +111,7 @@ impl Pipelines {
             heun_euler: Pipeline::new(ctx, Shader::Heun, "heun_euler"),
             heun_correct: Pipeline::new(ctx, Shader::Heun, "heun_correct"),
             pick_agent_maps: Pipeline::new(ctx, Shader::AgentMap, "pick_agent_maps"),
+            pair_attention: Pipeline::new(ctx, Shader::AgentPairs, "pair_attention"),
         }
     }
 }
@@ -763,13 +766,35 @@ impl GpuDenoiser {
                     d,
                     false,
                 )?;
-                let params = Self::params(ctx, &attn);
-                ops.push(self.pipelines.attention.prepare_buffers(
-                    ctx,
-                    &params,
-                    &[q, k, v, &batch.valid, att],
-                    attn.threads(),
-                ));
+                if part == "agents" && c.agent_pairs.is_some() {
+                    // Agent pairs: their features from this `x`, in the pair kernel.
+                    let pairs = PairAttentionParams::of(c, b, a)?;
+                    let params = Self::params(ctx, &pairs);
+                    let resources = [
+                        q.as_entire_binding(),
+                        k.as_entire_binding(),
+                        v.as_entire_binding(),
+                        batch.valid.as_entire_binding(),
+                        x.as_entire_binding(),
+                        self.w(&format!("{blk}.agents.pair_k"))?,
+                        self.w(&format!("{blk}.agents.pair_v"))?,
+                        att.as_entire_binding(),
+                    ];
+                    ops.push(self.pipelines.pair_attention.prepare_resources(
+                        ctx,
+                        &params,
+                        &resources,
+                        pairs.threads(),
+                    ));
+                } else {
+                    let params = Self::params(ctx, &attn);
+                    ops.push(self.pipelines.attention.prepare_buffers(
+                        ctx,
+                        &params,
+                        &[q, k, v, &batch.valid, att],
+                        attn.threads(),
+                    ));
+                }
                 self.linear(
                     ctx,
                     ops,

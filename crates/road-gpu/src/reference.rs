@@ -1,5 +1,6 @@
 //! CPU references of the kernels: plain loops in f64, the meaning each kernel must match.
 
+use crate::kernels::agent_pairs::PairAttentionParams;
 use crate::kernels::attention::AttentionParams;
 
 /// `y[r, o] = act(Σ_k x[r, k] · w[o, k] + b[o])`.
@@ -94,6 +95,98 @@ pub fn attention(
                         .map(|&(kb, s)| (s - m).exp() / z * f64::from(v[kb + c]))
                         .sum();
                     out[qb + c] = acc as f32;
+                }
+            }
+        }
+    }
+    out
+}
+
+/// Agent attention with pair features: per (scene, slot) group, head and query agent, softmax
+/// over valid key agents of `(q·k + (K_hᵀ q)·r) · scale`, output `Σ a (v + V_h r)`, with `r` of
+/// `road_model::agent_pairs::pair_features` in the query agent's anchor frame (its state at
+/// the anchor slot times its flag there, as `anchors_of`). Zeros where no key is valid.
+#[allow(clippy::too_many_arguments)]
+pub fn pair_attention(
+    p: &PairAttentionParams,
+    q: &[f32],
+    k: &[f32],
+    v: &[f32],
+    valid: &[f32],
+    states: &[f32],
+    pair_k: &[f32],
+    pair_v: &[f32],
+) -> Vec<f32> {
+    use road_model::agent_pairs::{PAIR_FEATURES as F, pair_features};
+    let (a, w) = (p.agents as usize, p.slots as usize);
+    let hd = p.head_dim as usize;
+    let d = p.heads as usize * hd;
+    let scenes = p.groups as usize / w;
+    let anchors = road_model::agent_map::anchors_of(
+        states,
+        valid,
+        w,
+        p.anchor_slot as usize,
+        p.heading_scale,
+    );
+    let row = |scene: usize, agent: usize, slot: usize| (scene * a + agent) * w + slot;
+    let mut out = vec![0.0f32; q.len()];
+    for scene in 0..scenes {
+        for slot in 0..w {
+            for h in 0..p.heads as usize {
+                for i in 0..a {
+                    let qi = row(scene, i, slot);
+                    let qb = qi * d + h * hd;
+                    let q_pair: Vec<f64> = (0..F)
+                        .map(|f| {
+                            (0..hd)
+                                .map(|c| {
+                                    f64::from(q[qb + c]) * f64::from(pair_k[(h * hd + c) * F + f])
+                                })
+                                .sum()
+                        })
+                        .collect();
+                    let mut scored = Vec::new();
+                    for j in 0..a {
+                        let kj = row(scene, j, slot);
+                        if valid[kj] == 0.0 {
+                            continue;
+                        }
+                        let r = pair_features(
+                            &states[3 * qi..3 * qi + 3],
+                            anchors[scene * a + i],
+                            &states[3 * kj..3 * kj + 3],
+                            p.scales(),
+                        );
+                        let kb = kj * d + h * hd;
+                        let s = ((0..hd)
+                            .map(|c| f64::from(q[qb + c]) * f64::from(k[kb + c]))
+                            .sum::<f64>()
+                            + (0..F).map(|f| q_pair[f] * f64::from(r[f])).sum::<f64>())
+                            * f64::from(p.scale);
+                        scored.push((kb, s, r));
+                    }
+                    if scored.is_empty() {
+                        continue;
+                    }
+                    let m = scored.iter().map(|s| s.1).fold(f64::NEG_INFINITY, f64::max);
+                    let z: f64 = scored.iter().map(|s| (s.1 - m).exp()).sum();
+                    let mut mean_pair = [0.0f64; F];
+                    for (_, s, r) in &scored {
+                        for f in 0..F {
+                            mean_pair[f] += (s - m).exp() / z * f64::from(r[f]);
+                        }
+                    }
+                    for c in 0..hd {
+                        let value: f64 = scored
+                            .iter()
+                            .map(|&(kb, s, _)| (s - m).exp() / z * f64::from(v[kb + c]))
+                            .sum();
+                        let offset: f64 = (0..F)
+                            .map(|f| f64::from(pair_v[(h * hd + c) * F + f]) * mean_pair[f])
+                            .sum();
+                        out[qb + c] = (value + offset) as f32;
+                    }
                 }
             }
         }

@@ -22,10 +22,12 @@ pub enum Shader {
     Window,
     /// Agent-centric maps: each agent's nearest polylines in its anchor frame.
     AgentMap,
+    /// Agent attention with pair features (relative pose of every pair of agents).
+    AgentPairs,
 }
 
 impl Shader {
-    pub const ALL: [Shader; 9] = [
+    pub const ALL: [Shader; 10] = [
         Shader::Edm,
         Shader::Linear,
         Shader::LayerNorm,
@@ -35,6 +37,7 @@ impl Shader {
         Shader::Heun,
         Shader::Window,
         Shader::AgentMap,
+        Shader::AgentPairs,
     ];
 
     /// File name under `shaders/`.
@@ -49,6 +52,7 @@ impl Shader {
             Shader::Heun => "heun.wgsl",
             Shader::Window => "window.wgsl",
             Shader::AgentMap => "agent_map.wgsl",
+            Shader::AgentPairs => "agent_pairs.wgsl",
         }
     }
 
@@ -63,6 +67,7 @@ impl Shader {
             Shader::Heun => include_str!("../../../shaders/heun.wgsl"),
             Shader::Window => include_str!("../../../shaders/window.wgsl"),
             Shader::AgentMap => include_str!("../../../shaders/agent_map.wgsl"),
+            Shader::AgentPairs => include_str!("../../../shaders/agent_pairs.wgsl"),
         }
     }
 

@@ -5,8 +5,8 @@ use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 use candle_core::{Device, Tensor};
-use rand::SeedableRng;
 use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
 use road_data::{Dataset, SourceSet, Split, WindowConfig};
 use road_gpu::engine::{DenoiseInputs, GpuDenoiser};
 use road_gpu::{ContextOptions, GpuContext, Tolerance};
@@ -57,6 +57,17 @@ fn validation_set() -> Dataset {
 /// A seeded road20-shaped model saved as a checkpoint (small hidden size keeps CI quick).
 fn checkpoint_dir(config: &ModelConfig, name: &str) -> (PathBuf, Denoiser) {
     let (varmap, model) = model::init_seeded(config, &Device::Cpu, 42).unwrap();
+    // Agent pairs' weights start at zero: random here, so that the comparisons exercise them.
+    let mut rng = rand::rngs::StdRng::seed_from_u64(43);
+    for (name, var) in varmap.data().lock().unwrap().iter() {
+        if name.contains(".pair_") {
+            let values: Vec<f32> = (0..var.elem_count())
+                .map(|_| rng.random_range(-0.5f32..0.5))
+                .collect();
+            var.set(&Tensor::from_vec(values, var.dims(), &Device::Cpu).unwrap())
+                .unwrap();
+        }
+    }
     let dir = std::env::temp_dir().join(format!("road-gpu-engine-{name}-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let tensors: HashMap<String, Tensor> = varmap
@@ -177,6 +188,23 @@ fn whole_denoiser_with_a_constant_velocity_reference_matches_candle() {
 #[test]
 fn whole_denoiser_with_agent_maps_matches_candle() {
     whole_denoiser_matches_candle(&agent_map_config(), "denoiser-agent-map");
+}
+
+/// Agent pairs: agent attention in the pair kernel, features from the evaluated `x`.
+#[test]
+fn whole_denoiser_with_agent_pairs_matches_candle() {
+    whole_denoiser_matches_candle(&agent_pairs_config(), "denoiser-agent-pairs");
+}
+
+fn agent_pairs_config() -> ModelConfig {
+    ModelConfig {
+        agent_pairs: Some(road_model::AgentPairs {
+            direction_scale_m: 10.0,
+            near_scale_m: 5.0,
+            far_scale_m: 20.0,
+        }),
+        ..agent_map_config()
+    }
 }
 
 fn agent_map_config() -> ModelConfig {
@@ -426,6 +454,12 @@ fn mixed_phase_batches_agree_with_the_reference() {
 #[test]
 fn mixed_phase_batches_with_agent_maps_agree_with_the_reference() {
     mixed_phase_batches_agree(&agent_map_config(), "mixed-agent-map");
+}
+
+/// The same with agent pairs: compact sub-batches' pair features come from their own states.
+#[test]
+fn mixed_phase_batches_with_agent_pairs_agree_with_the_reference() {
+    mixed_phase_batches_agree(&agent_pairs_config(), "mixed-agent-pairs");
 }
 
 fn mixed_phase_batches_agree(config: &ModelConfig, name: &str) {

@@ -362,3 +362,61 @@ fn agent_maps_match_the_cpu_reference() {
         .unwrap_err();
     assert!(err.to_string().contains("128"), "{err}");
 }
+
+/// Agent attention with pair features matches its CPU reference (on the CPU engines'
+/// `pair_features`): scenes with agents absent everywhere, absent at the anchor slot (scene
+/// frame) and groups with no valid key.
+#[test]
+fn pair_attention_matches_the_cpu_reference() {
+    use road_gpu::kernels::agent_pairs::{PairAttention, PairAttentionParams};
+    let ctx = context();
+    let kernel = PairAttention::new(&ctx);
+    let mut rng = rand::rngs::StdRng::seed_from_u64(23);
+    for (b, a, w, heads, head_dim) in [(1, 1, 2, 1, 4), (2, 5, 20, 4, 16), (3, 12, 20, 2, 8)] {
+        let d = heads * head_dim;
+        let tokens = b * a * w;
+        let f = road_model::agent_pairs::PAIR_FEATURES;
+        let (q, k, v) = (
+            random(&mut rng, tokens * d, 1.0),
+            random(&mut rng, tokens * d, 1.0),
+            random(&mut rng, tokens * d, 1.0),
+        );
+        let states = random(&mut rng, tokens * 3, 1.5);
+        let mut valid: Vec<f32> = (0..tokens)
+            .map(|_| f32::from(u8::from(rng.random_bool(0.8))))
+            .collect();
+        valid[..w].fill(0.0); // scene 0, agent 0: absent everywhere
+        let anchor_slot = w / 2;
+        if a > 1 {
+            valid[w + anchor_slot] = 0.0; // scene 0, agent 1: no anchor
+        }
+        let (pair_k, pair_v) = (random(&mut rng, d * f, 0.5), random(&mut rng, d * f, 0.5));
+        let params = PairAttentionParams {
+            groups: (b * w) as u32,
+            heads: heads as u32,
+            head_dim: head_dim as u32,
+            agents: a as u32,
+            slots: w as u32,
+            anchor_slot: anchor_slot as u32,
+            scale: 1.0 / (head_dim as f32).sqrt(),
+            heading_scale: 0.25,
+            direction: 0.25,
+            near: 0.125,
+            far: 0.5,
+            _pad: 0,
+        };
+        let got = kernel
+            .run(&ctx, params, &q, &k, &v, &valid, &states, &pair_k, &pair_v)
+            .unwrap();
+        let want = road_gpu::reference::pair_attention(
+            &params, &q, &k, &v, &valid, &states, &pair_k, &pair_v,
+        );
+        let tol = Tolerance {
+            rel: 1e-4,
+            abs: 1e-5,
+        };
+        if let Err(m) = tol.check(&got, &want) {
+            panic!("{b} scenes × {a} agents × {w} slots, {heads} heads of {head_dim}: {m}");
+        }
+    }
+}

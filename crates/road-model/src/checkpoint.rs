@@ -101,11 +101,38 @@ pub fn check_against(
     tensors: &HashMap<String, Tensor>,
     path: &Path,
 ) -> Result<()> {
+    let missing = check_fit(varmap, tensors, path)?;
+    if missing.is_empty() {
+        Ok(())
+    } else {
+        Err(Error::Checkpoint {
+            path: path.to_owned(),
+            reason: format!(
+                "weights do not match the config: {}",
+                missing
+                    .iter()
+                    .map(|name| format!("missing tensor `{name}`"))
+                    .collect::<Vec<_>>()
+                    .join("; ")
+            ),
+        })
+    }
+}
+
+/// Checks that every tensor of `tensors` is one of the config's, with its shape, and returns
+/// the config's tensors that `tensors` lacks (sorted): `train.init_from` starts those from
+/// their initialisation (a model that gains a part), where loading a checkpoint refuses them.
+pub fn check_fit(
+    varmap: &VarMap,
+    tensors: &HashMap<String, Tensor>,
+    path: &Path,
+) -> Result<Vec<String>> {
     let vars = varmap.data().lock().expect("var map lock");
     let mut problems = Vec::new();
+    let mut missing = Vec::new();
     for (name, var) in vars.iter() {
         match tensors.get(name) {
-            None => problems.push(format!("missing tensor `{name}`")),
+            None => missing.push(name.clone()),
             Some(t) if t.dims() != var.dims() => problems.push(format!(
                 "tensor `{name}` has shape {:?}, the config needs {:?}",
                 t.dims(),
@@ -119,8 +146,12 @@ pub fn check_against(
             problems.push(format!("unexpected tensor `{name}`"));
         }
     }
+    if missing.len() == vars.len() && !vars.is_empty() {
+        problems.push("none of the config's tensors".into());
+    }
+    missing.sort();
     if problems.is_empty() {
-        Ok(())
+        Ok(missing)
     } else {
         problems.sort();
         Err(Error::Checkpoint {

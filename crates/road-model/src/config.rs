@@ -39,6 +39,28 @@ pub struct ModelConfig {
     /// polyline, shared by every agent (the paper's and every checkpoint's before it).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub agent_map: Option<AgentMap>,
+    /// Pair features in agent attention (see [`AgentPairs`]). Absent = agents see each other
+    /// only through their tokens (every checkpoint's before it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub agent_pairs: Option<AgentPairs>,
+}
+
+/// Agent attention also sees where each other agent is, and how it heads, relative to the
+/// querying agent: per pair (query i, key j) at the same slot, [`crate::agent_pairs`]'s
+/// features of j's position in i's anchor frame and of their heading difference enter the
+/// attention as a key offset and a value offset, linear in the features, per head (docs/
+/// checkpoint.md). Scene-frame tokens leave "the car 6 m ahead in my lane" to be worked out
+/// from two absolute positions 40 m to the unit; this hands it to every pair. Needs an agent
+/// frame (its anchors orient the pairs).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AgentPairs {
+    /// Direction features `(forward, left) / (distance + scale)`: about the unit direction
+    /// beyond this distance, proportional to the offset within it. Metres.
+    pub direction_scale_m: f64,
+    /// Proximity features `exp(−distance / scale)` at a near and a far length scale. Metres.
+    pub near_scale_m: f64,
+    pub far_scale_m: f64,
 }
 
 /// Each agent attends to its own map: the `polylines` lane polylines (of the scene's
@@ -104,6 +126,7 @@ impl Default for ModelConfig {
             edm: EdmSchedule::default(),
             agent_frame: None,
             agent_map: None,
+            agent_pairs: None,
         }
     }
 }
@@ -165,6 +188,24 @@ impl ModelConfig {
                 ));
             }
         }
+        if let Some(pairs) = &self.agent_pairs {
+            if self.agent_frame.is_none() {
+                return Err(
+                    "agent_pairs needs an agent_frame (its anchors orient the pairs)".into(),
+                );
+            }
+            for (key, value) in [
+                ("direction_scale_m", pairs.direction_scale_m),
+                ("near_scale_m", pairs.near_scale_m),
+                ("far_scale_m", pairs.far_scale_m),
+            ] {
+                if !(value > 0.0 && value.is_finite()) {
+                    return Err(format!(
+                        "agent_pairs.{key} must be positive and finite, got {value}"
+                    ));
+                }
+            }
+        }
         Ok(())
     }
 }
@@ -204,9 +245,10 @@ pub struct TrainConfig {
     /// and headings together): the scene frame has no preferred orientation at inference.
     pub rotation_augmentation: bool,
     /// Start from another checkpoint's (EMA) weights instead of a fresh initialisation: a
-    /// folder under `models/`, relative to the working directory. Every tensor must exist
-    /// there with this model's shape (e.g. a lever that changes only what a layer sees).
-    /// The optimiser's moments and the schedule start afresh.
+    /// folder under `models/`, relative to the working directory. Every tensor there must be
+    /// one of this model's, with its shape; this model's tensors it lacks (a part the config
+    /// adds, e.g. `agent_pairs`) keep their initialisation, and are logged. The optimiser's
+    /// moments and the schedule start afresh.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub init_from: Option<std::path::PathBuf>,
 }
@@ -343,6 +385,31 @@ mod tests {
     use std::path::Path;
 
     use super::*;
+
+    #[test]
+    fn agent_pairs_need_an_agent_frame_and_positive_scales() {
+        let pairs = AgentPairs {
+            direction_scale_m: 10.0,
+            near_scale_m: 5.0,
+            far_scale_m: 20.0,
+        };
+        let mut model = ModelConfig {
+            agent_pairs: Some(pairs.clone()),
+            ..ModelConfig::default()
+        };
+        assert!(model.validate().unwrap_err().contains("agent_frame"));
+        model.agent_frame = Some(AgentFrame {
+            anchor_slot: 9,
+            relative_scale: 1.0,
+            residual_scale: None,
+        });
+        assert_eq!(model.validate(), Ok(()));
+        model.agent_pairs = Some(AgentPairs {
+            near_scale_m: 0.0,
+            ..pairs
+        });
+        assert!(model.validate().unwrap_err().contains("agent_pairs.near_scale_m"));
+    }
 
     /// Every run config under `configs/` (the files with a `name`) parses and validates.
     #[test]

@@ -14,6 +14,7 @@ use candle_core::Tensor;
 use candle_nn::{LayerNorm, Linear};
 
 use crate::agent_map::{MapAnchor, agent_map, polylines_per_agent};
+use crate::agent_pairs::{PAIR_FEATURES, PairScales, pair_features};
 use crate::config::AgentFrame;
 use crate::model::{Attention, Denoiser};
 use crate::{Error, Result};
@@ -165,6 +166,8 @@ struct FastBlock {
     ln_agents: Norm,
     agents_qkv: Dense,
     agents_o: Dense,
+    /// With agent pairs: the key and value offsets' weights, `[D, F]` each.
+    agents_pairs: Option<(Vec<f32>, Vec<f32>)>,
     ln_map: Norm,
     map_q: Dense,
     /// Applied to the map tokens once per scene set: `[k; v]`.
@@ -198,6 +201,8 @@ pub struct FastDenoiser {
     head: Dense,
     /// With an agent map: the polyline encoder and the polylines per agent K wanted.
     agent_map: Option<(PolylineEncoder, usize)>,
+    /// With agent pairs: their features' scales.
+    pair_scales: Option<PairScales>,
     /// Worker threads a call may use (scenes are split between them).
     threads: usize,
     /// Scratch buffers, one set per worker, kept between calls.
@@ -302,6 +307,11 @@ struct Scratch {
     agent_mixed: Vec<f32>,
     agent_tokens: Vec<f32>,
     agent_map_kv: Vec<f32>,
+    /// Agent pairs: each evaluated agent's anchor, and one slot's pair features
+    /// `[queries, queries, F]` with the unmasked keys' positions among the queries.
+    pair_anchors: Vec<MapAnchor>,
+    pair_features: Vec<f32>,
+    key_positions: Vec<usize>,
 }
 
 /// One batch of states to denoise: the rows of `scene_ids` in the [`SceneCache`].
@@ -332,6 +342,10 @@ impl FastDenoiser {
                     ln_agents: Norm::from_layer_norm(&b.ln_agents)?,
                     agents_qkv: qkv(&b.agents)?,
                     agents_o: Dense::from_linear(&b.agents.o)?,
+                    agents_pairs: match &b.agents.pairs {
+                        Some(w) => Some((host(&w.k)?, host(&w.v)?)),
+                        None => None,
+                    },
                     ln_map: Norm::from_layer_norm(&b.ln_map)?,
                     map_q: Dense::from_linear(&b.map.q)?,
                     map_kv: Dense::stack(&[&b.map.k, &b.map.v])?,
@@ -373,6 +387,10 @@ impl FastDenoiser {
                     spec.polylines,
                 )),
             },
+            pair_scales: c
+                .agent_pairs
+                .as_ref()
+                .map(|pairs| PairScales::new(pairs, c.position_scale_m, c.heading_scale)),
             threads: threads.max(1),
             scratch: Mutex::new(Vec::new()),
         })
@@ -461,14 +479,7 @@ impl FastDenoiser {
         s.agent_map_valid.resize(n * k, 0.0);
         for (compact, &agent_row) in s.agent_rows.iter().enumerate() {
             let scene = inputs.scene_ids[agent_row / a];
-            let anchor = self
-                .anchor(inputs, agent_row)
-                .map_or(MapAnchor::SCENE, |an| MapAnchor {
-                    x: an.x,
-                    y: an.y,
-                    cos: an.cos,
-                    sin: an.sin,
-                });
+            let anchor = self.map_anchor(inputs, agent_row);
             agent_map(
                 anchor,
                 &cache.map_points[scene * p * q * 2..][..p * q * 2],
@@ -606,6 +617,12 @@ impl FastDenoiser {
         }
         self.embed(cache, inputs, &s.agent_rows, &mut s.h[..n * d]);
         let k = self.agent_maps(cache, inputs, s);
+        if self.pair_scales.is_some() {
+            s.pair_anchors.clear();
+            for &agent_row in &s.agent_rows {
+                s.pair_anchors.push(self.map_anchor(inputs, agent_row));
+            }
+        }
         let valid_token = |compact_token: usize| {
             inputs.valid[s.agent_rows[compact_token / w] * w + compact_token % w] > 0.0
         };
@@ -630,6 +647,7 @@ impl FastDenoiser {
                     &s.queries,
                     &kv,
                     &s.keys,
+                    None,
                     heads,
                     scale,
                     &mut s.scores,
@@ -650,6 +668,31 @@ impl FastDenoiser {
                     s.queries
                         .extend(agents.clone().map(|agent| agent * w + slot));
                     unmasked_keys(&s.queries, &valid_token, &mut s.keys);
+                    let pairs = match (&blk.agents_pairs, self.pair_scales) {
+                        (Some((k_weights, v_weights)), Some(scales)) => {
+                            slot_pair_features(
+                                inputs.x,
+                                &s.agent_rows,
+                                &s.pair_anchors,
+                                agents.clone(),
+                                slot,
+                                w,
+                                scales,
+                                &mut s.pair_features,
+                            );
+                            s.key_positions.clear();
+                            s.key_positions
+                                .extend(s.keys.iter().map(|&key| key / w - agents.start));
+                            Some(PairTerms {
+                                features: &s.pair_features,
+                                key_positions: &s.key_positions,
+                                candidates: agents.len(),
+                                k_weights,
+                                v_weights,
+                            })
+                        }
+                        _ => None,
+                    };
                     let kv = KeysValues::stacked(&s.qkv, d);
                     attend(
                         &s.qkv,
@@ -657,6 +700,7 @@ impl FastDenoiser {
                         &s.queries,
                         &kv,
                         &s.keys,
+                        pairs.as_ref(),
                         heads,
                         scale,
                         &mut s.scores,
@@ -708,6 +752,7 @@ impl FastDenoiser {
                     &s.queries,
                     &kv,
                     &s.keys,
+                    None,
                     heads,
                     scale,
                     &mut s.scores,
@@ -826,6 +871,18 @@ impl FastDenoiser {
                 }
             }
         }
+    }
+
+    /// The anchor of batch agent row `agent_row` as agent maps and pairs see it (the scene
+    /// frame without an agent frame or an anchor).
+    fn map_anchor(&self, inputs: &FastInputs<'_>, agent_row: usize) -> MapAnchor {
+        self.anchor(inputs, agent_row)
+            .map_or(MapAnchor::SCENE, |an| MapAnchor {
+                x: an.x,
+                y: an.y,
+                cos: an.cos,
+                sin: an.sin,
+            })
     }
 
     fn anchor_slot(&self) -> usize {
@@ -1025,8 +1082,50 @@ fn dot(a: &[f32], b: &[f32]) -> f32 {
     lanes.iter().sum::<f32>() + tail
 }
 
+/// The pair terms of agent attention ([`crate::config::AgentPairs`]) for one group whose
+/// queries are also its candidate keys: `features [queries, candidates, F]`, the position
+/// among the candidates of each key passed to [`attend`], and the offsets' weights `[D, F]`.
+struct PairTerms<'a> {
+    features: &'a [f32],
+    key_positions: &'a [usize],
+    candidates: usize,
+    k_weights: &'a [f32],
+    v_weights: &'a [f32],
+}
+
+/// The pair features of slot `slot` between the evaluated agents `agents` (compact indices,
+/// one scene's) into `out [agents, agents, F]`, as [`crate::agent_pairs::pair_features_of`].
+#[allow(clippy::too_many_arguments)]
+fn slot_pair_features(
+    x: &[f32],
+    agent_rows: &[usize],
+    anchors: &[MapAnchor],
+    agents: std::ops::Range<usize>,
+    slot: usize,
+    slots: usize,
+    scales: PairScales,
+    out: &mut Vec<f32>,
+) {
+    let f = PAIR_FEATURES;
+    let n = agents.len();
+    out.resize(n * n * f, 0.0);
+    let state = |compact: usize| &x[3 * (agent_rows[compact] * slots + slot)..][..3];
+    for (qi, query) in agents.clone().enumerate() {
+        for (kj, key) in agents.clone().enumerate() {
+            out[(qi * n + kj) * f..][..f].copy_from_slice(&pair_features(
+                state(query),
+                anchors[query],
+                state(key),
+                scales,
+            ));
+        }
+    }
+}
+
 /// Multi-head attention of the query rows `queries` of `q` (row stride `q_stride`, queries at
-/// offset 0) over key rows `keys` of `kv`; writes `out [row, D]` for each query row.
+/// offset 0) over key rows `keys` of `kv`; writes `out [row, D]` for each query row. With
+/// `pairs`, each score gains `(K_hᵀ q) · r` and each output `V_h Σ_j a_j r_j` (the candle
+/// model's `Attention::forward`).
 #[allow(clippy::too_many_arguments)]
 fn attend(
     q: &[f32],
@@ -1034,6 +1133,7 @@ fn attend(
     queries: &[usize],
     kv: &KeysValues<'_>,
     keys: &[usize],
+    pairs: Option<&PairTerms<'_>>,
     heads: usize,
     scale: f32,
     scores: &mut Vec<f32>,
@@ -1041,16 +1141,34 @@ fn attend(
 ) {
     let d = kv.v_offset.abs_diff(kv.k_offset); // keys and values are D wide, side by side
     let dh = d / heads;
+    let f = PAIR_FEATURES;
     scores.resize(keys.len(), 0.0);
-    for &row in queries {
+    for (query_index, &row) in queries.iter().enumerate() {
         let query = &q[row * q_stride..][..d];
         let o = &mut out[row * d..][..d];
         for head in 0..heads {
             let qh = &query[head * dh..][..dh];
+            // K_hᵀ q_h and this query's pair features.
+            let mut q_pair = [0.0f32; PAIR_FEATURES];
+            let mut features: &[f32] = &[];
+            if let Some(p) = pairs {
+                for (c, &qc) in qh.iter().enumerate() {
+                    let weights = &p.k_weights[(head * dh + c) * f..][..f];
+                    for (acc, w) in q_pair.iter_mut().zip(weights) {
+                        *acc += qc * w;
+                    }
+                }
+                features = &p.features[query_index * p.candidates * f..][..p.candidates * f];
+            }
             let mut max = f32::NEG_INFINITY;
-            for (score, &key) in scores.iter_mut().zip(keys) {
+            for (i, (score, &key)) in scores.iter_mut().zip(keys).enumerate() {
                 let kh = &kv.data[key * kv.stride + kv.k_offset + head * dh..][..dh];
-                *score = dot(qh, kh) * scale;
+                let mut dot_product = dot(qh, kh);
+                if let Some(p) = pairs {
+                    let r = &features[p.key_positions[i] * f..][..f];
+                    dot_product += q_pair.iter().zip(r).map(|(a, b)| a * b).sum::<f32>();
+                }
+                *score = dot_product * scale;
                 max = max.max(*score);
             }
             let mut sum = 0.0;
@@ -1061,11 +1179,28 @@ fn attend(
             let inv = 1.0 / sum;
             let oh = &mut o[head * dh..][..dh];
             oh.fill(0.0);
-            for (&score, &key) in scores.iter().zip(keys) {
+            let mut mean_pair = [0.0f32; PAIR_FEATURES];
+            for (i, (&score, &key)) in scores.iter().zip(keys).enumerate() {
                 let weight = score * inv;
                 let vh = &kv.data[key * kv.stride + kv.v_offset + head * dh..][..dh];
                 for (acc, v) in oh.iter_mut().zip(vh) {
                     *acc += weight * v;
+                }
+                if let Some(p) = pairs {
+                    let r = &features[p.key_positions[i] * f..][..f];
+                    for (acc, value) in mean_pair.iter_mut().zip(r) {
+                        *acc += weight * value;
+                    }
+                }
+            }
+            if let Some(p) = pairs {
+                for (c, acc) in oh.iter_mut().enumerate() {
+                    let weights = &p.v_weights[(head * dh + c) * f..][..f];
+                    *acc += weights
+                        .iter()
+                        .zip(&mean_pair)
+                        .map(|(a, b)| a * b)
+                        .sum::<f32>();
                 }
             }
         }

@@ -7,6 +7,7 @@
 //! - [`checkpoint`]: the on-disk format (`docs/checkpoint.md`).
 
 pub mod agent_map;
+pub mod agent_pairs;
 pub mod batch;
 pub mod checkpoint;
 pub mod config;
@@ -20,7 +21,7 @@ pub mod train;
 
 use std::path::{Path, PathBuf};
 
-pub use config::{AgentFrame, AgentMap, ModelConfig, RunConfig, TrainConfig};
+pub use config::{AgentFrame, AgentMap, AgentPairs, ModelConfig, RunConfig, TrainConfig};
 pub use model::{Denoiser, MapTokens, Mode};
 
 /// Errors of the model layer.

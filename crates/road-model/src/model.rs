@@ -61,21 +61,51 @@ pub(crate) struct Attention {
     pub(crate) v: Linear,
     pub(crate) o: Linear,
     pub(crate) heads: usize,
+    /// Agent attention with [`crate::config::AgentPairs`]: the key and value offsets' weights.
+    pub(crate) pairs: Option<PairWeights>,
+}
+
+/// The key offset `pair_k · r` and value offset `pair_v · r` of a pair's features `r`, both
+/// `[D, F]` (head h owns rows h·dh…). Zero at initialisation, so that a model that gains them
+/// (`train.init_from`) starts as the one it comes from.
+#[derive(Debug)]
+pub(crate) struct PairWeights {
+    pub(crate) k: Tensor,
+    pub(crate) v: Tensor,
 }
 
 impl Attention {
-    fn new(d: usize, heads: usize, vb: VarBuilder) -> Result<Self> {
+    fn new(d: usize, heads: usize, pair_features: Option<usize>, vb: VarBuilder) -> Result<Self> {
+        let pairs = match pair_features {
+            Some(f) => Some(PairWeights {
+                k: vb.get_with_hints((d, f), "pair_k", candle_nn::Init::Const(0.0))?,
+                v: vb.get_with_hints((d, f), "pair_v", candle_nn::Init::Const(0.0))?,
+            }),
+            None => None,
+        };
         Ok(Self {
             q: linear(d, d, vb.pp("q"))?,
             k: linear(d, d, vb.pp("k"))?,
             v: linear(d, d, vb.pp("v"))?,
             o: linear(d, d, vb.pp("o"))?,
             heads,
+            pairs,
         })
     }
 
-    /// `xq [N, Lq, D]`, `xkv [N, Lk, D]`, `key_bias [N, 1, 1, Lk]` → `[N, Lq, D]`.
-    fn forward(&self, xq: &Tensor, xkv: &Tensor, key_bias: &Tensor, mode: Mode) -> Result<Tensor> {
+    /// `xq [N, Lq, D]`, `xkv [N, Lk, D]`, `key_bias [N, 1, 1, Lk]`, with pair weights the
+    /// pairs' features `pair_features [N, Lq, Lk, F]` → `[N, Lq, D]`. Per head h and pair
+    /// (i, j): score `q_i · (k_j + K_h r_ij) / √dh`, value `v_j + V_h r_ij`; both offsets are
+    /// linear in `r`, so they cost `F` (not `dh`) per pair: `q_i · K_h r_ij = (K_hᵀ q_i) · r_ij`
+    /// and `Σ_j a_ij V_h r_ij = V_h Σ_j a_ij r_ij`.
+    fn forward(
+        &self,
+        xq: &Tensor,
+        xkv: &Tensor,
+        key_bias: &Tensor,
+        pair_features: Option<&Tensor>,
+        mode: Mode,
+    ) -> Result<Tensor> {
         let (n, lq, d) = xq.dims3()?;
         let lk = xkv.dim(1)?;
         let h = self.heads;
@@ -87,9 +117,49 @@ impl Attention {
         let q = split((lin(&self.q, xq)? * (1.0 / (dh as f64).sqrt()))?, lq)?; // [N, H, Lq, dh]
         let k = split(lin(&self.k, xkv)?, lk)?; // [N, H, Lk, dh]
         let v = split(lin(&self.v, xkv)?, lk)?; // [N, H, Lk, dh]
-        let scores = q.matmul(&k.t()?)?.broadcast_add(key_bias)?; // [N, H, Lq, Lk]
-        let attn = softmax(&scores, mode)?;
-        let out = attn.matmul(&v)?.transpose(1, 2)?.reshape((n, lq, d))?; // [N, Lq, D]
+        let mut scores = q.matmul(&k.t()?)?; // [N, H, Lq, Lk]
+        let pairs = match (&self.pairs, pair_features) {
+            (Some(w), Some(r)) => {
+                let f = r.dim(3)?;
+                let r = r.reshape((n * lq, lk, f))?; // [N·Lq, Lk, F]
+                let q_pair = q
+                    .transpose(0, 1)?
+                    .reshape((h, n * lq, dh))?
+                    .matmul(&w.k.reshape((h, dh, f))?)? // [H, N·Lq, F]
+                    .transpose(0, 1)?
+                    .contiguous()?; // [N·Lq, H, F]
+                let pair_scores = q_pair
+                    .matmul(&r.t()?)? // [N·Lq, H, Lk]
+                    .reshape((n, lq, h, lk))?
+                    .transpose(1, 2)?; // [N, H, Lq, Lk]
+                scores = (scores + pair_scores)?;
+                Some((w, r, f))
+            }
+            (None, None) => None,
+            _ => {
+                return Err(crate::Error::data(
+                    "pair features go with pair weights (agent attention of an agent_pairs model)"
+                        .into(),
+                ));
+            }
+        };
+        let attn = softmax(&scores.broadcast_add(key_bias)?, mode)?;
+        let mut out = attn.matmul(&v)?; // [N, H, Lq, dh]
+        if let Some((w, r, f)) = pairs {
+            let mean_pair = attn
+                .transpose(1, 2)?
+                .contiguous()?
+                .reshape((n * lq, h, lk))?
+                .matmul(&r)? // [N·Lq, H, F]: Σ_j a_ij r_ij
+                .transpose(0, 1)?
+                .contiguous()?; // [H, N·Lq, F]
+            let value_offsets = mean_pair
+                .matmul(&w.v.reshape((h, dh, f))?.transpose(1, 2)?)? // [H, N·Lq, dh]
+                .reshape((h, n, lq, dh))?
+                .transpose(0, 1)?; // [N, H, Lq, dh]
+            out = (out + value_offsets)?;
+        }
+        let out = out.transpose(1, 2)?.reshape((n, lq, d))?; // [N, Lq, D]
         lin(&self.o, &out)
     }
 }
@@ -112,25 +182,40 @@ impl Block {
         let d = c.hidden;
         Ok(Self {
             ln_time: layer_norm(d, LN_EPS, vb.pp("ln_time"))?,
-            time: Attention::new(d, c.heads, vb.pp("time"))?,
+            time: Attention::new(d, c.heads, None, vb.pp("time"))?,
             ln_agents: layer_norm(d, LN_EPS, vb.pp("ln_agents"))?,
-            agents: Attention::new(d, c.heads, vb.pp("agents"))?,
+            agents: Attention::new(
+                d,
+                c.heads,
+                c.agent_pairs
+                    .as_ref()
+                    .map(|_| crate::agent_pairs::PAIR_FEATURES),
+                vb.pp("agents"),
+            )?,
             ln_map: layer_norm(d, LN_EPS, vb.pp("ln_map"))?,
-            map: Attention::new(d, c.heads, vb.pp("map"))?,
+            map: Attention::new(d, c.heads, None, vb.pp("map"))?,
             ln_mlp: layer_norm(d, LN_EPS, vb.pp("ln_mlp"))?,
             mlp_in: linear(d, d * c.mlp_ratio, vb.pp("mlp_in"))?,
             mlp_out: linear(d * c.mlp_ratio, d, vb.pp("mlp_out"))?,
         })
     }
 
-    /// `h [B, A, W, D]`; biases from [`Masks`]; the map keys of [`MapKeys`].
-    fn forward(&self, h: &Tensor, m: &Masks, map: &MapKeys, mode: Mode) -> Result<Tensor> {
+    /// `h [B, A, W, D]`; biases from [`Masks`]; the map keys of [`MapKeys`]; with agent pairs
+    /// their features `[B·W, A, A, F]`.
+    fn forward(
+        &self,
+        h: &Tensor,
+        m: &Masks,
+        map: &MapKeys,
+        pair_features: Option<&Tensor>,
+        mode: Mode,
+    ) -> Result<Tensor> {
         let (b, a, w, d) = h.dims4()?;
         // Time attention within each agent: [B·A, W, D].
         let x = norm(&self.ln_time, h, mode)?.reshape((b * a, w, d))?;
         let h = (h + self
             .time
-            .forward(&x, &x, &m.time_bias, mode)?
+            .forward(&x, &x, &m.time_bias, None, mode)?
             .reshape((b, a, w, d))?)?;
         // Agent attention within each slot: [B·W, A, D].
         let x = norm(&self.ln_agents, &h, mode)?
@@ -139,7 +224,7 @@ impl Block {
             .reshape((b * w, a, d))?;
         let y = self
             .agents
-            .forward(&x, &x, &m.agent_bias, mode)?
+            .forward(&x, &x, &m.agent_bias, pair_features, mode)?
             .reshape((b, w, a, d))?
             .transpose(1, 2)?;
         let h = (h + y)?;
@@ -153,7 +238,7 @@ impl Block {
         };
         let h = (h + self
             .map
-            .forward(&x, &map.tokens, &map.bias, mode)?
+            .forward(&x, &map.tokens, &map.bias, None, mode)?
             .reshape((b, a, w, d))?)?;
         let x = norm(&self.ln_mlp, &h, mode)?;
         let y = lin(&self.mlp_out, &lin(&self.mlp_in, &x)?.relu()?)?;
@@ -276,6 +361,11 @@ impl Denoiser {
         })
     }
 
+    /// Whether agent attention carries pair weights (`agent_pairs`).
+    pub fn blocks_have_agent_pairs(&self) -> bool {
+        !self.blocks.is_empty() && self.blocks.iter().all(|b| b.agents.pairs.is_some())
+    }
+
     /// Map tokens, once per scene set: `map [B, P, Q, 2]` → scene-frame tokens `[B, P, D]`,
     /// or, with an agent map, the polylines kept for each forward to pick from.
     pub fn encode_map(&self, map: &Tensor, mode: Mode) -> Result<MapTokens> {
@@ -334,6 +424,33 @@ impl Denoiser {
             bias: key_bias(&valid)?,
             per_agent: true,
         })
+    }
+
+    /// The agent pairs' features of noisy windows `x [B, A, W, 3]`: `[B·W, A, A, F]`.
+    fn pair_features(
+        &self,
+        x: &Tensor,
+        valid: &Tensor,
+        pairs: &crate::config::AgentPairs,
+        frame: &AnchorFrame,
+    ) -> Result<Tensor> {
+        let (b, a, w, _) = x.dims4()?;
+        let x_host = x.flatten_all()?.to_vec1::<f32>()?;
+        let anchors = crate::agent_map::anchors_of(
+            &x_host,
+            &valid.flatten_all()?.to_vec1::<f32>()?,
+            w,
+            frame.anchor_slot,
+            self.config.heading_scale as f32,
+        );
+        let scales = crate::agent_pairs::PairScales::new(
+            pairs,
+            self.config.position_scale_m,
+            self.config.heading_scale,
+        );
+        let features = crate::agent_pairs::pair_features_of(&x_host, &anchors, a, w, scales);
+        let f = crate::agent_pairs::PAIR_FEATURES;
+        Ok(Tensor::from_vec(features, (b * w, a, a, f), x.device())?)
     }
 
     /// `D(x; σ)`: `x_noisy [B, A, W, 3]`, `sigma [B, W]` (> 0), `valid [B, A, W]`,
@@ -474,8 +591,12 @@ impl Denoiser {
                 ));
             }
         };
+        let pair_features = match (&self.config.agent_pairs, &frame) {
+            (Some(pairs), Some(frame)) => Some(self.pair_features(x_noisy, valid, pairs, frame)?),
+            _ => None,
+        };
         for block in &self.blocks {
-            h = block.forward(&h, &masks, &map, mode)?;
+            h = block.forward(&h, &masks, &map, pair_features.as_ref(), mode)?;
         }
         let out = lin(&self.head, &norm(&self.ln_out, &h, mode)?)?; // [B, A, W, 3]
         let out = match &frame {
@@ -724,7 +845,10 @@ pub fn init_seeded(
         let dims = var.dims().to_vec();
         let n = var.elem_count();
         let leaf = name.rsplit('.').nth(1).unwrap_or("");
-        let values: Vec<f32> = if leaf.starts_with("ln_") {
+        let values: Vec<f32> = if name.ends_with(".pair_k") || name.ends_with(".pair_v") {
+            // Zero: a model that gains agent pairs starts as the one it comes from.
+            vec![0.0; n]
+        } else if leaf.starts_with("ln_") {
             vec![if name.ends_with(".weight") { 1.0 } else { 0.0 }; n]
         } else if name.ends_with(".weight") {
             let std = (2.0 / dims[1] as f64).sqrt();

@@ -679,16 +679,27 @@ impl Trainer {
         .save(dir)
     }
 
-    /// `train.init_from`: the weights (and their EMA) of another checkpoint.
-    fn initialise_from(&mut self, dir: &Path) -> Result<()> {
+    /// `train.init_from`: the weights (and their EMA) of another checkpoint. Tensors the
+    /// checkpoint lacks (a part this config adds, e.g. `agent_pairs`) keep their
+    /// initialisation; they are logged. Returns their names.
+    fn initialise_from(&mut self, dir: &Path) -> Result<Vec<String>> {
         let path = dir.join(WEIGHTS_FILE);
         let weights = checkpoint::load_tensors(&path, &self.device)?;
-        checkpoint::check_against(&self.varmap, &weights, &path)?;
+        let fresh = checkpoint::check_fit(&self.varmap, &weights, &path)?;
         for (i, name) in self.names.iter().enumerate() {
-            self.vars[i].set(&weights[name])?;
-            self.ema[i] = weights[name].copy()?;
+            if let Some(w) = weights.get(name) {
+                self.vars[i].set(w)?;
+                self.ema[i] = w.copy()?;
+            }
         }
-        Ok(())
+        if !fresh.is_empty() {
+            tracing::info!(
+                from = %path.display(),
+                "tensors the checkpoint lacks start from their initialisation: {}",
+                fresh.join(", ")
+            );
+        }
+        Ok(fresh)
     }
 
     fn restore(&mut self, dir: &Path) -> Result<()> {

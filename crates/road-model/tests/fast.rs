@@ -13,7 +13,7 @@ use road_model::sample::{
     CpuEngine, FastCpuEngine, RolloutDriver, RolloutScene, ShiftEdit, ShiftShape, StepEngine,
     rollout_with,
 };
-use road_model::{AgentFrame, AgentMap, MapTokens, ModelConfig};
+use road_model::{AgentFrame, AgentMap, AgentPairs, MapTokens, ModelConfig};
 use road_sched::PlannerSpec;
 
 /// Relative and absolute parts of the parity tolerance of one whole evaluation (f32 sums in
@@ -51,6 +51,8 @@ enum Frame {
     Residual,
     /// Also each agent's own map (`agent_map`): 4 of the scene's 6 polylines.
     AgentMap,
+    /// Also agent pairs (`agent_pairs`), with random (not zero) pair weights.
+    AgentPairs,
 }
 
 fn config(frame: Frame) -> ModelConfig {
@@ -66,15 +68,38 @@ fn config(frame: Frame) -> ModelConfig {
                 relative_scale: 2.0,
                 residual_scale: None,
             }),
-            Frame::Residual | Frame::AgentMap => Some(AgentFrame {
+            Frame::Residual | Frame::AgentMap | Frame::AgentPairs => Some(AgentFrame {
                 anchor_slot: 9,
                 relative_scale: 1.0,
                 residual_scale: Some(40.0),
             }),
         },
-        agent_map: matches!(frame, Frame::AgentMap).then_some(AgentMap { polylines: 4 }),
+        agent_map: matches!(frame, Frame::AgentMap | Frame::AgentPairs)
+            .then_some(AgentMap { polylines: 4 }),
+        agent_pairs: matches!(frame, Frame::AgentPairs).then_some(AgentPairs {
+            direction_scale_m: 10.0,
+            near_scale_m: 5.0,
+            far_scale_m: 20.0,
+        }),
         ..ModelConfig::default()
     }
+}
+
+/// A seeded model of `c`; agent pairs' weights (zero at initialisation) random, so that the
+/// comparisons exercise them.
+fn seeded_model(c: &ModelConfig, seed: u64) -> road_model::Denoiser {
+    let (varmap, model) = model::init_seeded(c, &Device::Cpu, seed).unwrap();
+    let mut rng = StdRng::seed_from_u64(seed + 1000);
+    for (name, var) in varmap.data().lock().unwrap().iter() {
+        if name.contains(".pair_") {
+            let values: Vec<f32> = (0..var.elem_count())
+                .map(|_| rng.random_range(-0.5f32..0.5))
+                .collect();
+            var.set(&candle_core::Tensor::from_vec(values, var.dims(), &Device::Cpu).unwrap())
+                .unwrap();
+        }
+    }
+    model
 }
 
 /// A random padded batch: scene b has `agents[b]` real agents (the rest padding), random
@@ -171,7 +196,7 @@ fn candle_denoise(model: &Denoiser, r: &RandomBatch) -> Vec<f32> {
 
 fn fast_matches_candle(frame: Frame) {
     let c = config(frame);
-    let (_, model) = model::init_seeded(&c, &Device::Cpu, 7).unwrap();
+    let model = seeded_model(&c, 7);
     let r = random_batch(&c, 3);
     let want = candle_denoise(&model, &r);
     let (a, w, p, q) = (r.agents, c.window_slots, r.polylines, c.polyline_points);
@@ -261,9 +286,14 @@ fn fast_denoiser_with_agent_maps_matches_candle() {
 }
 
 #[test]
+fn fast_denoiser_with_agent_pairs_matches_candle() {
+    fast_matches_candle(Frame::AgentPairs);
+}
+
+#[test]
 fn fast_denoiser_refuses_a_map_of_the_other_kind() {
     let c = config(Frame::AgentMap);
-    let (_, model) = model::init_seeded(&c, &Device::Cpu, 7).unwrap();
+    let model = seeded_model(&c, 7);
     let fast = FastDenoiser::new(&model, 1).unwrap();
     let tokens = vec![0.0; c.hidden];
     let err = fast
@@ -281,7 +311,7 @@ fn fast_denoiser_refuses_a_map_of_the_other_kind() {
 #[test]
 fn fast_denoiser_refuses_a_scene_outside_its_cache() {
     let c = config(Frame::Scene);
-    let (_, model) = model::init_seeded(&c, &Device::Cpu, 7).unwrap();
+    let model = seeded_model(&c, 7);
     let fast = FastDenoiser::new(&model, 1).unwrap();
     let d = c.hidden;
     let cache = fast
@@ -351,7 +381,7 @@ fn scenes(c: &ModelConfig, count: usize) -> Vec<RolloutScene> {
 
 fn rollouts_agree(frame: Frame) {
     let c = config(frame);
-    let (_, model) = model::init_seeded(&c, &Device::Cpu, 5).unwrap();
+    let model = seeded_model(&c, 5);
     let planner = PlannerSpec {
         steps_per_diffusion: 10,
         ..PlannerSpec::default()
@@ -388,11 +418,16 @@ fn fast_engine_rollouts_with_agent_maps_match_candle() {
     rollouts_agree(Frame::AgentMap);
 }
 
+#[test]
+fn fast_engine_rollouts_with_agent_pairs_match_candle() {
+    rollouts_agree(Frame::AgentPairs);
+}
+
 /// Mixed phases: scenes tick in different subsets, so the engines evaluate gathered rows.
 #[test]
 fn fast_engine_matches_candle_when_only_some_scenes_tick() {
     let c = config(Frame::Residual);
-    let (_, model) = model::init_seeded(&c, &Device::Cpu, 5).unwrap();
+    let model = seeded_model(&c, 5);
     let planner = PlannerSpec {
         steps_per_diffusion: 10,
         ..PlannerSpec::default()
@@ -473,7 +508,7 @@ impl StepEngine for Recorder<'_> {
 #[test]
 fn observations_carry_the_planner_s_obs_noise() {
     let c = config(Frame::Scene);
-    let (_, model) = model::init_seeded(&c, &Device::Cpu, 5).unwrap();
+    let model = seeded_model(&c, 5);
     let scenes = scenes(&c, 1);
     let history = &scenes[0].history;
     let n = history.slots;

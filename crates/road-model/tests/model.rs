@@ -300,6 +300,46 @@ fn one_training_step_with_agent_maps_lowers_the_loss() {
     one_training_step_lowers_the_loss(run);
 }
 
+/// The agent pairs' path is differentiable, down to their (zero-initialised) weights.
+#[test]
+fn one_training_step_with_agent_pairs_lowers_the_loss() {
+    let mut run = run_config();
+    run.model.agent_frame = Some(road_model::AgentFrame {
+        anchor_slot: 9,
+        relative_scale: 1.0,
+        residual_scale: Some(40.0),
+    });
+    run.model.agent_map = Some(road_model::AgentMap { polylines: 1 });
+    run.model.agent_pairs = Some(road_model::AgentPairs {
+        direction_scale_m: 10.0,
+        near_scale_m: 5.0,
+        far_scale_m: 20.0,
+    });
+    let ds = dataset(Split::Train);
+    let (varmap, model) = model::init_seeded(&run.model, &Device::Cpu, 4).unwrap();
+    let mut rng = StdRng::seed_from_u64(5);
+    let batch = sample_batch(&run, &ds, 4, None, &mut rng, &Device::Cpu).unwrap();
+    let map = model.encode_map(&batch.map, Mode::Train).unwrap();
+    let loss = edm_loss(&model, &batch, &map, Mode::Train).unwrap();
+    let grads = loss.backward().unwrap();
+    let vars = varmap.data().lock().unwrap();
+    for name in ["blocks.0.agents.pair_k", "blocks.0.agents.pair_v"] {
+        let g = grads
+            .get(vars[name].as_tensor())
+            .unwrap_or_else(|| panic!("no gradient for {name}"));
+        let norm = g
+            .sqr()
+            .unwrap()
+            .sum_all()
+            .unwrap()
+            .to_scalar::<f32>()
+            .unwrap();
+        assert!(norm > 0.0, "{name}: zero gradient");
+    }
+    drop(vars);
+    one_training_step_lowers_the_loss(run);
+}
+
 fn one_training_step_lowers_the_loss(run: RunConfig) {
     let ds = dataset(Split::Train);
     let (varmap, model) = model::init_seeded(&run.model, &Device::Cpu, 4).unwrap();
@@ -398,6 +438,47 @@ fn checkpoints_round_trip_exactly_and_refuse_mismatches() {
         err.contains("weights do not match the config") && err.contains("weights.safetensors"),
         "{err}"
     );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// A run that adds agent pairs to a checkpoint's config starts from its weights, the new pair
+/// weights at zero: the same denoiser as the checkpoint's until it trains.
+#[test]
+fn a_run_that_gains_agent_pairs_starts_as_the_checkpoint_it_comes_from() {
+    let mut run = run_config();
+    run.model.agent_frame = Some(road_model::AgentFrame {
+        anchor_slot: 9,
+        relative_scale: 1.0,
+        residual_scale: Some(40.0),
+    });
+    let ds = dataset(Split::Train);
+    let dir = temp_dir("init-from-pairs");
+    let mut first = Trainer::new(run.clone(), &ds, identity(), None).unwrap();
+    first.run_until(&ds, &dir, 3, "test", |_| {}).unwrap();
+
+    let mut next = run.clone();
+    next.model.agent_pairs = Some(road_model::AgentPairs {
+        direction_scale_m: 10.0,
+        near_scale_m: 5.0,
+        far_scale_m: 20.0,
+    });
+    next.train.init_from = Some(dir.clone());
+    let second = Trainer::new(next.clone(), &ds, identity(), None).unwrap();
+    let loaded = checkpoint::load(&dir, &Device::Cpu).unwrap().model;
+    let started = second.ema_model().unwrap();
+    assert!(started.blocks_have_agent_pairs());
+    let mut rng = StdRng::seed_from_u64(9);
+    let batch = sample_batch(&next, &ds, 2, None, &mut rng, &Device::Cpu).unwrap();
+    let (a, b) = (
+        denoise_flat(&started, &batch),
+        denoise_flat(&loaded, &batch),
+    );
+    let worst = a
+        .iter()
+        .zip(&b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0f32, f32::max);
+    assert!(worst < 1e-5, "outputs differ by {worst}");
     std::fs::remove_dir_all(&dir).ok();
 }
 

@@ -3,6 +3,7 @@
 //! command encoder so that the engine can chain kernels without readbacks.
 
 pub mod agent_map;
+pub mod agent_pairs;
 pub mod attention;
 pub mod edm;
 pub mod layer_norm;

@@ -1,0 +1,140 @@
+// Agent attention with pair features (road_model::config::AgentPairs): multi-head attention
+// over the agents of each (scene, slot) whose scores gain (K_hᵀ q) · r_ij and whose outputs gain
+// V_h Σ_j a_ij r_ij, where r_ij are the features of key agent j seen from query agent i
+// (road_model::agent_pairs::pair_features, computed here from the states on the fly).
+//
+// Tokens are [B, A, W, D] (q, k, v, out), states [B, A, W, 3], flags [B, A, W]; group n =
+// (scene, slot); token l = agent. The pair weights are [D, F] (head h owns rows h·head_dim…).
+// Masked keys carry exactly zero weight; a query with no valid key yields zeros (as
+// attention.wgsl). One invocation per (group, head, query) with an online softmax.
+
+struct Params {
+    groups: u32,
+    heads: u32,
+    head_dim: u32,
+    agents: u32,
+    slots: u32,
+    anchor_slot: u32,
+    scale: f32,
+    heading_scale: f32,
+    // Length scales in state units (road_model::agent_pairs::PairScales).
+    direction: f32,
+    near: f32,
+    far: f32,
+    _pad: u32,
+}
+
+const MAX_HEAD_DIM: u32 = 64u;
+const F: u32 = 6u;
+
+@group(0) @binding(0) var<uniform> params: Params;
+@group(0) @binding(1) var<storage, read> q: array<f32>;
+@group(0) @binding(2) var<storage, read> k: array<f32>;
+@group(0) @binding(3) var<storage, read> v: array<f32>;
+@group(0) @binding(4) var<storage, read> valid: array<f32>;
+@group(0) @binding(5) var<storage, read> states: array<f32>;
+@group(0) @binding(6) var<storage, read> pair_k: array<f32>;
+@group(0) @binding(7) var<storage, read> pair_v: array<f32>;
+@group(0) @binding(8) var<storage, read_write> out: array<f32>;
+
+// Token row of agent `agent` in group (scene, slot).
+fn row_of(group: u32, agent: u32) -> u32 {
+    let scene = group / params.slots;
+    return (scene * params.agents + agent) * params.slots + group % params.slots;
+}
+
+fn pair_features(query: u32, key: u32, cos_a: f32, sin_a: f32) -> array<f32, 6> {
+    let dx = states[key * 3u] - states[query * 3u];
+    let dy = states[key * 3u + 1u] - states[query * 3u + 1u];
+    let forward = dx * cos_a + dy * sin_a;
+    let left = dy * cos_a - dx * sin_a;
+    let distance = sqrt(forward * forward + left * left);
+    let squash = 1.0 / (distance + params.direction);
+    let turn = (states[key * 3u + 2u] - states[query * 3u + 2u]) / params.heading_scale;
+    return array<f32, 6>(
+        forward * squash,
+        left * squash,
+        exp(-distance / params.near),
+        exp(-distance / params.far),
+        cos(turn),
+        sin(turn),
+    );
+}
+
+@compute @workgroup_size(64)
+fn pair_attention(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let index = gid.x + gid.y * groups.x * 64u;
+    if (index >= params.groups * params.heads * params.agents) {
+        return;
+    }
+    let query = index % params.agents;
+    let head = (index / params.agents) % params.heads;
+    let group = index / (params.agents * params.heads);
+    let d = params.heads * params.head_dim;
+    let hd = params.head_dim;
+    let q_row = row_of(group, query);
+    let q_base = q_row * d + head * hd;
+
+    // The query agent's anchor heading (the scene frame's 0 without an anchor).
+    let scene = group / params.slots;
+    let anchor_row = (scene * params.agents + query) * params.slots + params.anchor_slot;
+    let anchor_heading = states[anchor_row * 3u + 2u] * valid[anchor_row] / params.heading_scale;
+    let cos_a = cos(anchor_heading);
+    let sin_a = sin(anchor_heading);
+
+    // K_hᵀ q_h.
+    var q_pair: array<f32, 6>;
+    for (var f = 0u; f < F; f++) {
+        var acc = 0.0;
+        for (var c = 0u; c < hd; c++) {
+            acc += q[q_base + c] * pair_k[(head * hd + c) * F + f];
+        }
+        q_pair[f] = acc;
+    }
+
+    var acc: array<f32, MAX_HEAD_DIM>;
+    for (var c = 0u; c < hd; c++) {
+        acc[c] = 0.0;
+    }
+    var acc_pair: array<f32, 6>;
+    for (var f = 0u; f < F; f++) {
+        acc_pair[f] = 0.0;
+    }
+    var running_max = -3.0e38;
+    var denom = 0.0;
+    for (var j = 0u; j < params.agents; j++) {
+        let k_row = row_of(group, j);
+        if (valid[k_row] == 0.0) {
+            continue;
+        }
+        var r = pair_features(q_row, k_row, cos_a, sin_a);
+        let k_base = k_row * d + head * hd;
+        var score = 0.0;
+        for (var c = 0u; c < hd; c++) {
+            score += q[q_base + c] * k[k_base + c];
+        }
+        for (var f = 0u; f < F; f++) {
+            score += q_pair[f] * r[f];
+        }
+        score *= params.scale;
+        let new_max = max(running_max, score);
+        let correction = exp(running_max - new_max);
+        let weight = exp(score - new_max);
+        denom = denom * correction + weight;
+        for (var c = 0u; c < hd; c++) {
+            acc[c] = acc[c] * correction + weight * v[k_base + c];
+        }
+        for (var f = 0u; f < F; f++) {
+            acc_pair[f] = acc_pair[f] * correction + weight * r[f];
+        }
+        running_max = new_max;
+    }
+    let inv = select(0.0, 1.0 / denom, denom > 0.0);
+    for (var c = 0u; c < hd; c++) {
+        var offset = 0.0;
+        for (var f = 0u; f < F; f++) {
+            offset += pair_v[(head * hd + c) * F + f] * acc_pair[f];
+        }
+        out[q_base + c] = (acc[c] + offset) * inv;
+    }
+}
