@@ -307,10 +307,12 @@ struct Scratch {
     agent_mixed: Vec<f32>,
     agent_tokens: Vec<f32>,
     agent_map_kv: Vec<f32>,
-    /// Agent pairs: each evaluated agent's anchor, and one slot's pair features
-    /// `[queries, queries, F]` with the unmasked keys' positions among the queries.
+    /// Agent pairs: each evaluated agent's anchor; the pair features of every (scene, slot),
+    /// `[agents_s, agents_s, F]` each, from `pair_starts[scene] + slot · agents_s² · F` (the
+    /// same in every block); the unmasked keys' positions among a group's queries.
     pair_anchors: Vec<MapAnchor>,
     pair_features: Vec<f32>,
+    pair_starts: Vec<usize>,
     key_positions: Vec<usize>,
 }
 
@@ -617,10 +619,34 @@ impl FastDenoiser {
         }
         self.embed(cache, inputs, &s.agent_rows, &mut s.h[..n * d]);
         let k = self.agent_maps(cache, inputs, s);
-        if self.pair_scales.is_some() {
+        if let Some(scales) = self.pair_scales {
             s.pair_anchors.clear();
             for &agent_row in &s.agent_rows {
                 s.pair_anchors.push(self.map_anchor(inputs, agent_row));
+            }
+            s.pair_starts.clear();
+            let mut len = 0;
+            for scene in 0..b {
+                s.pair_starts.push(len);
+                let agents = s.scene_starts[scene + 1] - s.scene_starts[scene];
+                len += w * agents * agents * PAIR_FEATURES;
+            }
+            s.pair_features.resize(len, 0.0);
+            for scene in 0..b {
+                let agents = s.scene_starts[scene]..s.scene_starts[scene + 1];
+                let per_slot = agents.len() * agents.len() * PAIR_FEATURES;
+                for slot in 0..w {
+                    slot_pair_features(
+                        inputs.x,
+                        &s.agent_rows,
+                        &s.pair_anchors,
+                        agents.clone(),
+                        slot,
+                        w,
+                        scales,
+                        &mut s.pair_features[s.pair_starts[scene] + slot * per_slot..][..per_slot],
+                    );
+                }
             }
         }
         let valid_token = |compact_token: usize| {
@@ -668,23 +694,15 @@ impl FastDenoiser {
                     s.queries
                         .extend(agents.clone().map(|agent| agent * w + slot));
                     unmasked_keys(&s.queries, &valid_token, &mut s.keys);
-                    let pairs = match (&blk.agents_pairs, self.pair_scales) {
-                        (Some((k_weights, v_weights)), Some(scales)) => {
-                            slot_pair_features(
-                                inputs.x,
-                                &s.agent_rows,
-                                &s.pair_anchors,
-                                agents.clone(),
-                                slot,
-                                w,
-                                scales,
-                                &mut s.pair_features,
-                            );
+                    let pairs = match &blk.agents_pairs {
+                        Some((k_weights, v_weights)) => {
                             s.key_positions.clear();
                             s.key_positions
                                 .extend(s.keys.iter().map(|&key| key / w - agents.start));
+                            let per_slot = agents.len() * agents.len() * PAIR_FEATURES;
                             Some(PairTerms {
-                                features: &s.pair_features,
+                                features: &s.pair_features
+                                    [s.pair_starts[scene] + slot * per_slot..][..per_slot],
                                 key_positions: &s.key_positions,
                                 candidates: agents.len(),
                                 k_weights,
@@ -1104,11 +1122,10 @@ fn slot_pair_features(
     slot: usize,
     slots: usize,
     scales: PairScales,
-    out: &mut Vec<f32>,
+    out: &mut [f32],
 ) {
     let f = PAIR_FEATURES;
     let n = agents.len();
-    out.resize(n * n * f, 0.0);
     let state = |compact: usize| &x[3 * (agent_rows[compact] * slots + slot)..][..3];
     for (qi, query) in agents.clone().enumerate() {
         for (kj, key) in agents.clone().enumerate() {

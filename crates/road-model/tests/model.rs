@@ -290,6 +290,11 @@ fn one_training_step_lowers_the_loss_on_a_fixed_batch() {
 /// The agent maps' path (pick, frame, encoder, per-agent attention) is differentiable too.
 #[test]
 fn one_training_step_with_agent_maps_lowers_the_loss() {
+    one_training_step_lowers_the_loss(agent_map_run_config());
+}
+
+/// [`run_config`] with an agent frame (constant-velocity reference) and agent maps.
+fn agent_map_run_config() -> RunConfig {
     let mut run = run_config();
     run.model.agent_frame = Some(road_model::AgentFrame {
         anchor_slot: 9,
@@ -297,19 +302,13 @@ fn one_training_step_with_agent_maps_lowers_the_loss() {
         residual_scale: Some(40.0),
     });
     run.model.agent_map = Some(road_model::AgentMap { polylines: 1 });
-    one_training_step_lowers_the_loss(run);
+    run
 }
 
 /// The agent pairs' path is differentiable, down to their (zero-initialised) weights.
 #[test]
 fn one_training_step_with_agent_pairs_lowers_the_loss() {
-    let mut run = run_config();
-    run.model.agent_frame = Some(road_model::AgentFrame {
-        anchor_slot: 9,
-        relative_scale: 1.0,
-        residual_scale: Some(40.0),
-    });
-    run.model.agent_map = Some(road_model::AgentMap { polylines: 1 });
+    let mut run = agent_map_run_config();
     run.model.agent_pairs = Some(road_model::AgentPairs {
         direction_scale_m: 10.0,
         near_scale_m: 5.0,
