@@ -329,6 +329,43 @@ fn sample_and_eval_run_with_the_shipped_checkpoint() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// `road demo --map`: the intersection and the merge run too; an unknown map is refused with
+/// the known ones named.
+#[test]
+fn demo_runs_every_procedural_map() {
+    let dir = std::env::temp_dir().join(format!("road-cli-demo-maps-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    for map in ["intersection", "merge"] {
+        let png = dir.join(format!("demo-{map}.png"));
+        let o = road(&[
+            "demo",
+            "--map",
+            map,
+            "--steps",
+            "2",
+            "--engine",
+            "cpu",
+            "--out",
+            png.to_str().unwrap(),
+        ]);
+        assert!(o.status.success(), "{map}: {}", stderr(&o));
+        assert!(
+            stdout(&o).contains(&format!("procedural {map}, 6 vehicles")),
+            "{}",
+            stdout(&o)
+        );
+        assert!(std::fs::read(&png).unwrap().starts_with(b"\x89PNG"));
+    }
+    let o = road(&["demo", "--map", "atlantis", "--steps", "1"]);
+    assert!(!o.status.success());
+    assert!(
+        stderr(&o).contains("roundabout, intersection, merge"),
+        "{}",
+        stderr(&o)
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
 /// `road demo`, the README's main job: the procedural scene closed loop on both engines.
 #[test]
 fn demo_runs_closed_loop_on_both_engines() {

@@ -408,7 +408,12 @@ mod tests {
             near_scale_m: 0.0,
             ..pairs
         });
-        assert!(model.validate().unwrap_err().contains("agent_pairs.near_scale_m"));
+        assert!(
+            model
+                .validate()
+                .unwrap_err()
+                .contains("agent_pairs.near_scale_m")
+        );
     }
 
     /// Every run config under `configs/` (the files with a `name`) parses and validates.

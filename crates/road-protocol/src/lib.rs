@@ -110,7 +110,7 @@ pub struct Pose {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case", deny_unknown_fields)]
 pub enum MapSource {
-    /// A map built from code, by name (`"roundabout"`).
+    /// A map built from code, by name: `"roundabout"`, `"intersection"` or `"merge"`.
     Procedural(String),
     /// A Lanelet2 `.osm` document, by value.
     Osm(String),

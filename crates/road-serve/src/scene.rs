@@ -23,13 +23,10 @@ use road_sim::Pose as SimPose;
 use road_sim::closed_loop::{ClosedLoop, Controller, ExternalDriver, SceneTick, SimScene};
 use road_sim::geometry::OrientedBox;
 use road_sim::infractions::off_road;
-use road_sim::procedural::{STEP_SECS, roundabout};
+use road_sim::procedural::{ProceduralMap, STEP_SECS, procedural};
 
 use crate::config::ServeConfig;
 use crate::models::Checkpoints;
-
-/// Procedural maps a request may name.
-pub const PROCEDURAL_MAPS: &[&str] = &["roundabout"];
 
 /// Box sizes beyond these are refused as absurd (a semi-trailer is ≈ 25 m by 2.6 m).
 const MAX_LENGTH_M: f64 = 30.0;
@@ -170,20 +167,20 @@ pub fn setup(req: &CreateScene, ctx: &mut SetupContext<'_>) -> Result<SceneSetup
 
     // The map, and the procedural map's own vehicles.
     let (map, builtin): (Option<Arc<LaneletMap>>, Option<Vec<AgentInit>>) = match &req.map {
-        MapSource::Procedural(name) => match name.as_str() {
-            "roundabout" => {
-                let scene = roundabout(&window_config, n)
+        MapSource::Procedural(name) => match ProceduralMap::from_name(name) {
+            Some(kind) => {
+                let scene = procedural(kind, &window_config, n)
                     .map_err(|e| refuse(ErrorCode::BadMap, "map.procedural", e.to_string()))?;
                 let agents = window_agents(&scene.window);
                 (Some(Arc::new(scene.map)), Some(agents))
             }
-            other => {
+            None => {
                 return Err(refuse(
                     ErrorCode::BadMap,
                     "map.procedural",
                     format!(
-                        "unknown procedural map {other:?}; known: {}",
-                        PROCEDURAL_MAPS.join(", ")
+                        "unknown procedural map {name:?}; known: {}",
+                        ProceduralMap::names()
                     ),
                 ));
             }

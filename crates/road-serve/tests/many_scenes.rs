@@ -9,7 +9,7 @@ mod common;
 use std::sync::{Arc, Barrier};
 use std::time::{Duration, Instant};
 
-use road_client::protocol::NpcTick;
+use road_client::protocol::{MapSource, NpcTick};
 
 #[test]
 fn sixteen_scenes_join_and_leave() {
@@ -66,6 +66,32 @@ fn sixteen_scenes_join_and_leave() {
     assert!(status.scenes.is_empty(), "{:?}", status.scenes);
     assert_eq!(status.tick_latency.count, total);
     assert!(status.max_batch > 1, "never more than one scene per round");
+    server.stop().unwrap();
+}
+
+/// The intersection and the merge serve like the roundabout: their own vehicles, agent 1
+/// external, every NPC state finite and on the map.
+#[test]
+fn every_procedural_map_serves_a_scene() {
+    let dir = common::temp_dir("procedural");
+    let server = common::start(common::config(&dir));
+    let client = common::client(&server, "procedural-ego");
+    for name in ["intersection", "merge"] {
+        let mut request = common::roundabout();
+        request.map = MapSource::Procedural(name.into());
+        let mut scene = client.create(request).unwrap();
+        let agents = scene.created().agents.clone();
+        assert_eq!(agents.len(), 6, "{name}: its own six vehicles");
+        let history = agents[0].history.clone();
+        for tick in 1..=3 {
+            let npc = scene
+                .step(tick, vec![common::replay(&history, 1, tick)])
+                .unwrap();
+            assert_eq!(npc.npcs.len(), 5, "{name}: tick {tick}");
+            common::assert_sane(&npc, 200.0);
+        }
+        scene.close().unwrap();
+    }
     server.stop().unwrap();
 }
 

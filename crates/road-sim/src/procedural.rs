@@ -1,7 +1,8 @@
-//! A scene built from code, every byte of it redistributable (no INTERACTION data): a
-//! four-arm, single-lane roundabout with counter-clockwise (right-hand) traffic, and vehicles
-//! whose 1 s histories are generated along routes through it. `road demo` simulates it closed
-//! loop with a scripted ego.
+//! Scenes built from code, every byte of them redistributable (no INTERACTION data): a
+//! four-arm, single-lane roundabout with counter-clockwise (right-hand) traffic, a four-way
+//! intersection and a motorway-style merge ([`ProceduralMap`]), each with vehicles whose 1 s
+//! histories are generated along routes through it. `road demo` simulates them closed loop
+//! with a scripted ego; `road serve` offers them as `map.procedural`.
 
 use std::f64::consts::FRAC_PI_2;
 
@@ -180,6 +181,38 @@ fn line(a: Point, b: Point) -> Vec<Point> {
         .collect()
 }
 
+/// Pushes the lane along `centre` as consecutive lanelets (ids `id`, `id + 1`, …) of at most
+/// about `piece_m` each, successors linked, as lane maps cut long roads (and as the
+/// INTERACTION maps the model learnt from do). Returns their indices in driving order.
+fn chain(lanelets: &mut Vec<Lanelet>, id: i64, centre: &[Point], piece_m: f64) -> Vec<usize> {
+    let length: f64 = centre.windows(2).map(|p| dist(p[0], p[1])).sum();
+    let pieces = ((length / piece_m).ceil() as usize).max(1);
+    let mut cuts = vec![0usize];
+    let mut walked = 0.0;
+    for i in 1..centre.len() {
+        walked += dist(centre[i - 1], centre[i]);
+        if walked >= length * cuts.len() as f64 / pieces as f64 - 1e-9 && i < centre.len() - 1 {
+            cuts.push(i);
+        }
+    }
+    cuts.push(centre.len() - 1);
+    cuts.dedup();
+    let mut indices = Vec::with_capacity(cuts.len() - 1);
+    for (k, pair) in cuts.windows(2).enumerate() {
+        indices.push(lanelets.len());
+        lanelets.push(lanelet(
+            id + k as i64,
+            "road",
+            centre[pair[0]..=pair[1]].to_vec(),
+            LANE_WIDTH_M,
+        ));
+    }
+    for pair in indices.windows(2) {
+        lanelets[pair[0]].successors.push(pair[1] as u32);
+    }
+    indices
+}
+
 /// Lanelet indices of the roundabout, by role.
 struct Layout {
     map: LaneletMap,
@@ -337,14 +370,77 @@ impl Layout {
     }
 }
 
+/// The procedural maps, by name (`road demo --map`, `map.procedural` of `road serve`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ProceduralMap {
+    /// Four arms, one lane each way, a single-lane ring: seven vehicles.
+    Roundabout,
+    /// A four-way crossing of two roads, one lane each way, with a connector for every
+    /// movement (a signalised junction's geometry; no signals are simulated): six vehicles.
+    Intersection,
+    /// A one-lane main road joined by a one-lane on-ramp: six vehicles.
+    Merge,
+}
+
+impl ProceduralMap {
+    pub const ALL: [Self; 3] = [Self::Roundabout, Self::Intersection, Self::Merge];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Roundabout => "roundabout",
+            Self::Intersection => "intersection",
+            Self::Merge => "merge",
+        }
+    }
+
+    pub fn from_name(name: &str) -> Option<Self> {
+        Self::ALL.into_iter().find(|m| m.name() == name)
+    }
+
+    /// Every name, comma-separated (for error messages and help).
+    pub fn names() -> String {
+        Self::ALL.map(Self::name).join(", ")
+    }
+}
+
+/// A vehicle of a procedural scene: its route, where it is at the last observed step and its
+/// constant speed over the history.
+#[derive(Debug, Clone, Copy)]
+struct Vehicle {
+    route: usize,
+    start_m: f64,
+    speed_mps: f64,
+    length_m: f32,
+    width_m: f32,
+}
+
 /// The demo roundabout with seven vehicles (the ego is agent 0) and 1 s of history each,
 /// windowed like INTERACTION data with `config` (`observed_steps` history steps).
 pub fn roundabout(config: &WindowConfig, observed_steps: usize) -> Result<ProceduralScene> {
+    procedural(ProceduralMap::Roundabout, config, observed_steps)
+}
+
+/// A procedural scene (the ego is agent 0, on its route at a constant speed), windowed like
+/// INTERACTION data with `config` (`observed_steps` history steps).
+pub fn procedural(
+    kind: ProceduralMap,
+    config: &WindowConfig,
+    observed_steps: usize,
+) -> Result<ProceduralScene> {
     if observed_steps < 2 {
         return Err(Error::Config(format!(
             "the procedural scene needs at least 2 observed steps, got {observed_steps}"
         )));
     }
+    let (map, routes, vehicles) = match kind {
+        ProceduralMap::Roundabout => roundabout_scene(),
+        ProceduralMap::Intersection => intersection_scene(),
+        ProceduralMap::Merge => merge_scene(),
+    };
+    scene_of(map, routes, &vehicles, config, observed_steps)
+}
+
+fn roundabout_scene() -> (LaneletMap, Vec<Route>, Vec<Vehicle>) {
     let layout = roundabout_map();
     let inbound_len = dist(
         layout.map.lanelets[layout.inbound[0]].centre_m[0],
@@ -355,7 +451,7 @@ pub fn roundabout(config: &WindowConfig, observed_steps: usize) -> Result<Proced
     );
     // (from arm, to arm, arc length at the last observed step, speed): the ego enters from the
     // south and leaves east; others circulate, queue and approach.
-    let vehicles: [(usize, usize, f64, f64, f32, f32); 7] = [
+    let trips: [(usize, usize, f64, f64, f32, f32); 7] = [
         (3, 0, inbound_len - 14.0, 7.0, 4.6, 1.9),
         (0, 2, inbound_len + 14.0, 6.0, 4.4, 1.8),
         (2, 3, inbound_len + 30.0, 6.5, 4.8, 1.9),
@@ -364,17 +460,211 @@ pub fn roundabout(config: &WindowConfig, observed_steps: usize) -> Result<Proced
         (0, 3, inbound_len - 30.0, 7.5, 5.0, 2.0),
         (1, 0, inbound_len + 40.0, 6.5, 4.3, 1.8),
     ];
-    let routes: Vec<Route> = vehicles
+    let routes = trips
         .iter()
         .map(|&(from, to, ..)| layout.route(from, to))
         .collect();
+    let vehicles = trips
+        .iter()
+        .enumerate()
+        .map(
+            |(i, &(_, _, start_m, speed_mps, length_m, width_m))| Vehicle {
+                route: i,
+                start_m,
+                speed_mps,
+                length_m,
+                width_m,
+            },
+        )
+        .collect();
+    (layout.map, routes, vehicles)
+}
+
+/// Longest lanelet of the intersection's arms and the merge's roads.
+const LANE_PIECE_M: f64 = 20.0;
+
+/// Half the crossing's side: the connectors run inside `[-JUNCTION_M, JUNCTION_M]²`.
+const JUNCTION_M: f64 = 10.0;
+
+/// The four-way intersection: arm k points along angle k·π/2; inbound lanes keep right.
+/// Connectors join every inbound lane to every other arm's outbound lane (right, straight,
+/// left). Routes: (from arm, to arm).
+fn intersection_scene() -> (LaneletMap, Vec<Route>, Vec<Vehicle>) {
+    let mut lanelets = Vec::new();
+    let (mut inbound, mut outbound): ([Vec<usize>; 4], [Vec<usize>; 4]) = Default::default();
+    let offset = 0.5 * LANE_WIDTH_M;
+    let axis = |k: usize| {
+        let theta = k as f64 * FRAC_PI_2;
+        ([theta.cos(), theta.sin()], [-theta.sin(), theta.cos()])
+    };
+    // A point `d` metres out along arm k, `side` lanes to its left (+1: inbound, driving
+    // towards the centre with the right-hand rule, sits on the arm's counter-clockwise side).
+    let at = |k: usize, d: f64, side: f64| {
+        let (a, n) = axis(k);
+        [
+            d * a[0] + side * offset * n[0],
+            d * a[1] + side * offset * n[1],
+        ]
+    };
+    for k in 0..4 {
+        let id = 3000 + 20 * k as i64;
+        let (near, far) = (JUNCTION_M, JUNCTION_M + ARM_LENGTH_M);
+        let inbound_line = line(at(k, far, 1.0), at(k, near, 1.0));
+        inbound[k] = chain(&mut lanelets, id, &inbound_line, LANE_PIECE_M);
+        let outbound_line = line(at(k, near, -1.0), at(k, far, -1.0));
+        outbound[k] = chain(&mut lanelets, id + 10, &outbound_line, LANE_PIECE_M);
+    }
+    let mut connector = [[usize::MAX; 4]; 4];
+    for (from, row) in connector.iter_mut().enumerate() {
+        for (to, slot) in row.iter_mut().enumerate() {
+            if from == to {
+                continue;
+            }
+            let (start, end) = (at(from, JUNCTION_M, 1.0), at(to, JUNCTION_M, -1.0));
+            let (a_in, _) = axis(from);
+            let (a_out, _) = axis(to);
+            // Control points along the travel directions: into the box, out of it.
+            let reach = 0.55 * JUNCTION_M;
+            let c1 = [start[0] - reach * a_in[0], start[1] - reach * a_in[1]];
+            let c2 = [end[0] - reach * a_out[0], end[1] - reach * a_out[1]];
+            *slot = lanelets.len();
+            let id = 3200 + 10 * from as i64 + to as i64;
+            let mut lane = lanelet(id, "road", bezier([start, c1, c2, end], 16), LANE_WIDTH_M);
+            lane.successors.push(outbound[to][0] as u32);
+            lanelets.push(lane);
+            let last_in = *inbound[from].last().expect("lanes have lanelets");
+            lanelets[last_in].successors.push(*slot as u32);
+        }
+    }
+    let route = |from: usize, to: usize| {
+        let mut points: Vec<Point> = Vec::new();
+        let lanes = inbound[from]
+            .iter()
+            .chain([&connector[from][to]])
+            .chain(&outbound[to]);
+        for &lane in lanes {
+            points.extend(&lanelets[lane].centre_m);
+        }
+        Route::new(points)
+    };
+    // (from, to, metres before the stop line, speed): the ego comes from the south and turns
+    // left (west); crossing, following and turning traffic around it.
+    let trips: [(usize, usize, f64, f64, f32, f32); 6] = [
+        (3, 2, 18.0, 7.0, 4.6, 1.9),
+        (1, 3, 22.0, 6.5, 4.4, 1.8),
+        (0, 2, 30.0, 8.0, 4.8, 1.9),
+        (2, 0, 12.0, 5.5, 4.3, 1.8),
+        (3, 0, 34.0, 7.5, 4.5, 1.9),
+        (0, 3, -8.0, 6.0, 4.2, 1.8),
+    ];
+    let routes: Vec<Route> = trips
+        .iter()
+        .map(|&(from, to, ..)| route(from, to))
+        .collect();
+    let vehicles = trips
+        .iter()
+        .enumerate()
+        .map(
+            |(i, &(_, _, before_m, speed_mps, length_m, width_m))| Vehicle {
+                route: i,
+                start_m: ARM_LENGTH_M - before_m,
+                speed_mps,
+                length_m,
+                width_m,
+            },
+        )
+        .collect();
+    let map = LaneletMap {
+        location: "procedural_intersection".into(),
+        lanelets,
+        skipped: MapSkips::default(),
+    };
+    (map, routes, vehicles)
+}
+
+/// The merge: a one-lane main road along +x (two lanelets, split where the ramp joins) and an
+/// on-ramp from the south-west that joins it at x = 0. Routes: 0 main, 1 ramp.
+fn merge_scene() -> (LaneletMap, Vec<Route>, Vec<Vehicle>) {
+    const MAIN_BEFORE_M: f64 = 90.0;
+    const MAIN_AFTER_M: f64 = 90.0;
+    let ramp_start = [-70.0, -LANE_WIDTH_M - 18.0];
+    let mut lanelets = Vec::new();
+    let main_before = chain(
+        &mut lanelets,
+        4000,
+        &line([-MAIN_BEFORE_M, 0.0], [0.0, 0.0]),
+        LANE_PIECE_M,
+    );
+    let main_after = chain(
+        &mut lanelets,
+        4100,
+        &line([0.0, 0.0], [MAIN_AFTER_M, 0.0]),
+        LANE_PIECE_M,
+    );
+    let ramp_curve = bezier(
+        [ramp_start, [-35.0, ramp_start[1]], [-25.0, 0.0], [0.0, 0.0]],
+        72,
+    );
+    let ramp = chain(&mut lanelets, 4200, &ramp_curve, LANE_PIECE_M);
+    for before in [&main_before, &ramp] {
+        let last = *before.last().expect("lanes have lanelets");
+        lanelets[last].successors.push(main_after[0] as u32);
+    }
+    let route = |first: &[usize]| {
+        let mut points: Vec<Point> = Vec::new();
+        for &lane in first.iter().chain(&main_after) {
+            points.extend(&lanelets[lane].centre_m);
+        }
+        Route::new(points)
+    };
+    let routes = vec![route(&main_before), route(&ramp)];
+    // (route, metres before the merge point, speed): the ego on the main road, a ramp vehicle
+    // level with it, traffic ahead and behind on both.
+    let trips: [(usize, f64, f64, f32, f32); 6] = [
+        (0, 30.0, 9.0, 4.6, 1.9),
+        (1, 28.0, 8.0, 4.4, 1.8),
+        (0, 8.0, 9.5, 4.8, 1.9),
+        (0, 52.0, 9.0, 4.5, 1.9),
+        (1, 48.0, 8.5, 4.3, 1.8),
+        (0, -20.0, 10.0, 4.2, 1.8),
+    ];
+    let ramp_len = routes[1].length_m() - MAIN_AFTER_M;
+    let vehicles = trips
+        .iter()
+        .map(|&(route, before_m, speed_mps, length_m, width_m)| Vehicle {
+            route,
+            start_m: if route == 0 { MAIN_BEFORE_M } else { ramp_len } - before_m,
+            speed_mps,
+            length_m,
+            width_m,
+        })
+        .collect();
+    let map = LaneletMap {
+        location: "procedural_merge".into(),
+        lanelets,
+        skipped: MapSkips::default(),
+    };
+    (map, routes, vehicles)
+}
+
+/// The scene of `vehicles` on `map`: their histories along their routes, the window centred on
+/// their mean position at the last observed step, the lane polylines nearest it.
+fn scene_of(
+    map: LaneletMap,
+    routes: Vec<Route>,
+    vehicles: &[Vehicle],
+    config: &WindowConfig,
+    observed_steps: usize,
+) -> Result<ProceduralScene> {
     let reference = observed_steps - 1;
     let poses: Vec<Vec<Pose>> = vehicles
         .iter()
-        .zip(&routes)
-        .map(|(&(_, _, s_m, v, ..), route)| {
+        .map(|v| {
             (0..observed_steps)
-                .map(|t| route.pose_at(s_m - v * STEP_SECS * (reference - t) as f64))
+                .map(|t| {
+                    routes[v.route]
+                        .pose_at(v.start_m - v.speed_mps * STEP_SECS * (reference - t) as f64)
+                })
                 .collect()
         })
         .collect();
@@ -401,8 +691,7 @@ pub fn roundabout(config: &WindowConfig, observed_steps: usize) -> Result<Proced
         }
     }
     // Polylines nearest the centre first, as the data pipeline orders them.
-    let mut near: Vec<(f64, usize)> = layout
-        .map
+    let mut near: Vec<(f64, usize)> = map
         .lanelets
         .iter()
         .enumerate()
@@ -421,14 +710,14 @@ pub fn roundabout(config: &WindowConfig, observed_steps: usize) -> Result<Proced
     let mut polylines = Vec::with_capacity(near.len() * config.polyline_points * 2);
     let mut polyline_lanelet_ids = Vec::with_capacity(near.len());
     for &(_, i) in &near {
-        let l = &layout.map.lanelets[i];
+        let l = &map.lanelets[i];
         for p in resample(&l.centre_m, config.polyline_points) {
             polylines.extend_from_slice(&frame.to_norm(p));
         }
         polyline_lanelet_ids.push(l.id);
     }
     let window = SceneWindow {
-        location: layout.map.location.clone(),
+        location: map.location.clone(),
         file: "procedural".into(),
         start_frame: 0,
         frame,
@@ -438,8 +727,8 @@ pub fn roundabout(config: &WindowConfig, observed_steps: usize) -> Result<Proced
         valid: vec![true; vehicles.len() * observed_steps],
         track_ids: (1..=vehicles.len() as u32).collect(),
         agent_types: vec![AgentType::Car; vehicles.len()],
-        length_m: vehicles.iter().map(|v| v.4).collect(),
-        width_m: vehicles.iter().map(|v| v.5).collect(),
+        length_m: vehicles.iter().map(|v| v.length_m).collect(),
+        width_m: vehicles.iter().map(|v| v.width_m).collect(),
         polyline_points: config.polyline_points,
         polylines,
         polyline_lanelet_ids,
@@ -447,14 +736,14 @@ pub fn roundabout(config: &WindowConfig, observed_steps: usize) -> Result<Proced
     let ego = ScriptedEgo {
         scene: 0,
         agent: 0,
-        route: routes[0].clone(),
-        start_m: vehicles[0].2,
-        speed_mps: vehicles[0].3,
+        route: routes[vehicles[0].route].clone(),
+        start_m: vehicles[0].start_m,
+        speed_mps: vehicles[0].speed_mps,
     };
     Ok(ProceduralScene {
-        map: layout.map,
+        map,
         window,
-        routes,
+        routes: vehicles.iter().map(|v| routes[v.route].clone()).collect(),
         ego,
     })
 }
@@ -486,21 +775,61 @@ mod tests {
         }
     }
 
+    /// Every vehicle's route of every procedural map runs on its lanes.
     #[test]
-    fn the_scene_is_a_valid_window() {
+    fn every_map_s_routes_stay_on_the_map() {
+        for kind in ProceduralMap::ALL {
+            let scene = procedural(kind, &WindowConfig::default(), 10).unwrap();
+            for (i, route) in scene.routes.iter().enumerate() {
+                let mut s = 0.25;
+                while s <= route.length_m() - 0.25 {
+                    let p = route.pose_at(s);
+                    assert!(
+                        scene.map.lanelet_at([p.x_m, p.y_m]).is_some(),
+                        "{}: vehicle {i}'s route leaves the map at s = {s:.1} m: {p:?}",
+                        kind.name()
+                    );
+                    s += 0.5;
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn procedural_maps_are_found_by_name() {
+        for kind in ProceduralMap::ALL {
+            assert_eq!(ProceduralMap::from_name(kind.name()), Some(kind));
+        }
+        assert_eq!(ProceduralMap::from_name("ring"), None);
+        assert_eq!(ProceduralMap::names(), "roundabout, intersection, merge");
+    }
+
+    #[test]
+    fn every_scene_is_a_valid_window() {
+        for kind in ProceduralMap::ALL {
+            scene_is_a_valid_window(kind);
+        }
+    }
+
+    fn scene_is_a_valid_window(kind: ProceduralMap) {
         let config = WindowConfig::default();
-        let scene = roundabout(&config, 10).unwrap();
+        let scene = procedural(kind, &config, 10).unwrap();
         let w = &scene.window;
         assert_eq!(w.steps, 10);
         assert_eq!(w.states.len(), w.agents * w.steps * 3);
-        assert!(w.polyline_count() >= 16, "{} polylines", w.polyline_count());
+        let name = kind.name();
+        assert!(
+            w.polyline_count() >= 12,
+            "{name}: {} polylines",
+            w.polyline_count()
+        );
         // Histories move at the scripted speeds: 0.1 s apart.
         let a = w.state(0, 8).unwrap();
         let b = w.state(0, 9).unwrap();
         let step_m = f64::from((b[0] - a[0]).hypot(b[1] - a[1])) * config.position_scale_m;
         assert!(
-            (step_m - 0.7).abs() < 0.05,
-            "ego moved {step_m} m in a step"
+            (step_m - scene.ego.speed_mps * STEP_SECS).abs() < 0.05,
+            "{name}: ego moved {step_m} m in a step"
         );
         // No two vehicles overlap at the start.
         let boxes: Vec<_> = (0..w.agents)
@@ -518,7 +847,11 @@ mod tests {
                 })
             })
             .collect();
-        assert!(crate::infractions::collisions(&boxes).is_empty());
+        let overlaps = crate::infractions::collisions(&boxes);
+        assert!(
+            overlaps.is_empty(),
+            "{name}: vehicles overlap at the start: {overlaps:?}"
+        );
     }
 
     #[test]

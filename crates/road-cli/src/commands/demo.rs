@@ -1,5 +1,6 @@
-//! `road demo`: the main job on its embedded default. A procedurally built roundabout (no
-//! INTERACTION data: every byte redistributable) is simulated closed loop: a scripted ego that
+//! `road demo`: the main job on its embedded default. A procedurally built roundabout (or, with
+//! `--map`, intersection or merge; no INTERACTION data: every byte redistributable) is
+//! simulated closed loop: a scripted ego that
 //! does not yield, every other vehicle the model's. Prints what happened (ticks, time per
 //! tick, infractions) and draws it.
 
@@ -13,7 +14,7 @@ use rand::SeedableRng;
 use road_data::WindowConfig;
 use road_sim::closed_loop::{ClosedLoop, Controller, SceneTick, SimScene};
 use road_sim::geometry::OrientedBox;
-use road_sim::procedural::{STEP_SECS, roundabout};
+use road_sim::procedural::{ProceduralMap, STEP_SECS, procedural};
 
 use crate::commands::engine::{EngineChoice, Engines};
 use crate::plot::{
@@ -29,6 +30,9 @@ pub struct DemoArgs {
     /// Simulated steps (10 Hz).
     #[arg(long, default_value_t = 60)]
     pub steps: usize,
+    /// The procedural map: `roundabout`, `intersection` or `merge`.
+    #[arg(long, default_value = "roundabout", value_parser = parse_map)]
+    pub map: ProceduralMap,
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     /// `gpu` (WGSL kernels), `cpu` (candle reference) or `auto`: a hardware GPU when wgpu finds
@@ -52,11 +56,22 @@ pub struct DemoArgs {
     pub mcap: PathBuf,
 }
 
+/// `--map`: a procedural map by name.
+fn parse_map(name: &str) -> std::result::Result<ProceduralMap, String> {
+    ProceduralMap::from_name(name).ok_or_else(|| {
+        format!(
+            "unknown procedural map {name:?}; known: {}",
+            ProceduralMap::names()
+        )
+    })
+}
+
 pub fn run(args: DemoArgs) -> Result<ExitCode> {
     anyhow::ensure!(args.steps > 0, "--steps must be at least 1");
     if args.zenoh {
         return crate::commands::demo_zenoh::run(
             &args.checkpoint,
+            args.map,
             args.steps,
             args.seed,
             &args.mcap,
@@ -76,7 +91,7 @@ pub fn run(args: DemoArgs) -> Result<ExitCode> {
         polyline_points: model.polyline_points,
         ..WindowConfig::default()
     };
-    let scene = roundabout(&window_config, n)?;
+    let scene = procedural(args.map, &window_config, n)?;
     let agents = scene.window.agents;
     let mut controllers = vec![Controller::Model; agents];
     controllers[scene.ego.agent] = Controller::External;
@@ -150,7 +165,8 @@ pub fn run(args: DemoArgs) -> Result<ExitCode> {
     sorted.sort_by(f64::total_cmp);
     let mean_ms = tick_ms.iter().sum::<f64>() / tick_ms.len() as f64;
     out!(
-        "road demo: procedural roundabout, {agents} vehicles (ego scripted, {} by {} on {}), {} ticks of {:.1} s",
+        "road demo: procedural {}, {agents} vehicles (ego scripted, {} by {} on {}), {} ticks of {:.1} s",
+        args.map.name(),
         agents - 1,
         run.name,
         engines.describe(),
@@ -241,7 +257,7 @@ pub fn run(args: DemoArgs) -> Result<ExitCode> {
     out!("figure: {}", args.out.display());
     if let Some(path) = &args.json {
         let json = serde_json::json!({
-            "scene": "procedural roundabout",
+            "scene": format!("procedural {}", args.map.name()),
             "checkpoint": args.checkpoint,
             "engine": engines.describe(),
             "step_secs": STEP_SECS,

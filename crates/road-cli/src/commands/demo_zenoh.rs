@@ -1,6 +1,6 @@
 //! `road demo --zenoh`: the whole product in one command. A `road serve` runs in this process
 //! on loopback (TCP 127.0.0.1, scouting off), a scripted ego client (the demo's ego, which
-//! does not yield) drives the procedural roundabout over zenoh, and the server's recording of
+//! does not yield) drives a procedural map (`--map`) over zenoh, and the server's recording of
 //! the scene is kept as `demo.mcap` (Foxglove shows `/map` and `/agents`). Prints the round
 //! trip and engine time per tick and the infractions.
 
@@ -17,9 +17,15 @@ use road_serve::models::find_models_dir;
 use road_serve::server::percentiles;
 use road_serve::{ServeConfig, Server};
 use road_sim::closed_loop::ExternalDriver;
-use road_sim::procedural::{STEP_SECS, roundabout};
+use road_sim::procedural::{ProceduralMap, STEP_SECS, procedural};
 
-pub fn run(checkpoint: &Path, steps: usize, seed: u64, mcap_out: &Path) -> Result<ExitCode> {
+pub fn run(
+    checkpoint: &Path,
+    map: ProceduralMap,
+    steps: usize,
+    seed: u64,
+    mcap_out: &Path,
+) -> Result<ExitCode> {
     let name = checkpoint
         .file_name()
         .and_then(|n| n.to_str())
@@ -51,7 +57,7 @@ pub fn run(checkpoint: &Path, steps: usize, seed: u64, mcap_out: &Path) -> Resul
     )?;
     client.set_timeout(Duration::from_secs(120));
     let mut scene = client.create(CreateScene {
-        map: MapSource::Procedural("roundabout".into()),
+        map: MapSource::Procedural(map.name().into()),
         agents: None,
         external: vec![1],
         planner: None,
@@ -60,8 +66,10 @@ pub fn run(checkpoint: &Path, steps: usize, seed: u64, mcap_out: &Path) -> Resul
         client: None,
         max_ticks: None,
     })?;
-    // The same scripted ego as `road demo`: its route through the roundabout at constant speed.
-    let mut ego = roundabout(&WindowConfig::default(), 2)?.ego;
+    // The same scripted ego as `road demo`: its route through the map at constant speed.
+    let procedural_scene = procedural(map, &WindowConfig::default(), 2)?;
+    let vehicles = procedural_scene.routes.len();
+    let mut ego = procedural_scene.ego;
     let mut rtt_ms = Vec::with_capacity(steps);
     let mut compute_ms = Vec::with_capacity(steps);
     let mut events = Vec::new();
@@ -108,7 +116,9 @@ pub fn run(checkpoint: &Path, steps: usize, seed: u64, mcap_out: &Path) -> Resul
 
     let (r, c) = (percentiles(&rtt_ms[1..]), percentiles(&compute_ms[1..]));
     out!(
-        "road demo over zenoh: procedural roundabout, 7 vehicles (ego 1 scripted by the client, 6 by {name}), {steps} ticks of {STEP_SECS:.1} s on loopback"
+        "road demo over zenoh: procedural {}, {vehicles} vehicles (ego 1 scripted by the client, {} by {name}), {steps} ticks of {STEP_SECS:.1} s on loopback",
+        map.name(),
+        vehicles - 1
     );
     out!(
         "first tick (with the warm-up): {:.1} ms round trip; then round trip p50 {:.2} ms, p99 {:.2} ms; engine p50 {:.2} ms, p99 {:.2} ms; late ticks {late}",
