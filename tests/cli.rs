@@ -200,11 +200,23 @@ fn shipped_configs_match_the_defaults_and_validate() {
 fn gpu_selftest_passes_on_the_adapter_present() {
     let o = road(&["gpu", "selftest"]);
     assert!(o.status.success(), "{}\n{}", stdout(&o), stderr(&o));
-    assert!(
-        stdout(&o).contains("edm.precondition: ok"),
-        "{}",
-        stdout(&o)
-    );
+    let text = stdout(&o);
+    for kernel in [
+        "linear",
+        "layer_norm",
+        "attention",
+        "pair_attention",
+        "pick_agent_maps",
+        "edm.precondition",
+    ] {
+        assert!(text.contains(&format!("{kernel}: ok")), "{kernel}: {text}");
+    }
+    for checkpoint in ["models/road20-cvmap", "models/road20"] {
+        assert!(
+            text.contains(&format!("denoiser {checkpoint}: ok")),
+            "{checkpoint}: {text}"
+        );
+    }
 }
 
 /// The shipped road20 checkpoint through `road sample` (both engines) and `road eval` on one

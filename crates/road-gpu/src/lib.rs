@@ -5,12 +5,14 @@
 //! - [`shaders`]: the embedded `shaders/*.wgsl` files;
 //! - [`kernels`]: one module per kernel family;
 //! - [`reference`]: the kernels' CPU references (plain f64 loops);
+//! - [`selftest`]: every kernel family against its reference on the adapter at hand;
 //! - [`tolerance`]: the relative + absolute tolerance every parity test uses.
 
 pub mod context;
 pub mod engine;
 pub mod kernels;
 pub mod reference;
+pub mod selftest;
 pub mod shaders;
 pub mod tolerance;
 

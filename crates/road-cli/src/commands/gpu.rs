@@ -1,20 +1,26 @@
-//! `road gpu …`: the adapter wgpu picks here, and a kernel self-test against the CPU reference.
+//! `road gpu …`: the adapter wgpu picks here, and a self-test of every kernel family and whole
+//! denoisers against the CPU references.
 
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use anyhow::{Context, Result};
 use clap::Subcommand;
-use road_gpu::kernels::edm::EdmPrecondition;
 use road_gpu::{ContextOptions, GpuContext, Tolerance};
-use road_sched::EdmSchedule;
 
 #[derive(Debug, Subcommand)]
 pub enum GpuCommand {
     /// Print the adapter that would run the kernels and its main limits
     /// (honours WGPU_BACKEND and WGPU_ADAPTER_NAME).
     Info,
-    /// Run every kernel on the adapter and compare with its CPU reference.
-    Selftest,
+    /// Run every kernel family on the adapter against its CPU reference (seeded random inputs
+    /// of the engine's shapes), then each checkpoint's whole denoiser against candle on the
+    /// procedural scenes (no dataset needed). Exit code 1 on any mismatch.
+    Selftest {
+        /// Checkpoints whose whole denoiser is compared.
+        #[arg(long, num_args = 1.., default_values = ["models/road20-cvmap", "models/road20"])]
+        checkpoints: Vec<PathBuf>,
+    },
 }
 
 pub fn run(cmd: GpuCommand) -> Result<ExitCode> {
@@ -43,46 +49,128 @@ pub fn run(cmd: GpuCommand) -> Result<ExitCode> {
             out!("features: {:?}", ctx.adapter.features());
             Ok(ExitCode::SUCCESS)
         }
-        GpuCommand::Selftest => {
+        GpuCommand::Selftest { checkpoints } => {
             out!("adapter: {}", ctx.describe());
-            let edm = EdmSchedule::default();
-            let sigma: Vec<f32> = (0..=1000)
-                .map(|i| edm.sigma(f64::from(i) / 1000.0) as f32)
-                .collect();
-            let got = EdmPrecondition::new(&ctx).run(
-                &ctx,
-                &sigma,
-                edm.sigma_data as f32,
-                edm.sigma_min as f32,
-            )?;
-            let expected: Vec<f32> = sigma
-                .iter()
-                .flat_map(|&s| {
-                    let p = edm.preconditioning(f64::from(s));
-                    [
-                        p.c_skip as f32,
-                        p.c_out as f32,
-                        p.c_in as f32,
-                        (f64::from(s).max(edm.sigma_min).ln() / 4.0) as f32,
-                    ]
-                })
-                .collect();
-            let actual: Vec<f32> = got.iter().flatten().copied().collect();
-            match Tolerance::F32.check(&actual, &expected) {
-                Ok(()) => {
-                    out!(
-                        "edm.precondition: ok ({} slots, rel {} abs {})",
-                        sigma.len(),
-                        Tolerance::F32.rel,
-                        Tolerance::F32.abs
-                    );
-                    Ok(ExitCode::SUCCESS)
-                }
-                Err(m) => {
-                    out!("edm.precondition: FAILED: {m}");
-                    Ok(ExitCode::FAILURE)
+            let mut failed = 0;
+            for check in road_gpu::selftest::kernel_checks(&ctx)? {
+                match &check.outcome {
+                    Ok(()) => out!(
+                        "{}: ok ({} values, rel {} abs {})",
+                        check.name,
+                        check.values,
+                        check.tolerance.rel,
+                        check.tolerance.abs
+                    ),
+                    Err(m) => {
+                        failed += 1;
+                        out!("{}: FAILED: {m}", check.name);
+                    }
                 }
             }
+            for dir in &checkpoints {
+                match whole_denoiser(&ctx, dir)? {
+                    (values, Ok(())) => out!(
+                        "denoiser {}: ok ({values} values on the procedural scenes, rel {} abs {})",
+                        dir.display(),
+                        WHOLE_MODEL.rel,
+                        WHOLE_MODEL.abs
+                    ),
+                    (_, Err(m)) => {
+                        failed += 1;
+                        out!("denoiser {}: FAILED: {m}", dir.display());
+                    }
+                }
+            }
+            Ok(if failed == 0 {
+                ExitCode::SUCCESS
+            } else {
+                ExitCode::FAILURE
+            })
         }
     }
+}
+
+/// The whole denoiser's tolerance: kernels chained through three blocks.
+const WHOLE_MODEL: Tolerance = Tolerance {
+    rel: 1e-4,
+    abs: 1e-5,
+};
+
+/// One evaluation `D(x; σ)` of checkpoint `dir` on the adapter against candle: the three
+/// procedural scenes (no dataset needed; 20 steps of history as the window), a rolling task's
+/// σ per slot, seeded noise. Returns the values compared and the outcome.
+fn whole_denoiser(
+    ctx: &GpuContext,
+    dir: &Path,
+) -> Result<(
+    usize,
+    std::result::Result<(), road_gpu::tolerance::Mismatch>,
+)> {
+    use rand::SeedableRng;
+    use road_model::batch::{SceneInput, collate, normal_vec, task_sigma};
+    use road_model::config::TaskKind;
+    use road_model::model::Mode;
+    use road_sim::procedural::{ProceduralMap, procedural};
+
+    let device = candle_core::Device::Cpu;
+    let loaded = road_model::checkpoint::load(dir, &device)
+        .with_context(|| format!("cannot load {}", dir.display()))?;
+    let config = &loaded.meta.run.model;
+    let gpu = road_gpu::engine::GpuDenoiser::from_checkpoint(ctx, dir)
+        .with_context(|| format!("cannot load {} on the adapter", dir.display()))?;
+    let window = road_data::WindowConfig {
+        position_scale_m: config.position_scale_m,
+        polyline_points: config.polyline_points,
+        ..road_data::WindowConfig::default()
+    };
+    let w = config.window_slots;
+    let scenes = ProceduralMap::ALL
+        .iter()
+        .map(|&kind| {
+            let scene = procedural(kind, &window, w)?;
+            Ok(SceneInput::from_window(&scene.window, 0, w, config))
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let mut rng = rand::rngs::StdRng::seed_from_u64(5);
+    let sigma: Vec<Vec<f32>> = scenes
+        .iter()
+        .map(|_| task_sigma(&mut rng, config, w / 2, TaskKind::Rolling, 0.3, 0.5))
+        .collect();
+    let noise: Vec<Vec<f32>> = scenes
+        .iter()
+        .map(|s| normal_vec(&mut rng, s.agents * s.slots * 3))
+        .collect();
+    let b = collate(&scenes, &sigma, Some(&noise), &device)?;
+    let flat =
+        |t: &candle_core::Tensor| -> Result<Vec<f32>> { Ok(t.flatten_all()?.to_vec1::<f32>()?) };
+    let model = &loaded.model;
+    let map_tokens = model.encode_map(&b.map, Mode::Infer)?;
+    let want = flat(&model.denoise(
+        &b.x_noisy,
+        &b.sigma,
+        &b.valid,
+        &b.agent_features,
+        &map_tokens,
+        &b.map_valid,
+        Mode::Infer,
+    )?)?;
+    let (count, agents, _, _) = b.x_noisy.dims4()?;
+    let polylines = b.map_valid.dim(1)?;
+    let map = gpu.encode_map(ctx, count, polylines, &flat(&b.map)?, &flat(&b.map_valid)?)?;
+    let (x, sigma, valid, features) = (
+        flat(&b.x_noisy)?,
+        flat(&b.sigma)?,
+        flat(&b.valid)?,
+        flat(&b.agent_features)?,
+    );
+    let inputs = road_gpu::engine::DenoiseInputs {
+        scenes: count,
+        agents,
+        x: &x,
+        sigma: &sigma,
+        valid: &valid,
+        agent_features: &features,
+    };
+    let got = gpu.denoise(ctx, &inputs, &map)?;
+    Ok((got.len(), WHOLE_MODEL.check(&got, &want)))
 }

@@ -1,0 +1,240 @@
+//! `road gpu selftest`'s kernel checks: every kernel family against its CPU reference on the
+//! adapter at hand, on seeded random inputs of the shapes the engine runs (RoAD-20's D = 64,
+//! 4 heads, 20 slots, 12 of 32 polylines). A machine lent for a few minutes checks its
+//! kernels in one call before anything is timed; the parity tests check the same on lavapipe.
+
+use crate::kernels::agent_map::{AgentMap, AgentMapParams};
+use crate::kernels::agent_pairs::{PairAttention, PairAttentionParams};
+use crate::kernels::attention::{Attention, AttentionParams, TokenLayout};
+use crate::kernels::layer_norm::{LayerNorm, LayerNormParams};
+use crate::kernels::linear::{Linear, LinearParams};
+use crate::tolerance::Mismatch;
+use crate::{GpuContext, Result, Tolerance, reference};
+
+/// One kernel's comparison.
+#[derive(Debug, Clone)]
+pub struct KernelCheck {
+    pub name: &'static str,
+    /// Values compared.
+    pub values: usize,
+    pub tolerance: Tolerance,
+    pub outcome: std::result::Result<(), Mismatch>,
+}
+
+/// A small seeded generator (xorshift64*), so that the checks need no RNG crate.
+struct Inputs(u64);
+
+impl Inputs {
+    fn next(&mut self) -> f32 {
+        self.0 ^= self.0 >> 12;
+        self.0 ^= self.0 << 25;
+        self.0 ^= self.0 >> 27;
+        let bits = self.0.wrapping_mul(0x2545_F491_4F6C_DD1D) >> 40; // 24 bits
+        bits as f32 / (1u64 << 24) as f32
+    }
+
+    /// `n` values uniform in `[-scale, scale)`.
+    fn uniform(&mut self, n: usize, scale: f32) -> Vec<f32> {
+        (0..n).map(|_| (2.0 * self.next() - 1.0) * scale).collect()
+    }
+
+    /// `n` validity flags, each 1 with probability `p`.
+    fn flags(&mut self, n: usize, p: f32) -> Vec<f32> {
+        (0..n)
+            .map(|_| if self.next() < p { 1.0 } else { 0.0 })
+            .collect()
+    }
+}
+
+/// Runs every kernel family's check on `ctx` (seeded: the same inputs on every machine).
+pub fn kernel_checks(ctx: &GpuContext) -> Result<Vec<KernelCheck>> {
+    let mut rng = Inputs(0x5EED_F0AD);
+    let tol = Tolerance::F32;
+    let loose = Tolerance {
+        rel: 1e-4,
+        abs: 1e-5,
+    };
+    let mut checks = Vec::new();
+    let (b, a, w, d, heads) = (3usize, 12usize, 20usize, 64usize, 4usize);
+    let tokens = b * a * w;
+
+    // linear: the MLP's first layer over every token.
+    let (rows, d_in, d_out) = (tokens, d, 2 * d);
+    let (x, wt, bias) = (
+        rng.uniform(rows * d_in, 1.0),
+        rng.uniform(d_out * d_in, 0.2),
+        rng.uniform(d_out, 0.1),
+    );
+    let p = LinearParams {
+        rows: rows as u32,
+        in_dim: d_in as u32,
+        out_dim: d_out as u32,
+        relu: 1,
+    };
+    let got = Linear::new(ctx).run(ctx, p, &x, &wt, &bias)?;
+    let want = reference::linear(&x, &wt, &bias, rows, d_in, d_out, true);
+    checks.push(KernelCheck {
+        name: "linear",
+        values: got.len(),
+        tolerance: loose,
+        outcome: loose.check(&got, &want),
+    });
+
+    // layer_norm over every token.
+    let (x, gamma, beta) = (
+        rng.uniform(tokens * d, 2.0),
+        rng.uniform(d, 1.0),
+        rng.uniform(d, 0.5),
+    );
+    let p = LayerNormParams {
+        rows: tokens as u32,
+        dim: d as u32,
+        eps: 1e-5,
+        _pad: 0,
+    };
+    let got = LayerNorm::new(ctx).run(ctx, p, &x, &gamma, &beta)?;
+    let want = reference::layer_norm(&x, &gamma, &beta, tokens, d, 1e-5);
+    checks.push(KernelCheck {
+        name: "layer_norm",
+        values: got.len(),
+        tolerance: loose,
+        outcome: loose.check(&got, &want),
+    });
+
+    // attention, agents layout (groups (scene, slot), tokens agents), random masks.
+    let (q, k, v) = (
+        rng.uniform(tokens * d, 1.0),
+        rng.uniform(tokens * d, 1.0),
+        rng.uniform(tokens * d, 1.0),
+    );
+    let valid = rng.flags(tokens, 0.8);
+    let agents = TokenLayout {
+        inner_count: w as u32,
+        outer_stride: (a * w) as u32,
+        inner_stride: 1,
+        token_stride: w as u32,
+    };
+    let head_dim = d / heads;
+    let p = AttentionParams {
+        groups: (b * w) as u32,
+        heads: heads as u32,
+        head_dim: head_dim as u32,
+        queries: a as u32,
+        keys: a as u32,
+        scale: 1.0 / (head_dim as f32).sqrt(),
+        _pad: [0; 2],
+        q_layout: agents,
+        kv_layout: agents,
+        mask_layout: agents,
+    };
+    let got = Attention::new(ctx).run(ctx, p, &q, &k, &v, &valid)?;
+    let want = reference::attention(&p, &q, &k, &v, &valid);
+    checks.push(KernelCheck {
+        name: "attention",
+        values: got.len(),
+        tolerance: loose,
+        outcome: loose.check(&got, &want),
+    });
+
+    // pair_attention (agent pairs) on the same tokens, with scene states.
+    let states = rng.uniform(tokens * 3, 1.5);
+    let f = road_model::agent_pairs::PAIR_FEATURES;
+    let (pair_k, pair_v) = (rng.uniform(d * f, 0.5), rng.uniform(d * f, 0.5));
+    let p = PairAttentionParams {
+        groups: (b * w) as u32,
+        heads: heads as u32,
+        head_dim: head_dim as u32,
+        agents: a as u32,
+        slots: w as u32,
+        anchor_slot: 9,
+        scale: 1.0 / (head_dim as f32).sqrt(),
+        heading_scale: 0.25,
+        direction: 0.25,
+        near: 0.125,
+        far: 0.5,
+        _pad: 0,
+    };
+    let got = PairAttention::new(ctx).run(ctx, p, &q, &k, &v, &valid, &states, &pair_k, &pair_v)?;
+    let want = reference::pair_attention(&p, &q, &k, &v, &valid, &states, &pair_k, &pair_v);
+    checks.push(KernelCheck {
+        name: "pair_attention",
+        values: got.len(),
+        tolerance: loose,
+        outcome: loose.check(&got, &want),
+    });
+
+    // pick_agent_maps: 12 of 32 polylines of 20 points per agent.
+    let (polylines, points, picked) = (32usize, 20usize, 12usize);
+    let map = rng.uniform(b * polylines * points * 2, 1.0);
+    let map_valid: Vec<f32> = (0..b * polylines)
+        .map(|i| {
+            if i % polylines < polylines - 5 {
+                1.0
+            } else {
+                0.0
+            }
+        })
+        .collect();
+    let p = AgentMapParams {
+        rows: (b * a) as u32,
+        agents: a as u32,
+        slots: w as u32,
+        anchor_slot: 9,
+        polylines: polylines as u32,
+        points: points as u32,
+        picked: picked as u32,
+        heading_scale: 0.25,
+    };
+    let (got_points, got_flags) =
+        AgentMap::new(ctx).run(ctx, p, &states, &valid, &map, &map_valid)?;
+    let anchors = road_model::agent_map::anchors_of(&states, &valid, w, 9, 0.25);
+    let (want_points, want_flags) =
+        road_model::agent_map::agent_maps(&anchors, a, &map, &map_valid, points, picked);
+    let mut got = got_points;
+    got.extend(got_flags);
+    let mut want = want_points;
+    want.extend(want_flags);
+    checks.push(KernelCheck {
+        name: "pick_agent_maps",
+        values: got.len(),
+        tolerance: loose,
+        outcome: loose.check(&got, &want),
+    });
+
+    // edm preconditioning of 1 001 noise levels.
+    let (sigma_min, sigma_max, sigma_data) = (0.002f64, 80.0f64, 0.5f64);
+    let sigma: Vec<f32> = (0..=1000)
+        .map(|i| {
+            let u = f64::from(i) / 1000.0;
+            let r = 1.0 / 7.0;
+            (sigma_min.powf(r) + u * (sigma_max.powf(r) - sigma_min.powf(r))).powi(7) as f32
+        })
+        .collect();
+    let got = crate::kernels::edm::EdmPrecondition::new(ctx).run(
+        ctx,
+        &sigma,
+        sigma_data as f32,
+        sigma_min as f32,
+    )?;
+    let got: Vec<f32> = got.iter().flatten().copied().collect();
+    let want: Vec<f32> = sigma
+        .iter()
+        .flat_map(|&s| {
+            let s = f64::from(s);
+            let denom = s * s + sigma_data * sigma_data;
+            [
+                (sigma_data * sigma_data / denom) as f32,
+                (s * sigma_data / denom.sqrt()) as f32,
+                (1.0 / denom.sqrt()) as f32,
+                (s.max(sigma_min).ln() / 4.0) as f32,
+            ]
+        })
+        .collect();
+    checks.push(KernelCheck {
+        name: "edm.precondition",
+        values: got.len(),
+        tolerance: tol,
+        outcome: tol.check(&got, &want),
+    });
+    Ok(checks)
+}
