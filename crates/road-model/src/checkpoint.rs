@@ -173,8 +173,44 @@ pub fn load(dir: &Path, device: &Device) -> Result<LoadedModel> {
     let meta = CheckpointMeta::load(dir)?;
     let path = dir.join(WEIGHTS_FILE);
     let tensors = load_tensors(&path, device)?;
+    build(meta, tensors, &path, device)
+}
+
+/// A checkpoint held in memory (a binary's embedded default): the text of its `config.toml`
+/// and the bytes of its `weights.safetensors`. `origin` names it in errors, in place of the
+/// folder.
+pub fn load_from_memory(
+    origin: &Path,
+    config_toml: &str,
+    weights: &[u8],
+    device: &Device,
+) -> Result<LoadedModel> {
+    let meta_path = origin.join(META_FILE);
+    let meta: CheckpointMeta = toml::from_str(config_toml).map_err(|e| Error::Checkpoint {
+        path: meta_path.clone(),
+        reason: e.to_string(),
+    })?;
+    meta.run.validate().map_err(|reason| Error::Checkpoint {
+        path: meta_path,
+        reason,
+    })?;
+    let path = origin.join(WEIGHTS_FILE);
+    let tensors =
+        candle_core::safetensors::load_buffer(weights, device).map_err(|e| Error::Checkpoint {
+            path: path.clone(),
+            reason: e.to_string(),
+        })?;
+    build(meta, tensors, &path, device)
+}
+
+fn build(
+    meta: CheckpointMeta,
+    tensors: HashMap<String, Tensor>,
+    path: &Path,
+    device: &Device,
+) -> Result<LoadedModel> {
     let (varmap, _) = crate::model::init(&meta.run.model, device)?;
-    check_against(&varmap, &tensors, &path)?;
+    check_against(&varmap, &tensors, path)?;
     let vb = VarBuilder::from_tensors(tensors, DType::F32, device);
     let model = Denoiser::new(&meta.run.model, vb)?;
     Ok(LoadedModel { meta, model })

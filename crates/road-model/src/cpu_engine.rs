@@ -133,9 +133,49 @@ impl HostWindows {
 pub struct CpuEngine<'a> {
     model: &'a Denoiser,
     host: HostWindows,
+    /// The static inputs as prepared (`features [B, A, 6]`, `map [B, P, Q, 2]`, `map_valid
+    /// [B, P]`), kept so that one scene's can be replaced.
+    inputs: StaticInputs,
     features: Option<Tensor>,
     map_tokens: Option<MapTokens>,
     map_valid: Option<Tensor>,
+}
+
+/// A batch's static inputs on the host.
+#[derive(Debug, Default)]
+struct StaticInputs {
+    polylines: usize,
+    features: Vec<f32>,
+    map: Vec<f32>,
+    map_valid: Vec<f32>,
+}
+
+impl StaticInputs {
+    /// Overwrites scene `scene`'s rows; errors name what does not fit.
+    fn replace(
+        &mut self,
+        scene: usize,
+        scenes: usize,
+        features: &[f32],
+        map: &[f32],
+        map_valid: &[f32],
+    ) -> Result<()> {
+        let per = |all: &[f32]| all.len() / scenes.max(1);
+        let (f, m, v) = (per(&self.features), per(&self.map), per(&self.map_valid));
+        if scene >= scenes || features.len() != f || map.len() != m || map_valid.len() != v {
+            return Err(Error::data(format!(
+                "prepare_scene {scene}: {} feature, {} map and {} map-flag values; the batch of \
+                 {scenes} scenes takes {f}, {m} and {v} per scene",
+                features.len(),
+                map.len(),
+                map_valid.len()
+            )));
+        }
+        self.features[scene * f..][..f].copy_from_slice(features);
+        self.map[scene * m..][..m].copy_from_slice(map);
+        self.map_valid[scene * v..][..v].copy_from_slice(map_valid);
+        Ok(())
+    }
 }
 
 impl<'a> CpuEngine<'a> {
@@ -143,10 +183,32 @@ impl<'a> CpuEngine<'a> {
         Self {
             model,
             host: HostWindows::default(),
+            inputs: StaticInputs::default(),
             features: None,
             map_tokens: None,
             map_valid: None,
         }
+    }
+
+    /// The tensors of the static inputs as they stand.
+    fn upload_inputs(&mut self) -> Result<()> {
+        let device = Device::Cpu;
+        let q = self.model.config.polyline_points;
+        let (scenes, agents) = (self.host.scenes, self.host.agents);
+        let polylines = self.inputs.polylines;
+        self.features = Some(Tensor::from_vec(
+            self.inputs.features.clone(),
+            (scenes, agents, AGENT_FEATURES),
+            &device,
+        )?);
+        let map = Tensor::from_vec(self.inputs.map.clone(), (scenes, polylines, q, 2), &device)?;
+        self.map_tokens = Some(self.model.encode_map(&map, Mode::Infer)?);
+        self.map_valid = Some(Tensor::from_vec(
+            self.inputs.map_valid.clone(),
+            (scenes, polylines),
+            &device,
+        )?);
+        Ok(())
     }
 }
 
@@ -164,27 +226,32 @@ impl StepEngine for CpuEngine<'_> {
         map: &[f32],
         map_valid: &[f32],
     ) -> Result<()> {
-        let device = Device::Cpu;
-        let q = self.model.config.polyline_points;
         self.host = HostWindows {
             scenes,
             agents,
             slots: self.model.config.window_slots,
             ..HostWindows::default()
         };
-        self.features = Some(Tensor::from_vec(
-            features.to_vec(),
-            (scenes, agents, AGENT_FEATURES),
-            &device,
-        )?);
-        let map = Tensor::from_vec(map.to_vec(), (scenes, polylines, q, 2), &device)?;
-        self.map_tokens = Some(self.model.encode_map(&map, Mode::Infer)?);
-        self.map_valid = Some(Tensor::from_vec(
-            map_valid.to_vec(),
-            (scenes, polylines),
-            &device,
-        )?);
-        Ok(())
+        self.inputs = StaticInputs {
+            polylines,
+            features: features.to_vec(),
+            map: map.to_vec(),
+            map_valid: map_valid.to_vec(),
+        };
+        self.upload_inputs()
+    }
+
+    fn prepare_scene(
+        &mut self,
+        scene: usize,
+        features: &[f32],
+        map: &[f32],
+        map_valid: &[f32],
+    ) -> Result<()> {
+        self.inputs
+            .replace(scene, self.host.scenes, features, map, map_valid)?;
+        // The reference re-encodes every scene's map: simple, and exact by construction.
+        self.upload_inputs()
     }
 
     fn load(&mut self, windows: &[f32], valid: &[f32]) -> Result<()> {
@@ -263,6 +330,8 @@ pub struct FastCpuEngine<'a> {
     fast: FastDenoiser,
     host: HostWindows,
     cache: Option<SceneCache>,
+    /// P of the prepared batch.
+    polylines: usize,
 }
 
 impl<'a> FastCpuEngine<'a> {
@@ -274,6 +343,7 @@ impl<'a> FastCpuEngine<'a> {
             fast: FastDenoiser::new(model, threads)?,
             host: HostWindows::default(),
             cache: None,
+            polylines: 0,
         })
     }
 
@@ -281,30 +351,19 @@ impl<'a> FastCpuEngine<'a> {
         let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
         Self::with_threads(model, threads)
     }
-}
 
-impl StepEngine for FastCpuEngine<'_> {
-    fn window_slots(&self) -> usize {
-        self.model.config.window_slots
-    }
-
-    fn prepare(
-        &mut self,
+    /// The fast path's per-scene-set inputs of `scenes` scenes.
+    fn scene_cache(
+        &self,
         scenes: usize,
         agents: usize,
         features: &[f32],
         polylines: usize,
         map: &[f32],
         map_valid: &[f32],
-    ) -> Result<()> {
+    ) -> Result<SceneCache> {
         let q = self.model.config.polyline_points;
-        self.host = HostWindows {
-            scenes,
-            agents,
-            slots: self.model.config.window_slots,
-            ..HostWindows::default()
-        };
-        let cache = if self.model.config.agent_map.is_some() {
+        Ok(if self.model.config.agent_map.is_some() {
             // Each forward picks and encodes every agent's own polylines.
             self.fast.scene_cache(
                 scenes,
@@ -328,14 +387,54 @@ impl StepEngine for FastCpuEngine<'_> {
                 SceneMap::Tokens(&tokens),
                 map_valid,
             )?
+        })
+    }
+}
+
+impl StepEngine for FastCpuEngine<'_> {
+    fn window_slots(&self) -> usize {
+        self.model.config.window_slots
+    }
+
+    fn prepare(
+        &mut self,
+        scenes: usize,
+        agents: usize,
+        features: &[f32],
+        polylines: usize,
+        map: &[f32],
+        map_valid: &[f32],
+    ) -> Result<()> {
+        self.host = HostWindows {
+            scenes,
+            agents,
+            slots: self.model.config.window_slots,
+            ..HostWindows::default()
         };
-        self.cache = Some(cache);
+        self.cache = Some(self.scene_cache(scenes, agents, features, polylines, map, map_valid)?);
+        self.polylines = polylines;
         Ok(())
+    }
+
+    fn prepare_scene(
+        &mut self,
+        scene: usize,
+        features: &[f32],
+        map: &[f32],
+        map_valid: &[f32],
+    ) -> Result<()> {
+        let agents = self.host.agents;
+        let one = self.scene_cache(1, agents, features, self.polylines, map, map_valid)?;
+        let Some(cache) = &mut self.cache else {
+            return Err(Error::data("prepare_scene before prepare".into()));
+        };
+        cache.replace_scene(scene, &one)
     }
 
     fn load(&mut self, windows: &[f32], valid: &[f32]) -> Result<()> {
         self.host.load(windows, valid)
     }
+
 
     fn load_scene(&mut self, scene: usize, window: &[f32], valid: &[f32]) -> Result<()> {
         self.host.load_scene(scene, window, valid)

@@ -225,6 +225,34 @@ pub struct SceneCache {
     map_valid: Vec<f32>,
 }
 
+impl SceneCache {
+    /// Puts the one scene of `one` (a cache of the same agents and polylines) in place of scene
+    /// `scene`: how a scene joins a running batch.
+    pub fn replace_scene(&mut self, scene: usize, one: &SceneCache) -> Result<()> {
+        if scene >= self.scenes
+            || one.scenes != 1
+            || one.agents != self.agents
+            || one.polylines != self.polylines
+        {
+            return Err(Error::data(format!(
+                "replace scene {scene} of a cache of {} scenes × {} agents × {} polylines by one \
+                 of {} × {} × {}",
+                self.scenes, self.agents, self.polylines, one.scenes, one.agents, one.polylines
+            )));
+        }
+        fn put(all: &mut [f32], scene: usize, row: &[f32]) {
+            if !row.is_empty() {
+                all[scene * row.len()..][..row.len()].copy_from_slice(row);
+            }
+        }
+        put(&mut self.agent_embedding, scene, &one.agent_embedding);
+        put(&mut self.map_kv, scene, &one.map_kv);
+        put(&mut self.map_points, scene, &one.map_points);
+        put(&mut self.map_valid, scene, &one.map_valid);
+        Ok(())
+    }
+}
+
 /// The scene's map as [`FastDenoiser::scene_cache`] takes it.
 #[derive(Debug, Clone, Copy)]
 pub enum SceneMap<'a> {

@@ -12,6 +12,7 @@ pub mod batch;
 pub mod checkpoint;
 pub mod config;
 pub mod cpu_engine;
+mod driver;
 pub mod fast;
 pub mod fused;
 pub mod heun;

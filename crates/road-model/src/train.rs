@@ -690,6 +690,12 @@ impl Trainer {
             if let Some(w) = weights.get(name) {
                 self.vars[i].set(w)?;
                 self.ema[i] = w.copy()?;
+            } else if is_residual_branch_output(name) {
+                // A block the checkpoint lacks starts as the identity: its residual branches
+                // add zero until training moves their output projections.
+                let zero = self.vars[i].as_tensor().zeros_like()?;
+                self.vars[i].set(&zero)?;
+                self.ema[i] = zero;
             }
         }
         if !fresh.is_empty() {
@@ -826,6 +832,30 @@ impl Trainer {
         }
         Ok(())
     }
+}
+
+/// Whether `name` is the output projection of one of a block's residual branches (time,
+/// agent and map attention, the MLP): zero there makes a new block the identity, so that a
+/// run that adds blocks (`train.init_from` from a shallower checkpoint) starts as the model
+/// it comes from.
+fn is_residual_branch_output(name: &str) -> bool {
+    let Some(rest) = name.strip_prefix("blocks.") else {
+        return false;
+    };
+    let Some((_, tensor)) = rest.split_once('.') else {
+        return false;
+    };
+    matches!(
+        tensor,
+        "time.o.weight"
+            | "time.o.bias"
+            | "agents.o.weight"
+            | "agents.o.bias"
+            | "map.o.weight"
+            | "map.o.bias"
+            | "mlp_out.weight"
+            | "mlp_out.bias"
+    )
 }
 
 #[cfg(test)]

@@ -556,3 +556,154 @@ fn observations_carry_the_planner_s_obs_noise() {
         assert!(engine.shift_noise.iter().all(|&s| s == want));
     }
 }
+
+/// The emitted states of `ticks` ticks of one scene in a pool of `capacity` on `engine`, seeded
+/// with `seed`: alone, or joining after `others` (seeded 100, 101, …) have run `head_start`
+/// ticks, ticking beside them; one of them leaves half-way. `rounds` collects, per round, the
+/// scenes that emitted.
+fn pooled_ticks(
+    engine: &mut dyn StepEngine,
+    planner: &PlannerSpec,
+    scenes: &[RolloutScene],
+    others: usize,
+    head_start: usize,
+    ticks: usize,
+    rounds: &mut Vec<Vec<usize>>,
+) -> Vec<Vec<f32>> {
+    let c_points = scenes[0].history.points;
+    let mut pool = RolloutDriver::with_capacity(engine, planner, 4, 6, 3, c_points).unwrap();
+    let mut slots = Vec::new();
+    for (i, s) in scenes[1..=others].iter().enumerate() {
+        slots.push(pool.add_scene(engine, s, planner, 100 + i as u64).unwrap());
+    }
+    let record = |pool: &mut RolloutDriver,
+                      engine: &mut dyn StepEngine,
+                      out: &mut Vec<(usize, Vec<f32>)>,
+                      rounds: &mut Vec<Vec<usize>>| {
+        let done = pool
+            .round(engine, &mut |i, e| {
+                out.push((i, e.to_vec()));
+                Ok(())
+            })
+            .unwrap();
+        rounds.push(done);
+    };
+    let mut scratch = Vec::new();
+    for _ in 0..head_start {
+        for &s in &slots {
+            pool.request_tick(s).unwrap();
+        }
+        while pool.ticks_in_progress() > 0 {
+            record(&mut pool, engine, &mut scratch, &mut Vec::new());
+        }
+    }
+    let ours = pool.add_scene(engine, &scenes[0], planner, 7).unwrap();
+    let mut emitted = Vec::new();
+    for t in 0..ticks {
+        if t == ticks / 2 && others > 1 {
+            pool.remove_scene(slots.pop().unwrap()).unwrap();
+        }
+        pool.request_tick(ours).unwrap();
+        for &s in &slots {
+            pool.request_tick(s).unwrap();
+        }
+        let mut out = Vec::new();
+        while pool.ticks_in_progress() > 0 {
+            record(&mut pool, engine, &mut out, rounds);
+        }
+        emitted.push(
+            out.into_iter()
+                .find(|(i, _)| *i == ours)
+                .expect("our scene emitted")
+                .1,
+        );
+    }
+    emitted
+}
+
+/// A pool (continuous batching): a scene that joins a running batch samples what it samples
+/// alone with its seed, on both CPU engines and whatever its neighbours do (join earlier, tick
+/// beside it, leave); a scene in its warm-up does not hold up the emissions of scenes in
+/// their rolling stages.
+#[test]
+fn a_scene_joining_a_pool_samples_as_it_would_alone() {
+    for frame in [Frame::Residual, Frame::AgentMap] {
+        let c = config(frame);
+        let model = seeded_model(&c, 5);
+        let planner = PlannerSpec {
+            steps_per_diffusion: 10,
+            ..PlannerSpec::default()
+        };
+        let scenes = scenes(&c, 4);
+        let mut rounds = Vec::new();
+        let alone = pooled_ticks(
+            &mut CpuEngine::new(&model),
+            &planner,
+            &scenes,
+            0,
+            0,
+            4,
+            &mut rounds,
+        );
+        for engine in [
+            &mut CpuEngine::new(&model) as &mut dyn StepEngine,
+            &mut FastCpuEngine::with_threads(&model, 2).unwrap(),
+        ] {
+            let mut rounds = Vec::new();
+            let shared = pooled_ticks(engine, &planner, &scenes, 3, 2, 4, &mut rounds);
+            for (t, (s, a)) in shared.iter().zip(&alone).enumerate() {
+                assert_close(s, a, 1e-3, 1e-4, &format!("{frame:?} tick {t}"));
+            }
+            // Its first tick is the warm-up (K = 10 steps); the others' rolling stages take
+            // K/F = 1 step: they emit in the first round while it warms up.
+            let first_emitters = &rounds[0];
+            assert!(
+                !first_emitters.is_empty() && !first_emitters.contains(&3),
+                "{frame:?}: round 0 emitted {first_emitters:?}"
+            );
+        }
+    }
+}
+
+/// A pool refuses what does not fit, naming it; a removed scene's slot takes the next one.
+#[test]
+fn a_pool_refuses_what_does_not_fit_and_reuses_slots() {
+    let c = config(Frame::Residual);
+    let model = seeded_model(&c, 5);
+    let planner = PlannerSpec {
+        steps_per_diffusion: 10,
+        ..PlannerSpec::default()
+    };
+    let scenes = scenes(&c, 4);
+    let mut engine = FastCpuEngine::with_threads(&model, 2).unwrap();
+    let mut pool =
+        RolloutDriver::with_capacity(&mut engine, &planner, 2, 3, 3, c.polyline_points).unwrap();
+    let a = pool.add_scene(&mut engine, &scenes[0], &planner, 1).unwrap();
+    // scenes[2] has 4 agents: more than the pool's 3.
+    let err = pool
+        .add_scene(&mut engine, &scenes[2], &planner, 2)
+        .unwrap_err();
+    assert!(err.to_string().contains("4 agents"), "{err}");
+    let b = pool.add_scene(&mut engine, &scenes[1], &planner, 2).unwrap();
+    let err = pool
+        .add_scene(&mut engine, &scenes[3], &planner, 3)
+        .unwrap_err();
+    assert!(err.to_string().contains("full"), "{err}");
+    let other_window = PlannerSpec {
+        future_slots: 5,
+        ..planner.clone()
+    };
+    pool.remove_scene(b).unwrap();
+    let err = pool
+        .add_scene(&mut engine, &scenes[1], &other_window, 2)
+        .unwrap_err();
+    assert!(err.to_string().contains("W = 15"), "{err}");
+    assert_eq!(
+        pool.add_scene(&mut engine, &scenes[3], &planner, 3).unwrap(),
+        b
+    );
+    assert!(pool.remove_scene(b).is_ok() && pool.remove_scene(b).is_err());
+    pool.request_tick(a).unwrap();
+    assert!(pool.request_tick(a).is_err(), "one tick at a time");
+    assert_eq!(pool.live_scenes(), 1);
+}

@@ -481,6 +481,56 @@ fn a_run_that_gains_agent_pairs_starts_as_the_checkpoint_it_comes_from() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// A run that adds blocks to a checkpoint's config (more depth) starts from its weights, the
+/// new blocks' residual branches at zero: the same denoiser as the checkpoint's until it
+/// trains, and a first step that moves the new blocks.
+#[test]
+fn a_run_that_gains_blocks_starts_as_the_checkpoint_it_comes_from() {
+    let run = run_config();
+    let ds = dataset(Split::Train);
+    let dir = temp_dir("init-from-blocks");
+    let mut first = Trainer::new(run.clone(), &ds, identity(), None).unwrap();
+    first.run_until(&ds, &dir, 3, "test", |_| {}).unwrap();
+
+    let mut next = run.clone();
+    next.model.blocks = run.model.blocks + 2;
+    next.train.init_from = Some(dir.clone());
+    let mut second = Trainer::new(next.clone(), &ds, identity(), None).unwrap();
+    let loaded = checkpoint::load(&dir, &Device::Cpu).unwrap().model;
+    let started = second.ema_model().unwrap();
+    let mut rng = StdRng::seed_from_u64(9);
+    let batch = sample_batch(&next, &ds, 2, None, &mut rng, &Device::Cpu).unwrap();
+    let worst_difference = |a: &road_model::Denoiser, b: &road_model::Denoiser| {
+        denoise_flat(a, &batch)
+            .iter()
+            .zip(&denoise_flat(b, &batch))
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0f32, f32::max)
+    };
+    let worst = worst_difference(&started, &loaded);
+    assert!(worst < 1e-5, "outputs differ by {worst}");
+
+    // Zero output projections still receive gradients: one step moves the new blocks' own.
+    let trained_dir = temp_dir("init-from-blocks-trained");
+    second
+        .run_until(&ds, &trained_dir, 1, "test", |_| {})
+        .unwrap();
+    let tensors =
+        checkpoint::load_tensors(&trained_dir.join(checkpoint::WEIGHTS_FILE), &Device::Cpu)
+            .unwrap();
+    let newest = format!("blocks.{}.mlp_out.weight", next.model.blocks - 1);
+    let moved: f32 = tensors[&newest]
+        .abs()
+        .unwrap()
+        .sum_all()
+        .unwrap()
+        .to_scalar()
+        .unwrap();
+    assert!(moved > 0.0, "{newest} stayed at zero");
+    std::fs::remove_dir_all(&dir).ok();
+    std::fs::remove_dir_all(&trained_dir).ok();
+}
+
 /// `train.init_from` starts a run from another checkpoint's EMA weights, and refuses one
 /// whose tensors do not fit, naming the file.
 #[test]

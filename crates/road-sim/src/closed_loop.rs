@@ -89,7 +89,7 @@ pub struct SceneTick {
     pub off_road: Vec<usize>,
 }
 
-struct SceneRuntime {
+struct SceneRuntime<'m> {
     window: SceneWindow,
     controllers: Vec<Controller>,
     /// Scripted poses (replay, adversarial, constant velocity) `[agent][tick]`; empty for model
@@ -103,22 +103,27 @@ struct SceneRuntime {
     overrides: Vec<Option<[f32; 3]>>,
     initial_overlaps: Vec<(usize, usize)>,
     initially_on_road: Vec<bool>,
+    map: Option<&'m LaneletMap>,
+    /// Ticks the scene was built for (its scripts' length).
+    steps: usize,
 }
 
-/// Simulates many scenes in lockstep with one planner on one engine.
+/// Simulates many scenes on one engine: in lockstep with one planner ([`ClosedLoop::new`],
+/// [`ClosedLoop::tick`]), or as a pool that scenes join and leave, each ticking when its
+/// caller asks, one batched round at a time ([`ClosedLoop::pool`], [`ClosedLoop::add_scene`],
+/// [`ClosedLoop::begin_tick`], [`ClosedLoop::round`]).
 pub struct ClosedLoop<'m> {
     driver: RolloutDriver,
-    scenes: Vec<SceneRuntime>,
-    maps: Vec<Option<&'m LaneletMap>>,
+    /// One per driver slot; `None`: a free slot of a pool.
+    scenes: Vec<Option<SceneRuntime<'m>>>,
+    model: ModelConfig,
     heading_scale: f64,
-    steps: usize,
 }
 
 impl std::fmt::Debug for ClosedLoop<'_> {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("ClosedLoop")
             .field("scenes", &self.scenes.len())
-            .field("steps", &self.steps)
             .field("driver", &self.driver)
             .finish_non_exhaustive()
     }
@@ -209,55 +214,94 @@ impl<'m> ClosedLoop<'m> {
         let n = planner.obs_slots;
         let mut inputs = Vec::with_capacity(scenes.len());
         let mut runtimes = Vec::with_capacity(scenes.len());
-        for (i, scene) in scenes.into_iter().enumerate() {
-            let poses = start_poses(&scene, n).map_err(|e| match e {
-                Error::Config(m) => Error::Config(format!("scene {i}: {m}")),
-                other => other,
-            })?;
-            let w = &scene.window;
-            let reference = scene.observed_steps - 1;
-            let scripted = (0..w.agents)
-                .map(|a| script(w, a, reference, steps, scene.controllers[a]))
-                .collect();
-            let initial_boxes = boxes(w, &poses);
-            let initially_on_road = match maps[i] {
-                Some(map) => {
-                    let off = off_road(&initial_boxes, map);
-                    (0..w.agents).map(|a| !off.contains(&a)).collect()
-                }
-                None => vec![false; w.agents],
-            };
-            inputs.push(RolloutScene {
-                history: SceneInput::from_window(w, scene.observed_steps - n, n, model),
-            });
-            runtimes.push(SceneRuntime {
-                heading_unwrapped: poses.iter().map(|p| p.heading_rad).collect(),
-                initial_overlaps: collisions(&initial_boxes),
-                initially_on_road,
-                overrides: vec![None; w.agents],
-                poses,
-                scripted,
-                controllers: scene.controllers,
-                window: scene.window,
-            });
+        for (i, (scene, map)) in scenes.into_iter().zip(maps).enumerate() {
+            let (input, runtime) =
+                SceneRuntime::new(scene, map, model, n, steps).map_err(|e| match e {
+                    Error::Config(m) => Error::Config(format!("scene {i}: {m}")),
+                    other => other,
+                })?;
+            inputs.push(input);
+            runtimes.push(Some(runtime));
         }
         let driver = RolloutDriver::new(engine, planner, &inputs, steps, rng)?;
         Ok(Self {
             driver,
             scenes: runtimes,
-            maps,
+            model: model.clone(),
             heading_scale: model.heading_scale,
-            steps,
         })
     }
 
+    /// An empty pool of `capacity` scenes of at most `agents` agents on `engine`, for scenes
+    /// under planners with `planner`'s window, observations and noise (see
+    /// [`RolloutDriver::with_capacity`]); the map room is the model's.
+    pub fn pool(
+        engine: &mut dyn StepEngine,
+        model: &ModelConfig,
+        planner: &PlannerSpec,
+        capacity: usize,
+        agents: usize,
+    ) -> Result<Self> {
+        let driver = RolloutDriver::with_capacity(
+            engine,
+            planner,
+            capacity,
+            agents,
+            model.map_polylines,
+            model.polyline_points,
+        )?;
+        Ok(Self {
+            driver,
+            scenes: (0..capacity).map(|_| None).collect(),
+            model: model.clone(),
+            heading_scale: model.heading_scale,
+        })
+    }
+
+    /// Adds `scene` to a pool for `steps` ticks under `planner`, its noise seeded with `seed`
+    /// (its samples do not depend on the other scenes of the pool); `map` for the off-road
+    /// check. Returns its index. Its first tick takes the planner's warm-up.
+    pub fn add_scene(
+        &mut self,
+        engine: &mut dyn StepEngine,
+        scene: SimScene,
+        planner: &PlannerSpec,
+        map: Option<&'m LaneletMap>,
+        steps: usize,
+        seed: u64,
+    ) -> Result<usize> {
+        let (input, runtime) =
+            SceneRuntime::new(scene, map, &self.model, planner.obs_slots, steps)?;
+        let index = self.driver.add_scene(engine, &input, planner, seed)?;
+        self.scenes[index] = Some(runtime);
+        Ok(index)
+    }
+
+    /// Removes scene `scene` from a pool (a tick in progress is dropped).
+    pub fn remove_scene(&mut self, scene: usize) -> Result<()> {
+        self.driver.remove_scene(scene)?;
+        self.scenes[scene] = None;
+        Ok(())
+    }
+
+    /// Scene slots; in a pool, free ones included.
     pub fn scenes(&self) -> usize {
         self.scenes.len()
     }
 
-    /// Ticks done so far.
+    /// Scenes simulated now.
+    pub fn live_scenes(&self) -> usize {
+        self.driver.live_scenes()
+    }
+
+    /// Ticks done so far (scene 0's: every scene's in lockstep).
     pub fn ticks(&self) -> usize {
         self.driver.ticks()
+    }
+
+    /// Ticks scene `scene` has done so far.
+    pub fn scene_ticks(&self, scene: usize) -> usize {
+        self.driver.scene_ticks(scene)
     }
 
     /// Model evaluations per scene so far.
@@ -276,96 +320,206 @@ impl<'m> ClosedLoop<'m> {
         self.driver.planner()
     }
 
-    /// Poses after the last tick (the last observed step before the first), per agent.
-    pub fn poses(&self, scene: usize) -> &[Pose] {
-        &self.scenes[scene].poses
+    fn runtime(&self, scene: usize) -> Result<&SceneRuntime<'m>> {
+        self.scenes
+            .get(scene)
+            .and_then(Option::as_ref)
+            .ok_or_else(|| Error::Config(format!("no scene {scene} in the simulation")))
     }
 
-    /// One simulated step of every scene; `out` receives one [`SceneTick`] per scene.
+    /// Poses after the last tick (the last observed step before the first), per agent.
+    pub fn poses(&self, scene: usize) -> &[Pose] {
+        &self.runtime(scene).expect("a live scene").poses
+    }
+
+    /// Starts scene `scene`'s next tick: agents the model does not drive decide first (they
+    /// react to the last tick's world; `external` gives the external ones), then the model's
+    /// part is computed by [`Self::round`].
+    pub fn begin_tick(&mut self, scene: usize, external: &mut dyn ExternalDriver) -> Result<()> {
+        let tick = self.driver.scene_ticks(scene);
+        let heading_scale = self.heading_scale;
+        let s = self
+            .scenes
+            .get_mut(scene)
+            .and_then(Option::as_mut)
+            .ok_or_else(|| Error::Config(format!("no scene {scene} in the simulation")))?;
+        if tick >= s.steps {
+            return Err(Error::Config(format!(
+                "scene {scene}: the simulation was built for {} steps",
+                s.steps
+            )));
+        }
+        for a in 0..s.controllers.len() {
+            let pose = match s.controllers[a] {
+                Controller::Model => None,
+                Controller::External => {
+                    let p = external.drive(scene, a, tick, &s.poses)?;
+                    if let Some(p) = p {
+                        if !(p.x_m.is_finite() && p.y_m.is_finite() && p.heading_rad.is_finite())
+                        {
+                            return Err(Error::External {
+                                scene,
+                                agent: a,
+                                reason: format!("tick {tick}: pose {p:?} is not finite"),
+                            });
+                        }
+                    }
+                    p
+                }
+                _ => Some(s.scripted[a][tick]),
+            };
+            s.overrides[a] = pose.map(|p| {
+                let heading = s.heading_unwrapped[a]
+                    + f64::from(wrap_angle((p.heading_rad - s.heading_unwrapped[a]) as f32));
+                let xy = s.window.frame.to_norm([p.x_m, p.y_m]);
+                [xy[0], xy[1], (heading * heading_scale) as f32]
+            });
+        }
+        Ok(self.driver.request_tick(scene)?)
+    }
+
+    /// Scenes with a tick begun and not yet finished.
+    pub fn ticks_in_progress(&self) -> usize {
+        self.driver.ticks_in_progress()
+    }
+
+    /// One batched round of every tick in progress (one engine step); `out` receives the
+    /// scenes whose tick finished, with what it did.
+    pub fn round(
+        &mut self,
+        engine: &mut dyn StepEngine,
+        out: &mut Vec<(usize, SceneTick)>,
+    ) -> Result<()> {
+        out.clear();
+        let scenes = &mut self.scenes;
+        let heading_scale = self.heading_scale;
+        let done = self.driver.round(engine, &mut |i: usize,
+                                                   emitted: &mut [f32]|
+         -> ModelResult<()> {
+            let s = scenes[i].as_mut().expect("the driver ticks live scenes");
+            s.apply(emitted, heading_scale);
+            Ok(())
+        })?;
+        for i in done {
+            let s = self.scenes[i].as_ref().expect("the driver ticks live scenes");
+            out.push((i, s.report()));
+        }
+        Ok(())
+    }
+
+    /// One simulated step of every scene; `out` receives one [`SceneTick`] per scene, in scene
+    /// order.
     pub fn tick(
         &mut self,
         engine: &mut dyn StepEngine,
         external: &mut dyn ExternalDriver,
         out: &mut Vec<SceneTick>,
     ) -> Result<()> {
-        let tick = self.driver.ticks();
-        if tick >= self.steps {
-            return Err(Error::Config(format!(
-                "the simulation was built for {} steps",
-                self.steps
-            )));
+        let live: Vec<usize> = (0..self.scenes.len())
+            .filter(|&i| self.scenes[i].is_some())
+            .collect();
+        for &i in &live {
+            self.begin_tick(i, external)?;
         }
-        // Agents the model does not drive decide first: they react to the last tick's world.
-        for (i, s) in self.scenes.iter_mut().enumerate() {
-            for a in 0..s.controllers.len() {
-                let pose = match s.controllers[a] {
-                    Controller::Model => None,
-                    Controller::External => {
-                        let p = external.drive(i, a, tick, &s.poses)?;
-                        if let Some(p) = p {
-                            if !(p.x_m.is_finite()
-                                && p.y_m.is_finite()
-                                && p.heading_rad.is_finite())
-                            {
-                                return Err(Error::External {
-                                    scene: i,
-                                    agent: a,
-                                    reason: format!("tick {tick}: pose {p:?} is not finite"),
-                                });
-                            }
-                        }
-                        p
-                    }
-                    _ => Some(s.scripted[a][tick]),
-                };
-                s.overrides[a] = pose.map(|p| {
-                    let heading = s.heading_unwrapped[a]
-                        + f64::from(wrap_angle((p.heading_rad - s.heading_unwrapped[a]) as f32));
-                    let xy = s.window.frame.to_norm([p.x_m, p.y_m]);
-                    [xy[0], xy[1], (heading * self.heading_scale) as f32]
-                });
+        let mut finished: Vec<Option<SceneTick>> = vec![None; self.scenes.len()];
+        let mut round = Vec::new();
+        let mut waiting = live.len();
+        while waiting > 0 {
+            self.round(engine, &mut round)?;
+            if round.is_empty() && self.driver.ticks_in_progress() == 0 {
+                return Err(Error::Config(format!(
+                    "{waiting} scenes did not finish their tick"
+                )));
+            }
+            for (i, t) in round.drain(..) {
+                finished[i] = Some(t);
+                waiting -= 1;
             }
         }
-        let scenes = &mut self.scenes;
-        let heading_scale = self.heading_scale;
-        self.driver.tick(engine, &mut |i: usize,
-                                        emitted: &mut [f32]|
-         -> ModelResult<()> {
-            let s = &mut scenes[i];
-            for (a, o) in s.overrides.iter().enumerate() {
-                if let Some(state) = o {
-                    emitted[3 * a..3 * a + 3].copy_from_slice(state);
-                }
-            }
-            for a in 0..s.controllers.len() {
-                let p = s
-                    .window
-                    .frame
-                    .to_metres([emitted[3 * a], emitted[3 * a + 1]]);
-                let heading = f64::from(emitted[3 * a + 2]) / heading_scale;
-                s.heading_unwrapped[a] = heading;
-                s.poses[a] = Pose {
-                    x_m: p[0],
-                    y_m: p[1],
-                    heading_rad: f64::from(wrap_angle(heading as f32)),
-                };
-            }
-            Ok(())
-        })?;
         out.clear();
-        for (s, map) in self.scenes.iter().zip(&self.maps) {
-            let b = boxes(&s.window, &s.poses);
-            let mut hits = collisions(&b);
-            hits.retain(|pair| !s.initial_overlaps.contains(pair));
-            let mut off = map.map(|m| off_road(&b, m)).unwrap_or_default();
-            off.retain(|&a| s.initially_on_road[a]);
-            out.push(SceneTick {
-                poses: s.poses.clone(),
-                collisions: hits,
-                off_road: off,
-            });
-        }
+        out.extend(live.into_iter().filter_map(|i| finished[i].take()));
         Ok(())
+    }
+}
+
+impl<'m> SceneRuntime<'m> {
+    /// The runtime of `scene` and the model's input, checked (see [`start_poses`]).
+    fn new(
+        scene: SimScene,
+        map: Option<&'m LaneletMap>,
+        model: &ModelConfig,
+        n: usize,
+        steps: usize,
+    ) -> Result<(RolloutScene, Self)> {
+        let poses = start_poses(&scene, n)?;
+        let w = &scene.window;
+        let reference = scene.observed_steps - 1;
+        let scripted = (0..w.agents)
+            .map(|a| script(w, a, reference, steps, scene.controllers[a]))
+            .collect();
+        let initial_boxes = boxes(w, &poses);
+        let initially_on_road = match map {
+            Some(map) => {
+                let off = off_road(&initial_boxes, map);
+                (0..w.agents).map(|a| !off.contains(&a)).collect()
+            }
+            None => vec![false; w.agents],
+        };
+        let input = RolloutScene {
+            history: SceneInput::from_window(w, scene.observed_steps - n, n, model),
+        };
+        Ok((
+            input,
+            Self {
+                heading_unwrapped: poses.iter().map(|p| p.heading_rad).collect(),
+                initial_overlaps: collisions(&initial_boxes),
+                initially_on_road,
+                overrides: vec![None; w.agents],
+                poses,
+                scripted,
+                controllers: scene.controllers,
+                window: scene.window,
+                map,
+                steps,
+            },
+        ))
+    }
+
+    /// The model's emitted states `[agents·3]` (model units) with this tick's overrides put
+    /// in; the poses after the tick follow from them.
+    fn apply(&mut self, emitted: &mut [f32], heading_scale: f64) {
+        for (a, o) in self.overrides.iter().enumerate() {
+            if let Some(state) = o {
+                emitted[3 * a..3 * a + 3].copy_from_slice(state);
+            }
+        }
+        for a in 0..self.controllers.len() {
+            let p = self
+                .window
+                .frame
+                .to_metres([emitted[3 * a], emitted[3 * a + 1]]);
+            let heading = f64::from(emitted[3 * a + 2]) / heading_scale;
+            self.heading_unwrapped[a] = heading;
+            self.poses[a] = Pose {
+                x_m: p[0],
+                y_m: p[1],
+                heading_rad: f64::from(wrap_angle(heading as f32)),
+            };
+        }
+    }
+
+    /// The poses after the tick and its infractions.
+    fn report(&self) -> SceneTick {
+        let b = boxes(&self.window, &self.poses);
+        let mut hits = collisions(&b);
+        hits.retain(|pair| !self.initial_overlaps.contains(pair));
+        let mut off = self.map.map(|m| off_road(&b, m)).unwrap_or_default();
+        off.retain(|&a| self.initially_on_road[a]);
+        SceneTick {
+            poses: self.poses.clone(),
+            collisions: hits,
+            off_road: off,
+        }
     }
 }
 
