@@ -34,16 +34,17 @@ pub struct ServeConfig {
     pub record_dir: Option<PathBuf>,
     /// Recordings write out their chunk at least this often.
     pub flush_interval: Duration,
-    /// The checkpoints' folder and the one a request without `checkpoint` gets.
-    pub models_dir: PathBuf,
+    /// The checkpoints' folder (`None`: only the embedded default) and the checkpoint a
+    /// request without `checkpoint` gets.
+    pub models_dir: Option<PathBuf>,
     pub default_checkpoint: String,
     /// Map files the server was started with, by the name a request uses (`map.file`).
     pub map_files: Vec<(String, PathBuf)>,
 }
 
 impl ServeConfig {
-    /// The defaults, with checkpoints from `models_dir`.
-    pub fn new(models_dir: PathBuf) -> Self {
+    /// The defaults, with checkpoints from `models_dir` (see [`crate::models::find_models_dir`]).
+    pub fn new(models_dir: Option<PathBuf>) -> Self {
         Self {
             prefix: road_protocol::DEFAULT_PREFIX.into(),
             capacity: 256,

@@ -8,6 +8,8 @@
 //!   `configs/planners.toml` (embedded);
 //! - [`scene`]: a creation request checked field by field and turned into a simulation;
 //!   a live scene's tick and its late-ego policy;
+//! - [`pool`]: continuous batching: the scenes of one checkpoint and planner share an engine,
+//!   one batched Heun round at a time;
 //! - [`record`]: one MCAP file per scene (raw protocol messages and `foxglove.SceneUpdate`);
 //! - [`server`]: the zenoh front end and the core loop that batches the scenes whose ego has
 //!   arrived.
@@ -17,6 +19,7 @@
 
 pub mod config;
 pub mod models;
+pub mod pool;
 pub mod record;
 pub mod scene;
 pub mod server;

@@ -13,14 +13,24 @@ use crate::{Error, Result};
 /// The planners file of the repository, embedded.
 const PLANNERS_TOML: &str = include_str!("../../../configs/planners.toml");
 
-/// The models folder: `explicit` (a flag or `ROAD_MODELS`) if given, else `models/` in the
-/// working directory, next to the executable, or in one of its ancestors (a cargo
-/// `target/<profile>/` build of the repository). The error names every path tried.
-pub fn find_models_dir(explicit: Option<&Path>) -> Result<PathBuf> {
-    let mut tried = Vec::new();
+/// The default checkpoint, embedded in the binary so that `road serve` and `road demo` run
+/// wherever the binary is (a `models/` folder found at run time still wins for the same
+/// name). Its name must be [`crate::config::DEFAULT_CHECKPOINT`] (a test checks).
+pub mod embedded {
+    pub const CONFIG_TOML: &str = include_str!("../../../models/road20-cvmap/config.toml");
+    pub const WEIGHTS: &[u8] = include_bytes!("../../../models/road20-cvmap/weights.safetensors");
+    /// The name requests and flags use for it.
+    pub const NAME: &str = crate::config::DEFAULT_CHECKPOINT;
+}
+
+/// The models folder: `explicit` (a flag or `ROAD_MODELS`) if given (an error names it when it
+/// is not a folder), else `models/` in the working directory, next to the executable, or in
+/// one of its ancestors (a cargo `target/<profile>/` build of the repository); `None` when
+/// there is none: the embedded default checkpoint is then the only one.
+pub fn find_models_dir(explicit: Option<&Path>) -> Result<Option<PathBuf>> {
     if let Some(dir) = explicit {
         if dir.is_dir() {
-            return Ok(dir.to_owned());
+            return Ok(Some(dir.to_owned()));
         }
         return Err(Error::NoModels {
             tried: dir.display().to_string(),
@@ -30,17 +40,16 @@ pub fn find_models_dir(explicit: Option<&Path>) -> Result<PathBuf> {
     if let Ok(exe) = std::env::current_exe() {
         candidates.extend(exe.ancestors().skip(1).take(4).map(|d| d.join("models")));
     }
-    for dir in candidates {
-        if dir.join(crate::config::DEFAULT_CHECKPOINT).is_dir()
-            || dir.is_dir() && has_checkpoint(&dir)
-        {
-            return Ok(dir);
-        }
-        tried.push(dir.display().to_string());
+    let found = candidates.into_iter().find(|dir| {
+        dir.join(crate::config::DEFAULT_CHECKPOINT).is_dir() || dir.is_dir() && has_checkpoint(dir)
+    });
+    if found.is_none() {
+        tracing::info!(
+            "no models folder here or next to the binary: serving the embedded {}",
+            embedded::NAME
+        );
     }
-    Err(Error::NoModels {
-        tried: tried.join(", "),
-    })
+    Ok(found)
 }
 
 fn has_checkpoint(dir: &Path) -> bool {
@@ -62,20 +71,30 @@ pub fn planners() -> Result<BTreeMap<String, PlannerSpec>> {
 /// borrow it), so a name is loaded at most once.
 #[derive(Debug)]
 pub struct Checkpoints {
-    dir: PathBuf,
+    dir: Option<PathBuf>,
     loaded: BTreeMap<String, &'static LoadedModel>,
 }
 
 impl Checkpoints {
-    pub fn new(dir: PathBuf) -> Self {
+    /// Checkpoints from the models folder `dir` (if any) and the embedded default.
+    pub fn new(dir: Option<PathBuf>) -> Self {
         Self {
             dir,
             loaded: BTreeMap::new(),
         }
     }
 
-    pub fn dir(&self) -> &Path {
-        &self.dir
+    /// Where checkpoints are looked up, for messages.
+    pub fn describe(&self) -> String {
+        match &self.dir {
+            Some(dir) => format!("{} (and the embedded {})", dir.display(), embedded::NAME),
+            None => format!("no models folder; only the embedded {}", embedded::NAME),
+        }
+    }
+
+    fn folder(&self, name: &str) -> Option<PathBuf> {
+        let dir = self.dir.as_ref()?.join(name);
+        dir.join("config.toml").is_file().then_some(dir)
     }
 
     /// Whether `name` is a plain folder name (no path tricks from a request).
@@ -93,9 +112,29 @@ impl Checkpoints {
         if let Some(m) = self.loaded.get(name) {
             return Ok(m);
         }
-        let path = self.dir.join(name);
-        let model = checkpoint::load(&path, &candle_core::Device::Cpu)
-            .map_err(|source| Error::Checkpoint { path, source })?;
+        let model = match self.folder(name) {
+            Some(path) => checkpoint::load(&path, &candle_core::Device::Cpu)
+                .map_err(|source| Error::Checkpoint { path, source })?,
+            None if name == embedded::NAME => {
+                let origin = PathBuf::from(format!("<embedded {name}>"));
+                checkpoint::load_from_memory(
+                    &origin,
+                    embedded::CONFIG_TOML,
+                    embedded::WEIGHTS,
+                    &candle_core::Device::Cpu,
+                )
+                .map_err(|source| Error::Checkpoint {
+                    path: origin,
+                    source,
+                })?
+            }
+            None => {
+                return Err(Error::Config(format!(
+                    "no checkpoint {name:?}: {}",
+                    self.describe()
+                )));
+            }
+        };
         // Leaked on purpose: engines borrow the model for as long as scenes run on it, and a
         // checkpoint is loaded once per name for the server's life.
         let model: &'static LoadedModel = Box::leak(Box::new(model));
@@ -103,9 +142,9 @@ impl Checkpoints {
         Ok(model)
     }
 
-    /// Whether `name` exists as a checkpoint folder (without loading it).
+    /// Whether `name` is a checkpoint folder or the embedded default (without loading it).
     pub fn exists(&self, name: &str) -> bool {
-        Self::valid_name(name) && self.dir.join(name).join("config.toml").is_file()
+        Self::valid_name(name) && (self.folder(name).is_some() || name == embedded::NAME)
     }
 }
 
@@ -126,6 +165,18 @@ mod tests {
         for bad in ["", "../x", "a/b", ".hidden", "x\\y"] {
             assert!(!Checkpoints::valid_name(bad), "{bad}");
         }
+    }
+
+    #[test]
+    fn the_embedded_default_loads_without_a_models_folder() {
+        let mut checkpoints = Checkpoints::new(None);
+        assert!(checkpoints.exists(crate::config::DEFAULT_CHECKPOINT));
+        assert!(!checkpoints.exists("road20"));
+        let model = checkpoints.get(crate::config::DEFAULT_CHECKPOINT).unwrap();
+        // The embedded files are the default's own.
+        assert_eq!(model.meta.run.name, crate::config::DEFAULT_CHECKPOINT);
+        let err = checkpoints.get("road20").unwrap_err().to_string();
+        assert!(err.contains("road20") && err.contains("embedded"), "{err}");
     }
 
     #[test]

@@ -1,7 +1,8 @@
 //! Scenes: a creation request checked field by field and turned into a closed-loop simulation
-//! ([`setup`], [`LiveScene::new`]); a live scene's ego inputs checked ([`LiveScene::check_ego`])
-//! and its ticks ([`LiveScene::tick`]) with the late-ego policy: when the ego of a tick does
-//! not come in time the model drives the external agents for that tick, and the reply says so.
+//! in its pool ([`setup`], [`LiveScene::new`]); a live scene's ego inputs checked
+//! ([`LiveScene::check_ego`]) and its ticks ([`LiveScene::begin_tick`],
+//! [`LiveScene::finish_tick`]) with the late-ego policy: when the ego of a tick does not come in
+//! time the model drives the external agents for that tick, and the reply says so.
 
 use std::collections::{BTreeMap, HashSet};
 use std::path::Path;
@@ -9,24 +10,23 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use glam::DVec2;
-use rand::SeedableRng;
 use road_data::geometry::{dist, resample};
 use road_data::{AgentType, LaneletMap, SceneFrame, SceneWindow, WindowConfig, wrap_angle};
 use road_model::checkpoint::LoadedModel;
-use road_model::sample::FastCpuEngine;
 use road_protocol::{
     AgentInfo, AgentInit, AgentState, CreateScene, EgoTick, ErrorCode, ErrorReply, MapSource,
     NpcTick, Pose,
 };
 use road_sched::PlannerSpec;
 use road_sim::Pose as SimPose;
-use road_sim::closed_loop::{ClosedLoop, Controller, ExternalDriver, SceneTick, SimScene};
+use road_sim::closed_loop::{Controller, ExternalDriver, SceneTick, SimScene};
 use road_sim::geometry::OrientedBox;
 use road_sim::infractions::off_road;
 use road_sim::procedural::{ProceduralMap, STEP_SECS, procedural};
 
 use crate::config::ServeConfig;
 use crate::models::Checkpoints;
+use crate::pool::{Pool, PoolKey};
 
 /// Box sizes beyond these are refused as absurd (a semi-trailer is ≈ 25 m by 2.6 m).
 const MAX_LENGTH_M: f64 = 30.0;
@@ -116,8 +116,8 @@ pub fn setup(req: &CreateScene, ctx: &mut SetupContext<'_>) -> Result<SceneSetup
             ErrorCode::BadModel,
             "checkpoint",
             format!(
-                "unknown checkpoint {checkpoint_name:?} (no such folder with a config.toml under {})",
-                ctx.checkpoints.dir().display()
+                "unknown checkpoint {checkpoint_name:?} (no such folder with a config.toml in {})",
+                ctx.checkpoints.describe()
             ),
         ));
     }
@@ -495,8 +495,8 @@ pub struct TickOutput {
     pub compute_secs: f64,
 }
 
-/// A scene being served: its simulation on its own engine state, its agents, and where it
-/// stands in the tick sequence.
+/// A scene being served: its place in its pool, its agents, and where it stands in the tick
+/// sequence.
 pub struct LiveScene {
     pub id: u64,
     pub client: Option<String>,
@@ -504,20 +504,38 @@ pub struct LiveScene {
     pub map: Option<Arc<LaneletMap>>,
     pub planner_name: String,
     pub checkpoint_name: String,
-    sim: ClosedLoop<'static>,
-    engine: FastCpuEngine<'static>,
+    /// The pool that simulates it, and its slot there.
+    pub pool: PoolKey,
+    pub slot: usize,
+    /// Every agent's pose after the last tick, by agent index.
+    poses: Vec<SimPose>,
     initially_on_road: Vec<bool>,
     index_of: BTreeMap<u32, usize>,
     /// Ticks simulated and published so far.
     pub tick: u64,
     pub max_ticks: u64,
     pub pending: Option<PendingEgo>,
+    /// The tick being computed, if any.
+    pub in_flight: Option<InFlight>,
     /// When the last tick was published (or the scene created): the late-ego clock.
     pub waiting_since: Instant,
     /// When the client was last heard from (creation, an ego put).
     pub last_heard: Instant,
     pub late_ticks: u64,
-    out: Vec<SceneTick>,
+}
+
+/// A tick in the pool's batches.
+#[derive(Debug, Clone)]
+pub struct InFlight {
+    /// The tick being computed (one more than the last published).
+    pub tick: u64,
+    /// The model drives the external agents this tick: the ego did not come in time.
+    pub late: bool,
+    /// Where its latency runs from: the ego's arrival, or the deadline of a late tick.
+    pub started: Instant,
+    /// Engine time of the rounds this tick has taken part in (shared with the scenes batched
+    /// beside it), seconds.
+    pub compute_secs: f64,
 }
 
 impl std::fmt::Debug for LiveScene {
@@ -532,11 +550,14 @@ impl std::fmt::Debug for LiveScene {
 }
 
 impl LiveScene {
-    /// Builds the scene's simulation (its first window, with the seed's noise).
-    pub fn new(id: u64, setup: SceneSetup, now: Instant) -> crate::Result<Self> {
-        let model = setup.model;
-        // The fast CPU engine (candle's results to 1e-4; scenes run one by one for now).
-        let mut engine = FastCpuEngine::new(&model.model)?;
+    /// Adds the scene to `pool` (its first window, with the seed's noise).
+    pub fn new(
+        id: u64,
+        setup: SceneSetup,
+        pool_key: PoolKey,
+        pool: &mut Pool,
+        now: Instant,
+    ) -> crate::Result<Self> {
         let controllers = setup
             .agents
             .iter()
@@ -549,23 +570,19 @@ impl LiveScene {
             })
             .collect();
         let observed = setup.window.steps;
-        let mut rng = rand::rngs::StdRng::seed_from_u64(setup.seed);
         let steps = usize::try_from(setup.max_ticks).unwrap_or(usize::MAX);
-        let sim = ClosedLoop::new(
-            &mut engine,
-            &model.meta.run.model,
-            &setup.planner,
-            vec![SimScene {
+        let slot = pool.add(
+            id,
+            SimScene {
                 window: setup.window,
                 observed_steps: observed,
                 controllers,
-            }],
-            // Off-road is checked here (the map is shared, not borrowed for 'static).
-            vec![None],
+            },
+            &setup.planner,
             steps,
-            &mut rng,
+            setup.seed,
         )?;
-        let start: Vec<SimPose> = sim.poses(0).to_vec();
+        let start: Vec<SimPose> = pool.poses(slot).to_vec();
         let initially_on_road = match &setup.map {
             Some(map) => {
                 let off = off_road(&boxes(&setup.agents, &start), map);
@@ -586,22 +603,23 @@ impl LiveScene {
             map: setup.map,
             planner_name: setup.planner_name,
             checkpoint_name: setup.checkpoint_name,
-            sim,
-            engine,
+            pool: pool_key,
+            slot,
+            poses: start,
             initially_on_road,
             tick: 0,
             max_ticks: setup.max_ticks,
             pending: None,
+            in_flight: None,
             waiting_since: now,
             last_heard: now,
             late_ticks: 0,
-            out: Vec::with_capacity(1),
         })
     }
 
     /// Every agent's pose after the last tick, by agent index.
     pub fn poses(&self) -> &[SimPose] {
-        self.sim.poses(0)
+        &self.poses
     }
 
     /// Checks an ego input against the scene: owner, tick sequence, agents, values, motion.
@@ -637,6 +655,13 @@ impl LiveScene {
                     "tick {} is in the past: the scene has simulated up to tick {}; send tick {expected}",
                     msg.tick, self.tick
                 ),
+            ));
+        }
+        if self.in_flight.as_ref().is_some_and(|f| f.tick == msg.tick) {
+            return Err(bad(
+                ErrorCode::BadTick,
+                "tick",
+                format!("tick {} was already sent; it is being computed", msg.tick),
             ));
         }
         if let Some(p) = &self.pending {
@@ -740,23 +765,36 @@ impl LiveScene {
         })
     }
 
-    /// Simulates the next tick with the pending ego, or (late) with the model driving the
-    /// external agents. Clears the pending ego.
-    pub fn tick(&mut self) -> crate::Result<TickOutput> {
-        let started = Instant::now();
+    /// Starts the next tick in the pool with the pending ego, or (late: no ego by the
+    /// deadline) with the model driving the external agents; `started` is where its latency
+    /// runs from. Clears the pending ego.
+    pub fn begin_tick(&mut self, pool: &mut Pool, started: Instant) -> crate::Result<()> {
         let pending = self.pending.take();
         let late = pending.is_none();
         let mut driver = TickDriver {
             poses: pending.as_ref().map(|p| p.poses.as_slice()),
         };
-        self.sim
-            .tick(&mut self.engine, &mut driver, &mut self.out)?;
-        let compute_secs = started.elapsed().as_secs_f64();
-        self.tick += 1;
+        pool.begin_tick(self.slot, &mut driver)?;
+        self.in_flight = Some(InFlight {
+            tick: self.tick + 1,
+            late,
+            started,
+            compute_secs: 0.0,
+        });
+        Ok(())
+    }
+
+    /// The reply of the tick in flight, from what the pool's round made of it.
+    pub fn finish_tick(&mut self, result: &SceneTick) -> crate::Result<TickOutput> {
+        let flight = self.in_flight.take().ok_or_else(|| {
+            crate::Error::Config(format!("scene {}: a tick finished that was not begun", self.id))
+        })?;
+        self.tick = flight.tick;
+        self.poses.clone_from(&result.poses);
+        let late = flight.late;
         if late {
             self.late_ticks += 1;
         }
-        let result = &self.out[0];
         let id_of = |i: usize| self.agents[i].id;
         let state = |i: usize| {
             let p = result.poses[i];
@@ -800,13 +838,13 @@ impl LiveScene {
             } else {
                 Vec::new()
             },
-            latency_ms: 0.0,
-            compute_ms: compute_secs * 1e3,
+            latency_ms: flight.started.elapsed().as_secs_f64() * 1e3,
+            compute_ms: flight.compute_secs * 1e3,
         };
         Ok(TickOutput {
             npc,
             poses: result.poses.clone(),
-            compute_secs,
+            compute_secs: flight.compute_secs,
         })
     }
 }

@@ -27,6 +27,7 @@ use zenoh::sample::SampleKind;
 
 use crate::config::ServeConfig;
 use crate::models::{Checkpoints, find_models_dir, planners};
+use crate::pool::{Pool, PoolKey};
 use crate::record::{Recorder, topics};
 use crate::scene::{LiveScene, SetupContext, setup};
 use crate::{Error, Result};
@@ -85,7 +86,10 @@ impl Server {
     pub fn start(self) -> Result<ServerHandle> {
         let config = self.config;
         config.validate()?;
-        let models_dir = find_models_dir(Some(&config.models_dir))?;
+        let models_dir = match &config.models_dir {
+            Some(dir) => find_models_dir(Some(dir))?,
+            None => None,
+        };
         let mut checkpoints = Checkpoints::new(models_dir);
         let default = checkpoints.get(&config.default_checkpoint)?;
         tracing::info!(
@@ -186,7 +190,8 @@ impl Server {
             .wait()?;
 
         let core = Core {
-            engine: "candle CPU reference (an engine state per scene)".into(),
+            engine: "fast CPU engine (continuous batching: one pool per checkpoint and planner)"
+                .into(),
             config,
             keys,
             session: session.clone(),
@@ -194,6 +199,7 @@ impl Server {
             planners,
             map_files,
             scenes: BTreeMap::new(),
+            pools: BTreeMap::new(),
             closed: BTreeSet::new(),
             next_id: 1,
             stats: Stats::default(),
@@ -324,6 +330,8 @@ struct Core {
     planners: BTreeMap<String, road_sched::PlannerSpec>,
     map_files: BTreeMap<String, Arc<LaneletMap>>,
     scenes: BTreeMap<u64, SceneEntry>,
+    /// The engines: one pool of scenes per checkpoint and planner (continuous batching).
+    pools: BTreeMap<PoolKey, Pool>,
     /// Ids of closed scenes, to tell "closed" from "never existed".
     closed: BTreeSet<u64>,
     next_id: u64,
@@ -386,13 +394,17 @@ impl Core {
     /// How long the core may sleep: until the nearest late-ego deadline or recording flush,
     /// at most 100 ms (idle checks).
     fn next_wakeup(&self) -> Duration {
+        if self.pools.values().any(|p| p.ticks_in_progress() > 0) {
+            // Ticks in flight: the next batched round is due now.
+            return Duration::ZERO;
+        }
         let now = Instant::now();
         let mut wait = Duration::from_millis(100);
         let deadline = self.config.late_ego_deadline;
         if !deadline.is_zero() {
             for entry in self.scenes.values() {
                 let s = &entry.live;
-                if s.pending.is_none() && s.tick < s.max_ticks {
+                if s.pending.is_none() && s.in_flight.is_none() && s.tick < s.max_ticks {
                     wait = wait.min((s.waiting_since + deadline).saturating_duration_since(now));
                 }
             }
@@ -477,7 +489,35 @@ impl Core {
         };
         let id = self.next_id;
         let map = scene_setup.map.clone();
-        let live = match LiveScene::new(id, scene_setup, Instant::now()) {
+        let key = PoolKey {
+            checkpoint: scene_setup.checkpoint_name.clone(),
+            planner: scene_setup.planner_name.clone(),
+        };
+        if !self.pools.contains_key(&key) {
+            match Pool::new(
+                scene_setup.model,
+                &scene_setup.planner,
+                self.config.capacity,
+                self.config.max_agents,
+            ) {
+                Ok(pool) => {
+                    tracing::info!(checkpoint = %key.checkpoint, planner = %key.planner, "new pool");
+                    self.pools.insert(key.clone(), pool);
+                }
+                Err(e) => {
+                    return reply_err(
+                        query,
+                        &ErrorReply::new(
+                            ErrorCode::Internal,
+                            None,
+                            format!("cannot build the scene's engine: {e}"),
+                        ),
+                    );
+                }
+            }
+        }
+        let pool = self.pools.get_mut(&key).expect("inserted above");
+        let live = match LiveScene::new(id, scene_setup, key, pool, Instant::now()) {
             Ok(l) => l,
             Err(e) => {
                 return reply_err(
@@ -605,6 +645,11 @@ impl Core {
     fn close(&mut self, id: u64, why: &str) -> Option<SceneClosed> {
         let entry = self.scenes.remove(&id)?;
         self.closed.insert(id);
+        if let Some(pool) = self.pools.get_mut(&entry.live.pool) {
+            if let Err(e) = pool.remove(entry.live.slot) {
+                tracing::error!(scene = id, "cannot leave the pool: {e}");
+            }
+        }
         let recording = entry.recorder.and_then(|r| match r.finish() {
             Ok(path) => Some(path.display().to_string()),
             Err(e) => {
@@ -703,8 +748,9 @@ impl Core {
         }
     }
 
-    /// One round: every scene whose ego arrived, or whose deadline passed, ticks; each
-    /// publishes as soon as it is done.
+    /// One round: every scene whose ego arrived, or whose deadline passed, starts its tick;
+    /// then every pool with ticks in progress runs one batched Heun round, and each scene
+    /// whose tick finished publishes at once.
     fn round(&mut self) {
         let now = Instant::now();
         let deadline = self.config.late_ego_deadline;
@@ -713,19 +759,13 @@ impl Core {
             .iter()
             .filter(|(_, e)| {
                 let s = &e.live;
-                s.tick < s.max_ticks
+                s.in_flight.is_none()
+                    && s.tick < s.max_ticks
                     && (s.pending.is_some()
                         || (!deadline.is_zero() && now >= s.waiting_since + deadline))
             })
             .map(|(&id, _)| id)
             .collect();
-        if ready.is_empty() {
-            return;
-        }
-        self.stats.rounds += 1;
-        self.stats.last_batch = ready.len();
-        self.stats.batch_sum += ready.len() as u64;
-        self.stats.max_batch = self.stats.max_batch.max(ready.len());
         let mut failed = Vec::new();
         for id in ready {
             let entry = self.scenes.get_mut(&id).expect("ready scenes are live");
@@ -736,17 +776,61 @@ impl Core {
                 .as_ref()
                 .map(|p| p.received)
                 .unwrap_or(entry.live.waiting_since + deadline);
-            let out = match entry.live.tick() {
+            let pool = self
+                .pools
+                .get_mut(&entry.live.pool)
+                .expect("a live scene's pool lives");
+            if let Err(e) = entry.live.begin_tick(pool, started) {
+                tracing::error!(scene = id, "tick failed: {e}");
+                failed.push((id, e.to_string()));
+            }
+        }
+        let mut finished = Vec::new();
+        for (key, pool) in &mut self.pools {
+            let batch = pool.ticks_in_progress();
+            if batch == 0 {
+                continue;
+            }
+            self.stats.rounds += 1;
+            self.stats.last_batch = batch;
+            self.stats.batch_sum += batch as u64;
+            self.stats.max_batch = self.stats.max_batch.max(batch);
+            let started = Instant::now();
+            let result = pool.round();
+            let secs = started.elapsed().as_secs_f64();
+            for entry in self.scenes.values_mut() {
+                if let Some(flight) = entry.live.in_flight.as_mut() {
+                    if entry.live.pool == *key {
+                        flight.compute_secs += secs;
+                    }
+                }
+            }
+            match result {
+                Ok(done) => finished.extend(done),
+                Err(e) => {
+                    // A failed round leaves its scenes' ticks undone: they close, the others
+                    // (other pools) go on.
+                    tracing::error!("batched round failed: {e}");
+                    for (&id, entry) in &self.scenes {
+                        if entry.live.in_flight.is_some() && entry.live.pool == *key {
+                            failed.push((id, e.to_string()));
+                        }
+                    }
+                }
+            }
+        }
+        for (id, result) in finished {
+            let Some(entry) = self.scenes.get_mut(&id) else {
+                continue;
+            };
+            let out = match entry.live.finish_tick(&result) {
                 Ok(out) => out,
                 Err(e) => {
-                    tracing::error!(scene = id, "tick failed: {e}");
                     failed.push((id, e.to_string()));
                     continue;
                 }
             };
-            let mut npc = out.npc;
-            let published = Instant::now();
-            npc.latency_ms = published.saturating_duration_since(started).as_secs_f64() * 1e3;
+            let npc = out.npc;
             let json = serde_json::to_vec(&npc).expect("ticks serialise");
             let at = SystemTime::now();
             if let Err(e) = self.session.put(self.keys.npc(id), json.clone()).wait() {

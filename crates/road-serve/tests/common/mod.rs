@@ -25,7 +25,7 @@ pub fn temp_dir(name: &str) -> PathBuf {
 
 /// A config for tests: recordings under `dir`.
 pub fn config(dir: &std::path::Path) -> ServeConfig {
-    let mut config = ServeConfig::new(models_dir());
+    let mut config = ServeConfig::new(Some(models_dir()));
     config.record_dir = Some(dir.to_owned());
     config
 }

@@ -1,0 +1,118 @@
+//! Continuous batching: the live scenes of one checkpoint and planner share one engine and one
+//! closed-loop pool ([`ClosedLoop::pool`]). Each core round starts the ticks of the scenes
+//! whose ego arrived (or whose deadline passed) and runs one batched Heun round of every tick
+//! in progress; a scene publishes as soon as its own tick is done, so a scene in its warm-up
+//! (the planner's K steps) takes its extra rounds beside the others without holding them up,
+//! and a scene whose ego is late is simply not in the batch.
+
+use road_model::checkpoint::LoadedModel;
+use road_model::sample::FastCpuEngine;
+use road_sched::PlannerSpec;
+use road_sim::closed_loop::{ClosedLoop, ExternalDriver, SceneTick, SimScene};
+
+use crate::Result;
+
+/// Scenes batch together when they run the same checkpoint under the same planner.
+#[derive(Debug, Clone, PartialEq, Eq, PartialOrd, Ord)]
+pub struct PoolKey {
+    pub checkpoint: String,
+    pub planner: String,
+}
+
+/// One engine and the pool of scenes on it.
+pub struct Pool {
+    engine: FastCpuEngine<'static>,
+    sim: ClosedLoop<'static>,
+    /// The server's scene id in each slot of the pool.
+    scene_ids: Vec<Option<u64>>,
+    finished: Vec<(usize, SceneTick)>,
+}
+
+impl std::fmt::Debug for Pool {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Pool")
+            .field("scenes", &self.live_scenes())
+            .field("slots", &self.scene_ids.len())
+            .finish_non_exhaustive()
+    }
+}
+
+impl Pool {
+    /// An empty pool of `capacity` scenes of at most `agents` agents on the fast CPU engine
+    /// (candle's results to 1e-4; scenes that hold still and padding cost nothing there).
+    pub fn new(
+        model: &'static LoadedModel,
+        planner: &PlannerSpec,
+        capacity: usize,
+        agents: usize,
+    ) -> Result<Self> {
+        let mut engine = FastCpuEngine::new(&model.model)?;
+        let sim = ClosedLoop::pool(
+            &mut engine,
+            &model.meta.run.model,
+            planner,
+            capacity,
+            agents,
+        )?;
+        Ok(Self {
+            engine,
+            sim,
+            scene_ids: vec![None; capacity],
+            finished: Vec::new(),
+        })
+    }
+
+    /// Adds the server's scene `id`; returns its slot.
+    pub fn add(
+        &mut self,
+        id: u64,
+        scene: SimScene,
+        planner: &PlannerSpec,
+        steps: usize,
+        seed: u64,
+    ) -> Result<usize> {
+        // Off-road is checked by the server (its maps are shared, not borrowed for 'static).
+        let slot = self
+            .sim
+            .add_scene(&mut self.engine, scene, planner, None, steps, seed)?;
+        self.scene_ids[slot] = Some(id);
+        Ok(slot)
+    }
+
+    /// Removes the scene in `slot` (a tick in progress is dropped).
+    pub fn remove(&mut self, slot: usize) -> Result<()> {
+        self.sim.remove_scene(slot)?;
+        self.scene_ids[slot] = None;
+        Ok(())
+    }
+
+    pub fn live_scenes(&self) -> usize {
+        self.sim.live_scenes()
+    }
+
+    /// Every agent's pose after the last tick of the scene in `slot`.
+    pub fn poses(&self, slot: usize) -> &[road_sim::Pose] {
+        self.sim.poses(slot)
+    }
+
+    /// Starts the next tick of the scene in `slot`.
+    pub fn begin_tick(&mut self, slot: usize, external: &mut dyn ExternalDriver) -> Result<()> {
+        Ok(self.sim.begin_tick(slot, external)?)
+    }
+
+    /// Scenes with a tick in progress: the next round's batch.
+    pub fn ticks_in_progress(&self) -> usize {
+        self.sim.ticks_in_progress()
+    }
+
+    /// One batched round; returns the server's ids of the scenes whose tick finished, with
+    /// what the tick did.
+    pub fn round(&mut self) -> Result<Vec<(u64, SceneTick)>> {
+        self.sim.round(&mut self.engine, &mut self.finished)?;
+        Ok(self
+            .finished
+            .drain(..)
+            .filter_map(|(slot, tick)| self.scene_ids[slot].map(|id| (id, tick)))
+            .collect())
+    }
+}
