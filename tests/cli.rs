@@ -341,8 +341,8 @@ fn sample_and_eval_run_with_the_shipped_checkpoint() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
-/// `road demo --map`: the intersection and the merge run too; an unknown map is refused with
-/// the known ones named.
+/// `road demo --in-process --map`: the intersection and the merge run too; an unknown map is
+/// refused with the known ones named; the in-process flags are refused without `--in-process`.
 #[test]
 fn demo_runs_every_procedural_map() {
     let dir = std::env::temp_dir().join(format!("road-cli-demo-maps-{}", std::process::id()));
@@ -351,6 +351,7 @@ fn demo_runs_every_procedural_map() {
         let png = dir.join(format!("demo-{map}.png"));
         let o = road(&[
             "demo",
+            "--in-process",
             "--map",
             map,
             "--steps",
@@ -375,10 +376,13 @@ fn demo_runs_every_procedural_map() {
         "{}",
         stderr(&o)
     );
+    let o = road(&["demo", "--out", "x.png"]);
+    assert!(!o.status.success());
+    assert!(stderr(&o).contains("--in-process"), "{}", stderr(&o));
     std::fs::remove_dir_all(&dir).ok();
 }
 
-/// `road demo`, the README's main job: the procedural scene closed loop on both engines.
+/// `road demo --in-process`: the procedural scene closed loop on both engines.
 #[test]
 fn demo_runs_closed_loop_on_both_engines() {
     let dir = std::env::temp_dir().join(format!("road-cli-demo-{}", std::process::id()));
@@ -391,6 +395,7 @@ fn demo_runs_closed_loop_on_both_engines() {
         );
         let o = road(&[
             "demo",
+            "--in-process",
             "--steps",
             "4",
             "--engine",
@@ -543,5 +548,335 @@ fn compare_pairs_scenes_across_eval_files() {
         "{}",
         stderr(&o)
     );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// A fresh folder under the system's temporary one.
+fn temp_dir(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("road-cli-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+/// A decoded GIF: its size and each frame's delay (hundredths of a second) and RGBA pixels.
+struct Gif {
+    width: u16,
+    height: u16,
+    frames: Vec<(u16, Vec<u8>)>,
+}
+
+fn read_gif(path: &Path) -> Gif {
+    let mut options = gif::DecodeOptions::new();
+    options.set_color_output(gif::ColorOutput::RGBA);
+    let file = std::fs::File::open(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    let mut decoder = options.read_info(file).unwrap();
+    let (width, height) = (decoder.width(), decoder.height());
+    let mut frames = Vec::new();
+    while let Some(frame) = decoder.read_next_frame().unwrap() {
+        assert_eq!((frame.width, frame.height), (width, height), "full frames");
+        frames.push((frame.delay, frame.buffer.to_vec()));
+    }
+    Gif {
+        width,
+        height,
+        frames,
+    }
+}
+
+/// Pixels of exactly this colour in an RGBA frame.
+fn pixels_of(rgba: &[u8], rgb: [u8; 3]) -> usize {
+    rgba.chunks_exact(4).filter(|p| p[..3] == rgb).count()
+}
+
+/// `road demo` with no flags is the product: `road serve` in the process, the scripted ego a
+/// zenoh client, a line per tick, the recording `demo.mcap` and its animation `demo.gif` (the
+/// scene at creation and every tick); `road render` redraws the recording at another size
+/// and pace.
+/// The README's main command works from anywhere: a copy of the binary in a folder with no
+/// `models/` (nor any above it) runs the demo on the embedded default checkpoint.
+#[test]
+fn demo_runs_outside_the_repository_on_the_embedded_checkpoint() {
+    let dir = temp_dir("demo-embedded");
+    let bin = dir.join("road");
+    std::fs::copy(env!("CARGO_BIN_EXE_road"), &bin).unwrap();
+    let o = Command::new(&bin)
+        .args(["demo", "--steps", "3"])
+        .current_dir(&dir)
+        .env("RUST_LOG", "info")
+        .env_remove("ROAD_MODELS")
+        .output()
+        .expect("road runs");
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stderr(&o).contains("embedded"), "{}", stderr(&o));
+    assert!(dir.join("demo.mcap").is_file() && dir.join("demo.gif").is_file());
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn demo_serves_the_scene_and_writes_its_recording_and_animation() {
+    let dir = temp_dir("demo-served");
+    // The checkpoint by absolute path: the files land in `dir`, the models are here.
+    let checkpoint = workspace().join("models/road20-cvmap");
+    let steps = 20;
+    let o = Command::new(env!("CARGO_BIN_EXE_road"))
+        .args(["demo", "--steps", &steps.to_string(), "--checkpoint"])
+        .arg(&checkpoint)
+        .current_dir(&dir)
+        .env("RUST_LOG", "warn")
+        .output()
+        .expect("road runs");
+    assert!(o.status.success(), "{}", stderr(&o));
+    let text = stdout(&o);
+    let tick_lines: Vec<&str> = text.lines().filter(|l| l.starts_with("tick ")).collect();
+    assert_eq!(tick_lines.len(), steps, "{text}");
+    assert!(
+        tick_lines
+            .iter()
+            .all(|l| l.contains("round trip") && l.contains("engine")),
+        "{text}"
+    );
+    assert!(
+        text.contains("round trip p50") && text.contains("infractions:"),
+        "{text}"
+    );
+    let mcap = dir.join("demo.mcap");
+    assert!(std::fs::read(&mcap).unwrap().starts_with(mcap::MAGIC));
+    let gif = read_gif(&dir.join("demo.gif"));
+    assert_eq!(gif.frames.len(), steps + 1);
+    assert_eq!((gif.width, gif.height), (800, 800));
+    assert!(gif.frames.iter().all(|f| f.0 == 10), "10 frames a second");
+    // The model's vehicles orange, the ego green.
+    let first = &gif.frames[0].1;
+    assert!(pixels_of(first, [240, 140, 20]) > 0 && pixels_of(first, [30, 150, 70]) > 0);
+
+    let small = dir.join("small.gif");
+    let o = road(&[
+        "render",
+        mcap.to_str().unwrap(),
+        "--out",
+        small.to_str().unwrap(),
+        "--size",
+        "200",
+        "--fps",
+        "5",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(
+        stdout(&o).contains(&format!("{} frames", steps + 1)),
+        "{}",
+        stdout(&o)
+    );
+    let gif = read_gif(&small);
+    assert_eq!(gif.frames.len(), steps + 1);
+    assert_eq!((gif.width, gif.height), (200, 200));
+    assert!(gif.frames.iter().all(|f| f.0 == 20));
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// The recorder of `road serve` writing a scene in `dir`: the roundabout's lanes, agent 1
+/// external and 2, 3 the model's, `ticks` ticks 100 ms apart (with 2 and 3 colliding at tick
+/// 3 and 3 off road at tick 4), a chunk written out after every tick. Returns the finished
+/// file and its length when tick `flushed` had been written out.
+fn record_scene(dir: &Path, ticks: u64, flushed: u64) -> (PathBuf, u64) {
+    use road_serve::record::{Recorder, topics};
+    use std::time::{Duration, SystemTime};
+    let map = road_sim::procedural::procedural(
+        road_sim::procedural::ProceduralMap::Roundabout,
+        &road_data::WindowConfig::default(),
+        2,
+    )
+    .unwrap()
+    .map;
+    let agents: Vec<road_protocol::AgentInfo> = [(1, true), (2, false), (3, false)]
+        .into_iter()
+        .map(|(id, external)| road_protocol::AgentInfo {
+            id,
+            length_m: 4.5,
+            width_m: 1.8,
+            external,
+            history: vec![],
+        })
+        .collect();
+    let created = serde_json::json!({ "scene": 7, "agents": agents });
+    let t0 = SystemTime::UNIX_EPOCH + Duration::from_secs(1_700_000_000);
+    let mut rec = Recorder::start(
+        dir,
+        7,
+        b"{}",
+        created.to_string().as_bytes(),
+        Some(&map),
+        t0,
+    )
+    .unwrap();
+    let poses = |t: u64| -> Vec<road_sim::Pose> {
+        let x = t as f64;
+        [(-20.0 + x, -3.0), (5.0, 10.0 - x), (5.0 + 0.5 * x, 10.0)]
+            .into_iter()
+            .map(|(x_m, y_m)| road_sim::Pose {
+                x_m,
+                y_m,
+                heading_rad: 0.0,
+            })
+            .collect()
+    };
+    rec.agents(&agents, &poses(0), false, t0).unwrap();
+    let mut flushed_len = 0;
+    for t in 1..=ticks {
+        let at = t0 + Duration::from_millis(100 * t);
+        let ego = serde_json::json!({ "tick": t, "agents": [
+            { "id": 1, "x_m": -20.0 + t as f64, "y_m": -3.0, "heading_rad": 0.0 } ] });
+        rec.write(topics::EGO, ego.to_string().as_bytes(), at)
+            .unwrap();
+        let npc = serde_json::json!({
+            "scene": 7, "tick": t, "time_s": 0.1 * t as f64, "npcs": [],
+            "collisions": if t == 3 { vec![[2, 3]] } else { vec![] },
+            "off_road": if t == 4 { vec![3] } else { vec![] },
+            "latency_ms": 1.0, "compute_ms": 0.5,
+        });
+        rec.write(topics::NPC, npc.to_string().as_bytes(), at)
+            .unwrap();
+        rec.agents(&agents, &poses(t), false, at).unwrap();
+        rec.flush().unwrap();
+        if t == flushed {
+            flushed_len = std::fs::metadata(rec.path()).unwrap().len();
+        }
+    }
+    (rec.finish().unwrap(), flushed_len)
+}
+
+/// `road render` on a recording: a frame per tick with the tick's collision and off-road
+/// agent outlined red; a recording cut off mid-chunk (a killed server) renders up to its last
+/// complete chunk; a missing file, a file that is not MCAP and an MCAP file without a scene
+/// are refused, naming the file.
+#[test]
+fn render_draws_a_frame_per_tick_and_names_bad_files() {
+    let dir = temp_dir("render");
+    let (mcap, flushed_len) = record_scene(&dir, 6, 3);
+    let gif_path = dir.join("scene.gif");
+    let o = road(&["render", mcap.to_str().unwrap(), "--size", "300"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(
+        stdout(&o).contains("1 collision pair(s) and 1 off-road agent(s)"),
+        "{}",
+        stdout(&o)
+    );
+    let gif = read_gif(&mcap.with_extension("gif"));
+    assert_eq!(gif.frames.len(), 7, "the scene at creation and 6 ticks");
+    assert_eq!((gif.width, gif.height), (300, 300));
+    let red = |k: usize| pixels_of(&gif.frames[k].1, [210, 30, 30]);
+    assert_eq!((red(0), red(2)), (0, 0), "no infraction, nothing red");
+    assert!(red(3) > 0, "the collision at tick 3 is highlighted");
+    assert!(red(4) > 0, "the off-road agent at tick 4 is highlighted");
+
+    // SIGKILL mid-write: the file ends a few bytes into tick 4's chunk.
+    let cut = dir.join("cut.mcap");
+    let bytes = std::fs::read(&mcap).unwrap();
+    std::fs::write(&cut, &bytes[..flushed_len as usize + 20]).unwrap();
+    let o = road(&[
+        "render",
+        cut.to_str().unwrap(),
+        "--out",
+        gif_path.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stdout(&o).contains("cut off"), "{}", stdout(&o));
+    assert_eq!(read_gif(&gif_path).frames.len(), 4);
+
+    let o = road(&["render", "/nonexistent/scene.mcap"]);
+    assert!(!o.status.success());
+    assert!(
+        stderr(&o).contains("/nonexistent/scene.mcap") && stderr(&o).contains("cannot read"),
+        "{}",
+        stderr(&o)
+    );
+    let garbage = dir.join("garbage.mcap");
+    std::fs::write(&garbage, b"these bytes are not a recording").unwrap();
+    let o = road(&["render", garbage.to_str().unwrap()]);
+    assert!(!o.status.success());
+    assert!(
+        stderr(&o).contains("not an MCAP file") && stderr(&o).contains("garbage.mcap"),
+        "{}",
+        stderr(&o)
+    );
+    // MCAP, but no scene in it: the creation messages only.
+    let empty_dir = dir.join("empty");
+    let rec = road_serve::record::Recorder::start(
+        &empty_dir,
+        1,
+        b"{}",
+        b"{}",
+        None,
+        std::time::SystemTime::now(),
+    )
+    .unwrap();
+    let empty = rec.finish().unwrap();
+    let o = road(&["render", empty.to_str().unwrap()]);
+    assert!(!o.status.success());
+    assert!(
+        stderr(&o).contains("no /map messages") && stderr(&o).contains("scene-1.mcap"),
+        "{}",
+        stderr(&o)
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// `road replay` publishes a recording's NPC ticks again on the live keys under `--prefix`,
+/// in order, to a subscriber on loopback (scouting off).
+#[test]
+fn replay_republishes_the_npc_ticks_over_zenoh() {
+    use std::time::{Duration, Instant};
+    use zenoh::Wait;
+    let dir = temp_dir("replay");
+    let (mcap, _) = record_scene(&dir, 5, 0);
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let endpoint = format!("tcp/127.0.0.1:{port}");
+    let config = road_client::ZenohArgs::loopback(Some(&endpoint), None)
+        .to_config()
+        .unwrap();
+    let session = zenoh::open(config).wait().unwrap();
+    let npc = session
+        .declare_subscriber("replay-test/scene/*/npc")
+        .wait()
+        .unwrap();
+    let mut child = Command::new(env!("CARGO_BIN_EXE_road"))
+        .args(["replay", mcap.to_str().unwrap(), "--prefix", "replay-test"])
+        .args(["--speed", "5", "--wait-s", "30", "--mode", "peer"])
+        .args(["--connect", &endpoint, "--no-multicast-scouting"])
+        .env("RUST_LOG", "warn")
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("road runs");
+    let deadline = Instant::now() + Duration::from_secs(90);
+    while child.try_wait().unwrap().is_none() {
+        if Instant::now() > deadline {
+            child.kill().ok();
+            panic!("road replay did not finish");
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let o = child.wait_with_output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(
+        stdout(&o).contains("/road/npc -> replay-test/scene/7/npc: 5 published"),
+        "{}",
+        stdout(&o)
+    );
+    let mut ticks = Vec::new();
+    while ticks.len() < 5 {
+        let Some(sample) = npc.recv_timeout(Duration::from_secs(10)).unwrap() else {
+            break;
+        };
+        assert_eq!(sample.key_expr().as_str(), "replay-test/scene/7/npc");
+        let v: serde_json::Value = serde_json::from_slice(&sample.payload().to_bytes()).unwrap();
+        ticks.push(v["tick"].as_u64().unwrap());
+    }
+    assert_eq!(ticks, [1, 2, 3, 4, 5]);
+    session.close().wait().unwrap();
     std::fs::remove_dir_all(&dir).ok();
 }

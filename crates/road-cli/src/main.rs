@@ -9,6 +9,7 @@ macro_rules! out {
 mod commands;
 mod config;
 mod plot;
+mod recording;
 
 pub(crate) fn write_stdout_line(args: std::fmt::Arguments<'_>) {
     use std::io::Write;
@@ -33,12 +34,17 @@ struct Cli {
 
 #[derive(Debug, Subcommand)]
 enum Command {
-    /// The main job on its embedded default: a procedural roundabout simulated closed loop with
-    /// the default checkpoint and a scripted ego; prints ticks, time per tick and infractions.
+    /// The main job on its embedded default: a procedural roundabout served by `road serve`
+    /// in this process to a scripted ego over zenoh on loopback; prints every tick's latency and
+    /// infractions, writes the recording (`demo.mcap`) and its animation (`demo.gif`).
     Demo(commands::demo::DemoArgs),
     /// The networked NPC server over Eclipse Zenoh: ego stacks create scenes, put their ego
     /// every tick and get the NPCs back; every scene recorded to MCAP (`docs/protocol.md`).
     Serve(commands::serve::ServeArgs),
+    /// A scene recording of `road serve` (MCAP) as an animated GIF, one frame per tick.
+    Render(commands::render::RenderArgs),
+    /// A scene recording's protocol messages published again over zenoh at the recorded pace.
+    Replay(commands::replay::ReplayArgs),
     /// INTERACTION data: statistics and binary caches for training.
     #[command(subcommand)]
     Data(commands::data::DataCommand),
@@ -93,6 +99,8 @@ fn main() -> std::process::ExitCode {
     let result = match cli.command {
         Command::Demo(args) => commands::demo::run(args),
         Command::Serve(args) => commands::serve::run(args),
+        Command::Render(args) => commands::render::run(args),
+        Command::Replay(args) => commands::replay::run(args),
         Command::Data(cmd) => commands::data::run(cmd),
         Command::Sched(cmd) => commands::sched::run(cmd),
         Command::Gpu(cmd) => commands::gpu::run(cmd),

@@ -23,11 +23,12 @@ pub struct Stroke {
     pub width: u32,
 }
 
-/// An agent's footprint: its four corners in metres.
+/// An agent's footprint: its four corners in metres, outlined in `color`, filled with `fill`.
 #[derive(Debug, Clone)]
 pub struct Footprint {
     pub corners: [[f64; 2]; 4],
     pub color: RGBColor,
+    pub fill: Option<RGBColor>,
 }
 
 /// A ring around a point in metres (collisions are circled).
@@ -36,6 +37,52 @@ pub struct Ring {
     pub centre: (f64, f64),
     pub radius_m: f64,
     pub color: RGBColor,
+}
+
+/// The square of metres a figure shows: `half_extent_m` around `centre`, `size_px` wide.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct View {
+    pub size_px: u32,
+    pub centre: (f64, f64),
+    pub half_extent_m: f64,
+}
+
+impl View {
+    /// The smallest square around `points` with `margin_m` to spare on every side.
+    pub fn fit(points: impl IntoIterator<Item = (f64, f64)>, margin_m: f64, size_px: u32) -> Self {
+        let (mut lo, mut hi) = (
+            (f64::INFINITY, f64::INFINITY),
+            (f64::NEG_INFINITY, f64::NEG_INFINITY),
+        );
+        for (x, y) in points {
+            if x.is_finite() && y.is_finite() {
+                lo = (lo.0.min(x), lo.1.min(y));
+                hi = (hi.0.max(x), hi.1.max(y));
+            }
+        }
+        if lo.0 > hi.0 {
+            // Nothing to fit: a square around the origin.
+            (lo, hi) = ((0.0, 0.0), (0.0, 0.0));
+        }
+        Self {
+            size_px,
+            centre: (0.5 * (lo.0 + hi.0), 0.5 * (lo.1 + hi.1)),
+            half_extent_m: 0.5 * (hi.0 - lo.0).max(hi.1 - lo.1) + margin_m.max(1.0),
+        }
+    }
+
+    fn scale(&self) -> f64 {
+        f64::from(self.size_px) / (2.0 * self.half_extent_m)
+    }
+
+    /// Pixel coordinates of a point in metres (y up in metres, down in pixels).
+    fn pixel(&self, (x, y): (f64, f64)) -> (i32, i32) {
+        let scale = self.scale();
+        (
+            ((x - self.centre.0 + self.half_extent_m) * scale) as i32,
+            ((self.centre.1 + self.half_extent_m - y) * scale) as i32,
+        )
+    }
 }
 
 /// Draws strokes (and dots at each stroke's end) fitted into a square PNG.
@@ -59,17 +106,46 @@ pub fn figure_png(
     centre: (f64, f64),
     half_extent_m: f64,
 ) -> Result<()> {
+    let view = View {
+        size_px,
+        centre,
+        half_extent_m,
+    };
     let root = BitMapBackend::new(path, (size_px, size_px)).into_drawing_area();
     root.fill(&WHITE)?;
-    let scale = f64::from(size_px) / (2.0 * half_extent_m);
-    let to_px = |(x, y): (f64, f64)| -> (i32, i32) {
-        (
-            ((x - centre.0 + half_extent_m) * scale) as i32,
-            ((centre.1 + half_extent_m - y) * scale) as i32,
-        )
-    };
+    draw(&root, &view, strokes, footprints, rings)?;
+    root.present()
+        .with_context(|| format!("cannot write {}", path.display()))?;
+    Ok(())
+}
+
+/// Draws strokes, footprints and rings over an RGB buffer of `view.size_px`² pixels as it
+/// is (the animation draws its lanes once and each frame over a copy).
+pub fn draw_rgb(
+    rgb: &mut [u8],
+    view: &View,
+    strokes: &[Stroke],
+    footprints: &[Footprint],
+    rings: &[Ring],
+) -> Result<()> {
+    let root = BitMapBackend::with_buffer(rgb, (view.size_px, view.size_px)).into_drawing_area();
+    draw(&root, view, strokes, footprints, rings)?;
+    root.present()?;
+    Ok(())
+}
+
+fn draw<DB: DrawingBackend>(
+    root: &DrawingArea<DB, plotters::coord::Shift>,
+    view: &View,
+    strokes: &[Stroke],
+    footprints: &[Footprint],
+    rings: &[Ring],
+) -> Result<()>
+where
+    DB::ErrorType: 'static,
+{
     for s in strokes {
-        let pts: Vec<(i32, i32)> = s.points.iter().map(|&p| to_px(p)).collect();
+        let pts: Vec<(i32, i32)> = s.points.iter().map(|&p| view.pixel(p)).collect();
         root.draw(&PathElement::new(
             pts.clone(),
             s.color.stroke_width(s.width),
@@ -81,20 +157,21 @@ pub fn figure_png(
         }
     }
     for f in footprints {
-        let mut pts: Vec<(i32, i32)> = f.corners.iter().map(|c| to_px((c[0], c[1]))).collect();
+        let mut pts: Vec<(i32, i32)> = f.corners.iter().map(|c| view.pixel((c[0], c[1]))).collect();
+        if let Some(fill) = f.fill {
+            root.draw(&Polygon::new(pts.clone(), fill.filled()))?;
+        }
         pts.push(pts[0]);
         root.draw(&PathElement::new(pts, f.color.stroke_width(2)))?;
     }
     for r in rings {
-        let radius = (r.radius_m * scale).max(4.0) as i32;
+        let radius = (r.radius_m * view.scale()).max(4.0) as i32;
         root.draw(&Circle::new(
-            to_px(r.centre),
+            view.pixel(r.centre),
             radius,
             r.color.stroke_width(3),
         ))?;
     }
-    root.present()
-        .with_context(|| format!("cannot write {}", path.display()))?;
     Ok(())
 }
 

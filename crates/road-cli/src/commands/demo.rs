@@ -1,8 +1,10 @@
 //! `road demo`: the main job on its embedded default. A procedurally built roundabout (or, with
-//! `--map`, intersection or merge; no INTERACTION data: every byte redistributable) is
-//! simulated closed loop: a scripted ego that
-//! does not yield, every other vehicle the model's. Prints what happened (ticks, time per
-//! tick, infractions) and draws it.
+//! `--map`, intersection or merge; no INTERACTION data: every byte redistributable) with a
+//! scripted ego that does not yield and every other vehicle the model's. By default through
+//! the product (`demo_zenoh`): `road serve` in this process, the ego a zenoh client on
+//! loopback, the server's recording kept and animated. With `--in-process` the same closed
+//! loop runs directly on an engine of choice, without server or network, and is drawn as one
+//! figure (the evaluation notes use this path).
 
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -35,25 +37,34 @@ pub struct DemoArgs {
     pub map: ProceduralMap,
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
-    /// `gpu` (WGSL kernels), `cpu` (candle reference) or `auto`: a hardware GPU when wgpu finds
-    /// one, else the candle reference (lavapipe runs the kernels correctly but slower than
-    /// candle on the same CPU).
-    #[arg(long, value_enum, default_value_t = EngineChoice::Auto)]
-    pub engine: EngineChoice,
-    /// The figure: lanes grey, 1 s histories blue, the model's vehicles orange, the ego green,
-    /// final footprints outlined, collisions circled red.
-    #[arg(long, default_value = "demo.png")]
-    pub out: PathBuf,
-    /// Also write every tick (poses, collisions, off-road agents) as JSON here.
+    /// Run the closed loop in this process on `--engine`, without server or zenoh; draws
+    /// `--out` and writes `--json` (the evaluation notes use this path).
     #[arg(long)]
+    pub in_process: bool,
+    /// With `--in-process`: `gpu` (WGSL kernels), `cpu` (the fast CPU engine), `candle` (the
+    /// candle reference) or `auto` (default): a hardware GPU when wgpu finds one, else the fast
+    /// CPU engine. The served demo runs the server's engine.
+    #[arg(long, value_enum, requires = "in_process")]
+    pub engine: Option<EngineChoice>,
+    /// With `--in-process`: the figure (default `demo.png`): lanes grey, 1 s histories blue,
+    /// the model's vehicles orange, the ego green, final footprints outlined, collisions
+    /// circled red.
+    #[arg(long, requires = "in_process")]
+    pub out: Option<PathBuf>,
+    /// With `--in-process`: also write every tick (poses, collisions, off-road agents) as JSON
+    /// here.
+    #[arg(long, requires = "in_process")]
     pub json: Option<PathBuf>,
-    /// Run the product instead: `road serve` in this process and the scripted ego as a
-    /// client over zenoh on loopback; writes the server's recording to `--mcap`.
-    #[arg(long)]
-    pub zenoh: bool,
-    /// With `--zenoh`: where the scene's MCAP recording goes.
-    #[arg(long, default_value = "demo.mcap")]
+    /// The served scene's MCAP recording (Foxglove shows `/map` and `/agents`; `road render`,
+    /// `road replay`).
+    #[arg(long, default_value = "demo.mcap", conflicts_with = "in_process")]
     pub mcap: PathBuf,
+    /// The recording as an animated GIF (`road render`), one frame per tick.
+    #[arg(long, default_value = "demo.gif", conflicts_with = "in_process")]
+    pub gif: PathBuf,
+    /// The served demo, once a flag of its own; now the default.
+    #[arg(long, hide = true, conflicts_with = "in_process")]
+    pub zenoh: bool,
 }
 
 /// `--map`: a procedural map by name.
@@ -68,16 +79,22 @@ fn parse_map(name: &str) -> std::result::Result<ProceduralMap, String> {
 
 pub fn run(args: DemoArgs) -> Result<ExitCode> {
     anyhow::ensure!(args.steps > 0, "--steps must be at least 1");
-    if args.zenoh {
+    if !args.in_process {
         return crate::commands::demo_zenoh::run(
             &args.checkpoint,
             args.map,
             args.steps,
             args.seed,
             &args.mcap,
+            &args.gif,
         );
     }
-    let engines = Engines::load(&args.checkpoint, args.engine).with_context(|| {
+    let figure = args
+        .out
+        .clone()
+        .unwrap_or_else(|| PathBuf::from("demo.png"));
+    let engine_choice = args.engine.unwrap_or(EngineChoice::Auto);
+    let engines = Engines::load(&args.checkpoint, engine_choice).with_context(|| {
         format!(
             "cannot load the demo checkpoint {} (run from the repository root, or pass --checkpoint)",
             args.checkpoint.display()
@@ -229,6 +246,7 @@ pub fn run(args: DemoArgs) -> Result<ExitCode> {
             }
             .corners(),
             color: if a == scene.ego.agent { EGO } else { PREDICTED },
+            fill: None,
         })
         .collect();
     let mut rings = Vec::new();
@@ -246,7 +264,7 @@ pub fn run(args: DemoArgs) -> Result<ExitCode> {
         }
     }
     figure_png(
-        &args.out,
+        &figure,
         &strokes,
         &footprints,
         &rings,
@@ -254,7 +272,7 @@ pub fn run(args: DemoArgs) -> Result<ExitCode> {
         (0.0, 0.0),
         60.0,
     )?;
-    out!("figure: {}", args.out.display());
+    out!("figure: {}", figure.display());
     if let Some(path) = &args.json {
         let json = serde_json::json!({
             "scene": format!("procedural {}", args.map.name()),

@@ -1,8 +1,9 @@
-//! `road demo --zenoh`: the whole product in one command. A `road serve` runs in this process
-//! on loopback (TCP 127.0.0.1, scouting off), a scripted ego client (the demo's ego, which
-//! does not yield) drives a procedural map (`--map`) over zenoh, and the server's recording of
-//! the scene is kept as `demo.mcap` (Foxglove shows `/map` and `/agents`). Prints the round
-//! trip and engine time per tick and the infractions.
+//! `road demo` (the default path): the whole product in one command. A `road serve` runs in
+//! this process on loopback (TCP 127.0.0.1, scouting off), a scripted ego client (the demo's
+//! ego, which does not yield) drives a procedural map (`--map`) over zenoh, the server's
+//! recording of the scene is kept as `demo.mcap` (Foxglove shows `/map` and `/agents`) and
+//! drawn as `demo.gif` (`road render`). Prints every tick's round trip, server latency, engine
+//! time and infractions, then their summary.
 
 use std::collections::BTreeSet;
 use std::path::Path;
@@ -13,11 +14,14 @@ use anyhow::{Context, Result};
 use road_client::protocol::{AgentState, CreateScene, DEFAULT_PREFIX, MapSource};
 use road_client::{Client, ZenohArgs};
 use road_data::WindowConfig;
-use road_serve::models::find_models_dir;
+use road_serve::models::{embedded, find_models_dir};
 use road_serve::server::percentiles;
 use road_serve::{ServeConfig, Server};
 use road_sim::closed_loop::ExternalDriver;
 use road_sim::procedural::{ProceduralMap, STEP_SECS, procedural};
+
+use crate::commands::render::render_gif;
+use crate::recording::Recording;
 
 pub fn run(
     checkpoint: &Path,
@@ -25,12 +29,20 @@ pub fn run(
     steps: usize,
     seed: u64,
     mcap_out: &Path,
+    gif_out: &Path,
 ) -> Result<ExitCode> {
     let name = checkpoint
         .file_name()
         .and_then(|n| n.to_str())
         .with_context(|| format!("checkpoint {} has no folder name", checkpoint.display()))?;
-    let models = find_models_dir(checkpoint.parent())?;
+    // The shipped default runs anywhere: from its folder when there is one, else embedded.
+    let models = if checkpoint.is_dir() {
+        find_models_dir(checkpoint.parent())?
+    } else if name == embedded::NAME {
+        find_models_dir(None)?
+    } else {
+        anyhow::bail!("no checkpoint folder {}", checkpoint.display());
+    };
     let record = std::env::temp_dir().join(format!("road-demo-{}", std::process::id()));
     let mut config = ServeConfig::new(models);
     config.default_checkpoint = name.to_owned();
@@ -75,6 +87,11 @@ pub fn run(
     let mut events = Vec::new();
     let (mut seen_pairs, mut seen_off) = (BTreeSet::new(), BTreeSet::new());
     let mut late = 0;
+    out!(
+        "road demo over zenoh: procedural {}, {vehicles} vehicles (ego 1 scripted by the client, {} by {name}), {steps} ticks of {STEP_SECS:.1} s on loopback",
+        map.name(),
+        vehicles - 1
+    );
     for t in 1..=steps as u64 {
         let p = ego.pose(0, 0, (t - 1) as usize, &[])?;
         let sent = Instant::now();
@@ -104,6 +121,26 @@ pub fn run(
                 events.push(format!("tick {t:>3} ({secs:4.1} s): agent {a} off road"));
             }
         }
+        let mut infractions: Vec<String> = npc
+            .collisions
+            .iter()
+            .map(|p| format!("collision {}-{}", p[0], p[1]))
+            .chain(npc.off_road.iter().map(|a| format!("{a} off road")))
+            .collect();
+        if !npc.late_external.is_empty() {
+            infractions.push("ego late: the model drove it".into());
+        }
+        out!(
+            "tick {t:>3} ({secs:4.1} s): round trip {:7.1} ms, server {:7.1} ms, engine {:7.1} ms; {}",
+            rtt_ms[rtt_ms.len() - 1],
+            npc.latency_ms,
+            npc.compute_ms,
+            if infractions.is_empty() {
+                "no infraction".to_owned()
+            } else {
+                infractions.join(", ")
+            }
+        );
     }
     let closed = scene.close()?;
     server.stop()?;
@@ -115,11 +152,6 @@ pub fn run(
     let _ = std::fs::remove_dir_all(&record);
 
     let (r, c) = (percentiles(&rtt_ms[1..]), percentiles(&compute_ms[1..]));
-    out!(
-        "road demo over zenoh: procedural {}, {vehicles} vehicles (ego 1 scripted by the client, {} by {name}), {steps} ticks of {STEP_SECS:.1} s on loopback",
-        map.name(),
-        vehicles - 1
-    );
     out!(
         "first tick (with the warm-up): {:.1} ms round trip; then round trip p50 {:.2} ms, p99 {:.2} ms; engine p50 {:.2} ms, p99 {:.2} ms; late ticks {late}",
         rtt_ms[0],
@@ -141,5 +173,12 @@ pub fn run(
         }
     }
     out!("recording: {}", mcap_out.display());
+    let recording = Recording::read(mcap_out)?;
+    let rendered = render_gif(&recording, gif_out, 1.0 / STEP_SECS, 800)?;
+    out!(
+        "animation: {} ({} frames: the scene at creation and every tick)",
+        gif_out.display(),
+        rendered.frames
+    );
     Ok(ExitCode::SUCCESS)
 }

@@ -7,6 +7,8 @@ pub mod engine;
 pub mod eval;
 pub mod gpu;
 pub mod reactivity;
+pub mod render;
+pub mod replay;
 pub mod sample;
 pub mod sched;
 pub mod serve;
