@@ -435,7 +435,6 @@ impl StepEngine for FastCpuEngine<'_> {
         self.host.load(windows, valid)
     }
 
-
     fn load_scene(&mut self, scene: usize, window: &[f32], valid: &[f32]) -> Result<()> {
         self.host.load_scene(scene, window, valid)
     }

@@ -16,7 +16,9 @@
 
 use rand::rngs::StdRng;
 use rand::{RngCore, SeedableRng};
-use road_sched::{PlannerId, PlannerSpec, SceneId, SceneSpec, Scheduler, TickOutcome, WindowUpdate};
+use road_sched::{
+    PlannerId, PlannerSpec, SceneId, SceneSpec, Scheduler, TickOutcome, WindowUpdate,
+};
 
 use crate::batch::{AGENT_FEATURES, normal_vec};
 use crate::sample::{Rollout, RolloutScene, ShiftEdit, ShiftShape, StepEngine};

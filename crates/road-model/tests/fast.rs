@@ -577,9 +577,9 @@ fn pooled_ticks(
         slots.push(pool.add_scene(engine, s, planner, 100 + i as u64).unwrap());
     }
     let record = |pool: &mut RolloutDriver,
-                      engine: &mut dyn StepEngine,
-                      out: &mut Vec<(usize, Vec<f32>)>,
-                      rounds: &mut Vec<Vec<usize>>| {
+                  engine: &mut dyn StepEngine,
+                  out: &mut Vec<(usize, Vec<f32>)>,
+                  rounds: &mut Vec<Vec<usize>>| {
         let done = pool
             .round(engine, &mut |i, e| {
                 out.push((i, e.to_vec()));
@@ -678,13 +678,17 @@ fn a_pool_refuses_what_does_not_fit_and_reuses_slots() {
     let mut engine = FastCpuEngine::with_threads(&model, 2).unwrap();
     let mut pool =
         RolloutDriver::with_capacity(&mut engine, &planner, 2, 3, 3, c.polyline_points).unwrap();
-    let a = pool.add_scene(&mut engine, &scenes[0], &planner, 1).unwrap();
+    let a = pool
+        .add_scene(&mut engine, &scenes[0], &planner, 1)
+        .unwrap();
     // scenes[2] has 4 agents: more than the pool's 3.
     let err = pool
         .add_scene(&mut engine, &scenes[2], &planner, 2)
         .unwrap_err();
     assert!(err.to_string().contains("4 agents"), "{err}");
-    let b = pool.add_scene(&mut engine, &scenes[1], &planner, 2).unwrap();
+    let b = pool
+        .add_scene(&mut engine, &scenes[1], &planner, 2)
+        .unwrap();
     let err = pool
         .add_scene(&mut engine, &scenes[3], &planner, 3)
         .unwrap_err();
@@ -699,7 +703,8 @@ fn a_pool_refuses_what_does_not_fit_and_reuses_slots() {
         .unwrap_err();
     assert!(err.to_string().contains("W = 15"), "{err}");
     assert_eq!(
-        pool.add_scene(&mut engine, &scenes[3], &planner, 3).unwrap(),
+        pool.add_scene(&mut engine, &scenes[3], &planner, 3)
+            .unwrap(),
         b
     );
     assert!(pool.remove_scene(b).is_ok() && pool.remove_scene(b).is_err());

@@ -787,7 +787,10 @@ impl LiveScene {
     /// The reply of the tick in flight, from what the pool's round made of it.
     pub fn finish_tick(&mut self, result: &SceneTick) -> crate::Result<TickOutput> {
         let flight = self.in_flight.take().ok_or_else(|| {
-            crate::Error::Config(format!("scene {}: a tick finished that was not begun", self.id))
+            crate::Error::Config(format!(
+                "scene {}: a tick finished that was not begun",
+                self.id
+            ))
         })?;
         self.tick = flight.tick;
         self.poses.clone_from(&result.poses);

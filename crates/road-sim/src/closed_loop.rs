@@ -355,8 +355,7 @@ impl<'m> ClosedLoop<'m> {
                 Controller::External => {
                     let p = external.drive(scene, a, tick, &s.poses)?;
                     if let Some(p) = p {
-                        if !(p.x_m.is_finite() && p.y_m.is_finite() && p.heading_rad.is_finite())
-                        {
+                        if !(p.x_m.is_finite() && p.y_m.is_finite() && p.heading_rad.is_finite()) {
                             return Err(Error::External {
                                 scene,
                                 agent: a,
@@ -394,14 +393,16 @@ impl<'m> ClosedLoop<'m> {
         let scenes = &mut self.scenes;
         let heading_scale = self.heading_scale;
         let done = self.driver.round(engine, &mut |i: usize,
-                                                   emitted: &mut [f32]|
+                                                    emitted: &mut [f32]|
          -> ModelResult<()> {
             let s = scenes[i].as_mut().expect("the driver ticks live scenes");
             s.apply(emitted, heading_scale);
             Ok(())
         })?;
         for i in done {
-            let s = self.scenes[i].as_ref().expect("the driver ticks live scenes");
+            let s = self.scenes[i]
+                .as_ref()
+                .expect("the driver ticks live scenes");
             out.push((i, s.report()));
         }
         Ok(())
