@@ -59,7 +59,8 @@ pub struct ServeBenchArgs {
     pub json: bool,
     /// The whole front end instead: `road serve` in this process on loopback, one client
     /// thread per scene over zenoh, the procedural roundabout (no dataset needed); round-trip
-    /// latency beside the engine compute of the same ticks (candle engine).
+    /// latency beside the engine compute of the same ticks (the server's pools: the fast CPU
+    /// engine, scenes batched per round).
     #[arg(long)]
     pub zenoh: bool,
 }

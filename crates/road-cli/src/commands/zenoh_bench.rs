@@ -2,9 +2,9 @@
 //! process (TCP on 127.0.0.1, scouting off, recording on, no late-ego deadline); B client
 //! threads each drive a roundabout scene with a constant-velocity ego, one tick at a time.
 //! Per tick: the round trip at the client (put → NPCs received) beside the engine compute of
-//! the same tick (the baseline: what the tick costs without any front end), and their
-//! difference, the front end's overhead (zenoh both ways, JSON, recording, and for B > 1 the
-//! wait behind other scenes' compute in the same round).
+//! the same tick (the baseline: the engine time of the batched rounds the tick took part in),
+//! and their difference, the front end's overhead (zenoh both ways, JSON, checks, recording,
+//! the core's bookkeeping between rounds).
 
 use std::path::Path;
 use std::sync::{Arc, Barrier};
