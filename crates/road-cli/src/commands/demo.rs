@@ -25,9 +25,10 @@ use crate::plot::{
 
 #[derive(Debug, Args)]
 pub struct DemoArgs {
-    /// Checkpoint folder; the default is the shipped default, RoAD-20 with agent maps and the
-    /// constant-velocity residual (`models/road20-cvmap`, docs/results.md).
-    #[arg(long, default_value = "models/road20-cvmap")]
+    /// Checkpoint folder; the default is the shipped default, RoAD-20 with agent maps, agent
+    /// pairs and the constant-velocity residual (`models/road20-cvpairs`, docs/results.md;
+    /// embedded in the binary, so it runs without the folder too).
+    #[arg(long, default_value = "models/road20-cvpairs")]
     pub checkpoint: PathBuf,
     /// Simulated steps (10 Hz).
     #[arg(long, default_value_t = 60)]
