@@ -1,0 +1,72 @@
+#!/usr/bin/env bash
+# The GPU suite of issue 15 in one call, for a machine lent for minutes: adapter, kernel and
+# whole-denoiser self-test, engine throughput over batch sizes, serving throughput. The lent
+# machine has no Rust toolchain and no package registry: prepare here, carry `dist/`.
+#
+#   bash scripts/gpu-suite.sh prepare        # here: dist/road (stripped release binary) and
+#                                            # dist/validation.roadds (from .road-cache)
+#   bash scripts/gpu-suite.sh run [--quick]  # there (device tool: carry ["dist"]), or here on
+#                                            # lavapipe; writes $OUT (default gpu-suite-out/)
+#
+# `--quick` runs small batches only (how CI-sized machines and lavapipe test the script; it ran
+# end to end on lavapipe here on 2026-11-24: selftest ok, engine.json, serve.json).
+# Not yet here: the PyTorch eager reference of the same weights (issue 15).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+case "${1:-}" in
+prepare)
+    cargo build --release --locked -j2 -p road-cli
+    mkdir -p dist
+    cp target/release/road dist/road
+    strip dist/road
+    if [ ! -f .road-cache/validation.roadds ]; then
+        target/release/road data build
+    fi
+    cp .road-cache/validation.roadds dist/validation.roadds
+    du -sh dist/*
+    ;;
+run)
+    quick=false
+    [ "${2:-}" = "--quick" ] && quick=true
+    bin="${ROAD_BIN:-dist/road}"
+    out="${OUT:-gpu-suite-out}"
+    mkdir -p "$out"
+    if [ ! -x "$bin" ]; then
+        echo "no $bin: run 'bash scripts/gpu-suite.sh prepare' first (and carry dist/)" >&2
+        exit 2
+    fi
+    if $quick; then
+        batches=(1 8)
+        scenes=(1 8)
+        ticks=4
+    else
+        batches=(1 8 64 512 1024 4096)
+        scenes=(1 16 128 512)
+        ticks=12
+    fi
+    {
+        echo "# $(date -u +%FT%TZ) $(uname -srm)"
+        command -v nvidia-smi >/dev/null && nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv || true
+    } | tee "$out/machine.txt"
+    "$bin" gpu info | tee "$out/gpu-info.txt"
+    # Kernels and whole denoisers against the CPU references on this adapter: nothing is timed
+    # unless they agree.
+    "$bin" gpu selftest --checkpoints models/road20-cvpairs models/road20 | tee "$out/selftest.txt"
+    # Engine throughput: the WGSL engine beside the candle CPU reference, same batches.
+    mkdir -p "$out/cache"
+    cp dist/validation.roadds "$out/cache/validation.roadds" 2>/dev/null \
+        || cp .road-cache/validation.roadds "$out/cache/validation.roadds"
+    "$bin" bench engine --checkpoints models/road20 models/road20-cvpairs \
+        --batches "${batches[@]}" --cache "$out/cache" --json > "$out/engine.json"
+    # Serving: scenes ticking through the scheduler, each engine in the same run.
+    "$bin" bench serve --checkpoint models/road20-cvpairs --engines cpu gpu \
+        --scenes "${scenes[@]}" --ticks "$ticks" --cache "$out/cache" --json > "$out/serve.json"
+    rm -rf "$out/cache"
+    ls -la "$out"
+    ;;
+*)
+    sed -n 2,12p "$0" >&2
+    exit 2
+    ;;
+esac
