@@ -345,6 +345,20 @@ impl RolloutDriver {
         Ok(id)
     }
 
+    /// Admits slot `i`'s scene to the scheduler under `planner`.
+    fn admit(&mut self, i: usize, planner: PlannerId) -> Result<()> {
+        let id = self.sched.admit(SceneSpec {
+            planner,
+            external_agents: vec![],
+        })?;
+        if id.index() >= self.scene_of_slot.len() {
+            self.scene_of_slot.resize(id.index() + 1, usize::MAX);
+        }
+        self.scene_of_slot[id.index()] = i;
+        self.ids[i] = Some(id);
+        Ok(())
+    }
+
     /// Puts `scene` in slot `i`: host state, first window (to be loaded), scheduler entry.
     fn insert(
         &mut self,
@@ -355,15 +369,7 @@ impl RolloutDriver {
         steps_hint: usize,
     ) -> Result<()> {
         let pid = self.planner_id(planner)?;
-        let id = self.sched.admit(SceneSpec {
-            planner: pid,
-            external_agents: vec![],
-        })?;
-        if id.index() >= self.scene_of_slot.len() {
-            self.scene_of_slot.resize(id.index() + 1, usize::MAX);
-        }
-        self.scene_of_slot[id.index()] = i;
-        self.ids[i] = Some(id);
+        self.admit(i, pid)?;
         self.states[i] = SceneState::of(scene, self.a_max, self.w, steps_hint);
         self.rngs[i] = StdRng::seed_from_u64(seed);
         rebuild_window(
@@ -499,15 +505,7 @@ impl RolloutDriver {
         let stats = self.sched.retire(old)?;
         self.nfe_before[scene] += stats.nfe;
         self.scene_of_slot[old.index()] = usize::MAX;
-        let id = self.sched.admit(SceneSpec {
-            planner: pid,
-            external_agents: vec![],
-        })?;
-        if id.index() >= self.scene_of_slot.len() {
-            self.scene_of_slot.resize(id.index() + 1, usize::MAX);
-        }
-        self.scene_of_slot[id.index()] = scene;
-        self.ids[scene] = Some(id);
+        self.admit(scene, pid)?;
         self.needs_load[scene] = true;
         rebuild_window(
             &mut self.states[scene],
