@@ -247,7 +247,8 @@ pub struct TrainConfig {
     /// Start from another checkpoint's (EMA) weights instead of a fresh initialisation: a
     /// folder under `models/`, relative to the working directory. Every tensor there must be
     /// one of this model's, with its shape; this model's tensors it lacks (a part the config
-    /// adds, e.g. `agent_pairs`) keep their initialisation, and are logged. The optimiser's
+    /// adds, e.g. `agent_pairs`) keep their initialisation, and are logged; added blocks start
+    /// as the identity (their residual branches' output projections at zero). The optimiser's
     /// moments and the schedule start afresh.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub init_from: Option<std::path::PathBuf>,
