@@ -1,5 +1,7 @@
 //! Oriented boxes and the separating-axis test.
 
+use glam::DVec2;
+
 use crate::Pose;
 
 /// An agent's footprint: a rectangle centred on its pose.
@@ -11,28 +13,30 @@ pub struct OrientedBox {
 }
 
 impl OrientedBox {
+    /// The unit vector along the heading and the one to its left.
+    fn axes(&self) -> (DVec2, DVec2) {
+        let forward = DVec2::from_angle(self.pose.heading_rad);
+        (forward, forward.perp())
+    }
+
     /// The four corners, counter-clockwise.
     pub fn corners(&self) -> [[f64; 2]; 4] {
-        let (c, s) = (self.pose.heading_rad.cos(), self.pose.heading_rad.sin());
+        let centre = DVec2::new(self.pose.x_m, self.pose.y_m);
+        let (forward, left) = self.axes();
         let (hl, hw) = (self.length_m / 2.0, self.width_m / 2.0);
-        let at = |l: f64, w: f64| [self.pose.x_m + l * c - w * s, self.pose.y_m + l * s + w * c];
-        [at(hl, hw), at(-hl, hw), at(-hl, -hw), at(hl, -hw)]
+        [(hl, hw), (-hl, hw), (-hl, -hw), (hl, -hw)]
+            .map(|(l, w)| (centre + l * forward + w * left).to_array())
     }
 
     /// True when the boxes overlap (touching counts): no separating axis among the four edge
     /// normals.
     pub fn overlaps(&self, other: &OrientedBox) -> bool {
         let (a, b) = (self.corners(), other.corners());
-        let axes = [
-            [self.pose.heading_rad.cos(), self.pose.heading_rad.sin()],
-            [-self.pose.heading_rad.sin(), self.pose.heading_rad.cos()],
-            [other.pose.heading_rad.cos(), other.pose.heading_rad.sin()],
-            [-other.pose.heading_rad.sin(), other.pose.heading_rad.cos()],
-        ];
-        axes.iter().all(|axis| {
+        let ((fa, la), (fb, lb)) = (self.axes(), other.axes());
+        [fa, la, fb, lb].iter().all(|axis| {
             let project = |pts: &[[f64; 2]; 4]| {
                 pts.iter()
-                    .map(|p| p[0] * axis[0] + p[1] * axis[1])
+                    .map(|&p| DVec2::from(p).dot(*axis))
                     .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), v| {
                         (lo.min(v), hi.max(v))
                     })
