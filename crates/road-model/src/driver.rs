@@ -372,14 +372,7 @@ impl RolloutDriver {
         self.admit(i, pid)?;
         self.states[i] = SceneState::of(scene, self.a_max, self.w, steps_hint);
         self.rngs[i] = StdRng::seed_from_u64(seed);
-        rebuild_window(
-            &mut self.states[i],
-            self.n,
-            self.w,
-            self.obs_noise,
-            self.sigma_max,
-            &mut self.rngs[i],
-        );
+        self.rebuild(i);
         self.planners[i] = planner.clone();
         self.nfe_before[i] = 0;
         self.ticks[i] = 0;
@@ -434,6 +427,18 @@ impl RolloutDriver {
                 self.ids.len()
             ))
         })
+    }
+
+    /// Rebuilds scene `i`'s host window from its history with fresh noise from its stream.
+    fn rebuild(&mut self, i: usize) {
+        rebuild_window(
+            &mut self.states[i],
+            self.n,
+            self.w,
+            self.obs_noise,
+            self.sigma_max,
+            &mut self.rngs[i],
+        );
     }
 
     /// Scene slots (the batch's rows); in a pool, free ones included.
@@ -507,14 +512,7 @@ impl RolloutDriver {
         self.scene_of_slot[old.index()] = usize::MAX;
         self.admit(scene, pid)?;
         self.needs_load[scene] = true;
-        rebuild_window(
-            &mut self.states[scene],
-            self.n,
-            self.w,
-            self.obs_noise,
-            self.sigma_max,
-            &mut self.rngs[scene],
-        );
+        self.rebuild(scene);
         self.planners[scene] = planner.clone();
         Ok(())
     }
