@@ -10,6 +10,7 @@ mod commands;
 mod config;
 mod plot;
 mod recording;
+mod signals;
 
 pub(crate) fn write_stdout_line(args: std::fmt::Arguments<'_>) {
     use std::io::Write;
@@ -41,6 +42,12 @@ enum Command {
     /// The networked NPC server over Eclipse Zenoh: ego stacks create scenes, put their ego
     /// every tick and get the NPCs back; every scene recorded to MCAP (`docs/protocol.md`).
     Serve(commands::serve::ServeArgs),
+    /// A zenoh router (zenoh's router mode in this binary): several `road serve` and their
+    /// clients meet through it (`docs/deploy.md`).
+    Router(commands::router::RouterArgs),
+    /// A scripted ego client of `road serve` (the demo's ego): creates scenes on one server or
+    /// on the least-loaded ones found under a root, drives them, prints round trips.
+    Ego(commands::ego::EgoArgs),
     /// A scene recording of `road serve` (MCAP) as an animated GIF, one frame per tick.
     Render(commands::render::RenderArgs),
     /// A scene recording's protocol messages published again over zenoh at the recorded pace.
@@ -99,6 +106,8 @@ fn main() -> std::process::ExitCode {
     let result = match cli.command {
         Command::Demo(args) => commands::demo::run(args),
         Command::Serve(args) => commands::serve::run(args),
+        Command::Router(args) => commands::router::run(args),
+        Command::Ego(args) => commands::ego::run(args),
         Command::Render(args) => commands::render::run(args),
         Command::Replay(args) => commands::replay::run(args),
         Command::Data(cmd) => commands::data::run(cmd),

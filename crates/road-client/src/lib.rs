@@ -23,14 +23,19 @@
 //! # Ok(()) }
 //! ```
 
+mod discovery;
+
+pub use discovery::{Discovered, ServerInfo, discover};
+
 use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
 use zenoh::Wait;
 use zenoh::handlers::FifoChannelHandler;
 use zenoh::liveliness::LivelinessToken;
 use zenoh::pubsub::Subscriber;
-use zenoh::sample::Sample;
+use zenoh::sample::{Sample, SampleKind};
 
 pub use road_protocol as protocol;
 use road_protocol::{
@@ -50,6 +55,18 @@ pub enum Error {
     Zenoh(String),
     #[error("bad zenoh config: {reason} ({input})")]
     Config { input: String, reason: String },
+    #[error(
+        "the server at {prefix} went away (its liveliness token is gone: it stopped, or the \
+         network between, e.g. a zenoh router, was cut); its scenes are closed"
+    )]
+    ServerGone { prefix: String },
+    #[error(
+        "scene {scene} is gone from the server at {prefix}: it closed the scene while this \
+         client was cut off (e.g. a zenoh router restarted), so the tick will not come"
+    )]
+    SceneGone { scene: u64, prefix: String },
+    #[error("no server under {root} has room for a scene{unreachable}")]
+    NoServer { root: String, unreachable: String },
     #[error("unreadable reply on {key}: {reason}")]
     Reply { key: String, reason: String },
 }
@@ -237,6 +254,11 @@ impl Client {
             .session
             .declare_subscriber(created.error_key.clone())
             .wait()?;
+        let server_alive = self
+            .session
+            .liveliness()
+            .declare_subscriber(self.keys.server_alive())
+            .wait()?;
         Ok(Scene {
             session: self.session.clone(),
             keys: self.keys.clone(),
@@ -245,8 +267,38 @@ impl Client {
             created,
             npc,
             errors,
+            server_alive,
+            server_gone: AtomicBool::new(false),
             last: None,
         })
+    }
+
+    /// Finds the servers under `root` (see [`discover`]) and creates the scene on the
+    /// least-loaded one with room: the client of that server (keep it: its liveliness token
+    /// keeps the scene) and the scene.
+    pub fn create_on_least_loaded(
+        session: zenoh::Session,
+        root: &str,
+        id: &str,
+        request: CreateScene,
+        timeout: Duration,
+    ) -> Result<(Client, Scene)> {
+        let found = discover(&session, root, timeout)?;
+        let Some(server) = found.least_loaded() else {
+            let unreachable: String = found
+                .unreachable
+                .iter()
+                .map(|(prefix, e)| format!("; {prefix} did not answer: {e}"))
+                .collect();
+            return Err(Error::NoServer {
+                root: root.to_owned(),
+                unreachable: format!(" ({} found{unreachable})", found.servers.len()),
+            });
+        };
+        let mut client = Client::with_session(session, &server.prefix, id)?;
+        client.set_timeout(timeout);
+        let scene = client.create(request)?;
+        Ok((client, scene))
     }
 
     /// The server's status.
@@ -265,6 +317,9 @@ impl Client {
     }
 }
 
+/// How often a scene waiting for its tick asks the server whether it still holds the scene.
+pub const PROBE_INTERVAL: Duration = Duration::from_secs(1);
+
 /// One live scene: put the ego, read the NPCs.
 #[derive(Debug)]
 pub struct Scene {
@@ -275,6 +330,9 @@ pub struct Scene {
     created: SceneCreated,
     npc: Subscriber<FifoChannelHandler<Sample>>,
     errors: Subscriber<FifoChannelHandler<Sample>>,
+    /// The server's liveliness token: its removal ends a wait at once ([`Error::ServerGone`]).
+    server_alive: Subscriber<FifoChannelHandler<Sample>>,
+    server_gone: AtomicBool,
     last: Option<NpcTick>,
 }
 
@@ -319,13 +377,23 @@ impl Scene {
         self.wait_tick(tick)
     }
 
-    /// Waits for the NPCs of `tick` (skipping older ticks).
+    /// Waits for the NPCs of `tick` (skipping older ticks). Fails with [`Error::ServerGone`]
+    /// as soon as the server's liveliness token goes, and with [`Error::SceneGone`] when the
+    /// server, asked every [`PROBE_INTERVAL`] of waiting, no longer lists the scene (it closed
+    /// it while this client was cut off, and its error then never came), rather than at the
+    /// timeout.
     pub fn wait_tick(&mut self, tick: u64) -> Result<NpcTick> {
         let deadline = Instant::now() + self.timeout;
+        let mut next_probe = Instant::now() + PROBE_INTERVAL;
         loop {
+            if Instant::now() >= next_probe {
+                self.probe_scene()?;
+                next_probe = Instant::now() + PROBE_INTERVAL;
+            }
             if let Some(err) = self.try_error()? {
                 return Err(Error::Refused(err));
             }
+            self.check_server()?;
             let sample = self
                 .npc
                 .recv_timeout(Duration::from_millis(20))
@@ -348,6 +416,46 @@ impl Scene {
                 });
             }
         }
+    }
+
+    /// [`Error::SceneGone`] when the server answers its status without this scene; nothing
+    /// when it does not answer (the wait goes on: a router may be coming back).
+    fn probe_scene(&self) -> Result<()> {
+        let key = self.keys.status();
+        let Ok(Ok(bytes)) = query_raw(&self.session, &key, Vec::new(), PROBE_INTERVAL) else {
+            return Ok(());
+        };
+        let status: Status = parse_reply(&key, &bytes)?;
+        if status.scenes.iter().any(|s| s.scene == self.created.scene) {
+            return Ok(());
+        }
+        // The NPCs may have come (and the scene closed at its last tick) meanwhile.
+        if let Some(err) = self.try_error()? {
+            return Err(Error::Refused(err));
+        }
+        Err(Error::SceneGone {
+            scene: self.created.scene,
+            prefix: self.keys.prefix().to_owned(),
+        })
+    }
+
+    /// [`Error::ServerGone`] once the server's liveliness token has gone.
+    pub fn check_server(&self) -> Result<()> {
+        while let Some(sample) = self
+            .server_alive
+            .try_recv()
+            .map_err(|e| Error::Zenoh(e.to_string()))?
+        {
+            if sample.kind() == SampleKind::Delete {
+                self.server_gone.store(true, Ordering::Relaxed);
+            }
+        }
+        if self.server_gone.load(Ordering::Relaxed) {
+            return Err(Error::ServerGone {
+                prefix: self.keys.prefix().to_owned(),
+            });
+        }
+        Ok(())
     }
 
     /// An error the server published for this scene, if one is waiting.

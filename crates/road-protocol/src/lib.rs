@@ -87,6 +87,20 @@ impl Keys {
     }
 }
 
+/// The key expression that matches the liveliness token of every server whose prefix is
+/// `root` or lies below it (`road/**/alive/server` matches `road/alive/server` and
+/// `road/east/alive/server`): what a client queries to find servers.
+pub fn servers_alive_under(root: &str) -> String {
+    format!("{}/**/alive/server", root.trim_matches('/'))
+}
+
+/// The prefix of the server whose liveliness token is at `key` (`road/east/alive/server` →
+/// `road/east`), or `None` when `key` is not a server's token.
+pub fn server_prefix_of(key: &str) -> Option<&str> {
+    key.strip_suffix("/alive/server")
+        .filter(|prefix| !prefix.is_empty())
+}
+
 /// Whether `id` can be a client id: one key chunk of 1 to 64 ASCII letters, digits, `-` or
 /// `_`.
 pub fn valid_client_id(id: &str) -> bool {
@@ -347,6 +361,9 @@ pub enum ErrorCode {
     NotOwner,
     /// The server failed; the scene is closed.
     Internal,
+    /// The server closed the scene without its client asking: idle timeout, the client's
+    /// liveliness token went, the server stops (the message says which).
+    SceneClosed,
 }
 
 /// An error reply (a query's error reply, or a message on a scene's error key).
@@ -427,6 +444,19 @@ pub fn parse<T: serde::de::DeserializeOwned>(payload: &[u8]) -> Result<T, ErrorR
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_server_token_names_its_prefix() {
+        assert_eq!(servers_alive_under("/road/"), "road/**/alive/server");
+        let east = Keys::new("road/east");
+        assert_eq!(server_prefix_of(&east.server_alive()), Some("road/east"));
+        assert_eq!(
+            server_prefix_of(&Keys::new(DEFAULT_PREFIX).server_alive()),
+            Some("road")
+        );
+        assert_eq!(server_prefix_of(&east.client_alive("ego")), None);
+        assert_eq!(server_prefix_of("/alive/server"), None);
+    }
 
     #[test]
     fn requests_round_trip() {

@@ -69,12 +69,31 @@ pub fn unix_nanos(t: SystemTime) -> u64 {
         .unwrap_or(0)
 }
 
+/// Where scene `scene`'s recording goes in `dir` (created if missing): `scene-<id>.mcap`, or
+/// `scene-<id>-<k>.mcap` with the smallest free k ≥ 2 when an earlier run of the server (whose
+/// scene ids started at 1 too) left that name.
+pub fn free_path(dir: &Path, scene: u64) -> Result<PathBuf> {
+    std::fs::create_dir_all(dir).map_err(|source| Error::Io {
+        path: dir.to_owned(),
+        source,
+    })?;
+    let first = dir.join(format!("scene-{scene}.mcap"));
+    if !first.exists() {
+        return Ok(first);
+    }
+    (2u64..)
+        .map(|k| dir.join(format!("scene-{scene}-{k}.mcap")))
+        .find(|p| !p.exists())
+        .ok_or_else(|| Error::Config(format!("no free recording name in {}", dir.display())))
+}
+
 fn stamp(nanos: u64) -> Value {
     json!({ "sec": nanos / 1_000_000_000, "nsec": nanos % 1_000_000_000 })
 }
 
 impl Recorder {
-    /// Starts `dir/scene-<id>.mcap` with the creation request and reply and the map.
+    /// Starts the recording of scene `scene` at [`free_path`]`(dir, scene)` with the creation
+    /// request and reply and the map.
     pub fn start(
         dir: &Path,
         scene: u64,
@@ -83,15 +102,28 @@ impl Recorder {
         map: Option<&LaneletMap>,
         at: SystemTime,
     ) -> Result<Self> {
-        std::fs::create_dir_all(dir).map_err(|source| Error::Io {
-            path: dir.to_owned(),
-            source,
-        })?;
-        let path = dir.join(format!("scene-{scene}.mcap"));
-        let file = File::create(&path).map_err(|source| Error::Io {
-            path: path.clone(),
-            source,
-        })?;
+        let path = free_path(dir, scene)?;
+        Self::start_at(&path, request, created, map, at)
+    }
+
+    /// Starts a recording at `path`, a file that must not exist yet (a recording is never
+    /// overwritten), with the creation request and reply and the map.
+    pub fn start_at(
+        path: &Path,
+        request: &[u8],
+        created: &[u8],
+        map: Option<&LaneletMap>,
+        at: SystemTime,
+    ) -> Result<Self> {
+        let path = path.to_owned();
+        let file = File::options()
+            .write(true)
+            .create_new(true)
+            .open(&path)
+            .map_err(|source| Error::Io {
+                path: path.clone(),
+                source,
+            })?;
         let rec_err = |path: &Path, e: mcap::McapError| Error::Record {
             path: path.to_owned(),
             reason: e.to_string(),
@@ -317,6 +349,25 @@ mod tests {
             external,
             history: vec![],
         }
+    }
+
+    #[test]
+    fn a_restarted_server_never_overwrites_a_recording() {
+        let dir = std::env::temp_dir().join(format!("road-record-free-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let t0 = SystemTime::UNIX_EPOCH + Duration::from_secs(1_700_000_000);
+        let first = Recorder::start(&dir, 1, b"{}", b"{\"run\":1}", None, t0).unwrap();
+        first.finish().unwrap();
+        let kept = std::fs::read(dir.join("scene-1.mcap")).unwrap();
+        assert_eq!(free_path(&dir, 1).unwrap(), dir.join("scene-1-2.mcap"));
+        let second = Recorder::start(&dir, 1, b"{}", b"{\"run\":2}", None, t0).unwrap();
+        second.finish().unwrap();
+        assert_eq!(std::fs::read(dir.join("scene-1.mcap")).unwrap(), kept);
+        assert!(dir.join("scene-1-2.mcap").exists());
+        assert_eq!(free_path(&dir, 1).unwrap(), dir.join("scene-1-3.mcap"));
+        let taken = dir.join("scene-1.mcap");
+        assert!(Recorder::start_at(&taken, b"{}", b"{}", None, t0).is_err());
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]

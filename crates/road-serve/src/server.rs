@@ -28,7 +28,7 @@ use zenoh::sample::SampleKind;
 use crate::config::ServeConfig;
 use crate::models::{Checkpoints, find_models_dir, planners};
 use crate::pool::{Pool, PoolKey};
-use crate::record::{Recorder, topics};
+use crate::record::{Recorder, free_path, topics};
 use crate::scene::{LiveScene, SetupContext, setup};
 use crate::{Error, Result};
 
@@ -386,7 +386,7 @@ impl Core {
         }
         let ids: Vec<u64> = self.scenes.keys().copied().collect();
         for id in ids {
-            self.close(id, "the server stops");
+            self.close_notifying(id, "the server stops");
         }
         Ok(())
     }
@@ -434,7 +434,7 @@ impl Core {
                     .map(|(&id, _)| id)
                     .collect();
                 for id in ids {
-                    self.close(id, &format!("client {client} went away"));
+                    self.close_notifying(id, &format!("its client {client} went away"));
                 }
             }
             Event::Stop => return false,
@@ -516,6 +516,20 @@ impl Core {
                 }
             }
         }
+        let recording = match self.config.record_dir.as_deref().map(|d| free_path(d, id)) {
+            Some(Ok(path)) => Some(path),
+            Some(Err(e)) => {
+                return reply_err(
+                    query,
+                    &ErrorReply::new(
+                        ErrorCode::Internal,
+                        None,
+                        format!("cannot record the scene: {e}"),
+                    ),
+                );
+            }
+            None => None,
+        };
         let pool = self.pools.get_mut(&key).expect("inserted above");
         let live = match LiveScene::new(id, scene_setup, key, pool, Instant::now()) {
             Ok(l) => l,
@@ -531,11 +545,6 @@ impl Core {
             }
         };
         self.next_id += 1;
-        let recording = self
-            .config
-            .record_dir
-            .as_ref()
-            .map(|d| d.join(format!("scene-{id}.mcap")));
         let created = SceneCreated {
             protocol: PROTOCOL_VERSION,
             scene: id,
@@ -552,9 +561,9 @@ impl Core {
             recording: recording.as_ref().map(|p| p.display().to_string()),
         };
         let created_json = serde_json::to_vec(&created).expect("replies serialise");
-        let recorder = match &self.config.record_dir {
-            Some(dir) => {
-                match Recorder::start(dir, id, &payload, &created_json, map.as_deref(), at) {
+        let recorder = match &recording {
+            Some(path) => {
+                match Recorder::start_at(path, &payload, &created_json, map.as_deref(), at) {
                     Ok(mut r) => {
                         let start: Vec<road_sim::Pose> = live.poses().to_vec();
                         if let Err(e) = r.agents(&live.agents, &start, false, at) {
@@ -563,6 +572,12 @@ impl Core {
                         Some(r)
                     }
                     Err(e) => {
+                        // The scene is in its pool already: give the slot back.
+                        if let Some(pool) = self.pools.get_mut(&live.pool) {
+                            if let Err(e) = pool.remove(live.slot) {
+                                tracing::error!(scene = id, "cannot leave the pool: {e}");
+                            }
+                        }
                         return reply_err(
                             query,
                             &ErrorReply::new(
@@ -639,6 +654,19 @@ impl Core {
                 &ErrorReply::new(ErrorCode::UnknownScene, Some("scene"), "no such scene"),
             ),
         }
+    }
+
+    /// Closes a scene its client did not ask to close, telling the client why on the scene's
+    /// error key (`scene_closed`), so that a client waiting for a tick hears of it.
+    fn close_notifying(&mut self, id: u64, why: &str) {
+        let tick = self.scenes.get(&id).map(|e| e.live.tick + 1);
+        let error = ErrorReply {
+            scene: Some(id),
+            tick,
+            ..ErrorReply::new(ErrorCode::SceneClosed, None, format!("the server closed the scene: {why}"))
+        };
+        self.publish_error(&id.to_string(), &error);
+        self.close(id, why);
     }
 
     /// Removes a scene and finishes its recording.
@@ -875,14 +903,22 @@ impl Core {
                 }
             }
         }
+        // Idle: no tick in progress or waiting, and nothing from the client since it last
+        // heard from us (a long warm-up is the server's silence, not the client's).
         let idle: Vec<u64> = self
             .scenes
             .iter()
-            .filter(|(_, e)| e.live.last_heard.elapsed() > self.config.idle_timeout)
+            .filter(|(_, e)| {
+                let live = &e.live;
+                live.in_flight.is_none()
+                    && live.pending.is_none()
+                    && live.last_heard.max(live.waiting_since).elapsed() > self.config.idle_timeout
+            })
             .map(|(&id, _)| id)
             .collect();
         for id in idle {
-            self.close(id, "idle timeout");
+            let timeout = self.config.idle_timeout.as_secs_f64();
+            self.close_notifying(id, &format!("idle timeout ({timeout} s without a word from its client)"));
         }
     }
 

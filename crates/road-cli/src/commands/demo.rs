@@ -69,7 +69,7 @@ pub struct DemoArgs {
 }
 
 /// `--map`: a procedural map by name.
-fn parse_map(name: &str) -> std::result::Result<ProceduralMap, String> {
+pub(crate) fn parse_map(name: &str) -> std::result::Result<ProceduralMap, String> {
     ProceduralMap::from_name(name).ok_or_else(|| {
         format!(
             "unknown procedural map {name:?}; known: {}",

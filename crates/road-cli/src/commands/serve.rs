@@ -1,7 +1,8 @@
 //! `road serve`: the networked NPC server (`road-serve`) over Eclipse Zenoh. With no
 //! arguments it runs the default checkpoint `road20-cvpairs` from `models/` (in the working directory,
 //! next to the binary, or `--models` / `ROAD_MODELS`), peer mode with zenoh's defaults, and
-//! records every scene under `recordings/`.
+//! records every scene under `recordings/`. SIGINT and SIGTERM close every scene (and finish
+//! its recording) before the process ends.
 
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -52,6 +53,7 @@ pub struct ServeArgs {
 pub fn run(args: ServeArgs) -> Result<ExitCode> {
     let models = find_models_dir(args.models.as_deref())?;
     let mut config = ServeConfig::new(models);
+    let prefix = args.prefix.trim_matches('/').to_owned();
     config.prefix = args.prefix;
     config.default_checkpoint = args.checkpoint;
     config.record_dir = (!args.no_record).then_some(args.record);
@@ -73,11 +75,20 @@ pub fn run(args: ServeArgs) -> Result<ExitCode> {
             .push((name.to_owned(), PathBuf::from(path)));
     }
     let zenoh = args.zenoh.to_config()?;
+    let stop = crate::signals::termination()?;
     let server = Server::new(config, zenoh)
         .start()
         .context("cannot start the server")?;
     for endpoint in server.listen_endpoints() {
         out!("road serve: listening on {endpoint}");
+    }
+    out!("road serve: keys under {prefix}/, zenoh id {}", server.session().zid());
+    while server.is_running() {
+        if let Ok(signal) = stop.recv_timeout(Duration::from_millis(200)) {
+            tracing::info!("{signal}: closing every scene and its recording");
+            server.stop()?;
+            return Ok(ExitCode::SUCCESS);
+        }
     }
     server.join()?;
     Ok(ExitCode::SUCCESS)
