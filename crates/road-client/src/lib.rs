@@ -65,6 +65,11 @@ pub enum Error {
          client was cut off (e.g. a zenoh router restarted), so the tick will not come"
     )]
     SceneGone { scene: u64, prefix: String },
+    #[error(
+        "nobody answered the query on {key}: no server has that prefix, or zenoh's access \
+         control refused this client (docs/deploy.md)"
+    )]
+    NoAnswer { key: String },
     #[error("no server under {root} has room for a scene{unreachable}")]
     NoServer { root: String, unreachable: String },
     #[error("unreadable reply on {key}: {reason}")]
@@ -458,6 +463,22 @@ impl Scene {
         Ok(())
     }
 
+    /// The next NPC tick of this scene, waiting up to `timeout` for it (`None` if none came).
+    pub fn try_npc(&self, timeout: Duration) -> Result<Option<NpcTick>> {
+        let sample = self
+            .npc
+            .recv_timeout(timeout)
+            .map_err(|e| Error::Zenoh(e.to_string()))?;
+        sample
+            .map(|sample| {
+                serde_json::from_slice(&sample.payload().to_bytes()).map_err(|e| Error::Reply {
+                    key: self.created.npc_key.clone(),
+                    reason: e.to_string(),
+                })
+            })
+            .transpose()
+    }
+
     /// An error the server published for this scene, if one is waiting.
     pub fn try_error(&self) -> Result<Option<ErrorReply>> {
         match self
@@ -528,9 +549,13 @@ fn query_raw(
     timeout: Duration,
 ) -> Result<Result<Vec<u8>, ErrorReply>> {
     let replies = session.get(key).payload(payload).timeout(timeout).wait()?;
+    // The channel closes without a reply when the query reached no queryable, or when
+    // zenoh's access control dropped it on the way.
     let reply = replies
         .recv_timeout(timeout + Duration::from_secs(1))
-        .map_err(|e| Error::Zenoh(e.to_string()))?
+        .map_err(|_| Error::NoAnswer {
+            key: key.to_owned(),
+        })?
         .ok_or_else(|| Error::Timeout {
             what: format!("the query on {key}"),
             timeout,
