@@ -187,8 +187,18 @@ fn two_servers_behind_a_router_share_the_scenes() {
     let mut west = server_behind(&endpoint, "road/west", &dir.join("west"), &[]);
     let args = client_args(&endpoint, &[]);
     // Both up: each answers its status through the router.
-    let _east = connect(&args, "road/east", "probe-east", &mut [&mut router, &mut east]);
-    let _west = connect(&args, "road/west", "probe-west", &mut [&mut router, &mut west]);
+    let _east = connect(
+        &args,
+        "road/east",
+        "probe-east",
+        &mut [&mut router, &mut east],
+    );
+    let _west = connect(
+        &args,
+        "road/west",
+        "probe-west",
+        &mut [&mut router, &mut west],
+    );
 
     let session = zenoh::open(args.to_config().unwrap()).wait().unwrap();
     let found = road_client::discover(&session, "road", Duration::from_secs(5)).unwrap();
@@ -263,7 +273,12 @@ fn an_unlisted_client_cannot_create_scenes() {
     );
     let mut router = router(
         &endpoint,
-        &["--config", "configs/zenoh/router-acl.json5", "--cfg", &users],
+        &[
+            "--config",
+            "configs/zenoh/router-acl.json5",
+            "--cfg",
+            &users,
+        ],
     );
     let login = |user: &str, password: &str| {
         vec![
@@ -280,7 +295,12 @@ fn an_unlisted_client_cannot_create_scenes() {
 
     // A listed client creates, ticks and closes a scene.
     let listed = client_args(&endpoint, &login("ego-a", "change-me-ego-a"));
-    let client = connect(&listed, DEFAULT_PREFIX, "ego-a", &mut [&mut router, &mut server]);
+    let client = connect(
+        &listed,
+        DEFAULT_PREFIX,
+        "ego-a",
+        &mut [&mut router, &mut server],
+    );
     let mut scene = client.create(roundabout(0)).unwrap();
     assert_eq!(scene.step(1, vec![ego_at(&scene, 1)]).unwrap().tick, 1);
     scene.close().unwrap();
@@ -295,7 +315,10 @@ fn an_unlisted_client_cannot_create_scenes() {
     let err = guest.create(roundabout(1)).unwrap_err();
     assert!(matches!(err, Error::NoAnswer { .. }), "{err}");
     let text = err.to_string();
-    assert!(text.contains("road/scenes/create") && text.contains("access control"), "{text}");
+    assert!(
+        text.contains("road/scenes/create") && text.contains("access control"),
+        "{text}"
+    );
     // Nor was anything created behind its back.
     assert!(client.status().unwrap().scenes.is_empty());
 
@@ -383,7 +406,12 @@ fn a_router_restart_between_ticks_ends_the_scene_with_a_clear_error() {
     let mut first_router = router(&endpoint, &[]);
     let mut server = server_behind(&endpoint, DEFAULT_PREFIX, &dir.join("rec"), &[]);
     let args = client_args(&endpoint, &[]);
-    let client = connect(&args, DEFAULT_PREFIX, "ego", &mut [&mut first_router, &mut server]);
+    let client = connect(
+        &args,
+        DEFAULT_PREFIX,
+        "ego",
+        &mut [&mut first_router, &mut server],
+    );
     let mut scene = client.create(roundabout(0)).unwrap();
     for t in 1..=2 {
         assert_eq!(scene.step(t, vec![ego_at(&scene, t)]).unwrap().tick, t);
@@ -469,7 +497,8 @@ fn sixteen_clients_sending_ticks_as_fast_as_they_can_lose_none() {
                         );
                         while let Some(e) = scene.try_error().unwrap() {
                             let ErrorReply { tick, code, .. } = e;
-                            out.refused.push((tick.expect("a tick's error names it"), code));
+                            out.refused
+                                .push((tick.expect("a tick's error names it"), code));
                         }
                         if let Some(npc) = scene_npc(&scene) {
                             out.answered.push(npc.tick);

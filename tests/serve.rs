@@ -1,6 +1,6 @@
 //! End-to-end tests of `road serve` as a child process: it finds its checkpoints from anywhere,
 //! says which paths it tried when it cannot, and its recordings survive a SIGKILL up to the
-//! last flushed chunk.
+//! last flushed chunk (while its client's next tick fails with the reason).
 
 use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
@@ -105,6 +105,18 @@ fn a_killed_servers_recording_reads_back_to_its_last_chunk() {
     // SIGKILL: no chance to finish the file.
     server.0.kill().unwrap();
     server.0.wait().unwrap();
+    // The client's next tick fails at once with the reason instead of hanging.
+    let ego = AgentState {
+        id: 1,
+        x_m: last.x_m,
+        y_m: last.y_m,
+        heading_rad: last.heading_rad,
+    };
+    let err = scene.step(ticks + 1, vec![ego]).unwrap_err();
+    assert!(
+        matches!(err, road_client::Error::ServerGone { .. }),
+        "{err}"
+    );
     let bytes = std::fs::read(record.join(path.file_name().unwrap())).unwrap();
     let mut options = enumset::EnumSet::empty();
     options.insert(mcap::read::Options::IgnoreEndMagic);

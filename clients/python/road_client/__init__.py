@@ -11,6 +11,18 @@ Create a scene, step it tick by tick with the ego's poses, close it::
     scene.close()
     client.close()
 
+Several servers under one root (``road serve --prefix road/a``, ``road/b``, behind a zenoh
+router): find them and put the scene on the least-loaded one::
+
+    from road_client import Client, open_session
+    session = open_session(connect=["tcp/127.0.0.1:7447"])
+    client, scene = Client.create_on_least_loaded(session, "road", "my-ego",
+                                                  {"procedural": "roundabout"}, external=[1])
+    ...  # keep ``client``: its liveliness token keeps the scene
+    scene.close()
+    client.close()
+    session.close()
+
 The messages are the JSON of ``docs/protocol.md``; poses are metres and radians in the map's
 frame.
 """
@@ -35,6 +47,10 @@ __all__ = [
     "Scene",
     "SceneClosed",
     "SceneCreated",
+    "ServerInfo",
+    "discover",
+    "least_loaded",
+    "open_session",
 ]
 
 DEFAULT_PREFIX = "road"
@@ -111,6 +127,34 @@ class SceneClosed:
     recording: Optional[str] = None
 
 
+@dataclass
+class ServerInfo:
+    """A server found under a root: its key prefix and the ``Status`` it answered with (the
+    JSON of ``docs/protocol.md``, kept as a dict so that new status fields need no client
+    change)."""
+
+    prefix: str
+    status: dict
+
+    @property
+    def scenes(self) -> int:
+        return len(self.status.get("scenes", []))
+
+    @property
+    def capacity(self) -> int:
+        return int(self.status.get("capacity", 0))
+
+    @property
+    def load(self) -> float:
+        """Live scenes over capacity: 0 when idle, 1 when full."""
+        return self.scenes / max(self.capacity, 1)
+
+    @property
+    def has_room(self) -> bool:
+        """Whether another scene fits."""
+        return self.scenes < self.capacity
+
+
 class RoadError(Exception):
     """The server refused a request or a tick (its error reply), or nothing came in time."""
 
@@ -153,16 +197,108 @@ def _error(payload: bytes) -> RoadError:
         return RoadError("unreadable", payload[:200].decode("utf-8", "replace"))
 
 
+def _query(session: zenoh.Session, key: str, payload: bytes, timeout_s: float) -> dict:
+    """The first reply of the queryable at ``key``; its error reply raised as ``RoadError``.
+    A get that no queryable matches ends at once with no reply, reported as a timeout too."""
+    start = time.monotonic()
+    replies = session.get(key, payload=payload, timeout=timeout_s)
+    for reply in replies:
+        if reply.ok is not None:
+            return json.loads(reply.ok.payload.to_bytes())
+        raise _error(reply.err.payload.to_bytes())
+    waited = time.monotonic() - start
+    if waited < 0.9 * timeout_s:
+        raise RoadError("timeout", f"no reply on {key}: no queryable there answered "
+                                   f"(after {waited:.1f} s of {timeout_s} s)")
+    raise RoadError("timeout", f"no reply on {key} within {timeout_s} s")
+
+
+def _server_prefix_of(key: str) -> Optional[str]:
+    """The prefix of the server whose liveliness token is at ``key`` (``road/east/alive/server``
+    -> ``road/east``), or None when ``key`` is not a server's token."""
+    suffix = "/alive/server"
+    if key.endswith(suffix) and len(key) > len(suffix):
+        return key[: -len(suffix)]
+    return None
+
+
+def open_session(connect: Optional[list[str]] = None, listen: Optional[list[str]] = None,
+                 mode: Optional[str] = None, multicast_scouting: bool = False,
+                 config_file: Optional[str] = None,
+                 overrides: Optional[list[tuple[str, str]]] = None) -> zenoh.Session:
+    """Opens a zenoh session from a json5 config file and/or endpoints. ``mode`` is ``peer``
+    (zenoh's default), ``client`` or ``router``; multicast scouting is off unless asked for, so
+    that tests and containers find only the endpoints they name. ``overrides`` are
+    ``(key, json5 value)`` pairs applied last, as ``road``'s ``--cfg KEY:VALUE`` (e.g. a
+    router's user and password)."""
+    conf = zenoh.Config.from_file(config_file) if config_file else zenoh.Config()
+    if mode is not None:
+        if mode not in ("peer", "client", "router"):
+            raise ValueError(f"zenoh mode {mode!r}: expected peer, client or router")
+        conf.insert_json5("mode", json.dumps(mode))
+    if connect:
+        conf.insert_json5("connect/endpoints", json.dumps(connect))
+    if listen:
+        conf.insert_json5("listen/endpoints", json.dumps(listen))
+    if not multicast_scouting:
+        conf.insert_json5("scouting/multicast/enabled", "false")
+    for key, value in overrides or []:
+        conf.insert_json5(key, value)
+    return zenoh.open(conf)
+
+
+def discover(session: zenoh.Session, root: str = DEFAULT_PREFIX, timeout_s: float = 5.0
+             ) -> tuple[list[ServerInfo], list[tuple[str, RoadError]]]:
+    """Every server whose prefix is ``root`` or lies below it, with its status, sorted by
+    prefix; and, so that none is dropped silently, the servers whose liveliness token is there
+    but whose status did not come, each with its error.
+
+    Every ``road serve`` holds a liveliness token at ``<prefix>/alive/server``, so one
+    liveliness query on ``<root>/**/alive/server`` (``**`` matches zero chunks too) lists the
+    servers the session reaches through its routers. ``timeout_s`` bounds the liveliness query
+    and each status query (a busy server answers its status between two batched rounds)."""
+    selector = f"{root.strip('/')}/**/alive/server"
+    prefixes = set()
+    # The handler's channel ends when every router has answered or the timeout has passed.
+    for reply in session.liveliness().get(selector, timeout=timeout_s):
+        if reply.ok is None:
+            continue
+        prefix = _server_prefix_of(str(reply.ok.key_expr))
+        if prefix is not None:
+            prefixes.add(prefix)
+    servers: list[ServerInfo] = []
+    unreachable: list[tuple[str, RoadError]] = []
+    for prefix in sorted(prefixes):
+        try:
+            servers.append(ServerInfo(prefix, _query(session, f"{prefix}/status", b"",
+                                                     timeout_s)))
+        except RoadError as e:
+            unreachable.append((prefix, e))
+        except ValueError as e:
+            unreachable.append((prefix, RoadError("unreadable", f"status of {prefix}: {e}")))
+    return servers, unreachable
+
+
+def least_loaded(servers: list[ServerInfo]) -> Optional[ServerInfo]:
+    """The server with room whose load is lowest; ties go to fewer live scenes, then to the
+    prefix (so that placement is deterministic). None when none has room."""
+    with_room = [s for s in servers if s.has_room]
+    return min(with_room, key=lambda s: (s.load, s.scenes, s.prefix), default=None)
+
+
 class Client:
     """A session to a road server, announced by a liveliness token (while it lives, the server
     keeps the client's scenes)."""
 
     def __init__(self, session: zenoh.Session, client_id: str, prefix: str = DEFAULT_PREFIX,
-                 timeout_s: float = 60.0):
+                 timeout_s: float = 60.0, owns_session: bool = True):
+        """``owns_session``: whether ``close()`` closes the session too (False when several
+        clients, e.g. one per server, share it)."""
         self.session = session
         self.client_id = client_id
         self.prefix = prefix.strip("/")
         self.timeout_s = timeout_s
+        self.owns_session = owns_session
         self._token = session.liveliness().declare_token(f"{self.prefix}/alive/client/{client_id}")
 
     @classmethod
@@ -171,22 +307,42 @@ class Client:
              multicast_scouting: bool = False, config_file: Optional[str] = None,
              timeout_s: float = 60.0) -> "Client":
         """Opens a zenoh session (peer mode) from a json5 config file and/or endpoints."""
-        conf = zenoh.Config.from_file(config_file) if config_file else zenoh.Config()
-        if connect:
-            conf.insert_json5("connect/endpoints", json.dumps(connect))
-        if listen:
-            conf.insert_json5("listen/endpoints", json.dumps(listen))
-        if not multicast_scouting:
-            conf.insert_json5("scouting/multicast/enabled", "false")
-        return cls(zenoh.open(conf), client_id, prefix, timeout_s)
+        session = open_session(connect=connect, listen=listen,
+                               multicast_scouting=multicast_scouting, config_file=config_file)
+        return cls(session, client_id, prefix, timeout_s)
+
+    @classmethod
+    def create_on_least_loaded(cls, session: zenoh.Session, root: str, client_id: str,
+                               map: dict, agents: Optional[list[AgentInit]] = None,
+                               external: Optional[list[int]] = None,
+                               planner: Optional[str] = None, checkpoint: Optional[str] = None,
+                               seed: int = 0, max_ticks: Optional[int] = None,
+                               timeout_s: float = 60.0, discover_timeout_s: Optional[float] = None
+                               ) -> tuple["Client", "Scene"]:
+        """Finds the servers under ``root`` (``discover``) and creates the scene (arguments as
+        ``create_scene``) on the least-loaded one with room. Returns the client of that server,
+        sharing ``session`` (its ``close()`` leaves the session open), and the scene: keep the
+        client, its liveliness token keeps the scene. Raises ``RoadError`` with code
+        ``no_server`` when no server has room, naming the servers that did not answer.
+        ``discover_timeout_s`` (default ``timeout_s``) bounds the discovery's queries."""
+        servers, unreachable = discover(
+            session, root, timeout_s if discover_timeout_s is None else discover_timeout_s)
+        server = least_loaded(servers)
+        if server is None:
+            why = "".join(f"; {prefix} did not answer: {e}" for prefix, e in unreachable)
+            raise RoadError("no_server", f"no server under {root} has room for a scene "
+                                         f"({len(servers)} found{why})")
+        client = cls(session, client_id, server.prefix, timeout_s, owns_session=False)
+        try:
+            scene = client.create_scene(map, agents=agents, external=external, planner=planner,
+                                        checkpoint=checkpoint, seed=seed, max_ticks=max_ticks)
+        except BaseException:
+            client.close()
+            raise
+        return client, scene
 
     def _query(self, key: str, payload: bytes) -> dict:
-        replies = self.session.get(key, payload=payload, timeout=self.timeout_s)
-        for reply in replies:
-            if reply.ok is not None:
-                return json.loads(reply.ok.payload.to_bytes())
-            raise _error(reply.err.payload.to_bytes())
-        raise RoadError("timeout", f"no reply on {key} within {self.timeout_s} s")
+        return _query(self.session, key, payload, self.timeout_s)
 
     def create_scene(self, map: dict, agents: Optional[list[AgentInit]] = None,
                      external: Optional[list[int]] = None, planner: Optional[str] = None,
@@ -218,7 +374,8 @@ class Client:
 
     def close(self) -> None:
         self._token.undeclare()
-        self.session.close()
+        if self.owns_session:
+            self.session.close()
 
 
 class Scene:
@@ -230,6 +387,11 @@ class Scene:
         self.last: Optional[NpcTick] = None
         self._npc = client.session.declare_subscriber(created.npc_key)
         self._errors = client.session.declare_subscriber(created.error_key)
+        # The server's liveliness token: when it goes (the server stopped, or the network to it
+        # was cut) no tick will come, so a wait ends at once instead of at its timeout.
+        self._server_alive = client.session.liveliness().declare_subscriber(
+            f"{client.prefix}/alive/server")
+        self._server_gone = False
 
     @property
     def id(self) -> int:
@@ -240,20 +402,40 @@ class Scene:
                "client": self.client.client_id}
         self.client.session.put(self.created.ego_key, json.dumps(msg).encode())
 
+    def poll(self, tick: int) -> Optional[NpcTick]:
+        """The NPCs of ``tick`` if they have come, else None, without waiting (to drive several
+        scenes from one thread); raises the server's error for this scene (e.g. ``bad_tick``,
+        ``scene_closed``), or ``server_gone`` when the server's liveliness token went."""
+        err = self._errors.try_recv()
+        if err is not None:
+            raise _error(err.payload.to_bytes())
+        while True:
+            sample = self._npc.try_recv()
+            if sample is None:
+                break
+            npc = _npc_tick(json.loads(sample.payload.to_bytes()))
+            self.last = npc
+            if npc.tick >= tick:
+                return npc
+        while not self._server_gone:
+            alive = self._server_alive.try_recv()
+            if alive is None:
+                break
+            # Sticky: a server back under the same prefix does not know this scene.
+            self._server_gone = alive.kind == zenoh.SampleKind.DELETE
+        if self._server_gone:
+            raise RoadError("server_gone",
+                            f"the server at {self.client.prefix} went away (its liveliness "
+                            f"token is gone) before tick {tick} of scene {self.id}")
+        return None
+
     def wait_tick(self, tick: int) -> NpcTick:
         """Waits for the NPCs of ``tick``; raises the server's error for this scene."""
         deadline = time.monotonic() + self.client.timeout_s
         while True:
-            err = self._errors.try_recv()
-            if err is not None:
-                raise _error(err.payload.to_bytes())
-            sample = self._npc.try_recv()
-            if sample is not None:
-                npc = _npc_tick(json.loads(sample.payload.to_bytes()))
-                self.last = npc
-                if npc.tick >= tick:
-                    return npc
-                continue
+            npc = self.poll(tick)
+            if npc is not None:
+                return npc
             if time.monotonic() > deadline:
                 raise RoadError("timeout", f"no NPCs for tick {tick} of scene {self.id}")
             time.sleep(0.001)
@@ -266,4 +448,5 @@ class Scene:
     def close(self) -> SceneClosed:
         self._npc.undeclare()
         self._errors.undeclare()
+        self._server_alive.undeclare()
         return self.client.close_scene(self.id)

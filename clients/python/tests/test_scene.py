@@ -43,17 +43,20 @@ def free_port() -> int:
 def server():
     port = free_port()
     record = tempfile.mkdtemp(prefix="road-py-")
+    # The server's log goes to a file: a pipe nobody reads would fill and stall it.
+    log = open(Path(record) / "serve.log", "w+")
     proc = subprocess.Popen(
         [road_bin(), "serve", "--listen", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting",
          "--models", str(REPO / "models"), "--record", record, "--late-ego-ms", "0"],
-        stderr=subprocess.PIPE, text=True)
+        stderr=log, text=True)
     endpoint = f"tcp/127.0.0.1:{port}"
     client = None
     try:
         deadline = time.monotonic() + 120
         while True:
             if proc.poll() is not None:
-                pytest.fail(f"road serve exited with {proc.returncode}: {proc.stderr.read()}")
+                log.seek(0)
+                pytest.fail(f"road serve exited with {proc.returncode}: {log.read()}")
             try:
                 client = Client.open(connect=[endpoint], client_id="pytest", timeout_s=5.0)
                 client.status()
@@ -75,6 +78,7 @@ def server():
             proc.wait(timeout=30)
         except subprocess.TimeoutExpired:
             proc.kill()
+        log.close()
 
 
 def test_log_replay_ego_for_100_ticks(server):

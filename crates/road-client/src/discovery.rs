@@ -40,15 +40,12 @@ pub struct Discovered {
 impl Discovered {
     /// The server with room whose load is lowest (ties: fewer live scenes, then the prefix).
     pub fn least_loaded(&self) -> Option<&ServerInfo> {
-        self.servers
-            .iter()
-            .filter(|s| s.has_room())
-            .min_by(|a, b| {
-                a.load()
-                    .total_cmp(&b.load())
-                    .then(a.status.scenes.len().cmp(&b.status.scenes.len()))
-                    .then(a.prefix.cmp(&b.prefix))
-            })
+        self.servers.iter().filter(|s| s.has_room()).min_by(|a, b| {
+            a.load()
+                .total_cmp(&b.load())
+                .then(a.status.scenes.len().cmp(&b.status.scenes.len()))
+                .then(a.prefix.cmp(&b.prefix))
+        })
     }
 }
 

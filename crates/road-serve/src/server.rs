@@ -663,7 +663,11 @@ impl Core {
         let error = ErrorReply {
             scene: Some(id),
             tick,
-            ..ErrorReply::new(ErrorCode::SceneClosed, None, format!("the server closed the scene: {why}"))
+            ..ErrorReply::new(
+                ErrorCode::SceneClosed,
+                None,
+                format!("the server closed the scene: {why}"),
+            )
         };
         self.publish_error(&id.to_string(), &error);
         self.close(id, why);
@@ -918,7 +922,10 @@ impl Core {
             .collect();
         for id in idle {
             let timeout = self.config.idle_timeout.as_secs_f64();
-            self.close_notifying(id, &format!("idle timeout ({timeout} s without a word from its client)"));
+            self.close_notifying(
+                id,
+                &format!("idle timeout ({timeout} s without a word from its client)"),
+            );
         }
     }
 

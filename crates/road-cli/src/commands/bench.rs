@@ -33,6 +33,10 @@ pub enum BenchCommand {
     /// driver (windows on the engine, only emitted slots read back), with scenes joining (a
     /// fresh warm-up) every few ticks, against the same scenes in lockstep as the baseline.
     Serve(ServeBenchArgs),
+    /// A soak: N scene create/tick/close cycles against a `road serve` child process; its
+    /// resident memory, open file descriptors and threads before, after a warm-up (the
+    /// baseline) and along the way.
+    Soak(crate::commands::soak::SoakBenchArgs),
 }
 
 #[derive(Debug, Args)]
@@ -124,6 +128,7 @@ pub fn run(cmd: BenchCommand) -> Result<ExitCode> {
             Ok(())
         }
         BenchCommand::Serve(args) => serve_bench(&args),
+        BenchCommand::Soak(args) => crate::commands::soak::run(&args),
     }
     .map(|()| ExitCode::SUCCESS)
 }

@@ -90,7 +90,8 @@ pub fn run(args: EgoArgs) -> Result<ExitCode> {
             checkpoint: None,
             seed: args.seed + i as u64,
             client: None,
-            max_ticks: None,
+            // The server stops there and waits for the close (no late-ego tick after the last).
+            max_ticks: Some(args.ticks),
         };
         let (client, scene) = match &args.discover {
             Some(root) => place(&session, root, &id, request, timeout, args.wait_s)
@@ -168,7 +169,9 @@ pub fn run(args: EgoArgs) -> Result<ExitCode> {
     for d in &driven {
         let entry = by_server.entry(&d.server).or_default();
         entry.0 += 1;
-        entry.1.extend_from_slice(d.rtt_ms.get(1..).unwrap_or_default());
+        entry
+            .1
+            .extend_from_slice(d.rtt_ms.get(1..).unwrap_or_default());
         entry.2 += d.late;
     }
     for (server, (scenes, rtt, late)) in &by_server {
@@ -213,13 +216,7 @@ fn place(
 ) -> Result<(Client, Scene)> {
     let until = Instant::now() + Duration::from_secs_f64(wait_s.max(0.0));
     loop {
-        match Client::create_on_least_loaded(
-            session.clone(),
-            root,
-            id,
-            request.clone(),
-            timeout,
-        ) {
+        match Client::create_on_least_loaded(session.clone(), root, id, request.clone(), timeout) {
             Ok(placed) => return Ok(placed),
             Err(road_client::Error::NoServer { .. }) if Instant::now() < until => {
                 std::thread::sleep(Duration::from_millis(250));

@@ -14,6 +14,7 @@ pub mod router;
 pub mod sample;
 pub mod sched;
 pub mod serve;
+pub mod soak;
 pub mod train;
 pub mod zenoh_bench;
 

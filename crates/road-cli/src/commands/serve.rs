@@ -82,7 +82,10 @@ pub fn run(args: ServeArgs) -> Result<ExitCode> {
     for endpoint in server.listen_endpoints() {
         out!("road serve: listening on {endpoint}");
     }
-    out!("road serve: keys under {prefix}/, zenoh id {}", server.session().zid());
+    out!(
+        "road serve: keys under {prefix}/, zenoh id {}",
+        server.session().zid()
+    );
     while server.is_running() {
         if let Ok(signal) = stop.recv_timeout(Duration::from_millis(200)) {
             tracing::info!("{signal}: closing every scene and its recording");

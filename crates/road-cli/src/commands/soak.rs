@@ -1,0 +1,202 @@
+//! `road bench soak`: a `road serve` child process (this binary, TCP on loopback, recording on)
+//! takes N scene cycles from one client session: a new client id, create a scene on the
+//! procedural roundabout, tick it, close it. The server's resident memory, open file
+//! descriptors and threads (read from `/proc/<pid>`) are sampled before the first scene,
+//! after a warm-up (the pool, the checkpoint, zenoh's buffers are in place: the baseline) and
+//! every few hundred cycles to the end: a leak shows as a slope against the baseline.
+
+use std::path::PathBuf;
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use road_client::protocol::{AgentState, CreateScene, DEFAULT_PREFIX, MapSource};
+use road_client::{Client, ZenohArgs};
+use zenoh::Wait;
+
+#[derive(Debug, Args)]
+pub struct SoakBenchArgs {
+    /// Scene create/tick/close cycles after the warm-up.
+    #[arg(long, default_value_t = 1000)]
+    pub cycles: usize,
+    /// Cycles before the baseline sample.
+    #[arg(long, default_value_t = 20)]
+    pub warmup: usize,
+    /// Ticks per scene (the first holds the model's warm-up).
+    #[arg(long, default_value_t = 1)]
+    pub ticks: u64,
+    /// Sample the server every this many cycles.
+    #[arg(long, default_value_t = 250)]
+    pub sample_every: usize,
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// The server process's footprint at one moment.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct Footprint {
+    pub cycles: usize,
+    pub rss_mib: f64,
+    pub open_fds: usize,
+    pub threads: usize,
+    pub recordings: usize,
+}
+
+/// Kills the server when the bench ends, however it ends.
+struct ServerProcess(Child);
+
+impl Drop for ServerProcess {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+fn footprint(pid: u32, cycles: usize, record: &std::path::Path) -> Result<Footprint> {
+    let status_path = format!("/proc/{pid}/status");
+    let status = std::fs::read_to_string(&status_path)
+        .with_context(|| format!("cannot read {status_path} (Linux only)"))?;
+    let field = |name: &str| -> Result<u64> {
+        status
+            .lines()
+            .find_map(|l| l.strip_prefix(name))
+            .and_then(|v| v.split_whitespace().next())
+            .and_then(|v| v.parse().ok())
+            .with_context(|| format!("no {name} in {status_path}"))
+    };
+    let open_fds = std::fs::read_dir(format!("/proc/{pid}/fd"))
+        .with_context(|| format!("cannot list /proc/{pid}/fd"))?
+        .count();
+    let recordings = std::fs::read_dir(record).map(|d| d.count()).unwrap_or(0);
+    Ok(Footprint {
+        cycles,
+        rss_mib: field("VmRSS:")? as f64 / 1024.0,
+        open_fds,
+        threads: field("Threads:")? as usize,
+        recordings,
+    })
+}
+
+pub fn run(args: &SoakBenchArgs) -> Result<()> {
+    anyhow::ensure!(args.cycles >= 1, "--cycles must be at least 1");
+    anyhow::ensure!(args.sample_every >= 1, "--sample-every must be at least 1");
+    let port = std::net::TcpListener::bind("127.0.0.1:0")?
+        .local_addr()?
+        .port();
+    let endpoint = format!("tcp/127.0.0.1:{port}");
+    let record: PathBuf = std::env::temp_dir().join(format!("road-soak-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&record);
+    let exe = std::env::current_exe().context("cannot find this binary")?;
+    let mut server = ServerProcess(
+        Command::new(&exe)
+            .args(["serve", "--listen", &endpoint, "--no-multicast-scouting"])
+            .args(["--late-ego-ms", "0", "--record"])
+            .arg(&record)
+            .env("RUST_LOG", "warn")
+            .stdout(Stdio::null())
+            .spawn()
+            .with_context(|| format!("cannot start {} serve", exe.display()))?,
+    );
+    let pid = server.0.id();
+    let session = zenoh::open(ZenohArgs::loopback(None, Some(&endpoint)).to_config()?)
+        .wait()
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let deadline = Instant::now() + Duration::from_secs(120);
+    loop {
+        if let Some(status) = server.0.try_wait()? {
+            bail!("road serve exited early: {status}");
+        }
+        let mut probe = Client::with_session(session.clone(), DEFAULT_PREFIX, "soak-probe")?;
+        probe.set_timeout(Duration::from_secs(2));
+        if probe.status().is_ok() {
+            break;
+        }
+        anyhow::ensure!(Instant::now() < deadline, "road serve did not come up");
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    let mut samples = vec![footprint(pid, 0, &record)?];
+    let total = args.warmup + args.cycles;
+    let started = Instant::now();
+    let mut timed_from = Instant::now();
+    for i in 1..=total {
+        cycle(&session, i, args.ticks).with_context(|| format!("cycle {i}"))?;
+        if i == args.warmup {
+            samples.push(footprint(pid, i, &record)?);
+            timed_from = Instant::now();
+        } else if i > args.warmup && ((i - args.warmup) % args.sample_every == 0 || i == total) {
+            samples.push(footprint(pid, i, &record)?);
+        }
+    }
+    let timed_secs = timed_from.elapsed().as_secs_f64();
+    drop(server);
+    let _ = std::fs::remove_dir_all(&record);
+    if args.json {
+        out!("{}", serde_json::to_string_pretty(&samples)?);
+        return Ok(());
+    }
+    out!(
+        "road bench soak: {total} cycles ({} warm-up) of create, {} tick(s), close against one `road serve` (recording on), {:.1} s in all, {:.1} cycles/s after the warm-up",
+        args.warmup,
+        args.ticks,
+        started.elapsed().as_secs_f64(),
+        args.cycles as f64 / timed_secs
+    );
+    out!("| cycles | resident MiB | open fds | threads | recordings |");
+    out!("|---:|---:|---:|---:|---:|");
+    for s in &samples {
+        out!(
+            "| {} | {:.1} | {} | {} | {} |",
+            s.cycles,
+            s.rss_mib,
+            s.open_fds,
+            s.threads,
+            s.recordings
+        );
+    }
+    let (base, end) = (&samples[1.min(samples.len() - 1)], &samples[samples.len() - 1]);
+    out!(
+        "after the warm-up to the end: resident {:+.1} MiB, open fds {:+}, threads {:+}",
+        end.rss_mib - base.rss_mib,
+        end.open_fds as i64 - base.open_fds as i64,
+        end.threads as i64 - base.threads as i64
+    );
+    Ok(())
+}
+
+/// One cycle: a fresh client id (its liveliness token comes and goes), a scene, its ticks, its
+/// close.
+fn cycle(session: &zenoh::Session, i: usize, ticks: u64) -> Result<()> {
+    let mut client = Client::with_session(session.clone(), DEFAULT_PREFIX, &format!("soak-{i}"))?;
+    client.set_timeout(Duration::from_secs(120));
+    let mut scene = client.create(CreateScene {
+        map: MapSource::Procedural("roundabout".into()),
+        agents: None,
+        external: vec![1],
+        planner: None,
+        checkpoint: None,
+        seed: i as u64,
+        client: None,
+        max_ticks: None,
+    })?;
+    let h = &scene.created().agents[0].history;
+    let (last, previous) = (h[h.len() - 1], h[h.len() - 2]);
+    for t in 1..=ticks {
+        let k = t as f64;
+        let ego = AgentState {
+            id: 1,
+            x_m: last.x_m + (last.x_m - previous.x_m) * k,
+            y_m: last.y_m + (last.y_m - previous.y_m) * k,
+            heading_rad: last.heading_rad,
+        };
+        scene.step(t, vec![ego])?;
+    }
+    let closed = scene.close()?;
+    anyhow::ensure!(
+        closed.ticks == ticks,
+        "scene {} closed after {} ticks, not {ticks}",
+        closed.scene,
+        closed.ticks
+    );
+    Ok(())
+}
