@@ -55,6 +55,10 @@ fn every_subcommand_explains_itself() {
         &["sched", "list", "--help"],
         &["gpu", "info", "--help"],
         &["gpu", "selftest", "--help"],
+        &["router", "--help"],
+        &["ego", "--help"],
+        &["bench", "soak", "--help"],
+        &["bench", "fuzz", "--help"],
     ] {
         let o = road(args);
         assert!(
@@ -63,6 +67,46 @@ fn every_subcommand_explains_itself() {
             stderr(&o)
         );
     }
+}
+
+#[test]
+fn the_protocol_fuzzer_runs_every_target_and_finds_nothing() {
+    let findings = std::env::temp_dir().join(format!("road-fuzz-{}", std::process::id()));
+    let o = road(&[
+        "bench",
+        "fuzz",
+        "--execs",
+        "400",
+        "--seed",
+        "7",
+        "--findings",
+        findings.to_str().unwrap(),
+    ]);
+    let out = stdout(&o);
+    assert!(o.status.success(), "{out}{}", stderr(&o));
+    assert!(out.contains("3600 inputs"), "{out}");
+    for row in [
+        "| Create | Mutated |",
+        "| Ego | Json |",
+        "| Close | Bytes |",
+    ] {
+        assert!(out.contains(row), "{row} missing: {out}");
+    }
+    // Mutated valid messages are accepted sometimes: the checks are not refusing everything.
+    let ego_mutated = out
+        .lines()
+        .find(|l| l.starts_with("| Ego | Mutated |"))
+        .unwrap();
+    let accepted: usize = ego_mutated
+        .split('|')
+        .nth(4)
+        .unwrap()
+        .trim()
+        .parse()
+        .unwrap();
+    assert!(accepted > 0, "{ego_mutated}");
+    assert!(out.contains("findings: none"), "{out}");
+    assert!(!findings.exists());
 }
 
 #[test]

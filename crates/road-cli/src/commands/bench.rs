@@ -37,6 +37,9 @@ pub enum BenchCommand {
     /// resident memory, open file descriptors and threads before, after a warm-up (the
     /// baseline) and along the way.
     Soak(crate::commands::soak::SoakBenchArgs),
+    /// The server's protocol decoders and checks on generated inputs (arbitrary bytes,
+    /// arbitrary JSON, mutated valid messages): inputs run, outcomes by error code, panics.
+    Fuzz(crate::commands::fuzz::FuzzBenchArgs),
 }
 
 #[derive(Debug, Args)]
@@ -129,6 +132,7 @@ pub fn run(cmd: BenchCommand) -> Result<ExitCode> {
         }
         BenchCommand::Serve(args) => serve_bench(&args),
         BenchCommand::Soak(args) => crate::commands::soak::run(&args),
+        BenchCommand::Fuzz(args) => return crate::commands::fuzz::run(&args),
     }
     .map(|()| ExitCode::SUCCESS)
 }

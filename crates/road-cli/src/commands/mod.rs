@@ -6,6 +6,7 @@ pub mod demo_zenoh;
 pub mod ego;
 pub mod engine;
 pub mod eval;
+pub mod fuzz;
 pub mod gpu;
 pub mod reactivity;
 pub mod render;

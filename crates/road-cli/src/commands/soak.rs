@@ -154,7 +154,10 @@ pub fn run(args: &SoakBenchArgs) -> Result<()> {
             s.recordings
         );
     }
-    let (base, end) = (&samples[1.min(samples.len() - 1)], &samples[samples.len() - 1]);
+    let (base, end) = (
+        &samples[1.min(samples.len() - 1)],
+        &samples[samples.len() - 1],
+    );
     out!(
         "after the warm-up to the end: resident {:+.1} MiB, open fds {:+}, threads {:+}",
         end.rss_mib - base.rss_mib,
