@@ -1,11 +1,16 @@
 #!/usr/bin/env bash
 # Installs what the test suite needs on a Debian/Ubuntu machine: Mesa's software Vulkan driver
-# (lavapipe) and the Vulkan loader. Prefers Mesa 25 from bookworm-backports where that suite is
+# (lavapipe) and the Vulkan loader, and openssl. Prefers Mesa 25 from bookworm-backports where that suite is
 # reachable (Debian 12), else the distribution's Mesa. Idempotent; needs root (or sudo).
 set -euo pipefail
 
 SUDO=""
 if [ "$(id -u)" -ne 0 ]; then SUDO="sudo"; fi
+
+# openssl makes the certificates of the TLS deployment test (tests/deploy.rs).
+if ! command -v openssl >/dev/null 2>&1; then
+    $SUDO apt-get update -q && $SUDO apt-get install -y -q openssl
+fi
 
 have_lavapipe() {
     ls /usr/share/vulkan/icd.d/lvp_icd*.json >/dev/null 2>&1 && ldconfig -p | grep -q 'libvulkan.so.1'

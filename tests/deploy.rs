@@ -1,6 +1,7 @@
 //! Deployment and faults on loopback, with `road` as child processes: two servers behind a
 //! zenoh router share the scenes of a client that places them on the least-loaded one; zenoh's
-//! access control lets only listed clients create scenes; a client killed mid-scene has its
+//! access control lets only listed clients create scenes; a TLS router takes encrypted links
+//! only; a client killed mid-scene has its
 //! scene reclaimed and its recording finished; a router restarted between two ticks ends the
 //! scene with a clear error and the client goes on with a new one; 16 clients sending ticks as
 //! fast as they can get every one answered or refused. `docs/deploy.md` describes the setup.
@@ -334,6 +335,133 @@ fn an_unlisted_client_cannot_create_scenes() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
+/// A CA and a certificate for "localhost" signed by it, made with the openssl command.
+fn localhost_certificates(dir: &Path) {
+    let run = |args: &[&str]| {
+        let o = Command::new("openssl")
+            .args(args)
+            .current_dir(dir)
+            .output()
+            .expect("openssl runs (scripts/install-test-deps.sh installs it)");
+        assert!(
+            o.status.success(),
+            "openssl {args:?}: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+    };
+    run(&[
+        "req",
+        "-x509",
+        "-newkey",
+        "rsa:2048",
+        "-nodes",
+        "-keyout",
+        "ca-key.pem",
+        "-out",
+        "ca.pem",
+        "-days",
+        "2",
+        "-subj",
+        "/CN=road-test-ca",
+    ]);
+    run(&[
+        "req",
+        "-newkey",
+        "rsa:2048",
+        "-nodes",
+        "-keyout",
+        "router-key.pem",
+        "-out",
+        "router.csr",
+        "-subj",
+        "/CN=localhost",
+    ]);
+    std::fs::write(dir.join("san.cnf"), "subjectAltName=DNS:localhost\n").unwrap();
+    run(&[
+        "x509",
+        "-req",
+        "-in",
+        "router.csr",
+        "-CA",
+        "ca.pem",
+        "-CAkey",
+        "ca-key.pem",
+        "-CAcreateserial",
+        "-out",
+        "router.pem",
+        "-days",
+        "2",
+        "-extfile",
+        "san.cnf",
+    ]);
+}
+
+#[test]
+fn a_tls_router_takes_encrypted_links_only() {
+    let dir = temp_dir("tls");
+    localhost_certificates(&dir);
+    let path = |name: &str| dir.join(name).to_str().unwrap().to_owned();
+    let port = free_endpoint()
+        .trim_start_matches("tcp/127.0.0.1:")
+        .to_owned();
+    let endpoint = format!("tls/localhost:{port}");
+    let cert = format!(
+        "transport/link/tls/listen_certificate:{:?}",
+        path("router.pem")
+    );
+    let key = format!(
+        "transport/link/tls/listen_private_key:{:?}",
+        path("router-key.pem")
+    );
+    let ca = format!(
+        "transport/link/tls/root_ca_certificate:{:?}",
+        path("ca.pem")
+    );
+    let mut router = Proc::spawn(
+        "road router",
+        &[
+            "router",
+            "--config",
+            "configs/zenoh/router-tls.json5",
+            "--listen",
+            &endpoint,
+            "--cfg",
+            &cert,
+            "--cfg",
+            &key,
+            "--cfg",
+            &ca,
+        ],
+    );
+    let deadline = Instant::now() + Duration::from_secs(60);
+    while std::net::TcpStream::connect(format!("127.0.0.1:{port}")).is_err() {
+        router.assert_running();
+        assert!(Instant::now() < deadline, "road router never listened");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let mut server = server_behind(&endpoint, DEFAULT_PREFIX, &dir.join("rec"), &["--cfg", &ca]);
+    let client = connect(
+        &client_args(&endpoint, std::slice::from_ref(&ca)),
+        DEFAULT_PREFIX,
+        "tls-ego",
+        &mut [&mut router, &mut server],
+    );
+    let mut scene = client.create(roundabout(0)).unwrap();
+    assert_eq!(scene.step(1, vec![ego_at(&scene, 1)]).unwrap().tick, 1);
+    scene.close().unwrap();
+    // Plain TCP to the TLS port is not a zenoh link.
+    let plain = Client::open(
+        &client_args(&format!("tcp/127.0.0.1:{port}"), &[]),
+        DEFAULT_PREFIX,
+        "plain",
+    );
+    assert!(
+        plain.is_err(),
+        "a plain TCP client connected to the TLS router"
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
 #[test]
 fn a_killed_clients_scene_is_reclaimed_and_its_recording_finished() {
     let dir = temp_dir("killed-client");
@@ -366,7 +494,7 @@ fn a_killed_clients_scene_is_reclaimed_and_its_recording_finished() {
             &endpoint,
             "--no-multicast-scouting",
             "--ticks",
-            "100000",
+            "5000",
             "--quiet",
         ],
     );
