@@ -124,7 +124,9 @@ pub fn run(args: &SoakBenchArgs) -> Result<()> {
         if i == args.warmup {
             samples.push(footprint(pid, i, &record)?);
             timed_from = Instant::now();
-        } else if i > args.warmup && ((i - args.warmup) % args.sample_every == 0 || i == total) {
+        } else if i > args.warmup
+            && ((i - args.warmup).is_multiple_of(args.sample_every) || i == total)
+        {
             samples.push(footprint(pid, i, &record)?);
         }
     }
