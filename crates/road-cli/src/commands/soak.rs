@@ -29,6 +29,12 @@ pub struct SoakBenchArgs {
     /// Sample the server every this many cycles.
     #[arg(long, default_value_t = 250)]
     pub sample_every: usize,
+    /// The server records nothing (tells recording's share of a growth).
+    #[arg(long)]
+    pub no_record: bool,
+    /// One client id for every cycle (no liveliness token comes and goes).
+    #[arg(long)]
+    pub same_client: bool,
     #[arg(long)]
     pub json: bool,
 }
@@ -91,8 +97,12 @@ pub fn run(args: &SoakBenchArgs) -> Result<()> {
     let mut server = ServerProcess(
         Command::new(&exe)
             .args(["serve", "--listen", &endpoint, "--no-multicast-scouting"])
-            .args(["--late-ego-ms", "0", "--record"])
-            .arg(&record)
+            .args(["--late-ego-ms", "0"])
+            .args(if args.no_record {
+                vec!["--no-record".into()]
+            } else {
+                vec!["--record".into(), record.clone().into_os_string()]
+            })
             .env("RUST_LOG", "warn")
             .stdout(Stdio::null())
             .spawn()
@@ -120,7 +130,12 @@ pub fn run(args: &SoakBenchArgs) -> Result<()> {
     let started = Instant::now();
     let mut timed_from = Instant::now();
     for i in 1..=total {
-        cycle(&session, i, args.ticks).with_context(|| format!("cycle {i}"))?;
+        let client = if args.same_client {
+            "soak".to_owned()
+        } else {
+            format!("soak-{i}")
+        };
+        cycle(&session, &client, i, args.ticks).with_context(|| format!("cycle {i}"))?;
         if i == args.warmup {
             samples.push(footprint(pid, i, &record)?);
             timed_from = Instant::now();
@@ -138,9 +153,15 @@ pub fn run(args: &SoakBenchArgs) -> Result<()> {
         return Ok(());
     }
     out!(
-        "road bench soak: {total} cycles ({} warm-up) of create, {} tick(s), close against one `road serve` (recording on), {:.1} s in all, {:.1} cycles/s after the warm-up",
+        "road bench soak: {total} cycles ({} warm-up) of create, {} tick(s), close against one `road serve` (recording {}, {}), {:.1} s in all, {:.1} cycles/s after the warm-up",
         args.warmup,
         args.ticks,
+        if args.no_record { "off" } else { "on" },
+        if args.same_client {
+            "one client id"
+        } else {
+            "a client id per cycle"
+        },
         started.elapsed().as_secs_f64(),
         args.cycles as f64 / timed_secs
     );
@@ -171,8 +192,8 @@ pub fn run(args: &SoakBenchArgs) -> Result<()> {
 
 /// One cycle: a fresh client id (its liveliness token comes and goes), a scene, its ticks, its
 /// close.
-fn cycle(session: &zenoh::Session, i: usize, ticks: u64) -> Result<()> {
-    let mut client = Client::with_session(session.clone(), DEFAULT_PREFIX, &format!("soak-{i}"))?;
+fn cycle(session: &zenoh::Session, client: &str, i: usize, ticks: u64) -> Result<()> {
+    let mut client = Client::with_session(session.clone(), DEFAULT_PREFIX, client)?;
     client.set_timeout(Duration::from_secs(120));
     let mut scene = client.create(CreateScene {
         map: MapSource::Procedural("roundabout".into()),
