@@ -35,6 +35,14 @@ pub struct SoakBenchArgs {
     /// One client id for every cycle (no liveliness token comes and goes).
     #[arg(long)]
     pub same_client: bool,
+    /// A new zenoh session for every cycle (clients that come and go) instead of one session
+    /// for the whole soak.
+    #[arg(long)]
+    pub session_per_cycle: bool,
+    /// Run the server under this command (a heap profiler: `--wrapper valgrind
+    /// --wrapper=--tool=massif`), one argument per flag; its process is the one sampled.
+    #[arg(long, allow_hyphen_values = true)]
+    pub wrapper: Vec<String>,
     #[arg(long)]
     pub json: bool,
 }
@@ -53,7 +61,19 @@ pub struct Footprint {
 struct ServerProcess(Child);
 
 impl Drop for ServerProcess {
+    /// SIGTERM first (the server closes its scenes; a profiler wrapping it writes its report),
+    /// SIGKILL after 30 s.
     fn drop(&mut self) {
+        let _ = Command::new("kill")
+            .args(["-TERM", &self.0.id().to_string()])
+            .status();
+        let deadline = Instant::now() + Duration::from_secs(30);
+        while Instant::now() < deadline {
+            if let Ok(Some(_)) = self.0.try_wait() {
+                return;
+            }
+            std::thread::sleep(Duration::from_millis(100));
+        }
         let _ = self.0.kill();
         let _ = self.0.wait();
     }
@@ -94,8 +114,16 @@ pub fn run(args: &SoakBenchArgs) -> Result<()> {
     let record: PathBuf = std::env::temp_dir().join(format!("road-soak-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&record);
     let exe = std::env::current_exe().context("cannot find this binary")?;
+    let mut command = match args.wrapper.split_first() {
+        Some((program, rest)) => {
+            let mut c = Command::new(program);
+            c.args(rest).arg(&exe);
+            c
+        }
+        None => Command::new(&exe),
+    };
     let mut server = ServerProcess(
-        Command::new(&exe)
+        command
             .args(["serve", "--listen", &endpoint, "--no-multicast-scouting"])
             .args(["--late-ego-ms", "0"])
             .args(if args.no_record {
@@ -135,7 +163,15 @@ pub fn run(args: &SoakBenchArgs) -> Result<()> {
         } else {
             format!("soak-{i}")
         };
-        cycle(&session, &client, i, args.ticks).with_context(|| format!("cycle {i}"))?;
+        if args.session_per_cycle {
+            let own = zenoh::open(ZenohArgs::loopback(None, Some(&endpoint)).to_config()?)
+                .wait()
+                .map_err(|e| anyhow::anyhow!("{e}"))?;
+            cycle(&own, &client, i, args.ticks).with_context(|| format!("cycle {i}"))?;
+            own.close().wait().map_err(|e| anyhow::anyhow!("{e}"))?;
+        } else {
+            cycle(&session, &client, i, args.ticks).with_context(|| format!("cycle {i}"))?;
+        }
         if i == args.warmup {
             samples.push(footprint(pid, i, &record)?);
             timed_from = Instant::now();
@@ -153,7 +189,7 @@ pub fn run(args: &SoakBenchArgs) -> Result<()> {
         return Ok(());
     }
     out!(
-        "road bench soak: {total} cycles ({} warm-up) of create, {} tick(s), close against one `road serve` (recording {}, {}), {:.1} s in all, {:.1} cycles/s after the warm-up",
+        "road bench soak: {total} cycles ({} warm-up) of create, {} tick(s), close against one `road serve` (recording {}, {}, {}), {:.1} s in all, {:.1} cycles/s after the warm-up",
         args.warmup,
         args.ticks,
         if args.no_record { "off" } else { "on" },
@@ -161,6 +197,11 @@ pub fn run(args: &SoakBenchArgs) -> Result<()> {
             "one client id"
         } else {
             "a client id per cycle"
+        },
+        if args.session_per_cycle {
+            "a zenoh session per cycle"
+        } else {
+            "one zenoh session"
         },
         started.elapsed().as_secs_f64(),
         args.cycles as f64 / timed_secs
