@@ -76,14 +76,21 @@ fn router(endpoint: &str, extra: &[&str]) -> Proc {
     let mut args = vec!["router", "--listen", endpoint, "--no-multicast-scouting"];
     args.extend_from_slice(extra);
     let mut router = Proc::spawn("road router", &args);
-    let address = endpoint.trim_start_matches("tcp/");
+    wait_for_port(&mut router, endpoint.trim_start_matches("tcp/"));
+    router
+}
+
+/// Waits until `address` takes TCP connections (the router listens).
+fn wait_for_port(router: &mut Proc, address: &str) {
     let deadline = Instant::now() + Duration::from_secs(60);
     while std::net::TcpStream::connect(address).is_err() {
         router.assert_running();
-        assert!(Instant::now() < deadline, "road router never listened");
+        assert!(
+            Instant::now() < deadline,
+            "road router never listened on {address}"
+        );
         std::thread::sleep(Duration::from_millis(100));
     }
-    router
 }
 
 /// `road serve` in client mode behind the router at `endpoint`.
@@ -433,12 +440,7 @@ fn a_tls_router_takes_encrypted_links_only() {
             &ca,
         ],
     );
-    let deadline = Instant::now() + Duration::from_secs(60);
-    while std::net::TcpStream::connect(format!("127.0.0.1:{port}")).is_err() {
-        router.assert_running();
-        assert!(Instant::now() < deadline, "road router never listened");
-        std::thread::sleep(Duration::from_millis(100));
-    }
+    wait_for_port(&mut router, &format!("127.0.0.1:{port}"));
     let mut server = server_behind(&endpoint, DEFAULT_PREFIX, &dir.join("rec"), &["--cfg", &ca]);
     let client = connect(
         &client_args(&endpoint, std::slice::from_ref(&ca)),

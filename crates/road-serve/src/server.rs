@@ -353,6 +353,14 @@ fn reply_ok<T: serde::Serialize>(query: &Query, value: &T) {
     }
 }
 
+fn cannot_record(e: &Error) -> ErrorReply {
+    ErrorReply::new(
+        ErrorCode::Internal,
+        None,
+        format!("cannot record the scene: {e}"),
+    )
+}
+
 fn reply_err(query: &Query, error: &ErrorReply) {
     tracing::debug!(key = %query.key_expr(), "refused: {error}");
     let json = serde_json::to_vec(error).expect("errors serialise");
@@ -518,16 +526,7 @@ impl Core {
         }
         let recording = match self.config.record_dir.as_deref().map(|d| free_path(d, id)) {
             Some(Ok(path)) => Some(path),
-            Some(Err(e)) => {
-                return reply_err(
-                    query,
-                    &ErrorReply::new(
-                        ErrorCode::Internal,
-                        None,
-                        format!("cannot record the scene: {e}"),
-                    ),
-                );
-            }
+            Some(Err(e)) => return reply_err(query, &cannot_record(&e)),
             None => None,
         };
         let pool = self.pools.get_mut(&key).expect("inserted above");
@@ -573,19 +572,8 @@ impl Core {
                     }
                     Err(e) => {
                         // The scene is in its pool already: give the slot back.
-                        if let Some(pool) = self.pools.get_mut(&live.pool) {
-                            if let Err(e) = pool.remove(live.slot) {
-                                tracing::error!(scene = id, "cannot leave the pool: {e}");
-                            }
-                        }
-                        return reply_err(
-                            query,
-                            &ErrorReply::new(
-                                ErrorCode::Internal,
-                                None,
-                                format!("cannot record the scene: {e}"),
-                            ),
-                        );
+                        self.leave_pool(id, &live);
+                        return reply_err(query, &cannot_record(&e));
                     }
                 }
             }
@@ -673,15 +661,20 @@ impl Core {
         self.close(id, why);
     }
 
+    /// Gives scene `id`'s slot in its pool back.
+    fn leave_pool(&mut self, id: u64, live: &LiveScene) {
+        if let Some(pool) = self.pools.get_mut(&live.pool) {
+            if let Err(e) = pool.remove(live.slot) {
+                tracing::error!(scene = id, "cannot leave the pool: {e}");
+            }
+        }
+    }
+
     /// Removes a scene and finishes its recording.
     fn close(&mut self, id: u64, why: &str) -> Option<SceneClosed> {
         let entry = self.scenes.remove(&id)?;
         self.closed.insert(id);
-        if let Some(pool) = self.pools.get_mut(&entry.live.pool) {
-            if let Err(e) = pool.remove(entry.live.slot) {
-                tracing::error!(scene = id, "cannot leave the pool: {e}");
-            }
-        }
+        self.leave_pool(id, &entry.live);
         let recording = entry.recorder.and_then(|r| match r.finish() {
             Ok(path) => Some(path.display().to_string()),
             Err(e) => {
