@@ -440,7 +440,7 @@ fn a_tls_router_takes_encrypted_links_only() {
             &ca,
         ],
     );
-    wait_for_port(&mut router, &format!("127.0.0.1:{port}"));
+    wait_for_port(&mut router, &format!("localhost:{port}"));
     let mut server = server_behind(&endpoint, DEFAULT_PREFIX, &dir.join("rec"), &["--cfg", &ca]);
     let client = connect(
         &client_args(&endpoint, std::slice::from_ref(&ca)),
