@@ -400,7 +400,9 @@ class Scene:
     def put(self, tick: int, agents: list[AgentState]) -> None:
         msg = {"tick": tick, "agents": [asdict(a) for a in agents],
                "client": self.client.client_id}
-        self.client.session.put(self.created.ego_key, json.dumps(msg).encode())
+        # Block, not zenoh's default Drop: a tick is never lost to a full queue.
+        self.client.session.put(self.created.ego_key, json.dumps(msg).encode(),
+                                congestion_control=zenoh.CongestionControl.BLOCK)
 
     def poll(self, tick: int) -> Optional[NpcTick]:
         """The NPCs of ``tick`` if they have come, else None, without waiting (to drive several

@@ -368,8 +368,10 @@ impl Scene {
 
     /// Puts any payload on the scene's ego key (tests of the server's input checks).
     pub fn put_raw(&self, payload: Vec<u8>) -> Result<()> {
+        // Block, not zenoh's default Drop: a tick is never lost to a full queue.
         self.session
             .put(self.keys.ego(self.created.scene), payload)
+            .congestion_control(zenoh::qos::CongestionControl::Block)
             .wait()?;
         Ok(())
     }

@@ -22,6 +22,7 @@ use road_protocol::{
 };
 use zenoh::Wait;
 use zenoh::liveliness::LivelinessToken;
+use zenoh::qos::CongestionControl;
 use zenoh::query::Query;
 use zenoh::sample::SampleKind;
 
@@ -703,7 +704,14 @@ impl Core {
             }
         }
         // A chunk that is not a key chunk (it came from a key, so it is one) cannot fail here.
-        if let Err(e) = self.session.put(self.keys.error(chunk), json).wait() {
+        // Block, not zenoh's default Drop: a refusal is never lost to a full queue (a client
+        // that does not read for 5 s has its link closed by zenoh instead, `docs/protocol.md`).
+        if let Err(e) = self
+            .session
+            .put(self.keys.error(chunk), json)
+            .congestion_control(CongestionControl::Block)
+            .wait()
+        {
             tracing::warn!(scene = chunk, "cannot publish an error: {e}");
         }
     }
@@ -858,7 +866,12 @@ impl Core {
             let npc = out.npc;
             let json = serde_json::to_vec(&npc).expect("ticks serialise");
             let at = SystemTime::now();
-            if let Err(e) = self.session.put(self.keys.npc(id), json.clone()).wait() {
+            if let Err(e) = self
+                .session
+                .put(self.keys.npc(id), json.clone())
+                .congestion_control(CongestionControl::Block)
+                .wait()
+            {
                 tracing::warn!(scene = id, "cannot publish: {e}");
             }
             entry.live.waiting_since = Instant::now();
