@@ -167,6 +167,13 @@ fn ego_at(scene: &Scene, tick: u64) -> AgentState {
     }
 }
 
+/// Creates a roundabout scene, ticks it once and closes it.
+fn one_tick_scene(client: &Client, seed: u64) {
+    let mut scene = client.create(roundabout(seed)).unwrap();
+    assert_eq!(scene.step(1, vec![ego_at(&scene, 1)]).unwrap().tick, 1);
+    scene.close().unwrap();
+}
+
 /// The NPC ticks of a recording, reading past a missing end (a killed writer).
 fn recorded_npc_ticks(path: &Path) -> (Vec<u64>, bool) {
     let bytes = std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
@@ -309,9 +316,7 @@ fn an_unlisted_client_cannot_create_scenes() {
         "ego-a",
         &mut [&mut router, &mut server],
     );
-    let mut scene = client.create(roundabout(0)).unwrap();
-    assert_eq!(scene.step(1, vec![ego_at(&scene, 1)]).unwrap().tick, 1);
-    scene.close().unwrap();
+    one_tick_scene(&client, 0);
 
     // A client that logs in but is not listed: its creation reaches no server.
     let guest = Client::open(
@@ -448,9 +453,7 @@ fn a_tls_router_takes_encrypted_links_only() {
         "tls-ego",
         &mut [&mut router, &mut server],
     );
-    let mut scene = client.create(roundabout(0)).unwrap();
-    assert_eq!(scene.step(1, vec![ego_at(&scene, 1)]).unwrap().tick, 1);
-    scene.close().unwrap();
+    one_tick_scene(&client, 0);
     // Plain TCP to the TLS port is not a zenoh link.
     let plain = Client::open(
         &client_args(&format!("tcp/127.0.0.1:{port}"), &[]),
@@ -561,9 +564,7 @@ fn a_router_restart_between_ticks_ends_the_scene_with_a_clear_error() {
     // Both ends reconnected by themselves: a new scene runs.
     router.assert_running();
     server.assert_running();
-    let mut again = client.create(roundabout(1)).unwrap();
-    assert_eq!(again.step(1, vec![ego_at(&again, 1)]).unwrap().tick, 1);
-    again.close().unwrap();
+    one_tick_scene(&client, 1);
     let (ticks, finished) = recorded_npc_ticks(&dir.join("rec/scene-1.mcap"));
     assert_eq!(ticks, [1, 2]);
     assert!(finished);
