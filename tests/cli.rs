@@ -750,7 +750,7 @@ fn record_scene(dir: &Path, ticks: u64, flushed: u64) -> (PathBuf, u64) {
     let mut rec = Recorder::start(
         dir,
         7,
-        b"{}",
+        br#"{"client":"ego-7"}"#,
         created.to_string().as_bytes(),
         Some(&map),
         t0,
@@ -887,7 +887,7 @@ fn replay_republishes_the_npc_ticks_over_zenoh() {
         .unwrap();
     let session = zenoh::open(config).wait().unwrap();
     let npc = session
-        .declare_subscriber("replay-test/scene/*/npc")
+        .declare_subscriber("replay-test/client/ego-7/scene/*/npc")
         .wait()
         .unwrap();
     let mut child = Command::new(env!("CARGO_BIN_EXE_road"))
@@ -910,7 +910,7 @@ fn replay_republishes_the_npc_ticks_over_zenoh() {
     let o = child.wait_with_output().unwrap();
     assert!(o.status.success(), "{}", stderr(&o));
     assert!(
-        stdout(&o).contains("/road/npc -> replay-test/scene/7/npc: 5 published"),
+        stdout(&o).contains("/road/npc -> replay-test/client/ego-7/scene/7/npc: 5 published"),
         "{}",
         stdout(&o)
     );
@@ -919,7 +919,10 @@ fn replay_republishes_the_npc_ticks_over_zenoh() {
         let Some(sample) = npc.recv_timeout(Duration::from_secs(10)).unwrap() else {
             break;
         };
-        assert_eq!(sample.key_expr().as_str(), "replay-test/scene/7/npc");
+        assert_eq!(
+            sample.key_expr().as_str(),
+            "replay-test/client/ego-7/scene/7/npc"
+        );
         let v: serde_json::Value = serde_json::from_slice(&sample.payload().to_bytes()).unwrap();
         ticks.push(v["tick"].as_u64().unwrap());
     }

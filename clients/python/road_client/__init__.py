@@ -30,6 +30,8 @@ frame.
 from __future__ import annotations
 
 import json
+import queue
+import threading
 import time
 from dataclasses import asdict, dataclass, field
 from typing import Any, Optional
@@ -286,9 +288,25 @@ def least_loaded(servers: list[ServerInfo]) -> Optional[ServerInfo]:
     return min(with_room, key=lambda s: (s.load, s.scenes, s.prefix), default=None)
 
 
+def _scene_topic(key: str) -> Optional[tuple[int, str]]:
+    """(scene id, "npc" or "error") of a key ending ``scene/<id>/npc`` or ``scene/<id>/error``."""
+    chunks = key.split("/")
+    if len(chunks) < 3 or chunks[-3] != "scene" or chunks[-1] not in ("npc", "error"):
+        return None
+    try:
+        return int(chunks[-2]), chunks[-1]
+    except ValueError:
+        return None
+
+
 class Client:
     """A session to a road server, announced by a liveliness token (while it lives, the server
-    keeps the client's scenes)."""
+    keeps the client's scenes).
+
+    The client subscribes once to all its scenes' NPC states and errors
+    (``<prefix>/client/<id>/scene/*/npc`` and ``…/error``), handing each sample to its scene,
+    and once to the server's liveliness token: per-scene subscriptions would leave routing
+    entries behind in zenoh for every scene (docs/benchmarks.md, soak)."""
 
     def __init__(self, session: zenoh.Session, client_id: str, prefix: str = DEFAULT_PREFIX,
                  timeout_s: float = 60.0, owns_session: bool = True):
@@ -299,7 +317,52 @@ class Client:
         self.prefix = prefix.strip("/")
         self.timeout_s = timeout_s
         self.owns_session = owns_session
+        self._lock = threading.Lock()
+        # scene id -> {"npc": queue, "error": queue}
+        self._inboxes: dict[int, dict[str, queue.SimpleQueue]] = {}
+        self._server_losses = 0
+        base = f"{self.prefix}/client/{client_id}/scene"
+        self._subscribers = [
+            session.declare_subscriber(f"{base}/*/npc", self._deliver),
+            session.declare_subscriber(f"{base}/*/error", self._deliver),
+            # The server's liveliness token: when it goes (the server stopped, or the network
+            # to it was cut) no tick will come, so a wait ends at once instead of at its timeout.
+            session.liveliness().declare_subscriber(f"{self.prefix}/alive/server",
+                                                    self._server_alive),
+        ]
         self._token = session.liveliness().declare_token(f"{self.prefix}/alive/client/{client_id}")
+
+    def _deliver(self, sample: zenoh.Sample) -> None:
+        topic = _scene_topic(str(sample.key_expr))
+        if topic is None:
+            return
+        scene, kind = topic
+        with self._lock:
+            inbox = self._inboxes.get(scene)
+        # None: a scene this client closed; its late messages have no reader.
+        if inbox is not None:
+            inbox[kind].put(sample.payload.to_bytes())
+
+    def _server_alive(self, sample: zenoh.Sample) -> None:
+        if sample.kind == zenoh.SampleKind.DELETE:
+            with self._lock:
+                self._server_losses += 1
+
+    def _open_inbox(self, scene: int) -> dict[str, queue.SimpleQueue]:
+        inbox = {"npc": queue.SimpleQueue(), "error": queue.SimpleQueue()}
+        with self._lock:
+            self._inboxes[scene] = inbox
+        return inbox
+
+    def _close_inbox(self, scene: int) -> None:
+        with self._lock:
+            self._inboxes.pop(scene, None)
+
+    @property
+    def server_losses(self) -> int:
+        """How many times the server's liveliness token went away since this client started."""
+        with self._lock:
+            return self._server_losses
 
     @classmethod
     def open(cls, connect: Optional[list[str]] = None, listen: Optional[list[str]] = None,
@@ -373,6 +436,8 @@ class Client:
         return SceneClosed(**reply)
 
     def close(self) -> None:
+        for subscriber in self._subscribers:
+            subscriber.undeclare()
         self._token.undeclare()
         if self.owns_session:
             self.session.close()
@@ -385,13 +450,10 @@ class Scene:
         self.client = client
         self.created = created
         self.last: Optional[NpcTick] = None
-        self._npc = client.session.declare_subscriber(created.npc_key)
-        self._errors = client.session.declare_subscriber(created.error_key)
-        # The server's liveliness token: when it goes (the server stopped, or the network to it
-        # was cut) no tick will come, so a wait ends at once instead of at its timeout.
-        self._server_alive = client.session.liveliness().declare_subscriber(
-            f"{client.prefix}/alive/server")
-        self._server_gone = False
+        self._inbox = client._open_inbox(created.scene)
+        # Gone once the server's token went away after this scene began (sticky: a server back
+        # under the same prefix does not know this scene).
+        self._server_losses_before = client.server_losses
 
     @property
     def id(self) -> int:
@@ -408,24 +470,20 @@ class Scene:
         """The NPCs of ``tick`` if they have come, else None, without waiting (to drive several
         scenes from one thread); raises the server's error for this scene (e.g. ``bad_tick``,
         ``scene_closed``), or ``server_gone`` when the server's liveliness token went."""
-        err = self._errors.try_recv()
-        if err is not None:
-            raise _error(err.payload.to_bytes())
+        try:
+            raise _error(self._inbox["error"].get_nowait())
+        except queue.Empty:
+            pass
         while True:
-            sample = self._npc.try_recv()
-            if sample is None:
+            try:
+                payload = self._inbox["npc"].get_nowait()
+            except queue.Empty:
                 break
-            npc = _npc_tick(json.loads(sample.payload.to_bytes()))
+            npc = _npc_tick(json.loads(payload))
             self.last = npc
             if npc.tick >= tick:
                 return npc
-        while not self._server_gone:
-            alive = self._server_alive.try_recv()
-            if alive is None:
-                break
-            # Sticky: a server back under the same prefix does not know this scene.
-            self._server_gone = alive.kind == zenoh.SampleKind.DELETE
-        if self._server_gone:
+        if self.client.server_losses > self._server_losses_before:
             raise RoadError("server_gone",
                             f"the server at {self.client.prefix} went away (its liveliness "
                             f"token is gone) before tick {tick} of scene {self.id}")
@@ -448,7 +506,5 @@ class Scene:
         return self.wait_tick(tick)
 
     def close(self) -> SceneClosed:
-        self._npc.undeclare()
-        self._errors.undeclare()
-        self._server_alive.undeclare()
+        self.client._close_inbox(self.id)
         return self.client.close_scene(self.id)

@@ -82,4 +82,19 @@ impl Recording {
             })
         })
     }
+
+    /// The scene's client id: from the creation request, else from an ego tick that names it.
+    pub fn client_id(&self) -> Option<String> {
+        [topics::CREATE, topics::EGO].iter().find_map(|topic| {
+            self.on(topic).find_map(|m| {
+                Some(
+                    serde_json::from_slice::<serde_json::Value>(&m.data)
+                        .ok()?
+                        .get("client")?
+                        .as_str()?
+                        .to_owned(),
+                )
+            })
+        })
+    }
 }

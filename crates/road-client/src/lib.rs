@@ -27,15 +27,20 @@ mod discovery;
 
 pub use discovery::{Discovered, ServerInfo, discover};
 
+mod inbox;
+
 use std::path::PathBuf;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::mpsc::{Receiver, RecvTimeoutError, TryRecvError};
 use std::time::{Duration, Instant};
 
 use zenoh::Wait;
-use zenoh::handlers::FifoChannelHandler;
 use zenoh::liveliness::LivelinessToken;
 use zenoh::pubsub::Subscriber;
 use zenoh::sample::{Sample, SampleKind};
+
+use inbox::Inbox;
 
 pub use road_protocol as protocol;
 use road_protocol::{
@@ -174,13 +179,24 @@ impl ZenohArgs {
 
 /// A client of one server: its session, its id and its liveliness token (while the client
 /// lives, the server keeps its scenes).
+///
+/// A client subscribes once, not once a scene: to its scenes' NPC states and errors (handed to
+/// each [`Scene`] by scene id) and to the server's liveliness token. Per-scene subscriptions
+/// leave a routing-table entry per scene behind in zenoh (in the server, in every router)
+/// for as long as the client's session lives (`docs/benchmarks.md`, soak).
 #[derive(Debug)]
 pub struct Client {
     session: zenoh::Session,
     keys: Keys,
     id: String,
     timeout: Duration,
+    inbox: Arc<Inbox>,
+    /// How many times the server's liveliness token went away since this client started.
+    server_losses: Arc<AtomicU64>,
     _token: LivelinessToken,
+    _npc: Subscriber<()>,
+    _errors: Subscriber<()>,
+    _server_alive: Subscriber<()>,
 }
 
 impl Client {
@@ -199,6 +215,29 @@ impl Client {
             });
         }
         let keys = Keys::new(prefix);
+        let inbox = Arc::new(Inbox::default());
+        let subscribe = |key: String| {
+            let inbox = inbox.clone();
+            session
+                .declare_subscriber(key)
+                .callback(move |sample| inbox.deliver(sample))
+                .wait()
+        };
+        let npc = subscribe(keys.client_npc_any(id))?;
+        let errors = subscribe(keys.client_error_any(id))?;
+        let server_losses = Arc::new(AtomicU64::new(0));
+        let server_alive = {
+            let losses = server_losses.clone();
+            session
+                .liveliness()
+                .declare_subscriber(keys.server_alive())
+                .callback(move |sample| {
+                    if sample.kind() == SampleKind::Delete {
+                        losses.fetch_add(1, Ordering::SeqCst);
+                    }
+                })
+                .wait()?
+        };
         let token = session
             .liveliness()
             .declare_token(keys.client_alive(id))
@@ -208,7 +247,12 @@ impl Client {
             keys,
             id: id.to_owned(),
             timeout: Duration::from_secs(30),
+            inbox,
+            server_losses,
             _token: token,
+            _npc: npc,
+            _errors: errors,
+            _server_alive: server_alive,
         })
     }
 
@@ -249,31 +293,20 @@ impl Client {
         self.attach(created)
     }
 
-    /// A handle on a scene created elsewhere (its reply known).
+    /// A handle on a scene of this client's created elsewhere (its reply known).
     pub fn attach(&self, created: SceneCreated) -> Result<Scene> {
-        let npc = self
-            .session
-            .declare_subscriber(created.npc_key.clone())
-            .wait()?;
-        let errors = self
-            .session
-            .declare_subscriber(created.error_key.clone())
-            .wait()?;
-        let server_alive = self
-            .session
-            .liveliness()
-            .declare_subscriber(self.keys.server_alive())
-            .wait()?;
+        let (npc, errors) = self.inbox.open(created.scene);
         Ok(Scene {
             session: self.session.clone(),
             keys: self.keys.clone(),
             client: self.id.clone(),
             timeout: self.timeout,
             created,
+            inbox: self.inbox.clone(),
             npc,
             errors,
-            server_alive,
-            server_gone: AtomicBool::new(false),
+            server_losses: self.server_losses.clone(),
+            server_losses_before: self.server_losses.load(Ordering::SeqCst),
             last: None,
         })
     }
@@ -322,6 +355,13 @@ impl Client {
     }
 }
 
+impl Drop for Client {
+    fn drop(&mut self) {
+        // Its scenes' waits end with an error instead of running to their timeout.
+        self.inbox.close_all();
+    }
+}
+
 /// How often a scene waiting for its tick asks the server whether it still holds the scene.
 pub const PROBE_INTERVAL: Duration = Duration::from_secs(1);
 
@@ -333,12 +373,21 @@ pub struct Scene {
     client: String,
     timeout: Duration,
     created: SceneCreated,
-    npc: Subscriber<FifoChannelHandler<Sample>>,
-    errors: Subscriber<FifoChannelHandler<Sample>>,
-    /// The server's liveliness token: its removal ends a wait at once ([`Error::ServerGone`]).
-    server_alive: Subscriber<FifoChannelHandler<Sample>>,
-    server_gone: AtomicBool,
+    inbox: Arc<Inbox>,
+    /// This scene's NPC ticks and errors, from the client's subscription.
+    npc: Receiver<Sample>,
+    errors: Receiver<Sample>,
+    /// The server's liveliness token going away ends a wait at once ([`Error::ServerGone`]):
+    /// the client's count of losses against its value when the scene was attached.
+    server_losses: Arc<AtomicU64>,
+    server_losses_before: u64,
     last: Option<NpcTick>,
+}
+
+impl Drop for Scene {
+    fn drop(&mut self) {
+        self.inbox.close(self.created.scene);
+    }
 }
 
 impl Scene {
@@ -370,7 +419,7 @@ impl Scene {
     pub fn put_raw(&self, payload: Vec<u8>) -> Result<()> {
         // Block, not zenoh's default Drop: a tick is never lost to a full queue.
         self.session
-            .put(self.keys.ego(self.created.scene), payload)
+            .put(self.keys.ego(&self.client, self.created.scene), payload)
             .congestion_control(zenoh::qos::CongestionControl::Block)
             .wait()?;
         Ok(())
@@ -401,10 +450,7 @@ impl Scene {
                 return Err(Error::Refused(err));
             }
             self.check_server()?;
-            let sample = self
-                .npc
-                .recv_timeout(Duration::from_millis(20))
-                .map_err(|e| Error::Zenoh(e.to_string()))?;
+            let sample = received(self.npc.recv_timeout(Duration::from_millis(20)))?;
             if let Some(sample) = sample {
                 let bytes = sample.payload().to_bytes();
                 let npc: NpcTick = serde_json::from_slice(&bytes).map_err(|e| Error::Reply {
@@ -448,16 +494,7 @@ impl Scene {
 
     /// [`Error::ServerGone`] once the server's liveliness token has gone.
     pub fn check_server(&self) -> Result<()> {
-        while let Some(sample) = self
-            .server_alive
-            .try_recv()
-            .map_err(|e| Error::Zenoh(e.to_string()))?
-        {
-            if sample.kind() == SampleKind::Delete {
-                self.server_gone.store(true, Ordering::Relaxed);
-            }
-        }
-        if self.server_gone.load(Ordering::Relaxed) {
+        if self.server_losses.load(Ordering::SeqCst) > self.server_losses_before {
             return Err(Error::ServerGone {
                 prefix: self.keys.prefix().to_owned(),
             });
@@ -467,11 +504,7 @@ impl Scene {
 
     /// The next NPC tick of this scene, waiting up to `timeout` for it (`None` if none came).
     pub fn try_npc(&self, timeout: Duration) -> Result<Option<NpcTick>> {
-        let sample = self
-            .npc
-            .recv_timeout(timeout)
-            .map_err(|e| Error::Zenoh(e.to_string()))?;
-        sample
+        received(self.npc.recv_timeout(timeout))?
             .map(|sample| {
                 serde_json::from_slice(&sample.payload().to_bytes()).map_err(|e| Error::Reply {
                     key: self.created.npc_key.clone(),
@@ -483,11 +516,12 @@ impl Scene {
 
     /// An error the server published for this scene, if one is waiting.
     pub fn try_error(&self) -> Result<Option<ErrorReply>> {
-        match self
-            .errors
-            .try_recv()
-            .map_err(|e| Error::Zenoh(e.to_string()))?
-        {
+        let sample = match self.errors.try_recv() {
+            Ok(sample) => Some(sample),
+            Err(TryRecvError::Empty) => None,
+            Err(TryRecvError::Disconnected) => return Err(closed_subscription()),
+        };
+        match sample {
             Some(sample) => {
                 let bytes = sample.payload().to_bytes();
                 serde_json::from_slice(&bytes)
@@ -527,6 +561,19 @@ impl Scene {
             query_raw(&self.session, &key, payload, self.timeout)?.map_err(Error::Refused)?;
         parse_reply(&key, &bytes)
     }
+}
+
+/// A receive that timed out is `None`; the subscription's end (its client dropped) an error.
+fn received(result: Result<Sample, RecvTimeoutError>) -> Result<Option<Sample>> {
+    match result {
+        Ok(sample) => Ok(Some(sample)),
+        Err(RecvTimeoutError::Timeout) => Ok(None),
+        Err(RecvTimeoutError::Disconnected) => Err(closed_subscription()),
+    }
+}
+
+fn closed_subscription() -> Error {
+    Error::Zenoh("the client's subscription to its scenes has ended".into())
 }
 
 fn parse_reply<T: serde::de::DeserializeOwned>(key: &str, bytes: &[u8]) -> Result<T> {

@@ -12,7 +12,10 @@
 use serde::{Deserialize, Serialize};
 
 /// Version of this protocol, in the status and creation replies.
-pub const PROTOCOL_VERSION: u32 = 1;
+///
+/// 2: a scene's ego, NPC and error keys name its client (`<prefix>/client/<id>/scene/<n>/…`),
+/// and a scene must have a client.
+pub const PROTOCOL_VERSION: u32 = 2;
 
 /// The key prefix a server uses unless configured otherwise.
 pub const DEFAULT_PREFIX: &str = "road";
@@ -50,25 +53,54 @@ impl Keys {
         format!("{}/status", self.prefix)
     }
 
-    /// The client puts [`EgoTick`] here.
-    pub fn ego(&self, scene: u64) -> String {
-        format!("{}/scene/{scene}/ego", self.prefix)
+    /// The client puts [`EgoTick`] here for its scene `scene`.
+    ///
+    /// A scene's keys name its client: a client subscribes once to all its scenes
+    /// ([`Keys::client_npc_any`], [`Keys::client_error_any`]) instead of once a scene, which
+    /// would leave routing entries behind in zenoh for every scene; and a router's access
+    /// control can give each client its own `<prefix>/client/<id>/**`.
+    pub fn ego(&self, client: &str, scene: u64) -> String {
+        format!("{}/client/{client}/scene/{scene}/ego", self.prefix)
     }
 
     /// Every scene's ego key (the server's subscription).
     pub fn ego_any(&self) -> String {
-        format!("{}/scene/*/ego", self.prefix)
+        format!("{}/client/*/scene/*/ego", self.prefix)
     }
 
-    /// The server publishes [`NpcTick`] here.
-    pub fn npc(&self, scene: u64) -> String {
-        format!("{}/scene/{scene}/npc", self.prefix)
+    /// The server publishes [`NpcTick`] here for `client`'s scene `scene`.
+    pub fn npc(&self, client: &str, scene: u64) -> String {
+        format!("{}/client/{client}/scene/{scene}/npc", self.prefix)
     }
 
     /// The server publishes [`ErrorReply`] here for puts it refused (ticks have no reply of
-    /// their own). `scene` is the key chunk the bad put used, even when it names no scene.
-    pub fn error(&self, scene: &str) -> String {
-        format!("{}/scene/{scene}/error", self.prefix)
+    /// their own). `client` and `scene` are the key chunks the bad put used, even when they
+    /// name no client or scene of this server.
+    pub fn error(&self, client: &str, scene: &str) -> String {
+        format!("{}/client/{client}/scene/{scene}/error", self.prefix)
+    }
+
+    /// The NPC keys of all of `client`'s scenes (the client's one subscription to them).
+    pub fn client_npc_any(&self, client: &str) -> String {
+        format!("{}/client/{client}/scene/*/npc", self.prefix)
+    }
+
+    /// The error keys of all of `client`'s scenes.
+    pub fn client_error_any(&self, client: &str) -> String {
+        format!("{}/client/{client}/scene/*/error", self.prefix)
+    }
+
+    /// The client and scene chunks of an ego key (`<prefix>/client/<client>/scene/<scene>/ego`),
+    /// or `None` when `key` is not one under this prefix.
+    pub fn ego_key_chunks<'k>(&self, key: &'k str) -> Option<(&'k str, &'k str)> {
+        let rest = key.strip_prefix(&self.prefix)?.strip_prefix("/client/")?;
+        let (client, rest) = rest.split_once("/scene/")?;
+        let scene = rest.strip_suffix("/ego")?;
+        let single_chunks = !client.is_empty()
+            && !scene.is_empty()
+            && !client.contains('/')
+            && !scene.contains('/');
+        single_chunks.then_some((client, scene))
     }
 
     /// The server's liveliness token.
@@ -165,8 +197,9 @@ pub struct CreateScene {
     /// Seeds the scene's noise: same request, same seed, same NPCs.
     #[serde(default)]
     pub seed: u64,
-    /// The client's id (see [`valid_client_id`]): its ticks must carry it, and the scene is
-    /// closed when the client's liveliness token goes.
+    /// The client's id (see [`valid_client_id`]); required (the server refuses a request
+    /// without it): the scene's keys name it, and the scene is closed when the client's
+    /// liveliness token goes. `road_client::Client::create` fills it in.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub client: Option<String>,
     /// Ticks after which the scene refuses more; omitted: the server's limit.
@@ -239,7 +272,8 @@ pub struct EgoTick {
     pub tick: u64,
     /// Every external agent of the scene, once each.
     pub agents: Vec<AgentState>,
-    /// The scene's client id, when the scene was created with one.
+    /// The scene's client id. Optional: the ego key names the client already; when given, it
+    /// must be that one.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub client: Option<String>,
 }
@@ -499,6 +533,35 @@ mod tests {
         let e = parse::<EgoTick>(&[0xff, 0xfe, 0x00]).unwrap_err();
         assert_eq!(e.code, ErrorCode::MalformedJson);
         assert!(e.message.contains("UTF-8"), "{e}");
+    }
+
+    #[test]
+    fn ego_keys_name_client_and_scene() {
+        let keys = Keys::new("road/east");
+        assert_eq!(
+            keys.ego_key_chunks(&keys.ego("ego-1", 42)),
+            Some(("ego-1", "42"))
+        );
+        assert_eq!(
+            keys.ego_key_chunks("road/east/client/c/scene/x/ego"),
+            Some(("c", "x"))
+        );
+        for key in [
+            "road/client/c/scene/1/ego",
+            "road/east/client/c/scene/1/npc",
+            "road/east/client//scene/1/ego",
+            "road/east/client/a/b/scene/1/ego",
+            "road/east/client/c/scene/1/2/ego",
+        ] {
+            assert_eq!(keys.ego_key_chunks(key), None, "{key}");
+        }
+        assert_eq!(
+            keys.npc("c", 3),
+            "road/east/client/c/scene/3/npc",
+            "the client's npc subscription {} matches it",
+            keys.client_npc_any("c")
+        );
+        assert_eq!(keys.error("c", "3"), "road/east/client/c/scene/3/error");
     }
 
     #[test]

@@ -54,7 +54,8 @@ pub struct SceneSetup {
     pub model: &'static LoadedModel,
     pub seed: u64,
     pub max_ticks: u64,
-    pub client: Option<String>,
+    /// The client's id: the scene's keys name it.
+    pub client: String,
 }
 
 fn invalid(field: impl Into<String>, message: impl Into<String>) -> ErrorReply {
@@ -83,13 +84,17 @@ fn finite_pose(p: &Pose) -> Option<&'static str> {
 /// Checks `req` field by field (the first fault is reported, naming its field) and loads what
 /// it names.
 pub fn setup(req: &CreateScene, ctx: &mut SetupContext<'_>) -> Result<SceneSetup, ErrorReply> {
-    if let Some(client) = &req.client {
-        if !road_protocol::valid_client_id(client) {
-            return Err(invalid(
-                "client",
-                format!("client id {client:?}: expected 1 to 64 ASCII letters, digits, '-' or '_'"),
-            ));
-        }
+    let Some(client) = &req.client else {
+        return Err(invalid(
+            "client",
+            "the client's id is required: the scene's keys name it (docs/protocol.md)",
+        ));
+    };
+    if !road_protocol::valid_client_id(client) {
+        return Err(invalid(
+            "client",
+            format!("client id {client:?}: expected 1 to 64 ASCII letters, digits, '-' or '_'"),
+        ));
     }
     let max_ticks = match req.max_ticks {
         None => ctx.config.max_ticks,
@@ -325,7 +330,7 @@ pub fn setup(req: &CreateScene, ctx: &mut SetupContext<'_>) -> Result<SceneSetup
         model,
         seed: req.seed,
         max_ticks,
-        client: req.client.clone(),
+        client: client.clone(),
     })
 }
 
@@ -499,7 +504,7 @@ pub struct TickOutput {
 /// sequence.
 pub struct LiveScene {
     pub id: u64,
-    pub client: Option<String>,
+    pub client: String,
     pub agents: Vec<AgentInfo>,
     pub map: Option<Arc<LaneletMap>>,
     pub planner_name: String,
@@ -622,9 +627,11 @@ impl LiveScene {
         &self.poses
     }
 
-    /// Checks an ego input against the scene: owner, tick sequence, agents, values, motion.
+    /// Checks an ego input put on `key_client`'s ego key against the scene: owner, tick
+    /// sequence, agents, values, motion.
     pub fn check_ego(
         &self,
+        key_client: &str,
         msg: &EgoTick,
         max_speed_mps: f64,
         received: Instant,
@@ -634,17 +641,27 @@ impl LiveScene {
             tick: Some(msg.tick),
             ..ErrorReply::new(code, Some(field), message)
         };
-        if let Some(owner) = &self.client {
-            if msg.client.as_deref() != Some(owner.as_str()) {
-                return Err(bad(
-                    ErrorCode::NotOwner,
-                    "client",
-                    format!(
-                        "scene {} belongs to client {owner:?}; this tick names {:?}",
-                        self.id, msg.client
-                    ),
-                ));
-            }
+        let owner = &self.client;
+        if key_client != owner {
+            return Err(bad(
+                ErrorCode::NotOwner,
+                "client",
+                format!(
+                    "scene {} belongs to client {owner:?}; this tick came on client \
+                     {key_client:?}'s key",
+                    self.id
+                ),
+            ));
+        }
+        if msg.client.as_deref().is_some_and(|named| named != owner) {
+            return Err(bad(
+                ErrorCode::NotOwner,
+                "client",
+                format!(
+                    "scene {} belongs to client {owner:?}; this tick names {:?}",
+                    self.id, msg.client
+                ),
+            ));
         }
         let expected = self.tick + 1;
         if msg.tick <= self.tick {

@@ -41,7 +41,9 @@ enum Event {
     Create(Query, SystemTime),
     Close(Query),
     Status(Query),
+    /// A put on `<prefix>/client/<client>/scene/<scene>/ego` (the key's chunks).
     Ego {
+        client: String,
         scene: String,
         payload: Vec<u8>,
         /// The payload's size as received (the payload is dropped when over the limit).
@@ -146,14 +148,19 @@ impl Server {
             .wait()?;
         let sender = tx.clone();
         let max_payload = config.max_payload_bytes;
+        let ego_keys = keys.clone();
         session
             .declare_subscriber(keys.ego_any())
             .callback(move |sample| {
                 let received = Instant::now();
                 let at = SystemTime::now();
-                // `<prefix>/scene/<id>/ego`: the chunk before `ego`.
                 let key = sample.key_expr().as_str();
-                let scene = key.rsplit('/').nth(1).unwrap_or_default().to_owned();
+                // Every key the subscription matches has the two chunks.
+                let Some((client, scene)) = ego_keys.ego_key_chunks(key) else {
+                    tracing::warn!(key, "a put on a key that is not an ego key; ignored");
+                    return;
+                };
+                let (client, scene) = (client.to_owned(), scene.to_owned());
                 let payload = sample.payload();
                 let size = payload.len();
                 // Oversized payloads are not copied, only refused by their size.
@@ -163,6 +170,7 @@ impl Server {
                     payload.to_bytes().into_owned()
                 };
                 let _ = sender.send(Event::Ego {
+                    client,
                     scene,
                     payload,
                     size,
@@ -429,17 +437,18 @@ impl Core {
             Event::Close(query) => self.on_close(&query),
             Event::Status(query) => reply_ok(&query, &self.status()),
             Event::Ego {
+                client,
                 scene,
                 payload,
                 size,
                 received,
                 at,
-            } => self.on_ego(&scene, &payload, size, received, at),
+            } => self.on_ego(&client, &scene, &payload, size, received, at),
             Event::ClientGone(client) => {
                 let ids: Vec<u64> = self
                     .scenes
                     .iter()
-                    .filter(|(_, e)| e.live.client.as_deref() == Some(client.as_str()))
+                    .filter(|(_, e)| e.live.client == client)
                     .map(|(&id, _)| id)
                     .collect();
                 for id in ids {
@@ -555,9 +564,9 @@ impl Core {
             step_secs: road_sim::procedural::STEP_SECS,
             max_ticks: live.max_ticks,
             late_ego_deadline_ms: self.config.late_ego_deadline.as_millis() as u64,
-            ego_key: self.keys.ego(id),
-            npc_key: self.keys.npc(id),
-            error_key: self.keys.error(&id.to_string()),
+            ego_key: self.keys.ego(&live.client, id),
+            npc_key: self.keys.npc(&live.client, id),
+            error_key: self.keys.error(&live.client, &id.to_string()),
             recording: recording.as_ref().map(|p| p.display().to_string()),
         };
         let created_json = serde_json::to_vec(&created).expect("replies serialise");
@@ -582,7 +591,7 @@ impl Core {
         };
         tracing::info!(
             scene = id,
-            client = live.client.as_deref().unwrap_or("-"),
+            client = %live.client,
             agents = live.agents.len(),
             planner = %live.planner_name,
             "scene created"
@@ -617,23 +626,22 @@ impl Core {
                 },
             );
         };
-        if let Some(owner) = &entry.live.client {
-            if request.client.as_deref() != Some(owner.as_str()) {
-                return reply_err(
-                    query,
-                    &ErrorReply {
-                        scene: Some(request.scene),
-                        ..ErrorReply::new(
-                            ErrorCode::NotOwner,
-                            Some("client"),
-                            format!(
-                                "scene {} belongs to client {owner:?}; the request names {:?}",
-                                request.scene, request.client
-                            ),
-                        )
-                    },
-                );
-            }
+        let owner = &entry.live.client;
+        if request.client.as_deref() != Some(owner.as_str()) {
+            return reply_err(
+                query,
+                &ErrorReply {
+                    scene: Some(request.scene),
+                    ..ErrorReply::new(
+                        ErrorCode::NotOwner,
+                        Some("client"),
+                        format!(
+                            "scene {} belongs to client {owner:?}; the request names {:?}",
+                            request.scene, request.client
+                        ),
+                    )
+                },
+            );
         }
         let closed = self.close(request.scene, "the client closed it");
         match closed {
@@ -648,7 +656,10 @@ impl Core {
     /// Closes a scene its client did not ask to close, telling the client why on the scene's
     /// error key (`scene_closed`), so that a client waiting for a tick hears of it.
     fn close_notifying(&mut self, id: u64, why: &str) {
-        let tick = self.scenes.get(&id).map(|e| e.live.tick + 1);
+        let Some(live) = self.scenes.get(&id).map(|e| &e.live) else {
+            return;
+        };
+        let (tick, client) = (Some(live.tick + 1), live.client.clone());
         let error = ErrorReply {
             scene: Some(id),
             tick,
@@ -658,7 +669,7 @@ impl Core {
                 format!("the server closed the scene: {why}"),
             )
         };
-        self.publish_error(&id.to_string(), &error);
+        self.publish_error(&client, &id.to_string(), &error);
         self.close(id, why);
     }
 
@@ -691,10 +702,10 @@ impl Core {
         })
     }
 
-    /// Publishes an error for a put on `<prefix>/scene/<chunk>/ego` (and records it when the
-    /// chunk is a live scene).
-    fn publish_error(&mut self, chunk: &str, error: &ErrorReply) {
-        tracing::debug!(scene = chunk, "refused: {error}");
+    /// Publishes an error for a put on `<prefix>/client/<client>/scene/<chunk>/ego` on that
+    /// client's error key (and records it when the chunk is a live scene).
+    fn publish_error(&mut self, client: &str, chunk: &str, error: &ErrorReply) {
+        tracing::debug!(client, scene = chunk, "refused: {error}");
         let json = serde_json::to_vec(error).expect("errors serialise");
         if let Ok(id) = chunk.parse::<u64>() {
             if let Some(rec) = self.scenes.get_mut(&id).and_then(|e| e.recorder.as_mut()) {
@@ -708,7 +719,7 @@ impl Core {
         // that does not read for 5 s has its link closed by zenoh instead, `docs/protocol.md`).
         if let Err(e) = self
             .session
-            .put(self.keys.error(chunk), json)
+            .put(self.keys.error(client, chunk), json)
             .congestion_control(CongestionControl::Block)
             .wait()
         {
@@ -718,6 +729,7 @@ impl Core {
 
     fn on_ego(
         &mut self,
+        client: &str,
         chunk: &str,
         payload: &[u8],
         size: usize,
@@ -725,10 +737,11 @@ impl Core {
         at: SystemTime,
     ) {
         if let Some(e) = self.too_large(size) {
-            return self.publish_error(chunk, &e);
+            return self.publish_error(client, chunk, &e);
         }
         let Ok(id) = chunk.parse::<u64>() else {
             return self.publish_error(
+                client,
                 chunk,
                 &ErrorReply::new(
                     ErrorCode::UnknownScene,
@@ -741,6 +754,7 @@ impl Core {
             Ok(m) => m,
             Err(e) => {
                 return self.publish_error(
+                    client,
                     chunk,
                     &ErrorReply {
                         scene: Some(id),
@@ -756,6 +770,7 @@ impl Core {
                 format!("no scene {id}")
             };
             return self.publish_error(
+                client,
                 chunk,
                 &ErrorReply {
                     scene: Some(id),
@@ -766,7 +781,7 @@ impl Core {
         };
         match entry
             .live
-            .check_ego(&msg, self.config.max_external_speed_mps, received)
+            .check_ego(client, &msg, self.config.max_external_speed_mps, received)
         {
             Ok(pending) => {
                 entry.live.pending = Some(pending);
@@ -777,7 +792,7 @@ impl Core {
                     }
                 }
             }
-            Err(e) => self.publish_error(chunk, &e),
+            Err(e) => self.publish_error(client, chunk, &e),
         }
     }
 
@@ -868,7 +883,7 @@ impl Core {
             let at = SystemTime::now();
             if let Err(e) = self
                 .session
-                .put(self.keys.npc(id), json.clone())
+                .put(self.keys.npc(&entry.live.client, id), json.clone())
                 .congestion_control(CongestionControl::Block)
                 .wait()
             {
@@ -888,6 +903,9 @@ impl Core {
             Stats::push(&mut self.stats.compute_ms, out.compute_secs * 1e3);
         }
         for (id, message) in failed {
+            let Some(client) = self.scenes.get(&id).map(|e| e.live.client.clone()) else {
+                continue;
+            };
             let error = ErrorReply {
                 scene: Some(id),
                 ..ErrorReply::new(
@@ -896,7 +914,7 @@ impl Core {
                     format!("the tick failed and the scene is closed: {message}"),
                 )
             };
-            self.publish_error(&id.to_string(), &error);
+            self.publish_error(&client, &id.to_string(), &error);
             self.close(id, "its tick failed");
         }
     }
@@ -950,7 +968,7 @@ impl Core {
                     scene: e.live.id,
                     tick: e.live.tick,
                     agents: e.live.agents.len(),
-                    client: e.live.client.clone(),
+                    client: Some(e.live.client.clone()),
                     idle_s: e.live.last_heard.elapsed().as_secs_f64(),
                     late_ticks: e.live.late_ticks,
                 })

@@ -146,6 +146,17 @@ fn unknown_fields_are_refused() {
 }
 
 #[test]
+fn a_creation_without_a_client_id_is_refused() {
+    let c = client("no-client-id");
+    let e = create_raw(
+        &c,
+        br#"{"map": {"procedural": "roundabout"}, "external": [1]}"#.to_vec(),
+    );
+    assert_refused(&e, ErrorCode::InvalidField, Some("client"));
+    assert!(e.message.contains("keys"), "{e}");
+}
+
+#[test]
 fn a_missing_map_is_refused() {
     let c = client("missing-map");
     let e = create_raw(&c, br#"{"external":[]}"#.to_vec());
@@ -352,9 +363,9 @@ fn a_tick_for_an_unknown_scene_is_refused() {
     let (scene, _) = live_scene(&c);
     let ghost = road_client::protocol::SceneCreated {
         scene: 987_654,
-        ego_key: c.keys().ego(987_654),
-        npc_key: c.keys().npc(987_654),
-        error_key: c.keys().error("987654"),
+        ego_key: c.keys().ego(c.id(), 987_654),
+        npc_key: c.keys().npc(c.id(), 987_654),
+        error_key: c.keys().error(c.id(), "987654"),
         ..scene.created().clone()
     };
     let ghost = c.attach(ghost).unwrap();
@@ -478,8 +489,18 @@ fn a_second_client_claiming_the_ego_is_refused() {
     theirs.put(1, vec![ego_at(&history, 1)]).unwrap();
     let e = tick_err(&theirs);
     assert_refused(&e, ErrorCode::NotOwner, Some("client"));
-    // The owner saw the refusal too (same error key); it goes on.
-    let _ = scene.wait_error(Duration::from_secs(5)).unwrap();
+    // The refusal went to the intruder's own error key: the owner heard nothing.
+    assert_eq!(scene.wait_error(Duration::from_millis(500)).unwrap(), None);
+    // A tick on the owner's key that names another client is refused too.
+    let forged = road_client::protocol::EgoTick {
+        tick: 1,
+        agents: vec![ego_at(&history, 1)],
+        client: Some("intruder".into()),
+    };
+    scene.put_raw(serde_json::to_vec(&forged).unwrap()).unwrap();
+    let e = tick_err(&scene);
+    assert_refused(&e, ErrorCode::NotOwner, Some("client"));
+    assert!(e.message.contains("intruder"), "{e}");
     still_ticks(&mut scene, &history, 1);
     let e = match intruder.close_scene(scene.id()) {
         Err(Error::Refused(e)) => e,

@@ -132,7 +132,8 @@ fn templates(kind: Target, ego: road_protocol::Pose) -> Vec<Value> {
                    "agents": [
                      {"id": 1, "length_m": 4.5, "width_m": 1.8, "history": history(10, 0.0)},
                      {"id": 2, "length_m": 4.0, "width_m": 1.9, "history": history(12, 20.0)}],
-                   "external": [1], "planner": "road20", "checkpoint": "road20-cvpairs"}),
+                   "external": [1], "planner": "road20", "checkpoint": "road20-cvpairs",
+                   "client": "ego-2"}),
         ],
         Target::Ego => vec![
             json!({"tick": 1, "agents": [{"id": 1, "x_m": ego.x_m, "y_m": ego.y_m,
@@ -347,7 +348,12 @@ impl Harness {
             Target::Ego => {
                 let msg: EgoTick = parse(input)?;
                 self.live
-                    .check_ego(&msg, self.config.max_external_speed_mps, Instant::now())
+                    .check_ego(
+                        "fuzz",
+                        &msg,
+                        self.config.max_external_speed_mps,
+                        Instant::now(),
+                    )
                     .map(|_| ())
             }
             Target::Close => parse::<CloseScene>(input).map(|_| ()),

@@ -1,6 +1,7 @@
 //! `road replay`: a scene recording's protocol messages published again over zenoh, at the
 //! pace they were recorded (log-time gaps divided by `--speed`), on the keys a live server
-//! uses for that scene: the client's ego ticks on `<prefix>/scene/<id>/ego`, the server's NPC
+//! uses for that scene: the client's ego ticks on `<prefix>/client/<client>/scene/<id>/ego`,
+//! the server's NPC
 //! ticks on `…/npc` and its errors on `…/error`. Ego stacks, viewers and bridges can be tried
 //! against a recorded scene without a server. The creation request and reply (a query and
 //! its answer, no key to put them on) and the Foxglove topics are not replayed.
@@ -29,6 +30,9 @@ pub struct ReplayArgs {
     /// the replayed ego ticks for its own scene of that id: use another prefix beside one.
     #[arg(long, default_value = road_protocol::DEFAULT_PREFIX)]
     pub prefix: String,
+    /// The client id in the keys; default: the recording's (its creation request's).
+    #[arg(long)]
+    pub client: Option<String>,
     /// Replay speed: 2 plays twice as fast as recorded.
     #[arg(long, default_value_t = 1.0)]
     pub speed: f64,
@@ -63,10 +67,24 @@ pub fn run(args: ReplayArgs) -> Result<ExitCode> {
             topics::NPC
         )
     })?;
+    let client = match args.client {
+        Some(client) => client,
+        None => recording.client_id().with_context(|| {
+            format!(
+                "no client id (no {} or {} message naming one) in {path}: give --client",
+                topics::CREATE,
+                topics::EGO
+            )
+        })?,
+    };
+    anyhow::ensure!(
+        road_protocol::valid_client_id(&client),
+        "client id {client:?} in {path}: expected 1 to 64 ASCII letters, digits, '-' or '_'"
+    );
     let routes = [
-        (topics::EGO, keys.ego(scene)),
-        (topics::NPC, keys.npc(scene)),
-        (topics::ERROR, keys.error(&scene.to_string())),
+        (topics::EGO, keys.ego(&client, scene)),
+        (topics::NPC, keys.npc(&client, scene)),
+        (topics::ERROR, keys.error(&client, &scene.to_string())),
     ];
     let queue: Vec<(usize, &mcap::Message<'static>)> = recording
         .messages
