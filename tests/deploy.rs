@@ -45,7 +45,11 @@ impl Proc {
         let child = Command::new(env!("CARGO_BIN_EXE_road"))
             .args(args)
             .current_dir(REPO)
-            .env("RUST_LOG", "warn")
+            // ROAD_TEST_LOG: the children's log filter when debugging a test (default warn).
+            .env(
+                "RUST_LOG",
+                std::env::var("ROAD_TEST_LOG").unwrap_or_else(|_| "warn".into()),
+            )
             .stdout(Stdio::null())
             .spawn()
             .unwrap_or_else(|e| panic!("{name}: road does not run: {e}"));
@@ -302,7 +306,8 @@ fn an_unlisted_client_cannot_create_scenes() {
         ]
     };
     let server_login = login("road-server", "change-me-server");
-    let mut server_args: Vec<&str> = Vec::new();
+    // No late-ego deadline: a scene waits for its own client's tick however long it takes.
+    let mut server_args: Vec<&str> = vec!["--late-ego-ms", "0"];
     for item in &server_login {
         server_args.extend(["--cfg", item]);
     }
@@ -317,6 +322,27 @@ fn an_unlisted_client_cannot_create_scenes() {
         &mut [&mut router, &mut server],
     );
     one_tick_scene(&client, 0);
+
+    // Each listed client reaches only its own scenes' keys. ego-b, listed, posing as ego-a on
+    // ego-a's live scene: its tick never reaches the server (no late-ego deadline here, so
+    // the scene waits), and it hears none of the scene.
+    let mut scene = client.create(roundabout(2)).unwrap();
+    let ego_b = client_args(&endpoint, &login("ego-b", "change-me-ego-b"));
+    let impostor = Client::open(&ego_b, DEFAULT_PREFIX, "ego-a").unwrap();
+    let stolen = impostor.attach(scene.created().clone()).unwrap();
+    stolen.put(1, vec![ego_at(&scene, 1)]).unwrap();
+    std::thread::sleep(Duration::from_secs(1));
+    // Had the server taken the impostor's tick 1, ego-a's own would be refused as sent.
+    assert_eq!(scene.step(1, vec![ego_at(&scene, 1)]).unwrap().tick, 1);
+    assert_eq!(stolen.try_npc(Duration::from_secs(1)).unwrap(), None);
+    scene.close().unwrap();
+    drop(stolen);
+    drop(impostor);
+    // As itself, ego-b drives scenes of its own.
+    one_tick_scene(
+        &connect(&ego_b, DEFAULT_PREFIX, "ego-b", &mut [&mut router]),
+        3,
+    );
 
     // A client that logs in but is not listed: its creation reaches no server.
     let guest = Client::open(
