@@ -11,7 +11,7 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use road_client::protocol::{
-    AgentState, CreateScene, DEFAULT_PREFIX, ErrorCode, ErrorReply, MapSource, NpcTick,
+    AgentState, CreateScene, DEFAULT_PREFIX, ErrorCode, ErrorReply, NpcTick,
 };
 use road_client::{Client, Error, Scene, ZenohArgs};
 use zenoh::Wait;
@@ -146,29 +146,12 @@ fn connect(args: &ZenohArgs, prefix: &str, id: &str, procs: &mut [&mut Proc]) ->
 }
 
 fn roundabout(seed: u64) -> CreateScene {
-    CreateScene {
-        map: MapSource::Procedural("roundabout".into()),
-        agents: None,
-        external: vec![1],
-        planner: None,
-        checkpoint: None,
-        seed,
-        client: None,
-        max_ticks: None,
-    }
+    CreateScene::procedural("roundabout", vec![1], seed)
 }
 
 /// The ego's pose at `tick`: its history's last velocity, held.
 fn ego_at(scene: &Scene, tick: u64) -> AgentState {
-    let h = &scene.created().agents[0].history;
-    let (last, previous) = (h[h.len() - 1], h[h.len() - 2]);
-    let k = tick as f64;
-    AgentState {
-        id: 1,
-        x_m: last.x_m + (last.x_m - previous.x_m) * k,
-        y_m: last.y_m + (last.y_m - previous.y_m) * k,
-        heading_rad: last.heading_rad,
-    }
+    scene.created().constant_velocity(1, tick).unwrap()
 }
 
 /// Creates a roundabout scene, ticks it once and closes it.

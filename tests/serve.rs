@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use road_client::protocol::{AgentState, CreateScene, DEFAULT_PREFIX, MapSource};
+use road_client::protocol::{CreateScene, DEFAULT_PREFIX};
 use road_client::{Client, ZenohArgs};
 
 fn temp_dir(name: &str) -> PathBuf {
@@ -75,29 +75,12 @@ fn a_killed_servers_recording_reads_back_to_its_last_chunk() {
     );
     let client = connect(&endpoint, &mut server);
     let mut scene = client
-        .create(CreateScene {
-            map: MapSource::Procedural("roundabout".into()),
-            agents: None,
-            external: vec![1],
-            planner: None,
-            checkpoint: None,
-            seed: 0,
-            client: None,
-            max_ticks: None,
-        })
+        .create(CreateScene::procedural("roundabout", vec![1], 0))
         .unwrap();
-    let h = scene.created().agents[0].history.clone();
     let path = PathBuf::from(scene.created().recording.clone().unwrap());
-    let (last, previous) = (h[h.len() - 1], h[h.len() - 2]);
     let ticks = 5u64;
     for t in 1..=ticks {
-        let k = t as f64;
-        let ego = AgentState {
-            id: 1,
-            x_m: last.x_m + (last.x_m - previous.x_m) * k,
-            y_m: last.y_m + (last.y_m - previous.y_m) * k,
-            heading_rad: last.heading_rad,
-        };
+        let ego = scene.created().constant_velocity(1, t).unwrap();
         assert_eq!(scene.step(t, vec![ego]).unwrap().tick, t);
     }
     // Chunks are written out at least once a second.
@@ -106,12 +89,7 @@ fn a_killed_servers_recording_reads_back_to_its_last_chunk() {
     server.0.kill().unwrap();
     server.0.wait().unwrap();
     // The client's next tick fails at once with the reason instead of hanging.
-    let ego = AgentState {
-        id: 1,
-        x_m: last.x_m,
-        y_m: last.y_m,
-        heading_rad: last.heading_rad,
-    };
+    let ego = scene.created().constant_velocity(1, ticks + 1).unwrap();
     let err = scene.step(ticks + 1, vec![ego]).unwrap_err();
     assert!(
         matches!(err, road_client::Error::ServerGone { .. }),

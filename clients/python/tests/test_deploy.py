@@ -12,7 +12,6 @@ from __future__ import annotations
 import json
 import os
 import re
-import socket
 import subprocess
 import sys
 import time
@@ -24,8 +23,8 @@ import pytest
 from mcap.reader import make_reader
 
 from road_client import Client, RoadError, ServerInfo, discover, least_loaded, open_session
+from road_test_support import REPO, free_port, road_bin
 
-REPO = Path(__file__).resolve().parents[3]
 EGO = REPO / "clients" / "python" / "examples" / "ego.py"
 SCENES = 4
 TICKS = 20
@@ -33,19 +32,6 @@ TICKS = 20
 # the machine with everything else: generous bounds, which a passing run never comes near.
 START_S = 120.0
 EGO_S = 900.0
-
-
-def road_bin() -> str:
-    path = os.environ.get("ROAD_BIN") or str(REPO / "target" / "debug" / "road")
-    if not Path(path).is_file():
-        pytest.fail(f"no road binary at {path}: build it (cargo build -p road-cli) or set ROAD_BIN")
-    return path
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def tail(path: Path, lines: int = 40) -> str:

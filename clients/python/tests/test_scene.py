@@ -10,8 +10,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import socket
 import subprocess
 import tempfile
 import time
@@ -21,22 +19,9 @@ import pytest
 from mcap.reader import make_reader
 
 from road_client import AgentState, Client, RoadError
+from road_test_support import REPO, free_port, road_bin
 
-REPO = Path(__file__).resolve().parents[3]
 TICKS = 100
-
-
-def road_bin() -> str:
-    path = os.environ.get("ROAD_BIN") or str(REPO / "target" / "debug" / "road")
-    if not Path(path).is_file():
-        pytest.fail(f"no road binary at {path}: build it (cargo build -p road-cli) or set ROAD_BIN")
-    return path
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="module")

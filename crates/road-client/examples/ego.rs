@@ -10,7 +10,7 @@
 use std::process::ExitCode;
 
 use clap::Parser;
-use road_client::protocol::{AgentState, CreateScene, DEFAULT_PREFIX, MapSource};
+use road_client::protocol::{AgentState, CreateScene, DEFAULT_PREFIX};
 use road_client::{Client, ZenohArgs};
 
 #[derive(Debug, Parser)]
@@ -40,16 +40,7 @@ fn main() -> ExitCode {
 
 fn run(args: Args) -> Result<(), road_client::Error> {
     let client = Client::open(&args.zenoh, &args.prefix, &args.client)?;
-    let mut scene = client.create(CreateScene {
-        map: MapSource::Procedural("roundabout".into()),
-        agents: None,
-        external: vec![1],
-        planner: None,
-        checkpoint: None,
-        seed: args.seed,
-        client: None,
-        max_ticks: None,
-    })?;
+    let mut scene = client.create(CreateScene::procedural("roundabout", vec![1], args.seed))?;
     let created = scene.created().clone();
     println!(
         "scene {} on {} ({} agents), planner {}",

@@ -6,18 +6,10 @@
 //! use road_client::{Client, ZenohArgs, protocol::*};
 //! # fn main() -> Result<(), road_client::Error> {
 //! let client = Client::open(&ZenohArgs::default(), DEFAULT_PREFIX, "my-ego")?;
-//! let mut scene = client.create(CreateScene {
-//!     map: MapSource::Procedural("roundabout".into()),
-//!     agents: None,
-//!     external: vec![1],
-//!     planner: None,
-//!     checkpoint: None,
-//!     seed: 0,
-//!     client: None,
-//!     max_ticks: None,
-//! })?;
-//! let start = scene.created().agents[0].history.last().copied().unwrap();
-//! let npcs = scene.step(1, vec![AgentState { id: 1, x_m: start.x_m, y_m: start.y_m + 0.7, heading_rad: start.heading_rad }])?;
+//! let mut scene = client.create(CreateScene::procedural("roundabout", vec![1], 0))?;
+//! // Agent 1 (ours) one step on at its last velocity.
+//! let ego = scene.created().constant_velocity(1, 1).expect("agent 1 has a history");
+//! let npcs = scene.step(1, vec![ego])?;
 //! println!("{} NPCs at tick {}", npcs.npcs.len(), npcs.tick);
 //! scene.close()?;
 //! # Ok(()) }

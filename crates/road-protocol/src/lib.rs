@@ -207,6 +207,23 @@ pub struct CreateScene {
     pub max_ticks: Option<u64>,
 }
 
+impl CreateScene {
+    /// A scene on the procedural map `map` (`roundabout`, `intersection`, `merge`) with the
+    /// map's own vehicles, `external` driven by the client; the rest as the server defaults.
+    pub fn procedural(map: &str, external: Vec<u32>, seed: u64) -> Self {
+        Self {
+            map: MapSource::Procedural(map.into()),
+            agents: None,
+            external,
+            planner: None,
+            checkpoint: None,
+            seed,
+            client: None,
+            max_ticks: None,
+        }
+    }
+}
+
 /// What the server made of an agent.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -242,6 +259,25 @@ pub struct SceneCreated {
     /// The MCAP file recording the scene, on the server's machine.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub recording: Option<String>,
+}
+
+impl SceneCreated {
+    /// Agent `id` at step `tick`, driven on from step 0 at its last observed velocity and
+    /// heading (a scripted ego's simplest drive); `None` without that agent or without two
+    /// history poses.
+    pub fn constant_velocity(&self, id: u32, tick: u64) -> Option<AgentState> {
+        let history = &self.agents.iter().find(|a| a.id == id)?.history;
+        let [.., previous, last] = history.as_slice() else {
+            return None;
+        };
+        let k = tick as f64;
+        Some(AgentState {
+            id,
+            x_m: last.x_m + (last.x_m - previous.x_m) * k,
+            y_m: last.y_m + (last.y_m - previous.y_m) * k,
+            heading_rad: last.heading_rad,
+        })
+    }
 }
 
 /// An agent's state at one step.
@@ -533,6 +569,43 @@ mod tests {
         let e = parse::<EgoTick>(&[0xff, 0xfe, 0x00]).unwrap_err();
         assert_eq!(e.code, ErrorCode::MalformedJson);
         assert!(e.message.contains("UTF-8"), "{e}");
+    }
+
+    #[test]
+    fn a_constant_velocity_ego_goes_on_from_its_last_step() {
+        let pose = |x_m: f64| Pose {
+            x_m,
+            y_m: 1.0,
+            heading_rad: 0.0,
+        };
+        let created = SceneCreated {
+            protocol: PROTOCOL_VERSION,
+            scene: 1,
+            agents: vec![AgentInfo {
+                id: 4,
+                length_m: 4.5,
+                width_m: 1.8,
+                external: true,
+                history: vec![pose(0.0), pose(1.0), pose(1.5)],
+            }],
+            planner: "road20".into(),
+            checkpoint: "road20".into(),
+            observed_steps: 3,
+            step_secs: 0.1,
+            max_ticks: 10,
+            late_ego_deadline_ms: 0,
+            ego_key: String::new(),
+            npc_key: String::new(),
+            error_key: String::new(),
+            recording: None,
+        };
+        let at = created.constant_velocity(4, 2).unwrap();
+        assert_eq!((at.id, at.x_m, at.y_m), (4, 2.5, 1.0));
+        assert_eq!(created.constant_velocity(5, 1), None);
+        assert_eq!(
+            CreateScene::procedural("merge", vec![1], 3).map,
+            MapSource::Procedural("merge".into())
+        );
     }
 
     #[test]

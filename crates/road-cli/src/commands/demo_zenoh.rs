@@ -11,7 +11,7 @@ use std::process::ExitCode;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
-use road_client::protocol::{AgentState, CreateScene, DEFAULT_PREFIX, MapSource};
+use road_client::protocol::{AgentState, CreateScene, DEFAULT_PREFIX};
 use road_client::{Client, ZenohArgs};
 use road_data::WindowConfig;
 use road_serve::models::{embedded, find_models_dir};
@@ -68,16 +68,7 @@ pub fn run(
         "demo-ego",
     )?;
     client.set_timeout(Duration::from_secs(120));
-    let mut scene = client.create(CreateScene {
-        map: MapSource::Procedural(map.name().into()),
-        agents: None,
-        external: vec![1],
-        planner: None,
-        checkpoint: None,
-        seed,
-        client: None,
-        max_ticks: None,
-    })?;
+    let mut scene = client.create(CreateScene::procedural(map.name(), vec![1], seed))?;
     // The same scripted ego as `road demo`: its route through the map at constant speed.
     let procedural_scene = procedural(map, &WindowConfig::default(), 2)?;
     let vehicles = procedural_scene.routes.len();

@@ -10,7 +10,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
 use clap::Args;
-use road_client::protocol::{AgentState, CreateScene, DEFAULT_PREFIX, MapSource};
+use road_client::protocol::{AgentState, CreateScene, DEFAULT_PREFIX};
 use road_client::{Client, Scene, ZenohArgs};
 use road_data::WindowConfig;
 use road_serve::server::percentiles;
@@ -83,15 +83,9 @@ pub fn run(args: EgoArgs) -> Result<ExitCode> {
     for i in 0..args.scenes {
         let id = format!("{}-{i}", args.client);
         let request = CreateScene {
-            map: MapSource::Procedural(args.map.name().into()),
-            agents: None,
-            external: vec![1],
-            planner: None,
-            checkpoint: None,
-            seed: args.seed + i as u64,
-            client: None,
             // The server stops there and waits for the close (no late-ego tick after the last).
             max_ticks: Some(args.ticks),
+            ..CreateScene::procedural(args.map.name(), vec![1], args.seed + i as u64)
         };
         let (client, scene) = match &args.discover {
             Some(root) => place(&session, root, &id, request, timeout, args.wait_s)

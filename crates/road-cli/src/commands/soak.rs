@@ -11,7 +11,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use road_client::protocol::{AgentState, CreateScene, DEFAULT_PREFIX, MapSource};
+use road_client::protocol::{CreateScene, DEFAULT_PREFIX};
 use road_client::{Client, ZenohArgs};
 use zenoh::Wait;
 
@@ -236,26 +236,12 @@ pub fn run(args: &SoakBenchArgs) -> Result<()> {
 fn cycle(session: &zenoh::Session, client: &str, i: usize, ticks: u64) -> Result<()> {
     let mut client = Client::with_session(session.clone(), DEFAULT_PREFIX, client)?;
     client.set_timeout(Duration::from_secs(120));
-    let mut scene = client.create(CreateScene {
-        map: MapSource::Procedural("roundabout".into()),
-        agents: None,
-        external: vec![1],
-        planner: None,
-        checkpoint: None,
-        seed: i as u64,
-        client: None,
-        max_ticks: None,
-    })?;
-    let h = &scene.created().agents[0].history;
-    let (last, previous) = (h[h.len() - 1], h[h.len() - 2]);
+    let mut scene = client.create(CreateScene::procedural("roundabout", vec![1], i as u64))?;
     for t in 1..=ticks {
-        let k = t as f64;
-        let ego = AgentState {
-            id: 1,
-            x_m: last.x_m + (last.x_m - previous.x_m) * k,
-            y_m: last.y_m + (last.y_m - previous.y_m) * k,
-            heading_rad: last.heading_rad,
-        };
+        let ego = scene
+            .created()
+            .constant_velocity(1, t)
+            .context("the roundabout's agent 1 has a history")?;
         scene.step(t, vec![ego])?;
     }
     let closed = scene.close()?;

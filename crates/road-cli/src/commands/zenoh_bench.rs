@@ -11,7 +11,7 @@ use std::sync::{Arc, Barrier};
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
-use road_client::protocol::{AgentState, CreateScene, DEFAULT_PREFIX, MapSource};
+use road_client::protocol::{AgentState, CreateScene, DEFAULT_PREFIX, SceneCreated};
 use road_client::{Client, ZenohArgs};
 use road_serve::models::find_models_dir;
 use road_serve::server::percentiles;
@@ -74,29 +74,24 @@ pub fn run(checkpoint: &Path, scene_counts: &[usize], ticks: usize) -> Result<Ve
                 let (ready, go) = (Arc::clone(&ready), Arc::clone(&go));
                 Ok(std::thread::spawn(move || -> Result<Vec<(f64, f64)>> {
                     let prepared = (|| -> Result<_> {
-                        let mut scene = client.create(CreateScene {
-                            map: MapSource::Procedural("roundabout".into()),
-                            agents: None,
-                            external: vec![1],
-                            planner: None,
-                            checkpoint: None,
-                            seed: i as u64,
-                            client: None,
-                            max_ticks: None,
-                        })?;
-                        let h = scene.created().agents[0].history.clone();
+                        let mut scene = client.create(CreateScene::procedural(
+                            "roundabout",
+                            vec![1],
+                            i as u64,
+                        ))?;
+                        let created = scene.created().clone();
                         // The first tick carries the warm-up: not timed.
-                        scene.step(1, vec![replay(&h, 1)])?;
-                        Ok((scene, h))
+                        scene.step(1, vec![ego_at(&created, 1)?])?;
+                        Ok((scene, created))
                     })();
                     // Every thread meets the barriers, even one that failed to prepare.
                     ready.wait();
                     go.wait();
-                    let (mut scene, h) = prepared?;
+                    let (mut scene, created) = prepared?;
                     let mut out = Vec::with_capacity(ticks);
                     for t in 2..=ticks as u64 + 1 {
                         let sent = Instant::now();
-                        let npc = scene.step(t, vec![replay(&h, t)])?;
+                        let npc = scene.step(t, vec![ego_at(&created, t)?])?;
                         out.push((sent.elapsed().as_secs_f64() * 1e3, npc.compute_ms));
                     }
                     scene.close()?;
@@ -140,16 +135,11 @@ pub fn run(checkpoint: &Path, scene_counts: &[usize], ticks: usize) -> Result<Ve
     Ok(rows)
 }
 
-/// A constant-velocity ego from its history, at `tick`.
-fn replay(h: &[road_client::protocol::Pose], tick: u64) -> AgentState {
-    let (last, prev) = (h[h.len() - 1], h[h.len() - 2]);
-    let k = tick as f64;
-    AgentState {
-        id: 1,
-        x_m: last.x_m + (last.x_m - prev.x_m) * k,
-        y_m: last.y_m + (last.y_m - prev.y_m) * k,
-        heading_rad: last.heading_rad,
-    }
+/// The roundabout's agent 1 at `tick`, at constant velocity from its history.
+fn ego_at(created: &SceneCreated, tick: u64) -> Result<AgentState> {
+    created
+        .constant_velocity(1, tick)
+        .context("the roundabout's agent 1 has a history")
 }
 
 /// Prints the table and the real-time estimate.

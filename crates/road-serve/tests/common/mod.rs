@@ -6,7 +6,7 @@
 use std::path::PathBuf;
 use std::time::Duration;
 
-use road_client::protocol::{AgentInit, AgentState, CreateScene, MapSource, Pose};
+use road_client::protocol::{AgentInit, AgentState, CreateScene, Pose};
 use road_client::{Client, ZenohArgs};
 use road_serve::{ServeConfig, Server, ServerHandle};
 
@@ -65,16 +65,7 @@ pub fn client(server: &ServerHandle, id: &str) -> Client {
 
 /// The procedural roundabout with its own vehicles, agent 1 external.
 pub fn roundabout() -> CreateScene {
-    CreateScene {
-        map: MapSource::Procedural("roundabout".into()),
-        agents: None,
-        external: vec![1],
-        planner: None,
-        checkpoint: None,
-        seed: 0,
-        client: None,
-        max_ticks: None,
-    }
+    CreateScene::procedural("roundabout", vec![1], 0)
 }
 
 /// Ten steps of a car driving east at 5 m/s from (x, y).
