@@ -2,6 +2,7 @@
 //!
 //! - [`context`]: adapter selection (GPU, else lavapipe; `WGPU_BACKEND`, `WGPU_ADAPTER_NAME`);
 //! - [`engine`]: a checkpoint's denoiser and the Heun step as a chain of kernels, batched;
+//! - [`step_engine`]: the rollout driver's engine over them (windows kept on the device);
 //! - [`shaders`]: the embedded `shaders/*.wgsl` files;
 //! - [`kernels`]: one module per kernel family;
 //! - [`reference`]: the kernels' CPU references (plain f64 loops);
@@ -14,6 +15,7 @@ pub mod kernels;
 pub mod reference;
 pub mod selftest;
 pub mod shaders;
+pub mod step_engine;
 pub mod tolerance;
 
 pub use context::{ContextOptions, GpuContext};

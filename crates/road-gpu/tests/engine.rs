@@ -398,7 +398,7 @@ fn heun_step_matches_the_reference() {
 /// `road sample --engine gpu|cpu`: the same rollout driver and seed give the same futures.
 #[test]
 fn gpu_and_cpu_rollouts_agree_for_a_seed() {
-    use road_gpu::engine::GpuStepEngine;
+    use road_gpu::step_engine::GpuStepEngine;
     use road_model::sample::{RolloutScene, rollout, rollout_with};
     use road_sched::{PlannerKind, PlannerSpec};
     let ctx = context();
@@ -463,7 +463,7 @@ fn mixed_phase_batches_with_agent_pairs_agree_with_the_reference() {
 }
 
 fn mixed_phase_batches_agree(config: &ModelConfig, name: &str) {
-    use road_gpu::engine::GpuStepEngine;
+    use road_gpu::step_engine::GpuStepEngine;
     use road_model::sample::{CpuEngine, RolloutDriver, RolloutScene, StepEngine};
     use road_sched::{PlannerKind, PlannerSpec};
     let ctx = context();

@@ -408,7 +408,7 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
                     Ok(started.elapsed().as_secs_f64() / args.reps as f64)
                 };
             let gpu_secs = time(
-                &mut road_gpu::engine::GpuStepEngine::new(&ctx, &gpu_model),
+                &mut road_gpu::step_engine::GpuStepEngine::new(&ctx, &gpu_model),
                 &|| Ok(ctx.wait()?),
             )?;
             let cpu_secs = time(&mut CpuEngine::new(&loaded.model), &|| Ok(()))?;

@@ -4,7 +4,8 @@
 use std::path::Path;
 
 use anyhow::Result;
-use road_gpu::engine::{GpuDenoiser, GpuStepEngine};
+use road_gpu::engine::GpuDenoiser;
+use road_gpu::step_engine::GpuStepEngine;
 use road_gpu::{ContextOptions, GpuContext};
 use road_model::checkpoint::{self, LoadedModel};
 use road_model::sample::{CpuEngine, FastCpuEngine, StepEngine};

@@ -307,7 +307,7 @@ fn forecasting(args: EvalArgs) -> Result<ExitCode> {
             let mut gpu_engine;
             let engine: &mut dyn StepEngine = match (&ctx, &gpu_model) {
                 (Some(ctx), Some(model)) => {
-                    gpu_engine = road_gpu::engine::GpuStepEngine::new(ctx, model);
+                    gpu_engine = road_gpu::step_engine::GpuStepEngine::new(ctx, model);
                     &mut gpu_engine
                 }
                 _ if args.engine == Engine::Candle => {

@@ -107,7 +107,7 @@ pub fn run(args: SampleArgs) -> Result<ExitCode> {
         Engine::Gpu => {
             let ctx = road_gpu::GpuContext::new(&road_gpu::ContextOptions::default())?;
             let model = road_gpu::engine::GpuDenoiser::from_checkpoint(&ctx, &args.checkpoint)?;
-            let mut engine = road_gpu::engine::GpuStepEngine::new(&ctx, &model);
+            let mut engine = road_gpu::step_engine::GpuStepEngine::new(&ctx, &model);
             rollout_with(&mut engine, &run.planner, &scenes, steps, &mut rng)?
         }
     };

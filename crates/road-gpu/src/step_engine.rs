@@ -1,0 +1,353 @@
+//! The rollout driver's engine on the GPU ([`GpuStepEngine`]): `road-model`'s
+//! `StepEngine` over a [`GpuDenoiser`]'s kernels, with the windows kept on the device through a
+//! tick's steps and compacted sub-batches for mixed-phase rounds.
+
+use crate::engine::{DenoiseInputs, DeviceBatch, GpuDenoiser, HeunPlan, MapTokens};
+use crate::kernels::storage_buffer;
+use crate::{Error, GpuContext, Result};
+
+/// The rollout driver's engine on the GPU: windows stay on the device through a tick's steps
+/// and are read back once per tick.
+#[derive(Debug)]
+pub struct GpuStepEngine<'a> {
+    ctx: &'a GpuContext,
+    model: &'a GpuDenoiser,
+    map: Option<MapTokens>,
+    batch: Option<DeviceBatch>,
+    plan: Option<HeunPlan>,
+    window: Option<crate::kernels::window::WindowOps>,
+    /// Compacted sub-batches by capacity (powers of two), made on first use.
+    compact: Vec<Compact>,
+    features: Vec<f32>,
+    scenes: usize,
+    agents: usize,
+}
+
+impl<'a> GpuStepEngine<'a> {
+    pub fn new(ctx: &'a GpuContext, model: &'a GpuDenoiser) -> Self {
+        Self {
+            ctx,
+            model,
+            map: None,
+            batch: None,
+            plan: None,
+            window: None,
+            compact: Vec::new(),
+            features: Vec::new(),
+            scenes: 0,
+            agents: 0,
+        }
+    }
+}
+
+/// A compacted sub-batch of `capacity` scenes with its own Heun plan: the moving scenes of a
+/// mixed-phase round are copied in, stepped, and copied back, so idle scenes cost nothing.
+#[derive(Debug)]
+struct Compact {
+    batch: DeviceBatch,
+    map: MapTokens,
+    plan: HeunPlan,
+    sigma_cur: Vec<f32>,  // [capacity, W]
+    sigma_next: Vec<f32>, // [capacity, W]
+}
+
+impl Compact {
+    /// `like`: the scene set's map (its polylines and what each holds).
+    fn new(
+        ctx: &GpuContext,
+        model: &GpuDenoiser,
+        capacity: usize,
+        agents: usize,
+        like: &MapTokens,
+    ) -> Result<Self> {
+        let (w, d) = (model.config.window_slots, model.config.hidden);
+        let buffer = |label, floats: usize| storage_buffer(ctx, label, (floats * 4) as u64);
+        let batch = DeviceBatch {
+            scenes: capacity,
+            agents,
+            x: buffer("compact.x", capacity * agents * w * 3),
+            sigma: buffer("compact.sigma", capacity * w),
+            valid: buffer("compact.valid", capacity * agents * w),
+            agent_embedding: buffer("compact.agent_embedding", capacity * agents * d),
+        };
+        let polylines = like.polylines;
+        let map = MapTokens {
+            data: buffer("compact.map.data", capacity * polylines * like.per_polyline),
+            valid: buffer("compact.map.valid", capacity * polylines),
+            scenes: capacity,
+            polylines,
+            per_polyline: like.per_polyline,
+            picked: like.picked,
+        };
+        let plan = model.heun_plan(ctx, &batch, &map)?;
+        Ok(Self {
+            batch,
+            map,
+            plan,
+            sigma_cur: vec![1.0; capacity * w],
+            sigma_next: vec![1.0; capacity * w],
+        })
+    }
+}
+
+fn engine_err(e: Error) -> road_model::Error {
+    road_model::Error::Engine(e.to_string())
+}
+
+impl road_model::sample::StepEngine for GpuStepEngine<'_> {
+    fn window_slots(&self) -> usize {
+        self.model.config.window_slots
+    }
+
+    fn prepare(
+        &mut self,
+        scenes: usize,
+        agents: usize,
+        features: &[f32],
+        polylines: usize,
+        map: &[f32],
+        map_valid: &[f32],
+    ) -> road_model::Result<()> {
+        self.map = Some(
+            self.model
+                .encode_map(self.ctx, scenes, polylines, map, map_valid)
+                .map_err(engine_err)?,
+        );
+        self.features = features.to_vec();
+        self.scenes = scenes;
+        self.agents = agents;
+        // A new scene set: the next load makes its batch and plan.
+        self.batch = None;
+        self.plan = None;
+        self.window = None;
+        self.compact.clear();
+        Ok(())
+    }
+
+    fn load(&mut self, windows: &[f32], valid: &[f32]) -> road_model::Result<()> {
+        // Later ticks only overwrite the state: buffers, bind groups and the plan stay.
+        if let Some(batch) = &self.batch {
+            self.ctx
+                .queue
+                .write_buffer(&batch.x, 0, bytemuck::cast_slice(windows));
+            self.ctx
+                .queue
+                .write_buffer(&batch.valid, 0, bytemuck::cast_slice(valid));
+            return Ok(());
+        }
+        let map = self
+            .map
+            .as_ref()
+            .ok_or_else(|| road_model::Error::Engine("load before prepare".into()))?;
+        // σ is written per step into the plan's buffers; the batch's own σ is never read.
+        let sigma = vec![1.0f32; self.scenes * self.model.config.window_slots];
+        let inputs = DenoiseInputs {
+            scenes: self.scenes,
+            agents: self.agents,
+            x: windows,
+            sigma: &sigma,
+            valid,
+            agent_features: &self.features,
+        };
+        let batch = self
+            .model
+            .upload_batch(self.ctx, &inputs)
+            .map_err(engine_err)?;
+        self.plan = Some(
+            self.model
+                .heun_plan(self.ctx, &batch, map)
+                .map_err(engine_err)?,
+        );
+        self.window = Some(crate::kernels::window::WindowOps::new(
+            self.ctx,
+            &batch.x,
+            self.scenes,
+            self.agents,
+            self.model.config.window_slots,
+        ));
+        self.batch = Some(batch);
+        Ok(())
+    }
+
+    fn load_scene(
+        &mut self,
+        scene: usize,
+        window: &[f32],
+        valid: &[f32],
+    ) -> road_model::Result<()> {
+        let batch = self
+            .batch
+            .as_ref()
+            .ok_or_else(|| road_model::Error::Engine("load_scene before load".into()))?;
+        let w = self.model.config.window_slots;
+        let (x_len, v_len) = (self.agents * w * 3, self.agents * w);
+        if window.len() != x_len || valid.len() != v_len || scene >= self.scenes {
+            return Err(road_model::Error::Engine(format!(
+                "load_scene {scene}: {} states and {} flags for a batch of {} scenes × {x_len} / {v_len}",
+                window.len(),
+                valid.len(),
+                self.scenes
+            )));
+        }
+        self.ctx.queue.write_buffer(
+            &batch.x,
+            (scene * x_len * 4) as u64,
+            bytemuck::cast_slice(window),
+        );
+        self.ctx.queue.write_buffer(
+            &batch.valid,
+            (scene * v_len * 4) as u64,
+            bytemuck::cast_slice(valid),
+        );
+        Ok(())
+    }
+
+    fn step(
+        &mut self,
+        sigma_cur: &[f32],
+        sigma_next: &[f32],
+        second_evaluation: bool,
+    ) -> road_model::Result<()> {
+        let (Some(batch), Some(plan), Some(map)) = (&self.batch, &mut self.plan, &self.map) else {
+            return Err(road_model::Error::Engine(
+                "step before prepare and load".into(),
+            ));
+        };
+        let (b, w) = (self.scenes, self.model.config.window_slots);
+        if sigma_cur.len() != b * w || sigma_next.len() != b * w {
+            return Err(road_model::Error::Engine(format!(
+                "σ rows: {} and {} values for {b} scenes × {w} slots",
+                sigma_cur.len(),
+                sigma_next.len()
+            )));
+        }
+        let active: Vec<usize> = (0..b)
+            .filter(|&i| sigma_cur[i * w..(i + 1) * w] != sigma_next[i * w..(i + 1) * w])
+            .collect();
+        if active.is_empty() {
+            return Ok(());
+        }
+        if active.len() * 2 > b {
+            // σ rows are per scene: [B, W]; idle scenes hold still.
+            return plan
+                .run(self.ctx, batch, sigma_cur, sigma_next, second_evaluation)
+                .map_err(engine_err);
+        }
+        // Few scenes move (others idle in a mixed-phase batch): copy them into a compact
+        // sub-batch, step it, copy the states back.
+        let capacity = active.len().next_power_of_two();
+        if !self.compact.iter().any(|c| c.batch.scenes == capacity) {
+            let c = Compact::new(self.ctx, self.model, capacity, self.agents, map)
+                .map_err(engine_err)?;
+            self.compact.push(c);
+        }
+        let compact = self
+            .compact
+            .iter_mut()
+            .find(|c| c.batch.scenes == capacity)
+            .expect("made above");
+        let d = self.model.config.hidden;
+        let a = self.agents;
+        let p = map.polylines;
+        // (source, destination, floats per scene) of every per-scene region.
+        let regions = [
+            (&batch.x, &compact.batch.x, a * w * 3),
+            (&batch.valid, &compact.batch.valid, a * w),
+            (
+                &batch.agent_embedding,
+                &compact.batch.agent_embedding,
+                a * d,
+            ),
+            (&map.data, &compact.map.data, p * map.per_polyline),
+            (&map.valid, &compact.map.valid, p),
+        ];
+        let mut enc = self
+            .ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("compact gather"),
+            });
+        for (k, &i) in active.iter().enumerate() {
+            for (src, dst, len) in regions {
+                let bytes = (len * 4) as u64;
+                enc.copy_buffer_to_buffer(src, i as u64 * bytes, dst, k as u64 * bytes, bytes);
+            }
+        }
+        self.ctx.queue.submit([enc.finish()]);
+        compact.sigma_cur.fill(1.0);
+        compact.sigma_next.fill(1.0);
+        for (k, &i) in active.iter().enumerate() {
+            compact.sigma_cur[k * w..(k + 1) * w].copy_from_slice(&sigma_cur[i * w..(i + 1) * w]);
+            compact.sigma_next[k * w..(k + 1) * w].copy_from_slice(&sigma_next[i * w..(i + 1) * w]);
+        }
+        compact
+            .plan
+            .run(
+                self.ctx,
+                &compact.batch,
+                &compact.sigma_cur,
+                &compact.sigma_next,
+                second_evaluation,
+            )
+            .map_err(engine_err)?;
+        let mut enc = self
+            .ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("compact scatter"),
+            });
+        let bytes = (a * w * 3 * 4) as u64;
+        for (k, &i) in active.iter().enumerate() {
+            enc.copy_buffer_to_buffer(
+                &compact.batch.x,
+                k as u64 * bytes,
+                &batch.x,
+                i as u64 * bytes,
+                bytes,
+            );
+        }
+        self.ctx.queue.submit([enc.finish()]);
+        Ok(())
+    }
+
+    fn read_emitted(&mut self, slots: &[Option<usize>], out: &mut [f32]) -> road_model::Result<()> {
+        let window = self
+            .window
+            .as_mut()
+            .ok_or_else(|| road_model::Error::Engine("read_emitted before load".into()))?;
+        window.emitted(self.ctx, slots, out).map_err(engine_err)
+    }
+
+    fn shift(
+        &mut self,
+        edits: &[road_model::sample::ShiftEdit<'_>],
+        shape: road_model::sample::ShiftShape,
+    ) -> road_model::Result<()> {
+        let (Some(batch), Some(window)) = (&self.batch, &mut self.window) else {
+            return Err(road_model::Error::Engine("shift before load".into()));
+        };
+        let v_len = self.agents * self.model.config.window_slots;
+        let list: Vec<(usize, &[f32], &[f32])> = edits
+            .iter()
+            .map(|e| (e.scene, e.emitted, e.noise))
+            .collect();
+        window
+            .shift(self.ctx, &batch.x, &list, shape)
+            .map_err(engine_err)?;
+        for e in edits {
+            if e.valid.len() != v_len {
+                return Err(road_model::Error::Engine(format!(
+                    "shift of scene {}: {} validity flags, expected {v_len}",
+                    e.scene,
+                    e.valid.len()
+                )));
+            }
+            self.ctx.queue.write_buffer(
+                &batch.valid,
+                (e.scene * v_len * 4) as u64,
+                bytemuck::cast_slice(e.valid),
+            );
+        }
+        Ok(())
+    }
+}
