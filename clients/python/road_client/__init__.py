@@ -321,6 +321,7 @@ class Client:
         # scene id -> {"npc": queue, "error": queue}
         self._inboxes: dict[int, dict[str, queue.SimpleQueue]] = {}
         self._server_losses = 0
+        self._closed = False
         base = f"{self.prefix}/client/{client_id}/scene"
         self._subscribers = [
             session.declare_subscriber(f"{base}/*/npc", self._deliver),
@@ -436,6 +437,8 @@ class Client:
         return SceneClosed(**reply)
 
     def close(self) -> None:
+        # Its scenes' waits end with an error instead of running to their timeout.
+        self._closed = True
         for subscriber in self._subscribers:
             subscriber.undeclare()
         self._token.undeclare()
@@ -483,6 +486,9 @@ class Scene:
             self.last = npc
             if npc.tick >= tick:
                 return npc
+        if self.client._closed:
+            raise RoadError("client_closed", f"the client of scene {self.id} was closed: "
+                                             f"tick {tick} will not be read")
         if self.client.server_losses > self._server_losses_before:
             raise RoadError("server_gone",
                             f"the server at {self.client.prefix} went away (its liveliness "
