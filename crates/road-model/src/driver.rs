@@ -22,6 +22,7 @@ use road_sched::{
 
 use crate::batch::{AGENT_FEATURES, normal_vec};
 use crate::sample::{Rollout, RolloutScene, ShiftEdit, ShiftShape, StepEngine};
+use crate::smoothing::smooth_accelerations;
 use crate::{Error, Result};
 
 /// Per-scene state in model units. The window lives in the engine; `window` is the host copy
@@ -651,6 +652,10 @@ impl RolloutDriver {
             let i = self.scene_of_slot[o.scene.index()];
             let s = &mut self.states[i];
             let mut emitted = self.emitted[i * a_max * 3..][..s.agents * 3].to_vec();
+            if let Some(alpha) = self.planners[i].acceleration_smoothing {
+                // External agents' states replace theirs just below.
+                smooth_accelerations(&s.history, &s.history_valid, &mut emitted, alpha as f32);
+            }
             overrides(i, &mut emitted)?;
             for a in 0..s.agents {
                 s.history[a].push([emitted[3 * a], emitted[3 * a + 1], emitted[3 * a + 2]]);

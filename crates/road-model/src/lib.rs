@@ -18,6 +18,7 @@ pub mod fused;
 pub mod heun;
 pub mod model;
 pub mod sample;
+pub mod smoothing;
 pub mod train;
 
 use std::path::{Path, PathBuf};

@@ -42,6 +42,11 @@ pub struct PlannerSpec {
     /// model is still told `obs_sigma`, the lowest level it was trained on.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub obs_noise: Option<f64>,
+    /// α in (0, 1]: each emitted state's longitudinal acceleration is low-passed,
+    /// `a = a_prev + α · (a_model − a_prev)`, before it joins the history and the window
+    /// (`road_model::smoothing`; a deviation from the paper against jitter). Absent: off.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub acceleration_smoothing: Option<f64>,
     #[serde(default)]
     pub edm: EdmSchedule,
 }
@@ -56,6 +61,7 @@ impl Default for PlannerSpec {
             replan_every: None,
             obs_sigma: None,
             obs_noise: None,
+            acceleration_smoothing: None,
             edm: EdmSchedule::default(),
         }
     }
@@ -109,6 +115,13 @@ impl PlannerSpec {
             return bad(format!(
                 "obs_noise must be zero or positive and finite, got {obs_noise}"
             ));
+        }
+        if let Some(alpha) = self.acceleration_smoothing {
+            if !(alpha > 0.0 && alpha <= 1.0) {
+                return bad(format!(
+                    "acceleration_smoothing must be in (0, 1], got {alpha}"
+                ));
+            }
         }
         let e = &self.edm;
         if !(e.sigma_min > 0.0 && e.sigma_max > e.sigma_min && e.rho > 0.0 && e.sigma_data > 0.0) {

@@ -15,6 +15,7 @@ fn spec(kind: PlannerKind, n: usize, f: usize, k: usize, x: Option<usize>) -> Pl
         replan_every: x,
         obs_sigma: None,
         obs_noise: None,
+        acceleration_smoothing: None,
         edm: EdmSchedule::default(),
     }
 }
