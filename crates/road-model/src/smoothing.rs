@@ -4,17 +4,12 @@
 //! Each emitted slot ends its own denoising at σ_min, independently of its neighbours, so a
 //! position error of a few centimetres changes from step to step; differentiated three times
 //! at 10 Hz that is jerk of tens of m/s³ (the "jitter" of issue 13). The smoothing low-passes
-//! each agent's **longitudinal** acceleration (the second difference of its positions, along
-//! its direction of travel) before the state joins the history and the window:
-//! `a_l = a_l,prev + α · (a_l,model − a_l,prev)`; the lateral part stays the model's, so turns
-//! are not delayed. An agent that barely moves (under [`MOVING_STEP`] a step) has both parts
-//! smoothed: a stopped vehicle's jitter has no direction. α = 1 is the model's state unchanged;
-//! smaller α damps step-to-step noise and delays a change of speed by about 1/α steps.
-//! Headings are the model's.
-
-/// A step shorter than this (normalised units: 4 cm at the default 40 m scale) has no
-/// direction of travel to split the acceleration along.
-pub const MOVING_STEP: f32 = 1e-3;
+//! each agent's acceleration (the second difference of its positions, both axes) before the
+//! state joins the history and the window: `a = a_prev + α · (a_model − a_prev)`, so the
+//! emitted position is `2·p₂ − p₁ + a`. α = 1 is the model's state unchanged; smaller α damps
+//! step-to-step noise and delays a change of acceleration by about 1/α steps. Headings are the
+//! model's. (Smoothing only the longitudinal part, along the direction of travel, was tried and
+//! measured worse: more collisions; `docs/results.md`.)
 
 /// Smooths `emitted` (`[agents, 3]`: x, y, heading) against each agent's history (its last
 /// three states must be valid; other agents are left as they are).
@@ -30,23 +25,11 @@ pub fn smooth_accelerations(
             continue;
         }
         let (p0, p1, p2) = (states[t - 3], states[t - 2], states[t - 1]);
-        let p3 = [emitted[3 * a], emitted[3 * a + 1]];
-        let previous = [p2[0] - 2.0 * p1[0] + p0[0], p2[1] - 2.0 * p1[1] + p0[1]];
-        let model = [p3[0] - 2.0 * p2[0] + p1[0], p3[1] - 2.0 * p2[1] + p1[1]];
-        let step = [p2[0] - p1[0], p2[1] - p1[1]];
-        let speed = step[0].hypot(step[1]);
-        let smoothed = if speed < MOVING_STEP {
-            [0, 1].map(|d| previous[d] + alpha * (model[d] - previous[d]))
-        } else {
-            let along = [step[0] / speed, step[1] / speed];
-            let dot = |v: [f32; 2]| v[0] * along[0] + v[1] * along[1];
-            let (previous_l, model_l) = (dot(previous), dot(model));
-            let smoothed_l = previous_l + alpha * (model_l - previous_l);
-            // The model's lateral part, the smoothed longitudinal one.
-            [0, 1].map(|d| model[d] + (smoothed_l - model_l) * along[d])
-        };
         for d in 0..2 {
-            emitted[3 * a + d] = 2.0 * p2[d] - p1[d] + smoothed[d];
+            let previous = p2[d] - 2.0 * p1[d] + p0[d];
+            let model = emitted[3 * a + d] - 2.0 * p2[d] + p1[d];
+            let smoothed = previous + alpha * (model - previous);
+            emitted[3 * a + d] = 2.0 * p2[d] - p1[d] + smoothed;
         }
     }
 }
@@ -80,17 +63,6 @@ mod tests {
         smooth_accelerations(&history, &valid, &mut emitted, 0.25);
         assert!((emitted[0] - 0.525).abs() < 1e-6, "{emitted:?}");
         assert_eq!(emitted[2], 0.7);
-    }
-
-    #[test]
-    fn a_turn_keeps_its_lateral_acceleration() {
-        let history = vec![line(0.1, 5)];
-        let valid = vec![vec![true; 5]];
-        // Travelling along x; the model turns (y) and brakes (x) at once.
-        let mut emitted = [0.45, 1.05, 0.3];
-        smooth_accelerations(&history, &valid, &mut emitted, 0.2);
-        assert!((emitted[1] - 1.05).abs() < 1e-6, "{emitted:?}");
-        assert!((emitted[0] - 0.49).abs() < 1e-6, "{emitted:?}");
     }
 
     #[test]

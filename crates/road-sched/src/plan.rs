@@ -42,7 +42,7 @@ pub struct PlannerSpec {
     /// model is still told `obs_sigma`, the lowest level it was trained on.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub obs_noise: Option<f64>,
-    /// α in (0, 1]: each emitted state's longitudinal acceleration is low-passed,
+    /// α in (0, 1]: each emitted state's acceleration is low-passed,
     /// `a = a_prev + α · (a_model − a_prev)`, before it joins the history and the window
     /// (`road_model::smoothing`; a deviation from the paper against jitter). Absent: off.
     #[serde(default, skip_serializing_if = "Option::is_none")]
