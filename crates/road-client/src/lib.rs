@@ -285,7 +285,8 @@ impl Client {
         self.attach(created)
     }
 
-    /// A handle on a scene of this client's created elsewhere (its reply known).
+    /// A handle on a scene of this client's created elsewhere (its reply known). One handle a
+    /// scene: attaching it again takes its messages away from the earlier handle.
     pub fn attach(&self, created: SceneCreated) -> Result<Scene> {
         let (npc, errors) = self.inbox.open(created.scene);
         Ok(Scene {
