@@ -52,15 +52,15 @@ run)
     "$bin" gpu info | tee "$out/gpu-info.txt"
     # Kernels and whole denoisers against the CPU references on this adapter: nothing is timed
     # unless they agree.
-    "$bin" gpu selftest --checkpoints models/road20-long models/road20 | tee "$out/selftest.txt"
+    "$bin" gpu selftest --checkpoints models/road20-long2 models/road20 | tee "$out/selftest.txt"
     # Engine throughput: the WGSL engine beside the candle CPU reference, same batches.
     mkdir -p "$out/cache"
     cp dist/validation.roadds "$out/cache/validation.roadds" 2>/dev/null \
         || cp .road-cache/validation.roadds "$out/cache/validation.roadds"
-    "$bin" bench engine --checkpoints models/road20 models/road20-long \
+    "$bin" bench engine --checkpoints models/road20 models/road20-long2 \
         --batches "${batches[@]}" --cache "$out/cache" --json > "$out/engine.json"
     # Serving: scenes ticking through the scheduler, each engine in the same run.
-    "$bin" bench serve --checkpoint models/road20-long --engines cpu gpu \
+    "$bin" bench serve --checkpoint models/road20-long2 --engines cpu gpu \
         --scenes "${scenes[@]}" --ticks "$ticks" --cache "$out/cache" --json > "$out/serve.json"
     rm -rf "$out/cache"
     ls -la "$out"

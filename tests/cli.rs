@@ -255,7 +255,7 @@ fn gpu_selftest_passes_on_the_adapter_present() {
     ] {
         assert!(text.contains(&format!("{kernel}: ok")), "{kernel}: {text}");
     }
-    for checkpoint in ["models/road20-long", "models/road20"] {
+    for checkpoint in ["models/road20-long2", "models/road20"] {
         assert!(
             text.contains(&format!("denoiser {checkpoint}: ok")),
             "{checkpoint}: {text}"
@@ -664,7 +664,7 @@ fn demo_runs_outside_the_repository_on_the_embedded_checkpoint() {
 fn demo_serves_the_scene_and_writes_its_recording_and_animation() {
     let dir = temp_dir("demo-served");
     // The checkpoint by absolute path: the files land in `dir`, the models are here.
-    let checkpoint = workspace().join("models/road20-long");
+    let checkpoint = workspace().join("models/road20-long2");
     let steps = 20;
     let o = Command::new(env!("CARGO_BIN_EXE_road"))
         .args(["demo", "--steps", &steps.to_string(), "--checkpoint"])
