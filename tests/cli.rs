@@ -657,6 +657,17 @@ fn demo_runs_outside_the_repository_on_the_embedded_checkpoint() {
     assert!(o.status.success(), "{}", stderr(&o));
     assert!(stderr(&o).contains("embedded"), "{}", stderr(&o));
     assert!(dir.join("demo.mcap").is_file() && dir.join("demo.gif").is_file());
+    // The in-process closed loop too (its engines load from files: a temporary copy).
+    let o = Command::new(&bin)
+        .args(["demo", "--in-process", "--engine", "cpu", "--steps", "3"])
+        .current_dir(&dir)
+        .env("RUST_LOG", "info")
+        .env_remove("ROAD_MODELS")
+        .output()
+        .expect("road runs");
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stderr(&o).contains("embedded"), "{}", stderr(&o));
+    assert!(dir.join("demo.png").is_file());
     std::fs::remove_dir_all(&dir).ok();
 }
 
