@@ -647,26 +647,23 @@ fn demo_runs_outside_the_repository_on_the_embedded_checkpoint() {
     std::fs::hard_link(env!("CARGO_BIN_EXE_road"), &bin)
         .or_else(|_| std::fs::copy(env!("CARGO_BIN_EXE_road"), &bin).map(|_| ()))
         .unwrap();
-    let o = Command::new(&bin)
-        .args(["demo", "--steps", "3"])
-        .current_dir(&dir)
-        .env("RUST_LOG", "info")
-        .env_remove("ROAD_MODELS")
-        .output()
-        .expect("road runs");
-    assert!(o.status.success(), "{}", stderr(&o));
-    assert!(stderr(&o).contains("embedded"), "{}", stderr(&o));
+    // Served, then the in-process closed loop (its engines load the embedded bytes too).
+    let runs: [&[&str]; 2] = [
+        &["demo", "--steps", "3"],
+        &["demo", "--in-process", "--engine", "cpu", "--steps", "3"],
+    ];
+    for args in runs {
+        let o = Command::new(&bin)
+            .args(args)
+            .current_dir(&dir)
+            .env("RUST_LOG", "info")
+            .env_remove("ROAD_MODELS")
+            .output()
+            .expect("road runs");
+        assert!(o.status.success(), "{}", stderr(&o));
+        assert!(stderr(&o).contains("embedded"), "{}", stderr(&o));
+    }
     assert!(dir.join("demo.mcap").is_file() && dir.join("demo.gif").is_file());
-    // The in-process closed loop too (its engines load from files: a temporary copy).
-    let o = Command::new(&bin)
-        .args(["demo", "--in-process", "--engine", "cpu", "--steps", "3"])
-        .current_dir(&dir)
-        .env("RUST_LOG", "info")
-        .env_remove("ROAD_MODELS")
-        .output()
-        .expect("road runs");
-    assert!(o.status.success(), "{}", stderr(&o));
-    assert!(stderr(&o).contains("embedded"), "{}", stderr(&o));
     assert!(dir.join("demo.png").is_file());
     std::fs::remove_dir_all(&dir).ok();
 }

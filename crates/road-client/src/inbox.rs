@@ -58,8 +58,8 @@ impl Inbox {
 
     /// Hands `sample` to its scene.
     pub(crate) fn deliver(&self, sample: Sample) {
-        let key = sample.key_expr().as_str().to_owned();
-        let Some((scene, topic)) = scene_topic(&key) else {
+        let key = sample.key_expr().as_str();
+        let Some((scene, topic)) = scene_topic(key) else {
             tracing::warn!(key, "a message on a key this client does not read; dropped");
             return;
         };

@@ -180,6 +180,27 @@ impl GpuDenoiser {
         let path = dir.join(road_model::checkpoint::WEIGHTS_FILE);
         let tensors = road_model::checkpoint::load_tensors(&path, &candle_core::Device::Cpu)
             .map_err(Error::CheckpointLoad)?;
+        Self::from_tensors(ctx, &loaded.meta.run.model, tensors)
+    }
+
+    /// A checkpoint held in memory (a binary's embedded default): `loaded` is it as
+    /// `road_model::checkpoint::load_from_memory` checked it, `weights` the bytes of its
+    /// `weights.safetensors`.
+    pub fn from_memory(
+        ctx: &GpuContext,
+        loaded: &road_model::checkpoint::LoadedModel,
+        weights: &[u8],
+    ) -> Result<Self> {
+        let tensors = candle_core::safetensors::load_buffer(weights, &candle_core::Device::Cpu)
+            .map_err(|e| Error::Checkpoint(format!("embedded weights: {e}")))?;
+        Self::from_tensors(ctx, &loaded.meta.run.model, tensors)
+    }
+
+    fn from_tensors(
+        ctx: &GpuContext,
+        config: &ModelConfig,
+        tensors: HashMap<String, candle_core::Tensor>,
+    ) -> Result<Self> {
         let mut host = HashMap::new();
         for (name, t) in tensors {
             let values = t
@@ -188,7 +209,7 @@ impl GpuDenoiser {
                 .map_err(|e| Error::Checkpoint(format!("{name}: {e}")))?;
             host.insert(name, values);
         }
-        Self::new(ctx, &loaded.meta.run.model, &host)
+        Self::new(ctx, config, &host)
     }
 
     /// Uploads named f32 tensors (checkpoint names, see `docs/checkpoint.md`).

@@ -78,50 +78,6 @@ pub(crate) fn parse_map(name: &str) -> std::result::Result<ProceduralMap, String
     })
 }
 
-/// The embedded default checkpoint written to a temporary folder, for the engines that load
-/// from files: used when the default's folder is not where `--checkpoint` points (a binary run
-/// outside the repository). Removed when dropped.
-struct EmbeddedCopy {
-    dir: PathBuf,
-}
-
-impl EmbeddedCopy {
-    fn for_default(checkpoint: &std::path::Path) -> Result<Option<Self>> {
-        use road_serve::models::embedded;
-        let is_default = checkpoint.file_name() == Some(std::ffi::OsStr::new(embedded::NAME));
-        if !is_default || checkpoint.join("config.toml").is_file() {
-            return Ok(None);
-        }
-        let dir = std::env::temp_dir().join(format!(
-            "road-{}-embedded-{}",
-            embedded::NAME,
-            std::process::id()
-        ));
-        std::fs::create_dir_all(&dir)
-            .with_context(|| format!("cannot create {}", dir.display()))?;
-        let copy = Self { dir };
-        for (name, bytes) in [
-            ("config.toml", embedded::CONFIG_TOML.as_bytes()),
-            ("weights.safetensors", embedded::WEIGHTS),
-        ] {
-            let path = copy.dir.join(name);
-            std::fs::write(&path, bytes)
-                .with_context(|| format!("cannot write {}", path.display()))?;
-        }
-        tracing::info!(
-            "{} not found: running the checkpoint embedded in the binary",
-            checkpoint.display()
-        );
-        Ok(Some(copy))
-    }
-}
-
-impl Drop for EmbeddedCopy {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.dir);
-    }
-}
-
 pub fn run(args: DemoArgs) -> Result<ExitCode> {
     anyhow::ensure!(args.steps > 0, "--steps must be at least 1");
     if !args.in_process {
@@ -139,11 +95,20 @@ pub fn run(args: DemoArgs) -> Result<ExitCode> {
         .clone()
         .unwrap_or_else(|| PathBuf::from("demo.png"));
     let engine_choice = args.engine.unwrap_or(EngineChoice::Auto);
-    let embedded_copy = EmbeddedCopy::for_default(&args.checkpoint)?;
-    let checkpoint = embedded_copy
-        .as_ref()
-        .map_or(args.checkpoint.clone(), |c| c.dir.clone());
-    let engines = Engines::load(&checkpoint, engine_choice).with_context(|| {
+    // The default's folder absent (a binary run outside the repository): the embedded copy.
+    let embedded = args.checkpoint.file_name()
+        == Some(std::ffi::OsStr::new(road_serve::models::embedded::NAME))
+        && !args.checkpoint.join("config.toml").is_file();
+    let engines = if embedded {
+        tracing::info!(
+            "{} not found: running the checkpoint embedded in the binary",
+            args.checkpoint.display()
+        );
+        Engines::load_embedded(engine_choice)
+    } else {
+        Engines::load(&args.checkpoint, engine_choice)
+    }
+    .with_context(|| {
         format!(
             "cannot load the demo checkpoint {} (run from the repository root, or pass --checkpoint)",
             args.checkpoint.display()

@@ -1,7 +1,7 @@
 //! Picking and holding the engine a command runs a checkpoint on: the WGSL kernels (`road-gpu`),
 //! the fast CPU engine or the candle reference (`road-model`).
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use anyhow::Result;
 use road_gpu::engine::GpuDenoiser;
@@ -44,18 +44,45 @@ pub struct Engines {
 }
 
 impl Engines {
+    /// A checkpoint folder.
     pub fn load(dir: &Path, choice: EngineChoice) -> Result<Self> {
         let cpu = checkpoint::load(dir, &candle_core::Device::Cpu)?;
+        Self::with(cpu, choice, |ctx, _| {
+            Ok(GpuDenoiser::from_checkpoint(ctx, dir)?)
+        })
+    }
+
+    /// The checkpoint embedded in the binary (`road_serve::models::embedded`).
+    pub fn load_embedded(choice: EngineChoice) -> Result<Self> {
+        use road_serve::models::embedded;
+        let origin = PathBuf::from(format!("<embedded {}>", embedded::NAME));
+        let cpu = checkpoint::load_from_memory(
+            &origin,
+            embedded::CONFIG_TOML,
+            embedded::WEIGHTS,
+            &candle_core::Device::Cpu,
+        )?;
+        Self::with(cpu, choice, |ctx, cpu| {
+            Ok(GpuDenoiser::from_memory(ctx, cpu, embedded::WEIGHTS)?)
+        })
+    }
+
+    /// `cpu`, and the GPU denoiser `upload` makes when `choice` asks for one.
+    fn with(
+        cpu: LoadedModel,
+        choice: EngineChoice,
+        upload: impl Fn(&GpuContext, &LoadedModel) -> Result<GpuDenoiser>,
+    ) -> Result<Self> {
         let gpu = match choice {
             EngineChoice::Cpu | EngineChoice::Candle => None,
             EngineChoice::Gpu => {
                 let ctx = GpuContext::new(&ContextOptions::default())?;
-                let model = GpuDenoiser::from_checkpoint(&ctx, dir)?;
+                let model = upload(&ctx, &cpu)?;
                 Some((ctx, model))
             }
             EngineChoice::Auto => match GpuContext::new(&ContextOptions::default()) {
                 Ok(ctx) if !ctx.is_software() => {
-                    let model = GpuDenoiser::from_checkpoint(&ctx, dir)?;
+                    let model = upload(&ctx, &cpu)?;
                     Some((ctx, model))
                 }
                 Ok(ctx) => {
