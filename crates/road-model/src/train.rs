@@ -684,7 +684,8 @@ impl Trainer {
     /// initialisation; they are logged. Returns their names.
     fn initialise_from(&mut self, dir: &Path) -> Result<Vec<String>> {
         let path = dir.join(WEIGHTS_FILE);
-        let weights = checkpoint::load_tensors(&path, &self.device)?;
+        let mut weights = checkpoint::load_tensors(&path, &self.device)?;
+        fit_slot_embedding(&mut weights, self.run.model.window_slots, &path)?;
         let fresh = checkpoint::check_fit(&self.varmap, &weights, &path)?;
         for (i, name) in self.names.iter().enumerate() {
             if let Some(w) = weights.get(name) {
@@ -832,6 +833,39 @@ impl Trainer {
         }
         Ok(())
     }
+}
+
+/// `train.init_from` across planners whose windows differ (RoAD-20's W = 20 into AR's 11 or
+/// DJINN's 40): the slot embedding `[W', D]` keeps its first `min(W, W')` rows, and each slot
+/// past the checkpoint's window starts as its last (future) slot, which training then tells
+/// apart. Every other tensor is independent of W.
+fn fit_slot_embedding(
+    weights: &mut HashMap<String, Tensor>,
+    window_slots: usize,
+    path: &Path,
+) -> Result<()> {
+    const NAME: &str = "slot_embedding";
+    let Some(embedding) = weights.get(NAME) else {
+        return Ok(());
+    };
+    let (from_slots, _d) = embedding.dims2()?;
+    if from_slots == window_slots {
+        return Ok(());
+    }
+    let kept = embedding.narrow(0, 0, from_slots.min(window_slots))?;
+    let fitted = if window_slots > from_slots {
+        let last = embedding.narrow(0, from_slots - 1, 1)?;
+        let repeated = last.repeat((window_slots - from_slots, 1))?;
+        Tensor::cat(&[&kept, &repeated], 0)?
+    } else {
+        kept
+    };
+    tracing::info!(
+        from = %path.display(),
+        "the slot embedding of a {from_slots}-slot window fitted to {window_slots} slots"
+    );
+    weights.insert(NAME.to_owned(), fitted);
+    Ok(())
 }
 
 /// Whether `name` is the output projection of one of a block's residual branches (time,

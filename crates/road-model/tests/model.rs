@@ -568,6 +568,65 @@ fn a_run_can_start_from_another_checkpoint_s_weights() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// `train.init_from` across planners whose windows differ: a RoAD-20 checkpoint (W = 20)
+/// starts an AR run (W = 11) and a one-shot run (W = 40); the slot embedding keeps the rows
+/// the windows share and repeats the last one past the checkpoint's window, and every other
+/// tensor is the checkpoint's.
+#[test]
+fn a_run_can_start_from_a_checkpoint_with_another_window() {
+    use road_sched::{PlannerKind, PlannerSpec};
+    let run = run_config();
+    let ds = dataset(Split::Train);
+    let dir = temp_dir("init-from-window");
+    let mut first = Trainer::new(run.clone(), &ds, identity(), None).unwrap();
+    first.run_until(&ds, &dir, 2, "test", |_| {}).unwrap();
+    let saved =
+        checkpoint::load_tensors(&dir.join(checkpoint::WEIGHTS_FILE), &Device::Cpu).unwrap();
+    let rows = |t: &Tensor| t.to_vec2::<f32>().unwrap();
+    let from = rows(&saved["slot_embedding"]);
+    assert_eq!(from.len(), 20);
+
+    for (kind, future_slots) in [(PlannerKind::Autoregressive, 1), (PlannerKind::OneShot, 30)] {
+        let mut next = run.clone();
+        next.planner = PlannerSpec {
+            kind,
+            future_slots,
+            ..run.planner.clone()
+        };
+        next.model.window_slots = next.planner.obs_slots + future_slots;
+        next.train.init_from = Some(dir.clone());
+        let trainer = Trainer::new(next.clone(), &ds, identity(), None).unwrap();
+        let out = temp_dir(&format!("init-from-window-{future_slots}"));
+        trainer.save(&out, 0.0, "test").unwrap();
+        let started =
+            checkpoint::load_tensors(&out.join(checkpoint::WEIGHTS_FILE), &Device::Cpu).unwrap();
+        let slots = rows(&started["slot_embedding"]);
+        assert_eq!(slots.len(), next.model.window_slots);
+        for (slot, row) in slots.iter().enumerate() {
+            assert_eq!(
+                row,
+                &from[slot.min(from.len() - 1)],
+                "{kind:?}: slot {slot}"
+            );
+        }
+        for (name, tensor) in &saved {
+            if name != "slot_embedding" {
+                let diff = (tensor - &started[name])
+                    .unwrap()
+                    .abs()
+                    .unwrap()
+                    .max_all()
+                    .unwrap()
+                    .to_scalar::<f32>()
+                    .unwrap();
+                assert_eq!(diff, 0.0, "{kind:?}: {name} is the checkpoint's");
+            }
+        }
+        std::fs::remove_dir_all(&out).ok();
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}
+
 /// Stopping and resuming gives exactly the weights of an uninterrupted run.
 #[test]
 fn resume_continues_exactly() {
