@@ -8,7 +8,9 @@
 //! candle spends most of an inference step outside its matrix products here (thread barriers
 //! per op, allocation per op, tiny batched products for attention): see `docs/benchmarks.md`.
 
+use std::collections::HashMap;
 use std::sync::Mutex;
+use std::sync::atomic::{AtomicU64, Ordering};
 
 use candle_core::Tensor;
 use candle_nn::{LayerNorm, Linear};
@@ -16,10 +18,9 @@ use candle_nn::{LayerNorm, Linear};
 use crate::agent_map::{MapAnchor, agent_map, polylines_per_agent};
 use crate::agent_pairs::{PAIR_FEATURES, PairScales, pair_features};
 use crate::config::AgentFrame;
+use crate::fast_kernels::{AttentionScratch, KeysValues, PairTerms, attend, layer_norm};
 use crate::model::{Attention, Denoiser};
 use crate::{Error, Result};
-
-const LN_EPS: f32 = 1e-5;
 
 fn host(t: &Tensor) -> Result<Vec<f32>> {
     Ok(t.flatten_all()?.to_vec1::<f32>()?)
@@ -146,15 +147,7 @@ impl Norm {
 
     /// `out [n, D] = LN(x [n, D])`.
     fn forward(&self, x: &[f32], out: &mut [f32]) {
-        let d = self.weight.len();
-        for (row, o) in x.chunks_exact(d).zip(out.chunks_exact_mut(d)) {
-            let mean = lane_sum(row.iter().copied()) / d as f32;
-            let var = lane_sum(row.iter().map(|v| (v - mean) * (v - mean))) / d as f32;
-            let inv = 1.0 / (var + LN_EPS).sqrt();
-            for i in 0..d {
-                o[i] = (row[i] - mean) * inv * self.weight[i] + self.bias[i];
-            }
-        }
+        layer_norm(x, &self.weight, &self.bias, out);
     }
 }
 
@@ -223,6 +216,17 @@ pub struct SceneCache {
     map_points: Vec<f32>,
     /// `[B, P]`.
     map_valid: Vec<f32>,
+    /// `[B]`: an identity per scene, new for every scene a cache is built or replaced with
+    /// (the agent-map memo's key: a new scene never reuses an old one's maps).
+    identities: Vec<u64>,
+}
+
+/// The source of [`SceneCache`]'s scene identities.
+static NEXT_SCENE_IDENTITY: AtomicU64 = AtomicU64::new(0);
+
+fn new_identities(scenes: usize) -> Vec<u64> {
+    let first = NEXT_SCENE_IDENTITY.fetch_add(scenes as u64, Ordering::Relaxed);
+    (first..first + scenes as u64).collect()
 }
 
 impl SceneCache {
@@ -249,6 +253,7 @@ impl SceneCache {
         put(&mut self.map_kv, scene, &one.map_kv);
         put(&mut self.map_points, scene, &one.map_points);
         put(&mut self.map_valid, scene, &one.map_valid);
+        self.identities[scene] = new_identities(1)[0];
         Ok(())
     }
 }
@@ -308,6 +313,80 @@ impl PolylineEncoder {
     }
 }
 
+/// Agent maps encoded by earlier calls, by (scene identity, agent index in its scene): an
+/// agent's map depends only on its scene's polylines and its anchor (the newest observed
+/// state), which stays put for all the denoiser calls of a tick (observed slots keep their σ,
+/// so Heun steps leave them unchanged); without the memo the polyline encoder ran for every
+/// agent in every call (a quarter of the engine's time).
+#[derive(Debug, Default)]
+struct AgentMapMemo {
+    entries: HashMap<(u64, usize), MemoEntry>,
+    free_slabs: Vec<usize>,
+    slabs: usize,
+    /// K of the slabs (the memo empties when a batch's K differs).
+    polylines: usize,
+    calls: u64,
+}
+
+#[derive(Debug, Clone, Copy)]
+struct MemoEntry {
+    anchor_bits: [u32; 4],
+    slab: usize,
+    last_call: u64,
+}
+
+/// Calls an unused memo entry survives: longer than a joining scene's warm-up keeps the
+/// others waiting.
+const MEMO_CALLS_KEPT: u64 = 128;
+
+impl AgentMapMemo {
+    /// The slab of `key` and whether it holds the maps of `anchor` already.
+    fn slab_for(&mut self, key: (u64, usize), anchor: MapAnchor) -> (usize, bool) {
+        let bits = [anchor.x, anchor.y, anchor.cos, anchor.sin].map(f32::to_bits);
+        let calls = self.calls;
+        if let Some(entry) = self.entries.get_mut(&key) {
+            entry.last_call = calls;
+            let fresh = entry.anchor_bits == bits;
+            entry.anchor_bits = bits;
+            return (entry.slab, fresh);
+        }
+        let slab = self.free_slabs.pop().unwrap_or_else(|| {
+            self.slabs += 1;
+            self.slabs - 1
+        });
+        self.entries.insert(
+            key,
+            MemoEntry {
+                anchor_bits: bits,
+                slab,
+                last_call: calls,
+            },
+        );
+        (slab, false)
+    }
+
+    /// Starts a call with `k` polylines per agent; frees the slabs of entries unused for
+    /// [`MEMO_CALLS_KEPT`] calls.
+    fn start_call(&mut self, k: usize) {
+        if k != self.polylines {
+            *self = Self {
+                polylines: k,
+                ..Self::default()
+            };
+        }
+        self.calls += 1;
+        let calls = self.calls;
+        let free = &mut self.free_slabs;
+        self.entries.retain(|_, entry| {
+            let kept = calls - entry.last_call <= MEMO_CALLS_KEPT;
+            if !kept {
+                free.push(entry.slab);
+            }
+            kept
+        });
+    }
+}
+
 /// Per-worker buffers for `N` tokens (resized, never shrunk).
 #[derive(Debug, Default)]
 struct Scratch {
@@ -325,7 +404,7 @@ struct Scratch {
     compact_of: Vec<usize>,
     queries: Vec<usize>,
     keys: Vec<usize>,
-    scores: Vec<f32>,
+    attention: AttentionScratch,
     /// Agent maps: per evaluated agent, its polylines `[K, Q, 2]` in its frame, their flags
     /// `[K]`, the encoder's scratch, the tokens `[K, D]` and each block's `[K, 2D]` keys and
     /// values (`[agents, blocks, K, 2D]`).
@@ -334,7 +413,11 @@ struct Scratch {
     agent_hidden: Vec<f32>,
     agent_mixed: Vec<f32>,
     agent_tokens: Vec<f32>,
+    /// Encoded agent maps, a slab each: `agent_map_kv [slabs, blocks, K, 2D]` and
+    /// `agent_map_valid [slabs, K]`; `agent_slab[compact agent]` is the one a call reads.
     agent_map_kv: Vec<f32>,
+    agent_slab: Vec<usize>,
+    agent_map_memo: AgentMapMemo,
     /// Agent pairs: each evaluated agent's anchor; the pair features of every (scene, slot),
     /// `[agents_s, agents_s, F]` each, from `pair_starts[scene] + slot · agents_s² · F` (the
     /// same in every block); the unmasked keys' positions among a group's queries.
@@ -490,12 +573,15 @@ impl FastDenoiser {
             map_kv,
             map_points,
             map_valid: map_valid.to_vec(),
+            identities: new_identities(scenes),
         })
     }
 
     /// Every evaluated agent's own map (agent-map models): its polylines picked and encoded
-    /// in its anchor frame, then each block's keys and values, into the scratch's
-    /// `agent_map_kv [agents, blocks, K, 2D]` and `agent_map_valid [agents, K]`. Returns K.
+    /// in its anchor frame, then each block's keys and values, into the agent's slab of the
+    /// scratch's `agent_map_kv [slabs, blocks, K, 2D]` and `agent_map_valid [slabs, K]`
+    /// (`agent_slab[compact agent]`); agents whose anchor has not moved since an earlier call
+    /// keep their slab as it is ([`AgentMapMemo`]). Returns K.
     fn agent_maps(&self, cache: &SceneCache, inputs: &FastInputs<'_>, s: &mut Scratch) -> usize {
         let Some((encoder, wanted)) = &self.agent_map else {
             return 0;
@@ -504,19 +590,41 @@ impl FastDenoiser {
         let p = cache.polylines;
         let q = encoder.point_embedding.len() / d;
         let k = polylines_per_agent(*wanted, p);
-        let n = s.agent_rows.len();
-        s.agent_points.resize(n * k * q * 2, 0.0);
-        s.agent_map_valid.resize(n * k, 0.0);
+        let blocks = self.blocks.len();
+        let per_block = k * 2 * d;
+        s.agent_map_memo.start_call(k);
+        // The agents whose maps are encoded in this call: (compact agent, slab).
+        let mut stale = Vec::new();
+        s.agent_slab.clear();
         for (compact, &agent_row) in s.agent_rows.iter().enumerate() {
             let scene = inputs.scene_ids[agent_row / a];
-            let anchor = self.map_anchor(inputs, agent_row);
+            let key = (cache.identities[scene], agent_row % a);
+            let (slab, fresh) = s
+                .agent_map_memo
+                .slab_for(key, self.map_anchor(inputs, agent_row));
+            s.agent_slab.push(slab);
+            if !fresh {
+                stale.push((compact, slab));
+            }
+        }
+        let slabs = s.agent_map_memo.slabs;
+        s.agent_map_valid.resize(slabs * k, 0.0);
+        s.agent_map_kv.resize(slabs * blocks * per_block, 0.0);
+        if stale.is_empty() {
+            return k;
+        }
+        let n = stale.len();
+        s.agent_points.resize(n * k * q * 2, 0.0);
+        for (i, &(compact, slab)) in stale.iter().enumerate() {
+            let agent_row = s.agent_rows[compact];
+            let scene = inputs.scene_ids[agent_row / a];
             agent_map(
-                anchor,
+                self.map_anchor(inputs, agent_row),
                 &cache.map_points[scene * p * q * 2..][..p * q * 2],
                 &cache.map_valid[scene * p..][..p],
                 q,
-                &mut s.agent_points[compact * k * q * 2..][..k * q * 2],
-                &mut s.agent_map_valid[compact * k..][..k],
+                &mut s.agent_points[i * k * q * 2..][..k * q * 2],
+                &mut s.agent_map_valid[slab * k..][..k],
             );
         }
         s.agent_tokens.resize(n * k * d, 0.0);
@@ -527,13 +635,10 @@ impl FastDenoiser {
             &mut s.agent_mixed,
             &mut s.agent_tokens,
         );
-        let blocks = self.blocks.len();
-        let per_block = k * 2 * d;
-        s.agent_map_kv.resize(n * blocks * per_block, 0.0);
-        for compact in 0..n {
-            let tokens = &s.agent_tokens[compact * k * d..][..k * d];
-            for (i, block) in self.blocks.iter().enumerate() {
-                let kv = &mut s.agent_map_kv[(compact * blocks + i) * per_block..];
+        for (i, &(_, slab)) in stale.iter().enumerate() {
+            let tokens = &s.agent_tokens[i * k * d..][..k * d];
+            for (b, block) in self.blocks.iter().enumerate() {
+                let kv = &mut s.agent_map_kv[(slab * blocks + b) * per_block..];
                 block.map_kv.forward(tokens, k, &mut kv[..per_block]);
             }
         }
@@ -704,7 +809,7 @@ impl FastDenoiser {
                     None,
                     heads,
                     scale,
-                    &mut s.scores,
+                    &mut s.attention,
                     &mut s.att,
                 );
             }
@@ -749,7 +854,7 @@ impl FastDenoiser {
                         pairs.as_ref(),
                         heads,
                         scale,
-                        &mut s.scores,
+                        &mut s.attention,
                         &mut s.att,
                     );
                 }
@@ -772,10 +877,11 @@ impl FastDenoiser {
                 s.queries.clear();
                 let kv = if k > 0 {
                     s.queries.extend(group * w..(group + 1) * w);
-                    let flags = &s.agent_map_valid[group * k..][..k];
+                    let slab = s.agent_slab[group];
+                    let flags = &s.agent_map_valid[slab * k..][..k];
                     unmasked_keys(&agent_polylines, &|key| flags[key] > 0.0, &mut s.keys);
                     KeysValues::side_by_side(
-                        &s.agent_map_kv[(group * blocks + block_index) * k * 2 * d..][..k * 2 * d],
+                        &s.agent_map_kv[(slab * blocks + block_index) * k * 2 * d..][..k * 2 * d],
                         d,
                     )
                 } else {
@@ -801,7 +907,7 @@ impl FastDenoiser {
                     None,
                     heads,
                     scale,
-                    &mut s.scores,
+                    &mut s.attention,
                     &mut s.att,
                 );
             }
@@ -1070,75 +1176,6 @@ fn unmasked_keys(candidates: &[usize], is_valid: &dyn Fn(usize) -> bool, keys: &
     }
 }
 
-/// Keys and values of attention: row r of `data` holds its key at `k_offset` and its value at
-/// `v_offset` (`D` values each).
-struct KeysValues<'a> {
-    data: &'a [f32],
-    stride: usize,
-    k_offset: usize,
-    v_offset: usize,
-}
-
-/// A sum in 8 independent lanes (so that it vectorises).
-fn lane_sum(values: impl Iterator<Item = f32>) -> f32 {
-    let mut lanes = [0.0f32; 8];
-    for (i, v) in values.enumerate() {
-        lanes[i % 8] += v;
-    }
-    lanes.iter().sum()
-}
-
-impl<'a> KeysValues<'a> {
-    /// Cross-attention: rows of `[k; v]` from one stacked product, `2D` wide.
-    fn side_by_side(kv: &'a [f32], d: usize) -> Self {
-        Self {
-            data: kv,
-            stride: 2 * d,
-            k_offset: 0,
-            v_offset: d,
-        }
-    }
-
-    /// Self-attention: rows of `[q; k; v]` from one stacked product, `3D` wide.
-    fn stacked(qkv: &'a [f32], d: usize) -> Self {
-        Self {
-            data: qkv,
-            stride: 3 * d,
-            k_offset: d,
-            v_offset: 2 * d,
-        }
-    }
-}
-
-/// `Σ a·b` over two equal slices, in 8 independent lanes (so that it vectorises).
-fn dot(a: &[f32], b: &[f32]) -> f32 {
-    let mut lanes = [0.0f32; 8];
-    let (a8, b8) = (a.chunks_exact(8), b.chunks_exact(8));
-    let tail: f32 = a8
-        .remainder()
-        .iter()
-        .zip(b8.remainder())
-        .map(|(x, y)| x * y)
-        .sum();
-    for (x, y) in a8.zip(b8) {
-        for l in 0..8 {
-            lanes[l] += x[l] * y[l];
-        }
-    }
-    lanes.iter().sum::<f32>() + tail
-}
-
-/// The pair terms of agent attention ([`crate::config::AgentPairs`]) for one group whose
-/// queries are also its candidate keys: `features [queries, candidates, F]`, the position
-/// among the candidates of each key passed to [`attend`], and the offsets' weights `[D, F]`.
-struct PairTerms<'a> {
-    features: &'a [f32],
-    key_positions: &'a [usize],
-    candidates: usize,
-    k_weights: &'a [f32],
-    v_weights: &'a [f32],
-}
-
 /// The pair features of slot `slot` between the evaluated agents `agents` (compact indices,
 /// one scene's) into `out [agents, agents, F]`, as [`crate::agent_pairs::pair_features_of`].
 #[allow(clippy::too_many_arguments)]
@@ -1167,87 +1204,52 @@ fn slot_pair_features(
     }
 }
 
-/// Multi-head attention of the query rows `queries` of `q` (row stride `q_stride`, queries at
-/// offset 0) over key rows `keys` of `kv`; writes `out [row, D]` for each query row. With
-/// `pairs`, each score gains `(K_hᵀ q) · r` and each output `V_h Σ_j a_j r_j` (the candle
-/// model's `Attention::forward`).
-#[allow(clippy::too_many_arguments)]
-fn attend(
-    q: &[f32],
-    q_stride: usize,
-    queries: &[usize],
-    kv: &KeysValues<'_>,
-    keys: &[usize],
-    pairs: Option<&PairTerms<'_>>,
-    heads: usize,
-    scale: f32,
-    scores: &mut Vec<f32>,
-    out: &mut [f32],
-) {
-    let d = kv.v_offset.abs_diff(kv.k_offset); // keys and values are D wide, side by side
-    let dh = d / heads;
-    let f = PAIR_FEATURES;
-    scores.resize(keys.len(), 0.0);
-    for (query_index, &row) in queries.iter().enumerate() {
-        let query = &q[row * q_stride..][..d];
-        let o = &mut out[row * d..][..d];
-        for head in 0..heads {
-            let qh = &query[head * dh..][..dh];
-            // K_hᵀ q_h and this query's pair features.
-            let mut q_pair = [0.0f32; PAIR_FEATURES];
-            let mut features: &[f32] = &[];
-            if let Some(p) = pairs {
-                for (c, &qc) in qh.iter().enumerate() {
-                    let weights = &p.k_weights[(head * dh + c) * f..][..f];
-                    for (acc, w) in q_pair.iter_mut().zip(weights) {
-                        *acc += qc * w;
-                    }
-                }
-                features = &p.features[query_index * p.candidates * f..][..p.candidates * f];
-            }
-            let mut max = f32::NEG_INFINITY;
-            for (i, (score, &key)) in scores.iter_mut().zip(keys).enumerate() {
-                let kh = &kv.data[key * kv.stride + kv.k_offset + head * dh..][..dh];
-                let mut dot_product = dot(qh, kh);
-                if let Some(p) = pairs {
-                    let r = &features[p.key_positions[i] * f..][..f];
-                    dot_product += q_pair.iter().zip(r).map(|(a, b)| a * b).sum::<f32>();
-                }
-                *score = dot_product * scale;
-                max = max.max(*score);
-            }
-            let mut sum = 0.0;
-            for score in scores.iter_mut() {
-                *score = (*score - max).exp();
-                sum += *score;
-            }
-            let inv = 1.0 / sum;
-            let oh = &mut o[head * dh..][..dh];
-            oh.fill(0.0);
-            let mut mean_pair = [0.0f32; PAIR_FEATURES];
-            for (i, (&score, &key)) in scores.iter().zip(keys).enumerate() {
-                let weight = score * inv;
-                let vh = &kv.data[key * kv.stride + kv.v_offset + head * dh..][..dh];
-                for (acc, v) in oh.iter_mut().zip(vh) {
-                    *acc += weight * v;
-                }
-                if let Some(p) = pairs {
-                    let r = &features[p.key_positions[i] * f..][..f];
-                    for (acc, value) in mean_pair.iter_mut().zip(r) {
-                        *acc += weight * value;
-                    }
-                }
-            }
-            if let Some(p) = pairs {
-                for (c, acc) in oh.iter_mut().enumerate() {
-                    let weights = &p.v_weights[(head * dh + c) * f..][..f];
-                    *acc += weights
-                        .iter()
-                        .zip(&mean_pair)
-                        .map(|(a, b)| a * b)
-                        .sum::<f32>();
-                }
-            }
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn anchor(x: f32) -> MapAnchor {
+        MapAnchor {
+            x,
+            y: 2.0,
+            cos: 1.0,
+            sin: 0.0,
         }
+    }
+
+    /// The memo hands an agent its slab back while its anchor stays put, re-encodes when the
+    /// anchor moves or K changes, and frees the slabs of agents it has not seen for
+    /// `MEMO_CALLS_KEPT` calls.
+    #[test]
+    fn agent_map_memo_reuses_and_frees_slabs() {
+        let mut memo = AgentMapMemo::default();
+        memo.start_call(12);
+        assert_eq!(memo.slab_for((7, 0), anchor(1.0)), (0, false));
+        assert_eq!(memo.slab_for((7, 1), anchor(1.0)), (1, false));
+        memo.start_call(12);
+        assert_eq!(memo.slab_for((7, 0), anchor(1.0)), (0, true));
+        assert_eq!(
+            memo.slab_for((7, 1), anchor(1.5)),
+            (1, false),
+            "the anchor moved"
+        );
+        assert_eq!(
+            memo.slab_for((8, 0), anchor(1.0)),
+            (2, false),
+            "another scene"
+        );
+        for _ in 0..MEMO_CALLS_KEPT {
+            memo.start_call(12);
+            assert_eq!(memo.slab_for((7, 0), anchor(1.0)), (0, true));
+        }
+        memo.start_call(12);
+        assert_eq!(memo.entries.len(), 1, "two entries unused for too long");
+        let (slab, fresh) = memo.slab_for((9, 0), anchor(1.0));
+        assert!(slab == 1 || slab == 2, "a freed slab is reused: {slab}");
+        assert!(!fresh);
+        assert_eq!(memo.slabs, 3);
+        memo.start_call(6);
+        assert_eq!(memo.slab_for((7, 0), anchor(1.0)), (0, false), "K changed");
+        assert_eq!(memo.slabs, 1);
     }
 }

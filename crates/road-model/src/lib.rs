@@ -14,6 +14,7 @@ pub mod config;
 pub mod cpu_engine;
 mod driver;
 pub mod fast;
+mod fast_kernels;
 pub mod fused;
 pub mod heun;
 pub mod model;
