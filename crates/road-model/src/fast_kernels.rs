@@ -225,40 +225,28 @@ fn attend_body<const FMA: bool>(
                     }
                 }
             }
-            let mut max = [f32::NEG_INFINITY; LANES];
-            for chunk in 0..chunks {
-                let mut acc = [0.0f32; LANES];
-                for (c, &qc) in qh.iter().enumerate() {
-                    let k: &[f32; LANES] = keys_t[(head * dh + c) * padded + chunk * LANES..]
-                        [..LANES]
-                        .try_into()
-                        .expect("LANES wide");
-                    for l in 0..LANES {
-                        acc[l] = madd::<FMA>(qc, k[l], acc[l]);
-                    }
-                }
-                if pairs.is_some() {
-                    for (k, &qk) in q_pair.iter().enumerate() {
-                        let r: &[f32; LANES] = pairs_t[k * padded + chunk * LANES..][..LANES]
-                            .try_into()
-                            .expect("LANES wide");
-                        for l in 0..LANES {
-                            acc[l] = madd::<FMA>(qk, r[l], acc[l]);
-                        }
-                    }
-                }
-                let s = &mut scores[chunk * LANES..][..LANES];
-                for l in 0..LANES {
-                    let valid = chunk * LANES + l < n_keys;
-                    s[l] = if valid {
-                        acc[l] * scale
-                    } else {
-                        f32::NEG_INFINITY
-                    };
-                    max[l] = max[l].max(s[l]);
-                }
-            }
-            let max = max.iter().fold(f32::NEG_INFINITY, |a, &b| a.max(b));
+            let keys_t_head = &keys_t[head * dh * padded..][..dh * padded];
+            let pair_rows = pairs.is_some().then_some((&q_pair, &pairs_t[..f * padded]));
+            let max = match chunks {
+                1 => head_scores::<FMA, 1>(qh, keys_t_head, pair_rows, scale, n_keys, scores),
+                2 => head_scores::<FMA, 2>(qh, keys_t_head, pair_rows, scale, n_keys, scores),
+                3 => head_scores::<FMA, 3>(qh, keys_t_head, pair_rows, scale, n_keys, scores),
+                4 => head_scores::<FMA, 4>(qh, keys_t_head, pair_rows, scale, n_keys, scores),
+                _ => (0..chunks)
+                    .map(|chunk| {
+                        head_scores_chunk::<FMA>(
+                            qh,
+                            keys_t_head,
+                            padded,
+                            chunk,
+                            pair_rows,
+                            scale,
+                            n_keys,
+                            scores,
+                        )
+                    })
+                    .fold(f32::NEG_INFINITY, f32::max),
+            };
             // Softmax weights (padding: exp(−∞) = 0).
             let mut sums = [0.0f32; LANES];
             for chunk in 0..chunks {
@@ -308,6 +296,103 @@ fn attend_body<const FMA: bool>(
     }
 }
 
+/// One query-head's scores over `CHUNKS · LANES` keys (`padded`), into `scores`, and their
+/// maximum: `Σ_c q_c · K[c, j] (+ Σ_k (K_hᵀ q)_k · r[k, j])`, times `scale`; padding keys get
+/// −∞. The chunks' accumulators are independent, so the FMAs of one channel overlap instead
+/// of waiting on each other.
+#[inline(always)]
+fn head_scores<const FMA: bool, const CHUNKS: usize>(
+    qh: &[f32],
+    keys_t_head: &[f32],
+    pair_rows: Option<(&[f32; PAIR_FEATURES], &[f32])>,
+    scale: f32,
+    n_keys: usize,
+    scores: &mut [f32],
+) -> f32 {
+    #[cfg(target_arch = "x86_64")]
+    if FMA {
+        // SAFETY: the FMA build is only reached through the AVX2 + FMA entry points.
+        #[allow(unsafe_code)]
+        return unsafe {
+            avx2::head_scores::<CHUNKS>(qh, keys_t_head, pair_rows, scale, n_keys, scores)
+        };
+    }
+    let padded = CHUNKS * LANES;
+    let mut acc = [[0.0f32; LANES]; CHUNKS];
+    for (c, &qc) in qh.iter().enumerate() {
+        let row = &keys_t_head[c * padded..][..padded];
+        for (chunk, acc) in acc.iter_mut().enumerate() {
+            for l in 0..LANES {
+                acc[l] = madd::<FMA>(qc, row[chunk * LANES + l], acc[l]);
+            }
+        }
+    }
+    if let Some((q_pair, pairs_t)) = pair_rows {
+        for (k, &qk) in q_pair.iter().enumerate() {
+            let row = &pairs_t[k * padded..][..padded];
+            for (chunk, acc) in acc.iter_mut().enumerate() {
+                for l in 0..LANES {
+                    acc[l] = madd::<FMA>(qk, row[chunk * LANES + l], acc[l]);
+                }
+            }
+        }
+    }
+    let mut max = [f32::NEG_INFINITY; LANES];
+    for (chunk, acc) in acc.iter().enumerate() {
+        let s = &mut scores[chunk * LANES..][..LANES];
+        for l in 0..LANES {
+            s[l] = if chunk * LANES + l < n_keys {
+                acc[l] * scale
+            } else {
+                f32::NEG_INFINITY
+            };
+            max[l] = if s[l] > max[l] { s[l] } else { max[l] };
+        }
+    }
+    max.iter().fold(f32::NEG_INFINITY, |a, &b| a.max(b))
+}
+
+/// [`head_scores`] for one chunk of a group with more keys than the unrolled versions take.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn head_scores_chunk<const FMA: bool>(
+    qh: &[f32],
+    keys_t_head: &[f32],
+    padded: usize,
+    chunk: usize,
+    pair_rows: Option<(&[f32; PAIR_FEATURES], &[f32])>,
+    scale: f32,
+    n_keys: usize,
+    scores: &mut [f32],
+) -> f32 {
+    let mut acc = [0.0f32; LANES];
+    for (c, &qc) in qh.iter().enumerate() {
+        let k = &keys_t_head[c * padded + chunk * LANES..][..LANES];
+        for l in 0..LANES {
+            acc[l] = madd::<FMA>(qc, k[l], acc[l]);
+        }
+    }
+    if let Some((q_pair, pairs_t)) = pair_rows {
+        for (k, &qk) in q_pair.iter().enumerate() {
+            let r = &pairs_t[k * padded + chunk * LANES..][..LANES];
+            for l in 0..LANES {
+                acc[l] = madd::<FMA>(qk, r[l], acc[l]);
+            }
+        }
+    }
+    let s = &mut scores[chunk * LANES..][..LANES];
+    let mut max = f32::NEG_INFINITY;
+    for l in 0..LANES {
+        s[l] = if chunk * LANES + l < n_keys {
+            acc[l] * scale
+        } else {
+            f32::NEG_INFINITY
+        };
+        max = max.max(s[l]);
+    }
+    max
+}
+
 /// `out [DH] = Σ_j (weights_j · inv) · values[j, offset..offset + DH]` (row stride `d`), in
 /// registers: the head width known at compile time.
 #[inline(always)]
@@ -319,13 +404,41 @@ fn weighted_sum<const FMA: bool, const DH: usize>(
     offset: usize,
     out: &mut [f32],
 ) {
-    let mut acc = [0.0f32; DH];
-    for (j, &weight) in weights.iter().enumerate() {
-        let weight = weight * inv;
+    #[cfg(target_arch = "x86_64")]
+    if FMA && DH == 16 {
+        // SAFETY: as in `head_scores`.
+        #[allow(unsafe_code)]
+        unsafe {
+            avx2::weighted_sum_16(weights, inv, values, d, offset, out)
+        };
+        return;
+    }
+    // Even and odd keys in separate accumulators: two dependency chains instead of one.
+    let mut even = [0.0f32; DH];
+    let mut odd = [0.0f32; DH];
+    let mut pairs = weights.chunks_exact(2);
+    for (i, pair) in pairs.by_ref().enumerate() {
+        let j = 2 * i;
+        let v0: &[f32; DH] = values[j * d + offset..][..DH].try_into().expect("DH wide");
+        let v1: &[f32; DH] = values[(j + 1) * d + offset..][..DH]
+            .try_into()
+            .expect("DH wide");
+        let (w0, w1) = (pair[0] * inv, pair[1] * inv);
+        for c in 0..DH {
+            even[c] = madd::<FMA>(w0, v0[c], even[c]);
+            odd[c] = madd::<FMA>(w1, v1[c], odd[c]);
+        }
+    }
+    if let [last] = pairs.remainder() {
+        let j = weights.len() - 1;
         let v: &[f32; DH] = values[j * d + offset..][..DH].try_into().expect("DH wide");
         for c in 0..DH {
-            acc[c] = madd::<FMA>(weight, v[c], acc[c]);
+            even[c] = madd::<FMA>(last * inv, v[c], even[c]);
         }
+    }
+    let mut acc = [0.0f32; DH];
+    for c in 0..DH {
+        acc[c] = even[c] + odd[c];
     }
     out.copy_from_slice(&acc);
 }
@@ -335,6 +448,16 @@ fn weighted_sum<const FMA: bool, const DH: usize>(
 /// (their weight is below f32's normal range anyway).
 #[inline(always)]
 fn exp_lanes<const FMA: bool>(x: &mut [f32; LANES]) {
+    #[cfg(target_arch = "x86_64")]
+    if FMA {
+        // SAFETY: the FMA build is only reached through the AVX2 + FMA entry points, which
+        // check the CPU at run time.
+        #[allow(unsafe_code)]
+        unsafe {
+            exp_lanes_avx2_fma(x)
+        };
+        return;
+    }
     const LOG2_E: f32 = std::f32::consts::LOG2_E;
     const LN2_HI: f32 = 0.693_359_4;
     const LN2_LO: f32 = -2.121_944_4e-4;
@@ -347,7 +470,7 @@ fn exp_lanes<const FMA: bool>(x: &mut [f32; LANES]) {
         8.333_452e-3,
         4.166_579_6e-2,
         1.666_666_5e-1,
-        5.000_000_1e-1,
+        0.5,
     ];
     // One stage at a time over all lanes, branch-free and without float-to-int casts (their
     // NaN handling stops LLVM from vectorising): each loop is one vector instruction or two.
@@ -376,6 +499,162 @@ fn exp_lanes<const FMA: bool>(x: &mut [f32; LANES]) {
         let n_bits = shifted[l].to_bits().wrapping_sub(ROUND.to_bits());
         let two_n = f32::from_bits(n_bits.wrapping_add(127) << 23);
         x[l] = if flushed[l] { 0.0 } else { e * two_n };
+    }
+}
+
+/// [`exp_lanes`] in AVX2 + FMA registers: the same stages, one instruction each.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+#[inline]
+fn exp_lanes_avx2_fma(x: &mut [f32; LANES]) {
+    use std::arch::x86_64::*;
+    const LOG2_E: f32 = std::f32::consts::LOG2_E;
+    const LN2_HI: f32 = 0.693_359_4;
+    const LN2_LO: f32 = -2.121_944_4e-4;
+    const ROUND: f32 = 12_582_912.0;
+    const P: [f32; 6] = [
+        1.987_569_1e-4,
+        1.398_199_9e-3,
+        8.333_452e-3,
+        4.166_579_6e-2,
+        1.666_666_5e-1,
+        0.5,
+    ];
+    // SAFETY (loads and stores): `x` is 8 f32 wide, what one unaligned 256-bit access reads.
+    #[allow(unsafe_code)]
+    let v = unsafe { _mm256_loadu_ps(x.as_ptr()) };
+    let floor = _mm256_set1_ps(-87.0);
+    let flushed = _mm256_cmp_ps::<_CMP_LT_OQ>(v, floor);
+    let a = _mm256_max_ps(v, floor);
+    let round = _mm256_set1_ps(ROUND);
+    let shifted = _mm256_fmadd_ps(a, _mm256_set1_ps(LOG2_E), round);
+    let n = _mm256_sub_ps(shifted, round);
+    let r = _mm256_fnmadd_ps(n, _mm256_set1_ps(LN2_HI), a);
+    let r = _mm256_fnmadd_ps(n, _mm256_set1_ps(LN2_LO), r);
+    let mut p = _mm256_set1_ps(P[0]);
+    for &coefficient in &P[1..] {
+        p = _mm256_fmadd_ps(p, r, _mm256_set1_ps(coefficient));
+    }
+    let e = _mm256_add_ps(
+        _mm256_fmadd_ps(p, _mm256_mul_ps(r, r), r),
+        _mm256_set1_ps(1.0),
+    );
+    let n_bits = _mm256_sub_epi32(_mm256_castps_si256(shifted), _mm256_castps_si256(round));
+    let two_n = _mm256_castsi256_ps(_mm256_slli_epi32::<23>(_mm256_add_epi32(
+        n_bits,
+        _mm256_set1_epi32(127),
+    )));
+    let out = _mm256_andnot_ps(flushed, _mm256_mul_ps(e, two_n));
+    #[allow(unsafe_code)]
+    unsafe {
+        _mm256_storeu_ps(x.as_mut_ptr(), out)
+    };
+}
+
+/// The hottest loops of attention in AVX2 + FMA registers, written out: LLVM's vectoriser
+/// kept the generic versions' accumulators in scalar lanes and shuffled them every step.
+#[cfg(target_arch = "x86_64")]
+mod avx2 {
+    use std::arch::x86_64::*;
+
+    use super::{LANES, PAIR_FEATURES};
+
+    /// 8 f32 from `row[at..at + 8]` (bounds-checked, then one unaligned load).
+    #[target_feature(enable = "avx2,fma")]
+    #[inline]
+    fn load(row: &[f32], at: usize) -> __m256 {
+        let lanes: &[f32; LANES] = row[at..at + LANES].try_into().expect("8 wide");
+        // SAFETY: `lanes` is 8 f32, what one unaligned 256-bit load reads.
+        #[allow(unsafe_code)]
+        unsafe {
+            _mm256_loadu_ps(lanes.as_ptr())
+        }
+    }
+
+    #[target_feature(enable = "avx2,fma")]
+    #[inline]
+    fn store(row: &mut [f32], at: usize, v: __m256) {
+        let lanes: &mut [f32; LANES] = (&mut row[at..at + LANES]).try_into().expect("8 wide");
+        // SAFETY: as in `load`.
+        #[allow(unsafe_code)]
+        unsafe {
+            _mm256_storeu_ps(lanes.as_mut_ptr(), v)
+        }
+    }
+
+    /// `super::head_scores`, the same arithmetic.
+    #[target_feature(enable = "avx2,fma")]
+    #[inline]
+    pub(super) fn head_scores<const CHUNKS: usize>(
+        qh: &[f32],
+        keys_t_head: &[f32],
+        pair_rows: Option<(&[f32; PAIR_FEATURES], &[f32])>,
+        scale: f32,
+        n_keys: usize,
+        scores: &mut [f32],
+    ) -> f32 {
+        let padded = CHUNKS * LANES;
+        let mut acc = [_mm256_setzero_ps(); CHUNKS];
+        for (c, &qc) in qh.iter().enumerate() {
+            let row = &keys_t_head[c * padded..][..padded];
+            let q = _mm256_set1_ps(qc);
+            for (chunk, acc) in acc.iter_mut().enumerate() {
+                *acc = _mm256_fmadd_ps(q, load(row, chunk * LANES), *acc);
+            }
+        }
+        if let Some((q_pair, pairs_t)) = pair_rows {
+            for (k, &qk) in q_pair.iter().enumerate() {
+                let row = &pairs_t[k * padded..][..padded];
+                let q = _mm256_set1_ps(qk);
+                for (chunk, acc) in acc.iter_mut().enumerate() {
+                    *acc = _mm256_fmadd_ps(q, load(row, chunk * LANES), *acc);
+                }
+            }
+        }
+        let scale = _mm256_set1_ps(scale);
+        for (chunk, &acc) in acc.iter().enumerate() {
+            store(scores, chunk * LANES, _mm256_mul_ps(acc, scale));
+        }
+        for score in &mut scores[n_keys..padded] {
+            *score = f32::NEG_INFINITY;
+        }
+        scores[..padded]
+            .iter()
+            .fold(f32::NEG_INFINITY, |a, &b| if b > a { b } else { a })
+    }
+
+    /// `super::weighted_sum` for 16-wide heads: even and odd keys, low and high halves, in
+    /// four registers.
+    #[target_feature(enable = "avx2,fma")]
+    #[inline]
+    pub(super) fn weighted_sum_16(
+        weights: &[f32],
+        inv: f32,
+        values: &[f32],
+        d: usize,
+        offset: usize,
+        out: &mut [f32],
+    ) {
+        let (mut even_lo, mut even_hi) = (_mm256_setzero_ps(), _mm256_setzero_ps());
+        let (mut odd_lo, mut odd_hi) = (_mm256_setzero_ps(), _mm256_setzero_ps());
+        let mut pairs = weights.chunks_exact(2);
+        for (i, pair) in pairs.by_ref().enumerate() {
+            let (j0, j1) = (2 * i * d + offset, (2 * i + 1) * d + offset);
+            let w0 = _mm256_set1_ps(pair[0] * inv);
+            let w1 = _mm256_set1_ps(pair[1] * inv);
+            even_lo = _mm256_fmadd_ps(w0, load(values, j0), even_lo);
+            even_hi = _mm256_fmadd_ps(w0, load(values, j0 + LANES), even_hi);
+            odd_lo = _mm256_fmadd_ps(w1, load(values, j1), odd_lo);
+            odd_hi = _mm256_fmadd_ps(w1, load(values, j1 + LANES), odd_hi);
+        }
+        if let [last] = pairs.remainder() {
+            let j = (weights.len() - 1) * d + offset;
+            let w = _mm256_set1_ps(last * inv);
+            even_lo = _mm256_fmadd_ps(w, load(values, j), even_lo);
+            even_hi = _mm256_fmadd_ps(w, load(values, j + LANES), even_hi);
+        }
+        store(out, 0, _mm256_add_ps(even_lo, odd_lo));
+        store(out, LANES, _mm256_add_ps(even_hi, odd_hi));
     }
 }
 
@@ -418,6 +697,10 @@ mod tests {
         for i in 0..=87_000 {
             let x = (-(i as f32) * 1e-3).max(-87.0);
             for fma in [false, true] {
+                #[cfg(target_arch = "x86_64")]
+                if fma && !wide_registers() {
+                    continue;
+                }
                 let mut lanes = [x; LANES];
                 if fma {
                     exp_lanes::<true>(&mut lanes);
@@ -484,7 +767,8 @@ mod tests {
     }
 
     /// Both builds of the kernel against the scalar definition, for key counts on and off
-    /// the lane width and a key subset (masked keys left out).
+    /// the lane width (1 to 4 chunks of 8, unrolled, and 5, looped) and a key subset (masked
+    /// keys left out).
     #[test]
     fn attention_matches_its_definition() {
         let (d, heads) = (64, 4);
@@ -503,6 +787,8 @@ mod tests {
             (0..8).collect(),
             (0..13).collect(),
             (0..33).filter(|k| k % 3 != 1).collect(),
+            (0..30).collect(),
+            (0..33).collect(),
         ] {
             for fma in [false, true] {
                 #[cfg(target_arch = "x86_64")]
