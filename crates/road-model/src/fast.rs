@@ -1,8 +1,8 @@
 //! The fast CPU inference path: the denoiser's forward pass over plain buffers that are kept
 //! from call to call, matrix products through `gemm`'s kernels (AVX2/FMA or AVX-512 chosen at
-//! run time), attention fused per group of tokens (no per-head tensors, no transposes), the
-//! map's keys and values computed once per scene set, and the scenes of a batch split across
-//! threads that share nothing. [`Denoiser`] (candle) stays the reference: `tests/fast.rs`
+//! run time), attention fused per group of tokens (`fast_kernels`: no per-head tensors), the
+//! map's keys and values computed once per scene set (scene maps) or once per anchor (agent
+//! maps, [`AgentMapMemo`]), and the scenes of a batch split across threads that share nothing. [`Denoiser`] (candle) stays the reference: `tests/fast.rs`
 //! holds the two to the tolerance the WGSL engine meets.
 //!
 //! candle spends most of an inference step outside its matrix products here (thread barriers
