@@ -373,8 +373,8 @@ impl RolloutDriver {
         self.admit(i, pid)?;
         self.states[i] = SceneState::of(scene, self.a_max, self.w, steps_hint);
         self.rngs[i] = StdRng::seed_from_u64(seed);
-        self.rebuild(i);
         self.planners[i] = planner.clone();
+        self.rebuild(i);
         self.nfe_before[i] = 0;
         self.ticks[i] = 0;
         self.in_tick[i] = false;
@@ -437,7 +437,7 @@ impl RolloutDriver {
             self.n,
             self.w,
             self.obs_noise,
-            self.sigma_max,
+            self.sigma_max * self.planners[i].noise_temperature() as f32,
             &mut self.rngs[i],
         );
     }
@@ -513,8 +513,8 @@ impl RolloutDriver {
         self.scene_of_slot[old.index()] = usize::MAX;
         self.admit(scene, pid)?;
         self.needs_load[scene] = true;
-        self.rebuild(scene);
         self.planners[scene] = planner.clone();
+        self.rebuild(scene);
         Ok(())
     }
 
@@ -665,7 +665,17 @@ impl RolloutDriver {
             let rng = &mut self.rngs[i];
             match o.then {
                 WindowUpdate::Shift => {
-                    let noise = normal_vec(rng, s.agents * 6);
+                    let mut noise = normal_vec(rng, s.agents * 6);
+                    // The new slot's draws (the last 3 of each agent's 6) at the planner's
+                    // temperature; the observation noise stays as it is.
+                    let tau = self.planners[i].noise_temperature() as f32;
+                    if tau != 1.0 {
+                        for agent in noise.chunks_exact_mut(6) {
+                            for z in &mut agent[3..] {
+                                *z *= tau;
+                            }
+                        }
+                    }
                     // Validity moves with the slots; the joining observation and the new slot
                     // are valid.
                     for a in 0..s.agents {
@@ -677,7 +687,8 @@ impl RolloutDriver {
                     shifts.push((i, emitted, noise));
                 }
                 WindowUpdate::Rebuild => {
-                    rebuild_window(s, n, w, self.obs_noise, self.sigma_max, rng);
+                    let tau = self.planners[i].noise_temperature() as f32;
+                    rebuild_window(s, n, w, self.obs_noise, self.sigma_max * tau, rng);
                     self.needs_load[i] = true;
                 }
                 WindowUpdate::Hold | WindowUpdate::Exhausted => {}
@@ -746,7 +757,7 @@ impl RolloutDriver {
 }
 
 /// Window from the newest `n` history states (observations plus `obs_noise` · N(0, 1)) and
-/// pure noise.
+/// pure noise of standard deviation `sigma_max` (σ_max times the planner's temperature).
 fn rebuild_window(
     s: &mut SceneState,
     n: usize,
@@ -777,5 +788,68 @@ fn rebuild_window(
                 s.valid[k] = 1.0;
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use candle_core::Device;
+
+    use super::*;
+    use crate::batch::SceneInput;
+    use crate::config::ModelConfig;
+    use crate::cpu_engine::CpuEngine;
+
+    /// `noise_temperature` τ: a window's pure-noise slots start at τ · σ_max · z with the same
+    /// draws z, its observations untouched.
+    #[test]
+    fn noise_temperature_scales_the_pure_noise_of_future_slots() {
+        let config = ModelConfig {
+            hidden: 16,
+            heads: 2,
+            blocks: 1,
+            map_polylines: 4,
+            ..ModelConfig::default()
+        };
+        let (_, model) = crate::model::init_seeded(&config, &Device::Cpu, 3).unwrap();
+        let (agents, slots) = (2, config.window_slots);
+        let history = SceneInput {
+            agents,
+            slots: 10,
+            states: (0..agents * 10 * 3).map(|i| i as f32 * 0.01).collect(),
+            valid: vec![true; agents * 10],
+            agent_features: vec![0.5; agents * AGENT_FEATURES],
+            polylines: 4,
+            points: config.polyline_points,
+            map: vec![0.1; 4 * config.polyline_points * 2],
+        };
+        let scenes = [RolloutScene { history }];
+        let window = |tau: Option<f64>| {
+            let planner = PlannerSpec {
+                noise_temperature: tau,
+                ..PlannerSpec::default()
+            };
+            let mut engine = CpuEngine::new(&model);
+            let driver = RolloutDriver::new(
+                &mut engine,
+                &planner,
+                &scenes,
+                4,
+                &mut StdRng::seed_from_u64(5),
+            )
+            .unwrap();
+            driver.states[0].window.clone()
+        };
+        let (hot, cool) = (window(None), window(Some(0.5)));
+        for a in 0..agents {
+            for slot in 0..slots {
+                for d in 0..3 {
+                    let k = 3 * (a * slots + slot) + d;
+                    let want = if slot < 10 { hot[k] } else { 0.5 * hot[k] };
+                    assert_eq!(cool[k], want, "agent {a}, slot {slot}, {d}");
+                }
+            }
+        }
+        assert!(hot[3 * 15].abs() > 1.0, "future slots hold noise at σ_max");
     }
 }

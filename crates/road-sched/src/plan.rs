@@ -47,6 +47,12 @@ pub struct PlannerSpec {
     /// (`road_model::smoothing`; a deviation from the paper against jitter). Absent: off.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub acceleration_smoothing: Option<f64>,
+    /// τ in (0, 1]: the pure noise a future slot starts from is `τ · σ_max · z` instead of
+    /// `σ_max · z` (the window's first build and each new slot of a rolling or replanned
+    /// window): a lower sampling temperature (a deviation from the paper: the model is still
+    /// told σ_max). Absent: 1.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub noise_temperature: Option<f64>,
     #[serde(default)]
     pub edm: EdmSchedule,
 }
@@ -62,6 +68,7 @@ impl Default for PlannerSpec {
             obs_sigma: None,
             obs_noise: None,
             acceleration_smoothing: None,
+            noise_temperature: None,
             edm: EdmSchedule::default(),
         }
     }
@@ -75,6 +82,11 @@ impl PlannerSpec {
 
     pub fn obs_sigma(&self) -> f64 {
         self.obs_sigma.unwrap_or(self.edm.sigma_min)
+    }
+
+    /// τ of the pure noise future slots start from (`noise_temperature`; 1 when absent).
+    pub fn noise_temperature(&self) -> f64 {
+        self.noise_temperature.unwrap_or(1.0)
     }
 
     /// The noise added to observations: `obs_noise`, else `obs_sigma()`.
@@ -121,6 +133,11 @@ impl PlannerSpec {
                 return bad(format!(
                     "acceleration_smoothing must be in (0, 1], got {alpha}"
                 ));
+            }
+        }
+        if let Some(tau) = self.noise_temperature {
+            if !(tau > 0.0 && tau <= 1.0) {
+                return bad(format!("noise_temperature must be in (0, 1], got {tau}"));
             }
         }
         let e = &self.edm;
