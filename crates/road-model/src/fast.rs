@@ -2,8 +2,9 @@
 //! from call to call, matrix products through `gemm`'s kernels (AVX2/FMA or AVX-512 chosen at
 //! run time), attention fused per group of tokens (`fast_kernels`: no per-head tensors), the
 //! map's keys and values computed once per scene set (scene maps) or once per anchor (agent
-//! maps, [`AgentMapMemo`]), and the scenes of a batch split across threads that share nothing. [`Denoiser`] (candle) stays the reference: `tests/fast.rs`
-//! holds the two to the tolerance the WGSL engine meets.
+//! maps, [`AgentMapMemo`]), and the scenes of a batch split across threads that share
+//! nothing. [`Denoiser`] (candle) stays the reference: `tests/fast.rs` holds the two to the
+//! tolerance the WGSL engine meets.
 //!
 //! candle spends most of an inference step outside its matrix products here (thread barriers
 //! per op, allocation per op, tiny batched products for attention): see `docs/benchmarks.md`.
