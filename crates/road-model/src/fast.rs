@@ -419,6 +419,8 @@ struct Scratch {
     agent_map_kv: Vec<f32>,
     agent_slab: Vec<usize>,
     agent_map_memo: AgentMapMemo,
+    /// The agents whose maps a call encodes: (compact agent, slab, anchor).
+    stale_agent_maps: Vec<(usize, usize, MapAnchor)>,
     /// Agent pairs: each evaluated agent's anchor; the pair features of every (scene, slot),
     /// `[agents_s, agents_s, F]` each, from `pair_starts[scene] + slot · agents_s² · F` (the
     /// same in every block); the unmasked keys' positions among a group's queries.
@@ -594,33 +596,30 @@ impl FastDenoiser {
         let blocks = self.blocks.len();
         let per_block = k * 2 * d;
         s.agent_map_memo.start_call(k);
-        // The agents whose maps are encoded in this call: (compact agent, slab).
-        let mut stale = Vec::new();
+        s.stale_agent_maps.clear();
         s.agent_slab.clear();
         for (compact, &agent_row) in s.agent_rows.iter().enumerate() {
             let scene = inputs.scene_ids[agent_row / a];
             let key = (cache.identities[scene], agent_row % a);
-            let (slab, fresh) = s
-                .agent_map_memo
-                .slab_for(key, self.map_anchor(inputs, agent_row));
+            let anchor = self.map_anchor(inputs, agent_row);
+            let (slab, fresh) = s.agent_map_memo.slab_for(key, anchor);
             s.agent_slab.push(slab);
             if !fresh {
-                stale.push((compact, slab));
+                s.stale_agent_maps.push((compact, slab, anchor));
             }
         }
         let slabs = s.agent_map_memo.slabs;
         s.agent_map_valid.resize(slabs * k, 0.0);
         s.agent_map_kv.resize(slabs * blocks * per_block, 0.0);
-        if stale.is_empty() {
+        if s.stale_agent_maps.is_empty() {
             return k;
         }
-        let n = stale.len();
+        let n = s.stale_agent_maps.len();
         s.agent_points.resize(n * k * q * 2, 0.0);
-        for (i, &(compact, slab)) in stale.iter().enumerate() {
-            let agent_row = s.agent_rows[compact];
-            let scene = inputs.scene_ids[agent_row / a];
+        for (i, &(compact, slab, anchor)) in s.stale_agent_maps.iter().enumerate() {
+            let scene = inputs.scene_ids[s.agent_rows[compact] / a];
             agent_map(
-                self.map_anchor(inputs, agent_row),
+                anchor,
                 &cache.map_points[scene * p * q * 2..][..p * q * 2],
                 &cache.map_valid[scene * p..][..p],
                 q,
@@ -636,7 +635,7 @@ impl FastDenoiser {
             &mut s.agent_mixed,
             &mut s.agent_tokens,
         );
-        for (i, &(_, slab)) in stale.iter().enumerate() {
+        for (i, &(_, slab, _)) in s.stale_agent_maps.iter().enumerate() {
             let tokens = &s.agent_tokens[i * k * d..][..k * d];
             for (b, block) in self.blocks.iter().enumerate() {
                 let kv = &mut s.agent_map_kv[(slab * blocks + b) * per_block..];

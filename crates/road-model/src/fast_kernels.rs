@@ -443,6 +443,23 @@ fn weighted_sum<const FMA: bool, const DH: usize>(
     out.copy_from_slice(&acc);
 }
 
+/// Constants of [`exp_lanes`] (both builds): ln 2 in two parts for an exact range reduction,
+/// and Cephes' `expf` polynomial, highest power first.
+const LOG2_E: f32 = std::f32::consts::LOG2_E;
+const LN2_HI: f32 = 0.693_359_4;
+const LN2_LO: f32 = -2.121_944_4e-4;
+/// Adding and taking off 1.5·2²³ rounds to the nearest integer without a rounding instruction
+/// (SSE2 has none); the integer then sits in the sum's low mantissa bits.
+const ROUND: f32 = 12_582_912.0;
+const EXP_POLYNOMIAL: [f32; 6] = [
+    1.987_569_1e-4,
+    1.398_199_9e-3,
+    8.333_452e-3,
+    4.166_579_6e-2,
+    1.666_666_5e-1,
+    0.5,
+];
+
 /// `x ← exp(x)` lane by lane for `x ≤ 0` (softmax after its maximum is taken off): Cephes'
 /// `expf` polynomial (relative error ≈ 1e-7), `exp(−∞) = 0`, arguments below −87 flushed to 0
 /// (their weight is below f32's normal range anyway).
@@ -458,20 +475,6 @@ fn exp_lanes<const FMA: bool>(x: &mut [f32; LANES]) {
         };
         return;
     }
-    const LOG2_E: f32 = std::f32::consts::LOG2_E;
-    const LN2_HI: f32 = 0.693_359_4;
-    const LN2_LO: f32 = -2.121_944_4e-4;
-    // Adding and taking off 1.5·2²³ rounds to the nearest integer without a rounding
-    // instruction (SSE2 has none).
-    const ROUND: f32 = 12_582_912.0;
-    const P: [f32; 6] = [
-        1.987_569_1e-4,
-        1.398_199_9e-3,
-        8.333_452e-3,
-        4.166_579_6e-2,
-        1.666_666_5e-1,
-        0.5,
-    ];
     // One stage at a time over all lanes, branch-free and without float-to-int casts (their
     // NaN handling stops LLVM from vectorising): each loop is one vector instruction or two.
     let mut flushed = [false; LANES];
@@ -488,8 +491,8 @@ fn exp_lanes<const FMA: bool>(x: &mut [f32; LANES]) {
         let n = shifted[l] - ROUND;
         r[l] = madd::<FMA>(-n, LN2_LO, madd::<FMA>(-n, LN2_HI, a[l]));
     }
-    let mut p = [P[0]; LANES];
-    for &coefficient in &P[1..] {
+    let mut p = [EXP_POLYNOMIAL[0]; LANES];
+    for &coefficient in &EXP_POLYNOMIAL[1..] {
         for l in 0..LANES {
             p[l] = madd::<FMA>(p[l], r[l], coefficient);
         }
@@ -508,18 +511,6 @@ fn exp_lanes<const FMA: bool>(x: &mut [f32; LANES]) {
 #[inline]
 fn exp_lanes_avx2_fma(x: &mut [f32; LANES]) {
     use std::arch::x86_64::*;
-    const LOG2_E: f32 = std::f32::consts::LOG2_E;
-    const LN2_HI: f32 = 0.693_359_4;
-    const LN2_LO: f32 = -2.121_944_4e-4;
-    const ROUND: f32 = 12_582_912.0;
-    const P: [f32; 6] = [
-        1.987_569_1e-4,
-        1.398_199_9e-3,
-        8.333_452e-3,
-        4.166_579_6e-2,
-        1.666_666_5e-1,
-        0.5,
-    ];
     // SAFETY (loads and stores): `x` is 8 f32 wide, what one unaligned 256-bit access reads.
     #[allow(unsafe_code)]
     let v = unsafe { _mm256_loadu_ps(x.as_ptr()) };
@@ -531,8 +522,8 @@ fn exp_lanes_avx2_fma(x: &mut [f32; LANES]) {
     let n = _mm256_sub_ps(shifted, round);
     let r = _mm256_fnmadd_ps(n, _mm256_set1_ps(LN2_HI), a);
     let r = _mm256_fnmadd_ps(n, _mm256_set1_ps(LN2_LO), r);
-    let mut p = _mm256_set1_ps(P[0]);
-    for &coefficient in &P[1..] {
+    let mut p = _mm256_set1_ps(EXP_POLYNOMIAL[0]);
+    for &coefficient in &EXP_POLYNOMIAL[1..] {
         p = _mm256_fmadd_ps(p, r, _mm256_set1_ps(coefficient));
     }
     let e = _mm256_add_ps(
