@@ -24,6 +24,12 @@ if [ -n "${CI:-}" ] && [ -z "${VK_ICD_FILENAMES:-}" ]; then
     export VK_ICD_FILENAMES="$icd"
 fi
 
+# A fresh clone gains nothing from incremental compilation but its disk use (GBs of caches).
+if [ -n "${CI:-}" ]; then
+    export CARGO_INCREMENTAL=0
+fi
+echo "disk free for target/: $(df -h --output=avail . | tail -1 | tr -d ' ')"
+
 start=$(date +%s)
 cargo fmt --all -- --check
 cargo clippy --workspace --all-targets --locked -- -D warnings
