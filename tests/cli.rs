@@ -775,7 +775,7 @@ fn record_scene(dir: &Path, ticks: u64, flushed: u64) -> (PathBuf, u64) {
             })
             .collect()
     };
-    rec.agents(&agents, &poses(0), false, t0).unwrap();
+    rec.agents(&agents, &poses(0), &[], false, t0).unwrap();
     let mut flushed_len = 0;
     for t in 1..=ticks {
         let at = t0 + Duration::from_millis(100 * t);
@@ -791,7 +791,7 @@ fn record_scene(dir: &Path, ticks: u64, flushed: u64) -> (PathBuf, u64) {
         });
         rec.write(topics::NPC, npc.to_string().as_bytes(), at)
             .unwrap();
-        rec.agents(&agents, &poses(t), false, at).unwrap();
+        rec.agents(&agents, &poses(t), &[], false, at).unwrap();
         rec.flush().unwrap();
         if t == flushed {
             flushed_len = std::fs::metadata(rec.path()).unwrap().len();

@@ -41,6 +41,7 @@ import zenoh
 __all__ = [
     "AgentInfo",
     "AgentInit",
+    "AgentPlan",
     "AgentState",
     "Client",
     "NpcTick",
@@ -110,6 +111,14 @@ class SceneCreated:
 
 
 @dataclass
+class AgentPlan:
+    """One NPC's plan: its poses at the ticks after the ``NpcTick`` that holds it, 0.1 s apart."""
+
+    id: int
+    poses: list[Pose]
+
+
+@dataclass
 class NpcTick:
     scene: int
     tick: int
@@ -120,6 +129,8 @@ class NpcTick:
     latency_ms: float
     compute_ms: float
     late_external: list[AgentState] = field(default_factory=list)
+    # Each NPC's plan, when the scene was created with ``plans=True``.
+    plans: list[AgentPlan] = field(default_factory=list)
 
 
 @dataclass
@@ -188,6 +199,7 @@ def _npc_tick(d: dict) -> NpcTick:
     d = dict(d)
     d["npcs"] = [_state(a) for a in d["npcs"]]
     d["late_external"] = [_state(a) for a in d.get("late_external", [])]
+    d["plans"] = [AgentPlan(p["id"], [_pose(q) for q in p["poses"]]) for p in d.get("plans", [])]
     return NpcTick(**d)
 
 
@@ -381,8 +393,8 @@ class Client:
                                external: Optional[list[int]] = None,
                                planner: Optional[str] = None, checkpoint: Optional[str] = None,
                                seed: int = 0, max_ticks: Optional[int] = None,
-                               timeout_s: float = 60.0, discover_timeout_s: Optional[float] = None
-                               ) -> tuple["Client", "Scene"]:
+                               timeout_s: float = 60.0, discover_timeout_s: Optional[float] = None,
+                               plans: bool = False) -> tuple["Client", "Scene"]:
         """Finds the servers under ``root`` (``discover``) and creates the scene (arguments as
         ``create_scene``) on the least-loaded one with room. Returns the client of that server,
         sharing ``session`` (its ``close()`` leaves the session open), and the scene: keep the
@@ -399,7 +411,8 @@ class Client:
         client = cls(session, client_id, server.prefix, timeout_s, owns_session=False)
         try:
             scene = client.create_scene(map, agents=agents, external=external, planner=planner,
-                                        checkpoint=checkpoint, seed=seed, max_ticks=max_ticks)
+                                        checkpoint=checkpoint, seed=seed, max_ticks=max_ticks,
+                                        plans=plans)
         except BaseException:
             client.close()
             raise
@@ -411,9 +424,10 @@ class Client:
     def create_scene(self, map: dict, agents: Optional[list[AgentInit]] = None,
                      external: Optional[list[int]] = None, planner: Optional[str] = None,
                      checkpoint: Optional[str] = None, seed: int = 0,
-                     max_ticks: Optional[int] = None) -> "Scene":
+                     max_ticks: Optional[int] = None, plans: bool = False) -> "Scene":
         """Creates a scene. ``map`` is ``{"procedural": "roundabout"}``, ``{"osm": text}`` or
-        ``{"file": name}``; ``agents`` may be omitted on a procedural map (its own vehicles)."""
+        ``{"file": name}``; ``agents`` may be omitted on a procedural map (its own vehicles).
+        With ``plans`` every ``NpcTick`` also carries each NPC's plan (``NpcTick.plans``)."""
         request: dict[str, Any] = {"map": map, "external": list(external or []), "seed": seed,
                                    "client": self.client_id}
         if agents is not None:
@@ -424,6 +438,8 @@ class Client:
             request["checkpoint"] = checkpoint
         if max_ticks is not None:
             request["max_ticks"] = max_ticks
+        if plans:
+            request["plans"] = True
         created = _created(self._query(f"{self.prefix}/scenes/create",
                                        json.dumps(request).encode()))
         return Scene(self, created)

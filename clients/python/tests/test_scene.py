@@ -116,3 +116,34 @@ def test_bad_input_is_refused_by_field(server):
     npc = scene.step(1, [AgentState(ego.id, last.x_m, last.y_m + 0.5, last.heading_rad)])
     assert npc.tick == 1
     scene.close()
+
+
+def test_plans_on_request(server):
+    """A scene created with ``plans`` gets every NPC's plan each tick (the window's 9 steps
+    after the emitted one for RoAD-20); the plan's first pose is where the NPC is heading."""
+    client, _record = server
+    scene = client.create_scene({"procedural": "roundabout"}, external=[1], seed=2, plans=True)
+    ego = next(a for a in scene.created.agents if a.external)
+    last = ego.history[-1]
+    npc_ids = {a.id for a in scene.created.agents if not a.external}
+    previous = None
+    for t in range(1, 6):
+        npc = scene.step(t, [AgentState(ego.id, last.x_m, last.y_m, last.heading_rad)])
+        assert {p.id for p in npc.plans} == npc_ids
+        for plan in npc.plans:
+            assert len(plan.poses) == 9
+            for p in plan.poses:
+                assert all(math.isfinite(v) for v in (p.x_m, p.y_m, p.heading_rad)), p
+        if previous is not None:
+            # Last tick's plan for this tick against the state this tick emitted: the model
+            # replans each tick, but not by more than a few metres in 0.1 s.
+            now = {a.id: a for a in npc.npcs}
+            for plan in previous.plans:
+                first, state = plan.poses[0], now[plan.id]
+                assert math.hypot(first.x_m - state.x_m, first.y_m - state.y_m) < 3.0, (plan.id, t)
+        previous = npc
+    scene.close()
+    plain = client.create_scene({"procedural": "roundabout"}, external=[1], seed=2)
+    npc = plain.step(1, [AgentState(ego.id, last.x_m, last.y_m, last.heading_rad)])
+    assert npc.plans == []
+    plain.close()

@@ -1042,6 +1042,9 @@ impl GpuDenoiser {
             sigma_cur,
             sigma_next,
             sigma_eval,
+            first,
+            second,
+            last_had_second: false,
             x_e,
             euler,
             correct,
@@ -1170,6 +1173,11 @@ pub struct HeunPlan {
     sigma_cur: wgpu::Buffer,
     sigma_next: wgpu::Buffer,
     sigma_eval: wgpu::Buffer,
+    /// D of the first and the second evaluation `[B, A, W, 3]`.
+    first: wgpu::Buffer,
+    second: wgpu::Buffer,
+    /// Whether the last [`HeunPlan::run`] made the second evaluation.
+    last_had_second: bool,
     x_e: wgpu::Buffer,
     euler: Vec<Dispatch>,
     correct: Vec<Dispatch>,
@@ -1232,6 +1240,17 @@ impl HeunPlan {
         }
         enc.copy_buffer_to_buffer(&self.x_e, 0, &batch.x, 0, self.bytes);
         ctx.queue.submit([enc.finish()]);
+        self.last_had_second = second_evaluation;
         Ok(())
+    }
+
+    /// The last run's last denoiser estimate D `[B, A, W, 3]` (the second evaluation's when
+    /// it made one).
+    pub fn denoised(&self) -> &wgpu::Buffer {
+        if self.last_had_second {
+            &self.second
+        } else {
+            &self.first
+        }
     }
 }

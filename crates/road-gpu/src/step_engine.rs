@@ -3,7 +3,7 @@
 //! tick's steps and compacted sub-batches for mixed-phase rounds.
 
 use crate::engine::{DenoiseInputs, DeviceBatch, GpuDenoiser, HeunPlan, MapTokens};
-use crate::kernels::storage_buffer;
+use crate::kernels::{read_back_range, storage_buffer};
 use crate::{Error, GpuContext, Result};
 
 /// The rollout driver's engine on the GPU: windows stay on the device through a tick's steps
@@ -16,6 +16,9 @@ pub struct GpuStepEngine<'a> {
     batch: Option<DeviceBatch>,
     plan: Option<HeunPlan>,
     window: Option<crate::kernels::window::WindowOps>,
+    /// Each scene's last denoiser estimate `[B, A, W, 3]` (zeros until a step moves it), for
+    /// `read_denoised`.
+    denoised: Option<wgpu::Buffer>,
     /// Compacted sub-batches by capacity (powers of two), made on first use.
     compact: Vec<Compact>,
     features: Vec<f32>,
@@ -32,6 +35,7 @@ impl<'a> GpuStepEngine<'a> {
             batch: None,
             plan: None,
             window: None,
+            denoised: None,
             compact: Vec::new(),
             features: Vec::new(),
             scenes: 0,
@@ -120,6 +124,7 @@ impl road_model::sample::StepEngine for GpuStepEngine<'_> {
         self.batch = None;
         self.plan = None;
         self.window = None;
+        self.denoised = None;
         self.compact.clear();
         Ok(())
     }
@@ -133,6 +138,11 @@ impl road_model::sample::StepEngine for GpuStepEngine<'_> {
             self.ctx
                 .queue
                 .write_buffer(&batch.valid, 0, bytemuck::cast_slice(valid));
+            if let Some(denoised) = &self.denoised {
+                self.ctx
+                    .queue
+                    .write_buffer(denoised, 0, &vec![0u8; windows.len() * 4]);
+            }
             return Ok(());
         }
         let map = self
@@ -164,6 +174,12 @@ impl road_model::sample::StepEngine for GpuStepEngine<'_> {
             self.scenes,
             self.agents,
             self.model.config.window_slots,
+        ));
+        // Storage buffers start zeroed.
+        self.denoised = Some(storage_buffer(
+            self.ctx,
+            "denoised (last)",
+            (windows.len() * 4) as u64,
         ));
         self.batch = Some(batch);
         Ok(())
@@ -199,6 +215,14 @@ impl road_model::sample::StepEngine for GpuStepEngine<'_> {
             (scene * v_len * 4) as u64,
             bytemuck::cast_slice(valid),
         );
+        // A rebuilt window has no estimate yet.
+        if let Some(denoised) = &self.denoised {
+            self.ctx.queue.write_buffer(
+                denoised,
+                (scene * x_len * 4) as u64,
+                &vec![0u8; x_len * 4],
+            );
+        }
         Ok(())
     }
 
@@ -227,11 +251,36 @@ impl road_model::sample::StepEngine for GpuStepEngine<'_> {
         if active.is_empty() {
             return Ok(());
         }
+        let row_bytes = (self.agents * w * 3 * 4) as u64;
         if active.len() * 2 > b {
             // σ rows are per scene: [B, W]; idle scenes hold still.
-            return plan
-                .run(self.ctx, batch, sigma_cur, sigma_next, second_evaluation)
-                .map_err(engine_err);
+            plan.run(self.ctx, batch, sigma_cur, sigma_next, second_evaluation)
+                .map_err(engine_err)?;
+            // The moved scenes' estimates (idle scenes' rows were evaluated, not moved).
+            if let Some(denoised) = &self.denoised {
+                let mut enc =
+                    self.ctx
+                        .device
+                        .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                            label: Some("keep denoised"),
+                        });
+                if active.len() == b {
+                    enc.copy_buffer_to_buffer(
+                        plan.denoised(),
+                        0,
+                        denoised,
+                        0,
+                        b as u64 * row_bytes,
+                    );
+                } else {
+                    for &i in &active {
+                        let at = i as u64 * row_bytes;
+                        enc.copy_buffer_to_buffer(plan.denoised(), at, denoised, at, row_bytes);
+                    }
+                }
+                self.ctx.queue.submit([enc.finish()]);
+            }
+            return Ok(());
         }
         // Few scenes move (others idle in a mixed-phase batch): copy them into a compact
         // sub-batch, step it, copy the states back.
@@ -305,6 +354,15 @@ impl road_model::sample::StepEngine for GpuStepEngine<'_> {
                 i as u64 * bytes,
                 bytes,
             );
+            if let Some(denoised) = &self.denoised {
+                enc.copy_buffer_to_buffer(
+                    compact.plan.denoised(),
+                    k as u64 * bytes,
+                    denoised,
+                    i as u64 * bytes,
+                    bytes,
+                );
+            }
         }
         self.ctx.queue.submit([enc.finish()]);
         Ok(())
@@ -316,6 +374,30 @@ impl road_model::sample::StepEngine for GpuStepEngine<'_> {
             .as_mut()
             .ok_or_else(|| road_model::Error::Engine("read_emitted before load".into()))?;
         window.emitted(self.ctx, slots, out).map_err(engine_err)
+    }
+
+    fn read_denoised(&mut self, scene: usize, out: &mut [f32]) -> road_model::Result<()> {
+        let denoised = self
+            .denoised
+            .as_ref()
+            .ok_or_else(|| road_model::Error::Engine("read_denoised before load".into()))?;
+        let x_len = self.agents * self.model.config.window_slots * 3;
+        if scene >= self.scenes || out.len() != x_len {
+            return Err(road_model::Error::Engine(format!(
+                "read_denoised of scene {scene}: {} outputs; the batch has {} scenes of {x_len}",
+                out.len(),
+                self.scenes
+            )));
+        }
+        let bytes = read_back_range(
+            self.ctx,
+            denoised,
+            (scene * x_len * 4) as u64,
+            (x_len * 4) as u64,
+        )
+        .map_err(engine_err)?;
+        out.copy_from_slice(bytemuck::cast_slice(&bytes));
+        Ok(())
     }
 
     fn shift(

@@ -486,11 +486,16 @@ fn mixed_phase_batches_agree(config: &ModelConfig, name: &str) {
         replan_every: Some(2),
         ..rolling.clone()
     };
-    let run = |engine: &mut dyn StepEngine| -> Vec<Vec<f32>> {
+    // Per scene: its emitted states, then its plans (every scene reports them).
+    let run = |engine: &mut dyn StepEngine| -> (Vec<Vec<f32>>, Vec<Vec<f32>>) {
         let mut driver =
             RolloutDriver::new(engine, &rolling, &scenes, 5, &mut StdRng::seed_from_u64(4))
                 .unwrap();
+        for i in 0..scenes.len() {
+            driver.request_plans(i, true).unwrap();
+        }
         let mut out: Vec<Vec<f32>> = vec![Vec::new(); scenes.len()];
+        let mut plans: Vec<Vec<f32>> = vec![Vec::new(); scenes.len()];
         for t in 0..5 {
             if t == 1 {
                 driver.switch_scene_planner(2, &mpc).unwrap();
@@ -502,14 +507,24 @@ fn mixed_phase_batches_agree(config: &ModelConfig, name: &str) {
                     Ok(())
                 })
                 .unwrap();
+            for &i in which {
+                let (_, plan) = driver.plan(i).expect("requested");
+                plans[i].extend_from_slice(plan);
+            }
         }
-        out
+        (out, plans)
     };
-    let cpu = run(&mut CpuEngine::new(&reference));
-    let on_gpu = run(&mut GpuStepEngine::new(&ctx, &gpu));
+    let (cpu, cpu_plans) = run(&mut CpuEngine::new(&reference));
+    let (on_gpu, gpu_plans) = run(&mut GpuStepEngine::new(&ctx, &gpu));
     for (i, (c, g)) in cpu.iter().zip(&on_gpu).enumerate() {
         if let Err(m) = ROLLOUT.check(g, c) {
             panic!("scene {i}: {m}");
+        }
+    }
+    for (i, (c, g)) in cpu_plans.iter().zip(&gpu_plans).enumerate() {
+        assert!(!c.is_empty(), "scene {i} has plans");
+        if let Err(m) = ROLLOUT.check(g, c) {
+            panic!("scene {i}'s plans: {m}");
         }
     }
     std::fs::remove_dir_all(&dir).ok();

@@ -21,6 +21,9 @@ struct HostWindows {
     slots: usize,
     windows: Vec<f32>,
     valid: Vec<f32>,
+    /// The last denoiser estimate D(x; σ) of each scene's window `[B, A, W, 3]` (zeros until
+    /// a step moves it): what [`StepEngine::read_denoised`] reads.
+    denoised: Vec<f32>,
 }
 
 impl HostWindows {
@@ -38,6 +41,7 @@ impl HostWindows {
         }
         self.windows = windows.to_vec();
         self.valid = valid.to_vec();
+        self.denoised = vec![0.0; windows.len()];
         Ok(())
     }
 
@@ -50,6 +54,22 @@ impl HostWindows {
         }
         self.windows[scene * x..(scene + 1) * x].copy_from_slice(window);
         self.valid[scene * v..(scene + 1) * v].copy_from_slice(valid);
+        // A rebuilt window has no estimate yet.
+        self.denoised[scene * x..(scene + 1) * x].fill(0.0);
+        Ok(())
+    }
+
+    fn read_denoised(&self, scene: usize, out: &mut [f32]) -> Result<()> {
+        let x = self.agents * self.slots * 3;
+        if scene >= self.scenes || out.len() != x || self.denoised.len() < (scene + 1) * x {
+            return Err(Error::data(format!(
+                "read_denoised of scene {scene}: {} outputs; the loaded batch has {} scenes of \
+                 {x}",
+                out.len(),
+                self.scenes
+            )));
+        }
+        out.copy_from_slice(&self.denoised[scene * x..(scene + 1) * x]);
         Ok(())
     }
 
@@ -100,6 +120,8 @@ impl HostWindows {
             return Ok(());
         }
         let (x_len, v_len) = (self.agents * w * 3, self.agents * w);
+        // The last evaluation's D (the second one where there are two) is kept.
+        let mut last = Vec::new();
         if active.len() == self.scenes {
             let valid = &self.valid;
             self.windows = heun_update(
@@ -109,8 +131,12 @@ impl HostWindows {
                 sigma_cur,
                 sigma_next,
                 second_evaluation,
-                |x, sigma| denoise(x, sigma, valid, &active),
+                |x, sigma| {
+                    last = denoise(x, sigma, valid, &active)?;
+                    Ok(last.clone())
+                },
             )?;
+            self.denoised = last;
             return Ok(());
         }
         let valid = gather_rows(&self.valid, &active, v_len);
@@ -121,9 +147,13 @@ impl HostWindows {
             &gather_rows(sigma_cur, &active, w),
             &gather_rows(sigma_next, &active, w),
             second_evaluation,
-            |x, sigma| denoise(x, sigma, &valid, &active),
+            |x, sigma| {
+                last = denoise(x, sigma, &valid, &active)?;
+                Ok(last.clone())
+            },
         )?;
         scatter_rows(&mut self.windows, &active, x_len, &stepped);
+        scatter_rows(&mut self.denoised, &active, x_len, &last);
         Ok(())
     }
 }
@@ -318,6 +348,10 @@ impl StepEngine for CpuEngine<'_> {
         self.host.read_emitted(slots, out)
     }
 
+    fn read_denoised(&mut self, scene: usize, out: &mut [f32]) -> Result<()> {
+        self.host.read_denoised(scene, out)
+    }
+
     fn shift(&mut self, edits: &[ShiftEdit<'_>], shape: ShiftShape) -> Result<()> {
         self.host.shift(edits, shape)
     }
@@ -469,6 +503,10 @@ impl StepEngine for FastCpuEngine<'_> {
 
     fn read_emitted(&mut self, slots: &[Option<usize>], out: &mut [f32]) -> Result<()> {
         self.host.read_emitted(slots, out)
+    }
+
+    fn read_denoised(&mut self, scene: usize, out: &mut [f32]) -> Result<()> {
+        self.host.read_denoised(scene, out)
     }
 
     fn shift(&mut self, edits: &[ShiftEdit<'_>], shape: ShiftShape) -> Result<()> {

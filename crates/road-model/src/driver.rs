@@ -36,6 +36,12 @@ struct SceneState {
     history: Vec<Vec<[f32; 3]>>,
     history_valid: Vec<Vec<bool>>,
     emitted: Vec<f32>, // [agents, steps, 3]
+    /// Whether each tick keeps the model's plan (the denoiser's estimate of the window's
+    /// slots after the emitted one).
+    wants_plan: bool,
+    /// The last tick's plan `[agents, plan_steps, 3]` (model units) when `wants_plan`.
+    plan: Vec<f32>,
+    plan_steps: usize,
 }
 
 impl SceneState {
@@ -47,6 +53,9 @@ impl SceneState {
             history: Vec::new(),
             history_valid: Vec::new(),
             emitted: Vec::new(),
+            wants_plan: false,
+            plan: Vec::new(),
+            plan_steps: 0,
         }
     }
 
@@ -72,6 +81,9 @@ impl SceneState {
             history,
             history_valid,
             emitted: Vec::with_capacity(h.agents * steps_hint * 3),
+            wants_plan: false,
+            plan: Vec::new(),
+            plan_steps: 0,
         }
     }
 }
@@ -115,6 +127,7 @@ pub struct RolloutDriver {
     /// Scenes with a tick requested and not yet emitted.
     in_tick: Vec<bool>,
     emitted: Vec<f32>,              // [B, A, 3] read back each tick
+    denoised: Vec<f32>,             // [A, W, 3]: one scene's estimate, read on request
     emit_slots: Vec<Option<usize>>, // [B]
     sigma_cur: Vec<f32>,            // [B, W]
     sigma_next: Vec<f32>,           // [B, W]
@@ -269,6 +282,7 @@ impl RolloutDriver {
             needs_load: vec![false; b],
             in_tick: vec![false; b],
             emitted: vec![0.0; b * a_max * 3],
+            denoised: Vec::new(),
             emit_slots: vec![None; b],
             sigma_cur: vec![IDLE_SIGMA; b * w],
             sigma_next: vec![IDLE_SIGMA; b * w],
@@ -477,6 +491,33 @@ impl RolloutDriver {
         &self.planners[0]
     }
 
+    /// Whether scene `scene` keeps the model's plan each tick (see [`Self::plan`]); off
+    /// when a scene joins.
+    pub fn request_plans(&mut self, scene: usize, on: bool) -> Result<()> {
+        self.live_id(scene)?;
+        let s = &mut self.states[scene];
+        s.wants_plan = on;
+        if !on {
+            s.plan.clear();
+            s.plan_steps = 0;
+        }
+        Ok(())
+    }
+
+    /// Scene `scene`'s plan after its last tick: the denoiser's last estimate of the window's
+    /// slots after the emitted one, `(steps, [agents, steps, 3])` in model units (the same
+    /// units as the emitted states); `None` unless requested and a tick has emitted since.
+    /// With a rolling window the far slots are the least certain (their noise was highest).
+    pub fn plan(&self, scene: usize) -> Option<(usize, &[f32])> {
+        let s = self.states.get(scene)?;
+        (s.wants_plan && s.plan_steps > 0).then_some((s.plan_steps, &s.plan[..]))
+    }
+
+    /// The planner of scene `scene` (a free slot's: the last one it had).
+    pub fn scene_planner(&self, scene: usize) -> Option<&PlannerSpec> {
+        self.planners.get(scene)
+    }
+
     /// Switches every scene to `planner`; see [`Self::switch_scene_planner`].
     pub fn switch_planner(&mut self, planner: &PlannerSpec) -> Result<()> {
         for scene in 0..self.states.len() {
@@ -651,6 +692,18 @@ impl RolloutDriver {
         for o in &self.outcomes {
             let i = self.scene_of_slot[o.scene.index()];
             let s = &mut self.states[i];
+            if s.wants_plan {
+                // Slots after the emitted one, before the window moves on.
+                let from = n + o.emit_future_slot + 1;
+                self.denoised.resize(a_max * w * 3, 0.0);
+                engine.read_denoised(i, &mut self.denoised)?;
+                s.plan_steps = w.saturating_sub(from);
+                s.plan.clear();
+                for a in 0..s.agents {
+                    s.plan
+                        .extend_from_slice(&self.denoised[3 * (a * w + from)..3 * (a * w + w)]);
+                }
+            }
             let mut emitted = self.emitted[i * a_max * 3..][..s.agents * 3].to_vec();
             if let Some(alpha) = self.planners[i].acceleration_smoothing {
                 // External agents' states replace theirs just below.

@@ -83,6 +83,15 @@ pub trait StepEngine {
     /// Each scene's emitted states `[B, A, 3]` from window slot `slots[b]` (`None`: not read,
     /// zeros): the only readback of a tick.
     fn read_emitted(&mut self, slots: &[Option<usize>], out: &mut [f32]) -> Result<()>;
+    /// Scene `scene`'s last denoiser estimate D(x; σ) `[A, W, 3]` (A: the batch's), from the
+    /// last step that moved it (zeros before one): the model's plan of its window, read only
+    /// on request. Engines that do not keep it say so.
+    fn read_denoised(&mut self, scene: usize, out: &mut [f32]) -> Result<()> {
+        let _ = (scene, out);
+        Err(Error::data(
+            "this engine does not keep its denoiser estimate (read_denoised)".into(),
+        ))
+    }
     /// After an emission, on the device: every scene with an edit shifts its window by one
     /// slot (see [`window_shift`]) and takes the edit's validity `[A, W]`.
     fn shift(&mut self, edits: &[ShiftEdit<'_>], shape: ShiftShape) -> Result<()>;

@@ -433,11 +433,14 @@ fn fast_engine_matches_candle_when_only_some_scenes_tick() {
         ..PlannerSpec::default()
     };
     let scenes = scenes(&c, 4);
-    let run = |engine: &mut dyn StepEngine| -> Vec<Vec<f32>> {
+    // (emitted states, plans) of every ticked scene; scenes 0 and 2 report their plans.
+    let run = |engine: &mut dyn StepEngine| -> (Vec<Vec<f32>>, Vec<Vec<f32>>) {
         let mut driver =
             RolloutDriver::new(engine, &planner, &scenes, 5, &mut StdRng::seed_from_u64(4))
                 .unwrap();
-        let mut out = Vec::new();
+        driver.request_plans(0, true).unwrap();
+        driver.request_plans(2, true).unwrap();
+        let (mut out, mut plans) = (Vec::new(), Vec::new());
         for which in [&[0usize, 1, 2, 3][..], &[1, 3], &[0, 2, 3], &[2], &[0, 1]] {
             driver
                 .tick_scenes(engine, which, &mut |_, e| {
@@ -445,14 +448,31 @@ fn fast_engine_matches_candle_when_only_some_scenes_tick() {
                     Ok(())
                 })
                 .unwrap();
+            for &i in which {
+                match driver.plan(i) {
+                    Some((steps, plan)) => {
+                        // RoAD-20: the 9 slots after the emitted one, every agent.
+                        assert_eq!(steps, 9);
+                        assert_eq!(plan.len(), driver.agents(i) * steps * 3);
+                        assert!(plan.iter().all(|v| v.is_finite()));
+                        plans.push(plan.to_vec());
+                    }
+                    None => assert!(i == 1 || i == 3, "scene {i} asked for its plan"),
+                }
+            }
         }
-        out
+        (out, plans)
     };
-    let reference = run(&mut CpuEngine::new(&model));
-    let fast = run(&mut FastCpuEngine::with_threads(&model, 2).unwrap());
+    let (reference, reference_plans) = run(&mut CpuEngine::new(&model));
+    let (fast, fast_plans) = run(&mut FastCpuEngine::with_threads(&model, 2).unwrap());
     assert_eq!(fast.len(), reference.len());
     for (f, r) in fast.iter().zip(&reference) {
         assert_close(f, r, 1e-3, 1e-4, "mixed-phase tick");
+    }
+    assert_eq!(fast_plans.len(), 6, "scenes 0 and 2 tick 3 times each");
+    assert_eq!(fast_plans.len(), reference_plans.len());
+    for (f, r) in fast_plans.iter().zip(&reference_plans) {
+        assert_close(f, r, 1e-3, 1e-4, "plan");
     }
 }
 

@@ -205,6 +205,10 @@ pub struct CreateScene {
     /// Ticks after which the scene refuses more; omitted: the server's limit.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub max_ticks: Option<u64>,
+    /// Every [`NpcTick`] also carries each NPC's plan ([`NpcTick::plans`]); default false
+    /// (it costs one more readback per tick).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub plans: bool,
 }
 
 impl CreateScene {
@@ -220,6 +224,7 @@ impl CreateScene {
             seed,
             client: None,
             max_ticks: None,
+            plans: false,
         }
     }
 }
@@ -334,10 +339,24 @@ pub struct NpcTick {
     /// agents this step; their poses are here.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub late_external: Vec<AgentState>,
+    /// When the scene was created with `plans`: each NPC's plan, the model's estimate of its
+    /// poses at the steps after this one (its window's later slots; the far ones the least
+    /// certain). The NPCs' next states may differ: the model replans every tick.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub plans: Vec<AgentPlan>,
     /// Milliseconds from the ego's arrival (or the deadline) to this publication.
     pub latency_ms: f64,
     /// Milliseconds of engine compute for this tick (part of `latency_ms`).
     pub compute_ms: f64,
+}
+
+/// One NPC's plan: its poses at ticks `tick + 1`, `tick + 2`, … of the [`NpcTick`] that holds
+/// it, 0.1 s apart.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AgentPlan {
+    pub id: u32,
+    pub poses: Vec<Pose>,
 }
 
 /// Closes a scene (the `close` queryable's payload).
@@ -548,6 +567,7 @@ mod tests {
             seed: 3,
             client: Some("ego-1".into()),
             max_ticks: None,
+            plans: true,
         };
         let json = serde_json::to_vec(&create).unwrap();
         assert_eq!(parse::<CreateScene>(&json).unwrap(), create);

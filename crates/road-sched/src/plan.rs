@@ -20,6 +20,9 @@ pub enum PlannerKind {
     OneShot,
 }
 
+/// The collision guard's longest look-ahead: 5 s at 10 Hz (its cost grows with it).
+pub const MAX_GUARD_HORIZON_STEPS: usize = 50;
+
 /// One planner: its window and its step budget. `Default` is RoAD-20 with K = 40.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -53,8 +56,24 @@ pub struct PlannerSpec {
     /// told σ_max). Absent: 1.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub noise_temperature: Option<f64>,
+    /// The collision guard in closed loop (`road_sim::guard`; a deviation from the paper, a
+    /// safety layer after the model). Absent: off.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub collision_guard: Option<CollisionGuard>,
     #[serde(default)]
     pub edm: EdmSchedule,
+}
+
+/// The collision guard's settings: model-driven agents closing in on another agent within
+/// `horizon_steps` (every agent's step of this tick extrapolated at constant velocity) brake
+/// by `brake_mps2`; no model-driven agent steps into another's box.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CollisionGuard {
+    /// Look-ahead in simulated steps (0: only the no-overlap rule).
+    pub horizon_steps: usize,
+    /// Deceleration a braking agent takes this tick, m/s².
+    pub brake_mps2: f64,
 }
 
 impl Default for PlannerSpec {
@@ -69,6 +88,7 @@ impl Default for PlannerSpec {
             obs_noise: None,
             acceleration_smoothing: None,
             noise_temperature: None,
+            collision_guard: None,
             edm: EdmSchedule::default(),
         }
     }
@@ -138,6 +158,22 @@ impl PlannerSpec {
         if let Some(tau) = self.noise_temperature {
             if !(tau > 0.0 && tau <= 1.0) {
                 return bad(format!("noise_temperature must be in (0, 1], got {tau}"));
+            }
+        }
+        if let Some(guard) = self.collision_guard {
+            if !(guard.brake_mps2.is_finite() && guard.brake_mps2 > 0.0) {
+                return bad(format!(
+                    "collision_guard.brake_mps2 must be positive and finite, got {}",
+                    guard.brake_mps2
+                ));
+            }
+            if guard.horizon_steps > MAX_GUARD_HORIZON_STEPS {
+                return bad(format!(
+                    "collision_guard.horizon_steps must be at most {MAX_GUARD_HORIZON_STEPS} \
+                     ({} s), got {}",
+                    MAX_GUARD_HORIZON_STEPS / 10,
+                    guard.horizon_steps
+                ));
             }
         }
         let e = &self.edm;

@@ -17,6 +17,7 @@ fn spec(kind: PlannerKind, n: usize, f: usize, k: usize, x: Option<usize>) -> Pl
         obs_noise: None,
         acceleration_smoothing: None,
         noise_temperature: None,
+        collision_guard: None,
         edm: EdmSchedule::default(),
     }
 }

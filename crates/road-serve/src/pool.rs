@@ -79,6 +79,11 @@ impl Pool {
         Ok(slot)
     }
 
+    /// Whether the scene in `slot` reports its agents' plans each tick.
+    pub fn request_plans(&mut self, slot: usize, on: bool) -> Result<()> {
+        Ok(self.sim.request_plans(slot, on)?)
+    }
+
     /// Removes the scene in `slot` (a tick in progress is dropped).
     pub fn remove(&mut self, slot: usize) -> Result<()> {
         self.sim.remove_scene(slot)?;

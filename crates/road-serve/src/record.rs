@@ -12,7 +12,7 @@ use std::time::{Duration, Instant, SystemTime};
 
 use glam::{DQuat, DVec3};
 use road_data::LaneletMap;
-use road_protocol::AgentInfo;
+use road_protocol::{AgentInfo, AgentPlan};
 use road_sim::Pose;
 use serde_json::{Value, json};
 
@@ -212,15 +212,16 @@ impl Recorder {
     }
 
     /// The agents' boxes at `at` (external agents green, the model's orange, external agents
-    /// the model drove for a late tick grey).
+    /// the model drove for a late tick grey), and the NPCs' plans when the scene has them.
     pub fn agents(
         &mut self,
         agents: &[AgentInfo],
         poses: &[Pose],
+        plans: &[AgentPlan],
         late: bool,
         at: SystemTime,
     ) -> Result<()> {
-        let update = agents_update(agents, poses, late, unix_nanos(at));
+        let update = agents_update(agents, poses, plans, late, unix_nanos(at));
         self.write(topics::AGENTS, update.to_string().as_bytes(), at)
     }
 
@@ -310,8 +311,15 @@ pub fn map_update(map: &LaneletMap, nanos: u64) -> Value {
     json!({ "deletions": [], "entities": [entity("lanes", nanos, vec![], lines)] })
 }
 
-/// Every agent's box at one step, one entity (replacing the previous step's).
-pub fn agents_update(agents: &[AgentInfo], poses: &[Pose], late: bool, nanos: u64) -> Value {
+/// Every agent's box at one step, one entity (replacing the previous step's), with each
+/// planned path (`plans`, by agent id) as a thin line from the agent's pose.
+pub fn agents_update(
+    agents: &[AgentInfo],
+    poses: &[Pose],
+    plans: &[AgentPlan],
+    late: bool,
+    nanos: u64,
+) -> Value {
     const HEIGHT_M: f64 = 1.5;
     let cubes: Vec<Value> = agents
         .iter()
@@ -334,7 +342,28 @@ pub fn agents_update(agents: &[AgentInfo], poses: &[Pose], late: bool, nanos: u6
             })
         })
         .collect();
-    json!({ "deletions": [], "entities": [entity("agents", nanos, cubes, vec![])] })
+    let lines: Vec<Value> = plans
+        .iter()
+        .filter_map(|plan| {
+            let start = agents.iter().position(|a| a.id == plan.id)?;
+            let from = poses.get(start)?;
+            let points: Vec<Value> = std::iter::once((from.x_m, from.y_m))
+                .chain(plan.poses.iter().map(|p| (p.x_m, p.y_m)))
+                .map(|(x, y)| json!({ "x": x, "y": y, "z": 0.2 }))
+                .collect();
+            Some(json!({
+                "type": 0,
+                "pose": identity_pose(),
+                "thickness": 0.1,
+                "scale_invariant": false,
+                "points": points,
+                "color": color(1.0, 0.55, 0.1, 0.6),
+                "colors": [],
+                "indices": [],
+            }))
+        })
+        .collect();
+    json!({ "deletions": [], "entities": [entity("agents", nanos, cubes, lines)] })
 }
 
 #[cfg(test)]
@@ -395,7 +424,7 @@ mod tests {
                 .unwrap();
             rec.write(topics::NPC, format!("{{\"tick\":{t}}}").as_bytes(), at)
                 .unwrap();
-            rec.agents(&agents, &poses, false, at).unwrap();
+            rec.agents(&agents, &poses, &[], false, at).unwrap();
         }
         rec.flush().unwrap();
         // Before finishing: what a killed server leaves.

@@ -14,8 +14,8 @@ use road_data::geometry::{dist, resample};
 use road_data::{AgentType, LaneletMap, SceneFrame, SceneWindow, WindowConfig, wrap_angle};
 use road_model::checkpoint::LoadedModel;
 use road_protocol::{
-    AgentInfo, AgentInit, AgentState, CreateScene, EgoTick, ErrorCode, ErrorReply, MapSource,
-    NpcTick, Pose,
+    AgentInfo, AgentInit, AgentPlan, AgentState, CreateScene, EgoTick, ErrorCode, ErrorReply,
+    MapSource, NpcTick, Pose,
 };
 use road_sched::PlannerSpec;
 use road_sim::Pose as SimPose;
@@ -56,6 +56,8 @@ pub struct SceneSetup {
     pub max_ticks: u64,
     /// The client's id: the scene's keys name it.
     pub client: String,
+    /// Whether each tick's reply carries the NPCs' plans.
+    pub plans: bool,
 }
 
 fn invalid(field: impl Into<String>, message: impl Into<String>) -> ErrorReply {
@@ -330,6 +332,7 @@ pub fn setup(req: &CreateScene, ctx: &mut SetupContext<'_>) -> Result<SceneSetup
         model,
         seed: req.seed,
         max_ticks,
+        plans: req.plans,
         client: client.clone(),
     })
 }
@@ -587,6 +590,9 @@ impl LiveScene {
             steps,
             setup.seed,
         )?;
+        if setup.plans {
+            pool.request_plans(slot, true)?;
+        }
         let start: Vec<SimPose> = pool.poses(slot).to_vec();
         let initially_on_road = match &setup.map {
             Some(map) => {
@@ -858,6 +864,23 @@ impl LiveScene {
             } else {
                 Vec::new()
             },
+            plans: result
+                .plans
+                .iter()
+                .enumerate()
+                .filter(|&(i, _)| !self.agents[i].external)
+                .map(|(i, poses)| AgentPlan {
+                    id: id_of(i),
+                    poses: poses
+                        .iter()
+                        .map(|p| Pose {
+                            x_m: p.x_m,
+                            y_m: p.y_m,
+                            heading_rad: p.heading_rad,
+                        })
+                        .collect(),
+                })
+                .collect(),
             latency_ms: flight.started.elapsed().as_secs_f64() * 1e3,
             compute_ms: flight.compute_secs * 1e3,
         };

@@ -575,7 +575,7 @@ impl Core {
                 match Recorder::start_at(path, &payload, &created_json, map.as_deref(), at) {
                     Ok(mut r) => {
                         let start: Vec<road_sim::Pose> = live.poses().to_vec();
-                        if let Err(e) = r.agents(&live.agents, &start, false, at) {
+                        if let Err(e) = r.agents(&live.agents, &start, &[], false, at) {
                             tracing::warn!(scene = id, "recording: {e}");
                         }
                         Some(r)
@@ -892,9 +892,9 @@ impl Core {
             entry.live.waiting_since = Instant::now();
             if let Some(rec) = entry.recorder.as_mut() {
                 let late = !npc.late_external.is_empty();
-                let written = rec
-                    .write(topics::NPC, &json, at)
-                    .and_then(|()| rec.agents(&entry.live.agents, &out.poses, late, at));
+                let written = rec.write(topics::NPC, &json, at).and_then(|()| {
+                    rec.agents(&entry.live.agents, &out.poses, &npc.plans, late, at)
+                });
                 if let Err(e) = written {
                     tracing::warn!(scene = id, "recording: {e}");
                 }

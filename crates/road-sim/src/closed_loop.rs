@@ -9,10 +9,11 @@ use road_data::{LaneletMap, SceneWindow, wrap_angle};
 use road_model::batch::SceneInput;
 use road_model::sample::{RolloutDriver, RolloutScene, StepEngine};
 use road_model::{ModelConfig, Result as ModelResult};
-use road_sched::PlannerSpec;
+use road_sched::{CollisionGuard, PlannerSpec};
 
 use crate::controllers::{constant_velocity, slowed_replay};
 use crate::geometry::OrientedBox;
+use crate::guard::{GuardAction, GuardAgent, guard_step};
 use crate::infractions::{collisions, off_road};
 use crate::{Error, Pose, Result};
 
@@ -87,6 +88,14 @@ pub struct SceneTick {
     /// Agents whose centre is outside every lanelet but was inside one at the last observed
     /// step (agents that start off the map, in a parking lot say, are not counted).
     pub off_road: Vec<usize>,
+    /// Model-driven agents whose step the collision guard changed this tick (empty when the
+    /// planner has no guard).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub guarded: Vec<(usize, GuardAction)>,
+    /// When requested ([`ClosedLoop::request_plans`]): every agent's plan, the model's
+    /// estimate of its poses at the steps after this one (metres, radians), one list per agent.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub plans: Vec<Vec<Pose>>,
 }
 
 struct SceneRuntime<'m> {
@@ -103,6 +112,8 @@ struct SceneRuntime<'m> {
     overrides: Vec<Option<[f32; 3]>>,
     initial_overlaps: Vec<(usize, usize)>,
     initially_on_road: Vec<bool>,
+    /// What the collision guard did in the last tick.
+    guarded: Vec<(usize, GuardAction)>,
     map: Option<&'m LaneletMap>,
     /// Ticks the scene was built for (its scripts' length).
     steps: usize,
@@ -118,6 +129,8 @@ pub struct ClosedLoop<'m> {
     scenes: Vec<Option<SceneRuntime<'m>>>,
     model: ModelConfig,
     heading_scale: f64,
+    /// Per scene slot, its planner's collision guard (scratch of [`Self::round`]).
+    guards: Vec<Option<CollisionGuard>>,
 }
 
 impl std::fmt::Debug for ClosedLoop<'_> {
@@ -229,6 +242,7 @@ impl<'m> ClosedLoop<'m> {
             scenes: runtimes,
             model: model.clone(),
             heading_scale: model.heading_scale,
+            guards: Vec::new(),
         })
     }
 
@@ -255,6 +269,7 @@ impl<'m> ClosedLoop<'m> {
             scenes: (0..capacity).map(|_| None).collect(),
             model: model.clone(),
             heading_scale: model.heading_scale,
+            guards: Vec::new(),
         })
     }
 
@@ -390,22 +405,39 @@ impl<'m> ClosedLoop<'m> {
         out: &mut Vec<(usize, SceneTick)>,
     ) -> Result<()> {
         out.clear();
-        let scenes = &mut self.scenes;
+        // Each scene's guard, read before the driver is borrowed for the round.
+        self.guards.clear();
+        self.guards.extend(
+            (0..self.scenes.len())
+                .map(|i| self.driver.scene_planner(i).and_then(|p| p.collision_guard)),
+        );
+        let (scenes, guards) = (&mut self.scenes, &self.guards);
         let heading_scale = self.heading_scale;
         let done = self.driver.round(engine, &mut |i: usize,
                                                     emitted: &mut [f32]|
          -> ModelResult<()> {
             let s = scenes[i].as_mut().expect("the driver ticks live scenes");
-            s.apply(emitted, heading_scale);
+            s.apply(emitted, heading_scale, guards[i]);
             Ok(())
         })?;
         for i in done {
             let s = self.scenes[i]
                 .as_ref()
                 .expect("the driver ticks live scenes");
-            out.push((i, s.report()));
+            let mut report = s.report();
+            if let Some((steps, plan)) = self.driver.plan(i) {
+                report.plans = s.plan_poses(steps, plan, heading_scale);
+            }
+            out.push((i, report));
         }
         Ok(())
+    }
+
+    /// Whether scene `scene`'s ticks report every agent's plan ([`SceneTick::plans`]): one
+    /// more readback per tick, of that scene's window estimate. Off when a scene joins.
+    pub fn request_plans(&mut self, scene: usize, on: bool) -> Result<()> {
+        self.runtime(scene)?;
+        Ok(self.driver.request_plans(scene, on)?)
     }
 
     /// One simulated step of every scene; `out` receives one [`SceneTick`] per scene, in scene
@@ -475,6 +507,7 @@ impl<'m> SceneRuntime<'m> {
                 heading_unwrapped: poses.iter().map(|p| p.heading_rad).collect(),
                 initial_overlaps: collisions(&initial_boxes),
                 initially_on_road,
+                guarded: Vec::new(),
                 overrides: vec![None; w.agents],
                 poses,
                 scripted,
@@ -487,12 +520,17 @@ impl<'m> SceneRuntime<'m> {
     }
 
     /// The model's emitted states `[agents·3]` (model units) with this tick's overrides put
-    /// in; the poses after the tick follow from them.
-    fn apply(&mut self, emitted: &mut [f32], heading_scale: f64) {
+    /// in, then the collision guard's changes to model-driven agents (when the planner has
+    /// one); the poses after the tick follow from them.
+    fn apply(&mut self, emitted: &mut [f32], heading_scale: f64, guard: Option<CollisionGuard>) {
         for (a, o) in self.overrides.iter().enumerate() {
             if let Some(state) = o {
                 emitted[3 * a..3 * a + 3].copy_from_slice(state);
             }
+        }
+        self.guarded.clear();
+        if let Some(guard) = guard {
+            self.guard(emitted, heading_scale, guard);
         }
         for a in 0..self.controllers.len() {
             let p = self
@@ -509,6 +547,64 @@ impl<'m> SceneRuntime<'m> {
         }
     }
 
+    /// Runs the collision guard on this tick's states (model units, overrides in): poses
+    /// before the tick are `self.poses` (headings unwrapped), after it `emitted`.
+    fn guard(&mut self, emitted: &mut [f32], heading_scale: f64, guard: CollisionGuard) {
+        let frame = &self.window.frame;
+        let mut agents: Vec<GuardAgent> = (0..self.controllers.len())
+            .map(|a| {
+                let p = frame.to_metres([emitted[3 * a], emitted[3 * a + 1]]);
+                GuardAgent {
+                    before: Pose {
+                        heading_rad: self.heading_unwrapped[a],
+                        ..self.poses[a]
+                    },
+                    proposed: Pose {
+                        x_m: p[0],
+                        y_m: p[1],
+                        heading_rad: f64::from(emitted[3 * a + 2]) / heading_scale,
+                    },
+                    length_m: f64::from(self.window.length_m[a]),
+                    width_m: f64::from(self.window.width_m[a]),
+                    movable: self.controllers[a] == Controller::Model
+                        && self.overrides[a].is_none(),
+                }
+            })
+            .collect();
+        self.guarded = guard_step(&mut agents, guard.horizon_steps, guard.brake_mps2);
+        for &(a, _) in &self.guarded {
+            let p = agents[a].proposed;
+            let xy = frame.to_norm([p.x_m, p.y_m]);
+            emitted[3 * a..3 * a + 3].copy_from_slice(&[
+                xy[0],
+                xy[1],
+                (p.heading_rad * heading_scale) as f32,
+            ]);
+        }
+    }
+
+    /// A plan `[agents, steps, 3]` in model units as poses per agent (headings continue
+    /// from the agent's pose after the tick, then wrap).
+    fn plan_poses(&self, steps: usize, plan: &[f32], heading_scale: f64) -> Vec<Vec<Pose>> {
+        (0..self.controllers.len())
+            .map(|a| {
+                (0..steps)
+                    .map(|t| {
+                        let k = 3 * (a * steps + t);
+                        let p = self.window.frame.to_metres([plan[k], plan[k + 1]]);
+                        Pose {
+                            x_m: p[0],
+                            y_m: p[1],
+                            heading_rad: f64::from(wrap_angle(
+                                (f64::from(plan[k + 2]) / heading_scale) as f32,
+                            )),
+                        }
+                    })
+                    .collect()
+            })
+            .collect()
+    }
+
     /// The poses after the tick and its infractions.
     fn report(&self) -> SceneTick {
         let b = boxes(&self.window, &self.poses);
@@ -520,6 +616,8 @@ impl<'m> SceneRuntime<'m> {
             poses: self.poses.clone(),
             collisions: hits,
             off_road: off,
+            guarded: self.guarded.clone(),
+            plans: Vec::new(),
         }
     }
 }
@@ -568,6 +666,8 @@ pub fn simulate_scripted(
                 poses,
                 collisions: hits,
                 off_road: off,
+                guarded: Vec::new(),
+                plans: Vec::new(),
             }
         })
         .collect())

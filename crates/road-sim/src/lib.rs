@@ -1,5 +1,7 @@
 //! `road-sim`: what a simulation needs around an engine, engine-agnostic:
 //! - [`geometry`]: oriented boxes from (x, y, heading, length, width) and their overlap;
+//! - [`guard`]: the collision guard, a planner option: model-driven agents brake ahead of a
+//!   predicted collision and never step into another agent's box;
 //! - [`infractions`]: collisions between agents and off-road positions per tick;
 //! - [`controllers`]: non-model controllers: constant velocity, and the paper's adversarial
 //!   agent (its logged path, slowed to cover only half of it by the end);
@@ -13,6 +15,7 @@
 pub mod closed_loop;
 pub mod controllers;
 pub mod geometry;
+pub mod guard;
 pub mod infractions;
 pub mod kinematics;
 pub mod metrics;

@@ -323,3 +323,105 @@ fn a_scene_switches_planner_between_ticks_on_the_same_checkpoint() {
     let err = sim.switch_planner(&ar).unwrap_err();
     assert!(err.to_string().contains("W = 11"), "{err}");
 }
+
+/// A scene that asks for plans gets, each tick, every agent's F − 1 planned poses (finite,
+/// metres in the map frame, near the agent); asking again with `false` stops them.
+#[test]
+fn plans_come_on_request() {
+    let model = small_model();
+    let scene = scene();
+    let agents = scene.window.agents;
+    let mut engine = CpuEngine::new(&model);
+    let mut rng = StdRng::seed_from_u64(5);
+    let mut sim = closed_loop(
+        &mut engine,
+        &model,
+        &scene,
+        vec![Controller::Model; agents],
+        false,
+        4,
+        &mut rng,
+    )
+    .unwrap();
+    let mut out = Vec::new();
+    sim.tick(&mut engine, &mut NoExternal, &mut out).unwrap();
+    assert!(out[0].plans.is_empty(), "no plans unless asked");
+    sim.request_plans(0, true).unwrap();
+    for _ in 0..2 {
+        sim.tick(&mut engine, &mut NoExternal, &mut out).unwrap();
+        let tick = &out[0];
+        assert_eq!(tick.plans.len(), agents);
+        for (a, plan) in tick.plans.iter().enumerate() {
+            // The test planner's F = 4: the 3 slots after the emitted one.
+            assert_eq!(plan.len(), 3);
+            for p in plan {
+                assert!(p.x_m.is_finite() && p.y_m.is_finite() && p.heading_rad.is_finite());
+                // An untrained model plans nonsense, but in the scene's frame: within the
+                // normalisation's reach of the agent, not at the origin of another frame.
+                let d = (p.x_m - tick.poses[a].x_m).hypot(p.y_m - tick.poses[a].y_m);
+                assert!(
+                    d < 1000.0,
+                    "agent {a}: plan {p:?} far from {:?}",
+                    tick.poses[a]
+                );
+            }
+        }
+    }
+    sim.request_plans(0, false).unwrap();
+    sim.tick(&mut engine, &mut NoExternal, &mut out).unwrap();
+    assert!(out[0].plans.is_empty());
+    assert!(sim.request_plans(3, true).is_err(), "no scene 3");
+}
+
+/// With the collision guard, a model-driven agent never ends a tick overlapping an agent it
+/// did not overlap before the tick (the untrained model's steps are wild, so the guard has
+/// work), and the guard says what it did.
+#[test]
+fn the_collision_guard_keeps_model_agents_out_of_each_other() {
+    let model = small_model();
+    let scene = scene();
+    let agents = scene.window.agents;
+    let guarded = PlannerSpec {
+        collision_guard: Some(road_sched::CollisionGuard {
+            horizon_steps: 10,
+            brake_mps2: 6.0,
+        }),
+        ..planner()
+    };
+    let steps = 8;
+    let mut engine = CpuEngine::new(&model);
+    let mut rng = StdRng::seed_from_u64(11);
+    let mut sim = ClosedLoop::new(
+        &mut engine,
+        &model.config,
+        &guarded,
+        vec![SimScene {
+            window: scene.window.clone(),
+            observed_steps: 10,
+            controllers: vec![Controller::Model; agents],
+        }],
+        vec![None],
+        steps,
+        &mut rng,
+    )
+    .unwrap();
+    let mut out = Vec::new();
+    let mut before: Vec<(usize, usize)> = Vec::new();
+    let mut acted = 0;
+    for t in 0..steps {
+        sim.tick(&mut engine, &mut NoExternal, &mut out).unwrap();
+        let tick = &out[0];
+        for pair in &tick.collisions {
+            assert!(
+                before.contains(pair),
+                "tick {t}: {pair:?} overlap, and did not before the tick"
+            );
+        }
+        before.clone_from(&tick.collisions);
+        acted += tick.guarded.len();
+    }
+    assert!(
+        acted > 0,
+        "the untrained model's agents gave the guard nothing to do"
+    );
+}

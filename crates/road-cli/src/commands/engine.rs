@@ -109,7 +109,7 @@ impl Engines {
     pub fn engine(&self) -> Result<Engine<'_>> {
         Ok(match &self.gpu {
             Some((ctx, model)) => Engine::Gpu(Box::new(GpuStepEngine::new(ctx, model))),
-            None if self.candle => Engine::Candle(CpuEngine::new(&self.cpu.model)),
+            None if self.candle => Engine::Candle(Box::new(CpuEngine::new(&self.cpu.model))),
             None => Engine::Cpu(Box::new(FastCpuEngine::new(&self.cpu.model)?)),
         })
     }
@@ -126,7 +126,7 @@ impl Engines {
 /// One engine, any kind.
 pub enum Engine<'a> {
     Cpu(Box<FastCpuEngine<'a>>),
-    Candle(CpuEngine<'a>),
+    Candle(Box<CpuEngine<'a>>),
     Gpu(Box<GpuStepEngine<'a>>),
 }
 
@@ -134,7 +134,7 @@ impl Engine<'_> {
     pub fn as_dyn(&mut self) -> &mut dyn StepEngine {
         match self {
             Engine::Cpu(e) => e.as_mut(),
-            Engine::Candle(e) => e,
+            Engine::Candle(e) => e.as_mut(),
             Engine::Gpu(e) => e.as_mut(),
         }
     }

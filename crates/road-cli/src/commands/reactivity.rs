@@ -16,6 +16,7 @@ use road_sim::closed_loop::{
     ClosedLoop, Controller, NoExternal, SceneTick, SimScene, pick_adversary, simulate_scripted,
 };
 
+use road_sim::guard::GuardAction;
 use road_sim::kinematics::{KinematicDivergence, Kinematics};
 use road_sim::metrics::{BOOTSTRAP_RESAMPLES, Estimate, bootstrap_ratio};
 
@@ -39,6 +40,11 @@ struct Totals {
     driven_agents: usize,
     /// Of those, agents that left every lanelet at some tick (having started on one).
     off_road_agents: usize,
+    /// Agent-ticks at which the collision guard braked a model-driven agent ahead of a
+    /// predicted collision, and at which it stopped one short of an overlap (0 without a
+    /// guard); out of `driven_agents` × simulated steps.
+    guard_braked_agent_ticks: usize,
+    guard_stopped_agent_ticks: usize,
     secs: f64,
     nfe_per_step: f64,
     expected_nfe_per_step: Option<f64>,
@@ -150,6 +156,12 @@ fn score(totals: &mut Totals, k: usize, ticks: &[SceneTick], adversary: usize, a
         .collect();
     totals.driven_agents += agents - 1;
     totals.off_road_agents += off.len();
+    for (_, action) in ticks.iter().flat_map(|t| &t.guarded) {
+        match action {
+            GuardAction::Braked => totals.guard_braked_agent_ticks += 1,
+            GuardAction::StoppedShort => totals.guard_stopped_agent_ticks += 1,
+        }
+    }
     totals.per_simulation.push((
         k,
         pairs.iter().any(|&(i, j)| i == adversary || j == adversary),

@@ -272,6 +272,16 @@ pub fn upload(
 
 /// Copies `bytes` of `source` back to the CPU (blocking).
 pub fn read_back(ctx: &GpuContext, source: &wgpu::Buffer, bytes: u64) -> Result<Vec<u8>> {
+    read_back_range(ctx, source, 0, bytes)
+}
+
+/// `bytes` of `source` from byte `offset` (both multiples of 4), read back to the host.
+pub fn read_back_range(
+    ctx: &GpuContext,
+    source: &wgpu::Buffer,
+    offset: u64,
+    bytes: u64,
+) -> Result<Vec<u8>> {
     let staging = ctx.device.create_buffer(&wgpu::BufferDescriptor {
         label: Some("readback"),
         size: bytes.max(4),
@@ -283,7 +293,7 @@ pub fn read_back(ctx: &GpuContext, source: &wgpu::Buffer, bytes: u64) -> Result<
         .create_command_encoder(&wgpu::CommandEncoderDescriptor {
             label: Some("readback"),
         });
-    encoder.copy_buffer_to_buffer(source, 0, &staging, 0, bytes);
+    encoder.copy_buffer_to_buffer(source, offset, &staging, 0, bytes);
     ctx.queue.submit([encoder.finish()]);
     let (tx, rx) = std::sync::mpsc::channel();
     staging
