@@ -212,6 +212,18 @@ pub fn run(args: DemoArgs) -> Result<ExitCode> {
         setup_secs * 1e3,
         nfe as f64 / args.steps as f64
     );
+    if run.planner.collision_guard.is_some() {
+        let (mut braked, mut stopped) = (0, 0);
+        for (_, action) in ticks.iter().flat_map(|t| &t.guarded) {
+            match action {
+                road_sim::guard::GuardAction::Braked => braked += 1,
+                road_sim::guard::GuardAction::StoppedShort => stopped += 1,
+            }
+        }
+        out!(
+            "collision guard (planner option): braked a vehicle {braked} time(s), stopped one short of another {stopped} time(s)"
+        );
+    }
     if events.is_empty() {
         out!("infractions: none (no collision, nobody off road)");
     } else {
