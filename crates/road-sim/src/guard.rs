@@ -87,6 +87,11 @@ pub fn guard_step(
                 }
                 let (b, step_b) = (&agents[j], step(&agents[j]));
                 let towards = position(b.proposed) - position(a.proposed);
+                // Too far apart to meet within the horizon: no box test needed.
+                let travel = horizon_steps as f64 * (step_a.length() + step_b.length());
+                if towards.length() > reach(a) + reach(b) + travel {
+                    return false;
+                }
                 // Who closes in: the velocity component towards the other, both measured
                 // along the line between them.
                 if step_a.dot(towards) <= (-step_b).dot(towards) {
@@ -121,10 +126,11 @@ pub fn guard_step(
         for &i in &movable {
             let clear = |agents: &[GuardAgent], pose: Pose| {
                 (0..n).all(|j| {
+                    let (a, b) = (&agents[i], &agents[j]);
                     j == i
                         || overlapped_before[i * n + j]
-                        || !box_at(&agents[i], pose)
-                            .overlaps(&box_at(&agents[j], agents[j].proposed))
+                        || (position(pose) - position(b.proposed)).length() > reach(a) + reach(b)
+                        || !box_at(a, pose).overlaps(&box_at(b, b.proposed))
                 })
             };
             if clear(agents, agents[i].proposed) {
@@ -153,6 +159,11 @@ pub fn guard_step(
         }
     }
     actions
+}
+
+/// Half the diagonal of an agent's box: no point of it is farther from its centre.
+fn reach(a: &GuardAgent) -> f64 {
+    0.5 * a.length_m.hypot(a.width_m)
 }
 
 fn position(p: Pose) -> DVec2 {
