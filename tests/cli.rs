@@ -734,6 +734,11 @@ fn demo_serves_the_scene_and_writes_its_recording_and_animation() {
 /// 3 and 3 off road at tick 4), a chunk written out after every tick. Returns the finished
 /// file and its length when tick `flushed` had been written out.
 fn record_scene(dir: &Path, ticks: u64, flushed: u64) -> (PathBuf, u64) {
+    record_scene_with(dir, ticks, flushed, false)
+}
+
+/// As [`record_scene`]; `with_plans`: agent 2 reports a 30 m plan every tick.
+fn record_scene_with(dir: &Path, ticks: u64, flushed: u64, with_plans: bool) -> (PathBuf, u64) {
     use road_serve::record::{Recorder, topics};
     use std::time::{Duration, SystemTime};
     let map = road_sim::procedural::procedural(
@@ -791,7 +796,22 @@ fn record_scene(dir: &Path, ticks: u64, flushed: u64) -> (PathBuf, u64) {
         });
         rec.write(topics::NPC, npc.to_string().as_bytes(), at)
             .unwrap();
-        rec.agents(&agents, &poses(t), &[], false, at).unwrap();
+        let plans: Vec<road_protocol::AgentPlan> = if with_plans {
+            let from = poses(t)[1];
+            vec![road_protocol::AgentPlan {
+                id: 2,
+                poses: (1..=10)
+                    .map(|k| road_protocol::Pose {
+                        x_m: from.x_m - 3.0 * k as f64,
+                        y_m: from.y_m,
+                        heading_rad: std::f64::consts::PI,
+                    })
+                    .collect(),
+            }]
+        } else {
+            Vec::new()
+        };
+        rec.agents(&agents, &poses(t), &plans, false, at).unwrap();
         rec.flush().unwrap();
         if t == flushed {
             flushed_len = std::fs::metadata(rec.path()).unwrap().len();
@@ -821,6 +841,19 @@ fn render_draws_a_frame_per_tick_and_names_bad_files() {
     assert_eq!((gif.width, gif.height), (300, 300));
     let red = |k: usize| pixels_of(&gif.frames[k].1, [210, 30, 30]);
     assert_eq!((red(0), red(2)), (0, 0), "no infraction, nothing red");
+    // The same scene with a planned path: more of the model's orange in every tick's frame.
+    let planned_dir = temp_dir("render-plans");
+    let (planned, _) = record_scene_with(&planned_dir, 6, 3, true);
+    let o = road(&["render", planned.to_str().unwrap(), "--size", "300"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let with_plans = read_gif(&planned.with_extension("gif"));
+    let orange = |frames: &[(u16, Vec<u8>)], k: usize| pixels_of(&frames[k].1, [240, 140, 20]);
+    assert!(
+        orange(&with_plans.frames, 5) > orange(&gif.frames, 5) + 20,
+        "the plan is drawn: {} against {} orange pixels",
+        orange(&with_plans.frames, 5),
+        orange(&gif.frames, 5)
+    );
     assert!(red(3) > 0, "the collision at tick 3 is highlighted");
     assert!(red(4) > 0, "the off-road agent at tick 4 is highlighted");
 

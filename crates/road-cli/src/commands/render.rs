@@ -131,6 +131,12 @@ pub fn render_gif(recording: &Recording, out: &Path, fps: f64, size_px: u32) -> 
         } else {
             1.0
         };
+        // The NPCs' plans, when the scene asked for them: where each is heading.
+        strokes.extend(frame.plans.iter().map(|points| Stroke {
+            points: points.clone(),
+            color: PREDICTED,
+            width: 1,
+        }));
         strokes.push(Stroke {
             points: vec![
                 (bar_x0, bar_y),
@@ -275,6 +281,8 @@ struct Frame {
     collisions: Vec<(usize, usize)>,
     collided: Vec<usize>,
     off_road: Vec<usize>,
+    /// The NPCs' planned paths (the recorder's lines on `/agents`), metres.
+    plans: Vec<Vec<(f64, f64)>>,
 }
 
 /// What the animation draws, read from the recording.
@@ -347,6 +355,11 @@ impl Scene {
             let late = !array(&npc["late_external"]).is_empty();
             let mut frame = Frame::default();
             for entity in array(&json(m)?["entities"]) {
+                for line in array(&entity["lines"]) {
+                    frame
+                        .plans
+                        .push(array(&line["points"]).iter().map(xy).collect());
+                }
                 for cube in array(&entity["cubes"]) {
                     let i = frame.boxes.len();
                     let external = match agents.get(i) {
