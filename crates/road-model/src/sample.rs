@@ -81,7 +81,7 @@ pub trait StepEngine {
         second_evaluation: bool,
     ) -> Result<()>;
     /// Each scene's emitted states `[B, A, 3]` from window slot `slots[b]` (`None`: not read,
-    /// zeros): the only readback of a tick.
+    /// zeros): a tick's only readback, unless a scene asked for its plan (`read_denoised`).
     fn read_emitted(&mut self, slots: &[Option<usize>], out: &mut [f32]) -> Result<()>;
     /// Scene `scene`'s last denoiser estimate D(x; σ) `[A, W, 3]` (A: the batch's), from the
     /// last step that moved it (zeros before one): the model's plan of its window, read only
