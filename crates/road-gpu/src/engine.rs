@@ -1195,6 +1195,27 @@ impl HeunPlan {
         sigma_next: &[f32],
         second_evaluation: bool,
     ) -> Result<()> {
+        self.run_then(
+            ctx,
+            batch,
+            sigma_cur,
+            sigma_next,
+            second_evaluation,
+            |_, _| {},
+        )
+    }
+
+    /// [`Self::run`], with `then(encoder, D)` recording more commands into the same
+    /// submission after the step, D being this step's last denoiser estimate `[B, A, W, 3]`.
+    pub fn run_then(
+        &mut self,
+        ctx: &GpuContext,
+        batch: &DeviceBatch,
+        sigma_cur: &[f32],
+        sigma_next: &[f32],
+        second_evaluation: bool,
+        then: impl FnOnce(&mut wgpu::CommandEncoder, &wgpu::Buffer),
+    ) -> Result<()> {
         let expected = self.sigma_eval_host.len();
         if sigma_cur.len() != expected || sigma_next.len() != expected {
             return Err(Error::Input(format!(
@@ -1239,8 +1260,9 @@ impl HeunPlan {
             d.record(&mut pass);
         }
         enc.copy_buffer_to_buffer(&self.x_e, 0, &batch.x, 0, self.bytes);
-        ctx.queue.submit([enc.finish()]);
         self.last_had_second = second_evaluation;
+        then(&mut enc, self.denoised());
+        ctx.queue.submit([enc.finish()]);
         Ok(())
     }
 

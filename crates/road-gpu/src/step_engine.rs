@@ -253,34 +253,29 @@ impl road_model::sample::StepEngine for GpuStepEngine<'_> {
         }
         let row_bytes = (self.agents * w * 3 * 4) as u64;
         if active.len() * 2 > b {
-            // σ rows are per scene: [B, W]; idle scenes hold still.
-            plan.run(self.ctx, batch, sigma_cur, sigma_next, second_evaluation)
-                .map_err(engine_err)?;
-            // The moved scenes' estimates (idle scenes' rows were evaluated, not moved).
-            if let Some(denoised) = &self.denoised {
-                let mut enc =
-                    self.ctx
-                        .device
-                        .create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                            label: Some("keep denoised"),
-                        });
-                if active.len() == b {
-                    enc.copy_buffer_to_buffer(
-                        plan.denoised(),
-                        0,
-                        denoised,
-                        0,
-                        b as u64 * row_bytes,
-                    );
-                } else {
-                    for &i in &active {
-                        let at = i as u64 * row_bytes;
-                        enc.copy_buffer_to_buffer(plan.denoised(), at, denoised, at, row_bytes);
-                    }
-                }
-                self.ctx.queue.submit([enc.finish()]);
-            }
-            return Ok(());
+            // σ rows are per scene: [B, W]; idle scenes hold still. The moved scenes'
+            // estimates are kept in the same submission (idle rows were evaluated, not moved).
+            let denoised = self.denoised.as_ref();
+            return plan
+                .run_then(
+                    self.ctx,
+                    batch,
+                    sigma_cur,
+                    sigma_next,
+                    second_evaluation,
+                    |enc, d| {
+                        let Some(kept) = denoised else { return };
+                        if active.len() == b {
+                            enc.copy_buffer_to_buffer(d, 0, kept, 0, b as u64 * row_bytes);
+                        } else {
+                            for &i in &active {
+                                let at = i as u64 * row_bytes;
+                                enc.copy_buffer_to_buffer(d, at, kept, at, row_bytes);
+                            }
+                        }
+                    },
+                )
+                .map_err(engine_err);
         }
         // Few scenes move (others idle in a mixed-phase batch): copy them into a compact
         // sub-batch, step it, copy the states back.

@@ -120,37 +120,28 @@ impl HostWindows {
             return Ok(());
         }
         let (x_len, v_len) = (self.agents * w * 3, self.agents * w);
-        // The last evaluation's D (the second one where there are two) is kept.
-        let mut last = Vec::new();
         if active.len() == self.scenes {
             let valid = &self.valid;
-            self.windows = heun_update(
+            (self.windows, self.denoised) = heun_update(
                 &self.windows,
                 self.agents,
                 w,
                 sigma_cur,
                 sigma_next,
                 second_evaluation,
-                |x, sigma| {
-                    last = denoise(x, sigma, valid, &active)?;
-                    Ok(last.clone())
-                },
+                |x, sigma| denoise(x, sigma, valid, &active),
             )?;
-            self.denoised = last;
             return Ok(());
         }
         let valid = gather_rows(&self.valid, &active, v_len);
-        let stepped = heun_update(
+        let (stepped, last) = heun_update(
             &gather_rows(&self.windows, &active, x_len),
             self.agents,
             w,
             &gather_rows(sigma_cur, &active, w),
             &gather_rows(sigma_next, &active, w),
             second_evaluation,
-            |x, sigma| {
-                last = denoise(x, sigma, &valid, &active)?;
-                Ok(last.clone())
-            },
+            |x, sigma| denoise(x, sigma, &valid, &active),
         )?;
         scatter_rows(&mut self.windows, &active, x_len, &stepped);
         scatter_rows(&mut self.denoised, &active, x_len, &last);

@@ -42,7 +42,8 @@ pub fn scatter_rows(values: &mut [f32], scenes: &[usize], len: usize, packed: &[
 /// One Heun step of packed windows `x [B, A, W, 3]` with σ `[B, W]` per scene and slot, the
 /// denoiser given as `denoise(x, σ) → D(x; σ)` (`[B, A, W, 3]`). Slots whose σ does not change
 /// are left as they are; a slot landing on σ = 0 takes the Euler result (its second evaluation
-/// is never read, so it is made at σ_cur). Returns the new windows.
+/// is never read, so it is made at σ_cur). Returns the new windows and the last evaluation's
+/// D (the second's where there are two): the estimate an engine keeps for a scene's plan.
 pub fn heun_update(
     x: &[f32],
     agents: usize,
@@ -51,7 +52,7 @@ pub fn heun_update(
     sigma_next: &[f32],
     second_evaluation: bool,
     mut denoise: impl FnMut(&[f32], &[f32]) -> Result<Vec<f32>>,
-) -> Result<Vec<f32>> {
+) -> Result<(Vec<f32>, Vec<f32>)> {
     let scenes = sigma_cur.len() / w.max(1);
     if x.len() != scenes * agents * w * 3
         || sigma_cur.len() != scenes * w
@@ -77,7 +78,7 @@ pub fn heun_update(
         }
     }
     if !second_evaluation {
-        return Ok(x_e);
+        return Ok((x_e, d1));
     }
     let sigma_eval: Vec<f32> = sigma_cur
         .iter()
@@ -95,5 +96,5 @@ pub fn heun_update(
             *o = x[e] + (sn - s) * 0.5 * (slope1 + slope2);
         }
     }
-    Ok(out)
+    Ok((out, d2))
 }

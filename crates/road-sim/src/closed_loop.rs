@@ -77,6 +77,18 @@ impl ExternalDriver for NoExternal {
     }
 }
 
+/// How often the collision guard acted over `ticks`: (braked, stopped short), in agent-ticks.
+pub fn guard_actions(ticks: &[SceneTick]) -> (usize, usize) {
+    let mut counts = (0, 0);
+    for (_, action) in ticks.iter().flat_map(|t| &t.guarded) {
+        match action {
+            GuardAction::Braked => counts.0 += 1,
+            GuardAction::StoppedShort => counts.1 += 1,
+        }
+    }
+    counts
+}
+
 /// What one tick did in one scene.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct SceneTick {

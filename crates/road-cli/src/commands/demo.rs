@@ -213,13 +213,7 @@ pub fn run(args: DemoArgs) -> Result<ExitCode> {
         nfe as f64 / args.steps as f64
     );
     if run.planner.collision_guard.is_some() {
-        let (mut braked, mut stopped) = (0, 0);
-        for (_, action) in ticks.iter().flat_map(|t| &t.guarded) {
-            match action {
-                road_sim::guard::GuardAction::Braked => braked += 1,
-                road_sim::guard::GuardAction::StoppedShort => stopped += 1,
-            }
-        }
+        let (braked, stopped) = road_sim::closed_loop::guard_actions(&ticks);
         out!(
             "collision guard (planner option): braked a vehicle {braked} time(s), stopped one short of another {stopped} time(s)"
         );

@@ -13,10 +13,10 @@ use anyhow::{Context, Result};
 use rand::SeedableRng;
 use road_data::{Dataset, SceneWindow, SourceSet, Split, WindowConfig};
 use road_sim::closed_loop::{
-    ClosedLoop, Controller, NoExternal, SceneTick, SimScene, pick_adversary, simulate_scripted,
+    ClosedLoop, Controller, NoExternal, SceneTick, SimScene, guard_actions, pick_adversary,
+    simulate_scripted,
 };
 
-use road_sim::guard::GuardAction;
 use road_sim::kinematics::{KinematicDivergence, Kinematics};
 use road_sim::metrics::{BOOTSTRAP_RESAMPLES, Estimate, bootstrap_ratio};
 
@@ -156,12 +156,9 @@ fn score(totals: &mut Totals, k: usize, ticks: &[SceneTick], adversary: usize, a
         .collect();
     totals.driven_agents += agents - 1;
     totals.off_road_agents += off.len();
-    for (_, action) in ticks.iter().flat_map(|t| &t.guarded) {
-        match action {
-            GuardAction::Braked => totals.guard_braked_agent_ticks += 1,
-            GuardAction::StoppedShort => totals.guard_stopped_agent_ticks += 1,
-        }
-    }
+    let (braked, stopped) = guard_actions(ticks);
+    totals.guard_braked_agent_ticks += braked;
+    totals.guard_stopped_agent_ticks += stopped;
     totals.per_simulation.push((
         k,
         pairs.iter().any(|&(i, j)| i == adversary || j == adversary),
