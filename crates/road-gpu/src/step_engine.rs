@@ -3,7 +3,7 @@
 //! tick's steps and compacted sub-batches for mixed-phase rounds.
 
 use crate::engine::{DenoiseInputs, DeviceBatch, GpuDenoiser, HeunPlan, MapTokens};
-use crate::kernels::{read_back_range, storage_buffer};
+use crate::kernels::{read_back_ranges, storage_buffer};
 use crate::{Error, GpuContext, Result};
 
 /// The rollout driver's engine on the GPU: windows stay on the device through a tick's steps
@@ -371,26 +371,34 @@ impl road_model::sample::StepEngine for GpuStepEngine<'_> {
         window.emitted(self.ctx, slots, out).map_err(engine_err)
     }
 
-    fn read_denoised(&mut self, scene: usize, out: &mut [f32]) -> road_model::Result<()> {
+    fn read_denoised(&mut self, scenes: &[usize], out: &mut [f32]) -> road_model::Result<()> {
         let denoised = self
             .denoised
             .as_ref()
             .ok_or_else(|| road_model::Error::Engine("read_denoised before load".into()))?;
         let x_len = self.agents * self.model.config.window_slots * 3;
-        if scene >= self.scenes || out.len() != x_len {
+        if let Some(&bad) = scenes.iter().find(|&&s| s >= self.scenes) {
             return Err(road_model::Error::Engine(format!(
-                "read_denoised of scene {scene}: {} outputs; the batch has {} scenes of {x_len}",
-                out.len(),
+                "read_denoised of scene {bad}: the batch has {} scenes",
                 self.scenes
             )));
         }
-        let bytes = read_back_range(
-            self.ctx,
-            denoised,
-            (scene * x_len * 4) as u64,
-            (x_len * 4) as u64,
-        )
-        .map_err(engine_err)?;
+        if out.len() != scenes.len() * x_len {
+            return Err(road_model::Error::Engine(format!(
+                "read_denoised of {} scenes: {} outputs; scenes of {x_len} each",
+                scenes.len(),
+                out.len()
+            )));
+        }
+        if scenes.is_empty() {
+            return Ok(());
+        }
+        // Every scene's range copied in one submission, then one map: one wait per round.
+        let ranges: Vec<(u64, u64)> = scenes
+            .iter()
+            .map(|&s| ((s * x_len * 4) as u64, (x_len * 4) as u64))
+            .collect();
+        let bytes = read_back_ranges(self.ctx, denoised, &ranges).map_err(engine_err)?;
         out.copy_from_slice(bytemuck::cast_slice(&bytes));
         Ok(())
     }

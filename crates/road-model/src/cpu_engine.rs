@@ -59,17 +59,24 @@ impl HostWindows {
         Ok(())
     }
 
-    fn read_denoised(&self, scene: usize, out: &mut [f32]) -> Result<()> {
+    fn read_denoised(&self, scenes: &[usize], out: &mut [f32]) -> Result<()> {
         let x = self.agents * self.slots * 3;
-        if scene >= self.scenes || out.len() != x || self.denoised.len() < (scene + 1) * x {
+        if out.len() != scenes.len() * x {
             return Err(Error::data(format!(
-                "read_denoised of scene {scene}: {} outputs; the loaded batch has {} scenes of \
-                 {x}",
-                out.len(),
-                self.scenes
+                "read_denoised of {} scenes: {} outputs; scenes of {x} each",
+                scenes.len(),
+                out.len()
             )));
         }
-        out.copy_from_slice(&self.denoised[scene * x..(scene + 1) * x]);
+        for (&scene, out) in scenes.iter().zip(out.chunks_exact_mut(x.max(1))) {
+            if scene >= self.scenes || self.denoised.len() < (scene + 1) * x {
+                return Err(Error::data(format!(
+                    "read_denoised of scene {scene}: the loaded batch has {} scenes",
+                    self.scenes
+                )));
+            }
+            out.copy_from_slice(&self.denoised[scene * x..(scene + 1) * x]);
+        }
         Ok(())
     }
 
@@ -339,8 +346,8 @@ impl StepEngine for CpuEngine<'_> {
         self.host.read_emitted(slots, out)
     }
 
-    fn read_denoised(&mut self, scene: usize, out: &mut [f32]) -> Result<()> {
-        self.host.read_denoised(scene, out)
+    fn read_denoised(&mut self, scenes: &[usize], out: &mut [f32]) -> Result<()> {
+        self.host.read_denoised(scenes, out)
     }
 
     fn shift(&mut self, edits: &[ShiftEdit<'_>], shape: ShiftShape) -> Result<()> {
@@ -496,8 +503,8 @@ impl StepEngine for FastCpuEngine<'_> {
         self.host.read_emitted(slots, out)
     }
 
-    fn read_denoised(&mut self, scene: usize, out: &mut [f32]) -> Result<()> {
-        self.host.read_denoised(scene, out)
+    fn read_denoised(&mut self, scenes: &[usize], out: &mut [f32]) -> Result<()> {
+        self.host.read_denoised(scenes, out)
     }
 
     fn shift(&mut self, edits: &[ShiftEdit<'_>], shape: ShiftShape) -> Result<()> {

@@ -22,7 +22,7 @@ use road_sched::{
 
 use crate::batch::{AGENT_FEATURES, normal_vec};
 use crate::sample::{Rollout, RolloutScene, ShiftEdit, ShiftShape, StepEngine};
-use crate::smoothing::smooth_accelerations;
+use crate::smoothing::{smooth_accelerations, smooth_with_plan};
 use crate::{Error, Result};
 
 /// Per-scene state in model units. The window lives in the engine; `window` is the host copy
@@ -126,8 +126,9 @@ pub struct RolloutDriver {
     needs_load: Vec<bool>,
     /// Scenes with a tick requested and not yet emitted.
     in_tick: Vec<bool>,
-    emitted: Vec<f32>,              // [B, A, 3] read back each tick
-    denoised: Vec<f32>,             // [A, W, 3]: one scene's estimate, read on request
+    emitted: Vec<f32>,  // [B, A, 3] read back each tick
+    denoised: Vec<f32>, // [scenes, A, W, 3]: the estimates of `denoised_scenes`, read on request
+    denoised_scenes: Vec<usize>,
     emit_slots: Vec<Option<usize>>, // [B]
     sigma_cur: Vec<f32>,            // [B, W]
     sigma_next: Vec<f32>,           // [B, W]
@@ -283,6 +284,7 @@ impl RolloutDriver {
             in_tick: vec![false; b],
             emitted: vec![0.0; b * a_max * 3],
             denoised: Vec::new(),
+            denoised_scenes: Vec::new(),
             emit_slots: vec![None; b],
             sigma_cur: vec![IDLE_SIGMA; b * w],
             sigma_next: vec![IDLE_SIGMA; b * w],
@@ -686,25 +688,58 @@ impl RolloutDriver {
             obs_noise: self.obs_noise,
             sigma_max: self.sigma_max,
         };
+        // The denoised windows of the scenes whose client or planner needs them, in one read.
+        self.denoised_scenes.clear();
+        for o in &self.outcomes {
+            let i = self.scene_of_slot[o.scene.index()];
+            if self.states[i].wants_plan || self.planners[i].plan_smoothing.is_some() {
+                self.denoised_scenes.push(i);
+            }
+        }
+        let per_scene = a_max * w * 3;
+        self.denoised
+            .resize(self.denoised_scenes.len() * per_scene, 0.0);
+        if !self.denoised_scenes.is_empty() {
+            engine.read_denoised(&self.denoised_scenes, &mut self.denoised)?;
+        }
         // (scene, emitted [agents·3], noise [agents·6]) of the scenes that shift.
         let mut shifts: Vec<(usize, Vec<f32>, Vec<f32>)> = Vec::new();
         let mut done = Vec::with_capacity(self.outcomes.len());
+        let mut read = 0;
         for o in &self.outcomes {
             let i = self.scene_of_slot[o.scene.index()];
             let s = &mut self.states[i];
+            // Slots after the emitted one, before the window moves on.
+            let from = n + o.emit_future_slot + 1;
+            let plan_smoothing = self.planners[i].plan_smoothing;
+            // Outcomes come in the order `denoised_scenes` was filled in.
+            let denoised = if self.denoised_scenes.get(read) == Some(&i) {
+                read += 1;
+                &self.denoised[(read - 1) * per_scene..][..per_scene]
+            } else {
+                &[][..]
+            };
             if s.wants_plan {
-                // Slots after the emitted one, before the window moves on.
-                let from = n + o.emit_future_slot + 1;
-                self.denoised.resize(a_max * w * 3, 0.0);
-                engine.read_denoised(i, &mut self.denoised)?;
                 s.plan_steps = w.saturating_sub(from);
                 s.plan.clear();
                 for a in 0..s.agents {
                     s.plan
-                        .extend_from_slice(&self.denoised[3 * (a * w + from)..3 * (a * w + w)]);
+                        .extend_from_slice(&denoised[3 * (a * w + from)..3 * (a * w + w)]);
                 }
             }
             let mut emitted = self.emitted[i * a_max * 3..][..s.agents * 3].to_vec();
+            if let Some(half_width) = plan_smoothing {
+                smooth_with_plan(
+                    &s.history,
+                    &s.history_valid,
+                    denoised,
+                    &s.valid,
+                    w,
+                    from,
+                    half_width,
+                    &mut emitted,
+                );
+            }
             if let Some(alpha) = self.planners[i].acceleration_smoothing {
                 // External agents' states replace theirs just below.
                 smooth_accelerations(&s.history, &s.history_valid, &mut emitted, alpha as f32);

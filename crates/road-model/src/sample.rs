@@ -81,13 +81,15 @@ pub trait StepEngine {
         second_evaluation: bool,
     ) -> Result<()>;
     /// Each scene's emitted states `[B, A, 3]` from window slot `slots[b]` (`None`: not read,
-    /// zeros): a tick's only readback, unless a scene asked for its plan (`read_denoised`).
+    /// zeros): a tick's only readback, unless a scene's planner or client needs its plan
+    /// (`read_denoised`).
     fn read_emitted(&mut self, slots: &[Option<usize>], out: &mut [f32]) -> Result<()>;
-    /// Scene `scene`'s last denoiser estimate D(x; σ) `[A, W, 3]` (A: the batch's), from the
-    /// last step that moved it (zeros before one): the model's plan of its window, read only
-    /// on request. Engines that do not keep it say so.
-    fn read_denoised(&mut self, scene: usize, out: &mut [f32]) -> Result<()> {
-        let _ = (scene, out);
+    /// The last denoiser estimates D(x; σ) of `scenes`, `[scenes, A, W, 3]` (A: the batch's),
+    /// each from the last step that moved its scene (zeros before one): the model's plan of
+    /// the window, read in one go for every scene that needs it this round. Engines that do
+    /// not keep it say so.
+    fn read_denoised(&mut self, scenes: &[usize], out: &mut [f32]) -> Result<()> {
+        let _ = (scenes, out);
         Err(Error::data(
             "this engine does not keep its denoiser estimate (read_denoised)".into(),
         ))

@@ -1,6 +1,8 @@
-//! Acceleration smoothing of emitted states (a planner option, `acceleration_smoothing`): a
-//! deviation from the paper, measured in `docs/results.md`.
+//! Smoothing of emitted states, two planner options, both deviations from the paper measured in
+//! `docs/results.md`: acceleration smoothing (`acceleration_smoothing`, a low-pass over the
+//! past) and plan smoothing (`plan_smoothing`, a local fit over the past and the model's plan).
 //!
+//! Acceleration smoothing:
 //! Each emitted slot ends its own denoising at σ_min, independently of its neighbours, so a
 //! position error of a few centimetres changes from step to step; differentiated three times
 //! at 10 Hz that is jerk of tens of m/s³ (the "jitter" of issue 13). The smoothing low-passes
@@ -34,9 +36,220 @@ pub fn smooth_accelerations(
     }
 }
 
+/// Plan smoothing (`plan_smoothing = h`): each agent's emitted position becomes the value at
+/// the emission step of the least-squares quadratic through its last `h` committed positions
+/// (steps −h…−1), the emitted one (step 0) and the denoised estimate of the next `h` slots of its
+/// window (steps 1…h, from `first_planned_slot`). A quadratic is exact for constant
+/// acceleration, so steady turns and speed changes pass without the lag of
+/// [`smooth_accelerations`] (whose low-pass, inside the closed loop, makes vehicles weave);
+/// what the fit removes is the step-to-step scatter of independently finished slots. Points are
+/// taken while they are valid, nearest first; an agent with fewer than 4 points is left as it
+/// is, and headings stay the model's.
+///
+/// `denoised` and `window_valid` are the scene's `[agents, slots, 3]` estimate and
+/// `[agents, slots]` flags (at least as many agents as `emitted` holds).
+#[allow(clippy::too_many_arguments)] // one scene's history, window and emission
+pub fn smooth_with_plan(
+    history: &[Vec<[f32; 3]>],
+    history_valid: &[Vec<bool>],
+    denoised: &[f32],
+    window_valid: &[f32],
+    slots: usize,
+    first_planned_slot: usize,
+    half_width: usize,
+    emitted: &mut [f32],
+) {
+    let mut points: Vec<(f64, [f64; 2])> = Vec::with_capacity(2 * half_width + 1);
+    for (a, state) in emitted.chunks_exact_mut(3).enumerate() {
+        points.clear();
+        points.push((0.0, [f64::from(state[0]), f64::from(state[1])]));
+        let (past, past_valid) = (&history[a], &history_valid[a]);
+        for k in 1..=half_width.min(past.len()) {
+            let t = past.len() - k;
+            if !past_valid[t] {
+                break;
+            }
+            points.push((-(k as f64), [f64::from(past[t][0]), f64::from(past[t][1])]));
+        }
+        for k in 1..=half_width {
+            let slot = first_planned_slot + k - 1;
+            if slot >= slots || window_valid[a * slots + slot] <= 0.0 {
+                break;
+            }
+            let d = &denoised[3 * (a * slots + slot)..];
+            points.push((k as f64, [f64::from(d[0]), f64::from(d[1])]));
+        }
+        if points.len() < 4 {
+            continue;
+        }
+        for (axis, value) in state[..2].iter_mut().enumerate() {
+            if let Some(fit) = quadratic_at_zero(&points, axis) {
+                *value = fit as f32;
+            }
+        }
+    }
+}
+
+/// The value at t = 0 of the least-squares quadratic through `(t, y[axis])` (None when the
+/// normal equations are singular).
+fn quadratic_at_zero(points: &[(f64, [f64; 2])], axis: usize) -> Option<f64> {
+    // Normal equations M · (c0, c1, c2) = r with M[i][j] = Σ t^(i+j), r[i] = Σ t^i · y.
+    let mut powers = [0.0f64; 5];
+    let mut r = [0.0f64; 3];
+    for &(t, y) in points {
+        let mut tp = 1.0;
+        for (k, p) in powers.iter_mut().enumerate() {
+            *p += tp;
+            if k < 3 {
+                r[k] += tp * y[axis];
+            }
+            tp *= t;
+        }
+    }
+    let m = |i: usize, j: usize| powers[i + j];
+    let det3 = |c: [[f64; 3]; 3]| {
+        c[0][0] * (c[1][1] * c[2][2] - c[1][2] * c[2][1])
+            - c[0][1] * (c[1][0] * c[2][2] - c[1][2] * c[2][0])
+            + c[0][2] * (c[1][0] * c[2][1] - c[1][1] * c[2][0])
+    };
+    let matrix = [
+        [m(0, 0), m(0, 1), m(0, 2)],
+        [m(1, 0), m(1, 1), m(1, 2)],
+        [m(2, 0), m(2, 1), m(2, 2)],
+    ];
+    let det = det3(matrix);
+    if det.abs() < 1e-9 {
+        return None;
+    }
+    // Cramer's rule for c0: the first column replaced by r.
+    let mut first = matrix;
+    for (row, &value) in first.iter_mut().zip(&r) {
+        row[0] = value;
+    }
+    Some(det3(first) / det)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// (history, its flags, the window's denoised estimate, the window's flags) of one agent.
+    type PlanCase = (Vec<Vec<[f32; 3]>>, Vec<Vec<bool>>, Vec<f32>, Vec<f32>);
+
+    /// One agent: history at steps −len…−1 and window estimates at steps 1…, of `path(t)`.
+    fn plan_case(path: impl Fn(f64) -> [f32; 2], past: usize, planned: usize) -> PlanCase {
+        let history = vec![
+            (0..past)
+                .map(|k| {
+                    let p = path(k as f64 - past as f64);
+                    [p[0], p[1], 0.0]
+                })
+                .collect(),
+        ];
+        let valid = vec![vec![true; past]];
+        // A window of 12 slots; the planned ones start at slot 2.
+        let mut denoised = vec![0.0; 12 * 3];
+        let mut window_valid = vec![0.0; 12];
+        for k in 0..planned {
+            let p = path(k as f64 + 1.0);
+            denoised[3 * (2 + k)..][..2].copy_from_slice(&p);
+            window_valid[2 + k] = 1.0;
+        }
+        (history, valid, denoised, window_valid)
+    }
+
+    #[test]
+    fn plan_smoothing_keeps_constant_acceleration_and_turns_exactly() {
+        let path = |t: f64| {
+            let (x, y) = (1.0 + 0.3 * t + 0.02 * t * t, -0.5 + 0.1 * t - 0.01 * t * t);
+            [x as f32, y as f32]
+        };
+        let (history, valid, denoised, window_valid) = plan_case(path, 6, 8);
+        let mut emitted = [path(0.0)[0], path(0.0)[1], 0.4];
+        smooth_with_plan(
+            &history,
+            &valid,
+            &denoised,
+            &window_valid,
+            12,
+            2,
+            3,
+            &mut emitted,
+        );
+        assert!(
+            (emitted[0] - 1.0).abs() < 1e-5 && (emitted[1] + 0.5).abs() < 1e-5,
+            "{emitted:?}"
+        );
+        assert_eq!(emitted[2], 0.4);
+    }
+
+    #[test]
+    fn plan_smoothing_pulls_a_scattered_emission_back_to_the_path() {
+        let path = |t: f64| [(2.0 * t) as f32, 0.0];
+        let (history, valid, denoised, window_valid) = plan_case(path, 6, 8);
+        // 7 points, quadratic: the emitted one weighs 7/21 at the centre.
+        let mut emitted = [0.0, 0.21, 0.0];
+        smooth_with_plan(
+            &history,
+            &valid,
+            &denoised,
+            &window_valid,
+            12,
+            2,
+            3,
+            &mut emitted,
+        );
+        assert!(emitted[0].abs() < 1e-5, "{emitted:?}");
+        assert!((emitted[1] - 0.07).abs() < 1e-5, "{emitted:?}");
+    }
+
+    #[test]
+    fn plan_smoothing_uses_only_valid_points_and_needs_four() {
+        let path = |t: f64| [t as f32, 0.0];
+        // Two past states and one planned slot: 4 points, still a fit.
+        let (history, valid, denoised, window_valid) = plan_case(path, 2, 1);
+        let mut emitted = [0.0, 0.3, 0.0];
+        smooth_with_plan(
+            &history,
+            &valid,
+            &denoised,
+            &window_valid,
+            12,
+            2,
+            3,
+            &mut emitted,
+        );
+        assert!(emitted[1] < 0.3 && emitted[1] > 0.0, "{emitted:?}");
+        // One past state and one planned slot: left alone.
+        let (history, valid, denoised, window_valid) = plan_case(path, 1, 1);
+        let mut emitted = [0.0, 0.3, 0.0];
+        smooth_with_plan(
+            &history,
+            &valid,
+            &denoised,
+            &window_valid,
+            12,
+            2,
+            3,
+            &mut emitted,
+        );
+        assert_eq!(emitted, [0.0, 0.3, 0.0]);
+        // An invalid past state cuts the history there.
+        let (history, mut valid, denoised, window_valid) = plan_case(path, 4, 1);
+        valid[0][2] = false;
+        let mut emitted = [0.0, 0.3, 0.0];
+        smooth_with_plan(
+            &history,
+            &valid,
+            &denoised,
+            &window_valid,
+            12,
+            2,
+            3,
+            &mut emitted,
+        );
+        assert_eq!(emitted, [0.0, 0.3, 0.0]);
+    }
 
     fn line(speed: f32, steps: usize) -> Vec<[f32; 3]> {
         (0..steps).map(|t| [speed * t as f32, 1.0, 0.3]).collect()

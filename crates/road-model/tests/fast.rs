@@ -423,6 +423,45 @@ fn fast_engine_rollouts_with_agent_pairs_match_candle() {
     rollouts_agree(Frame::AgentPairs);
 }
 
+/// Plan smoothing reads every emitting scene's denoised window: the engines agree with it on,
+/// and it changes what is emitted (by less than the states move).
+#[test]
+fn fast_engine_rollouts_with_plan_smoothing_match_candle() {
+    let c = config(Frame::AgentPairs);
+    let model = seeded_model(&c, 5);
+    let planner = |plan_smoothing| PlannerSpec {
+        steps_per_diffusion: 10,
+        plan_smoothing,
+        acceleration_smoothing: Some(0.3),
+        ..PlannerSpec::default()
+    };
+    let scenes = scenes(&c, 3);
+    let run = |engine: &mut dyn StepEngine, planner: &PlannerSpec| {
+        rollout_with(engine, planner, &scenes, 8, &mut StdRng::seed_from_u64(9)).unwrap()
+    };
+    let smoothed = planner(Some(4));
+    let reference = run(&mut CpuEngine::new(&model), &smoothed);
+    let fast = run(
+        &mut FastCpuEngine::with_threads(&model, 2).unwrap(),
+        &smoothed,
+    );
+    for (f, r) in fast.states.iter().zip(&reference.states) {
+        assert_close(f, r, 1e-3, 1e-4, "rollout with plan smoothing");
+    }
+    let unsmoothed = run(&mut CpuEngine::new(&model), &planner(None));
+    let moved: f32 = reference
+        .states
+        .iter()
+        .zip(&unsmoothed.states)
+        .flat_map(|(a, b)| a.iter().zip(b).map(|(x, y)| (x - y).abs()))
+        .sum();
+    assert!(moved > 1e-3, "plan smoothing left every state as it was");
+    assert!(
+        reference.states.iter().flatten().all(|v| v.is_finite()),
+        "finite states"
+    );
+}
+
 /// Mixed phases: scenes tick in different subsets, so the engines evaluate gathered rows.
 #[test]
 fn fast_engine_matches_candle_when_only_some_scenes_tick() {

@@ -12,8 +12,8 @@ pub mod scheduler;
 
 pub use edm::{EdmSchedule, Preconditioning};
 pub use plan::{
-    CollisionGuard, MAX_GUARD_HORIZON_STEPS, PlannerKind, PlannerSpec, PlannerTables, StageKind,
-    StageTable, StepPlan, TickProgram, WindowUpdate,
+    CollisionGuard, MAX_GUARD_HORIZON_STEPS, MAX_PLAN_SMOOTHING_STEPS, PlannerKind, PlannerSpec,
+    PlannerTables, StageKind, StageTable, StepPlan, TickProgram, WindowUpdate,
 };
 pub use scheduler::{PlannerId, SceneId, SceneSpec, SceneStats, Scheduler, TickOutcome, WorkItem};
 

@@ -23,6 +23,9 @@ pub enum PlannerKind {
 /// The collision guard's longest look-ahead: 5 s at 10 Hz (its cost grows with it).
 pub const MAX_GUARD_HORIZON_STEPS: usize = 50;
 
+/// The widest plan smoothing: 5 committed states and 5 planned slots either side.
+pub const MAX_PLAN_SMOOTHING_STEPS: usize = 5;
+
 /// One planner: its window and its step budget. `Default` is RoAD-20 with K = 40.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -50,6 +53,13 @@ pub struct PlannerSpec {
     /// (`road_model::smoothing`; a deviation from the paper against jitter). Absent: off.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub acceleration_smoothing: Option<f64>,
+    /// h in 1..=`MAX_PLAN_SMOOTHING_STEPS`: each emitted position is replaced by the value at
+    /// the emission step of the least-squares quadratic through the agent's last h committed
+    /// positions, the emitted one and the model's denoised estimate of the next h slots of its
+    /// window (`road_model::smoothing`; a deviation from the paper against jitter that, unlike
+    /// `acceleration_smoothing`, adds no lag). Absent: off.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub plan_smoothing: Option<usize>,
     /// τ in (0, 1]: the pure noise a future slot starts from is `τ · σ_max · z` instead of
     /// `σ_max · z` (the window's first build and each new slot of a rolling or replanned
     /// window): a lower sampling temperature (a deviation from the paper: the model is still
@@ -87,6 +97,7 @@ impl Default for PlannerSpec {
             obs_sigma: None,
             obs_noise: None,
             acceleration_smoothing: None,
+            plan_smoothing: None,
             noise_temperature: None,
             collision_guard: None,
             edm: EdmSchedule::default(),
@@ -152,6 +163,13 @@ impl PlannerSpec {
             if !(alpha > 0.0 && alpha <= 1.0) {
                 return bad(format!(
                     "acceleration_smoothing must be in (0, 1], got {alpha}"
+                ));
+            }
+        }
+        if let Some(h) = self.plan_smoothing {
+            if !(1..=MAX_PLAN_SMOOTHING_STEPS).contains(&h) {
+                return bad(format!(
+                    "plan_smoothing must be 1 to {MAX_PLAN_SMOOTHING_STEPS} steps, got {h}"
                 ));
             }
         }

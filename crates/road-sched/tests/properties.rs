@@ -16,6 +16,7 @@ fn spec(kind: PlannerKind, n: usize, f: usize, k: usize, x: Option<usize>) -> Pl
         obs_sigma: None,
         obs_noise: None,
         acceleration_smoothing: None,
+        plan_smoothing: None,
         noise_temperature: None,
         collision_guard: None,
         edm: EdmSchedule::default(),

@@ -1,12 +1,19 @@
 //! Kinematic realism in the style of the Waymo Sim Agents metrics: the distributions of speed,
-//! longitudinal acceleration and jerk of the simulated agents against the logged ones, each
-//! compared by the Jensen–Shannon divergence over fixed histogram bins. Jitter (a stopped
-//! vehicle trembling in place, a path that zig-zags) shows up as mass in the high |jerk| bins.
+//! longitudinal acceleration, jerk, yaw rate and yaw acceleration of the simulated agents
+//! against the logged ones, each compared by the Jensen–Shannon divergence over fixed histogram
+//! bins. Jitter (a stopped vehicle trembling in place) shows up as mass in the high |jerk|
+//! bins; weaving (a path that snakes from side to side of its lane) in the high |yaw rate| and
+//! |yaw acceleration| bins.
 
 use serde::Serialize;
 
 /// The recordings' and the simulation's step.
 pub const STEP_SECS: f64 = 0.1;
+
+/// Yaw is read from the direction of motion between consecutive positions (the path's
+/// course, not the heading channel), and only where the agent covers at least this much per
+/// second: below it a few centimetres of position noise swing the course by whole radians.
+pub const YAW_MIN_SPEED_MPS: f64 = 2.0;
 
 /// A histogram over fixed bins on `[lo, hi)`; values outside fall into the edge bins.
 #[derive(Debug, Clone, PartialEq, Serialize)]
@@ -65,13 +72,16 @@ impl Histogram {
     }
 }
 
-/// Speed (m/s), longitudinal acceleration (m/s², the rate of change of speed) and jerk (m/s³)
-/// of many paths.
+/// Speed (m/s), longitudinal acceleration (m/s², the rate of change of speed), jerk (m/s³),
+/// yaw rate (rad/s, the rate of change of the course) and yaw acceleration (rad/s²) of many
+/// paths.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Kinematics {
     pub speed_mps: Histogram,
     pub acceleration_mps2: Histogram,
     pub jerk_mps3: Histogram,
+    pub yaw_rate_radps: Histogram,
+    pub yaw_acceleration_radps2: Histogram,
 }
 
 impl Default for Kinematics {
@@ -81,6 +91,9 @@ impl Default for Kinematics {
             // Odd bin counts: zero sits mid-bin, so steady motion's float noise stays in one.
             acceleration_mps2: Histogram::new(-8.25, 8.25, 33),
             jerk_mps3: Histogram::new(-41.25, 41.25, 33),
+            // 0.1 rad/s bins: a car on a 20 m ring at 7 m/s turns at 0.35 rad/s.
+            yaw_rate_radps: Histogram::new(-1.65, 1.65, 33),
+            yaw_acceleration_radps2: Histogram::new(-4.95, 4.95, 33),
         }
     }
 }
@@ -91,6 +104,8 @@ pub struct KinematicDivergence {
     pub speed: f64,
     pub acceleration: f64,
     pub jerk: f64,
+    pub yaw_rate: f64,
+    pub yaw_acceleration: f64,
 }
 
 impl Kinematics {
@@ -114,6 +129,29 @@ impl Kinematics {
         for j in accelerations.windows(2) {
             self.jerk_mps3.add((j[1] - j[0]) / STEP_SECS);
         }
+        // Course of each step, where the agent moves fast enough for it to mean something.
+        let courses: Vec<Option<f64>> = xy_m
+            .windows(2)
+            .map(|p| {
+                let (dx, dy) = (p[1][0] - p[0][0], p[1][1] - p[0][1]);
+                (dx.hypot(dy) / STEP_SECS >= YAW_MIN_SPEED_MPS).then(|| dy.atan2(dx))
+            })
+            .collect();
+        let yaw_rates: Vec<Option<f64>> = courses
+            .windows(2)
+            .map(|c| match (c[0], c[1]) {
+                (Some(a), Some(b)) => Some(wrap_pi(b - a) / STEP_SECS),
+                _ => None,
+            })
+            .collect();
+        for &w in yaw_rates.iter().flatten() {
+            self.yaw_rate_radps.add(w);
+        }
+        for w in yaw_rates.windows(2) {
+            if let (Some(a), Some(b)) = (w[0], w[1]) {
+                self.yaw_acceleration_radps2.add((b - a) / STEP_SECS);
+            }
+        }
     }
 
     pub fn divergence_from(&self, reference: &Kinematics) -> KinematicDivergence {
@@ -123,8 +161,18 @@ impl Kinematics {
                 .acceleration_mps2
                 .js_divergence(&reference.acceleration_mps2),
             jerk: self.jerk_mps3.js_divergence(&reference.jerk_mps3),
+            yaw_rate: self.yaw_rate_radps.js_divergence(&reference.yaw_rate_radps),
+            yaw_acceleration: self
+                .yaw_acceleration_radps2
+                .js_divergence(&reference.yaw_acceleration_radps2),
         }
     }
+}
+
+/// An angle difference wrapped to [−π, π).
+fn wrap_pi(a: f64) -> f64 {
+    use std::f64::consts::PI;
+    (a + PI).rem_euclid(2.0 * PI) - PI
 }
 
 #[cfg(test)]
@@ -169,6 +217,55 @@ mod tests {
         assert!(
             d.speed > 0.0,
             "1 m/s of trembling is not standing still: {d:?}"
+        );
+    }
+
+    #[test]
+    fn weaving_shows_in_yaw_rate_and_not_in_speed() {
+        let (mut straight_path, mut weaving) = (Kinematics::default(), Kinematics::default());
+        straight_path.add_path(&straight(8.0, 40));
+        // The same 8 m/s forward, snaking ±0.5 m sideways with a 1 s period.
+        let snake: Vec<[f64; 2]> = (0..40)
+            .map(|t| {
+                let s = t as f64 * STEP_SECS;
+                [8.0 * s, 0.5 * (2.0 * std::f64::consts::PI * s).sin()]
+            })
+            .collect();
+        weaving.add_path(&snake);
+        let d = weaving.divergence_from(&straight_path);
+        assert!(d.yaw_rate > 0.5 && d.yaw_acceleration > 0.5, "{d:?}");
+        assert!(d.speed < 0.5, "{d:?}");
+        // A stopped car's trembling never reaches the yaw histograms.
+        let mut trembling = Kinematics::default();
+        trembling.add_path(
+            &(0..30)
+                .map(|t| [0.05 * ((t * 7) % 5) as f64, 0.0])
+                .collect::<Vec<_>>(),
+        );
+        assert_eq!(trembling.yaw_rate_radps.total(), 0.0);
+    }
+
+    #[test]
+    fn a_steady_turn_has_a_steady_yaw_rate_across_the_angle_wrap() {
+        // 0.3 rad/s on a 20 m circle (6 m/s), through ±π.
+        let path: Vec<[f64; 2]> = (0..80)
+            .map(|t| {
+                let a = 2.5 + 0.3 * t as f64 * STEP_SECS;
+                [20.0 * a.cos(), 20.0 * a.sin()]
+            })
+            .collect();
+        let mut k = Kinematics::default();
+        k.add_path(&path);
+        let bin = ((0.3 + 1.65) / 3.3 * 33.0) as usize;
+        assert_eq!(
+            k.yaw_rate_radps.counts[bin],
+            k.yaw_rate_radps.total(),
+            "{:?}",
+            k.yaw_rate_radps
+        );
+        assert_eq!(
+            k.yaw_acceleration_radps2.counts[16],
+            k.yaw_acceleration_radps2.total()
         );
     }
 

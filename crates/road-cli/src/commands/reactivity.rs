@@ -48,7 +48,7 @@ struct Totals {
     secs: f64,
     nfe_per_step: f64,
     expected_nfe_per_step: Option<f64>,
-    /// Speed, acceleration and jerk of the driven agents that the log holds throughout.
+    /// Speed, acceleration, jerk and yaw of the driven agents that the log holds throughout.
     #[serde(skip)]
     kinematics: Kinematics,
     /// Against the logged paths of the same agents over the same steps.
@@ -392,9 +392,9 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         args.engine
     );
     out!(
-        "| model | collision rate (adversary) [95 % CI] | any collision [95 % CI] | off-road rate [95 % CI] | JS speed | JS accel. | JS jerk | time per sample (s) | NFE per simulated step (expected) |"
+        "| model | collision rate (adversary) [95 % CI] | any collision [95 % CI] | off-road rate [95 % CI] | JS speed | JS accel. | JS jerk | JS yaw rate | JS yaw accel. | time per sample (s) | NFE per simulated step (expected) |"
     );
-    out!("|---|---:|---:|---:|---:|---:|---:|---:|---:|");
+    out!("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
     for r in &mut results {
         r.estimate(&logged, &scenes);
         let sims = r.simulations.max(1) as f64;
@@ -405,7 +405,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         let show = |e: Option<Estimate>| e.map_or_else(String::new, |e| format!("{e:.3}"));
         let js = r.kinematic_divergence.expect("estimated above");
         out!(
-            "| {} | {} | {} | {} | {:.3} | {:.3} | {:.3} | {:.3} | {nfe} |",
+            "| {} | {} | {} | {} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {nfe} |",
             r.model,
             show(r.adversary_collision_rate),
             show(r.any_collision_rate),
@@ -413,11 +413,13 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
             js.speed,
             js.acceleration,
             js.jerk,
+            js.yaw_rate,
+            js.yaw_acceleration,
             r.secs / sims,
         );
     }
     out!(
-        "(intervals: 95 % percentile bootstrap over scenes, {BOOTSTRAP_RESAMPLES} resamples; JS: Jensen–Shannon divergence in bits of the driven agents' speed, acceleration and jerk histograms from the logged ones, agents the log holds throughout)"
+        "(intervals: 95 % percentile bootstrap over scenes, {BOOTSTRAP_RESAMPLES} resamples; JS: Jensen–Shannon divergence in bits of the driven agents' speed, acceleration, jerk, yaw rate and yaw acceleration histograms from the logged ones, agents the log holds throughout; yaw from the course of motion at ≥ 2 m/s)"
     );
     for s in &skipped {
         out!("not run: {s}");

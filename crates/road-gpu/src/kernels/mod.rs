@@ -282,6 +282,17 @@ pub fn read_back_range(
     offset: u64,
     bytes: u64,
 ) -> Result<Vec<u8>> {
+    read_back_ranges(ctx, source, &[(offset, bytes)])
+}
+
+/// Several `(offset, bytes)` ranges of `source`, concatenated: copied into one staging buffer in
+/// one submission and mapped once.
+pub fn read_back_ranges(
+    ctx: &GpuContext,
+    source: &wgpu::Buffer,
+    ranges: &[(u64, u64)],
+) -> Result<Vec<u8>> {
+    let bytes: u64 = ranges.iter().map(|r| r.1).sum();
     let staging = ctx.device.create_buffer(&wgpu::BufferDescriptor {
         label: Some("readback"),
         size: bytes.max(4),
@@ -293,7 +304,11 @@ pub fn read_back_range(
         .create_command_encoder(&wgpu::CommandEncoderDescriptor {
             label: Some("readback"),
         });
-    encoder.copy_buffer_to_buffer(source, offset, &staging, 0, bytes);
+    let mut at = 0;
+    for &(offset, len) in ranges {
+        encoder.copy_buffer_to_buffer(source, offset, &staging, at, len);
+        at += len;
+    }
     ctx.queue.submit([encoder.finish()]);
     let (tx, rx) = std::sync::mpsc::channel();
     staging
