@@ -867,6 +867,9 @@ impl Core {
                 }
             }
         }
+        // Every finished scene publishes first; the recordings follow, so that no reply
+        // waits behind the recording of the scenes published before it.
+        let mut published = Vec::with_capacity(finished.len());
         for (id, result) in finished {
             let Some(entry) = self.scenes.get_mut(&id) else {
                 continue;
@@ -878,8 +881,7 @@ impl Core {
                     continue;
                 }
             };
-            let npc = out.npc;
-            let json = serde_json::to_vec(&npc).expect("ticks serialise");
+            let json = serde_json::to_vec(&out.npc).expect("ticks serialise");
             let at = SystemTime::now();
             if let Err(e) = self
                 .session
@@ -890,7 +892,16 @@ impl Core {
                 tracing::warn!(scene = id, "cannot publish: {e}");
             }
             entry.live.waiting_since = Instant::now();
+            Stats::push(&mut self.stats.latency_ms, out.npc.latency_ms);
+            Stats::push(&mut self.stats.compute_ms, out.compute_secs * 1e3);
+            published.push((id, out, json, at));
+        }
+        for (id, out, json, at) in published {
+            let Some(entry) = self.scenes.get_mut(&id) else {
+                continue;
+            };
             if let Some(rec) = entry.recorder.as_mut() {
+                let npc = &out.npc;
                 let late = !npc.late_external.is_empty();
                 let written = rec.write(topics::NPC, &json, at).and_then(|()| {
                     rec.agents(&entry.live.agents, &out.poses, &npc.plans, late, at)
@@ -899,8 +910,6 @@ impl Core {
                     tracing::warn!(scene = id, "recording: {e}");
                 }
             }
-            Stats::push(&mut self.stats.latency_ms, npc.latency_ms);
-            Stats::push(&mut self.stats.compute_ms, out.compute_secs * 1e3);
         }
         for (id, message) in failed {
             let Some(client) = self.scenes.get(&id).map(|e| e.live.client.clone()) else {
