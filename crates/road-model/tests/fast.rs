@@ -424,7 +424,7 @@ fn fast_engine_rollouts_with_agent_pairs_match_candle() {
 }
 
 /// Plan smoothing reads every emitting scene's denoised window: the engines agree with it on,
-/// and it changes what is emitted (by less than the states move).
+/// and it changes what is emitted.
 #[test]
 fn fast_engine_rollouts_with_plan_smoothing_match_candle() {
     let c = config(Frame::AgentPairs);
