@@ -413,6 +413,48 @@ fn demo_runs_every_procedural_map() {
         );
         assert!(std::fs::read(&png).unwrap().starts_with(b"\x89PNG"));
     }
+    // Another planner of configs/planners.toml on the same checkpoint, by name.
+    let png = dir.join("demo-paper.png");
+    let o = road(&[
+        "demo",
+        "--in-process",
+        "--steps",
+        "2",
+        "--engine",
+        "cpu",
+        "--planner",
+        "road20",
+        "--out",
+        png.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(
+        stdout(&o).contains("road20-long2 [road20]"),
+        "{}",
+        stdout(&o)
+    );
+    let o = road(&["demo", "--in-process", "--steps", "1", "--planner", "nope"]);
+    assert!(!o.status.success());
+    assert!(
+        stderr(&o).contains("unknown planner `nope`")
+            && stderr(&o).contains("road20-fitted-guarded"),
+        "{}",
+        stderr(&o)
+    );
+    let o = road(&[
+        "demo",
+        "--in-process",
+        "--steps",
+        "1",
+        "--planner",
+        "djinn30",
+    ]);
+    assert!(!o.status.success());
+    assert!(
+        stderr(&o).contains("planner `djinn30` does not fit checkpoint road20-long2"),
+        "{}",
+        stderr(&o)
+    );
     let o = road(&["demo", "--map", "atlantis", "--steps", "1"]);
     assert!(!o.status.success());
     assert!(

@@ -47,6 +47,10 @@ pub struct DemoArgs {
     /// CPU engine. The served demo runs the server's engine.
     #[arg(long, value_enum, requires = "in_process")]
     pub engine: Option<EngineChoice>,
+    /// With `--in-process`: drive under this planner of `configs/planners.toml` instead of the
+    /// checkpoint's (e.g. `road20`, the paper's; `road20-calm-guarded`, the default before).
+    #[arg(long, requires = "in_process")]
+    pub planner: Option<String>,
     /// With `--in-process`: the figure (default `demo.png`): lanes grey, 1 s histories blue,
     /// the model's vehicles orange, the ego green, final footprints outlined, collisions
     /// circled red.
@@ -114,7 +118,8 @@ pub fn run(args: DemoArgs) -> Result<ExitCode> {
             args.checkpoint.display()
         )
     })?;
-    let run = &engines.cpu.meta.run;
+    let run =
+        &crate::commands::engine::with_planner(&engines.cpu.meta.run, args.planner.as_deref())?;
     let model = &run.model;
     let n = run.planner.obs_slots;
     let window_config = WindowConfig {

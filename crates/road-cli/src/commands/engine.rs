@@ -3,11 +3,12 @@
 
 use std::path::{Path, PathBuf};
 
-use anyhow::Result;
+use anyhow::{Context, Result};
 use road_gpu::engine::GpuDenoiser;
 use road_gpu::step_engine::GpuStepEngine;
 use road_gpu::{ContextOptions, GpuContext};
 use road_model::checkpoint::{self, LoadedModel};
+use road_model::config::RunConfig;
 use road_model::sample::{CpuEngine, FastCpuEngine, StepEngine};
 
 /// What the user asked for.
@@ -138,4 +139,28 @@ impl Engine<'_> {
             Engine::Gpu(e) => e.as_mut(),
         }
     }
+}
+
+/// `run` under the planner `name` of the binary's `configs/planners.toml` instead of its own
+/// (`None`: as it is), shown as `run [name]`: what `--planner` gives `road eval` and `road demo`,
+/// so that planners are compared on one checkpoint without copying it.
+pub fn with_planner(run: &RunConfig, name: Option<&str>) -> Result<RunConfig> {
+    let mut run = run.clone();
+    let Some(name) = name else {
+        return Ok(run);
+    };
+    let planners = road_serve::models::planners()?;
+    let planner = planners.get(name).with_context(|| {
+        format!(
+            "unknown planner `{name}`; configs/planners.toml has: {}",
+            planners.keys().cloned().collect::<Vec<_>>().join(", ")
+        )
+    })?;
+    let checkpoint = run.name.clone();
+    run.planner = planner.clone();
+    run.name = format!("{checkpoint} [{name}]");
+    run.validate().map_err(|reason| {
+        anyhow::anyhow!("planner `{name}` does not fit checkpoint {checkpoint}: {reason}")
+    })?;
+    Ok(run)
 }

@@ -28,6 +28,10 @@ pub struct EvalArgs {
     /// Checkpoints to evaluate; a constant-velocity baseline is always added.
     #[arg(long, num_args = 1.., default_values = ["models/road20", "models/ar", "models/djinn10"])]
     pub checkpoints: Vec<PathBuf>,
+    /// Run every checkpoint under this planner of `configs/planners.toml` instead of its own
+    /// (rows named `checkpoint [planner]`); it must fit the checkpoint's window.
+    #[arg(long)]
+    pub planner: Option<String>,
     /// Joint samples per scene (default: 6 for forecasting, 3 for reactivity).
     #[arg(long)]
     pub samples: Option<usize>,
@@ -274,7 +278,8 @@ fn forecasting(args: EvalArgs) -> Result<ExitCode> {
     };
     for dir in &args.checkpoints {
         let loaded = road_model::checkpoint::load(dir, &candle_core::Device::Cpu)?;
-        let run = &loaded.meta.run;
+        let run =
+            &crate::commands::engine::with_planner(&loaded.meta.run, args.planner.as_deref())?;
         let n = run.planner.obs_slots;
         let gpu_model = match &ctx {
             Some(ctx) => Some(road_gpu::engine::GpuDenoiser::from_checkpoint(ctx, dir)?),

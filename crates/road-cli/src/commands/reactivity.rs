@@ -288,7 +288,8 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
     for dir in &args.checkpoints {
         let engines = Engines::load(dir, choice)
             .with_context(|| format!("cannot load checkpoint {}", dir.display()))?;
-        let run = &engines.cpu.meta.run;
+        let run =
+            &crate::commands::engine::with_planner(&engines.cpu.meta.run, args.planner.as_deref())?;
         let n = run.planner.obs_slots;
         anyhow::ensure!(
             n <= observed,
