@@ -59,74 +59,80 @@ pub fn smooth_with_plan(
     half_width: usize,
     emitted: &mut [f32],
 ) {
-    let mut points: Vec<(f64, [f64; 2])> = Vec::with_capacity(2 * half_width + 1);
     for (a, state) in emitted.chunks_exact_mut(3).enumerate() {
-        points.clear();
-        points.push((0.0, [f64::from(state[0]), f64::from(state[1])]));
+        let mut fit = QuadraticFit::default();
+        fit.add(0.0, &state[..2]);
         let (past, past_valid) = (&history[a], &history_valid[a]);
         for k in 1..=half_width.min(past.len()) {
             let t = past.len() - k;
             if !past_valid[t] {
                 break;
             }
-            points.push((-(k as f64), [f64::from(past[t][0]), f64::from(past[t][1])]));
+            fit.add(-(k as f64), &past[t][..2]);
         }
         for k in 1..=half_width {
             let slot = first_planned_slot + k - 1;
             if slot >= slots || window_valid[a * slots + slot] <= 0.0 {
                 break;
             }
-            let d = &denoised[3 * (a * slots + slot)..];
-            points.push((k as f64, [f64::from(d[0]), f64::from(d[1])]));
+            fit.add(k as f64, &denoised[3 * (a * slots + slot)..][..2]);
         }
-        if points.len() < 4 {
+        if fit.points < 4 {
             continue;
         }
-        for (axis, value) in state[..2].iter_mut().enumerate() {
-            if let Some(fit) = quadratic_at_zero(&points, axis) {
-                *value = fit as f32;
-            }
+        if let Some(at_zero) = fit.at_zero() {
+            state[0] = at_zero[0] as f32;
+            state[1] = at_zero[1] as f32;
         }
     }
 }
 
-/// The value at t = 0 of the least-squares quadratic through `(t, y[axis])` (None when the
-/// normal equations are singular).
-fn quadratic_at_zero(points: &[(f64, [f64; 2])], axis: usize) -> Option<f64> {
-    // Normal equations M · (c0, c1, c2) = r with M[i][j] = Σ t^(i+j), r[i] = Σ t^i · y.
-    let mut powers = [0.0f64; 5];
-    let mut r = [0.0f64; 3];
-    for &(t, y) in points {
+/// The running sums of a least-squares quadratic's normal equations through points `(t, x, y)`,
+/// both axes at once: `M · c = r` with `M[i][j] = Σ t^(i+j)` and `r[i] = Σ t^i · y`.
+#[derive(Default)]
+struct QuadraticFit {
+    points: usize,
+    powers: [f64; 5],
+    r: [[f64; 3]; 2],
+}
+
+impl QuadraticFit {
+    fn add(&mut self, t: f64, xy: &[f32]) {
+        self.points += 1;
         let mut tp = 1.0;
-        for (k, p) in powers.iter_mut().enumerate() {
+        for (k, p) in self.powers.iter_mut().enumerate() {
             *p += tp;
             if k < 3 {
-                r[k] += tp * y[axis];
+                for (r, &y) in self.r.iter_mut().zip(xy) {
+                    r[k] += tp * f64::from(y);
+                }
             }
             tp *= t;
         }
     }
-    let m = |i: usize, j: usize| powers[i + j];
-    let det3 = |c: [[f64; 3]; 3]| {
-        c[0][0] * (c[1][1] * c[2][2] - c[1][2] * c[2][1])
-            - c[0][1] * (c[1][0] * c[2][2] - c[1][2] * c[2][0])
-            + c[0][2] * (c[1][0] * c[2][1] - c[1][1] * c[2][0])
-    };
-    let matrix = [
-        [m(0, 0), m(0, 1), m(0, 2)],
-        [m(1, 0), m(1, 1), m(1, 2)],
-        [m(2, 0), m(2, 1), m(2, 2)],
-    ];
-    let det = det3(matrix);
-    if det.abs() < 1e-9 {
-        return None;
+
+    /// The fitted (x, y) at t = 0: c0 by Cramer's rule (None when `M` is singular).
+    fn at_zero(&self) -> Option<[f64; 2]> {
+        let det3 = |c: [[f64; 3]; 3]| {
+            c[0][0] * (c[1][1] * c[2][2] - c[1][2] * c[2][1])
+                - c[0][1] * (c[1][0] * c[2][2] - c[1][2] * c[2][0])
+                + c[0][2] * (c[1][0] * c[2][1] - c[1][1] * c[2][0])
+        };
+        let p = &self.powers;
+        let matrix = [[p[0], p[1], p[2]], [p[1], p[2], p[3]], [p[2], p[3], p[4]]];
+        let det = det3(matrix);
+        if det.abs() < 1e-9 {
+            return None;
+        }
+        Some(self.r.map(|r| {
+            // The first column replaced by r.
+            let mut first = matrix;
+            for (row, &value) in first.iter_mut().zip(&r) {
+                row[0] = value;
+            }
+            det3(first) / det
+        }))
     }
-    // Cramer's rule for c0: the first column replaced by r.
-    let mut first = matrix;
-    for (row, &value) in first.iter_mut().zip(&r) {
-        row[0] = value;
-    }
-    Some(det3(first) / det)
 }
 
 #[cfg(test)]
@@ -158,6 +164,17 @@ mod tests {
         (history, valid, denoised, window_valid)
     }
 
+    /// [`smooth_with_plan`] of a [`plan_case`] (12 slots, planned from slot 2), h = 3.
+    fn smooth_case(
+        history: &[Vec<[f32; 3]>],
+        valid: &[Vec<bool>],
+        denoised: &[f32],
+        window_valid: &[f32],
+        emitted: &mut [f32],
+    ) {
+        smooth_with_plan(history, valid, denoised, window_valid, 12, 2, 3, emitted);
+    }
+
     #[test]
     fn plan_smoothing_keeps_constant_acceleration_and_turns_exactly() {
         let path = |t: f64| {
@@ -166,16 +183,7 @@ mod tests {
         };
         let (history, valid, denoised, window_valid) = plan_case(path, 6, 8);
         let mut emitted = [path(0.0)[0], path(0.0)[1], 0.4];
-        smooth_with_plan(
-            &history,
-            &valid,
-            &denoised,
-            &window_valid,
-            12,
-            2,
-            3,
-            &mut emitted,
-        );
+        smooth_case(&history, &valid, &denoised, &window_valid, &mut emitted);
         assert!(
             (emitted[0] - 1.0).abs() < 1e-5 && (emitted[1] + 0.5).abs() < 1e-5,
             "{emitted:?}"
@@ -189,16 +197,7 @@ mod tests {
         let (history, valid, denoised, window_valid) = plan_case(path, 6, 8);
         // 7 points, quadratic: the emitted one weighs 7/21 at the centre.
         let mut emitted = [0.0, 0.21, 0.0];
-        smooth_with_plan(
-            &history,
-            &valid,
-            &denoised,
-            &window_valid,
-            12,
-            2,
-            3,
-            &mut emitted,
-        );
+        smooth_case(&history, &valid, &denoised, &window_valid, &mut emitted);
         assert!(emitted[0].abs() < 1e-5, "{emitted:?}");
         assert!((emitted[1] - 0.07).abs() < 1e-5, "{emitted:?}");
     }
@@ -209,45 +208,18 @@ mod tests {
         // Two past states and one planned slot: 4 points, still a fit.
         let (history, valid, denoised, window_valid) = plan_case(path, 2, 1);
         let mut emitted = [0.0, 0.3, 0.0];
-        smooth_with_plan(
-            &history,
-            &valid,
-            &denoised,
-            &window_valid,
-            12,
-            2,
-            3,
-            &mut emitted,
-        );
+        smooth_case(&history, &valid, &denoised, &window_valid, &mut emitted);
         assert!(emitted[1] < 0.3 && emitted[1] > 0.0, "{emitted:?}");
         // One past state and one planned slot: left alone.
         let (history, valid, denoised, window_valid) = plan_case(path, 1, 1);
         let mut emitted = [0.0, 0.3, 0.0];
-        smooth_with_plan(
-            &history,
-            &valid,
-            &denoised,
-            &window_valid,
-            12,
-            2,
-            3,
-            &mut emitted,
-        );
+        smooth_case(&history, &valid, &denoised, &window_valid, &mut emitted);
         assert_eq!(emitted, [0.0, 0.3, 0.0]);
         // An invalid past state cuts the history there.
         let (history, mut valid, denoised, window_valid) = plan_case(path, 4, 1);
         valid[0][2] = false;
         let mut emitted = [0.0, 0.3, 0.0];
-        smooth_with_plan(
-            &history,
-            &valid,
-            &denoised,
-            &window_valid,
-            12,
-            2,
-            3,
-            &mut emitted,
-        );
+        smooth_case(&history, &valid, &denoised, &window_valid, &mut emitted);
         assert_eq!(emitted, [0.0, 0.3, 0.0]);
     }
 

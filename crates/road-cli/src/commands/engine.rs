@@ -157,6 +157,14 @@ pub fn with_planner(run: &RunConfig, name: Option<&str>) -> Result<RunConfig> {
         )
     })?;
     let checkpoint = run.name.clone();
+    // The same rule as `road serve`'s scene creation: the model was trained on n observed slots.
+    anyhow::ensure!(
+        planner.obs_slots == run.planner.obs_slots,
+        "planner `{name}` does not fit checkpoint {checkpoint}: it observes {} steps, the \
+         checkpoint {}",
+        planner.obs_slots,
+        run.planner.obs_slots
+    );
     run.planner = planner.clone();
     run.name = format!("{checkpoint} [{name}]");
     run.validate().map_err(|reason| {
