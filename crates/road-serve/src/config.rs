@@ -1,6 +1,7 @@
 //! The server's settings. The zenoh session's own config (json5 file and the zenoh examples'
 //! flags) is [`ZenohArgs`], shared with the clients.
 
+use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::time::Duration;
 
@@ -41,6 +42,9 @@ pub struct ServeConfig {
     pub default_checkpoint: String,
     /// Map files the server was started with, by the name a request uses (`map.file`).
     pub map_files: Vec<(String, PathBuf)>,
+    /// Where the live view (a Foxglove WebSocket server, [`crate::live`]) listens; `None`: no
+    /// live view. Port 0 takes any free port ([`crate::ServerHandle::foxglove_addr`]).
+    pub foxglove_listen: Option<SocketAddr>,
 }
 
 impl ServeConfig {
@@ -60,6 +64,7 @@ impl ServeConfig {
             models_dir,
             default_checkpoint: DEFAULT_CHECKPOINT.into(),
             map_files: Vec::new(),
+            foxglove_listen: None,
         }
     }
 

@@ -1,6 +1,6 @@
 //! `road-serve`: the networked NPC server. Ego stacks create scenes over Eclipse Zenoh, put
 //! their external agents' poses every tick and get every NPC's next state back; every scene is
-//! recorded to MCAP.
+//! recorded to MCAP and, with the live view on, shown in Foxglove while it runs.
 //!
 //! - [`config`]: the server's settings and the zenoh session's config (json5 file plus the
 //!   zenoh examples' command-line overrides);
@@ -11,6 +11,8 @@
 //! - [`pool`]: continuous batching: the scenes of one checkpoint and planner share an engine,
 //!   one batched Heun round at a time;
 //! - [`record`]: one MCAP file per scene (raw protocol messages and `foxglove.SceneUpdate`);
+//! - [`live`]: the live view, a Foxglove WebSocket server showing every live scene's map and
+//!   agent boxes (`road serve --foxglove ADDR`);
 //! - [`server`]: the zenoh front end and the core loop that batches the scenes whose ego has
 //!   arrived.
 //!
@@ -18,6 +20,7 @@
 //! `docs/protocol.md` documents them.
 
 pub mod config;
+pub mod live;
 pub mod models;
 pub mod pool;
 pub mod record;
@@ -47,6 +50,11 @@ pub enum Error {
     #[error("cannot read or write {path}")]
     Io {
         path: std::path::PathBuf,
+        source: std::io::Error,
+    },
+    #[error("cannot start the Foxglove live view on {addr}")]
+    LiveView {
+        addr: std::net::SocketAddr,
         source: std::io::Error,
     },
     #[error("recording {path}: {reason}")]

@@ -40,8 +40,8 @@ pub mod topics {
 const FRAME: &str = "map";
 
 /// A JSON Schema for the part of `foxglove.SceneUpdate` the recordings use (Foxglove knows the
-/// schema by its name; this is for other readers).
-const SCENE_UPDATE_SCHEMA: &str = include_str!("scene_update.schema.json");
+/// schema by its name; this is for other readers). The live view advertises it too.
+pub const SCENE_UPDATE_SCHEMA: &str = include_str!("scene_update.schema.json");
 
 /// The recorder of one scene.
 pub struct Recorder {
@@ -103,16 +103,24 @@ impl Recorder {
         at: SystemTime,
     ) -> Result<Self> {
         let path = free_path(dir, scene)?;
-        Self::start_at(&path, request, created, map, at)
+        let map_update = map.map(|m| map_update(m, unix_nanos(at)).to_string());
+        Self::start_at(
+            &path,
+            request,
+            created,
+            map_update.as_deref().map(str::as_bytes),
+            at,
+        )
     }
 
     /// Starts a recording at `path`, a file that must not exist yet (a recording is never
-    /// overwritten), with the creation request and reply and the map.
+    /// overwritten), with the creation request and reply and the map's `SceneUpdate` JSON
+    /// ([`map_update`]; built by the caller, which hands the same bytes to the live view).
     pub fn start_at(
         path: &Path,
         request: &[u8],
         created: &[u8],
-        map: Option<&LaneletMap>,
+        map_update: Option<&[u8]>,
         at: SystemTime,
     ) -> Result<Self> {
         let path = path.to_owned();
@@ -172,9 +180,8 @@ impl Recorder {
         };
         recorder.write(topics::CREATE, request, at)?;
         recorder.write(topics::CREATED, created, at)?;
-        if let Some(map) = map {
-            let update = map_update(map, unix_nanos(at));
-            recorder.write(topics::MAP, update.to_string().as_bytes(), at)?;
+        if let Some(update) = map_update {
+            recorder.write(topics::MAP, update, at)?;
         }
         // The first flush right away: the file is readable from the start.
         recorder.flush()?;
@@ -309,6 +316,15 @@ pub fn map_update(map: &LaneletMap, nanos: u64) -> Value {
         })
         .collect();
     json!({ "deletions": [], "entities": [entity("lanes", nanos, vec![], lines)] })
+}
+
+/// Removes every entity of the topic: what a viewer gets when a scene closes, so that its
+/// boxes do not stay on screen.
+pub fn clear_update(nanos: u64) -> Value {
+    json!({
+        "deletions": [{ "timestamp": stamp(nanos), "type": 1, "id": "" }],
+        "entities": [],
+    })
 }
 
 /// Every agent's box at one step, one entity (replacing the previous step's), with each

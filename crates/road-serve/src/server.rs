@@ -8,8 +8,14 @@
 //! soon as it is computed. A scene whose ego has not come is simply not in the round: it
 //! never holds up another scene. Bad input is answered with an [`ErrorReply`] (the query's
 //! error reply, or a message on the scene's error key) and changes nothing.
+//!
+//! Each scene's `foxglove.SceneUpdate` messages (the map at creation, the agents' boxes at
+//! creation and after every tick) are built once and go to the recording and, when
+//! [`ServeConfig::foxglove_listen`] is set, to the live view ([`crate::live`]), whose queue
+//! the core only ever pushes onto.
 
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
+use std::net::SocketAddr;
 use std::sync::Arc;
 use std::sync::mpsc::{self, Receiver, RecvTimeoutError, Sender};
 use std::thread::JoinHandle;
@@ -27,9 +33,12 @@ use zenoh::query::Query;
 use zenoh::sample::SampleKind;
 
 use crate::config::ServeConfig;
+use crate::live::{ChannelId, ChannelSpec, LiveView};
 use crate::models::{Checkpoints, find_models_dir, planners};
 use crate::pool::{Pool, PoolKey};
-use crate::record::{Recorder, free_path, topics};
+use crate::record::{
+    Recorder, agents_update, clear_update, free_path, map_update, topics, unix_nanos,
+};
 use crate::scene::{LiveScene, SetupContext, setup};
 use crate::{Error, Result};
 
@@ -66,6 +75,7 @@ pub struct Server {
 pub struct ServerHandle {
     session: zenoh::Session,
     listen: Vec<String>,
+    foxglove: Option<SocketAddr>,
     events: Sender<Event>,
     core: Option<JoinHandle<Result<()>>>,
     _token: LivelinessToken,
@@ -112,6 +122,9 @@ impl Server {
             map_files.insert(name.clone(), Arc::new(map));
         }
         let planners = planners()?;
+        // Bound before the session opens: a taken port fails the start, not a later scene.
+        let live_view = config.foxglove_listen.map(LiveView::start).transpose()?;
+        let foxglove = live_view.as_ref().map(LiveView::local_addr);
         let keys = Keys::new(&config.prefix);
         let listen = self
             .zenoh
@@ -213,6 +226,7 @@ impl Server {
             next_id: 1,
             stats: Stats::default(),
             last_flush: Instant::now(),
+            live_view,
         };
         let handle = std::thread::Builder::new()
             .name("road-serve-core".into())
@@ -221,6 +235,7 @@ impl Server {
         Ok(ServerHandle {
             session,
             listen,
+            foxglove,
             events: tx,
             core: Some(handle),
             _token: token,
@@ -233,6 +248,11 @@ impl ServerHandle {
     /// zenoh's API for the bound addresses is unstable and leaves loopback out).
     pub fn listen_endpoints(&self) -> Vec<String> {
         self.listen.clone()
+    }
+
+    /// Where the live view listens (the bound address: a port 0 is read back), when it runs.
+    pub fn foxglove_addr(&self) -> Option<SocketAddr> {
+        self.foxglove
     }
 
     pub fn session(&self) -> &zenoh::Session {
@@ -327,6 +347,25 @@ pub fn percentiles(sample: &[f64]) -> Percentiles {
 struct SceneEntry {
     live: LiveScene,
     recorder: Option<Recorder>,
+    /// The scene's channels in the live view, when there is one.
+    channels: Option<LiveChannels>,
+}
+
+/// A scene's channels in the live view: the topics of its recording under `/scene/<id>`.
+#[derive(Debug, Clone, Copy)]
+struct LiveChannels {
+    map: ChannelId,
+    agents: ChannelId,
+}
+
+impl LiveChannels {
+    fn advertise(view: &LiveView, scene: u64) -> Self {
+        let topic = |t: &str| ChannelSpec::scene_update(format!("/scene/{scene}{t}"));
+        Self {
+            map: view.advertise(topic(topics::MAP)),
+            agents: view.advertise(topic(topics::AGENTS)),
+        }
+    }
 }
 
 /// The core thread's state: every scene, the checkpoints, the statistics.
@@ -346,6 +385,8 @@ struct Core {
     next_id: u64,
     stats: Stats,
     last_flush: Instant,
+    /// The Foxglove live view, when `config.foxglove_listen` is set.
+    live_view: Option<LiveView>,
 }
 
 fn payload_of(query: &Query) -> Vec<u8> {
@@ -570,12 +611,22 @@ impl Core {
             recording: recording.as_ref().map(|p| p.display().to_string()),
         };
         let created_json = serde_json::to_vec(&created).expect("replies serialise");
+        // The scene's SceneUpdates, built once for the recording and the live view.
+        let updates_wanted = recording.is_some() || self.live_view.is_some();
+        let nanos = unix_nanos(at);
+        let map_json = map
+            .as_deref()
+            .filter(|_| updates_wanted)
+            .map(|m| map_update(m, nanos).to_string());
+        let start_json = updates_wanted
+            .then(|| agents_update(&live.agents, live.poses(), &[], false, nanos).to_string());
         let recorder = match &recording {
             Some(path) => {
-                match Recorder::start_at(path, &payload, &created_json, map.as_deref(), at) {
+                let map_bytes = map_json.as_deref().map(str::as_bytes);
+                match Recorder::start_at(path, &payload, &created_json, map_bytes, at) {
                     Ok(mut r) => {
-                        let start: Vec<road_sim::Pose> = live.poses().to_vec();
-                        if let Err(e) = r.agents(&live.agents, &start, &[], false, at) {
+                        let start = start_json.as_deref().unwrap_or_default();
+                        if let Err(e) = r.write(topics::AGENTS, start.as_bytes(), at) {
                             tracing::warn!(scene = id, "recording: {e}");
                         }
                         Some(r)
@@ -596,10 +647,28 @@ impl Core {
             planner = %live.planner_name,
             "scene created"
         );
+        let channels = self.live_view.as_ref().map(|view| {
+            let channels = LiveChannels::advertise(view, id);
+            if let Some(json) = map_json {
+                // Sent once: never dropped on the way to a viewer.
+                view.publish_reliable(channels.map, nanos, json.into_bytes());
+            }
+            if let Some(json) = start_json {
+                view.publish(channels.agents, nanos, json.into_bytes());
+            }
+            channels
+        });
         let mut live = live;
         // The late-ego clock starts when the client has the reply.
         live.waiting_since = Instant::now();
-        self.scenes.insert(id, SceneEntry { live, recorder });
+        self.scenes.insert(
+            id,
+            SceneEntry {
+                live,
+                recorder,
+                channels,
+            },
+        );
         reply_ok(query, &created);
     }
 
@@ -694,6 +763,15 @@ impl Core {
                 None
             }
         });
+        if let (Some(view), Some(channels)) = (&self.live_view, entry.channels) {
+            // Viewers clear the scene's entities before its channels go.
+            let nanos = unix_nanos(SystemTime::now());
+            let clear = clear_update(nanos).to_string();
+            view.publish_reliable(channels.agents, nanos, clear.clone().into_bytes());
+            view.publish_reliable(channels.map, nanos, clear.into_bytes());
+            view.unadvertise(channels.agents);
+            view.unadvertise(channels.map);
+        }
         tracing::info!(scene = id, ticks = entry.live.tick, "scene closed: {why}");
         Some(SceneClosed {
             scene: id,
@@ -900,15 +978,24 @@ impl Core {
             let Some(entry) = self.scenes.get_mut(&id) else {
                 continue;
             };
+            if entry.recorder.is_none() && entry.channels.is_none() {
+                continue;
+            }
+            let npc = &out.npc;
+            let late = !npc.late_external.is_empty();
+            let nanos = unix_nanos(at);
+            let boxes =
+                agents_update(&entry.live.agents, &out.poses, &npc.plans, late, nanos).to_string();
             if let Some(rec) = entry.recorder.as_mut() {
-                let npc = &out.npc;
-                let late = !npc.late_external.is_empty();
-                let written = rec.write(topics::NPC, &json, at).and_then(|()| {
-                    rec.agents(&entry.live.agents, &out.poses, &npc.plans, late, at)
-                });
+                let written = rec
+                    .write(topics::NPC, &json, at)
+                    .and_then(|()| rec.write(topics::AGENTS, boxes.as_bytes(), at));
                 if let Err(e) = written {
                     tracing::warn!(scene = id, "recording: {e}");
                 }
+            }
+            if let (Some(view), Some(channels)) = (&self.live_view, entry.channels) {
+                view.publish(channels.agents, nanos, boxes.into_bytes());
             }
         }
         for (id, message) in failed {

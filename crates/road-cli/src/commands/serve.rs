@@ -1,9 +1,11 @@
 //! `road serve`: the networked NPC server (`road-serve`) over Eclipse Zenoh. With no
 //! arguments it runs the default checkpoint `road20-long2` from `models/` (in the working directory,
 //! next to the binary, or `--models` / `ROAD_MODELS`), peer mode with zenoh's defaults, and
-//! records every scene under `recordings/`. SIGINT and SIGTERM close every scene (and finish
-//! its recording) before the process ends.
+//! records every scene under `recordings/`. With `--foxglove ADDR` Foxglove can watch every live
+//! scene at `ws://ADDR` (the live view, `docs/protocol.md`). SIGINT and SIGTERM close every
+//! scene (and finish its recording) before the process ends.
 
+use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Duration;
@@ -48,6 +50,10 @@ pub struct ServeArgs {
     /// A Lanelet2 map requests may name (`map.file`): `NAME=FILE.osm`; repeatable.
     #[arg(long = "map", value_name = "NAME=FILE")]
     pub maps: Vec<String>,
+    /// Serve a live view to Foxglove on this address (e.g. `127.0.0.1:8765`; Foxglove opens
+    /// `ws://ADDR`): every live scene's map and agent boxes. Off by default.
+    #[arg(long, value_name = "ADDR")]
+    pub foxglove: Option<SocketAddr>,
 }
 
 pub fn run(args: ServeArgs) -> Result<ExitCode> {
@@ -66,6 +72,7 @@ pub fn run(args: ServeArgs) -> Result<ExitCode> {
     );
     config.idle_timeout = Duration::from_secs_f64(args.idle_timeout_s);
     config.max_payload_bytes = args.max_payload_bytes;
+    config.foxglove_listen = args.foxglove;
     for item in &args.maps {
         let (name, path) = item
             .split_once('=')
@@ -86,6 +93,9 @@ pub fn run(args: ServeArgs) -> Result<ExitCode> {
         "road serve: keys under {prefix}/, zenoh id {}",
         server.session().zid()
     );
+    if let Some(addr) = server.foxglove_addr() {
+        out!("road serve: Foxglove live view on ws://{addr}");
+    }
     while server.is_running() {
         if let Ok(signal) = stop.recv_timeout(Duration::from_millis(200)) {
             tracing::info!("{signal}: closing every scene and its recording");
