@@ -9,6 +9,7 @@
 
 use std::path::Path;
 
+use glam::{DVec2, Vec2};
 use serde::{Deserialize, Serialize};
 
 use crate::geometry::{Point, dist, resample};
@@ -113,18 +114,14 @@ pub struct SceneFrame {
 
 impl SceneFrame {
     pub fn to_norm(&self, p_m: Point) -> [f32; 2] {
-        [
-            ((p_m[0] - self.origin_m[0]) / self.scale_m) as f32,
-            ((p_m[1] - self.origin_m[1]) / self.scale_m) as f32,
-        ]
+        ((DVec2::from(p_m) - DVec2::from(self.origin_m)) / self.scale_m)
+            .as_vec2()
+            .into()
     }
 
     /// The inverse transform back to metres.
     pub fn to_metres(&self, p: [f32; 2]) -> Point {
-        [
-            f64::from(p[0]) * self.scale_m + self.origin_m[0],
-            f64::from(p[1]) * self.scale_m + self.origin_m[1],
-        ]
+        (Vec2::from(p).as_dvec2() * self.scale_m + DVec2::from(self.origin_m)).into()
     }
 }
 
@@ -403,7 +400,7 @@ fn cut_windows(
 ) {
     let steps = config.window_steps as u32;
     let mut start = recording.first_frame;
-    let mut present: Vec<(f64, u32, Point)> = Vec::new(); // (distance², track, position)
+    let mut present: Vec<(f64, u32, Point)> = Vec::new(); // (distance, track, position)
     while start + steps - 1 <= recording.last_frame {
         let reference = start + config.reference_step as u32;
         present.clear();
@@ -417,10 +414,7 @@ fn cut_windows(
             start += config.stride_steps as u32;
             continue;
         }
-        let n = present.len() as f64;
-        let mean = present.iter().fold([0.0, 0.0], |acc, p| {
-            [acc[0] + p.2[0] / n, acc[1] + p.2[1] / n]
-        });
+        let mean = mean_position(&present);
         for p in &mut present {
             p.0 = dist(p.2, mean);
         }
@@ -430,10 +424,7 @@ fn cut_windows(
             present.truncate(config.max_agents);
         }
         // The centre is the mean of the agents kept.
-        let n = present.len() as f64;
-        let origin = present.iter().fold([0.0, 0.0], |acc, p| {
-            [acc[0] + p.2[0] / n, acc[1] + p.2[1] / n]
-        });
+        let origin = mean_position(&present);
         let mut near: Vec<(f64, u32)> = map
             .lanelets
             .iter()
@@ -462,6 +453,16 @@ fn cut_windows(
         });
         start += config.stride_steps as u32;
     }
+}
+
+/// The mean of the positions of `present` (`(distance, track, position)`), summed as
+/// `Σ p / n`: the order the window origins stored in the caches were computed in.
+fn mean_position(present: &[(f64, u32, Point)]) -> Point {
+    let n = present.len() as f64;
+    present
+        .iter()
+        .fold(DVec2::ZERO, |sum, &(_, _, p)| sum + DVec2::from(p) / n)
+        .into()
 }
 
 #[cfg(test)]

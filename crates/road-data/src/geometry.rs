@@ -1,12 +1,23 @@
 //! Small 2-D geometry: polyline resampling, point-to-segment distance, point in polygon, and a
 //! uniform grid over segments for nearest-distance queries.
+//!
+//! Points are stored as `[f64; 2]` (the cache format); the math converts to `glam::DVec2` at
+//! each function's boundary.
 
+use glam::DVec2;
 use serde::{Deserialize, Serialize};
 
 pub type Point = [f64; 2];
 
 pub fn dist(a: Point, b: Point) -> f64 {
-    (a[0] - b[0]).hypot(a[1] - b[1])
+    hypot_length(DVec2::from(a) - DVec2::from(b))
+}
+
+/// The length of `v` by `hypot`, the metric of [`dist`]. Not `DVec2::length` (`√(x² + y²)`),
+/// which can differ in the last bit: the lanelet centre lines, window origins and polyline
+/// choices stored in the dataset caches depend on it, and a rebuild must reproduce them.
+pub fn hypot_length(v: DVec2) -> f64 {
+    v.x.hypot(v.y)
 }
 
 /// Length of a polyline in its own units.
@@ -40,22 +51,25 @@ pub fn resample(points: &[Point], count: usize) -> Vec<Point> {
         } else {
             0.0
         };
-        let (a, b) = (points[seg], points[seg + 1]);
-        out.push([a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1])]);
+        // `lerp_monotonic`, a + (b − a)·t, not `lerp`, a·(1 − t) + b·t: the form the cached
+        // centre lines were resampled with, bit for bit.
+        let (a, b) = (DVec2::from(points[seg]), DVec2::from(points[seg + 1]));
+        out.push(a.lerp_monotonic(b, t).into());
     }
     out
 }
 
 /// Distance from `p` to segment `a–b`.
 pub fn point_segment_distance(p: Point, a: Point, b: Point) -> f64 {
-    let (dx, dy) = (b[0] - a[0], b[1] - a[1]);
-    let len2 = dx * dx + dy * dy;
-    let t = if len2 > 0.0 {
-        (((p[0] - a[0]) * dx + (p[1] - a[1]) * dy) / len2).clamp(0.0, 1.0)
+    let (p, a) = (DVec2::from(p), DVec2::from(a));
+    let along = DVec2::from(b) - a;
+    let length_sq = along.length_squared();
+    let t = if length_sq > 0.0 {
+        ((p - a).dot(along) / length_sq).clamp(0.0, 1.0)
     } else {
         0.0
     };
-    dist(p, [a[0] + t * dx, a[1] + t * dy])
+    hypot_length(p - (a + along * t))
 }
 
 /// Even-odd rule; the polygon is implicitly closed.
@@ -83,15 +97,16 @@ pub struct Aabb {
 
 impl Aabb {
     pub fn of(points: &[Point]) -> Self {
-        let mut b = Self {
-            min: [f64::INFINITY; 2],
-            max: [f64::NEG_INFINITY; 2],
-        };
-        for p in points {
-            b.min = [b.min[0].min(p[0]), b.min[1].min(p[1])];
-            b.max = [b.max[0].max(p[0]), b.max[1].max(p[1])];
+        let (min, max) = points
+            .iter()
+            .map(|&p| DVec2::from(p))
+            .fold((DVec2::INFINITY, DVec2::NEG_INFINITY), |(min, max), p| {
+                (min.min(p), max.max(p))
+            });
+        Self {
+            min: min.into(),
+            max: max.into(),
         }
-        b
     }
 
     pub fn contains(&self, p: Point) -> bool {
@@ -100,9 +115,11 @@ impl Aabb {
 
     /// Distance from `p` to the box (0 inside).
     pub fn distance(&self, p: Point) -> f64 {
-        let dx = (self.min[0] - p[0]).max(p[0] - self.max[0]).max(0.0);
-        let dy = (self.min[1] - p[1]).max(p[1] - self.max[1]).max(0.0);
-        dx.hypot(dy)
+        let p = DVec2::from(p);
+        let gap = (DVec2::from(self.min) - p)
+            .max(p - DVec2::from(self.max))
+            .max(DVec2::ZERO);
+        hypot_length(gap)
     }
 }
 
@@ -110,7 +127,7 @@ impl Aabb {
 #[derive(Debug, Clone)]
 pub struct SegmentGrid {
     cell_m: f64,
-    origin: Point,
+    origin: DVec2,
     cols: usize,
     rows: usize,
     cells: Vec<Vec<u32>>, // [rows * cols] → segment indices
@@ -128,11 +145,12 @@ impl SegmentGrid {
         } else {
             Aabb::of(&pts)
         };
-        let cols = ((bounds.max[0] - bounds.min[0]) / cell_m).floor() as usize + 1;
-        let rows = ((bounds.max[1] - bounds.min[1]) / cell_m).floor() as usize + 1;
+        let (min, max) = (DVec2::from(bounds.min), DVec2::from(bounds.max));
+        let spanned = ((max - min) / cell_m).floor();
+        let (cols, rows) = (spanned.x as usize + 1, spanned.y as usize + 1);
         let mut grid = Self {
             cell_m,
-            origin: bounds.min,
+            origin: min,
             cols,
             rows,
             cells: vec![Vec::new(); cols * rows],
@@ -152,13 +170,11 @@ impl SegmentGrid {
     }
 
     fn cell_of(&self, p: Point) -> (usize, usize) {
-        let c = ((p[0] - self.origin[0]) / self.cell_m)
+        let last = DVec2::new((self.cols - 1) as f64, (self.rows - 1) as f64);
+        let cell = ((DVec2::from(p) - self.origin) / self.cell_m)
             .floor()
-            .clamp(0.0, (self.cols - 1) as f64) as usize;
-        let r = ((p[1] - self.origin[1]) / self.cell_m)
-            .floor()
-            .clamp(0.0, (self.rows - 1) as f64) as usize;
-        (c, r)
+            .clamp(DVec2::ZERO, last);
+        (cell.x as usize, cell.y as usize)
     }
 
     /// Distance from `p` to the nearest segment; `None` when the grid holds none.
@@ -169,11 +185,9 @@ impl SegmentGrid {
         let (pc, pr) = self.cell_of(p);
         // Distance from p to the grid's own box: rings closer than that hold nothing.
         let outside = Aabb {
-            min: self.origin,
-            max: [
-                self.origin[0] + self.cols as f64 * self.cell_m,
-                self.origin[1] + self.rows as f64 * self.cell_m,
-            ],
+            min: self.origin.into(),
+            max: (self.origin + DVec2::new(self.cols as f64, self.rows as f64) * self.cell_m)
+                .into(),
         }
         .distance(p);
         let mut best = f64::INFINITY;

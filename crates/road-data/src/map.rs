@@ -4,6 +4,7 @@
 use std::collections::HashMap;
 use std::path::Path;
 
+use glam::DVec2;
 use serde::{Deserialize, Serialize};
 
 use crate::geometry::{
@@ -245,7 +246,7 @@ impl LaneletMap {
             let centre = l
                 .iter()
                 .zip(&rr)
-                .map(|(a, b)| [(a[0] + b[0]) / 2.0, (a[1] + b[1]) / 2.0])
+                .map(|(&a, &b)| DVec2::from(a).midpoint(DVec2::from(b)).into())
                 .collect();
             let bounds = Aabb::of(&[left.as_slice(), right.as_slice()].concat());
             lanelets.push(Lanelet {

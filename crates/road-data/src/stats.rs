@@ -3,6 +3,7 @@
 
 use std::collections::BTreeMap;
 
+use glam::DVec2;
 use serde::Serialize;
 
 use crate::dataset::Dataset;
@@ -64,9 +65,9 @@ pub fn split_stats(ds: &Dataset) -> SplitStats {
             let track = &recording.tracks[t as usize];
             for s in 0..ds.config.window_steps as u32 {
                 if let Some([x, y, _]) = track.state_at(w.start_frame + s) {
-                    let (dx, dy) = (f64::from(x) - w.origin_m[0], f64::from(y) - w.origin_m[1]);
-                    sum_sq += dx * dx + dy * dy;
-                    n += 2;
+                    let offset = DVec2::new(f64::from(x), f64::from(y)) - DVec2::from(w.origin_m);
+                    sum_sq += offset.length_squared();
+                    n += 2; // two axes
                 }
             }
         }

@@ -731,10 +731,7 @@ pub fn pick_adversary(w: &SceneWindow, reference: usize) -> Option<usize> {
     for a in 0..w.agents {
         let path: Option<Vec<Pose>> = (reference..w.steps).map(|t| pose_of(w, a, t)).collect();
         let Some(path) = path else { continue };
-        let length: f64 = path
-            .windows(2)
-            .map(|p| (p[1].x_m - p[0].x_m).hypot(p[1].y_m - p[0].y_m))
-            .sum();
+        let length: f64 = path.windows(2).map(|p| p[0].distance_m(p[1])).sum();
         if length > 1.0 && best.is_none_or(|(_, l)| length > l) {
             best = Some((a, length));
         }

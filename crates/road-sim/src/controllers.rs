@@ -5,13 +5,9 @@ use crate::Pose;
 
 /// Constant velocity from the last two observed poses (10 Hz), for `steps` steps.
 pub fn constant_velocity(previous: Pose, last: Pose, steps: usize) -> Vec<Pose> {
-    let (vx, vy) = (last.x_m - previous.x_m, last.y_m - previous.y_m);
+    let step_m = last.position_m() - previous.position_m();
     (1..=steps)
-        .map(|k| Pose {
-            x_m: last.x_m + vx * k as f64,
-            y_m: last.y_m + vy * k as f64,
-            heading_rad: last.heading_rad,
-        })
+        .map(|k| Pose::at(last.position_m() + step_m * k as f64, last.heading_rad))
         .collect()
 }
 
@@ -23,8 +19,7 @@ pub fn slowed_replay(logged: &[Pose], steps: usize) -> Vec<Pose> {
     assert!(!logged.is_empty(), "a logged path needs at least its start");
     let mut arc = vec![0.0f64; logged.len()];
     for i in 1..logged.len() {
-        arc[i] = arc[i - 1]
-            + (logged[i].x_m - logged[i - 1].x_m).hypot(logged[i].y_m - logged[i - 1].y_m);
+        arc[i] = arc[i - 1] + logged[i - 1].distance_m(logged[i]);
     }
     let total = *arc.last().unwrap_or(&0.0);
     if logged.len() == 1 || total == 0.0 {
@@ -44,11 +39,11 @@ pub fn slowed_replay(logged: &[Pose], steps: usize) -> Vec<Pose> {
             } else {
                 0.0
             };
-            Pose {
-                x_m: a.x_m + t * (b.x_m - a.x_m),
-                y_m: a.y_m + t * (b.y_m - a.y_m),
-                heading_rad: b.heading_rad,
-            }
+            // a + (b − a)·t, the form used before glam (`lerp` rounds differently).
+            Pose::at(
+                a.position_m().lerp_monotonic(b.position_m(), t),
+                b.heading_rad,
+            )
         })
         .collect()
 }

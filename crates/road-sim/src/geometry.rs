@@ -21,7 +21,7 @@ impl OrientedBox {
 
     /// The four corners, counter-clockwise.
     pub fn corners(&self) -> [[f64; 2]; 4] {
-        let centre = DVec2::new(self.pose.x_m, self.pose.y_m);
+        let centre = self.pose.position_m();
         let (forward, left) = self.axes();
         let (hl, hw) = (self.length_m / 2.0, self.width_m / 2.0);
         [(hl, hw), (-hl, hw), (-hl, -hw), (hl, -hw)]
@@ -84,11 +84,14 @@ mod tests {
             prop_assert_eq!(a.overlaps(&b), b.overlaps(&a));
             // Moving and turning both boxes together changes nothing (exact touching, where
             // rounding could decide, has probability zero here).
-            let (c, s) = (turn.cos(), turn.sin());
-            let moved = |o: &OrientedBox| OrientedBox { pose: Pose { x_m: o.pose.x_m * c - o.pose.y_m * s + shift.0, y_m: o.pose.x_m * s + o.pose.y_m * c + shift.1, heading_rad: o.pose.heading_rad + turn }, ..*o };
+            let (rotation, shift) = (DVec2::from_angle(turn), DVec2::from(shift));
+            let moved = |o: &OrientedBox| {
+                let position = rotation.rotate(o.pose.position_m()) + shift;
+                OrientedBox { pose: Pose::at(position, o.pose.heading_rad + turn), ..*o }
+            };
             prop_assert_eq!(a.overlaps(&b), moved(&a).overlaps(&moved(&b)));
             // Centres closer than the narrow side always overlap; farther than the diagonal never.
-            let d = (x * x + y * y).sqrt();
+            let d = DVec2::new(x, y).length();
             if d < 2.0 { prop_assert!(a.overlaps(&b)); }
             if d > 2.0 * (4.0f64.hypot(2.0)) / 2.0 + 0.01 { prop_assert!(!a.overlaps(&b)); }
         }

@@ -5,6 +5,8 @@
 //! bins; weaving (a path that snakes from side to side of its lane) in the high |yaw rate| and
 //! |yaw acceleration| bins.
 
+use glam::DVec2;
+use road_data::geometry::hypot_length;
 use serde::Serialize;
 
 /// The recordings' and the simulation's step.
@@ -112,9 +114,14 @@ impl Kinematics {
     /// One path of positions at `STEP_SECS` apart (metres): speeds from the second position
     /// on, accelerations from the third, jerks from the fourth.
     pub fn add_path(&mut self, xy_m: &[[f64; 2]]) {
-        let speeds: Vec<f64> = xy_m
+        let steps_m: Vec<DVec2> = xy_m
             .windows(2)
-            .map(|p| (p[1][0] - p[0][0]).hypot(p[1][1] - p[0][1]) / STEP_SECS)
+            .map(|p| DVec2::from(p[1]) - DVec2::from(p[0]))
+            .collect();
+        // `hypot`, as before glam: the histograms' bin edges must see the same speeds.
+        let speeds: Vec<f64> = steps_m
+            .iter()
+            .map(|&step| hypot_length(step) / STEP_SECS)
             .collect();
         let accelerations: Vec<f64> = speeds
             .windows(2)
@@ -130,12 +137,10 @@ impl Kinematics {
             self.jerk_mps3.add((j[1] - j[0]) / STEP_SECS);
         }
         // Course of each step, where the agent moves fast enough for it to mean something.
-        let courses: Vec<Option<f64>> = xy_m
-            .windows(2)
-            .map(|p| {
-                let (dx, dy) = (p[1][0] - p[0][0], p[1][1] - p[0][1]);
-                (dx.hypot(dy) / STEP_SECS >= YAW_MIN_SPEED_MPS).then(|| dy.atan2(dx))
-            })
+        let courses: Vec<Option<f64>> = steps_m
+            .iter()
+            .zip(&speeds)
+            .map(|(step, &speed)| (speed >= YAW_MIN_SPEED_MPS).then(|| step.to_angle()))
             .collect();
         let yaw_rates: Vec<Option<f64>> = courses
             .windows(2)

@@ -47,3 +47,25 @@ pub struct Pose {
     pub y_m: f64,
     pub heading_rad: f64,
 }
+
+impl Pose {
+    /// The pose at `position_m` with heading `heading_rad`.
+    pub fn at(position_m: glam::DVec2, heading_rad: f64) -> Self {
+        Self {
+            x_m: position_m.x,
+            y_m: position_m.y,
+            heading_rad,
+        }
+    }
+
+    /// The position (metres), for vector math.
+    pub fn position_m(self) -> glam::DVec2 {
+        glam::DVec2::new(self.x_m, self.y_m)
+    }
+
+    /// Distance between the two positions (metres), by `hypot` as before glam: paths and
+    /// speeds measured with it (the adversarial agent, kinematic realism) keep their bits.
+    pub fn distance_m(self, other: Pose) -> f64 {
+        road_data::geometry::hypot_length(other.position_m() - self.position_m())
+    }
+}

@@ -1,5 +1,6 @@
 //! The paper's forecasting metrics over joint samples (math doc, "Evaluation").
 
+use road_data::geometry::dist;
 use serde::Serialize;
 
 /// Scene-level displacement figures of one scene (metres).
@@ -26,7 +27,6 @@ pub fn scene_metrics(
     let agents: Vec<usize> = (0..truth.len())
         .filter(|&a| truth[a].last().is_some_and(Option::is_some))
         .collect();
-    let dist = |p: [f64; 2], q: [f64; 2]| (p[0] - q[0]).hypot(p[1] - q[1]);
     let mut min_ade = f64::INFINITY;
     let mut min_fde = f64::INFINITY;
     let mut hit = vec![false; truth.len()];

@@ -6,7 +6,8 @@
 
 use std::f64::consts::FRAC_PI_2;
 
-use road_data::geometry::{Aabb, Point, dist, resample};
+use glam::DVec2;
+use road_data::geometry::{Aabb, Point, dist, hypot_length, resample};
 use road_data::map::{Lanelet, MapSkips};
 use road_data::{AgentType, LaneletMap, SceneFrame, SceneWindow, WindowConfig};
 
@@ -63,18 +64,18 @@ impl Route {
             .arc_m
             .partition_point(|&a| a < s)
             .clamp(1, self.points.len() - 1);
-        let (a, b) = (self.points[seg - 1], self.points[seg]);
+        let (a, b) = (
+            DVec2::from(self.points[seg - 1]),
+            DVec2::from(self.points[seg]),
+        );
         let len = self.arc_m[seg] - self.arc_m[seg - 1];
         let t = if len > 0.0 {
             (s - self.arc_m[seg - 1]) / len
         } else {
             0.0
         };
-        Pose {
-            x_m: a[0] + t * (b[0] - a[0]),
-            y_m: a[1] + t * (b[1] - a[1]),
-            heading_rad: (b[1] - a[1]).atan2(b[0] - a[0]),
-        }
+        // a + (b − a)·t, the form used before glam (`lerp` rounds differently).
+        Pose::at(a.lerp_monotonic(b, t), (b - a).to_angle())
     }
 }
 
@@ -126,10 +127,10 @@ fn lanelet(id: i64, subtype: &str, centre: Vec<Point>, width_m: f64) -> Lanelet 
         let (a, b) = (centre[i.saturating_sub(1)], centre[(i + 1).min(n - 1)]);
         let len = dist(a, b).max(1e-9);
         // Left normal of the driving direction.
-        let normal = [-(b[1] - a[1]) / len, (b[0] - a[0]) / len];
-        let h = 0.5 * width_m;
-        left.push([centre[i][0] + h * normal[0], centre[i][1] + h * normal[1]]);
-        right.push([centre[i][0] - h * normal[0], centre[i][1] - h * normal[1]]);
+        let normal = ((DVec2::from(b) - DVec2::from(a)) / len).perp();
+        let half_width = normal * (0.5 * width_m);
+        left.push((DVec2::from(centre[i]) + half_width).into());
+        right.push((DVec2::from(centre[i]) - half_width).into());
     }
     let bounds = Aabb::of(&left.iter().chain(&right).copied().collect::<Vec<_>>());
     Lanelet {
@@ -146,38 +147,39 @@ fn lanelet(id: i64, subtype: &str, centre: Vec<Point>, width_m: f64) -> Lanelet 
     }
 }
 
-fn polar(r: f64, angle: f64) -> Point {
-    [r * angle.cos(), r * angle.sin()]
+/// The unit vector at `angle` (counter-clockwise from +x) and the one to its left.
+fn axes(angle: f64) -> (DVec2, DVec2) {
+    let axis = DVec2::from_angle(angle);
+    (axis, axis.perp())
+}
+
+fn polar(r: f64, angle: f64) -> DVec2 {
+    DVec2::from_angle(angle) * r
 }
 
 fn arc(r: f64, from: f64, to: f64) -> Vec<Point> {
     let steps = (((to - from) * r).abs().ceil() as usize).max(2);
     (0..=steps)
-        .map(|i| polar(r, from + (to - from) * i as f64 / steps as f64))
+        .map(|i| polar(r, from + (to - from) * i as f64 / steps as f64).into())
         .collect()
 }
 
-fn bezier(p: [Point; 4], count: usize) -> Vec<Point> {
+/// The cubic Bézier curve of control points `p` at `count + 1` evenly spaced parameters.
+fn bezier(p: [DVec2; 4], count: usize) -> Vec<Point> {
     (0..=count)
         .map(|i| {
             let t = i as f64 / count as f64;
             let u = 1.0 - t;
             let w = [u * u * u, 3.0 * u * u * t, 3.0 * u * t * t, t * t * t];
-            [
-                (0..4).map(|k| w[k] * p[k][0]).sum(),
-                (0..4).map(|k| w[k] * p[k][1]).sum(),
-            ]
+            (p[0] * w[0] + p[1] * w[1] + p[2] * w[2] + p[3] * w[3]).into()
         })
         .collect()
 }
 
-fn line(a: Point, b: Point) -> Vec<Point> {
-    let steps = (dist(a, b).ceil() as usize).max(2);
+fn line(a: DVec2, b: DVec2) -> Vec<Point> {
+    let steps = (hypot_length(b - a).ceil() as usize).max(2);
     (0..=steps)
-        .map(|i| {
-            let t = i as f64 / steps as f64;
-            [a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1])]
-        })
+        .map(|i| a.lerp_monotonic(b, i as f64 / steps as f64).into())
         .collect()
 }
 
@@ -235,18 +237,12 @@ fn roundabout_map() -> Layout {
     let (mut inbound, mut entry, mut exit, mut outbound) = ([0; 4], [0; 4], [0; 4], [0; 4]);
     let mut ring = [0; 8];
     let r = RING_RADIUS_M;
-    let tangent = |angle: f64| [-angle.sin(), angle.cos()]; // counter-clockwise
+    let tangent = |angle: f64| axes(angle).1; // counter-clockwise
     for k in 0..4 {
         let theta = k as f64 * FRAC_PI_2;
-        let axis = [theta.cos(), theta.sin()];
-        let ccw_side = [-theta.sin(), theta.cos()];
+        let (axis, ccw_side) = axes(theta);
         let offset = 0.5 * LANE_WIDTH_M + 0.25;
-        let at = |d: f64, side: f64| {
-            [
-                d * axis[0] + side * offset * ccw_side[0],
-                d * axis[1] + side * offset * ccw_side[1],
-            ]
-        };
+        let at = |d: f64, side: f64| axis * d + ccw_side * (side * offset);
         let (near, far) = (r + ARM_GAP_M, r + ARM_GAP_M + ARM_LENGTH_M);
         let id = 1000 + 10 * k as i64;
         inbound[k] = push(lanelet(
@@ -262,15 +258,7 @@ fn roundabout_map() -> Layout {
             id + 1,
             "road",
             bezier(
-                [
-                    at(near, 1.0),
-                    [
-                        at(near, 1.0)[0] - 4.0 * axis[0],
-                        at(near, 1.0)[1] - 4.0 * axis[1],
-                    ],
-                    [p3[0] - 4.0 * t3[0], p3[1] - 4.0 * t3[1]],
-                    p3,
-                ],
+                [at(near, 1.0), at(near, 1.0) - axis * 4.0, p3 - t3 * 4.0, p3],
                 16,
             ),
             LANE_WIDTH_M,
@@ -284,11 +272,8 @@ fn roundabout_map() -> Layout {
             bezier(
                 [
                     p0,
-                    [p0[0] + 4.0 * t0[0], p0[1] + 4.0 * t0[1]],
-                    [
-                        at(near, -1.0)[0] - 4.0 * axis[0],
-                        at(near, -1.0)[1] - 4.0 * axis[1],
-                    ],
+                    p0 + t0 * 4.0,
+                    at(near, -1.0) - axis * 4.0,
                     at(near, -1.0),
                 ],
                 16,
@@ -497,18 +482,12 @@ fn intersection_scene() -> (LaneletMap, Vec<Route>, Vec<Vehicle>) {
     let mut lanelets = Vec::new();
     let (mut inbound, mut outbound): ([Vec<usize>; 4], [Vec<usize>; 4]) = Default::default();
     let offset = 0.5 * LANE_WIDTH_M;
-    let axis = |k: usize| {
-        let theta = k as f64 * FRAC_PI_2;
-        ([theta.cos(), theta.sin()], [-theta.sin(), theta.cos()])
-    };
+    let axis = |k: usize| axes(k as f64 * FRAC_PI_2);
     // A point `d` metres out along arm k, `side` lanes to its left (+1: inbound, driving
     // towards the centre with the right-hand rule, sits on the arm's counter-clockwise side).
     let at = |k: usize, d: f64, side: f64| {
-        let (a, n) = axis(k);
-        [
-            d * a[0] + side * offset * n[0],
-            d * a[1] + side * offset * n[1],
-        ]
+        let (along, left) = axis(k);
+        along * d + left * (side * offset)
     };
     for k in 0..4 {
         let id = 3000 + 20 * k as i64;
@@ -529,8 +508,7 @@ fn intersection_scene() -> (LaneletMap, Vec<Route>, Vec<Vehicle>) {
             let (a_out, _) = axis(to);
             // Control points along the travel directions: into the box, out of it.
             let reach = 0.55 * JUNCTION_M;
-            let c1 = [start[0] - reach * a_in[0], start[1] - reach * a_in[1]];
-            let c2 = [end[0] - reach * a_out[0], end[1] - reach * a_out[1]];
+            let (c1, c2) = (start - a_in * reach, end - a_out * reach);
             *slot = lanelets.len();
             let id = 3200 + 10 * from as i64 + to as i64;
             let mut lane = lanelet(id, "road", bezier([start, c1, c2, end], 16), LANE_WIDTH_M);
@@ -591,22 +569,27 @@ fn intersection_scene() -> (LaneletMap, Vec<Route>, Vec<Vehicle>) {
 fn merge_scene() -> (LaneletMap, Vec<Route>, Vec<Vehicle>) {
     const MAIN_BEFORE_M: f64 = 90.0;
     const MAIN_AFTER_M: f64 = 90.0;
-    let ramp_start = [-70.0, -LANE_WIDTH_M - 18.0];
+    let ramp_start = DVec2::new(-70.0, -LANE_WIDTH_M - 18.0);
     let mut lanelets = Vec::new();
     let main_before = chain(
         &mut lanelets,
         4000,
-        &line([-MAIN_BEFORE_M, 0.0], [0.0, 0.0]),
+        &line(DVec2::new(-MAIN_BEFORE_M, 0.0), DVec2::ZERO),
         LANE_PIECE_M,
     );
     let main_after = chain(
         &mut lanelets,
         4100,
-        &line([0.0, 0.0], [MAIN_AFTER_M, 0.0]),
+        &line(DVec2::ZERO, DVec2::new(MAIN_AFTER_M, 0.0)),
         LANE_PIECE_M,
     );
     let ramp_curve = bezier(
-        [ramp_start, [-35.0, ramp_start[1]], [-25.0, 0.0], [0.0, 0.0]],
+        [
+            ramp_start,
+            DVec2::new(-35.0, ramp_start.y),
+            DVec2::new(-25.0, 0.0),
+            DVec2::ZERO,
+        ],
         72,
     );
     let ramp = chain(&mut lanelets, 4200, &ramp_curve, LANE_PIECE_M);
@@ -672,10 +655,12 @@ fn scene_of(
                 .collect()
         })
         .collect();
+    // Σ p / n, as road-data centres its windows.
     let n = poses.len() as f64;
-    let origin = poses.iter().fold([0.0, 0.0], |acc, p| {
-        [acc[0] + p[reference].x_m / n, acc[1] + p[reference].y_m / n]
-    });
+    let origin: Point = poses
+        .iter()
+        .fold(DVec2::ZERO, |sum, p| sum + p[reference].position_m() / n)
+        .into();
     let frame = SceneFrame {
         origin_m: origin,
         scale_m: config.position_scale_m,
