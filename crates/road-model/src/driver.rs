@@ -711,7 +711,7 @@ impl RolloutDriver {
             let s = &mut self.states[i];
             // Slots after the emitted one, before the window moves on.
             let from = n + o.emit_future_slot + 1;
-            let plan_smoothing = self.planners[i].plan_smoothing;
+            let plan_smoothing = self.planners[i].plan_smoothing_fit();
             // Outcomes come in the order `denoised_scenes` was filled in.
             let denoised = if self.denoised_scenes.get(read) == Some(&i) {
                 read += 1;
@@ -728,7 +728,7 @@ impl RolloutDriver {
                 }
             }
             let mut emitted = self.emitted[i * a_max * 3..][..s.agents * 3].to_vec();
-            if let Some(half_width) = plan_smoothing {
+            if let Some(fit) = plan_smoothing {
                 smooth_with_plan(
                     &s.history,
                     &s.history_valid,
@@ -736,7 +736,7 @@ impl RolloutDriver {
                     &s.valid,
                     w,
                     from,
-                    half_width,
+                    fit,
                     &mut emitted,
                 );
             }

@@ -36,10 +36,10 @@ pub fn smooth_accelerations(
     }
 }
 
-/// Plan smoothing (`plan_smoothing = h`): each agent's emitted position becomes the value at
-/// the emission step of the least-squares quadratic through its last `h` committed positions
-/// (steps −h…−1), the emitted one (step 0) and the denoised estimate of the next `h` slots of its
-/// window (steps 1…h, from `first_planned_slot`). A quadratic is exact for constant
+/// Plan smoothing (`plan_smoothing = h`, `plan_smoothing_ahead = f`): each agent's emitted
+/// position becomes the value at the emission step of the least-squares quadratic through its
+/// last `h` committed positions (steps −h…−1), the emitted one (step 0) and the denoised estimate
+/// of the next `f` slots of its window (steps 1…f, from `first_planned_slot`). A quadratic is exact for constant
 /// acceleration, so steady turns and speed changes pass without the lag of
 /// [`smooth_accelerations`] (whose low-pass, inside the closed loop, makes vehicles weave);
 /// what the fit removes is the step-to-step scatter of independently finished slots. Points are
@@ -56,21 +56,21 @@ pub fn smooth_with_plan(
     window_valid: &[f32],
     slots: usize,
     first_planned_slot: usize,
-    half_width: usize,
+    (past_steps, planned_steps): (usize, usize),
     emitted: &mut [f32],
 ) {
     for (a, state) in emitted.chunks_exact_mut(3).enumerate() {
         let mut fit = QuadraticFit::default();
         fit.add(0.0, &state[..2]);
         let (past, past_valid) = (&history[a], &history_valid[a]);
-        for k in 1..=half_width.min(past.len()) {
+        for k in 1..=past_steps.min(past.len()) {
             let t = past.len() - k;
             if !past_valid[t] {
                 break;
             }
             fit.add(-(k as f64), &past[t][..2]);
         }
-        for k in 1..=half_width {
+        for k in 1..=planned_steps {
             let slot = first_planned_slot + k - 1;
             if slot >= slots || window_valid[a * slots + slot] <= 0.0 {
                 break;
@@ -172,7 +172,16 @@ mod tests {
         window_valid: &[f32],
         emitted: &mut [f32],
     ) {
-        smooth_with_plan(history, valid, denoised, window_valid, 12, 2, 3, emitted);
+        smooth_with_plan(
+            history,
+            valid,
+            denoised,
+            window_valid,
+            12,
+            2,
+            (3, 3),
+            emitted,
+        );
     }
 
     #[test]
@@ -221,6 +230,40 @@ mod tests {
         let mut emitted = [0.0, 0.3, 0.0];
         smooth_case(&history, &valid, &denoised, &window_valid, &mut emitted);
         assert_eq!(emitted, [0.0, 0.3, 0.0]);
+    }
+
+    #[test]
+    fn plan_smoothing_takes_only_the_planned_slots_it_is_told() {
+        let path = |t: f64| [t as f32, 0.0];
+        let (history, valid, mut denoised, window_valid) = plan_case(path, 6, 4);
+        // The 2nd to 4th planned slots (window slots 3..6) far off the path.
+        for slot in 3..6 {
+            denoised[3 * slot + 1] = 5.0;
+        }
+        let fit = |planned, emitted: &mut [f32]| {
+            smooth_with_plan(
+                &history,
+                &valid,
+                &denoised,
+                &window_valid,
+                12,
+                2,
+                (3, planned),
+                emitted,
+            )
+        };
+        // One planned slot: 3 past + emitted + 1 planned, all on the line.
+        let mut emitted = [0.0, 0.0, 0.0];
+        fit(1, &mut emitted);
+        assert!(emitted[1].abs() < 1e-5, "{emitted:?}");
+        // None: the past and the emission alone (4 points).
+        let mut emitted = [0.0, 0.0, 0.0];
+        fit(0, &mut emitted);
+        assert!(emitted[1].abs() < 1e-5, "{emitted:?}");
+        // All four: the off-path slots pull the emission off the line.
+        let mut emitted = [0.0, 0.0, 0.0];
+        fit(4, &mut emitted);
+        assert!(emitted[1] > 0.5, "{emitted:?}");
     }
 
     fn line(speed: f32, steps: usize) -> Vec<[f32; 3]> {

@@ -439,7 +439,11 @@ fn fast_engine_rollouts_with_plan_smoothing_match_candle() {
     let run = |engine: &mut dyn StepEngine, planner: &PlannerSpec| {
         rollout_with(engine, planner, &scenes, 8, &mut StdRng::seed_from_u64(9)).unwrap()
     };
-    let smoothed = planner(Some(4));
+    // The default's fit: 4 committed positions and the nearest 2 planned slots.
+    let smoothed = PlannerSpec {
+        plan_smoothing_ahead: Some(2),
+        ..planner(Some(4))
+    };
     let reference = run(&mut CpuEngine::new(&model), &smoothed);
     let fast = run(
         &mut FastCpuEngine::with_threads(&model, 2).unwrap(),

@@ -60,6 +60,11 @@ pub struct PlannerSpec {
     /// `acceleration_smoothing`, adds no lag). Absent: off.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub plan_smoothing: Option<usize>,
+    /// How many of the window's planned slots the plan-smoothing fit takes, 0..=h (absent: h).
+    /// The far slots are still at high noise, so their estimate is near the model's mean
+    /// continuation: fitting through them pulls every sample towards it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub plan_smoothing_ahead: Option<usize>,
     /// τ in (0, 1]: the pure noise a future slot starts from is `τ · σ_max · z` instead of
     /// `σ_max · z` (the window's first build and each new slot of a rolling or replanned
     /// window): a lower sampling temperature (a deviation from the paper: the model is still
@@ -98,6 +103,7 @@ impl Default for PlannerSpec {
             obs_noise: None,
             acceleration_smoothing: None,
             plan_smoothing: None,
+            plan_smoothing_ahead: None,
             noise_temperature: None,
             collision_guard: None,
             edm: EdmSchedule::default(),
@@ -123,6 +129,13 @@ impl PlannerSpec {
     /// The noise added to observations: `obs_noise`, else `obs_sigma()`.
     pub fn obs_noise(&self) -> f64 {
         self.obs_noise.unwrap_or_else(|| self.obs_sigma())
+    }
+
+    /// Plan smoothing's fit, when on: (committed positions, planned slots) it takes beside the
+    /// emitted one.
+    pub fn plan_smoothing_fit(&self) -> Option<(usize, usize)> {
+        self.plan_smoothing
+            .map(|h| (h, self.plan_smoothing_ahead.unwrap_or(h)))
     }
 
     /// Steps of a rolling stage: `K/F`.
@@ -172,6 +185,17 @@ impl PlannerSpec {
                     "plan_smoothing must be 1 to {MAX_PLAN_SMOOTHING_STEPS} steps, got {h}"
                 ));
             }
+        }
+        match (self.plan_smoothing, self.plan_smoothing_ahead) {
+            (None, Some(_)) => {
+                return bad("plan_smoothing_ahead needs plan_smoothing".to_owned());
+            }
+            (Some(h), Some(ahead)) if ahead > h => {
+                return bad(format!(
+                    "plan_smoothing_ahead must be 0 to plan_smoothing ({h}), got {ahead}"
+                ));
+            }
+            _ => {}
         }
         if let Some(tau) = self.noise_temperature {
             if !(tau > 0.0 && tau <= 1.0) {

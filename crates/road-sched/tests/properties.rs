@@ -17,6 +17,7 @@ fn spec(kind: PlannerKind, n: usize, f: usize, k: usize, x: Option<usize>) -> Pl
         obs_noise: None,
         acceleration_smoothing: None,
         plan_smoothing: None,
+        plan_smoothing_ahead: None,
         noise_temperature: None,
         collision_guard: None,
         edm: EdmSchedule::default(),
@@ -349,4 +350,24 @@ fn scheduler_refuses_misuse() {
         .unwrap();
     assert_eq!(s2.index(), s.index(), "slots are reused");
     assert_ne!(s2, s, "ids are not");
+}
+
+#[test]
+fn plan_smoothing_options_are_checked_together() {
+    let with = |h: Option<usize>, ahead: Option<usize>| PlannerSpec {
+        plan_smoothing: h,
+        plan_smoothing_ahead: ahead,
+        ..spec(PlannerKind::Rolling, 10, 10, 40, None)
+    };
+    assert_eq!(with(Some(4), None).plan_smoothing_fit(), Some((4, 4)));
+    assert_eq!(with(Some(4), Some(0)).plan_smoothing_fit(), Some((4, 0)));
+    assert_eq!(with(None, None).plan_smoothing_fit(), None);
+    assert!(with(Some(4), Some(2)).validate("p").is_ok());
+    let error = |h, ahead| with(h, ahead).validate("p").unwrap_err().to_string();
+    assert!(
+        error(Some(4), Some(5))
+            .contains("plan_smoothing_ahead must be 0 to plan_smoothing (4), got 5")
+    );
+    assert!(error(None, Some(2)).contains("plan_smoothing_ahead needs plan_smoothing"));
+    assert!(error(Some(0), None).contains("plan_smoothing must be 1 to"));
 }

@@ -43,10 +43,28 @@ pub struct TrainArgs {
     pub data: PathBuf,
 }
 
+/// The data windows a model trains on: `configs/data.toml`'s, lengthened to the model's window
+/// where that is longer (DJINN-40's 50 slots need 50-step windows, which cut fewer windows from
+/// the recordings, so every other model keeps the 40-step default).
+fn training_window(model: &road_model::config::ModelConfig) -> WindowConfig {
+    let default = WindowConfig::default();
+    WindowConfig {
+        window_steps: default.window_steps.max(model.window_slots),
+        ..default
+    }
+}
+
 fn load_or_build(args: &TrainArgs, split: Split, config: &WindowConfig) -> Result<Dataset> {
     let path = cache::cache_path(&args.cache, split);
     if path.is_file() {
-        return Ok(cache::load_checked(&path, split, Some(config), None)?);
+        return cache::load_checked(&path, split, Some(config), None).with_context(|| {
+            format!(
+                "the cache in {} does not fit this model's {}-step windows: pass --cache DIR \
+                 (built there when absent)",
+                args.cache.display(),
+                config.window_steps
+            )
+        });
     }
     tracing::info!(path = %path.display(), "no cache yet: building it from {}", args.data.display());
     let sources = SourceSet::discover(&args.data)?;
@@ -88,7 +106,7 @@ A DJINN-style scene denoiser ({params} parameters: D = {d}, {heads} heads, {bloc
 {n} observed + {f} future) for the `{kind:?}` planner (K = {k}).\n\n\
 ## Data\n\n\
 Derived from the INTERACTION dataset (DR v1.0 recordings; released for non-commercial research use only: \
-this model is a derived work under that licence). {source}. Train cache: {train_windows} windows of 4 s; \
+this model is a derived work under that licence). {source}. Train cache: {train_windows} windows of {window_s} s; \
 validation: {val_windows} windows.\n\n\
 ## Training\n\n\
 | | |\n|---|---|\n\
@@ -125,6 +143,7 @@ trainings): it is not this model's alone; `train_log.csv` gives samples/s for ea
         k = r.planner.steps_per_diffusion,
         source = meta.data.source,
         train_windows = meta.data.train_windows,
+        window_s = training_window(&r.model).window_steps as f64 / 10.0,
         val_windows = meta.data.validation_windows,
         step = meta.step,
         steps = r.train.steps,
@@ -159,7 +178,7 @@ pub fn run(args: TrainArgs) -> Result<ExitCode> {
         write_model_card(&out)?;
         return Ok(ExitCode::SUCCESS);
     }
-    let window = WindowConfig::default();
+    let window = training_window(&run.model);
     anyhow::ensure!(
         window.polyline_points == run.model.polyline_points
             && window.position_scale_m == run.model.position_scale_m,
