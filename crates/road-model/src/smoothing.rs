@@ -38,13 +38,13 @@ pub fn smooth_accelerations(
 
 /// Plan smoothing (`plan_smoothing = h`, `plan_smoothing_ahead = f`): each agent's emitted
 /// position becomes the value at the emission step of the least-squares quadratic through its
-/// last `h` committed positions (steps −h…−1), the emitted one (step 0) and the denoised estimate
-/// of the next `f` slots of its window (steps 1…f, from `first_planned_slot`). A quadratic is exact for constant
-/// acceleration, so steady turns and speed changes pass without the lag of
-/// [`smooth_accelerations`] (whose low-pass, inside the closed loop, makes vehicles weave);
-/// what the fit removes is the step-to-step scatter of independently finished slots. Points are
-/// taken while they are valid, nearest first; an agent with fewer than 4 points is left as it
-/// is, and headings stay the model's.
+/// last `h` committed positions (steps −h…−1), the emitted one (step 0) and the denoised
+/// estimate of the next `f` slots of its window (steps 1…f, from `first_planned_slot`). A
+/// quadratic is exact for constant acceleration, so steady turns and speed changes pass without
+/// the lag of [`smooth_accelerations`] (whose low-pass, inside the closed loop, makes vehicles
+/// weave); what the fit removes is the step-to-step scatter of independently finished slots.
+/// Points are taken while they are valid, nearest first; an agent with fewer than 4 points is
+/// left as it is, and headings stay the model's.
 ///
 /// `denoised` and `window_valid` are the scene's `[agents, slots, 3]` estimate and
 /// `[agents, slots]` flags (at least as many agents as `emitted` holds).
