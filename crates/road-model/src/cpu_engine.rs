@@ -355,7 +355,8 @@ impl StepEngine for CpuEngine<'_> {
     }
 }
 
-/// The fast CPU engine: [`FastDenoiser`] on the host windows, scenes split across threads.
+/// The fast CPU engine: [`FastDenoiser`] on the host windows, each evaluation's tokens split
+/// across threads kept between calls (so one scene uses every core too).
 #[derive(Debug)]
 pub struct FastCpuEngine<'a> {
     model: &'a Denoiser,
@@ -367,7 +368,7 @@ pub struct FastCpuEngine<'a> {
 }
 
 impl<'a> FastCpuEngine<'a> {
-    /// `threads` workers per evaluation (the scenes of a batch are split between them);
+    /// `threads` workers per evaluation (the tokens of a batch are split between them);
     /// [`FastCpuEngine::new`] takes the machine's available parallelism.
     pub fn with_threads(model: &'a Denoiser, threads: usize) -> Result<Self> {
         Ok(Self {

@@ -2,16 +2,21 @@
 //! from call to call, matrix products through `gemm`'s kernels (AVX2/FMA or AVX-512 chosen at
 //! run time), attention fused per group of tokens (`fast_kernels`: no per-head tensors), the
 //! map's keys and values computed once per scene set (scene maps) or once per anchor (agent
-//! maps, [`AgentMapMemo`]), and the scenes of a batch split across threads that share
-//! nothing. [`Denoiser`] (candle) stays the reference: `tests/fast.rs` holds the two to the
-//! tolerance the WGSL engine meets.
+//! maps, [`AgentMapMemo`]), and the tokens of a batch split evenly across threads kept
+//! between calls (the workers meet before each attention stage: `workers`). [`Denoiser`]
+//! (candle) stays the reference: `tests/fast.rs` holds the two to the tolerance the WGSL
+//! engine meets.
 //!
 //! candle spends most of an inference step outside its matrix products here (thread barriers
 //! per op, allocation per op, tiny batched products for attention): see `docs/benchmarks.md`.
 
+mod workers;
+
 use std::collections::HashMap;
-use std::sync::Mutex;
+use std::ops::Range;
 use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Instant;
 
 use candle_core::Tensor;
 use candle_nn::{LayerNorm, Linear};
@@ -22,6 +27,8 @@ use crate::config::AgentFrame;
 use crate::fast_kernels::{AttentionScratch, KeysValues, PairTerms, attend, layer_norm};
 use crate::model::{Attention, Denoiser};
 use crate::{Error, Result};
+
+use workers::{Exchange, Helpers, Job, Slots};
 
 fn host(t: &Tensor) -> Result<Vec<f32>> {
     Ok(t.flatten_all()?.to_vec1::<f32>()?)
@@ -176,9 +183,21 @@ fn qkv(a: &Attention) -> Result<Dense> {
     Dense::stack(&[&a.q, &a.k, &a.v])
 }
 
-/// The denoiser's weights for the fast path (a copy of a [`Denoiser`]'s).
+/// The denoiser's forward pass on plain buffers, a batch's tokens split evenly between the
+/// calling thread and helper threads kept between calls.
 #[derive(Debug)]
 pub struct FastDenoiser {
+    /// Shared with the helper threads.
+    net: Arc<Network>,
+    /// Worker threads a call may use (the calling thread and `threads − 1` helpers).
+    threads: usize,
+    /// Held for a whole call (one call at a time).
+    workers: Mutex<Workers>,
+}
+
+/// The denoiser's weights for the fast path (a copy of a [`Denoiser`]'s).
+#[derive(Debug)]
+struct Network {
     hidden: usize,
     heads: usize,
     slots: usize,
@@ -197,10 +216,6 @@ pub struct FastDenoiser {
     agent_map: Option<(PolylineEncoder, usize)>,
     /// With agent pairs: their features' scales.
     pair_scales: Option<PairScales>,
-    /// Worker threads a call may use (scenes are split between them).
-    threads: usize,
-    /// Scratch buffers, one set per worker, kept between calls.
-    scratch: Mutex<Vec<Scratch>>,
 }
 
 /// What a batch of scenes needs besides the states: computed once per scene set.
@@ -209,6 +224,12 @@ pub struct SceneCache {
     pub scenes: usize,
     pub agents: usize,
     pub polylines: usize,
+    /// Shared with the helper threads of a call (cloning the cache clones the pointer).
+    data: Arc<SceneData>,
+}
+
+#[derive(Debug, Clone, Default)]
+struct SceneData {
     /// `[B, A, D]`: `embed_agent(features)`.
     agent_embedding: Vec<f32>,
     /// `[B, blocks, P, 2D]`: each block's map keys and values (scene-frame map tokens only).
@@ -250,11 +271,12 @@ impl SceneCache {
                 all[scene * row.len()..][..row.len()].copy_from_slice(row);
             }
         }
-        put(&mut self.agent_embedding, scene, &one.agent_embedding);
-        put(&mut self.map_kv, scene, &one.map_kv);
-        put(&mut self.map_points, scene, &one.map_points);
-        put(&mut self.map_valid, scene, &one.map_valid);
-        self.identities[scene] = new_identities(1)[0];
+        let (data, one) = (Arc::make_mut(&mut self.data), &one.data);
+        put(&mut data.agent_embedding, scene, &one.agent_embedding);
+        put(&mut data.map_kv, scene, &one.map_kv);
+        put(&mut data.map_points, scene, &one.map_points);
+        put(&mut data.map_valid, scene, &one.map_valid);
+        data.identities[scene] = new_identities(1)[0];
         Ok(())
     }
 }
@@ -388,22 +410,19 @@ impl AgentMapMemo {
     }
 }
 
-/// Per-worker buffers for `N` tokens (resized, never shrunk).
+/// Per-worker buffers; `N` is the batch's evaluated tokens, of which a worker fills its own rows
+/// (resized, never shrunk).
 #[derive(Debug, Default)]
 struct Scratch {
     h: Vec<f32>,      // [N, D]
     t: Vec<f32>,      // [N, D]
-    qkv: Vec<f32>,    // [N, 3D]
+    map_q: Vec<f32>,  // [N, D] (self-attention's projections go to the `Exchange`'s slots)
     att: Vec<f32>,    // [N, D]
     hidden: Vec<f32>, // [N, M]
     f: Vec<f32>,      // [N, 3]
-    /// Compact agent index → batch agent row (agents with a valid slot only).
-    agent_rows: Vec<usize>,
-    /// Compact agent index where each scene of the chunk starts (one more entry at the end).
-    scene_starts: Vec<usize>,
-    /// Batch agent row → compact agent index (`usize::MAX`: not evaluated).
-    compact_of: Vec<usize>,
     queries: Vec<usize>,
+    /// Agent attention's candidate keys (a scene's agents at one slot), before masking.
+    candidates: Vec<usize>,
     keys: Vec<usize>,
     attention: AttentionScratch,
     /// Agent maps: per evaluated agent, its polylines `[K, Q, 2]` in its frame, their flags
@@ -415,19 +434,75 @@ struct Scratch {
     agent_mixed: Vec<f32>,
     agent_tokens: Vec<f32>,
     /// Encoded agent maps, a slab each: `agent_map_kv [slabs, blocks, K, 2D]` and
-    /// `agent_map_valid [slabs, K]`; `agent_slab[compact agent]` is the one a call reads.
+    /// `agent_map_valid [slabs, K]`; `agent_slab[i]` is the one the worker's agent i reads.
     agent_map_kv: Vec<f32>,
     agent_slab: Vec<usize>,
     agent_map_memo: AgentMapMemo,
     /// The agents whose maps a call encodes: (compact agent, slab, anchor).
     stale_agent_maps: Vec<(usize, usize, MapAnchor)>,
-    /// Agent pairs: each evaluated agent's anchor; the pair features of every (scene, slot),
-    /// `[agents_s, agents_s, F]` each, from `pair_starts[scene] + slot · agents_s² · F` (the
-    /// same in every block); the unmasked keys' positions among a group's queries.
+    /// Agent pairs: each of the worker's agents' anchor; the pair features of every (scene,
+    /// slot), `[queries, agents_s, F]` each (the agents of the worker's tokens of that slot by
+    /// all of the scene's agents), from `pair_starts[scene · W + slot]` (the same in every
+    /// block); the unmasked keys' positions among the scene's agents.
     pair_anchors: Vec<MapAnchor>,
     pair_features: Vec<f32>,
     pair_starts: Vec<usize>,
     key_positions: Vec<usize>,
+}
+
+/// The agent rows a call evaluates: those with a valid slot. The others (padding, or agents
+/// absent from the whole window) are masked as keys everywhere and their output is
+/// `c_skip · x` whatever the network says, so leaving them out changes nothing but the time.
+#[derive(Debug, Default)]
+struct EvaluatedAgents {
+    /// Compact agent index → batch agent row.
+    rows: Vec<usize>,
+    /// Compact agent index where each scene starts (one more entry at the end).
+    scene_starts: Vec<usize>,
+    /// Batch agent row → compact agent index (`usize::MAX`: not evaluated).
+    compact_of: Vec<usize>,
+}
+
+impl EvaluatedAgents {
+    /// The evaluated agents of `valid [B, A, W]`.
+    fn find(&mut self, valid: &[f32], agents: usize, slots: usize) {
+        self.rows.clear();
+        self.scene_starts.clear();
+        self.compact_of.clear();
+        self.compact_of.resize(valid.len() / slots, usize::MAX);
+        for (row, flags) in valid.chunks_exact(slots).enumerate() {
+            if row % agents == 0 {
+                self.scene_starts.push(self.rows.len());
+            }
+            if flags.iter().any(|&v| v > 0.0) {
+                self.compact_of[row] = self.rows.len();
+                self.rows.push(row);
+            }
+        }
+        self.scene_starts.push(self.rows.len());
+    }
+
+    /// The compact agents of batch row `scene`.
+    fn scene(&self, scene: usize) -> Range<usize> {
+        self.scene_starts[scene]..self.scene_starts[scene + 1]
+    }
+}
+
+/// The indices in both ranges.
+fn overlap(a: &Range<usize>, b: &Range<usize>) -> Range<usize> {
+    let start = a.start.max(b.start);
+    start..a.end.min(b.end).max(start)
+}
+
+/// The agents with a token in `tokens` (`slots` tokens an agent).
+fn agents_of(tokens: &Range<usize>, slots: usize) -> Range<usize> {
+    tokens.start / slots..tokens.end.div_ceil(slots)
+}
+
+/// The agents whose token of slot `slot` is in `tokens`.
+fn agents_at_slot(tokens: &Range<usize>, slot: usize, slots: usize) -> Range<usize> {
+    tokens.start.saturating_sub(slot).div_ceil(slots)
+        ..tokens.end.saturating_sub(slot).div_ceil(slots)
 }
 
 /// One batch of states to denoise: the rows of `scene_ids` in the [`SceneCache`].
@@ -443,9 +518,280 @@ pub struct FastInputs<'a> {
     pub scene_ids: &'a [usize],
 }
 
+/// What a worker keeps between calls: its buffers and the agents of its last share.
+#[derive(Debug, Default)]
+struct WorkerState {
+    scratch: Scratch,
+    agents: EvaluatedAgents,
+}
+
+/// The calling thread's own [`WorkerState`], the helper threads (each keeps its own), and
+/// every worker's projection slots ([`Exchange`]).
+#[derive(Debug)]
+struct Workers {
+    own: WorkerState,
+    helpers: Helpers<WorkerState, Vec<f32>>,
+    slots: Arc<[Slots]>,
+    /// Output buffers the helpers handed back, for their next jobs.
+    spare_outputs: Vec<Vec<f32>>,
+    /// Consecutive calls whose workers spent much of their time waiting for each other.
+    contended_calls: usize,
+    /// Calls left to run on the calling thread alone, after contended ones.
+    calls_alone: usize,
+    /// How many calls the next fallback runs alone (doubling while contention persists).
+    next_calls_alone: usize,
+}
+
+/// Consecutive contended calls ([`Exchange::contended`]) after which the calls run on the
+/// calling thread alone: on a machine whose cores are busy with other work the workers would
+/// wait for a core at every meeting (measured: one scene's tick 1.1–10× slower than on one
+/// thread). Not one: single calls also wait now and then on a quiet machine (a helper waking
+/// up after a pause, page faults).
+const CONTENDED_CALLS: usize = 3;
+
+/// Calls run alone after contention: few at first (a helper just woken may share the
+/// caller's core for a few milliseconds, until the scheduler moves it), doubling while the
+/// contention persists, back to the fewest after a split call without it.
+const CALLS_ALONE: Range<usize> = 8..256;
+
+impl Workers {
+    fn new(threads: usize) -> Self {
+        Self {
+            own: WorkerState::default(),
+            helpers: Helpers::new(threads - 1),
+            slots: (0..threads).map(|_| Slots::default()).collect(),
+            spare_outputs: Vec::new(),
+            contended_calls: 0,
+            calls_alone: 0,
+            next_calls_alone: CALLS_ALONE.start,
+        }
+    }
+}
+
+/// The part of a batch one worker evaluates: a range of its compact tokens, and the batch
+/// tokens whose output it writes.
+struct Share<'a> {
+    tokens: Range<usize>,
+    out_tokens: Range<usize>,
+    /// Where it meets the workers that hold the other tokens of its scenes, as worker
+    /// `worker`.
+    exchange: &'a Exchange,
+    worker: usize,
+}
+
+/// A copy of a batch's inputs that a helper thread can hold.
+struct OwnedInputs {
+    x: Vec<f32>,
+    sigma: Vec<f32>,
+    valid: Vec<f32>,
+    scene_ids: Vec<usize>,
+}
+
+impl OwnedInputs {
+    fn of(inputs: &FastInputs<'_>) -> Self {
+        Self {
+            x: inputs.x.to_vec(),
+            sigma: inputs.sigma.to_vec(),
+            valid: inputs.valid.to_vec(),
+            scene_ids: inputs.scene_ids.to_vec(),
+        }
+    }
+
+    fn view(&self) -> FastInputs<'_> {
+        FastInputs {
+            x: &self.x,
+            sigma: &self.sigma,
+            valid: &self.valid,
+            scene_ids: &self.scene_ids,
+        }
+    }
+}
+
 impl FastDenoiser {
-    /// Copies the weights of `model`; `threads` workers at most per call (≥ 1).
+    /// Copies the weights of `model`; `threads` workers at most per call (≥ 1): the calling
+    /// thread and `threads − 1` helper threads, started now.
     pub fn new(model: &Denoiser, threads: usize) -> Result<Self> {
+        let threads = threads.max(1);
+        Ok(Self {
+            net: Arc::new(Network::new(model)?),
+            threads,
+            workers: Mutex::new(Workers::new(threads)),
+        })
+    }
+
+    /// The static inputs of `scenes` scenes: `features [B, A, 6]`, the map (scene-frame tokens,
+    /// or the polylines for a model with an agent map), `map_valid [B, P]`.
+    pub fn scene_cache(
+        &self,
+        scenes: usize,
+        agents: usize,
+        features: &[f32],
+        map: SceneMap<'_>,
+        map_valid: &[f32],
+    ) -> Result<SceneCache> {
+        self.net
+            .scene_cache(scenes, agents, features, map, map_valid)
+    }
+
+    /// `D(x; σ)` of every batch row into `out [B, A, W, 3]`.
+    pub fn denoise(
+        &self,
+        cache: &SceneCache,
+        inputs: &FastInputs<'_>,
+        out: &mut [f32],
+    ) -> Result<()> {
+        let (a, w) = (cache.agents, self.net.slots);
+        let b = inputs.scene_ids.len();
+        if inputs.x.len() != b * a * w * 3
+            || inputs.valid.len() != b * a * w
+            || inputs.sigma.len() != b * w
+            || out.len() != inputs.x.len()
+        {
+            return Err(Error::data(format!(
+                "fast denoise of {b} scenes × {a} agents × {w} slots: {} states, {} flags, {} σ, \
+                 {} outputs",
+                inputs.x.len(),
+                inputs.valid.len(),
+                inputs.sigma.len(),
+                out.len()
+            )));
+        }
+        if let Some(&bad) = inputs.scene_ids.iter().find(|&&s| s >= cache.scenes) {
+            return Err(Error::data(format!(
+                "scene {bad} is not in the cache of {} scenes",
+                cache.scenes
+            )));
+        }
+        if b == 0 {
+            return Ok(());
+        }
+        // A call that panicked poisons the lock: its helpers had finished (`Helpers::run`
+        // waits for them), but the calling thread's buffers may be half written.
+        let mut workers = self.workers.lock().unwrap_or_else(|poisoned| {
+            let mut workers = poisoned.into_inner();
+            workers.own = WorkerState::default();
+            workers
+        });
+        self.workers.clear_poison();
+        self.split_tokens(cache, inputs, &mut workers, out);
+        Ok(())
+    }
+
+    /// Each worker takes an equal contiguous range of the batch's evaluated tokens (so that
+    /// one scene runs on all cores, and a batch of scenes of unequal sizes splits evenly); they
+    /// meet before each attention stage ([`Exchange`]). The helpers take the first ranges, the
+    /// calling thread the last.
+    fn split_tokens(
+        &self,
+        cache: &SceneCache,
+        inputs: &FastInputs<'_>,
+        workers: &mut Workers,
+        out: &mut [f32],
+    ) {
+        let (a, w) = (cache.agents, self.net.slots);
+        let b = inputs.scene_ids.len();
+        let Workers {
+            own,
+            helpers,
+            slots,
+            spare_outputs,
+            contended_calls,
+            calls_alone,
+            next_calls_alone,
+        } = workers;
+        own.agents.find(inputs.valid, a, w);
+        let agents = &own.agents;
+        let tokens = agents.rows.len() * w;
+        // No more workers than agents: a share of a few tokens would cost more than it saves.
+        let mut count = self.threads.min(agents.rows.len()).max(1);
+        if *calls_alone > 0 {
+            *calls_alone -= 1;
+            count = 1;
+        }
+        // Worker i takes compact tokens [first(i), first(i + 1)) and writes the output of the
+        // batch tokens from its first one's (padding rows go with the tokens before them).
+        let first = |i: usize| tokens * i / count;
+        let first_output = |i: usize| match i {
+            0 => 0,
+            i if i == count => b * a * w,
+            i => agents.rows[first(i) / w] * w + first(i) % w,
+        };
+        let exchange = Arc::new(Exchange::new(
+            Arc::clone(slots),
+            (1..=count).map(first).collect(),
+        ));
+        let last = count - 1;
+        let mut jobs: Vec<Job<WorkerState, Vec<f32>>> = Vec::with_capacity(last);
+        if last > 0 {
+            // One copy of the (small) batch for all helpers.
+            let batch = Arc::new(OwnedInputs::of(inputs));
+            for i in 0..last {
+                let (net, cache) = (Arc::clone(&self.net), cache.clone());
+                let (batch, exchange) = (Arc::clone(&batch), Arc::clone(&exchange));
+                let (tokens, out_tokens) =
+                    (first(i)..first(i + 1), first_output(i)..first_output(i + 1));
+                let mut output = spare_outputs.pop().unwrap_or_default();
+                jobs.push(Box::new(move |state: &mut WorkerState| {
+                    let _release = exchange.break_on_panic();
+                    let inputs = batch.view();
+                    // The same agents as the caller's: a few comparisons, no copy to send.
+                    state.agents.find(inputs.valid, a, w);
+                    output.resize(out_tokens.len() * 3, 0.0);
+                    let share = Share {
+                        tokens,
+                        out_tokens,
+                        exchange: &exchange,
+                        worker: i,
+                    };
+                    net.forward(
+                        &cache,
+                        &inputs,
+                        &state.agents,
+                        &share,
+                        &mut state.scratch,
+                        &mut output,
+                    );
+                    output
+                }));
+            }
+        }
+        let own_share = Share {
+            tokens: first(last)..first(count),
+            out_tokens: first_output(last)..first_output(count),
+            exchange: &exchange,
+            worker: last,
+        };
+        let (head, own_out) = out.split_at_mut(own_share.out_tokens.start * 3);
+        let started = Instant::now();
+        let outputs = helpers.run(jobs, || {
+            let _release = exchange.break_on_panic();
+            self.net
+                .forward(cache, inputs, agents, &own_share, &mut own.scratch, own_out);
+        });
+        for (i, output) in outputs.into_iter().enumerate() {
+            let range = first_output(i) * 3..first_output(i + 1) * 3;
+            head[range.clone()].copy_from_slice(&output[..range.len()]);
+            spare_outputs.push(output);
+        }
+        if count == 1 {
+            return;
+        }
+        if exchange.contended(started.elapsed()) {
+            *contended_calls += 1;
+            if *contended_calls == CONTENDED_CALLS {
+                *contended_calls = 0;
+                *calls_alone = *next_calls_alone;
+                *next_calls_alone = (*next_calls_alone * 2).min(CALLS_ALONE.end);
+            }
+        } else {
+            *contended_calls = 0;
+            *next_calls_alone = CALLS_ALONE.start;
+        }
+    }
+}
+
+impl Network {
+    fn new(model: &Denoiser) -> Result<Self> {
         let c = &model.config;
         let blocks = model
             .blocks
@@ -507,14 +853,10 @@ impl FastDenoiser {
                 .agent_pairs
                 .as_ref()
                 .map(|pairs| PairScales::new(pairs, c.position_scale_m, c.heading_scale)),
-            threads: threads.max(1),
-            scratch: Mutex::new(Vec::new()),
         })
     }
 
-    /// The static inputs of `scenes` scenes: `features [B, A, 6]`, the map (scene-frame tokens,
-    /// or the polylines for a model with an agent map), `map_valid [B, P]`.
-    pub fn scene_cache(
+    fn scene_cache(
         &self,
         scenes: usize,
         agents: usize,
@@ -572,20 +914,29 @@ impl FastDenoiser {
             scenes,
             agents,
             polylines,
-            agent_embedding,
-            map_kv,
-            map_points,
-            map_valid: map_valid.to_vec(),
-            identities: new_identities(scenes),
+            data: Arc::new(SceneData {
+                agent_embedding,
+                map_kv,
+                map_points,
+                map_valid: map_valid.to_vec(),
+                identities: new_identities(scenes),
+            }),
         })
     }
 
-    /// Every evaluated agent's own map (agent-map models): its polylines picked and encoded
-    /// in its anchor frame, then each block's keys and values, into the agent's slab of the
-    /// scratch's `agent_map_kv [slabs, blocks, K, 2D]` and `agent_map_valid [slabs, K]`
-    /// (`agent_slab[compact agent]`); agents whose anchor has not moved since an earlier call
-    /// keep their slab as it is ([`AgentMapMemo`]). Returns K.
-    fn agent_maps(&self, cache: &SceneCache, inputs: &FastInputs<'_>, s: &mut Scratch) -> usize {
+    /// The own map of each of the compact agents `mine` (agent-map models): its polylines
+    /// picked and encoded in its anchor frame, then each block's keys and values, into the
+    /// agent's slab of the scratch's `agent_map_kv [slabs, blocks, K, 2D]` and
+    /// `agent_map_valid [slabs, K]` (`agent_slab[agent − mine.start]`); agents whose anchor has
+    /// not moved since an earlier call keep their slab as it is ([`AgentMapMemo`]). Returns K.
+    fn agent_maps(
+        &self,
+        cache: &SceneCache,
+        inputs: &FastInputs<'_>,
+        agents: &EvaluatedAgents,
+        mine: Range<usize>,
+        s: &mut Scratch,
+    ) -> usize {
         let Some((encoder, wanted)) = &self.agent_map else {
             return 0;
         };
@@ -598,9 +949,10 @@ impl FastDenoiser {
         s.agent_map_memo.start_call(k);
         s.stale_agent_maps.clear();
         s.agent_slab.clear();
-        for (compact, &agent_row) in s.agent_rows.iter().enumerate() {
+        for compact in mine {
+            let agent_row = agents.rows[compact];
             let scene = inputs.scene_ids[agent_row / a];
-            let key = (cache.identities[scene], agent_row % a);
+            let key = (cache.data.identities[scene], agent_row % a);
             let anchor = self.map_anchor(inputs, agent_row);
             let (slab, fresh) = s.agent_map_memo.slab_for(key, anchor);
             s.agent_slab.push(slab);
@@ -617,11 +969,11 @@ impl FastDenoiser {
         let n = s.stale_agent_maps.len();
         s.agent_points.resize(n * k * q * 2, 0.0);
         for (i, &(compact, slab, anchor)) in s.stale_agent_maps.iter().enumerate() {
-            let scene = inputs.scene_ids[s.agent_rows[compact] / a];
+            let scene = inputs.scene_ids[agents.rows[compact] / a];
             agent_map(
                 anchor,
-                &cache.map_points[scene * p * q * 2..][..p * q * 2],
-                &cache.map_valid[scene * p..][..p],
+                &cache.data.map_points[scene * p * q * 2..][..p * q * 2],
+                &cache.data.map_valid[scene * p..][..p],
                 q,
                 &mut s.agent_points[i * k * q * 2..][..k * q * 2],
                 &mut s.agent_map_valid[slab * k..][..k],
@@ -645,213 +997,118 @@ impl FastDenoiser {
         k
     }
 
-    /// `D(x; σ)` of every batch row into `out [B, A, W, 3]`.
-    pub fn denoise(
-        &self,
-        cache: &SceneCache,
-        inputs: &FastInputs<'_>,
-        out: &mut [f32],
-    ) -> Result<()> {
-        let (a, w) = (cache.agents, self.slots);
-        let b = inputs.scene_ids.len();
-        if inputs.x.len() != b * a * w * 3
-            || inputs.valid.len() != b * a * w
-            || inputs.sigma.len() != b * w
-            || out.len() != inputs.x.len()
-        {
-            return Err(Error::data(format!(
-                "fast denoise of {b} scenes × {a} agents × {w} slots: {} states, {} flags, {} σ, \
-                 {} outputs",
-                inputs.x.len(),
-                inputs.valid.len(),
-                inputs.sigma.len(),
-                out.len()
-            )));
-        }
-        if let Some(&bad) = inputs.scene_ids.iter().find(|&&s| s >= cache.scenes) {
-            return Err(Error::data(format!(
-                "scene {bad} is not in the cache of {} scenes",
-                cache.scenes
-            )));
-        }
-        if b == 0 {
-            return Ok(());
-        }
-        let per = b.div_ceil(self.threads.min(b));
-        let workers = b.div_ceil(per);
-        let mut pool = std::mem::take(&mut *self.scratch.lock().expect("scratch lock"));
-        pool.resize_with(workers.max(pool.len()), Scratch::default);
-        let chunk = |start: usize, len: usize| FastInputs {
-            x: &inputs.x[start * a * w * 3..][..len * a * w * 3],
-            sigma: &inputs.sigma[start * w..][..len * w],
-            valid: &inputs.valid[start * a * w..][..len * a * w],
-            scene_ids: &inputs.scene_ids[start..start + len],
-        };
-        if workers == 1 {
-            self.forward(cache, &chunk(0, b), &mut pool[0], out);
-        } else {
-            std::thread::scope(|scope| {
-                let mut rest = &mut out[..];
-                for (i, scratch) in pool.iter_mut().take(workers).enumerate() {
-                    let start = i * per;
-                    let len = per.min(b - start);
-                    let (mine, tail) = rest.split_at_mut(len * a * w * 3);
-                    rest = tail;
-                    let part = chunk(start, len);
-                    scope.spawn(move || self.forward(cache, &part, scratch, mine));
-                }
-            });
-        }
-        *self.scratch.lock().expect("scratch lock") = pool;
-        Ok(())
-    }
-
-    /// The whole forward pass of a chunk of scenes on this thread. Agent rows with no valid
-    /// slot (padding, or agents absent from the whole window) are left out: they are masked
-    /// as keys everywhere and their output is `c_skip · x` whatever the network says, so
-    /// leaving them out changes nothing but the time taken. Masked keys are skipped for the
-    /// same reason (their softmax weight is exactly 0 in f32) unless every key of a group is
-    /// masked, where the candle model averages over all of them and so does this.
+    /// The forward pass of a worker's share of a batch on this thread: the products, layer
+    /// norms and attention queries of its tokens, and the output of its batch tokens. The
+    /// buffers are indexed by compact token over the whole batch; a worker fills only its own
+    /// rows. Masked keys are skipped (their softmax weight is exactly 0 in f32) unless every
+    /// key of a group is masked, where the candle model averages over all of them and so does
+    /// this.
     fn forward(
         &self,
         cache: &SceneCache,
         inputs: &FastInputs<'_>,
+        agents: &EvaluatedAgents,
+        share: &Share<'_>,
         s: &mut Scratch,
         out: &mut [f32],
     ) {
-        let (a, w, d) = (cache.agents, self.slots, self.hidden);
+        let (w, d) = (self.slots, self.hidden);
         let b = inputs.scene_ids.len();
-        s.agent_rows.clear();
-        s.scene_starts.clear();
-        s.compact_of.clear();
-        s.compact_of.resize(b * a, usize::MAX);
-        for row in 0..b * a {
-            if row % a == 0 {
-                s.scene_starts.push(s.agent_rows.len());
-            }
-            if inputs.valid[row * w..(row + 1) * w]
-                .iter()
-                .any(|&v| v > 0.0)
-            {
-                s.compact_of[row] = s.agent_rows.len();
-                s.agent_rows.push(row);
-            }
-        }
-        s.scene_starts.push(s.agent_rows.len());
-        let n = s.agent_rows.len() * w;
+        let mine = share.tokens.clone();
+        let n = mine.len();
+        let rows = |width: usize| mine.start * width..mine.end * width;
+        // The agents with a token of this worker's (the first and the last may have tokens of
+        // the neighbouring workers' too).
+        let my_agents = agents_of(&mine, w);
+        let all_tokens = agents.rows.len() * w;
         let m = self.blocks.first().map_or(d, |blk| blk.mlp_in.d_out);
-        for (buf, len) in [
-            (&mut s.h, n * d),
-            (&mut s.t, n * d),
-            (&mut s.qkv, n * 3 * d),
-            (&mut s.att, n * d),
-            (&mut s.hidden, n * m),
-            (&mut s.f, n * 3),
+        for (buf, width) in [
+            (&mut s.h, d),
+            (&mut s.t, d),
+            (&mut s.map_q, d),
+            (&mut s.att, d),
+            (&mut s.hidden, m),
+            (&mut s.f, 3),
         ] {
-            buf.resize(len.max(buf.len()), 0.0);
+            buf.resize((all_tokens * width).max(buf.len()), 0.0);
         }
-        self.embed(cache, inputs, &s.agent_rows, &mut s.h[..n * d]);
-        let k = self.agent_maps(cache, inputs, s);
+        self.embed(cache, inputs, agents, mine.clone(), &mut s.h);
+        let k = self.agent_maps(cache, inputs, agents, my_agents.clone(), s);
         if let Some(scales) = self.pair_scales {
             s.pair_anchors.clear();
-            for &agent_row in &s.agent_rows {
+            for &agent_row in &agents.rows[my_agents.clone()] {
                 s.pair_anchors.push(self.map_anchor(inputs, agent_row));
             }
             s.pair_starts.clear();
             let mut len = 0;
             for scene in 0..b {
-                s.pair_starts.push(len);
-                let agents = s.scene_starts[scene + 1] - s.scene_starts[scene];
-                len += w * agents * agents * PAIR_FEATURES;
+                let candidates = agents.scene(scene);
+                for slot in 0..w {
+                    s.pair_starts.push(len);
+                    let queries = overlap(&candidates, &agents_at_slot(&mine, slot, w));
+                    len += queries.len() * candidates.len() * PAIR_FEATURES;
+                }
             }
             s.pair_features.resize(len, 0.0);
             for scene in 0..b {
-                let agents = s.scene_starts[scene]..s.scene_starts[scene + 1];
-                let per_slot = agents.len() * agents.len() * PAIR_FEATURES;
+                let candidates = agents.scene(scene);
                 for slot in 0..w {
+                    let queries = overlap(&candidates, &agents_at_slot(&mine, slot, w));
+                    if queries.is_empty() {
+                        continue;
+                    }
+                    let per_slot = queries.len() * candidates.len() * PAIR_FEATURES;
+                    let anchors =
+                        &s.pair_anchors[queries.start - my_agents.start..][..queries.len()];
                     slot_pair_features(
                         inputs.x,
-                        &s.agent_rows,
-                        &s.pair_anchors,
-                        agents.clone(),
+                        &agents.rows,
+                        anchors,
+                        queries,
+                        candidates.clone(),
                         slot,
                         w,
                         scales,
-                        &mut s.pair_features[s.pair_starts[scene] + slot * per_slot..][..per_slot],
+                        &mut s.pair_features[s.pair_starts[scene * w + slot]..][..per_slot],
                     );
                 }
             }
         }
         let valid_token = |compact_token: usize| {
-            inputs.valid[s.agent_rows[compact_token / w] * w + compact_token % w] > 0.0
+            inputs.valid[agents.rows[compact_token / w] * w + compact_token % w] > 0.0
         };
         let heads = self.heads;
         let scale = 1.0 / ((d / heads) as f32).sqrt();
         let p = cache.polylines;
         let all_polylines: Vec<usize> = (0..p).collect();
         let agent_polylines: Vec<usize> = (0..k).collect();
+        let exchange = share.exchange;
         for (block_index, blk) in self.blocks.iter().enumerate() {
             // Time attention: the W slots of each agent.
-            blk.ln_time.forward(&s.h[..n * d], &mut s.t[..n * d]);
-            blk.time_qkv
-                .forward(&s.t[..n * d], n, &mut s.qkv[..n * 3 * d]);
-            for agent in 0..s.agent_rows.len() {
-                s.queries.clear();
-                s.queries.extend(agent * w..(agent + 1) * w);
-                unmasked_keys(&s.queries, &valid_token, &mut s.keys);
-                let kv = KeysValues::stacked(&s.qkv, d);
-                attend(
-                    &s.qkv,
-                    3 * d,
-                    &s.queries,
-                    &kv,
-                    &s.keys,
-                    None,
-                    heads,
-                    scale,
-                    &mut s.attention,
-                    &mut s.att,
-                );
-            }
-            blk.time_o
-                .forward_add(&s.att[..n * d], n, &mut s.h[..n * d]);
-
-            // Agent attention: the agents of each slot.
-            blk.ln_agents.forward(&s.h[..n * d], &mut s.t[..n * d]);
-            blk.agents_qkv
-                .forward(&s.t[..n * d], n, &mut s.qkv[..n * 3 * d]);
-            for scene in 0..b {
-                let agents = s.scene_starts[scene]..s.scene_starts[scene + 1];
-                for slot in 0..w {
+            blk.ln_time.forward(&s.h[rows(d)], &mut s.t[rows(d)]);
+            exchange.publish(share.worker, 0, all_tokens * 3 * d, |projections| {
+                blk.time_qkv
+                    .forward(&s.t[rows(d)], n, &mut projections[rows(3 * d)]);
+            });
+            {
+                let published = exchange.gather(0);
+                let parts = published.parts();
+                let kv = KeysValues::stacked_parts(&parts, d);
+                let my_projections = parts[share.worker].1;
+                for agent in my_agents.clone() {
+                    let agent_tokens = agent * w..(agent + 1) * w;
                     s.queries.clear();
-                    s.queries
-                        .extend(agents.clone().map(|agent| agent * w + slot));
-                    unmasked_keys(&s.queries, &valid_token, &mut s.keys);
-                    let pairs = match &blk.agents_pairs {
-                        Some((k_weights, v_weights)) => {
-                            s.key_positions.clear();
-                            s.key_positions
-                                .extend(s.keys.iter().map(|&key| key / w - agents.start));
-                            let per_slot = agents.len() * agents.len() * PAIR_FEATURES;
-                            Some(PairTerms {
-                                features: &s.pair_features
-                                    [s.pair_starts[scene] + slot * per_slot..][..per_slot],
-                                key_positions: &s.key_positions,
-                                candidates: agents.len(),
-                                k_weights,
-                                v_weights,
-                            })
-                        }
-                        _ => None,
-                    };
-                    let kv = KeysValues::stacked(&s.qkv, d);
+                    s.queries.extend(overlap(&agent_tokens, &mine));
+                    s.candidates.clear();
+                    s.candidates.extend(agent_tokens);
+                    unmasked_keys(&s.candidates, &valid_token, &mut s.keys);
                     attend(
-                        &s.qkv,
+                        my_projections,
                         3 * d,
                         &s.queries,
                         &kv,
                         &s.keys,
-                        pairs.as_ref(),
+                        None,
                         heads,
                         scale,
                         &mut s.attention,
@@ -859,25 +1116,82 @@ impl FastDenoiser {
                     );
                 }
             }
+            blk.time_o
+                .forward_add(&s.att[rows(d)], n, &mut s.h[rows(d)]);
+
+            // Agent attention: the agents of each slot.
+            blk.ln_agents.forward(&s.h[rows(d)], &mut s.t[rows(d)]);
+            exchange.publish(share.worker, 1, all_tokens * 3 * d, |projections| {
+                blk.agents_qkv
+                    .forward(&s.t[rows(d)], n, &mut projections[rows(3 * d)]);
+            });
+            {
+                let published = exchange.gather(1);
+                let parts = published.parts();
+                let kv = KeysValues::stacked_parts(&parts, d);
+                let my_projections = parts[share.worker].1;
+                for scene in 0..b {
+                    let candidates = agents.scene(scene);
+                    for slot in 0..w {
+                        let queries = overlap(&candidates, &agents_at_slot(&mine, slot, w));
+                        if queries.is_empty() {
+                            continue;
+                        }
+                        s.queries.clear();
+                        s.queries
+                            .extend(queries.clone().map(|agent| agent * w + slot));
+                        s.candidates.clear();
+                        s.candidates
+                            .extend(candidates.clone().map(|agent| agent * w + slot));
+                        unmasked_keys(&s.candidates, &valid_token, &mut s.keys);
+                        let pairs = match &blk.agents_pairs {
+                            Some((k_weights, v_weights)) => {
+                                s.key_positions.clear();
+                                s.key_positions
+                                    .extend(s.keys.iter().map(|&key| key / w - candidates.start));
+                                let per_slot = queries.len() * candidates.len() * PAIR_FEATURES;
+                                Some(PairTerms {
+                                    features: &s.pair_features[s.pair_starts[scene * w + slot]..]
+                                        [..per_slot],
+                                    key_positions: &s.key_positions,
+                                    candidates: candidates.len(),
+                                    k_weights,
+                                    v_weights,
+                                })
+                            }
+                            _ => None,
+                        };
+                        attend(
+                            my_projections,
+                            3 * d,
+                            &s.queries,
+                            &kv,
+                            &s.keys,
+                            pairs.as_ref(),
+                            heads,
+                            scale,
+                            &mut s.attention,
+                            &mut s.att,
+                        );
+                    }
+                }
+            }
             blk.agents_o
-                .forward_add(&s.att[..n * d], n, &mut s.h[..n * d]);
+                .forward_add(&s.att[rows(d)], n, &mut s.h[rows(d)]);
 
             // Map cross-attention: every token of a scene to that scene's polylines, or to its
             // agent's own.
-            blk.ln_map.forward(&s.h[..n * d], &mut s.t[..n * d]);
-            blk.map_q.forward(&s.t[..n * d], n, &mut s.qkv[..n * d]);
+            blk.ln_map.forward(&s.h[rows(d)], &mut s.t[rows(d)]);
+            blk.map_q.forward(&s.t[rows(d)], n, &mut s.map_q[rows(d)]);
             let blocks = self.blocks.len();
-            // Query groups: each agent's W tokens (agent maps), or each scene's tokens.
-            let groups = if k > 0 {
-                s.agent_rows.len()
-            } else {
-                inputs.scene_ids.len()
-            };
-            for group in 0..groups {
+            // Query groups: each agent's tokens (agent maps), or each scene's.
+            let groups = if k > 0 { my_agents.clone() } else { 0..b };
+            for group in groups {
                 s.queries.clear();
                 let kv = if k > 0 {
-                    s.queries.extend(group * w..(group + 1) * w);
-                    let slab = s.agent_slab[group];
+                    s.queries
+                        .extend(overlap(&(group * w..(group + 1) * w), &mine));
+                    let slab = s.agent_slab[group - my_agents.start];
                     let flags = &s.agent_map_valid[slab * k..][..k];
                     unmasked_keys(&agent_polylines, &|key| flags[key] > 0.0, &mut s.keys);
                     KeysValues::side_by_side(
@@ -885,21 +1199,26 @@ impl FastDenoiser {
                         d,
                     )
                 } else {
+                    let scene_agents = agents.scene(group);
+                    let scene_tokens = scene_agents.start * w..scene_agents.end * w;
+                    s.queries.extend(overlap(&scene_tokens, &mine));
+                    if s.queries.is_empty() {
+                        continue;
+                    }
                     let scene = inputs.scene_ids[group];
-                    s.queries
-                        .extend(s.scene_starts[group] * w..s.scene_starts[group + 1] * w);
                     unmasked_keys(
                         &all_polylines,
-                        &|key| cache.map_valid[scene * p + key] > 0.0,
+                        &|key| cache.data.map_valid[scene * p + key] > 0.0,
                         &mut s.keys,
                     );
                     KeysValues::side_by_side(
-                        &cache.map_kv[(scene * blocks + block_index) * p * 2 * d..][..p * 2 * d],
+                        &cache.data.map_kv[(scene * blocks + block_index) * p * 2 * d..]
+                            [..p * 2 * d],
                         d,
                     )
                 };
                 attend(
-                    &s.qkv,
+                    &s.map_q,
                     d,
                     &s.queries,
                     &kv,
@@ -911,39 +1230,42 @@ impl FastDenoiser {
                     &mut s.att,
                 );
             }
-            blk.map_o.forward_add(&s.att[..n * d], n, &mut s.h[..n * d]);
+            blk.map_o.forward_add(&s.att[rows(d)], n, &mut s.h[rows(d)]);
 
             // MLP.
-            blk.ln_mlp.forward(&s.h[..n * d], &mut s.t[..n * d]);
-            blk.mlp_in.forward(&s.t[..n * d], n, &mut s.hidden[..n * m]);
-            for v in &mut s.hidden[..n * m] {
+            blk.ln_mlp.forward(&s.h[rows(d)], &mut s.t[rows(d)]);
+            blk.mlp_in.forward(&s.t[rows(d)], n, &mut s.hidden[rows(m)]);
+            for v in &mut s.hidden[rows(m)] {
                 *v = v.max(0.0);
             }
             blk.mlp_out
-                .forward_add(&s.hidden[..n * m], n, &mut s.h[..n * d]);
+                .forward_add(&s.hidden[rows(m)], n, &mut s.h[rows(d)]);
         }
-        self.ln_out.forward(&s.h[..n * d], &mut s.t[..n * d]);
-        self.head.forward(&s.t[..n * d], n, &mut s.f[..n * 3]);
-        self.precondition_output(inputs, a, &s.compact_of, &s.f[..n * 3], out);
+        self.ln_out.forward(&s.h[rows(d)], &mut s.t[rows(d)]);
+        self.head.forward(&s.t[rows(d)], n, &mut s.f[rows(3)]);
+        self.precondition_output(inputs, agents, share.out_tokens.clone(), &s.f, out);
     }
 
-    /// Token embeddings `h [agents, W, D]` of the evaluated agent rows (docs/checkpoint.md,
-    /// step 2, with the agent frame).
+    /// Token embeddings `h [compact tokens, D]` of the compact tokens `tokens`
+    /// (docs/checkpoint.md, step 2, with the agent frame).
     fn embed(
         &self,
         cache: &SceneCache,
         inputs: &FastInputs<'_>,
-        agent_rows: &[usize],
+        agents: &EvaluatedAgents,
+        tokens: Range<usize>,
         h: &mut [f32],
     ) {
         let (a, w, d) = (cache.agents, self.slots, self.hidden);
         let sd = self.sigma_data;
-        for (compact, &agent_row) in agent_rows.iter().enumerate() {
+        for compact in agents_of(&tokens, w) {
+            let agent_row = agents.rows[compact];
             let (local, agent) = (agent_row / a, agent_row % a);
             let scene = inputs.scene_ids[local];
-            let agent_embedding = &cache.agent_embedding[(scene * a + agent) * d..][..d];
+            let agent_embedding = &cache.data.agent_embedding[(scene * a + agent) * d..][..d];
             let anchor = self.anchor(inputs, agent_row);
-            for slot in 0..w {
+            for compact_token in overlap(&(compact * w..(compact + 1) * w), &tokens) {
+                let slot = compact_token % w;
                 let token = agent_row * w + slot;
                 let sigma = inputs.sigma[local * w + slot];
                 let c_in = 1.0 / (sigma * sigma + sd * sd).sqrt();
@@ -955,7 +1277,7 @@ impl FastDenoiser {
                     x[1] * c_in * valid,
                     x[2] * c_in * valid,
                 ];
-                let row = &mut h[(compact * w + slot) * d..][..d];
+                let row = &mut h[compact_token * d..][..d];
                 let st = &self.embed_state;
                 let nz = &self.embed_noise;
                 let slot_row = &self.slot_embedding[slot * d..][..d];
@@ -1071,31 +1393,30 @@ impl FastDenoiser {
 
     /// `D = c_skip · x + c_out · F · valid`, `F`'s position part turned back from the agent
     /// frame (docs/checkpoint.md, step 5); with a constant-velocity reference `r` and scale
-    /// `s`, `D = r + (c_skip(σs) · s(x − r) + c_out(σs) · F · valid) / s`. Rows left out
-    /// (`compact_of` = MAX) have no valid slot, hence no anchor, and `F · valid` = 0.
+    /// `s`, `D = r + (c_skip(σs) · s(x − r) + c_out(σs) · F · valid) / s`, for the batch
+    /// tokens `tokens` (`out` starts at the first). Rows not evaluated (`compact_of` = MAX)
+    /// have no valid slot, hence no anchor, and `F · valid` = 0.
     fn precondition_output(
         &self,
         inputs: &FastInputs<'_>,
-        a: usize,
-        compact_of: &[usize],
+        agents: &EvaluatedAgents,
+        tokens: Range<usize>,
         f: &[f32],
         out: &mut [f32],
     ) {
         let w = self.slots;
         let sd = self.sigma_data;
-        for (agent_row, &compact) in compact_of
-            .iter()
-            .enumerate()
-            .take(inputs.scene_ids.len() * a)
-        {
+        let a = agents.compact_of.len() / inputs.scene_ids.len();
+        for agent_row in agents_of(&tokens, w) {
+            let compact = agents.compact_of[agent_row];
             let anchor = if compact == usize::MAX {
                 None
             } else {
                 self.anchor(inputs, agent_row)
             };
             let local = agent_row / a;
-            for slot in 0..w {
-                let token = agent_row * w + slot;
+            for token in overlap(&(agent_row * w..(agent_row + 1) * w), &tokens) {
+                let slot = token % w;
                 let x = &inputs.x[3 * token..][..3];
                 let (reference, scale) = match &anchor {
                     Some(anchor) if anchor.residual_scale.is_some() => (
@@ -1108,7 +1429,7 @@ impl FastDenoiser {
                 let denom = sigma * sigma + sd * sd;
                 let c_skip = sd * sd / denom;
                 let c_out = sigma * sd / denom.sqrt();
-                let o = &mut out[3 * token..][..3];
+                let o = &mut out[3 * (token - tokens.start)..][..3];
                 if compact == usize::MAX {
                     for c in 0..3 {
                         o[c] = c_skip * x[c];
@@ -1176,27 +1497,29 @@ fn unmasked_keys(candidates: &[usize], is_valid: &dyn Fn(usize) -> bool, keys: &
     }
 }
 
-/// The pair features of slot `slot` between the evaluated agents `agents` (compact indices,
-/// one scene's) into `out [agents, agents, F]`, as [`crate::agent_pairs::pair_features_of`].
+/// The pair features of slot `slot` between the evaluated agents `queries` and
+/// `candidates` (compact indices, one scene's; `query_anchors` the queries') into
+/// `out [queries, candidates, F]`, as [`crate::agent_pairs::pair_features_of`].
 #[allow(clippy::too_many_arguments)]
 fn slot_pair_features(
     x: &[f32],
     agent_rows: &[usize],
-    anchors: &[MapAnchor],
-    agents: std::ops::Range<usize>,
+    query_anchors: &[MapAnchor],
+    queries: Range<usize>,
+    candidates: Range<usize>,
     slot: usize,
     slots: usize,
     scales: PairScales,
     out: &mut [f32],
 ) {
     let f = PAIR_FEATURES;
-    let n = agents.len();
+    let n = candidates.len();
     let state = |compact: usize| &x[3 * (agent_rows[compact] * slots + slot)..][..3];
-    for (qi, query) in agents.clone().enumerate() {
-        for (kj, key) in agents.clone().enumerate() {
+    for (qi, (query, &anchor)) in queries.zip(query_anchors).enumerate() {
+        for (kj, key) in candidates.clone().enumerate() {
             out[(qi * n + kj) * f..][..f].copy_from_slice(&pair_features(
                 state(query),
-                anchors[query],
+                anchor,
                 state(key),
                 scales,
             ));

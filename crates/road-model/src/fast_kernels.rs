@@ -16,34 +16,59 @@ const LANES: usize = 8;
 
 const LN_EPS: f32 = 1e-5;
 
-/// Keys and values of attention: row r of `data` holds its key at `k_offset` and its value at
+/// Keys and values of attention: key row r holds its key at `k_offset` and its value at
 /// `v_offset` (`D` values each).
 pub(crate) struct KeysValues<'a> {
-    data: &'a [f32],
+    rows: KeyRows<'a>,
     stride: usize,
     k_offset: usize,
     v_offset: usize,
+}
+
+/// Where the key rows live: one buffer, or the buffers of the workers that evaluate one scene
+/// together (`(end, buffer)` each: the keys below `end` not in an earlier part are rows of
+/// `buffer`, indexed as in the whole batch).
+enum KeyRows<'a> {
+    One(&'a [f32]),
+    Parts(&'a [(usize, &'a [f32])]),
 }
 
 impl<'a> KeysValues<'a> {
     /// Cross-attention: rows of `[k; v]` from one stacked product, `2D` wide.
     pub(crate) fn side_by_side(kv: &'a [f32], d: usize) -> Self {
         Self {
-            data: kv,
+            rows: KeyRows::One(kv),
             stride: 2 * d,
             k_offset: 0,
             v_offset: d,
         }
     }
 
-    /// Self-attention: rows of `[q; k; v]` from one stacked product, `3D` wide.
-    pub(crate) fn stacked(qkv: &'a [f32], d: usize) -> Self {
+    /// Self-attention: rows of `[q; k; v]` from one stacked product, `3D` wide, that one or
+    /// several workers computed, each its own range of rows in its own buffer: `(end of the
+    /// range, buffer)`, ranges in order.
+    pub(crate) fn stacked_parts(parts: &'a [(usize, &'a [f32])], d: usize) -> Self {
         Self {
-            data: qkv,
+            rows: KeyRows::Parts(parts),
             stride: 3 * d,
             k_offset: d,
             v_offset: 2 * d,
         }
+    }
+
+    /// Key row `key`, from its start to the end of its buffer.
+    fn row(&self, key: usize) -> &'a [f32] {
+        let data = match self.rows {
+            KeyRows::One(data) => data,
+            KeyRows::Parts(parts) => {
+                let (_, data) = parts
+                    .iter()
+                    .find(|&&(end, _)| key < end)
+                    .expect("a key row beyond the last part");
+                data
+            }
+        };
+        &data[key * self.stride..]
     }
 
     fn width(&self) -> usize {
@@ -52,7 +77,7 @@ impl<'a> KeysValues<'a> {
 }
 
 /// The pair terms of agent attention ([`crate::config::AgentPairs`]) for one group whose
-/// queries are also its candidate keys: `features [queries, candidates, F]`, the position
+/// queries are some of its candidate keys: `features [queries, candidates, F]`, the position
 /// among the candidates of each key passed to [`attend`], and the offsets' weights `[D, F]`.
 pub(crate) struct PairTerms<'a> {
     pub(crate) features: &'a [f32],
@@ -191,7 +216,7 @@ fn attend_body<const FMA: bool>(
     keys_t.resize(d * padded, 0.0);
     values.clear();
     for (j, &key) in keys.iter().enumerate() {
-        let row = &kv.data[key * kv.stride..];
+        let row = kv.row(key);
         for (c, &k) in row[kv.k_offset..][..d].iter().enumerate() {
             keys_t[c * padded + j] = k;
         }
