@@ -33,7 +33,7 @@ import json
 import queue
 import threading
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from typing import Any, Optional
 
 import zenoh
@@ -128,6 +128,8 @@ class NpcTick:
     off_road: list[int]
     latency_ms: float
     compute_ms: float
+    # Of ``latency_ms``: the wait for other scenes' engine rounds (protocol 3).
+    queue_ms: float = 0.0
     late_external: list[AgentState] = field(default_factory=list)
     # Each NPC's plan, when the scene was created with ``plans=True``.
     plans: list[AgentPlan] = field(default_factory=list)
@@ -179,20 +181,27 @@ class RoadError(Exception):
         self.reply = reply
 
 
+def _reply(cls, d: dict):
+    """``cls`` from a reply's JSON object, ignoring fields this client does not know: a newer
+    server may add reply fields (protocol 3); requests stay strict on the server's side."""
+    known = {f.name for f in fields(cls)}
+    return cls(**{k: v for k, v in d.items() if k in known})
+
+
 def _pose(d: dict) -> Pose:
-    return Pose(**d)
+    return _reply(Pose, d)
 
 
 def _state(d: dict) -> AgentState:
-    return AgentState(**d)
+    return _reply(AgentState, d)
 
 
 def _created(d: dict) -> SceneCreated:
     d = dict(d)
     d["agents"] = [
-        AgentInfo(**{**a, "history": [_pose(p) for p in a["history"]]}) for a in d["agents"]
+        _reply(AgentInfo, {**a, "history": [_pose(p) for p in a["history"]]}) for a in d["agents"]
     ]
-    return SceneCreated(**d)
+    return _reply(SceneCreated, d)
 
 
 def _npc_tick(d: dict) -> NpcTick:
@@ -200,7 +209,7 @@ def _npc_tick(d: dict) -> NpcTick:
     d["npcs"] = [_state(a) for a in d["npcs"]]
     d["late_external"] = [_state(a) for a in d.get("late_external", [])]
     d["plans"] = [AgentPlan(p["id"], [_pose(q) for q in p["poses"]]) for p in d.get("plans", [])]
-    return NpcTick(**d)
+    return _reply(NpcTick, d)
 
 
 def _error(payload: bytes) -> RoadError:
@@ -450,7 +459,7 @@ class Client:
     def close_scene(self, scene: int) -> SceneClosed:
         reply = self._query(f"{self.prefix}/scenes/close",
                             json.dumps({"scene": scene, "client": self.client_id}).encode())
-        return SceneClosed(**reply)
+        return _reply(SceneClosed, reply)
 
     def close(self) -> None:
         # Its scenes' waits end with an error instead of running to their timeout.

@@ -8,7 +8,22 @@ import time
 
 import pytest
 
-from road_client import Client, RoadError, Scene, SceneCreated, _scene_topic, open_session
+from road_client import (Client, RoadError, Scene, SceneCreated, _created, _npc_tick,
+                         _scene_topic, open_session)
+
+
+def test_replies_with_fields_this_client_does_not_know_still_parse():
+    # Protocol 3: a newer server may add reply fields; the client keeps what it knows.
+    tick = _npc_tick({"scene": 1, "tick": 2, "time_s": 0.2, "npcs": [{"id": 3, "x_m": 1.0,
+                      "y_m": 2.0, "heading_rad": 0.0, "new": 1}], "collisions": [],
+                      "off_road": [], "latency_ms": 5.0, "compute_ms": 4.0, "queue_ms": 0.5,
+                      "a_field_from_the_future": [1, 2]})
+    assert (tick.scene, tick.tick, tick.queue_ms, tick.npcs[0].id) == (1, 2, 0.5, 3)
+    created = _created({"protocol": 9, "scene": 4, "agents": [], "planner": "p",
+                        "checkpoint": "c", "observed_steps": 10, "step_secs": 0.1,
+                        "max_ticks": 5, "late_ego_deadline_ms": 0, "ego_key": "e",
+                        "npc_key": "n", "error_key": "x", "something_new": {}})
+    assert created.scene == 4
 
 
 def test_scene_keys_name_their_scene_and_topic():
@@ -21,7 +36,7 @@ def test_scene_keys_name_their_scene_and_topic():
 
 def created(scene: int) -> SceneCreated:
     base = f"road/client/me/scene/{scene}"
-    return SceneCreated(protocol=2, scene=scene, agents=[], planner="road20", checkpoint="road20",
+    return SceneCreated(protocol=3, scene=scene, agents=[], planner="road20", checkpoint="road20",
                         observed_steps=10, step_secs=0.1, max_ticks=10, late_ego_deadline_ms=0,
                         ego_key=f"{base}/ego", npc_key=f"{base}/npc", error_key=f"{base}/error")
 

@@ -38,6 +38,7 @@ fn npc(scene: u64, tick: u64) -> Vec<u8> {
         plans: Vec::new(),
         latency_ms: 0.0,
         compute_ms: 0.0,
+        queue_ms: 0.0,
     })
     .unwrap()
 }

@@ -7,7 +7,8 @@
 //! histories given at creation; step `t ≥ 1` is `t · step_secs` later.
 //!
 //! Requests refuse unknown fields (`#[serde(deny_unknown_fields)]`): a misspelt optional field
-//! would otherwise be silently ignored.
+//! would otherwise be silently ignored. Replies (server to client) ignore them, so that a
+//! server may add a reply field without breaking the clients already deployed (protocol 3).
 
 use serde::{Deserialize, Serialize};
 
@@ -15,7 +16,8 @@ use serde::{Deserialize, Serialize};
 ///
 /// 2: a scene's ego, NPC and error keys name its client (`<prefix>/client/<id>/scene/<n>/…`),
 /// and a scene must have a client.
-pub const PROTOCOL_VERSION: u32 = 2;
+/// 3: `NpcTick::queue_ms`; clients ignore reply fields they do not know.
+pub const PROTOCOL_VERSION: u32 = 3;
 
 /// The key prefix a server uses unless configured otherwise.
 pub const DEFAULT_PREFIX: &str = "road";
@@ -231,7 +233,6 @@ impl CreateScene {
 
 /// What the server made of an agent.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
 pub struct AgentInfo {
     pub id: u32,
     pub length_m: f64,
@@ -243,7 +244,6 @@ pub struct AgentInfo {
 
 /// The `create` queryable's reply.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
 pub struct SceneCreated {
     pub protocol: u32,
     pub scene: u64,
@@ -322,7 +322,6 @@ pub struct EgoTick {
 /// Every NPC at step `tick` (published on the scene's npc key), with the step's
 /// infractions.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
 pub struct NpcTick {
     pub scene: u64,
     pub tick: u64,
@@ -348,12 +347,16 @@ pub struct NpcTick {
     pub latency_ms: f64,
     /// Milliseconds of engine compute for this tick (part of `latency_ms`).
     pub compute_ms: f64,
+    /// Milliseconds of `latency_ms` spent waiting for engine rounds of other scenes that were
+    /// already running when the ego arrived (continuous batching: a tick joins the next
+    /// round). `latency_ms − compute_ms − queue_ms` is the server's own time.
+    #[serde(default)]
+    pub queue_ms: f64,
 }
 
 /// One NPC's plan: its poses at ticks `tick + 1`, `tick + 2`, … of the [`NpcTick`] that holds
 /// it, 0.1 s apart.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
 pub struct AgentPlan {
     pub id: u32,
     pub poses: Vec<Pose>,
@@ -370,7 +373,6 @@ pub struct CloseScene {
 
 /// The `close` queryable's reply.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
 pub struct SceneClosed {
     pub scene: u64,
     pub ticks: u64,
@@ -380,7 +382,6 @@ pub struct SceneClosed {
 
 /// Percentiles of a latency sample, milliseconds.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
 pub struct Percentiles {
     pub count: u64,
     pub p50_ms: f64,
@@ -391,7 +392,6 @@ pub struct Percentiles {
 
 /// One live scene in the status.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
 pub struct SceneStatus {
     pub scene: u64,
     pub tick: u64,
@@ -405,7 +405,6 @@ pub struct SceneStatus {
 
 /// The `status` queryable's reply.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
 pub struct Status {
     pub protocol: u32,
     pub engine: String,
@@ -421,6 +420,10 @@ pub struct Status {
     pub tick_latency: Percentiles,
     /// Engine compute per scene-tick, over the same ticks.
     pub compute: Percentiles,
+    /// Wait for other scenes' running rounds per scene-tick (`NpcTick::queue_ms`), over the
+    /// same ticks.
+    #[serde(default)]
+    pub queue: Percentiles,
 }
 
 /// What went wrong, by kind; `docs/protocol.md` has one row per kind.
@@ -457,7 +460,6 @@ pub enum ErrorCode {
 
 /// An error reply (a query's error reply, or a message on a scene's error key).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
 pub struct ErrorReply {
     pub code: ErrorCode,
     /// The input at fault, as a JSON path (`agents[2].history[0].x_m`, `map.osm`, `tick`).
@@ -589,6 +591,24 @@ mod tests {
         let e = parse::<EgoTick>(&[0xff, 0xfe, 0x00]).unwrap_err();
         assert_eq!(e.code, ErrorCode::MalformedJson);
         assert!(e.message.contains("UTF-8"), "{e}");
+    }
+
+    #[test]
+    fn replies_ignore_fields_they_do_not_know_and_requests_refuse_them() {
+        // A newer server's reply field must not break a deployed client (protocol 3) …
+        let tick: NpcTick = serde_json::from_str(
+            r#"{"scene":1,"tick":2,"time_s":0.2,"npcs":[],"collisions":[],"off_road":[],
+                "latency_ms":5.0,"compute_ms":4.0,"a_field_from_the_future":[1,2]}"#,
+        )
+        .unwrap();
+        assert_eq!((tick.scene, tick.tick, tick.queue_ms), (1, 2, 0.0));
+        let closed: SceneClosed =
+            serde_json::from_str(r#"{"scene":3,"ticks":9,"new":true}"#).unwrap();
+        assert_eq!((closed.scene, closed.ticks), (3, 9));
+        // … while a misspelt request field is still refused by name.
+        let e = parse::<EgoTick>(br#"{"tick":1,"agents":[],"tik":2}"#).unwrap_err();
+        assert_eq!(e.code, ErrorCode::UnknownField);
+        assert_eq!(e.field.as_deref(), Some("tik"));
     }
 
     #[test]

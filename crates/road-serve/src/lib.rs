@@ -11,6 +11,8 @@
 //! - [`pool`]: continuous batching: the scenes of one checkpoint and planner share an engine,
 //!   one batched Heun round at a time;
 //! - [`record`]: one MCAP file per scene (raw protocol messages and `foxglove.SceneUpdate`);
+//! - `writer`: the thread that records every scene and feeds the live view, so that the
+//!   core's rounds never wait on either;
 //! - [`live`]: the live view, a Foxglove WebSocket server showing every live scene's map and
 //!   agent boxes (`road serve --foxglove ADDR`);
 //! - [`server`]: the zenoh front end and the core loop that batches the scenes whose ego has
@@ -26,6 +28,7 @@ pub mod pool;
 pub mod record;
 pub mod scene;
 pub mod server;
+mod writer;
 
 pub use config::{ServeConfig, ZenohArgs};
 pub use server::{Server, ServerHandle};

@@ -544,6 +544,9 @@ pub struct InFlight {
     /// Engine time of the rounds this tick has taken part in (shared with the scenes batched
     /// beside it), seconds.
     pub compute_secs: f64,
+    /// Engine time of other scenes' rounds between `started` and the tick's first round,
+    /// seconds.
+    pub queue_secs: f64,
 }
 
 impl std::fmt::Debug for LiveScene {
@@ -790,8 +793,14 @@ impl LiveScene {
 
     /// Starts the next tick in the pool with the pending ego, or (late: no ego by the
     /// deadline) with the model driving the external agents; `started` is where its latency
-    /// runs from. Clears the pending ego.
-    pub fn begin_tick(&mut self, pool: &mut Pool, started: Instant) -> crate::Result<()> {
+    /// runs from, `queue_secs` what it waited for other scenes' rounds since. Clears the
+    /// pending ego.
+    pub fn begin_tick(
+        &mut self,
+        pool: &mut Pool,
+        started: Instant,
+        queue_secs: f64,
+    ) -> crate::Result<()> {
         let pending = self.pending.take();
         let late = pending.is_none();
         let mut driver = TickDriver {
@@ -803,6 +812,7 @@ impl LiveScene {
             late,
             started,
             compute_secs: 0.0,
+            queue_secs,
         });
         Ok(())
     }
@@ -883,6 +893,7 @@ impl LiveScene {
                 .collect(),
             latency_ms: flight.started.elapsed().as_secs_f64() * 1e3,
             compute_ms: flight.compute_secs * 1e3,
+            queue_ms: flight.queue_secs * 1e3,
         };
         Ok(TickOutput {
             npc,

@@ -11,8 +11,9 @@
 //!
 //! Each scene's `foxglove.SceneUpdate` messages (the map at creation, the agents' boxes at
 //! creation and after every tick) are built once and go to the recording and, when
-//! [`ServeConfig::foxglove_listen`] is set, to the live view ([`crate::live`]), whose queue
-//! the core only ever pushes onto.
+//! [`ServeConfig::foxglove_listen`] is set, to the live view ([`crate::live`]). After
+//! creation, recording and the live view's boxes are the scene writer's ([`crate::writer`]):
+//! the core queues each published tick there and goes on with the next round.
 
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::net::SocketAddr;
@@ -33,13 +34,12 @@ use zenoh::query::Query;
 use zenoh::sample::SampleKind;
 
 use crate::config::ServeConfig;
-use crate::live::{ChannelId, ChannelSpec, LiveView};
+use crate::live::LiveView;
 use crate::models::{Checkpoints, find_models_dir, planners};
 use crate::pool::{Pool, PoolKey};
-use crate::record::{
-    Recorder, agents_update, clear_update, free_path, map_update, topics, unix_nanos,
-};
+use crate::record::{Recorder, agents_update, free_path, map_update, topics, unix_nanos};
 use crate::scene::{LiveScene, SetupContext, setup};
+use crate::writer::{LiveChannels, SceneWriter};
 use crate::{Error, Result};
 
 /// Latency samples kept for the status percentiles.
@@ -123,8 +123,12 @@ impl Server {
         }
         let planners = planners()?;
         // Bound before the session opens: a taken port fails the start, not a later scene.
-        let live_view = config.foxglove_listen.map(LiveView::start).transpose()?;
-        let foxglove = live_view.as_ref().map(LiveView::local_addr);
+        let live_view = config
+            .foxglove_listen
+            .map(LiveView::start)
+            .transpose()?
+            .map(Arc::new);
+        let foxglove = live_view.as_deref().map(LiveView::local_addr);
         let keys = Keys::new(&config.prefix);
         let listen = self
             .zenoh
@@ -211,6 +215,7 @@ impl Server {
             .declare_token(keys.server_alive())
             .wait()?;
 
+        let writer = SceneWriter::start(live_view.clone(), config.flush_interval);
         let core = Core {
             engine: "fast CPU engine (continuous batching: one pool per checkpoint and planner)"
                 .into(),
@@ -225,7 +230,7 @@ impl Server {
             closed: BTreeSet::new(),
             next_id: 1,
             stats: Stats::default(),
-            last_flush: Instant::now(),
+            writer,
             live_view,
         };
         let handle = std::thread::Builder::new()
@@ -313,7 +318,13 @@ struct Stats {
     max_batch: usize,
     latency_ms: VecDeque<f64>,
     compute_ms: VecDeque<f64>,
+    queue_ms: VecDeque<f64>,
+    /// The last engine rounds (start, end), newest last: what a tick's ego waited for.
+    recent_rounds: VecDeque<(Instant, Instant)>,
 }
+
+/// Engine rounds remembered for the queue wait: a tick waits for at most one round per pool.
+const RECENT_ROUNDS: usize = 256;
 
 impl Stats {
     fn push(window: &mut VecDeque<f64>, v: f64) {
@@ -321,6 +332,29 @@ impl Stats {
             window.pop_front();
         }
         window.push_back(v);
+    }
+
+    fn push_round(&mut self, started: Instant, ended: Instant) {
+        if self.recent_rounds.len() == RECENT_ROUNDS {
+            self.recent_rounds.pop_front();
+        }
+        self.recent_rounds.push_back((started, ended));
+    }
+
+    /// Seconds of engine rounds between `from` and `to` (the part of each round inside).
+    fn engine_busy_secs(&self, from: Instant, to: Instant) -> f64 {
+        self.recent_rounds
+            .iter()
+            .rev()
+            .take_while(|&&(_, ended)| ended > from)
+            .map(|&(started, ended)| {
+                ended
+                    .min(to)
+                    .saturating_duration_since(started.max(from))
+                    .as_secs_f64()
+            })
+            // Not `sum()`: an empty f64 sum is −0.0, which prints as "-0.00".
+            .fold(0.0, |total, secs| total + secs)
     }
 }
 
@@ -346,26 +380,10 @@ pub fn percentiles(sample: &[f64]) -> Percentiles {
 
 struct SceneEntry {
     live: LiveScene,
-    recorder: Option<Recorder>,
-    /// The scene's channels in the live view, when there is one.
-    channels: Option<LiveChannels>,
-}
-
-/// A scene's channels in the live view: the topics of its recording under `/scene/<id>`.
-#[derive(Debug, Clone, Copy)]
-struct LiveChannels {
-    map: ChannelId,
-    agents: ChannelId,
-}
-
-impl LiveChannels {
-    fn advertise(view: &LiveView, scene: u64) -> Self {
-        let topic = |t: &str| ChannelSpec::scene_update(format!("/scene/{scene}{t}"));
-        Self {
-            map: view.advertise(topic(topics::MAP)),
-            agents: view.advertise(topic(topics::AGENTS)),
-        }
-    }
+    /// The scene is recorded (its recorder is the writer's).
+    recorded: bool,
+    /// The scene is in the live view (its channels are the writer's).
+    viewed: bool,
 }
 
 /// The core thread's state: every scene, the checkpoints, the statistics.
@@ -384,9 +402,10 @@ struct Core {
     closed: BTreeSet<u64>,
     next_id: u64,
     stats: Stats,
-    last_flush: Instant,
-    /// The Foxglove live view, when `config.foxglove_listen` is set.
-    live_view: Option<LiveView>,
+    /// The Foxglove live view, when `config.foxglove_listen` is set (shared with the writer).
+    live_view: Option<Arc<LiveView>>,
+    /// Records every scene and feeds the live view, on its own thread.
+    writer: SceneWriter,
 }
 
 fn payload_of(query: &Query) -> Vec<u8> {
@@ -449,8 +468,8 @@ impl Core {
         Ok(())
     }
 
-    /// How long the core may sleep: until the nearest late-ego deadline or recording flush,
-    /// at most 100 ms (idle checks).
+    /// How long the core may sleep: until the nearest late-ego deadline, at most 100 ms (idle
+    /// checks). Recordings flush on the writer's own clock.
     fn next_wakeup(&self) -> Duration {
         if self.pools.values().any(|p| p.ticks_in_progress() > 0) {
             // Ticks in flight: the next batched round is due now.
@@ -467,8 +486,7 @@ impl Core {
                 }
             }
         }
-        let flush = (self.last_flush + self.config.flush_interval).saturating_duration_since(now);
-        wait.min(flush)
+        wait
     }
 
     /// Handles one event; `false` to stop.
@@ -647,7 +665,7 @@ impl Core {
             planner = %live.planner_name,
             "scene created"
         );
-        let channels = self.live_view.as_ref().map(|view| {
+        let channels = self.live_view.as_deref().map(|view| {
             let channels = LiveChannels::advertise(view, id);
             if let Some(json) = map_json {
                 // Sent once: never dropped on the way to a viewer.
@@ -658,6 +676,11 @@ impl Core {
             }
             channels
         });
+        let (recorded, viewed) = (recorder.is_some(), channels.is_some());
+        if recorded || viewed {
+            self.writer
+                .start_scene(id, live.agents.clone(), recorder, channels);
+        }
         let mut live = live;
         // The late-ego clock starts when the client has the reply.
         live.waiting_since = Instant::now();
@@ -665,8 +688,8 @@ impl Core {
             id,
             SceneEntry {
                 live,
-                recorder,
-                channels,
+                recorded,
+                viewed,
             },
         );
         reply_ok(query, &created);
@@ -756,22 +779,12 @@ impl Core {
         let entry = self.scenes.remove(&id)?;
         self.closed.insert(id);
         self.leave_pool(id, &entry.live);
-        let recording = entry.recorder.and_then(|r| match r.finish() {
-            Ok(path) => Some(path.display().to_string()),
-            Err(e) => {
-                tracing::warn!(scene = id, "recording: {e}");
-                None
-            }
-        });
-        if let (Some(view), Some(channels)) = (&self.live_view, entry.channels) {
-            // Viewers clear the scene's entities before its channels go.
-            let nanos = unix_nanos(SystemTime::now());
-            let clear = clear_update(nanos).to_string();
-            view.publish_reliable(channels.agents, nanos, clear.clone().into_bytes());
-            view.publish_reliable(channels.map, nanos, clear.into_bytes());
-            view.unadvertise(channels.agents);
-            view.unadvertise(channels.map);
-        }
+        // After everything queued for it: the file is complete when the reply names it.
+        let recording = if entry.recorded || entry.viewed {
+            self.writer.finish(id)
+        } else {
+            None
+        };
         tracing::info!(scene = id, ticks = entry.live.tick, "scene closed: {why}");
         Some(SceneClosed {
             scene: id,
@@ -786,10 +799,9 @@ impl Core {
         tracing::debug!(client, scene = chunk, "refused: {error}");
         let json = serde_json::to_vec(error).expect("errors serialise");
         if let Ok(id) = chunk.parse::<u64>() {
-            if let Some(rec) = self.scenes.get_mut(&id).and_then(|e| e.recorder.as_mut()) {
-                if let Err(e) = rec.write(topics::ERROR, &json, SystemTime::now()) {
-                    tracing::warn!(scene = id, "recording: {e}");
-                }
+            if self.scenes.get(&id).is_some_and(|e| e.recorded) {
+                self.writer
+                    .record(id, topics::ERROR, json.clone(), SystemTime::now());
             }
         }
         // A chunk that is not a key chunk (it came from a key, so it is one) cannot fail here.
@@ -864,10 +876,8 @@ impl Core {
             Ok(pending) => {
                 entry.live.pending = Some(pending);
                 entry.live.last_heard = received;
-                if let Some(rec) = entry.recorder.as_mut() {
-                    if let Err(e) = rec.write(topics::EGO, payload, at) {
-                        tracing::warn!(scene = id, "recording: {e}");
-                    }
+                if entry.recorded {
+                    self.writer.record(id, topics::EGO, payload.to_vec(), at);
                 }
             }
             Err(e) => self.publish_error(client, chunk, &e),
@@ -906,7 +916,9 @@ impl Core {
                 .pools
                 .get_mut(&entry.live.pool)
                 .expect("a live scene's pool lives");
-            if let Err(e) = entry.live.begin_tick(pool, started) {
+            // What the tick waited for: the rounds of other scenes that ran since its ego came.
+            let queue_secs = self.stats.engine_busy_secs(started, now);
+            if let Err(e) = entry.live.begin_tick(pool, started, queue_secs) {
                 tracing::error!(scene = id, "tick failed: {e}");
                 failed.push((id, e.to_string()));
             }
@@ -923,7 +935,9 @@ impl Core {
             self.stats.max_batch = self.stats.max_batch.max(batch);
             let started = Instant::now();
             let result = pool.round();
-            let secs = started.elapsed().as_secs_f64();
+            let ended = Instant::now();
+            self.stats.push_round(started, ended);
+            let secs = (ended - started).as_secs_f64();
             for entry in self.scenes.values_mut() {
                 if let Some(flight) = entry.live.in_flight.as_mut() {
                     if entry.live.pool == *key {
@@ -945,9 +959,8 @@ impl Core {
                 }
             }
         }
-        // Every finished scene publishes first; the recordings follow, so that no reply
-        // waits behind the recording of the scenes published before it.
-        let mut published = Vec::with_capacity(finished.len());
+        // Each finished scene publishes at once; its recording and live-view boxes go to the
+        // writer's queue, so that no reply (and no next round) waits behind them.
         for (id, result) in finished {
             let Some(entry) = self.scenes.get_mut(&id) else {
                 continue;
@@ -961,9 +974,12 @@ impl Core {
             };
             let json = serde_json::to_vec(&out.npc).expect("ticks serialise");
             let at = SystemTime::now();
+            let wanted = entry.recorded || entry.viewed;
+            // The writer's copy, when it wants one; the put takes the original.
+            let kept = wanted.then(|| json.clone());
             if let Err(e) = self
                 .session
-                .put(self.keys.npc(&entry.live.client, id), json.clone())
+                .put(self.keys.npc(&entry.live.client, id), json)
                 .congestion_control(CongestionControl::Block)
                 .wait()
             {
@@ -972,30 +988,11 @@ impl Core {
             entry.live.waiting_since = Instant::now();
             Stats::push(&mut self.stats.latency_ms, out.npc.latency_ms);
             Stats::push(&mut self.stats.compute_ms, out.compute_secs * 1e3);
-            published.push((id, out, json, at));
-        }
-        for (id, out, json, at) in published {
-            let Some(entry) = self.scenes.get_mut(&id) else {
-                continue;
-            };
-            if entry.recorder.is_none() && entry.channels.is_none() {
-                continue;
-            }
-            let npc = &out.npc;
-            let late = !npc.late_external.is_empty();
-            let nanos = unix_nanos(at);
-            let boxes =
-                agents_update(&entry.live.agents, &out.poses, &npc.plans, late, nanos).to_string();
-            if let Some(rec) = entry.recorder.as_mut() {
-                let written = rec
-                    .write(topics::NPC, &json, at)
-                    .and_then(|()| rec.write(topics::AGENTS, boxes.as_bytes(), at));
-                if let Err(e) = written {
-                    tracing::warn!(scene = id, "recording: {e}");
-                }
-            }
-            if let (Some(view), Some(channels)) = (&self.live_view, entry.channels) {
-                view.publish(channels.agents, nanos, boxes.into_bytes());
+            Stats::push(&mut self.stats.queue_ms, out.npc.queue_ms);
+            if let Some(json) = kept {
+                let late = !out.npc.late_external.is_empty();
+                self.writer
+                    .tick(id, json, out.poses, out.npc.plans, late, at);
             }
         }
         for (id, message) in failed {
@@ -1015,18 +1012,8 @@ impl Core {
         }
     }
 
-    /// Flushes recordings that are due and closes idle scenes.
+    /// Closes idle scenes.
     fn housekeeping(&mut self) {
-        if self.last_flush.elapsed() >= self.config.flush_interval {
-            self.last_flush = Instant::now();
-            for (id, entry) in &mut self.scenes {
-                if let Some(rec) = entry.recorder.as_mut() {
-                    if let Err(e) = rec.flush_if_due(Duration::ZERO) {
-                        tracing::warn!(scene = id, "recording: {e}");
-                    }
-                }
-            }
-        }
         // Idle: no tick in progress or waiting, and nothing from the client since it last
         // heard from us (a long warm-up is the server's silence, not the client's).
         let idle: Vec<u64> = self
@@ -1052,6 +1039,7 @@ impl Core {
     fn status(&self) -> Status {
         let latency: Vec<f64> = self.stats.latency_ms.iter().copied().collect();
         let compute: Vec<f64> = self.stats.compute_ms.iter().copied().collect();
+        let queue: Vec<f64> = self.stats.queue_ms.iter().copied().collect();
         Status {
             protocol: PROTOCOL_VERSION,
             engine: self.engine.clone(),
@@ -1079,6 +1067,7 @@ impl Core {
             max_batch: self.stats.max_batch,
             tick_latency: percentiles(&latency),
             compute: percentiles(&compute),
+            queue: percentiles(&queue),
         }
     }
 }
@@ -1086,6 +1075,30 @@ impl Core {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_ticks_queue_wait_is_the_part_of_other_rounds_after_its_ego_came() {
+        let t0 = Instant::now();
+        let at = |ms: u64| t0 + Duration::from_millis(ms);
+        let mut stats = Stats::default();
+        stats.push_round(at(0), at(10));
+        stats.push_round(at(12), at(30));
+        stats.push_round(at(31), at(40));
+        let busy_ms =
+            |stats: &Stats, from: u64, to: u64| stats.engine_busy_secs(at(from), at(to)) * 1e3;
+        // The ego came during the second round: the rest of it, and all of the third.
+        assert!((busy_ms(&stats, 20, 41) - 19.0).abs() < 1e-6);
+        // It came between rounds and the next one was its own: no wait.
+        assert_eq!(busy_ms(&stats, 41, 41), 0.0);
+        assert!(busy_ms(&stats, 41, 41).is_sign_positive(), "0.0, not −0.0");
+        // Rounds before the ego came do not count, whatever their number.
+        for k in 0..RECENT_ROUNDS {
+            stats.push_round(at(50 + 2 * k as u64), at(51 + 2 * k as u64));
+        }
+        let last_end = 51 + 2 * (RECENT_ROUNDS as u64 - 1);
+        assert_eq!(busy_ms(&stats, last_end, last_end + 5), 0.0);
+        assert!((busy_ms(&stats, last_end - 1, last_end + 5) - 1.0).abs() < 1e-6);
+    }
 
     #[test]
     fn percentiles_by_nearest_rank() {

@@ -2,9 +2,11 @@
 //! process (TCP on 127.0.0.1, scouting off, recording on, no late-ego deadline); B client
 //! threads each drive a roundabout scene with a constant-velocity ego, one tick at a time.
 //! Per tick: the round trip at the client (put → NPCs received) beside the engine compute of
-//! the same tick (the baseline: the engine time of the batched rounds the tick took part in),
-//! and their difference, the front end's overhead (zenoh both ways, JSON, checks, recording,
-//! the core's bookkeeping between rounds).
+//! the same tick (the baseline: the engine time of the batched rounds the tick took part in)
+//! and its queue wait (the engine time of other scenes' rounds that were running when its ego
+//! came: continuous batching's cost, not the front end's), both from the reply; what is left
+//! is the front end's overhead (zenoh both ways, JSON, checks, recording, the core's
+//! bookkeeping between rounds).
 
 use std::path::Path;
 use std::sync::{Arc, Barrier};
@@ -27,8 +29,18 @@ pub struct ZenohRow {
     pub rtt_p99_ms: f64,
     pub compute_p50_ms: f64,
     pub compute_p99_ms: f64,
-    pub overhead_p50_ms: f64,
-    pub overhead_p99_ms: f64,
+    pub queue_p50_ms: f64,
+    pub queue_p99_ms: f64,
+    /// Round trip − compute − queue wait.
+    pub front_end_p50_ms: f64,
+    pub front_end_p99_ms: f64,
+    /// Of the front end, the server's own time: reply latency − compute − queue wait.
+    pub server_own_p50_ms: f64,
+    pub server_own_p99_ms: f64,
+    /// Of the front end, the rest: round trip − reply latency (zenoh both ways, the
+    /// publication, the client).
+    pub transport_p50_ms: f64,
+    pub transport_p99_ms: f64,
     pub scene_ticks_per_s: f64,
 }
 
@@ -52,7 +64,11 @@ pub fn run(checkpoint: &Path, scene_counts: &[usize], ticks: usize) -> Result<Ve
         anyhow::ensure!(b > 0, "--scenes must be at least 1");
         let mut config = ServeConfig::new(models.clone());
         config.default_checkpoint = name.to_owned();
-        config.record_dir = Some(record.clone());
+        config.record_dir = if std::env::var_os("NOREC").is_some() {
+            None
+        } else {
+            Some(record.clone())
+        };
         config.late_ego_deadline = Duration::ZERO;
         config.capacity = b.max(1);
         let endpoint = format!("tcp/127.0.0.1:{}", free_port()?);
@@ -72,7 +88,7 @@ pub fn run(checkpoint: &Path, scene_counts: &[usize], ticks: usize) -> Result<Ve
                     Client::with_session(session.clone(), DEFAULT_PREFIX, &format!("bench-{i}"))?;
                 client.set_timeout(Duration::from_secs(300));
                 let (ready, go) = (Arc::clone(&ready), Arc::clone(&go));
-                Ok(std::thread::spawn(move || -> Result<Vec<(f64, f64)>> {
+                Ok(std::thread::spawn(move || -> Result<Vec<TickTimes>> {
                     let prepared = (|| -> Result<_> {
                         let mut scene = client.create(CreateScene::procedural(
                             "roundabout",
@@ -92,7 +108,12 @@ pub fn run(checkpoint: &Path, scene_counts: &[usize], ticks: usize) -> Result<Ve
                     for t in 2..=ticks as u64 + 1 {
                         let sent = Instant::now();
                         let npc = scene.step(t, vec![ego_at(&created, t)?])?;
-                        out.push((sent.elapsed().as_secs_f64() * 1e3, npc.compute_ms));
+                        out.push(TickTimes {
+                            round_trip_ms: sent.elapsed().as_secs_f64() * 1e3,
+                            latency_ms: npc.latency_ms,
+                            compute_ms: npc.compute_ms,
+                            queue_ms: npc.queue_ms,
+                        });
                     }
                     scene.close()?;
                     Ok(out)
@@ -111,13 +132,16 @@ pub fn run(checkpoint: &Path, scene_counts: &[usize], ticks: usize) -> Result<Ve
         }
         let wall_s = started.elapsed().as_secs_f64();
         server.stop()?;
-        let rtt: Vec<f64> = samples.iter().map(|s| s.0).collect();
-        let compute: Vec<f64> = samples.iter().map(|s| s.1).collect();
-        let overhead: Vec<f64> = samples.iter().map(|s| s.0 - s.1).collect();
-        let (r, c, o) = (
-            percentiles(&rtt),
-            percentiles(&compute),
-            percentiles(&overhead),
+        let of = |f: fn(&TickTimes) -> f64| percentiles(&samples.iter().map(f).collect::<Vec<_>>());
+        let (r, c, q, o) = (
+            of(|t| t.round_trip_ms),
+            of(|t| t.compute_ms),
+            of(|t| t.queue_ms),
+            of(|t| t.round_trip_ms - t.compute_ms - t.queue_ms),
+        );
+        let (own, transport) = (
+            of(|t| t.latency_ms - t.compute_ms - t.queue_ms),
+            of(|t| t.round_trip_ms - t.latency_ms),
         );
         rows.push(ZenohRow {
             scenes: b,
@@ -126,13 +150,30 @@ pub fn run(checkpoint: &Path, scene_counts: &[usize], ticks: usize) -> Result<Ve
             rtt_p99_ms: r.p99_ms,
             compute_p50_ms: c.p50_ms,
             compute_p99_ms: c.p99_ms,
-            overhead_p50_ms: o.p50_ms,
-            overhead_p99_ms: o.p99_ms,
+            queue_p50_ms: q.p50_ms,
+            queue_p99_ms: q.p99_ms,
+            front_end_p50_ms: o.p50_ms,
+            front_end_p99_ms: o.p99_ms,
+            server_own_p50_ms: own.p50_ms,
+            server_own_p99_ms: own.p99_ms,
+            transport_p50_ms: transport.p50_ms,
+            transport_p99_ms: transport.p99_ms,
             scene_ticks_per_s: samples.len() as f64 / wall_s,
         });
     }
     let _ = std::fs::remove_dir_all(&record);
     Ok(rows)
+}
+
+/// One timed tick as its client saw it.
+struct TickTimes {
+    round_trip_ms: f64,
+    /// From the reply: ego arrival to the reply's making (before its publication).
+    latency_ms: f64,
+    /// From the reply: engine time of the rounds the tick took part in.
+    compute_ms: f64,
+    /// From the reply: engine time of other scenes' rounds it waited for.
+    queue_ms: f64,
 }
 
 /// The roundabout's agent 1 at `tick`, at constant velocity from its history.
@@ -145,20 +186,26 @@ fn ego_at(created: &SceneCreated, tick: u64) -> Result<AgentState> {
 /// Prints the table and the real-time estimate.
 pub fn print(rows: &[ZenohRow]) {
     out!(
-        "| scenes | timed ticks | round trip p50 / p99 ms | engine compute p50 / p99 ms | front-end overhead p50 / p99 ms | scene-ticks/s |"
+        "| scenes | timed ticks | round trip p50 / p99 ms | engine compute p50 / p99 ms | queue wait p50 / p99 ms | front end p50 / p99 ms | of which server p50 / p99 ms | of which zenoh & client p50 / p99 ms | scene-ticks/s |"
     );
-    out!("|---:|---:|---:|---:|---:|---:|");
+    out!("|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
     for r in rows {
         out!(
-            "| {} | {} | {:.2} / {:.2} | {:.2} / {:.2} | {:.2} / {:.2} | {:.1} |",
+            "| {} | {} | {:.2} / {:.2} | {:.2} / {:.2} | {:.2} / {:.2} | {:.2} / {:.2} | {:.2} / {:.2} | {:.2} / {:.2} | {:.1} |",
             r.scenes,
             r.timed_ticks,
             r.rtt_p50_ms,
             r.rtt_p99_ms,
             r.compute_p50_ms,
             r.compute_p99_ms,
-            r.overhead_p50_ms,
-            r.overhead_p99_ms,
+            r.queue_p50_ms,
+            r.queue_p99_ms,
+            r.front_end_p50_ms,
+            r.front_end_p99_ms,
+            r.server_own_p50_ms,
+            r.server_own_p99_ms,
+            r.transport_p50_ms,
+            r.transport_p99_ms,
             r.scene_ticks_per_s
         );
     }
