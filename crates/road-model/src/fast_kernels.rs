@@ -134,6 +134,42 @@ pub(crate) fn attend(
     );
 }
 
+/// `x ← exp(x)` for every `x ≤ 0` of `values` (NaN-free), by [`exp_lanes`]: relative error
+/// ≈ 1e-7, arguments below −87 flushed to 0.
+pub(crate) fn exp_non_positive(values: &mut [f32]) {
+    #[cfg(target_arch = "x86_64")]
+    if wide_registers() {
+        // SAFETY: as in `attend`: AVX2 and FMA are present.
+        #[allow(unsafe_code)]
+        unsafe {
+            exp_non_positive_avx2_fma(values)
+        };
+        return;
+    }
+    exp_non_positive_body::<false>(values);
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+fn exp_non_positive_avx2_fma(values: &mut [f32]) {
+    exp_non_positive_body::<true>(values);
+}
+
+#[inline(always)]
+fn exp_non_positive_body<const FMA: bool>(values: &mut [f32]) {
+    let mut chunks = values.chunks_exact_mut(LANES);
+    for chunk in chunks.by_ref() {
+        exp_lanes::<FMA>(chunk.try_into().expect("LANES wide"));
+    }
+    let rest = chunks.into_remainder();
+    if !rest.is_empty() {
+        let mut lanes = [0.0f32; LANES];
+        lanes[..rest.len()].copy_from_slice(rest);
+        exp_lanes::<FMA>(&mut lanes);
+        rest.copy_from_slice(&lanes[..rest.len()]);
+    }
+}
+
 /// `out [n, D] = LN(x [n, D])` with the layer's `weight` and `bias` `[D]`.
 pub(crate) fn layer_norm(x: &[f32], weight: &[f32], bias: &[f32], out: &mut [f32]) {
     #[cfg(target_arch = "x86_64")]
@@ -301,14 +337,20 @@ fn attend_body<const FMA: bool>(
                 }
             }
             if let Some(p) = pairs {
+                // Σ_j a_j r_j, a register of keys at a time over the padded rows (padding keys
+                // have weight exp(−∞) = 0 and features 0), normalised once at the end.
                 let mut mean_pair = [0.0f32; PAIR_FEATURES];
                 for (k, acc) in mean_pair.iter_mut().enumerate() {
-                    let r = &pairs_t[k * padded..][..n_keys];
+                    let r = &pairs_t[k * padded..][..padded];
                     let mut lanes = [0.0f32; LANES];
-                    for (j, (&score, &value)) in scores[..n_keys].iter().zip(r).enumerate() {
-                        lanes[j % LANES] = madd::<FMA>(score * inv, value, lanes[j % LANES]);
+                    for chunk in 0..chunks {
+                        let s = &scores[chunk * LANES..][..LANES];
+                        let v = &r[chunk * LANES..][..LANES];
+                        for l in 0..LANES {
+                            lanes[l] = madd::<FMA>(s[l], v[l], lanes[l]);
+                        }
                     }
-                    *acc = lanes.iter().sum();
+                    *acc = inv * lanes.iter().sum::<f32>();
                 }
                 for (c, acc) in oh.iter_mut().enumerate() {
                     let weights = &p.v_weights[(head * dh + c) * f..][..f];
