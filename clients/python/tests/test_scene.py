@@ -79,6 +79,8 @@ def test_log_replay_ego_for_100_ticks(server):
         assert npc.tick == t
         assert {a.id for a in npc.npcs} == npc_ids
         assert not npc.late_external
+        # Protocol 3: the wait for other scenes' rounds is a part of the latency, like compute.
+        assert 0.0 <= npc.queue_ms and npc.compute_ms + npc.queue_ms <= npc.latency_ms + 1e-6
         for a in npc.npcs:
             assert all(math.isfinite(v) for v in (a.x_m, a.y_m, a.heading_rad)), a
             # The roundabout's frame: its arms end about 90 m from the centre.

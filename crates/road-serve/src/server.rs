@@ -12,7 +12,7 @@
 //! Each scene's `foxglove.SceneUpdate` messages (the map at creation, the agents' boxes at
 //! creation and after every tick) are built once and go to the recording and, when
 //! [`ServeConfig::foxglove_listen`] is set, to the live view ([`crate::live`]). After
-//! creation, recording and the live view's boxes are the scene writer's ([`crate::writer`]):
+//! creation, recording and the live view's boxes are the scene writer's (`writer.rs`):
 //! the core queues each published tick there and goes on with the next round.
 
 use std::collections::{BTreeMap, BTreeSet, VecDeque};

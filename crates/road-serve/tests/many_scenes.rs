@@ -65,6 +65,7 @@ fn sixteen_scenes_join_and_leave() {
     let status = common::client(&server, "observer").status().unwrap();
     assert!(status.scenes.is_empty(), "{:?}", status.scenes);
     assert_eq!(status.tick_latency.count, total);
+    assert_eq!(status.queue.count, total);
     assert!(status.max_batch > 1, "never more than one scene per round");
     server.stop().unwrap();
 }

@@ -110,4 +110,16 @@ pub fn assert_sane(npc: &road_client::protocol::NpcTick, radius_m: f64) {
             npc.tick
         );
     }
+    // The reply's time split: compute and the wait for other scenes' rounds are parts of the
+    // latency.
+    assert!(
+        npc.compute_ms >= 0.0
+            && npc.queue_ms >= 0.0
+            && npc.compute_ms + npc.queue_ms <= npc.latency_ms + 1e-6,
+        "tick {}: latency {} ms, compute {} ms, queue {} ms",
+        npc.tick,
+        npc.latency_ms,
+        npc.compute_ms,
+        npc.queue_ms
+    );
 }
