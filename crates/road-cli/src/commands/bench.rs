@@ -70,6 +70,10 @@ pub struct ServeBenchArgs {
     /// engine, scenes batched per round).
     #[arg(long)]
     pub zenoh: bool,
+    /// With `--zenoh`: each client puts its ego on its own clock at this rate, as an ego stack
+    /// does (phases spread evenly over the period), instead of as soon as it has the NPCs.
+    #[arg(long, requires = "zenoh")]
+    pub rate_hz: Option<f64>,
 }
 
 #[derive(Debug, Args)]
@@ -121,8 +125,12 @@ pub fn run(cmd: BenchCommand) -> Result<ExitCode> {
         BenchCommand::Sched(args) => sched_bench(&args),
         BenchCommand::Engine(args) => engine_bench(&args),
         BenchCommand::Serve(args) if args.zenoh => {
-            let rows =
-                crate::commands::zenoh_bench::run(&args.checkpoint, &args.scenes, args.ticks)?;
+            let rows = crate::commands::zenoh_bench::run(
+                &args.checkpoint,
+                &args.scenes,
+                args.ticks,
+                args.rate_hz,
+            )?;
             if args.json {
                 out!("{}", serde_json::to_string_pretty(&rows)?);
             } else {

@@ -24,6 +24,8 @@ use zenoh::Wait;
 #[derive(Debug, serde::Serialize)]
 pub struct ZenohRow {
     pub scenes: usize,
+    /// The clients' tick rate; `None`: each puts its next ego as soon as it has the NPCs.
+    pub rate_hz: Option<f64>,
     pub timed_ticks: usize,
     pub rtt_p50_ms: f64,
     pub rtt_p99_ms: f64,
@@ -51,8 +53,22 @@ fn free_port() -> Result<u16> {
 }
 
 /// Runs the benchmark for each scene count; `checkpoint` is a folder under a models folder.
-pub fn run(checkpoint: &Path, scene_counts: &[usize], ticks: usize) -> Result<Vec<ZenohRow>> {
+/// With `rate_hz`, client i puts tick t at `start + (t + i / B) / rate`, or at once when its
+/// NPCs came later than that.
+pub fn run(
+    checkpoint: &Path,
+    scene_counts: &[usize],
+    ticks: usize,
+    rate_hz: Option<f64>,
+) -> Result<Vec<ZenohRow>> {
     anyhow::ensure!(ticks > 0, "--ticks must be at least 1");
+    if let Some(rate) = rate_hz {
+        anyhow::ensure!(
+            rate.is_finite() && rate > 0.0,
+            "--rate-hz {rate} must be a positive number of ticks per second"
+        );
+    }
+    let period = rate_hz.map(|rate| Duration::from_secs_f64(1.0 / rate));
     let name = checkpoint
         .file_name()
         .and_then(|n| n.to_str())
@@ -105,7 +121,13 @@ pub fn run(checkpoint: &Path, scene_counts: &[usize], ticks: usize) -> Result<Ve
                     go.wait();
                     let (mut scene, created) = prepared?;
                     let mut out = Vec::with_capacity(ticks);
+                    let clock = Instant::now();
                     for t in 2..=ticks as u64 + 1 {
+                        if let Some(period) = period {
+                            let slot = (t - 2) as f64 + i as f64 / b as f64;
+                            let due = clock + period.mul_f64(slot);
+                            std::thread::sleep(due.saturating_duration_since(Instant::now()));
+                        }
                         let sent = Instant::now();
                         let npc = scene.step(t, vec![ego_at(&created, t)?])?;
                         out.push(TickTimes {
@@ -145,6 +167,7 @@ pub fn run(checkpoint: &Path, scene_counts: &[usize], ticks: usize) -> Result<Ve
         );
         rows.push(ZenohRow {
             scenes: b,
+            rate_hz,
             timed_ticks: ticks,
             rtt_p50_ms: r.p50_ms,
             rtt_p99_ms: r.p99_ms,
@@ -185,6 +208,9 @@ fn ego_at(created: &SceneCreated, tick: u64) -> Result<AgentState> {
 
 /// Prints the table and the real-time estimate.
 pub fn print(rows: &[ZenohRow]) {
+    if let Some(rate) = rows.first().and_then(|r| r.rate_hz) {
+        out!("clients paced at {rate} Hz (phases spread over the period)");
+    }
     out!(
         "| scenes | timed ticks | round trip p50 / p99 ms | engine compute p50 / p99 ms | queue wait p50 / p99 ms | front end p50 / p99 ms | of which server p50 / p99 ms | of which zenoh & client p50 / p99 ms | scene-ticks/s |"
     );
@@ -209,7 +235,21 @@ pub fn print(rows: &[ZenohRow]) {
             r.scene_ticks_per_s
         );
     }
-    if let Some(best) = rows
+    if let Some(rate) = rows.first().and_then(|r| r.rate_hz) {
+        for r in rows {
+            out!(
+                "{} scenes at {rate} Hz: round trip p99 {:.1} ms against a period of {:.1} ms ({})",
+                r.scenes,
+                r.rtt_p99_ms,
+                1e3 / rate,
+                if r.rtt_p99_ms <= 1e3 / rate {
+                    "kept"
+                } else {
+                    "not kept"
+                }
+            );
+        }
+    } else if let Some(best) = rows
         .iter()
         .map(|r| r.scene_ticks_per_s)
         .max_by(f64::total_cmp)
