@@ -215,7 +215,7 @@ impl Server {
             .declare_token(keys.server_alive())
             .wait()?;
 
-        let writer = SceneWriter::start(live_view.clone(), config.flush_interval);
+        let writer = SceneWriter::start(live_view.clone(), config.flush_interval)?;
         let core = Core {
             engine: "fast CPU engine (continuous batching: one pool per checkpoint and planner)"
                 .into(),
@@ -502,7 +502,7 @@ impl Core {
                 size,
                 received,
                 at,
-            } => self.on_ego(&client, &scene, &payload, size, received, at),
+            } => self.on_ego(&client, &scene, payload, size, received, at),
             Event::ClientGone(client) => {
                 let ids: Vec<u64> = self
                     .scenes
@@ -821,7 +821,7 @@ impl Core {
         &mut self,
         client: &str,
         chunk: &str,
-        payload: &[u8],
+        payload: Vec<u8>,
         size: usize,
         received: Instant,
         at: SystemTime,
@@ -840,7 +840,7 @@ impl Core {
                 ),
             );
         };
-        let msg = match parse::<road_protocol::EgoTick>(payload) {
+        let msg = match parse::<road_protocol::EgoTick>(&payload) {
             Ok(m) => m,
             Err(e) => {
                 return self.publish_error(
@@ -877,7 +877,8 @@ impl Core {
                 entry.live.pending = Some(pending);
                 entry.live.last_heard = received;
                 if entry.recorded {
-                    self.writer.record(id, topics::EGO, payload.to_vec(), at);
+                    // The payload goes to the recording as received, without a copy.
+                    self.writer.record(id, topics::EGO, payload, at);
                 }
             }
             Err(e) => self.publish_error(client, chunk, &e),

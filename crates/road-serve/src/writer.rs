@@ -107,7 +107,10 @@ pub(crate) struct SceneWriter {
 }
 
 impl SceneWriter {
-    pub fn start(live_view: Option<Arc<LiveView>>, flush_interval: Duration) -> Self {
+    pub fn start(
+        live_view: Option<Arc<LiveView>>,
+        flush_interval: Duration,
+    ) -> crate::Result<Self> {
         let (jobs, queue) = mpsc::sync_channel(QUEUE_JOBS);
         let thread = std::thread::Builder::new()
             .name("road-serve-writer".into())
@@ -115,11 +118,11 @@ impl SceneWriter {
                 lower_this_threads_priority();
                 run(queue, live_view, flush_interval)
             })
-            .expect("the writer thread starts");
-        Self {
+            .map_err(|e| crate::Error::Config(format!("cannot start the writer thread: {e}")))?;
+        Ok(Self {
             jobs: Some(jobs),
             thread: Some(thread),
-        }
+        })
     }
 
     fn send(&self, job: Job) {
