@@ -6,7 +6,7 @@
 
 use std::f64::consts::FRAC_PI_2;
 
-use glam::DVec2;
+use glam::{DMat2, DVec2};
 use road_data::geometry::{Aabb, Point, dist, hypot_length, resample};
 use road_data::map::{Lanelet, MapSkips};
 use road_data::{AgentType, LaneletMap, SceneFrame, SceneWindow, WindowConfig};
@@ -412,6 +412,19 @@ pub fn procedural(
     config: &WindowConfig,
     observed_steps: usize,
 ) -> Result<ProceduralScene> {
+    procedural_turned(kind, config, observed_steps, 0.0)
+}
+
+/// [`procedural`] with the whole scene (map, routes, vehicles) turned by `rotation_rad`
+/// (counter-clockwise) about the map's origin: the same traffic at another orientation. A
+/// model that reads the lanes drives it the same way; one that learnt each INTERACTION map's
+/// fixed orientation does not (`road demo --rotate-deg`).
+pub fn procedural_turned(
+    kind: ProceduralMap,
+    config: &WindowConfig,
+    observed_steps: usize,
+    rotation_rad: f64,
+) -> Result<ProceduralScene> {
     if observed_steps < 2 {
         return Err(Error::Config(format!(
             "the procedural scene needs at least 2 observed steps, got {observed_steps}"
@@ -422,7 +435,44 @@ pub fn procedural(
         ProceduralMap::Intersection => intersection_scene(),
         ProceduralMap::Merge => merge_scene(),
     };
+    let (map, routes) = if rotation_rad == 0.0 {
+        (map, routes)
+    } else {
+        turned(map, routes, rotation_rad)
+    };
     scene_of(map, routes, &vehicles, config, observed_steps)
+}
+
+/// `map` and `routes` turned by `rotation_rad` about the origin (bounds recomputed; topology
+/// and ids unchanged).
+fn turned(mut map: LaneletMap, routes: Vec<Route>, rotation_rad: f64) -> (LaneletMap, Vec<Route>) {
+    let turn = DMat2::from_angle(rotation_rad);
+    let turn_all = |points: &mut Vec<Point>| {
+        for p in points.iter_mut() {
+            *p = (turn * DVec2::from(*p)).into();
+        }
+    };
+    for lanelet in &mut map.lanelets {
+        turn_all(&mut lanelet.left_m);
+        turn_all(&mut lanelet.right_m);
+        turn_all(&mut lanelet.centre_m);
+        let outline: Vec<Point> = lanelet
+            .left_m
+            .iter()
+            .chain(&lanelet.right_m)
+            .copied()
+            .collect();
+        lanelet.bounds = Aabb::of(&outline);
+    }
+    let routes = routes
+        .into_iter()
+        .map(|route| {
+            let mut points = route.points;
+            turn_all(&mut points);
+            Route::new(points)
+        })
+        .collect();
+    (map, routes)
 }
 
 fn roundabout_scene() -> (LaneletMap, Vec<Route>, Vec<Vehicle>) {
@@ -779,6 +829,54 @@ mod tests {
                         kind.name()
                     );
                     s += 0.5;
+                }
+            }
+        }
+    }
+
+    /// A turned scene is the same scene: routes on the turned lanes, the same distances between
+    /// the vehicles, headings turned by the angle.
+    #[test]
+    fn a_turned_scene_is_the_same_scene_turned() {
+        let config = WindowConfig::default();
+        let angle = 2.0;
+        for kind in ProceduralMap::ALL {
+            let plain = procedural(kind, &config, 10).unwrap();
+            let scene = procedural_turned(kind, &config, 10, angle).unwrap();
+            let name = kind.name();
+            for (i, route) in scene.routes.iter().enumerate() {
+                assert!((route.length_m() - plain.routes[i].length_m()).abs() < 1e-6);
+                let mut s = 0.25;
+                while s <= route.length_m() - 0.25 {
+                    let p = route.pose_at(s);
+                    assert!(
+                        scene.map.lanelet_at([p.x_m, p.y_m]).is_some(),
+                        "{name} turned: vehicle {i}'s route leaves the map at s = {s:.1} m"
+                    );
+                    s += 0.5;
+                }
+            }
+            let (w, w0) = (&scene.window, &plain.window);
+            assert_eq!(w.agents, w0.agents);
+            assert_eq!(w.polyline_lanelet_ids, w0.polyline_lanelet_ids);
+            let metres = |w: &SceneWindow, a: usize| {
+                let s = w.state(a, 9).unwrap();
+                (
+                    DVec2::from(w.frame.to_metres([s[0], s[1]])),
+                    f64::from(s[2]),
+                )
+            };
+            for a in 0..w.agents {
+                let ((p, h), (p0, h0)) = (metres(w, a), metres(w0, a));
+                let turned_heading = road_data::wrap_angle((h - h0 - angle) as f32);
+                assert!(turned_heading.abs() < 1e-4, "{name}: agent {a} heading");
+                assert!(
+                    (p.length() - p0.length()).abs() < 1e-3,
+                    "{name}: agent {a} radius"
+                );
+                for b in 0..a {
+                    let (q, q0) = (metres(w, b).0, metres(w0, b).0);
+                    assert!(((p - q).length() - (p0 - q0).length()).abs() < 1e-3);
                 }
             }
         }

@@ -14,9 +14,10 @@ use anyhow::{Context, Result};
 use clap::Args;
 use rand::SeedableRng;
 use road_data::WindowConfig;
+use road_model::config::RunConfig;
 use road_sim::closed_loop::{ClosedLoop, Controller, SceneTick, SimScene};
 use road_sim::geometry::OrientedBox;
-use road_sim::procedural::{ProceduralMap, STEP_SECS, procedural};
+use road_sim::procedural::{ProceduralMap, ProceduralScene, STEP_SECS, procedural_turned};
 
 use crate::commands::engine::{EngineChoice, Engines};
 use crate::plot::{
@@ -60,6 +61,16 @@ pub struct DemoArgs {
     /// here.
     #[arg(long, requires = "in_process")]
     pub json: Option<PathBuf>,
+    /// With `--in-process`: the whole scene (map, routes, histories) turned counter-clockwise by
+    /// this many degrees: a model that reads the lanes drives it as it drives the unturned one
+    /// (docs/results.md, "the rotation lever").
+    #[arg(
+        long,
+        default_value_t = 0.0,
+        requires = "in_process",
+        allow_negative_numbers = true
+    )]
+    pub rotate_deg: f64,
     /// The served scene's MCAP recording (Foxglove shows `/map` and `/agents`; `road render`,
     /// `road replay`).
     #[arg(long, default_value = "demo.mcap", conflicts_with = "in_process")]
@@ -70,6 +81,85 @@ pub struct DemoArgs {
     /// The served demo, once a flag of its own; now the default.
     #[arg(long, hide = true, conflicts_with = "in_process")]
     pub zenoh: bool,
+}
+
+/// One closed loop on a procedural map: its scene and every tick.
+pub(crate) struct ProceduralRun {
+    pub scene: ProceduralScene,
+    pub ticks: Vec<SceneTick>,
+    pub tick_ms: Vec<f64>,
+    pub setup_secs: f64,
+    /// Model evaluations over the run.
+    pub nfe: u64,
+}
+
+/// `map` turned by `rotation_rad`, simulated for `steps` ticks with `run`'s model and planner
+/// on `engines` (noise seeded by `seed`): the scripted ego that does not yield, every other
+/// vehicle the model's. What `road demo --in-process` and `road eval --suite procedural` run.
+pub(crate) fn simulate_procedural(
+    engines: &Engines,
+    run: &RunConfig,
+    map: ProceduralMap,
+    rotation_rad: f64,
+    seed: u64,
+    steps: usize,
+    progress: bool,
+) -> Result<ProceduralRun> {
+    let model = &run.model;
+    let n = run.planner.obs_slots;
+    let window_config = WindowConfig {
+        position_scale_m: model.position_scale_m,
+        polyline_points: model.polyline_points,
+        ..WindowConfig::default()
+    };
+    let scene = procedural_turned(map, &window_config, n, rotation_rad)?;
+    let agents = scene.window.agents;
+    let mut controllers = vec![Controller::Model; agents];
+    controllers[scene.ego.agent] = Controller::External;
+    let mut ego = scene.ego.clone();
+
+    let mut engine = engines.engine()?;
+    let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+    let started = Instant::now();
+    let mut sim = ClosedLoop::new(
+        engine.as_dyn(),
+        model,
+        &run.planner,
+        vec![SimScene {
+            window: scene.window.clone(),
+            observed_steps: n,
+            controllers,
+        }],
+        vec![Some(&scene.map)],
+        steps,
+        &mut rng,
+    )?;
+    let setup_secs = started.elapsed().as_secs_f64();
+    let mut ticks: Vec<SceneTick> = Vec::with_capacity(steps);
+    let mut tick_ms: Vec<f64> = Vec::with_capacity(steps);
+    let mut out = Vec::new();
+    let bar = if progress {
+        indicatif::ProgressBar::new(steps as u64)
+    } else {
+        indicatif::ProgressBar::hidden()
+    };
+    for _ in 0..steps {
+        let t0 = Instant::now();
+        sim.tick(engine.as_dyn(), &mut ego, &mut out)?;
+        tick_ms.push(t0.elapsed().as_secs_f64() * 1e3);
+        ticks.push(out[0].clone());
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    let nfe = sim.nfe()?;
+    drop(sim);
+    Ok(ProceduralRun {
+        scene,
+        ticks,
+        tick_ms,
+        setup_secs,
+        nfe,
+    })
 }
 
 /// `--map`: a procedural map by name.
@@ -99,70 +189,30 @@ pub fn run(args: DemoArgs) -> Result<ExitCode> {
         .clone()
         .unwrap_or_else(|| PathBuf::from("demo.png"));
     let engine_choice = args.engine.unwrap_or(EngineChoice::Auto);
-    // The default's folder absent (a binary run outside the repository): the embedded copy.
-    let embedded = args.checkpoint.file_name()
-        == Some(std::ffi::OsStr::new(road_serve::models::embedded::NAME))
-        && !args.checkpoint.join("config.toml").is_file();
-    let engines = if embedded {
-        tracing::info!(
-            "{} not found: running the checkpoint embedded in the binary",
-            args.checkpoint.display()
-        );
-        Engines::load_embedded(engine_choice)
-    } else {
-        Engines::load(&args.checkpoint, engine_choice)
-    }
-    .with_context(|| {
-        format!(
-            "cannot load the demo checkpoint {} (run from the repository root, or pass --checkpoint)",
-            args.checkpoint.display()
-        )
-    })?;
+    let engines = Engines::load_or_embedded(&args.checkpoint, engine_choice)?;
     let run =
         &crate::commands::engine::with_planner(&engines.cpu.meta.run, args.planner.as_deref())?;
-    let model = &run.model;
-    let n = run.planner.obs_slots;
-    let window_config = WindowConfig {
-        position_scale_m: model.position_scale_m,
-        polyline_points: model.polyline_points,
-        ..WindowConfig::default()
-    };
-    let scene = procedural(args.map, &window_config, n)?;
-    let agents = scene.window.agents;
-    let mut controllers = vec![Controller::Model; agents];
-    controllers[scene.ego.agent] = Controller::External;
-    let mut ego = scene.ego.clone();
-
-    let mut engine = engines.engine()?;
-    let mut rng = rand::rngs::StdRng::seed_from_u64(args.seed);
-    let started = Instant::now();
-    let mut sim = ClosedLoop::new(
-        engine.as_dyn(),
-        model,
-        &run.planner,
-        vec![SimScene {
-            window: scene.window.clone(),
-            observed_steps: n,
-            controllers,
-        }],
-        vec![Some(&scene.map)],
+    anyhow::ensure!(
+        args.rotate_deg.is_finite(),
+        "--rotate-deg must be a finite angle in degrees, got {}",
+        args.rotate_deg
+    );
+    let ProceduralRun {
+        scene,
+        ticks,
+        tick_ms,
+        setup_secs,
+        nfe,
+    } = simulate_procedural(
+        &engines,
+        run,
+        args.map,
+        args.rotate_deg.to_radians(),
+        args.seed,
         args.steps,
-        &mut rng,
+        true,
     )?;
-    let setup_secs = started.elapsed().as_secs_f64();
-    let mut ticks: Vec<SceneTick> = Vec::with_capacity(args.steps);
-    let mut tick_ms: Vec<f64> = Vec::with_capacity(args.steps);
-    let mut out = Vec::new();
-    let bar = indicatif::ProgressBar::new(args.steps as u64);
-    for _ in 0..args.steps {
-        let t0 = Instant::now();
-        sim.tick(engine.as_dyn(), &mut ego, &mut out)?;
-        tick_ms.push(t0.elapsed().as_secs_f64() * 1e3);
-        ticks.push(out[0].clone());
-        bar.inc(1);
-    }
-    bar.finish_and_clear();
-    let nfe = sim.nfe()?;
+    let agents = scene.window.agents;
 
     // What happened: each collision pair and off-road agent once, at its first tick.
     let name = |a: usize| {

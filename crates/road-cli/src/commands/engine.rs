@@ -53,6 +53,30 @@ impl Engines {
         })
     }
 
+    /// A checkpoint folder, or the checkpoint embedded in the binary when `dir` names the
+    /// embedded default (`models/road20-long2`) and holds no checkpoint (a binary run outside
+    /// the repository).
+    pub fn load_or_embedded(dir: &Path, choice: EngineChoice) -> Result<Self> {
+        let embedded = dir.file_name()
+            == Some(std::ffi::OsStr::new(road_serve::models::embedded::NAME))
+            && !dir.join("config.toml").is_file();
+        if embedded {
+            tracing::info!(
+                "{} not found: running the checkpoint embedded in the binary",
+                dir.display()
+            );
+            Self::load_embedded(choice)
+        } else {
+            Self::load(dir, choice)
+        }
+        .with_context(|| {
+            format!(
+                "cannot load the checkpoint {} (run from the repository root, or pass its folder)",
+                dir.display()
+            )
+        })
+    }
+
     /// The checkpoint embedded in the binary (`road_serve::models::embedded`).
     pub fn load_embedded(choice: EngineChoice) -> Result<Self> {
         use road_serve::models::embedded;

@@ -21,8 +21,10 @@ use crate::commands::sample::Engine;
 
 #[derive(Debug, Args)]
 pub struct EvalArgs {
-    /// Suite: `forecasting` (10 observed steps, 30 predicted, joint samples per scene) or
-    /// `reactivity` (an adversarial agent per scene, 40 simulated steps after 10 observed).
+    /// Suite: `forecasting` (10 observed steps, 30 predicted, joint samples per scene),
+    /// `reactivity` (an adversarial agent per scene, 40 simulated steps after 10 observed) or
+    /// `procedural` (`road demo`'s closed loop on the procedural maps over seeds and rotations:
+    /// vehicles off road and collisions; no INTERACTION data needed).
     #[arg(long, default_value = "forecasting")]
     pub suite: String,
     /// Checkpoints to evaluate; a constant-velocity baseline is always added.
@@ -72,6 +74,18 @@ pub struct EvalArgs {
     /// Folder for the figures.
     #[arg(long, default_value = "eval-figures")]
     pub figures: PathBuf,
+    /// Procedural: runs per map and rotation, noise seeds `--seed`, `--seed` + 1, ….
+    #[arg(long, default_value_t = 5)]
+    pub seeds: u64,
+    /// Procedural: each map turned counter-clockwise by each of these angles (degrees).
+    #[arg(long, num_args = 1.., default_values_t = [0.0], allow_negative_numbers = true)]
+    pub rotations_deg: Vec<f64>,
+    /// Procedural: the maps (`roundabout`, `intersection`, `merge`); default all.
+    #[arg(long, num_args = 1..)]
+    pub maps: Vec<String>,
+    /// Procedural: simulated steps per run (`road demo`'s 60 by default).
+    #[arg(long, default_value_t = 60)]
+    pub procedural_steps: usize,
 }
 
 /// The scenes a suite evaluates.
@@ -198,7 +212,8 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
     match args.suite.as_str() {
         "forecasting" => forecasting(args),
         "reactivity" => crate::commands::reactivity::run(args),
-        other => bail!("unknown suite `{other}`; available: forecasting, reactivity"),
+        "procedural" => crate::commands::procedural_eval::run(args),
+        other => bail!("unknown suite `{other}`; available: forecasting, reactivity, procedural"),
     }
 }
 
