@@ -468,6 +468,82 @@ fn demo_runs_every_procedural_map() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// `road eval --suite procedural`: the demo's closed loop over maps, seeds and rotations, one
+/// row per map with every run counted (the JSON holds every run); bad angles and maps are
+/// refused by name. `road demo --rotate-deg` turns the scene.
+#[test]
+fn procedural_suite_counts_every_run() {
+    let dir = std::env::temp_dir().join(format!("road-cli-procedural-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let json = dir.join("procedural.json");
+    let o = road(&[
+        "eval",
+        "--suite",
+        "procedural",
+        "--checkpoints",
+        "models/road20-long2",
+        "--maps",
+        "merge",
+        "roundabout",
+        "--seeds",
+        "2",
+        "--rotations-deg",
+        "0",
+        "-90",
+        "--procedural-steps",
+        "2",
+        "--json",
+        json.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = stdout(&o);
+    assert!(out.contains("| road20-long2 | merge | 4 |"), "{out}");
+    assert!(out.contains("| road20-long2 | roundabout | 4 |"), "{out}");
+    assert!(out.contains("0°: ") && out.contains("-90°: "), "{out}");
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    assert_eq!(report["suite"], "procedural");
+    assert_eq!(report["runs"].as_array().unwrap().len(), 8);
+    assert_eq!(report["results"][1]["model_vehicles"], 4 * 6);
+    let o = road(&["eval", "--suite", "procedural", "--maps", "atlantis"]);
+    assert!(!o.status.success());
+    assert!(
+        stderr(&o).contains("unknown procedural map \"atlantis\""),
+        "{}",
+        stderr(&o)
+    );
+    let o = road(&["eval", "--suite", "procedural", "--seeds", "0"]);
+    assert!(!o.status.success());
+    assert!(stderr(&o).contains("--seeds"), "{}", stderr(&o));
+
+    let png = dir.join("turned.png");
+    let o = road(&[
+        "demo",
+        "--in-process",
+        "--engine",
+        "cpu",
+        "--steps",
+        "2",
+        "--rotate-deg",
+        "-135",
+        "--out",
+        png.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(std::fs::read(&png).unwrap().starts_with(b"\x89PNG"));
+    let o = road(&[
+        "demo",
+        "--in-process",
+        "--steps",
+        "1",
+        "--rotate-deg",
+        "NaN",
+    ]);
+    assert!(!o.status.success());
+    assert!(stderr(&o).contains("--rotate-deg"), "{}", stderr(&o));
+    std::fs::remove_dir_all(&dir).ok();
+}
+
 /// `road demo --in-process`: the procedural scene closed loop on both engines.
 #[test]
 fn demo_runs_closed_loop_on_both_engines() {

@@ -96,7 +96,9 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
     } else {
         args.maps
             .iter()
-            .map(|name| crate::commands::demo::parse_map(name).map_err(anyhow::Error::msg))
+            .map(|name| {
+                crate::commands::demo::parse_map(name).map_err(|e| anyhow::anyhow!("--maps: {e}"))
+            })
             .collect::<Result<_>>()?
     };
     let choice: EngineChoice = args.engine.into();
