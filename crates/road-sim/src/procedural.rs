@@ -791,6 +791,20 @@ fn scene_of(
 mod tests {
     use super::*;
 
+    /// Every point of `route` every 0.5 m lies on a lanelet of `map`.
+    fn assert_on_map(map: &LaneletMap, route: &Route, what: &str) {
+        // Off the lanes' end edges, where point-in-polygon is undecided.
+        let mut s = 0.25;
+        while s <= route.length_m() - 0.25 {
+            let p = route.pose_at(s);
+            assert!(
+                map.lanelet_at([p.x_m, p.y_m]).is_some(),
+                "{what} leaves the map at s = {s:.1} m: {p:?}"
+            );
+            s += 0.5;
+        }
+    }
+
     #[test]
     fn routes_stay_on_the_map() {
         let layout = roundabout_map();
@@ -800,16 +814,7 @@ mod tests {
                     continue;
                 }
                 let route = layout.route(from, to);
-                // Off the lanes' end edges, where point-in-polygon is undecided.
-                let mut s = 0.25;
-                while s <= route.length_m() - 0.25 {
-                    let p = route.pose_at(s);
-                    assert!(
-                        layout.map.lanelet_at([p.x_m, p.y_m]).is_some(),
-                        "route {from}→{to} leaves the map at s = {s:.1} m: {p:?}"
-                    );
-                    s += 0.5;
-                }
+                assert_on_map(&layout.map, &route, &format!("route {from}→{to}"));
             }
         }
     }
@@ -820,16 +825,8 @@ mod tests {
         for kind in ProceduralMap::ALL {
             let scene = procedural(kind, &WindowConfig::default(), 10).unwrap();
             for (i, route) in scene.routes.iter().enumerate() {
-                let mut s = 0.25;
-                while s <= route.length_m() - 0.25 {
-                    let p = route.pose_at(s);
-                    assert!(
-                        scene.map.lanelet_at([p.x_m, p.y_m]).is_some(),
-                        "{}: vehicle {i}'s route leaves the map at s = {s:.1} m: {p:?}",
-                        kind.name()
-                    );
-                    s += 0.5;
-                }
+                let what = format!("{}: vehicle {i}'s route", kind.name());
+                assert_on_map(&scene.map, route, &what);
             }
         }
     }
@@ -846,15 +843,11 @@ mod tests {
             let name = kind.name();
             for (i, route) in scene.routes.iter().enumerate() {
                 assert!((route.length_m() - plain.routes[i].length_m()).abs() < 1e-6);
-                let mut s = 0.25;
-                while s <= route.length_m() - 0.25 {
-                    let p = route.pose_at(s);
-                    assert!(
-                        scene.map.lanelet_at([p.x_m, p.y_m]).is_some(),
-                        "{name} turned: vehicle {i}'s route leaves the map at s = {s:.1} m"
-                    );
-                    s += 0.5;
-                }
+                assert_on_map(
+                    &scene.map,
+                    route,
+                    &format!("{name} turned: vehicle {i}'s route"),
+                );
             }
             let (w, w0) = (&scene.window, &plain.window);
             assert_eq!(w.agents, w0.agents);

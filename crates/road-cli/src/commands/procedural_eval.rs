@@ -120,21 +120,10 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         let started = Instant::now();
         for &map in &maps {
             let map_started = Instant::now();
+            // (off-road vehicles, model-driven vehicles) of each run, for the bootstrap.
             let mut per_run = Vec::new();
             let mut by_rotation = vec![0; args.rotations_deg.len()];
-            let mut summary = MapSummary {
-                model: run.name.clone(),
-                map: map.name(),
-                runs: 0,
-                model_vehicles: 0,
-                off_road_vehicles: 0,
-                off_road_rate: bootstrap_ratio(&[], 0),
-                model_collision_pairs: 0,
-                ego_collision_pairs: 0,
-                clean_runs: 0,
-                off_road_by_rotation: Vec::new(),
-                secs: 0.0,
-            };
+            let (mut model_pairs, mut ego_pairs, mut clean_runs) = (0, 0, 0);
             for (r, &rotation_deg) in args.rotations_deg.iter().enumerate() {
                 for seed in args.seed..args.seed + args.seeds {
                     let ProceduralRun { scene, ticks, .. } = simulate_procedural(
@@ -155,12 +144,9 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
                     })?;
                     let found = RunInfractions::of(&ticks, scene.ego.agent);
                     let vehicles = scene.window.agents - 1;
-                    summary.runs += 1;
-                    summary.model_vehicles += vehicles;
-                    summary.off_road_vehicles += found.off_road.len();
-                    summary.model_collision_pairs += found.model_pairs.len();
-                    summary.ego_collision_pairs += found.ego_pairs.len();
-                    summary.clean_runs += usize::from(found.clean());
+                    model_pairs += found.model_pairs.len();
+                    ego_pairs += found.ego_pairs.len();
+                    clean_runs += usize::from(found.clean());
                     by_rotation[r] += found.off_road.len();
                     per_run.push((found.off_road.len() as f64, vehicles as f64));
                     records.push(RunRecord {
@@ -174,10 +160,19 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
                     progress(&bar, &run.name, total, started);
                 }
             }
-            summary.off_road_rate = bootstrap_ratio(&per_run, args.seed);
-            summary.off_road_by_rotation = by_rotation;
-            summary.secs = map_started.elapsed().as_secs_f64();
-            summaries.push(summary);
+            summaries.push(MapSummary {
+                model: run.name.clone(),
+                map: map.name(),
+                runs: per_run.len(),
+                model_vehicles: per_run.iter().map(|&(_, n)| n as usize).sum(),
+                off_road_vehicles: by_rotation.iter().sum(),
+                off_road_rate: bootstrap_ratio(&per_run, args.seed),
+                model_collision_pairs: model_pairs,
+                ego_collision_pairs: ego_pairs,
+                clean_runs,
+                off_road_by_rotation: by_rotation,
+                secs: map_started.elapsed().as_secs_f64(),
+            });
         }
         bar.finish_and_clear();
     }
