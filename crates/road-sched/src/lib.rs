@@ -12,8 +12,9 @@ pub mod scheduler;
 
 pub use edm::{EdmSchedule, Preconditioning};
 pub use plan::{
-    CollisionGuard, MAX_GUARD_HORIZON_STEPS, MAX_PLAN_SMOOTHING_STEPS, PlannerKind, PlannerSpec,
-    PlannerTables, StageKind, StageTable, StepPlan, TickProgram, WindowUpdate,
+    CollisionGuard, LaneGuard, MAX_GUARD_HORIZON_STEPS, MAX_LANE_GUARD_LOOKAHEAD_M,
+    MAX_PLAN_SMOOTHING_STEPS, PlannerKind, PlannerSpec, PlannerTables, StageKind, StageTable,
+    StepPlan, TickProgram, WindowUpdate,
 };
 pub use scheduler::{PlannerId, SceneId, SceneSpec, SceneStats, Scheduler, TickOutcome, WorkItem};
 

@@ -75,6 +75,10 @@ pub struct PlannerSpec {
     /// safety layer after the model). Absent: off.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub collision_guard: Option<CollisionGuard>,
+    /// The lane guard in closed loop (`road_sim::lane_guard`; a deviation from the paper, a
+    /// lane-keeping layer after the model). Absent: off.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lane_guard: Option<LaneGuard>,
     #[serde(default)]
     pub edm: EdmSchedule,
 }
@@ -91,6 +95,19 @@ pub struct CollisionGuard {
     pub brake_mps2: f64,
 }
 
+/// The lane guard's settings: a model-driven agent whose step would take it off every lanelet
+/// steers towards the point `lookahead_m` ahead on its lane's centre line, at the model's speed,
+/// and stops at the road's edge if that is not enough.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LaneGuard {
+    /// Pure-pursuit look-ahead along the lane's centre line, metres.
+    pub lookahead_m: f64,
+}
+
+/// The longest lane-guard look-ahead accepted, metres (a few lanelets of an INTERACTION map).
+pub const MAX_LANE_GUARD_LOOKAHEAD_M: f64 = 50.0;
+
 impl Default for PlannerSpec {
     fn default() -> Self {
         Self {
@@ -106,6 +123,7 @@ impl Default for PlannerSpec {
             plan_smoothing_ahead: None,
             noise_temperature: None,
             collision_guard: None,
+            lane_guard: None,
             edm: EdmSchedule::default(),
         }
     }
@@ -215,6 +233,14 @@ impl PlannerSpec {
                      ({} s), got {}",
                     MAX_GUARD_HORIZON_STEPS / 10,
                     guard.horizon_steps
+                ));
+            }
+        }
+        if let Some(guard) = self.lane_guard {
+            if !(guard.lookahead_m > 0.0 && guard.lookahead_m <= MAX_LANE_GUARD_LOOKAHEAD_M) {
+                return bad(format!(
+                    "lane_guard.lookahead_m must be in (0, {MAX_LANE_GUARD_LOOKAHEAD_M}] m, got {}",
+                    guard.lookahead_m
                 ));
             }
         }

@@ -20,6 +20,7 @@ fn spec(kind: PlannerKind, n: usize, f: usize, k: usize, x: Option<usize>) -> Pl
         plan_smoothing_ahead: None,
         noise_temperature: None,
         collision_guard: None,
+        lane_guard: None,
         edm: EdmSchedule::default(),
     }
 }

@@ -9,12 +9,13 @@ use road_data::{LaneletMap, SceneWindow, wrap_angle};
 use road_model::batch::SceneInput;
 use road_model::sample::{RolloutDriver, RolloutScene, StepEngine};
 use road_model::{ModelConfig, Result as ModelResult};
-use road_sched::{CollisionGuard, PlannerSpec};
+use road_sched::{CollisionGuard, LaneGuard, PlannerSpec};
 
 use crate::controllers::{constant_velocity, slowed_replay};
 use crate::geometry::OrientedBox;
 use crate::guard::{GuardAction, GuardAgent, guard_step};
 use crate::infractions::{collisions, off_road};
+use crate::lane_guard::{LaneAction, keep_on_road};
 use crate::{Error, Pose, Result};
 
 /// Who drives an agent.
@@ -77,13 +78,37 @@ impl ExternalDriver for NoExternal {
     }
 }
 
-/// How often the collision guard acted over `ticks`: (braked, stopped short), in agent-ticks.
-pub fn guard_actions(ticks: &[SceneTick]) -> (usize, usize) {
-    let mut counts = (0, 0);
+/// How often the guards acted over some ticks, in agent-ticks.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
+pub struct GuardCounts {
+    /// The collision guard braked an agent ahead of a predicted collision.
+    pub braked: usize,
+    /// The collision guard stopped an agent short of an overlap.
+    pub stopped_short: usize,
+    /// The lane guard turned an agent's step back towards its lane.
+    pub steered_to_lane: usize,
+    /// The lane guard stopped an agent at the road's edge.
+    pub stopped_at_road_edge: usize,
+}
+
+impl std::ops::AddAssign for GuardCounts {
+    fn add_assign(&mut self, other: Self) {
+        self.braked += other.braked;
+        self.stopped_short += other.stopped_short;
+        self.steered_to_lane += other.steered_to_lane;
+        self.stopped_at_road_edge += other.stopped_at_road_edge;
+    }
+}
+
+/// How often the guards acted over `ticks`.
+pub fn guard_actions(ticks: &[SceneTick]) -> GuardCounts {
+    let mut counts = GuardCounts::default();
     for (_, action) in ticks.iter().flat_map(|t| &t.guarded) {
         match action {
-            GuardAction::Braked => counts.0 += 1,
-            GuardAction::StoppedShort => counts.1 += 1,
+            GuardAction::Braked => counts.braked += 1,
+            GuardAction::StoppedShort => counts.stopped_short += 1,
+            GuardAction::SteeredToLane => counts.steered_to_lane += 1,
+            GuardAction::StoppedAtRoadEdge => counts.stopped_at_road_edge += 1,
         }
     }
     counts
@@ -100,8 +125,8 @@ pub struct SceneTick {
     /// Agents whose centre is outside every lanelet but was inside one at the last observed
     /// step (agents that start off the map, in a parking lot say, are not counted).
     pub off_road: Vec<usize>,
-    /// Model-driven agents whose step the collision guard changed this tick (empty when the
-    /// planner has no guard).
+    /// Model-driven agents whose step the lane guard, then the collision guard, changed this
+    /// tick (empty when the planner has neither).
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub guarded: Vec<(usize, GuardAction)>,
     /// When requested ([`ClosedLoop::request_plans`]): every agent's plan, the model's
@@ -124,7 +149,7 @@ struct SceneRuntime<'m> {
     overrides: Vec<Option<[f32; 3]>>,
     initial_overlaps: Vec<(usize, usize)>,
     initially_on_road: Vec<bool>,
-    /// What the collision guard did in the last tick.
+    /// What the lane and collision guards did in the last tick.
     guarded: Vec<(usize, GuardAction)>,
     map: Option<&'m LaneletMap>,
     /// Ticks the scene was built for (its scripts' length).
@@ -142,7 +167,7 @@ pub struct ClosedLoop<'m> {
     model: ModelConfig,
     heading_scale: f64,
     /// Per scene slot, its planner's collision guard (scratch of [`Self::round`]).
-    guards: Vec<Option<CollisionGuard>>,
+    guards: Vec<(Option<LaneGuard>, Option<CollisionGuard>)>,
 }
 
 impl std::fmt::Debug for ClosedLoop<'_> {
@@ -419,17 +444,19 @@ impl<'m> ClosedLoop<'m> {
         out.clear();
         // Each scene's guard, read before the driver is borrowed for the round.
         self.guards.clear();
-        self.guards.extend(
-            (0..self.scenes.len())
-                .map(|i| self.driver.scene_planner(i).and_then(|p| p.collision_guard)),
-        );
+        self.guards.extend((0..self.scenes.len()).map(|i| {
+            self.driver
+                .scene_planner(i)
+                .map_or((None, None), |p| (p.lane_guard, p.collision_guard))
+        }));
         let (scenes, guards) = (&mut self.scenes, &self.guards);
         let heading_scale = self.heading_scale;
         let done = self.driver.round(engine, &mut |i: usize,
                                                     emitted: &mut [f32]|
          -> ModelResult<()> {
             let s = scenes[i].as_mut().expect("the driver ticks live scenes");
-            s.apply(emitted, heading_scale, guards[i]);
+            let (lane_guard, collision_guard) = guards[i];
+            s.apply(emitted, heading_scale, lane_guard, collision_guard);
             Ok(())
         })?;
         for i in done {
@@ -532,16 +559,26 @@ impl<'m> SceneRuntime<'m> {
     }
 
     /// The model's emitted states `[agents·3]` (model units) with this tick's overrides put
-    /// in, then the collision guard's changes to model-driven agents (when the planner has
-    /// one); the poses after the tick follow from them.
-    fn apply(&mut self, emitted: &mut [f32], heading_scale: f64, guard: Option<CollisionGuard>) {
+    /// in, then the lane guard's and the collision guard's changes to model-driven agents
+    /// (when the planner has them; the collision guard last, so that nobody steers into
+    /// another); the poses after the tick follow from them.
+    fn apply(
+        &mut self,
+        emitted: &mut [f32],
+        heading_scale: f64,
+        lane_guard: Option<LaneGuard>,
+        collision_guard: Option<CollisionGuard>,
+    ) {
         for (a, o) in self.overrides.iter().enumerate() {
             if let Some(state) = o {
                 emitted[3 * a..3 * a + 3].copy_from_slice(state);
             }
         }
         self.guarded.clear();
-        if let Some(guard) = guard {
+        if let (Some(guard), Some(map)) = (lane_guard, self.map) {
+            self.keep_on_road(emitted, heading_scale, guard, map);
+        }
+        if let Some(guard) = collision_guard {
             self.guard(emitted, heading_scale, guard);
         }
         for a in 0..self.controllers.len() {
@@ -556,6 +593,49 @@ impl<'m> SceneRuntime<'m> {
                 y_m: p[1],
                 heading_rad: f64::from(wrap_angle(heading as f32)),
             };
+        }
+    }
+
+    /// Runs the lane guard on this tick's states (model units, overrides in) of the model-driven
+    /// agents: poses before the tick are `self.poses` (headings unwrapped), after it `emitted`.
+    fn keep_on_road(
+        &mut self,
+        emitted: &mut [f32],
+        heading_scale: f64,
+        guard: LaneGuard,
+        map: &LaneletMap,
+    ) {
+        let frame = &self.window.frame;
+        for a in 0..self.controllers.len() {
+            if self.controllers[a] != Controller::Model || self.overrides[a].is_some() {
+                continue;
+            }
+            let before = Pose {
+                heading_rad: self.heading_unwrapped[a],
+                ..self.poses[a]
+            };
+            let p = frame.to_metres([emitted[3 * a], emitted[3 * a + 1]]);
+            let mut proposed = Pose {
+                x_m: p[0],
+                y_m: p[1],
+                heading_rad: f64::from(emitted[3 * a + 2]) / heading_scale,
+            };
+            let Some(action) = keep_on_road(map, before, &mut proposed, guard.lookahead_m) else {
+                continue;
+            };
+            self.guarded.push((
+                a,
+                match action {
+                    LaneAction::Steered => GuardAction::SteeredToLane,
+                    LaneAction::StoppedAtEdge => GuardAction::StoppedAtRoadEdge,
+                },
+            ));
+            let xy = frame.to_norm([proposed.x_m, proposed.y_m]);
+            emitted[3 * a..3 * a + 3].copy_from_slice(&[
+                xy[0],
+                xy[1],
+                (proposed.heading_rad * heading_scale) as f32,
+            ]);
         }
     }
 
@@ -583,8 +663,8 @@ impl<'m> SceneRuntime<'m> {
                 }
             })
             .collect();
-        self.guarded = guard_step(&mut agents, guard.horizon_steps, guard.brake_mps2);
-        for &(a, _) in &self.guarded {
+        let collision_actions = guard_step(&mut agents, guard.horizon_steps, guard.brake_mps2);
+        for &(a, _) in &collision_actions {
             let p = agents[a].proposed;
             let xy = frame.to_norm([p.x_m, p.y_m]);
             emitted[3 * a..3 * a + 3].copy_from_slice(&[
@@ -593,6 +673,7 @@ impl<'m> SceneRuntime<'m> {
                 (p.heading_rad * heading_scale) as f32,
             ]);
         }
+        self.guarded.extend(collision_actions);
     }
 
     /// A plan `[agents, steps, 3]` in model units as poses per agent (headings continue

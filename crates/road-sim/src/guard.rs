@@ -40,7 +40,8 @@ pub struct GuardAgent {
     pub movable: bool,
 }
 
-/// What the guard did to one agent this tick.
+/// What a guard did to one agent this tick (the collision guard's actions, and the lane
+/// guard's, [`crate::lane_guard`]).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum GuardAction {
@@ -48,6 +49,10 @@ pub enum GuardAction {
     Braked,
     /// Stopped short of an overlap after the tick.
     StoppedShort,
+    /// Lane guard: its step turned back towards its lane.
+    SteeredToLane,
+    /// Lane guard: stopped at the road's edge.
+    StoppedAtRoadEdge,
 }
 
 /// Applies the guard to `agents` in place (their `proposed` poses); returns what it did, per

@@ -2,6 +2,8 @@
 //! - [`geometry`]: oriented boxes from (x, y, heading, length, width) and their overlap;
 //! - [`guard`]: the collision guard, a planner option: model-driven agents brake ahead of a
 //!   predicted collision and never step into another agent's box;
+//! - [`lane_guard`]: the lane guard, a planner option: a model-driven agent about to leave
+//!   every lanelet steers back towards its lane, or stops at the road's edge;
 //! - [`infractions`]: collisions between agents and off-road positions per tick;
 //! - [`controllers`]: non-model controllers: constant velocity, and the paper's adversarial
 //!   agent (its logged path, slowed to cover only half of it by the end);
@@ -18,6 +20,7 @@ pub mod geometry;
 pub mod guard;
 pub mod infractions;
 pub mod kinematics;
+pub mod lane_guard;
 pub mod metrics;
 pub mod procedural;
 

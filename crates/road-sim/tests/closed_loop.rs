@@ -425,3 +425,79 @@ fn the_collision_guard_keeps_model_agents_out_of_each_other() {
         "the untrained model's agents gave the guard nothing to do"
     );
 }
+
+/// The lane guard on the shipped default checkpoint driving the procedural roundabout (a map
+/// unlike its training maps, where it leaves the road on its own): an agent the guard acts on
+/// ends that tick on the road, the guard says what it did, and fewer model-driven agents leave
+/// the road than without it.
+#[test]
+fn the_lane_guard_keeps_model_agents_on_the_road() {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../models/road20-long2");
+    let loaded = road_model::checkpoint::load(&dir, &Device::Cpu).unwrap();
+    let model = &loaded.model;
+    let own_planner = loaded.meta.run.planner.clone();
+    let scene = roundabout(&WindowConfig::default(), own_planner.obs_slots).unwrap();
+    let ego = scene.ego.agent;
+    let mut controllers = vec![Controller::Model; scene.window.agents];
+    controllers[ego] = Controller::ConstantVelocity;
+    let steps = 40;
+    let run = |planner: &PlannerSpec| {
+        let mut engine = CpuEngine::new(model);
+        let mut rng = StdRng::seed_from_u64(0);
+        let mut sim = ClosedLoop::new(
+            &mut engine,
+            &model.config,
+            planner,
+            vec![SimScene {
+                window: scene.window.clone(),
+                observed_steps: own_planner.obs_slots,
+                controllers: controllers.clone(),
+            }],
+            vec![Some(&scene.map)],
+            steps,
+            &mut rng,
+        )
+        .unwrap();
+        let mut out = Vec::new();
+        let mut ticks = Vec::new();
+        for _ in 0..steps {
+            sim.tick(&mut engine, &mut NoExternal, &mut out).unwrap();
+            ticks.push(out[0].clone());
+        }
+        ticks
+    };
+    let model_agents_off_road = |ticks: &[SceneTick]| {
+        let mut off: Vec<usize> = ticks
+            .iter()
+            .flat_map(|t| t.off_road.iter().copied())
+            .filter(|&a| a != ego)
+            .collect();
+        off.sort_unstable();
+        off.dedup();
+        off.len()
+    };
+    let unguarded = run(&own_planner);
+    let guarded = run(&PlannerSpec {
+        lane_guard: Some(road_sched::LaneGuard { lookahead_m: 6.0 }),
+        ..own_planner.clone()
+    });
+    for (t, tick) in guarded.iter().enumerate() {
+        for (agent, action) in &tick.guarded {
+            assert!(
+                !tick.off_road.contains(agent),
+                "tick {t}: agent {agent} off road after the guards' {action:?}"
+            );
+        }
+    }
+    let counts = road_sim::closed_loop::guard_actions(&guarded);
+    assert!(
+        counts.steered_to_lane + counts.stopped_at_road_edge > 0,
+        "the lane guard reports no action: {counts:?}"
+    );
+    assert!(
+        model_agents_off_road(&guarded) < model_agents_off_road(&unguarded),
+        "model-driven agents off road: {} with the lane guard, {} without",
+        model_agents_off_road(&guarded),
+        model_agents_off_road(&unguarded)
+    );
+}

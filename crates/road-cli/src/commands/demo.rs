@@ -267,10 +267,19 @@ pub fn run(args: DemoArgs) -> Result<ExitCode> {
         setup_secs * 1e3,
         nfe as f64 / args.steps as f64
     );
-    if run.planner.collision_guard.is_some() {
-        let (braked, stopped) = road_sim::closed_loop::guard_actions(&ticks);
+    let guards = road_sim::closed_loop::guard_actions(&ticks);
+    if run.planner.lane_guard.is_some() {
         out!(
-            "collision guard (planner option): braked a vehicle {braked} time(s), stopped one short of another {stopped} time(s)"
+            "lane guard (planner option): steered a vehicle back towards its lane {} time(s), stopped one at the road's edge {} time(s)",
+            guards.steered_to_lane,
+            guards.stopped_at_road_edge
+        );
+    }
+    if run.planner.collision_guard.is_some() {
+        out!(
+            "collision guard (planner option): braked a vehicle {} time(s), stopped one short of another {} time(s)",
+            guards.braked,
+            guards.stopped_short
         );
     }
     if events.is_empty() {

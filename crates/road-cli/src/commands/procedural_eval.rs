@@ -9,7 +9,7 @@ use std::time::Instant;
 
 use anyhow::Result;
 use anyhow::{Context, ensure};
-use road_sim::closed_loop::SceneTick;
+use road_sim::closed_loop::{GuardCounts, SceneTick, guard_actions};
 use road_sim::metrics::{BOOTSTRAP_RESAMPLES, Estimate, bootstrap_ratio};
 use road_sim::procedural::ProceduralMap;
 use serde::Serialize;
@@ -76,6 +76,8 @@ struct MapSummary {
     clean_runs: usize,
     /// Off-road vehicles per rotation, in `--rotations-deg` order.
     off_road_by_rotation: Vec<usize>,
+    /// What the planner's guards did, agent-ticks summed over runs (zeros without guards).
+    guards: GuardCounts,
     secs: f64,
 }
 
@@ -124,6 +126,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
             let mut per_run = Vec::new();
             let mut by_rotation = vec![0; args.rotations_deg.len()];
             let (mut model_pairs, mut ego_pairs, mut clean_runs) = (0, 0, 0);
+            let mut guards = GuardCounts::default();
             for (r, &rotation_deg) in args.rotations_deg.iter().enumerate() {
                 for seed in args.seed..args.seed + args.seeds {
                     let ProceduralRun { scene, ticks, .. } = simulate_procedural(
@@ -143,6 +146,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
                         )
                     })?;
                     let found = RunInfractions::of(&ticks, scene.ego.agent);
+                    guards += guard_actions(&ticks);
                     let vehicles = scene.window.agents - 1;
                     model_pairs += found.model_pairs.len();
                     ego_pairs += found.ego_pairs.len();
@@ -171,6 +175,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
                 ego_collision_pairs: ego_pairs,
                 clean_runs,
                 off_road_by_rotation: by_rotation,
+                guards,
                 secs: map_started.elapsed().as_secs_f64(),
             });
         }
@@ -186,9 +191,9 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         args.engine
     );
     out!(
-        "| model | map | runs | model-driven vehicles off road | off-road rate [95 % CI] | off road by rotation | collisions between model-driven vehicles | collisions with the ego | clean runs |"
+        "| model | map | runs | model-driven vehicles off road | off-road rate [95 % CI] | off road by rotation | collisions between model-driven vehicles | collisions with the ego | clean runs | lane guard: steered / stopped at the edge | collision guard: braked / stopped short |"
     );
-    out!("|---|---|---:|---:|---:|---|---:|---:|---:|");
+    out!("|---|---|---:|---:|---:|---|---:|---:|---:|---:|---:|");
     for s in &summaries {
         let by_rotation = args
             .rotations_deg
@@ -198,7 +203,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
             .collect::<Vec<_>>()
             .join(", ");
         out!(
-            "| {} | {} | {} | {} of {} | {:.3} | {by_rotation} | {} | {} | {} of {} |",
+            "| {} | {} | {} | {} of {} | {:.3} | {by_rotation} | {} | {} | {} of {} | {} / {} | {} / {} |",
             s.model,
             s.map,
             s.runs,
@@ -208,11 +213,15 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
             s.model_collision_pairs,
             s.ego_collision_pairs,
             s.clean_runs,
-            s.runs
+            s.runs,
+            s.guards.steered_to_lane,
+            s.guards.stopped_at_road_edge,
+            s.guards.braked,
+            s.guards.stopped_short
         );
     }
     out!(
-        "(interval: 95 % percentile bootstrap over runs, {BOOTSTRAP_RESAMPLES} resamples; a clean run has no model-driven vehicle off road and no collision between two of them)"
+        "(interval: 95 % percentile bootstrap over runs, {BOOTSTRAP_RESAMPLES} resamples; a clean run has no model-driven vehicle off road and no collision between two of them; guards' actions in agent-ticks over all runs)"
     );
     if let Some(path) = &args.json {
         let json = serde_json::json!({

@@ -45,6 +45,10 @@ struct Totals {
     /// guard); out of `driven_agents` × simulated steps.
     guard_braked_agent_ticks: usize,
     guard_stopped_agent_ticks: usize,
+    /// Agent-ticks at which the lane guard turned a model-driven agent's step back towards its
+    /// lane, and at which it stopped one at the road's edge (0 without a lane guard).
+    guard_steered_to_lane_agent_ticks: usize,
+    guard_stopped_at_road_edge_agent_ticks: usize,
     secs: f64,
     nfe_per_step: f64,
     expected_nfe_per_step: Option<f64>,
@@ -156,9 +160,11 @@ fn score(totals: &mut Totals, k: usize, ticks: &[SceneTick], adversary: usize, a
         .collect();
     totals.driven_agents += agents - 1;
     totals.off_road_agents += off.len();
-    let (braked, stopped) = guard_actions(ticks);
-    totals.guard_braked_agent_ticks += braked;
-    totals.guard_stopped_agent_ticks += stopped;
+    let guards = guard_actions(ticks);
+    totals.guard_braked_agent_ticks += guards.braked;
+    totals.guard_stopped_agent_ticks += guards.stopped_short;
+    totals.guard_steered_to_lane_agent_ticks += guards.steered_to_lane;
+    totals.guard_stopped_at_road_edge_agent_ticks += guards.stopped_at_road_edge;
     totals.per_simulation.push((
         k,
         pairs.iter().any(|&(i, j)| i == adversary || j == adversary),

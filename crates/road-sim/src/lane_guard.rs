@@ -1,0 +1,351 @@
+//! The lane guard (a planner option, `lane_guard`): a lane-keeping layer between the model's
+//! emitted states and the world, in the spirit of a lane-keeping assist. A deviation from the
+//! paper, measured in `docs/results.md`; off unless a planner sets it.
+//!
+//! The model's vehicles leave the road where the map is unlike its training maps (issue 13: on
+//! `road demo`'s procedural roundabout about a third of them). Each tick, for every model-driven
+//! agent whose centre was on a lanelet before the tick and whose proposed centre is on none:
+//! 1. **Steer.** Its lane is the lanelet under it whose centre line runs most nearly along its
+//!    step (or its heading when it barely moves); the target is the point `lookahead_m` ahead
+//!    along that centre line, continued into the successor the model's proposal is nearest to.
+//!    The agent keeps the model's step length (its speed) and takes its step towards the target
+//!    (pure pursuit), its heading along the new step.
+//! 2. **Stop at the edge.** If the steered step still ends off road, the agent moves only the
+//!    largest fraction of it that stays on a lanelet (bisection).
+//!
+//! The guard keeps lane followers in their lane and nothing more: it leaves alone an agent that
+//! moves backwards or against every lanelet under it, and one that drives off the end of a
+//! lanelet without successor (out of the mapped area, as vehicles in the log do; stopping it
+//! there would park it in the way of the traffic behind). The guarded state is what joins the
+//! history and the window, so the model plans on from where the vehicle really is: back in its
+//! lane.
+
+use glam::DVec2;
+use road_data::geometry::Point;
+use road_data::map::{Lanelet, LaneletMap};
+
+use crate::Pose;
+
+/// Bisection rounds of the on-road fraction: 2⁻¹² of a step.
+const BISECTION_ROUNDS: usize = 12;
+/// Lanelets the look-ahead may walk through (the agent's own and its successors).
+const MAX_LANELETS_AHEAD: usize = 4;
+/// Steps shorter than this (metres) are left alone: a standing vehicle's jitter.
+const STANDSTILL_STEP_M: f64 = 0.05;
+/// A proposal projecting within this of a lanelet's end (metres) drives off that end.
+const END_TOLERANCE_M: f64 = 0.5;
+
+/// What the lane guard did to one agent this tick.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LaneAction {
+    /// Its step turned towards its lane (and it stayed on road).
+    Steered,
+    /// It stopped at the road's edge (the steered step, or the model's, would have left it).
+    StoppedAtEdge,
+}
+
+/// Keeps one agent's proposed pose on the road, in place; returns what the guard did, `None`
+/// when the proposal stays on a lanelet or the agent was off every lanelet before the tick.
+/// Headings in radians, unwrapped as the caller keeps them (the result stays near `before`'s).
+pub fn keep_on_road(
+    map: &LaneletMap,
+    before: Pose,
+    proposed: &mut Pose,
+    lookahead_m: f64,
+) -> Option<LaneAction> {
+    let from = DVec2::new(before.x_m, before.y_m);
+    let to = DVec2::new(proposed.x_m, proposed.y_m);
+    if on_road(map, to) || !on_road(map, from) {
+        return None;
+    }
+    let step = to - from;
+    let step_m = step.length();
+    if step_m < STANDSTILL_STEP_M || step.dot(DVec2::from_angle(before.heading_rad)) <= 0.0 {
+        return None;
+    }
+    let direction = step / step_m;
+    let (lanelet, along_m) = lane_under(map, from, direction)?;
+    let centre = &map.lanelets[lanelet].centre_m;
+    if map.lanelets[lanelet].successors.is_empty()
+        && project_on_polyline(centre, to).0 >= polyline_length_m(centre) - END_TOLERANCE_M
+    {
+        return None;
+    }
+    let target = lane_target(map, lanelet, along_m, to, lookahead_m);
+    let towards = target - from;
+    if towards.length() > 1e-9 {
+        let steered_direction = towards.normalize();
+        let steered = from + steered_direction * step_m;
+        *proposed = Pose {
+            x_m: steered.x,
+            y_m: steered.y,
+            heading_rad: unwrap_near(steered_direction.to_angle(), before.heading_rad),
+        };
+        if on_road(map, steered) {
+            return Some(LaneAction::Steered);
+        }
+    }
+    // The steered step still leaves the road (a sharp bend, a narrow lanelet): stop at the edge.
+    let end = DVec2::new(proposed.x_m, proposed.y_m);
+    let (mut inside, mut outside) = (0.0f64, 1.0f64);
+    for _ in 0..BISECTION_ROUNDS {
+        let mid = 0.5 * (inside + outside);
+        if on_road(map, from + (end - from) * mid) {
+            inside = mid;
+        } else {
+            outside = mid;
+        }
+    }
+    let stopped = from + (end - from) * inside;
+    proposed.x_m = stopped.x;
+    proposed.y_m = stopped.y;
+    Some(LaneAction::StoppedAtEdge)
+}
+
+fn on_road(map: &LaneletMap, p: DVec2) -> bool {
+    map.lanelet_at([p.x, p.y]).is_some()
+}
+
+/// The agent's lane: of the lanelets under `from`, the one whose centre line runs most nearly
+/// along `direction` (none when every one runs against it), with `from`'s arc length along it.
+fn lane_under(map: &LaneletMap, from: DVec2, direction: DVec2) -> Option<(usize, f64)> {
+    map.lanelets
+        .iter()
+        .enumerate()
+        .filter(|(_, l)| l.centre_m.len() >= 2 && l.contains([from.x, from.y]))
+        .filter_map(|(i, l)| {
+            let (along_m, tangent) = project_on_polyline(&l.centre_m, from);
+            let alignment = tangent.dot(direction);
+            (alignment > 0.0).then_some((i, along_m, alignment))
+        })
+        .max_by(|a, b| a.2.total_cmp(&b.2))
+        .map(|(i, along_m, _)| (i, along_m))
+}
+
+/// The pure-pursuit target: `lookahead_m` ahead of `along_m` on `lanelet`'s centre line,
+/// continued into the successor nearest `proposed` (clamped at the end of a lanelet without
+/// successor).
+fn lane_target(
+    map: &LaneletMap,
+    mut lanelet: usize,
+    mut along_m: f64,
+    proposed: DVec2,
+    lookahead_m: f64,
+) -> DVec2 {
+    let mut remaining_m = lookahead_m;
+    for _ in 0..MAX_LANELETS_AHEAD {
+        let centre = &map.lanelets[lanelet].centre_m;
+        let length_m = polyline_length_m(centre);
+        if along_m + remaining_m <= length_m {
+            return point_along(centre, along_m + remaining_m);
+        }
+        remaining_m -= (length_m - along_m).max(0.0);
+        let next = map.lanelets[lanelet]
+            .successors
+            .iter()
+            .map(|&s| s as usize)
+            .filter(|&s| map.lanelets.get(s).is_some_and(|l| l.centre_m.len() >= 2))
+            .min_by(|&a, &b| {
+                distance_to_polyline(&map.lanelets[a], proposed)
+                    .total_cmp(&distance_to_polyline(&map.lanelets[b], proposed))
+            });
+        match next {
+            Some(s) => {
+                lanelet = s;
+                along_m = 0.0;
+            }
+            None => return point_along(centre, length_m),
+        }
+    }
+    let centre = &map.lanelets[lanelet].centre_m;
+    point_along(centre, along_m.min(polyline_length_m(centre)))
+}
+
+/// Arc length of `p`'s nearest point on `line` (≥ 2 points), and the unit tangent there.
+fn project_on_polyline(line: &[Point], p: DVec2) -> (f64, DVec2) {
+    let mut best = (f64::INFINITY, 0.0, DVec2::X);
+    let mut start_m = 0.0;
+    for pair in line.windows(2) {
+        let (a, b) = (DVec2::from(pair[0]), DVec2::from(pair[1]));
+        let segment = b - a;
+        let length_m = segment.length();
+        if length_m < 1e-9 {
+            continue;
+        }
+        let t = ((p - a).dot(segment) / (length_m * length_m)).clamp(0.0, 1.0);
+        let distance_m = (a + segment * t - p).length();
+        if distance_m < best.0 {
+            best = (distance_m, start_m + t * length_m, segment / length_m);
+        }
+        start_m += length_m;
+    }
+    (best.1, best.2)
+}
+
+fn distance_to_polyline(lanelet: &Lanelet, p: DVec2) -> f64 {
+    lanelet
+        .centre_m
+        .windows(2)
+        .map(|pair| {
+            let (a, b) = (DVec2::from(pair[0]), DVec2::from(pair[1]));
+            let segment = b - a;
+            let t = if segment.length_squared() < 1e-18 {
+                0.0
+            } else {
+                ((p - a).dot(segment) / segment.length_squared()).clamp(0.0, 1.0)
+            };
+            (a + segment * t - p).length()
+        })
+        .fold(f64::INFINITY, f64::min)
+}
+
+fn polyline_length_m(line: &[Point]) -> f64 {
+    line.windows(2)
+        .map(|pair| (DVec2::from(pair[1]) - DVec2::from(pair[0])).length())
+        .sum()
+}
+
+/// The point `along_m` metres along `line` (clamped to its ends).
+fn point_along(line: &[Point], along_m: f64) -> DVec2 {
+    let mut left_m = along_m.max(0.0);
+    for pair in line.windows(2) {
+        let (a, b) = (DVec2::from(pair[0]), DVec2::from(pair[1]));
+        let length_m = (b - a).length();
+        if left_m <= length_m && length_m > 1e-9 {
+            return a + (b - a) * (left_m / length_m);
+        }
+        left_m -= length_m;
+    }
+    DVec2::from(*line.last().expect("a centre line has points"))
+}
+
+/// `angle` plus the multiple of 2π that puts it nearest `reference`.
+fn unwrap_near(angle: f64, reference: f64) -> f64 {
+    let turns = ((reference - angle) / std::f64::consts::TAU).round();
+    angle + turns * std::f64::consts::TAU
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use road_data::geometry::Aabb;
+
+    /// A straight lanelet along +x from `x0` to `x1`, 4 m wide (y in [−2, 2]).
+    fn straight(id: i64, x0: f64, x1: f64) -> Lanelet {
+        let xs: Vec<f64> = (0..=((x1 - x0) as usize)).map(|i| x0 + i as f64).collect();
+        Lanelet {
+            id,
+            subtype: None,
+            left_way: 2 * id,
+            right_way: 2 * id + 1,
+            left_m: xs.iter().map(|&x| [x, 2.0]).collect(),
+            right_m: xs.iter().map(|&x| [x, -2.0]).collect(),
+            centre_m: xs.iter().map(|&x| [x, 0.0]).collect(),
+            successors: Vec::new(),
+            neighbours: Vec::new(),
+            bounds: Aabb {
+                min: [x0, -2.0],
+                max: [x1, 2.0],
+            },
+        }
+    }
+
+    fn road() -> LaneletMap {
+        let mut first = straight(1, 0.0, 20.0);
+        first.successors = vec![1];
+        LaneletMap {
+            location: "test".into(),
+            lanelets: vec![first, straight(2, 20.0, 40.0)],
+            skipped: Default::default(),
+        }
+    }
+
+    fn pose(x_m: f64, y_m: f64, heading_rad: f64) -> Pose {
+        Pose {
+            x_m,
+            y_m,
+            heading_rad,
+        }
+    }
+
+    #[test]
+    fn a_step_that_stays_on_road_is_left_alone() {
+        let mut proposed = pose(11.0, 1.0, 0.1);
+        let action = keep_on_road(&road(), pose(10.0, 0.5, 0.0), &mut proposed, 6.0);
+        assert_eq!(action, None);
+        assert_eq!(proposed, pose(11.0, 1.0, 0.1));
+    }
+
+    #[test]
+    fn a_step_off_the_road_turns_back_to_the_lane_at_the_same_speed() {
+        let before = pose(10.0, 1.6, 0.0);
+        // 1 m at 45° to the left: ends at y = 2.3, off the 4 m wide road.
+        let mut proposed = pose(10.0 + 0.5f64.sqrt(), 1.6 + 0.5f64.sqrt(), 0.785);
+        let action = keep_on_road(&road(), before, &mut proposed, 6.0);
+        assert_eq!(action, Some(LaneAction::Steered));
+        let step = DVec2::new(proposed.x_m - before.x_m, proposed.y_m - before.y_m);
+        assert!((step.length() - 1.0).abs() < 1e-9, "speed kept: {step}");
+        // Towards the centre line 6 m ahead: (16, 0).
+        let expected = DVec2::new(6.0, -1.6).normalize();
+        assert!((step.normalize() - expected).length() < 1e-9, "{step}");
+        assert!((proposed.heading_rad - expected.to_angle()).abs() < 1e-9);
+        assert!(road().lanelet_at([proposed.x_m, proposed.y_m]).is_some());
+    }
+
+    #[test]
+    fn the_look_ahead_follows_the_successor() {
+        let before = pose(18.0, 1.9, 0.0);
+        let mut proposed = pose(19.0, 2.4, 0.46);
+        let action = keep_on_road(&road(), before, &mut proposed, 6.0);
+        assert_eq!(action, Some(LaneAction::Steered));
+        // The target (24, 0) lies on the successor.
+        let step = DVec2::new(proposed.x_m - before.x_m, proposed.y_m - before.y_m);
+        let expected = DVec2::new(6.0, -1.9).normalize();
+        assert!((step.normalize() - expected).length() < 1e-9, "{step}");
+    }
+
+    #[test]
+    fn an_agent_already_off_road_is_left_alone() {
+        let mut proposed = pose(11.0, 4.0, 0.0);
+        let action = keep_on_road(&road(), pose(10.0, 3.0, 0.0), &mut proposed, 6.0);
+        assert_eq!(action, None);
+        assert_eq!(proposed, pose(11.0, 4.0, 0.0));
+    }
+
+    #[test]
+    fn an_agent_against_its_lane_is_left_alone() {
+        // Heading −x on a lanelet that runs +x, stepping off the road's side.
+        let before = pose(10.0, 1.6, std::f64::consts::PI);
+        let mut proposed = pose(9.3, 2.3, std::f64::consts::PI - 0.785);
+        assert_eq!(keep_on_road(&road(), before, &mut proposed, 6.0), None);
+        assert_eq!(proposed, pose(9.3, 2.3, std::f64::consts::PI - 0.785));
+    }
+
+    #[test]
+    fn driving_off_the_end_of_the_map_is_left_alone() {
+        // The second lanelet has no successor: its end is the end of the mapped area.
+        let before = pose(39.5, 0.0, 0.0);
+        let mut proposed = pose(40.5, 0.3, 0.3);
+        assert_eq!(keep_on_road(&road(), before, &mut proposed, 6.0), None);
+        assert_eq!(proposed, pose(40.5, 0.3, 0.3));
+    }
+
+    #[test]
+    fn a_step_that_cannot_turn_back_in_time_stops_at_the_edge() {
+        // A 6 m step out of the side at the road's edge, with a target 0.5 m ahead: steered
+        // towards it, the step crosses the 4 m wide road and leaves it on the other side.
+        let before = pose(10.0, 1.9, 1.2);
+        let mut proposed = pose(10.0 + 6.0 * 1.2f64.cos(), 1.9 + 6.0 * 1.2f64.sin(), 1.2);
+        let action = keep_on_road(&road(), before, &mut proposed, 0.5);
+        assert_eq!(action, Some(LaneAction::StoppedAtEdge));
+        assert!(road().lanelet_at([proposed.x_m, proposed.y_m]).is_some());
+    }
+
+    #[test]
+    fn headings_stay_unwrapped_near_the_agent_s() {
+        let before = pose(10.0, 1.6, 4.0 * std::f64::consts::PI);
+        let mut proposed = pose(10.7, 2.3, 4.0 * std::f64::consts::PI + 0.785);
+        keep_on_road(&road(), before, &mut proposed, 6.0);
+        assert!((proposed.heading_rad - 4.0 * std::f64::consts::PI).abs() < 0.5);
+    }
+}
