@@ -10,7 +10,8 @@
 #
 # `--quick` runs small batches only (how CI-sized machines and lavapipe test the script; it ran
 # end to end on lavapipe here on 2026-11-24: selftest ok, engine.json, serve.json).
-# Not yet here: the PyTorch eager reference of the same weights (issue 15).
+# The PyTorch eager reference of the same weights (and `torch.compile`) runs where PyTorch and
+# safetensors are installed (the lent machine has them): `scripts/torch_denoiser.py bench`.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -63,6 +64,21 @@ run)
     "$bin" bench serve --checkpoint models/road20-long2 --engines cpu gpu \
         --scenes "${scenes[@]}" --ticks "$ticks" --cache "$out/cache" --json > "$out/serve.json"
     rm -rf "$out/cache"
+    # The PyTorch peer: the same checkpoint's forward in eager PyTorch (fp32), one denoiser
+    # evaluation per call, batches as above; `torch.compile` too unless --quick.
+    if python3 -c 'import torch, safetensors' 2>/dev/null; then
+        device=cpu
+        if python3 -c 'import sys, torch; sys.exit(0 if torch.cuda.is_available() else 1)'; then
+            device=cuda
+        fi
+        compile=(--compile)
+        $quick && compile=()
+        python3 scripts/torch_denoiser.py bench --checkpoint models/road20-long2 \
+            --batches "${batches[@]}" --device "$device" "${compile[@]}" \
+            --json-out "$out/torch.json" | tee "$out/torch.txt"
+    else
+        echo "no PyTorch with safetensors here: no PyTorch column" | tee "$out/torch.txt"
+    fi
     ls -la "$out"
     ;;
 *)
