@@ -53,15 +53,15 @@ run)
     "$bin" gpu info | tee "$out/gpu-info.txt"
     # Kernels and whole denoisers against the CPU references on this adapter: nothing is timed
     # unless they agree.
-    "$bin" gpu selftest --checkpoints models/road20-long2 models/road20 | tee "$out/selftest.txt"
+    "$bin" gpu selftest --checkpoints models/road20-wide models/road20 | tee "$out/selftest.txt"
     # Engine throughput: the WGSL engine beside the candle CPU reference, same batches.
     mkdir -p "$out/cache"
     cp dist/validation.roadds "$out/cache/validation.roadds" 2>/dev/null \
         || cp .road-cache/validation.roadds "$out/cache/validation.roadds"
-    "$bin" bench engine --checkpoints models/road20 models/road20-long2 \
+    "$bin" bench engine --checkpoints models/road20 models/road20-long2 models/road20-wide \
         --batches "${batches[@]}" --cache "$out/cache" --json > "$out/engine.json"
     # Serving: scenes ticking through the scheduler, each engine in the same run.
-    "$bin" bench serve --checkpoint models/road20-long2 --engines cpu gpu \
+    "$bin" bench serve --checkpoint models/road20-wide --engines cpu gpu \
         --scenes "${scenes[@]}" --ticks "$ticks" --cache "$out/cache" --json > "$out/serve.json"
     rm -rf "$out/cache"
     # The PyTorch peer: the same checkpoint's forward in eager PyTorch (fp32), one denoiser
@@ -73,7 +73,7 @@ run)
         fi
         compile=(--compile)
         $quick && compile=()
-        python3 scripts/torch_denoiser.py bench --checkpoint models/road20-long2 \
+        python3 scripts/torch_denoiser.py bench --checkpoint models/road20-wide \
             --batches "${batches[@]}" --device "$device" "${compile[@]}" \
             --json-out "$out/torch.json" | tee "$out/torch.txt"
     else
