@@ -5,10 +5,13 @@
 //! (the planner's K steps) takes its extra rounds beside the others without holding them up,
 //! and a scene whose ego is late is simply not in the batch.
 
+use std::sync::Arc;
+
+use road_data::LaneletMap;
 use road_model::checkpoint::LoadedModel;
 use road_model::sample::FastCpuEngine;
 use road_sched::PlannerSpec;
-use road_sim::closed_loop::{ClosedLoop, ExternalDriver, SceneTick, SimScene};
+use road_sim::closed_loop::{ClosedLoop, ExternalDriver, SceneMap, SceneTick, SimScene};
 
 use crate::Result;
 
@@ -62,19 +65,26 @@ impl Pool {
         })
     }
 
-    /// Adds the server's scene `id`; returns its slot.
+    /// Adds the server's scene `id` on `map` (none: an open area); returns its slot.
     pub fn add(
         &mut self,
         id: u64,
         scene: SimScene,
         planner: &PlannerSpec,
+        map: Option<Arc<LaneletMap>>,
         steps: usize,
         seed: u64,
     ) -> Result<usize> {
-        // Off-road is checked by the server (its maps are shared, not borrowed for 'static).
-        let slot = self
-            .sim
-            .add_scene(&mut self.engine, scene, planner, None, steps, seed)?;
+        // The closed loop needs the map for the planner's lane guard (the server still checks
+        // off-road itself, from its own copy of the poses).
+        let slot = self.sim.add_scene(
+            &mut self.engine,
+            scene,
+            planner,
+            map.map(SceneMap::Shared),
+            steps,
+            seed,
+        )?;
         self.scene_ids[slot] = Some(id);
         Ok(slot)
     }
@@ -119,5 +129,74 @@ impl Pool {
             .drain(..)
             .filter_map(|(slot, tick)| self.scene_ids[slot].map(|id| (id, tick)))
             .collect())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::models::embedded;
+    use road_data::WindowConfig;
+    use road_sim::closed_loop::{Controller, NoExternal};
+    use road_sim::procedural::roundabout;
+
+    /// The lane-guard actions of 40 ticks of the procedural roundabout served by a pool of the
+    /// embedded default checkpoint under its own planner, with and without the scene's map.
+    fn lane_guard_actions(with_map: bool) -> usize {
+        let model: &'static LoadedModel = Box::leak(Box::new(
+            road_model::checkpoint::load_from_memory(
+                std::path::Path::new("embedded"),
+                embedded::CONFIG_TOML,
+                embedded::WEIGHTS,
+                &candle_core::Device::Cpu,
+            )
+            .unwrap(),
+        ));
+        let planner = model.meta.run.planner.clone();
+        assert!(
+            planner.lane_guard.is_some(),
+            "the default planner has a lane guard"
+        );
+        let scene = roundabout(&WindowConfig::default(), planner.obs_slots).unwrap();
+        let mut controllers = vec![Controller::Model; scene.window.agents];
+        controllers[scene.ego.agent] = Controller::ConstantVelocity;
+        let agents = scene.window.agents;
+        let mut pool = Pool::new(model, &planner, 1, agents).unwrap();
+        let ticks = 40;
+        let slot = pool
+            .add(
+                7,
+                SimScene {
+                    window: scene.window.clone(),
+                    observed_steps: planner.obs_slots,
+                    controllers,
+                },
+                &planner,
+                with_map.then(|| Arc::new(scene.map.clone())),
+                ticks,
+                0,
+            )
+            .unwrap();
+        let mut acted = 0;
+        for _ in 0..ticks {
+            pool.begin_tick(slot, &mut NoExternal).unwrap();
+            let mut done = Vec::new();
+            while done.is_empty() {
+                done = pool.round().unwrap();
+            }
+            let (id, tick) = &done[0];
+            assert_eq!(*id, 7);
+            acted +=
+                road_sim::closed_loop::guard_actions(std::slice::from_ref(tick)).steered_to_lane;
+        }
+        acted
+    }
+
+    /// A served scene's closed loop has its map, so the planner's lane guard acts (it cannot
+    /// without one).
+    #[test]
+    fn served_scenes_are_lane_guarded() {
+        assert!(lane_guard_actions(true) > 0);
+        assert_eq!(lane_guard_actions(false), 0);
     }
 }

@@ -590,6 +590,7 @@ impl LiveScene {
                 controllers,
             },
             &setup.planner,
+            setup.map.clone(),
             steps,
             setup.seed,
         )?;

@@ -4,6 +4,8 @@
 //! (math doc: "In closed loop the ego agent's slots are overwritten by the states it reports").
 //! Every tick reports poses in metres and infractions.
 
+use std::sync::Arc;
+
 use rand::rngs::StdRng;
 use road_data::{LaneletMap, SceneWindow, wrap_angle};
 use road_model::batch::SceneInput;
@@ -75,6 +77,24 @@ impl ExternalDriver for NoExternal {
             agent,
             reason: "the agent is external but the simulation has no external driver".into(),
         })
+    }
+}
+
+/// A scene's map in a closed loop: borrowed (the evaluation suites and the demo share one map
+/// between scenes) or shared (the server's scenes hold their maps by `Arc`, which a pool that
+/// lives as long as the server cannot borrow).
+#[derive(Debug, Clone)]
+pub enum SceneMap<'m> {
+    Borrowed(&'m LaneletMap),
+    Shared(Arc<LaneletMap>),
+}
+
+impl SceneMap<'_> {
+    pub fn get(&self) -> &LaneletMap {
+        match self {
+            SceneMap::Borrowed(map) => map,
+            SceneMap::Shared(map) => map,
+        }
     }
 }
 
@@ -151,7 +171,7 @@ struct SceneRuntime<'m> {
     initially_on_road: Vec<bool>,
     /// What the lane and collision guards did in the last tick.
     guarded: Vec<(usize, GuardAction)>,
-    map: Option<&'m LaneletMap>,
+    map: Option<SceneMap<'m>>,
     /// Ticks the scene was built for (its scripts' length).
     steps: usize,
 }
@@ -266,10 +286,12 @@ impl<'m> ClosedLoop<'m> {
         let mut runtimes = Vec::with_capacity(scenes.len());
         for (i, (scene, map)) in scenes.into_iter().zip(maps).enumerate() {
             let (input, runtime) =
-                SceneRuntime::new(scene, map, model, n, steps).map_err(|e| match e {
-                    Error::Config(m) => Error::Config(format!("scene {i}: {m}")),
-                    other => other,
-                })?;
+                SceneRuntime::new(scene, map.map(SceneMap::Borrowed), model, n, steps).map_err(
+                    |e| match e {
+                        Error::Config(m) => Error::Config(format!("scene {i}: {m}")),
+                        other => other,
+                    },
+                )?;
             inputs.push(input);
             runtimes.push(Some(runtime));
         }
@@ -312,13 +334,13 @@ impl<'m> ClosedLoop<'m> {
 
     /// Adds `scene` to a pool for `steps` ticks under `planner`, its noise seeded with `seed`
     /// (its samples do not depend on the other scenes of the pool); `map` for the off-road
-    /// check. Returns its index. Its first tick takes the planner's warm-up.
+    /// check and the lane guard. Returns its index. Its first tick takes the planner's warm-up.
     pub fn add_scene(
         &mut self,
         engine: &mut dyn StepEngine,
         scene: SimScene,
         planner: &PlannerSpec,
-        map: Option<&'m LaneletMap>,
+        map: Option<SceneMap<'m>>,
         steps: usize,
         seed: u64,
     ) -> Result<usize> {
@@ -518,7 +540,7 @@ impl<'m> SceneRuntime<'m> {
     /// The runtime of `scene` and the model's input, checked (see [`start_poses`]).
     fn new(
         scene: SimScene,
-        map: Option<&'m LaneletMap>,
+        map: Option<SceneMap<'m>>,
         model: &ModelConfig,
         n: usize,
         steps: usize,
@@ -530,9 +552,9 @@ impl<'m> SceneRuntime<'m> {
             .map(|a| script(w, a, reference, steps, scene.controllers[a]))
             .collect();
         let initial_boxes = boxes(w, &poses);
-        let initially_on_road = match map {
+        let initially_on_road = match &map {
             Some(map) => {
-                let off = off_road(&initial_boxes, map);
+                let off = off_road(&initial_boxes, map.get());
                 (0..w.agents).map(|a| !off.contains(&a)).collect()
             }
             None => vec![false; w.agents],
@@ -575,8 +597,8 @@ impl<'m> SceneRuntime<'m> {
             }
         }
         self.guarded.clear();
-        if let (Some(guard), Some(map)) = (lane_guard, self.map) {
-            self.keep_on_road(emitted, heading_scale, guard, map);
+        if let (Some(guard), Some(map)) = (lane_guard, self.map.clone()) {
+            self.keep_on_road(emitted, heading_scale, guard, map.get());
         }
         if let Some(guard) = collision_guard {
             self.guard(emitted, heading_scale, guard);
@@ -703,7 +725,11 @@ impl<'m> SceneRuntime<'m> {
         let b = boxes(&self.window, &self.poses);
         let mut hits = collisions(&b);
         hits.retain(|pair| !self.initial_overlaps.contains(pair));
-        let mut off = self.map.map(|m| off_road(&b, m)).unwrap_or_default();
+        let mut off = self
+            .map
+            .as_ref()
+            .map(|m| off_road(&b, m.get()))
+            .unwrap_or_default();
         off.retain(|&a| self.initially_on_road[a]);
         SceneTick {
             poses: self.poses.clone(),
