@@ -382,6 +382,33 @@ fn sample_and_eval_run_with_the_shipped_checkpoint() {
         assert_eq!(rows[0]["nfe_per_scene_tick"], pair[0]["nfe_per_scene_tick"]);
         assert_eq!(rows[1]["nfe_per_scene_tick"], pair[1]["nfe_per_scene_tick"]);
     }
+
+    // Another planner on the same checkpoint: K = 10 sampler steps make a rolling stage one Heun
+    // step (2 NFE); a planner that does not exist is refused by name.
+    let o = road(&[
+        "bench",
+        "serve",
+        "--engines",
+        "cpu",
+        "--planner",
+        "road20-nearfit-lanes-guarded-k10",
+        "--scenes",
+        "2",
+        "--ticks",
+        "2",
+        "--cache",
+        dir_arg,
+        "--json",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let v: serde_json::Value = serde_json::from_str(&stdout(&o)).unwrap();
+    assert_eq!(v["planner"], "road20-nearfit-lanes-guarded-k10");
+    assert_eq!(v["rows"][0]["nfe_per_scene_tick"], 2.0, "{v}");
+    let o = road(&[
+        "bench", "serve", "--engines", "cpu", "--planner", "no-such", "--cache", dir_arg,
+    ]);
+    assert!(!o.status.success());
+    assert!(stderr(&o).contains("unknown planner `no-such`"), "{}", stderr(&o));
     std::fs::remove_dir_all(&dir).ok();
 }
 

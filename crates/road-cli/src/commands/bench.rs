@@ -44,9 +44,13 @@ pub enum BenchCommand {
 
 #[derive(Debug, Args)]
 pub struct ServeBenchArgs {
-    /// Checkpoint (its planner is what every scene runs).
+    /// Checkpoint (its planner is what every scene runs, unless `--planner`).
     #[arg(long, default_value = "models/road20")]
     pub checkpoint: PathBuf,
+    /// Run every scene under this planner of `configs/planners.toml` instead of the
+    /// checkpoint's own (e.g. `road20-nearfit-lanes-guarded-k10`: fewer sampler steps).
+    #[arg(long)]
+    pub planner: Option<String>,
     /// Scenes served together.
     #[arg(long, num_args = 1.., default_values_t = [8usize, 64])]
     pub scenes: Vec<usize>,
@@ -481,7 +485,10 @@ fn serve_bench(args: &ServeBenchArgs) -> Result<()> {
     for &engine_kind in &args.engines {
         let choice = EngineChoice::from(engine_kind);
         let engines = Engines::load(&args.checkpoint, choice)?;
-        let run = &engines.cpu.meta.run;
+        let run = &crate::commands::engine::with_planner(
+            &engines.cpu.meta.run,
+            args.planner.as_deref(),
+        )?;
         let n = run.planner.obs_slots;
         for &b in &args.scenes {
             let scenes: Vec<RolloutScene> = (0..b)
@@ -535,14 +542,18 @@ fn serve_bench(args: &ServeBenchArgs) -> Result<()> {
         out!(
             "{}",
             serde_json::to_string_pretty(
-                &serde_json::json!({ "checkpoint": args.checkpoint, "cpu": crate::commands::train::hardware(), "rows": rows })
+                &serde_json::json!({ "checkpoint": args.checkpoint, "planner": args.planner, "cpu": crate::commands::train::hardware(), "rows": rows })
             )?
         );
         return Ok(());
     }
     out!(
-        "serve: {} ({} ticks timed after every scene's warm-up); CPU = {}",
+        "serve: {}{} ({} ticks timed after every scene's warm-up); CPU = {}",
         args.checkpoint.display(),
+        args.planner
+            .as_deref()
+            .map(|p| format!(" under planner {p}"))
+            .unwrap_or_default(),
         args.ticks,
         crate::commands::train::hardware()
     );
