@@ -404,11 +404,24 @@ fn sample_and_eval_run_with_the_shipped_checkpoint() {
     let v: serde_json::Value = serde_json::from_str(&stdout(&o)).unwrap();
     assert_eq!(v["planner"], "road20-nearfit-lanes-guarded-k10");
     assert_eq!(v["rows"][0]["nfe_per_scene_tick"], 2.0, "{v}");
+    let gflop_per_sec = v["rows"][0]["gflop_per_sec"].as_f64().unwrap();
+    assert!(gflop_per_sec.is_finite() && gflop_per_sec > 0.0, "{v}");
     let o = road(&[
-        "bench", "serve", "--engines", "cpu", "--planner", "no-such", "--cache", dir_arg,
+        "bench",
+        "serve",
+        "--engines",
+        "cpu",
+        "--planner",
+        "no-such",
+        "--cache",
+        dir_arg,
     ]);
     assert!(!o.status.success());
-    assert!(stderr(&o).contains("unknown planner `no-such`"), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("unknown planner `no-such`"),
+        "{}",
+        stderr(&o)
+    );
     std::fs::remove_dir_all(&dir).ok();
 }
 
@@ -604,8 +617,9 @@ fn demo_runs_closed_loop_on_both_engines() {
         let v: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
         assert_eq!(v["ticks"].as_array().unwrap().len(), 4);
-        // RoAD-20: the K = 40 warm-up (80 NFE) then rolling stages of K/F = 4 steps (8 NFE).
-        assert_eq!(v["nfe"], 80 + 3 * 8);
+        // The default's RoAD-20 at K = 20: the warm-up (40 NFE) then rolling stages of K/F = 2
+        // steps (4 NFE).
+        assert_eq!(v["nfe"], 40 + 3 * 4);
         runs.push(v);
     }
     // The same seed: the same closed loop on both engines, to the rollout tolerance.

@@ -485,10 +485,8 @@ fn serve_bench(args: &ServeBenchArgs) -> Result<()> {
     for &engine_kind in &args.engines {
         let choice = EngineChoice::from(engine_kind);
         let engines = Engines::load(&args.checkpoint, choice)?;
-        let run = &crate::commands::engine::with_planner(
-            &engines.cpu.meta.run,
-            args.planner.as_deref(),
-        )?;
+        let run =
+            &crate::commands::engine::with_planner(&engines.cpu.meta.run, args.planner.as_deref())?;
         let n = run.planner.obs_slots;
         for &b in &args.scenes {
             let scenes: Vec<RolloutScene> = (0..b)
@@ -512,9 +510,10 @@ fn serve_bench(args: &ServeBenchArgs) -> Result<()> {
                 let mut driver =
                     RolloutDriver::new(engine, &run.planner, &scenes, args.ticks + 1, &mut rng)?;
                 driver.tick(engine, &mut |_, _| Ok(()))?; // every scene's warm-up, untimed
-                let nfe_before = (0..b)
+                let nfe_before_of = (0..b)
                     .map(|i| driver.scene_nfe(i))
-                    .sum::<road_model::Result<u64>>()?;
+                    .collect::<road_model::Result<Vec<u64>>>()?;
+                let nfe_before: u64 = nfe_before_of.iter().sum();
                 let started = Instant::now();
                 for t in 0..args.ticks {
                     if joining && t % args.join_every == 0 {
@@ -523,6 +522,27 @@ fn serve_bench(args: &ServeBenchArgs) -> Result<()> {
                     driver.tick(engine, &mut |_, _| Ok(()))?;
                 }
                 let secs = started.elapsed().as_secs_f64();
+                // Useful work: each scene's evaluations times its multiply-adds (agents with
+                // any valid slot; with agent maps, each query attends to its K polylines).
+                let mut flops = 0.0;
+                for (i, scene) in scenes.iter().enumerate() {
+                    let history = &scene.history;
+                    let agents = (0..history.agents)
+                        .filter(|&a| {
+                            history.valid[a * history.slots..(a + 1) * history.slots]
+                                .iter()
+                                .any(|&v| v)
+                        })
+                        .count();
+                    let polylines = run
+                        .model
+                        .agent_map
+                        .as_ref()
+                        .map_or(history.polylines, |m| m.polylines);
+                    let evaluations = driver.scene_nfe(i)? - nfe_before_of[i];
+                    flops +=
+                        evaluations as f64 * flops_per_evaluation(&run.model, agents, polylines);
+                }
                 let nfe = (0..b)
                     .map(|i| driver.scene_nfe(i))
                     .sum::<road_model::Result<u64>>()?
@@ -534,6 +554,7 @@ fn serve_bench(args: &ServeBenchArgs) -> Result<()> {
                     "ms_per_tick": secs * 1e3 / args.ticks as f64,
                     "scene_ticks_per_sec": (b * args.ticks) as f64 / secs,
                     "nfe_per_scene_tick": nfe as f64 / (b * args.ticks) as f64,
+                    "gflop_per_sec": flops / secs / 1e9,
                 }));
             }
         }
@@ -558,13 +579,13 @@ fn serve_bench(args: &ServeBenchArgs) -> Result<()> {
         crate::commands::train::hardware()
     );
     out!(
-        "| engine | scenes | mode | ms per tick | scene-ticks/s | scenes at 10 Hz (scene-ticks/s ÷ 10) | this B in real time (tick ≤ 100 ms) | NFE per scene-tick |"
+        "| engine | scenes | mode | ms per tick | scene-ticks/s | scenes at 10 Hz (scene-ticks/s ÷ 10) | this B in real time (tick ≤ 100 ms) | NFE per scene-tick | GFLOP/s (useful work) |"
     );
-    out!("|---|---:|---|---:|---:|---:|---|---:|");
+    out!("|---|---:|---|---:|---:|---:|---|---:|---:|");
     for r in &rows {
         let f = |k: &str| r[k].as_f64().unwrap_or(0.0);
         out!(
-            "| {} | {} | {} | {:.1} | {:.1} | {:.1} | {} | {:.1} |",
+            "| {} | {} | {} | {:.1} | {:.1} | {:.1} | {} | {:.1} | {:.1} |",
             r["engine"].as_str().unwrap_or(""),
             r["scenes"],
             r["mode"].as_str().unwrap_or(""),
@@ -576,8 +597,14 @@ fn serve_bench(args: &ServeBenchArgs) -> Result<()> {
             } else {
                 "no"
             },
-            f("nfe_per_scene_tick")
+            f("nfe_per_scene_tick"),
+            f("gflop_per_sec")
         );
     }
+    out!(
+        "(GFLOP/s: the denoiser's multiply-adds ×2 of every evaluation (`flops_per_evaluation`: \
+         projections, attention, MLP; the pair features and the memoised map keys not counted) \
+         over the timed ticks: compare it with the device's peak)"
+    );
     Ok(())
 }
