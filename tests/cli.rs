@@ -352,21 +352,16 @@ fn sample_and_eval_run_with_the_shipped_checkpoint() {
 
     // Serving through the scheduler on every engine (candle, fast CPU, WGSL), lockstep and
     // with a scene joining.
-    let o = road(&[
-        "bench",
-        "serve",
-        "--scenes",
-        "2",
-        "--ticks",
-        "2",
-        "--join-every",
-        "2",
-        "--cache",
-        dir_arg,
-        "--json",
-    ]);
-    assert!(o.status.success(), "{}", stderr(&o));
-    let v: serde_json::Value = serde_json::from_str(&stdout(&o)).unwrap();
+    // `road bench serve` of 2 scenes for 2 ticks with `extra` flags, its JSON report.
+    let bench_serve = |extra: &[&str]| {
+        let mut args = vec!["bench", "serve", "--scenes", "2", "--ticks", "2"];
+        args.extend_from_slice(extra);
+        args.extend_from_slice(&["--cache", dir_arg, "--json"]);
+        let o = road(&args);
+        assert!(o.status.success(), "{}", stderr(&o));
+        serde_json::from_str::<serde_json::Value>(&stdout(&o)).unwrap()
+    };
+    let v = bench_serve(&["--join-every", "2"]);
     let rows = v["rows"].as_array().unwrap();
     assert_eq!(rows.len(), 6, "{v}");
     let engines: Vec<&str> = rows.iter().map(|r| r["engine"].as_str().unwrap()).collect();
@@ -385,23 +380,12 @@ fn sample_and_eval_run_with_the_shipped_checkpoint() {
 
     // Another planner on the same checkpoint: K = 10 sampler steps make a rolling stage one Heun
     // step (2 NFE); a planner that does not exist is refused by name.
-    let o = road(&[
-        "bench",
-        "serve",
+    let v = bench_serve(&[
         "--engines",
         "cpu",
         "--planner",
         "road20-nearfit-lanes-guarded-k10",
-        "--scenes",
-        "2",
-        "--ticks",
-        "2",
-        "--cache",
-        dir_arg,
-        "--json",
     ]);
-    assert!(o.status.success(), "{}", stderr(&o));
-    let v: serde_json::Value = serde_json::from_str(&stdout(&o)).unwrap();
     assert_eq!(v["planner"], "road20-nearfit-lanes-guarded-k10");
     assert_eq!(v["rows"][0]["nfe_per_scene_tick"], 2.0, "{v}");
     let gflop_per_sec = v["rows"][0]["gflop_per_sec"].as_f64().unwrap();
