@@ -650,6 +650,12 @@ class Inputs:
     def to(self, device: torch.device) -> Inputs:
         return Inputs(*(t.to(device) for t in vars(self).values()))
 
+    def denoise(self, model: Denoiser | Any, sigma: Tensor) -> Tensor:
+        """`model`'s denoised estimate of these inputs at noise levels `sigma` [B, W]."""
+        return model(
+            self.x_noisy, sigma, self.valid, self.agent_features, self.map_points, self.map_valid
+        )
+
 
 def synthetic_scenes(
     c: ModelConfig, scenes: int, agents: list[int], polylines: list[int], generator: torch.Generator
@@ -848,14 +854,7 @@ def make_fixture(out: Path, template: Path, seed: int, checkpoint: Path | None) 
     with torch.no_grad():
         expected = torch.stack(
             [
-                model(
-                    inputs.x_noisy,
-                    sigma[case],
-                    inputs.valid,
-                    inputs.agent_features,
-                    inputs.map_points,
-                    inputs.map_valid,
-                )
+                inputs.denoise(model, sigma[case])
                 for case in range(sigma.shape[0])
             ]
         )  # [C, B, A, W, 3]
@@ -927,23 +926,9 @@ def check(checkpoint: Path, device: torch.device) -> None:
     sigma_min = 0.002
     clean = Inputs(clean.x_noisy + sigma_min * noise, *list(vars(clean).values())[1:]).to(device)
     with torch.no_grad():
-        d = model(
-            inputs.x_noisy,
-            sigma,
-            inputs.valid,
-            inputs.agent_features,
-            inputs.map_points,
-            inputs.map_valid,
-        )
+        d = inputs.denoise(model, sigma)
         small = torch.full((4, c.window_slots), sigma_min, device=device)
-        d_small = model(
-            clean.x_noisy,
-            small,
-            clean.valid,
-            clean.agent_features,
-            clean.map_points,
-            clean.map_valid,
-        )
+        d_small = clean.denoise(model, small)
     moved = (d_small - clean.x_noisy).abs().amax(dim=3)[clean.valid.bool()]  # per valid token
     report = {
         "checkpoint": str(checkpoint),
@@ -965,14 +950,7 @@ def time_forward(
     """Seconds per denoiser evaluation (after warm-up), timed over at least `min_secs`."""
 
     def once() -> Tensor:
-        return model(
-            inputs.x_noisy,
-            sigma,
-            inputs.valid,
-            inputs.agent_features,
-            inputs.map_points,
-            inputs.map_valid,
-        )
+        return inputs.denoise(model, sigma)
 
     def sync() -> None:
         if device.type == "cuda":

@@ -48,10 +48,34 @@ fn closed_loop<'m>(
     steps: usize,
     rng: &mut StdRng,
 ) -> road_sim::Result<ClosedLoop<'m>> {
+    closed_loop_under(
+        &planner(),
+        engine,
+        model,
+        scene,
+        controllers,
+        with_map,
+        steps,
+        rng,
+    )
+}
+
+/// [`closed_loop`] under `planner` (10 observed steps).
+#[allow(clippy::too_many_arguments)]
+fn closed_loop_under<'m>(
+    planner: &PlannerSpec,
+    engine: &mut CpuEngine,
+    model: &road_model::Denoiser,
+    scene: &'m ProceduralScene,
+    controllers: Vec<Controller>,
+    with_map: bool,
+    steps: usize,
+    rng: &mut StdRng,
+) -> road_sim::Result<ClosedLoop<'m>> {
     ClosedLoop::new(
         engine,
         &model.config,
-        &planner(),
+        planner,
         vec![SimScene {
             window: scene.window.clone(),
             observed_steps: 10,
@@ -63,8 +87,21 @@ fn closed_loop<'m>(
     )
 }
 
-/// Runs `steps` ticks; returns every tick's report.
+/// Runs `steps` ticks with the test planner; returns every tick's report.
 fn simulate(
+    model: &road_model::Denoiser,
+    scene: &ProceduralScene,
+    controllers: Vec<Controller>,
+    external: &mut dyn road_sim::closed_loop::ExternalDriver,
+    steps: usize,
+    seed: u64,
+) -> Vec<SceneTick> {
+    simulate_under(&planner(), model, scene, controllers, external, steps, seed)
+}
+
+/// [`simulate`] under `planner`.
+fn simulate_under(
+    planner: &PlannerSpec,
     model: &road_model::Denoiser,
     scene: &ProceduralScene,
     controllers: Vec<Controller>,
@@ -74,7 +111,8 @@ fn simulate(
 ) -> Vec<SceneTick> {
     let mut engine = CpuEngine::new(model);
     let mut rng = StdRng::seed_from_u64(seed);
-    let mut sim = closed_loop(
+    let mut sim = closed_loop_under(
+        planner,
         &mut engine,
         model,
         scene,
@@ -442,29 +480,15 @@ fn the_lane_guard_keeps_model_agents_on_the_road() {
     controllers[ego] = Controller::ConstantVelocity;
     let steps = 40;
     let run = |planner: &PlannerSpec| {
-        let mut engine = CpuEngine::new(model);
-        let mut rng = StdRng::seed_from_u64(0);
-        let mut sim = ClosedLoop::new(
-            &mut engine,
-            &model.config,
+        simulate_under(
             planner,
-            vec![SimScene {
-                window: scene.window.clone(),
-                observed_steps: own_planner.obs_slots,
-                controllers: controllers.clone(),
-            }],
-            vec![Some(&scene.map)],
+            model,
+            &scene,
+            controllers.clone(),
+            &mut NoExternal,
             steps,
-            &mut rng,
+            0,
         )
-        .unwrap();
-        let mut out = Vec::new();
-        let mut ticks = Vec::new();
-        for _ in 0..steps {
-            sim.tick(&mut engine, &mut NoExternal, &mut out).unwrap();
-            ticks.push(out[0].clone());
-        }
-        ticks
     };
     let model_agents_off_road = |ticks: &[SceneTick]| {
         let mut off: Vec<usize> = ticks
