@@ -93,6 +93,7 @@ struct Pipelines {
     max_over_points: Pipeline,
     heun_euler: Pipeline,
     heun_correct: Pipeline,
+    multistep_correct: Pipeline,
     pick_agent_maps: Pipeline,
     pair_attention: Pipeline,
 }
@@ -110,6 +111,7 @@ impl Pipelines {
             max_over_points: Pipeline::new(ctx, Shader::Elementwise, "max_over_points"),
             heun_euler: Pipeline::new(ctx, Shader::Heun, "heun_euler"),
             heun_correct: Pipeline::new(ctx, Shader::Heun, "heun_correct"),
+            multistep_correct: Pipeline::new(ctx, Shader::Heun, "multistep_correct"),
             pick_agent_maps: Pipeline::new(ctx, Shader::AgentMap, "pick_agent_maps"),
             pair_attention: Pipeline::new(ctx, Shader::AgentPairs, "pair_attention"),
         }
@@ -1038,6 +1040,20 @@ impl GpuDenoiser {
             &[&batch.x, &first, &sigma_cur, &sigma_next, &x_e, &second],
             p.count,
         ));
+        let previous = storage_buffer(ctx, "D_prev", len);
+        let gamma = storage_buffer(ctx, "gamma", (b * w * 4) as u64);
+        // Bindings of heun.wgsl's shared module that multistep_correct reads.
+        let multistep = self.pipelines.multistep_correct.prepare(
+            ctx,
+            &params,
+            &[
+                (2, first.as_entire_binding()),
+                (5, x_e.as_entire_binding()),
+                (7, previous.as_entire_binding()),
+                (8, gamma.as_entire_binding()),
+            ],
+            p.count,
+        );
         Ok(HeunPlan {
             sigma_cur,
             sigma_next,
@@ -1048,6 +1064,9 @@ impl GpuDenoiser {
             x_e,
             euler,
             correct,
+            previous,
+            gamma,
+            multistep,
             bytes: len,
             sigma_eval_host: vec![0.0; b * w],
         })
@@ -1181,8 +1200,21 @@ pub struct HeunPlan {
     x_e: wgpu::Buffer,
     euler: Vec<Dispatch>,
     correct: Vec<Dispatch>,
+    /// The multistep sampler's previous estimate `[B, A, W, 3]` (filled by the caller before
+    /// each multistep step), its γ `[B, W]` and its correction.
+    previous: wgpu::Buffer,
+    gamma: wgpu::Buffer,
+    multistep: Dispatch,
     bytes: u64,
     sigma_eval_host: Vec<f32>,
+}
+
+/// How a [`HeunPlan`] moves the windows: Heun (EDM Algorithm 1, the Euler step alone without
+/// the second evaluation) or the multistep sampler with its γ `[B, W]`.
+#[derive(Debug, Clone, Copy)]
+pub enum StepRule<'g> {
+    Heun { second_evaluation: bool },
+    Multistep { gamma: &'g [f32] },
 }
 
 impl HeunPlan {
@@ -1216,6 +1248,31 @@ impl HeunPlan {
         second_evaluation: bool,
         then: impl FnOnce(&mut wgpu::CommandEncoder, &wgpu::Buffer),
     ) -> Result<()> {
+        self.run_rule(
+            ctx,
+            batch,
+            sigma_cur,
+            sigma_next,
+            StepRule::Heun { second_evaluation },
+            |_, _| {},
+            then,
+        )
+    }
+
+    /// One step under `rule` in one submission: `before(encoder, D_prev)` records first (a
+    /// multistep step's caller copies each scene's previous estimate into `D_prev`, `[B, A, W,
+    /// 3]`), then the step, then `then(encoder, D)` as in [`Self::run_then`].
+    #[allow(clippy::too_many_arguments)]
+    pub fn run_rule(
+        &mut self,
+        ctx: &GpuContext,
+        batch: &DeviceBatch,
+        sigma_cur: &[f32],
+        sigma_next: &[f32],
+        rule: StepRule<'_>,
+        before: impl FnOnce(&mut wgpu::CommandEncoder, &wgpu::Buffer),
+        then: impl FnOnce(&mut wgpu::CommandEncoder, &wgpu::Buffer),
+    ) -> Result<()> {
         let expected = self.sigma_eval_host.len();
         if sigma_cur.len() != expected || sigma_next.len() != expected {
             return Err(Error::Input(format!(
@@ -1224,6 +1281,20 @@ impl HeunPlan {
                 sigma_next.len()
             )));
         }
+        let second_evaluation = match rule {
+            StepRule::Heun { second_evaluation } => second_evaluation,
+            StepRule::Multistep { gamma } => {
+                if gamma.len() != expected {
+                    return Err(Error::Input(format!(
+                        "{} γ values; the batch is [B, W] = {expected}",
+                        gamma.len()
+                    )));
+                }
+                ctx.queue
+                    .write_buffer(&self.gamma, 0, bytemuck::cast_slice(gamma));
+                false
+            }
+        };
         ctx.queue
             .write_buffer(&self.sigma_cur, 0, bytemuck::cast_slice(sigma_cur));
         ctx.queue
@@ -1247,12 +1318,14 @@ impl HeunPlan {
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                 label: Some("heun"),
             });
+        before(&mut enc, &self.previous);
+        let after_euler: &[Dispatch] = match rule {
+            StepRule::Heun { .. } if second_evaluation => &self.correct,
+            StepRule::Heun { .. } => &[],
+            StepRule::Multistep { .. } => std::slice::from_ref(&self.multistep),
+        };
         // One pass per dispatch: measured faster on lavapipe than one pass for all of them.
-        for d in self.euler.iter().chain(if second_evaluation {
-            &self.correct[..]
-        } else {
-            &[]
-        }) {
+        for d in self.euler.iter().chain(after_euler) {
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
                 label: Some("heun"),
                 timestamp_writes: None,

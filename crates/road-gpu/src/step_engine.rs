@@ -2,7 +2,7 @@
 //! `StepEngine` over a [`GpuDenoiser`]'s kernels, with the windows kept on the device through a
 //! tick's steps and compacted sub-batches for mixed-phase rounds.
 
-use crate::engine::{DenoiseInputs, DeviceBatch, GpuDenoiser, HeunPlan, MapTokens};
+use crate::engine::{DenoiseInputs, DeviceBatch, GpuDenoiser, HeunPlan, MapTokens, StepRule};
 use crate::kernels::{read_back_ranges, storage_buffer};
 use crate::{Error, GpuContext, Result};
 
@@ -17,8 +17,10 @@ pub struct GpuStepEngine<'a> {
     plan: Option<HeunPlan>,
     window: Option<crate::kernels::window::WindowOps>,
     /// Each scene's last denoiser estimate `[B, A, W, 3]` (zeros until a step moves it), for
-    /// `read_denoised`.
+    /// `read_denoised` and the multistep sampler, and the window kernels bound to it (it moves
+    /// with each shift).
     denoised: Option<wgpu::Buffer>,
+    estimate_window: Option<crate::kernels::window::WindowOps>,
     /// Compacted sub-batches by capacity (powers of two), made on first use.
     compact: Vec<Compact>,
     features: Vec<f32>,
@@ -36,6 +38,7 @@ impl<'a> GpuStepEngine<'a> {
             plan: None,
             window: None,
             denoised: None,
+            estimate_window: None,
             compact: Vec::new(),
             features: Vec::new(),
             scenes: 0,
@@ -53,6 +56,7 @@ struct Compact {
     plan: HeunPlan,
     sigma_cur: Vec<f32>,  // [capacity, W]
     sigma_next: Vec<f32>, // [capacity, W]
+    gamma: Vec<f32>,      // [capacity, W]
 }
 
 impl Compact {
@@ -90,147 +94,19 @@ impl Compact {
             plan,
             sigma_cur: vec![1.0; capacity * w],
             sigma_next: vec![1.0; capacity * w],
+            gamma: vec![0.0; capacity * w],
         })
     }
 }
 
-fn engine_err(e: Error) -> road_model::Error {
-    road_model::Error::Engine(e.to_string())
-}
-
-impl road_model::sample::StepEngine for GpuStepEngine<'_> {
-    fn window_slots(&self) -> usize {
-        self.model.config.window_slots
-    }
-
-    fn prepare(
-        &mut self,
-        scenes: usize,
-        agents: usize,
-        features: &[f32],
-        polylines: usize,
-        map: &[f32],
-        map_valid: &[f32],
-    ) -> road_model::Result<()> {
-        self.map = Some(
-            self.model
-                .encode_map(self.ctx, scenes, polylines, map, map_valid)
-                .map_err(engine_err)?,
-        );
-        self.features = features.to_vec();
-        self.scenes = scenes;
-        self.agents = agents;
-        // A new scene set: the next load makes its batch and plan.
-        self.batch = None;
-        self.plan = None;
-        self.window = None;
-        self.denoised = None;
-        self.compact.clear();
-        Ok(())
-    }
-
-    fn load(&mut self, windows: &[f32], valid: &[f32]) -> road_model::Result<()> {
-        // Later ticks only overwrite the state: buffers, bind groups and the plan stay.
-        if let Some(batch) = &self.batch {
-            self.ctx
-                .queue
-                .write_buffer(&batch.x, 0, bytemuck::cast_slice(windows));
-            self.ctx
-                .queue
-                .write_buffer(&batch.valid, 0, bytemuck::cast_slice(valid));
-            if let Some(denoised) = &self.denoised {
-                self.ctx
-                    .queue
-                    .write_buffer(denoised, 0, &vec![0u8; windows.len() * 4]);
-            }
-            return Ok(());
-        }
-        let map = self
-            .map
-            .as_ref()
-            .ok_or_else(|| road_model::Error::Engine("load before prepare".into()))?;
-        // σ is written per step into the plan's buffers; the batch's own σ is never read.
-        let sigma = vec![1.0f32; self.scenes * self.model.config.window_slots];
-        let inputs = DenoiseInputs {
-            scenes: self.scenes,
-            agents: self.agents,
-            x: windows,
-            sigma: &sigma,
-            valid,
-            agent_features: &self.features,
-        };
-        let batch = self
-            .model
-            .upload_batch(self.ctx, &inputs)
-            .map_err(engine_err)?;
-        self.plan = Some(
-            self.model
-                .heun_plan(self.ctx, &batch, map)
-                .map_err(engine_err)?,
-        );
-        self.window = Some(crate::kernels::window::WindowOps::new(
-            self.ctx,
-            &batch.x,
-            self.scenes,
-            self.agents,
-            self.model.config.window_slots,
-        ));
-        // Storage buffers start zeroed.
-        self.denoised = Some(storage_buffer(
-            self.ctx,
-            "denoised (last)",
-            (windows.len() * 4) as u64,
-        ));
-        self.batch = Some(batch);
-        Ok(())
-    }
-
-    fn load_scene(
-        &mut self,
-        scene: usize,
-        window: &[f32],
-        valid: &[f32],
-    ) -> road_model::Result<()> {
-        let batch = self
-            .batch
-            .as_ref()
-            .ok_or_else(|| road_model::Error::Engine("load_scene before load".into()))?;
-        let w = self.model.config.window_slots;
-        let (x_len, v_len) = (self.agents * w * 3, self.agents * w);
-        if window.len() != x_len || valid.len() != v_len || scene >= self.scenes {
-            return Err(road_model::Error::Engine(format!(
-                "load_scene {scene}: {} states and {} flags for a batch of {} scenes × {x_len} / {v_len}",
-                window.len(),
-                valid.len(),
-                self.scenes
-            )));
-        }
-        self.ctx.queue.write_buffer(
-            &batch.x,
-            (scene * x_len * 4) as u64,
-            bytemuck::cast_slice(window),
-        );
-        self.ctx.queue.write_buffer(
-            &batch.valid,
-            (scene * v_len * 4) as u64,
-            bytemuck::cast_slice(valid),
-        );
-        // A rebuilt window has no estimate yet.
-        if let Some(denoised) = &self.denoised {
-            self.ctx.queue.write_buffer(
-                denoised,
-                (scene * x_len * 4) as u64,
-                &vec![0u8; x_len * 4],
-            );
-        }
-        Ok(())
-    }
-
-    fn step(
+impl GpuStepEngine<'_> {
+    /// One step of every scene whose σ row changes, under `rule`; see `StepEngine::step` and
+    /// `StepEngine::step_multistep`.
+    fn step_rule(
         &mut self,
         sigma_cur: &[f32],
         sigma_next: &[f32],
-        second_evaluation: bool,
+        rule: StepRule<'_>,
     ) -> road_model::Result<()> {
         let (Some(batch), Some(plan), Some(map)) = (&self.batch, &mut self.plan, &self.map) else {
             return Err(road_model::Error::Engine(
@@ -256,13 +132,19 @@ impl road_model::sample::StepEngine for GpuStepEngine<'_> {
             // σ rows are per scene: [B, W]; idle scenes hold still. The moved scenes'
             // estimates are kept in the same submission (idle rows were evaluated, not moved).
             let denoised = self.denoised.as_ref();
+            let multistep = matches!(rule, StepRule::Multistep { .. });
             return plan
-                .run_then(
+                .run_rule(
                     self.ctx,
                     batch,
                     sigma_cur,
                     sigma_next,
-                    second_evaluation,
+                    rule,
+                    |enc, previous| {
+                        if let (true, Some(kept)) = (multistep, denoised) {
+                            enc.copy_buffer_to_buffer(kept, 0, previous, 0, b as u64 * row_bytes);
+                        }
+                    },
                     |enc, d| {
                         let Some(kept) = denoised else { return };
                         if active.len() == b {
@@ -320,18 +202,39 @@ impl road_model::sample::StepEngine for GpuStepEngine<'_> {
         self.ctx.queue.submit([enc.finish()]);
         compact.sigma_cur.fill(1.0);
         compact.sigma_next.fill(1.0);
+        compact.gamma.fill(0.0);
         for (k, &i) in active.iter().enumerate() {
             compact.sigma_cur[k * w..(k + 1) * w].copy_from_slice(&sigma_cur[i * w..(i + 1) * w]);
             compact.sigma_next[k * w..(k + 1) * w].copy_from_slice(&sigma_next[i * w..(i + 1) * w]);
+            if let StepRule::Multistep { gamma } = rule {
+                compact.gamma[k * w..(k + 1) * w].copy_from_slice(&gamma[i * w..(i + 1) * w]);
+            }
         }
+        let compact_rule = match rule {
+            StepRule::Multistep { .. } => StepRule::Multistep {
+                gamma: &compact.gamma,
+            },
+            heun => heun,
+        };
+        let denoised = self.denoised.as_ref();
         compact
             .plan
-            .run(
+            .run_rule(
                 self.ctx,
                 &compact.batch,
                 &compact.sigma_cur,
                 &compact.sigma_next,
-                second_evaluation,
+                compact_rule,
+                |enc, previous| {
+                    let (StepRule::Multistep { .. }, Some(kept)) = (rule, denoised) else {
+                        return;
+                    };
+                    for (k, &i) in active.iter().enumerate() {
+                        let (from, to) = (i as u64 * row_bytes, k as u64 * row_bytes);
+                        enc.copy_buffer_to_buffer(kept, from, previous, to, row_bytes);
+                    }
+                },
+                |_, _| {},
             )
             .map_err(engine_err)?;
         let mut enc = self
@@ -361,6 +264,162 @@ impl road_model::sample::StepEngine for GpuStepEngine<'_> {
         }
         self.ctx.queue.submit([enc.finish()]);
         Ok(())
+    }
+}
+
+fn engine_err(e: Error) -> road_model::Error {
+    road_model::Error::Engine(e.to_string())
+}
+
+impl road_model::sample::StepEngine for GpuStepEngine<'_> {
+    fn window_slots(&self) -> usize {
+        self.model.config.window_slots
+    }
+
+    fn prepare(
+        &mut self,
+        scenes: usize,
+        agents: usize,
+        features: &[f32],
+        polylines: usize,
+        map: &[f32],
+        map_valid: &[f32],
+    ) -> road_model::Result<()> {
+        self.map = Some(
+            self.model
+                .encode_map(self.ctx, scenes, polylines, map, map_valid)
+                .map_err(engine_err)?,
+        );
+        self.features = features.to_vec();
+        self.scenes = scenes;
+        self.agents = agents;
+        // A new scene set: the next load makes its batch and plan.
+        self.batch = None;
+        self.plan = None;
+        self.window = None;
+        self.denoised = None;
+        self.estimate_window = None;
+        self.compact.clear();
+        Ok(())
+    }
+
+    fn load(&mut self, windows: &[f32], valid: &[f32]) -> road_model::Result<()> {
+        // Later ticks only overwrite the state: buffers, bind groups and the plan stay.
+        if let Some(batch) = &self.batch {
+            self.ctx
+                .queue
+                .write_buffer(&batch.x, 0, bytemuck::cast_slice(windows));
+            self.ctx
+                .queue
+                .write_buffer(&batch.valid, 0, bytemuck::cast_slice(valid));
+            if let Some(denoised) = &self.denoised {
+                self.ctx
+                    .queue
+                    .write_buffer(denoised, 0, &vec![0u8; windows.len() * 4]);
+            }
+            return Ok(());
+        }
+        let map = self
+            .map
+            .as_ref()
+            .ok_or_else(|| road_model::Error::Engine("load before prepare".into()))?;
+        // σ is written per step into the plan's buffers; the batch's own σ is never read.
+        let sigma = vec![1.0f32; self.scenes * self.model.config.window_slots];
+        let inputs = DenoiseInputs {
+            scenes: self.scenes,
+            agents: self.agents,
+            x: windows,
+            sigma: &sigma,
+            valid,
+            agent_features: &self.features,
+        };
+        let batch = self
+            .model
+            .upload_batch(self.ctx, &inputs)
+            .map_err(engine_err)?;
+        self.plan = Some(
+            self.model
+                .heun_plan(self.ctx, &batch, map)
+                .map_err(engine_err)?,
+        );
+        self.window = Some(crate::kernels::window::WindowOps::new(
+            self.ctx,
+            &batch.x,
+            self.scenes,
+            self.agents,
+            self.model.config.window_slots,
+        ));
+        // Storage buffers start zeroed.
+        let denoised = storage_buffer(self.ctx, "denoised (last)", (windows.len() * 4) as u64);
+        self.estimate_window = Some(crate::kernels::window::WindowOps::new(
+            self.ctx,
+            &denoised,
+            self.scenes,
+            self.agents,
+            self.model.config.window_slots,
+        ));
+        self.denoised = Some(denoised);
+        self.batch = Some(batch);
+        Ok(())
+    }
+
+    fn load_scene(
+        &mut self,
+        scene: usize,
+        window: &[f32],
+        valid: &[f32],
+    ) -> road_model::Result<()> {
+        let batch = self
+            .batch
+            .as_ref()
+            .ok_or_else(|| road_model::Error::Engine("load_scene before load".into()))?;
+        let w = self.model.config.window_slots;
+        let (x_len, v_len) = (self.agents * w * 3, self.agents * w);
+        if window.len() != x_len || valid.len() != v_len || scene >= self.scenes {
+            return Err(road_model::Error::Engine(format!(
+                "load_scene {scene}: {} states and {} flags for a batch of {} scenes × {x_len} / {v_len}",
+                window.len(),
+                valid.len(),
+                self.scenes
+            )));
+        }
+        self.ctx.queue.write_buffer(
+            &batch.x,
+            (scene * x_len * 4) as u64,
+            bytemuck::cast_slice(window),
+        );
+        self.ctx.queue.write_buffer(
+            &batch.valid,
+            (scene * v_len * 4) as u64,
+            bytemuck::cast_slice(valid),
+        );
+        // A rebuilt window has no estimate yet.
+        if let Some(denoised) = &self.denoised {
+            self.ctx.queue.write_buffer(
+                denoised,
+                (scene * x_len * 4) as u64,
+                &vec![0u8; x_len * 4],
+            );
+        }
+        Ok(())
+    }
+
+    fn step(
+        &mut self,
+        sigma_cur: &[f32],
+        sigma_next: &[f32],
+        second_evaluation: bool,
+    ) -> road_model::Result<()> {
+        self.step_rule(sigma_cur, sigma_next, StepRule::Heun { second_evaluation })
+    }
+
+    fn step_multistep(
+        &mut self,
+        sigma_cur: &[f32],
+        sigma_next: &[f32],
+        gamma: &[f32],
+    ) -> road_model::Result<()> {
+        self.step_rule(sigma_cur, sigma_next, StepRule::Multistep { gamma })
     }
 
     fn read_emitted(&mut self, slots: &[Option<usize>], out: &mut [f32]) -> road_model::Result<()> {
@@ -419,6 +478,28 @@ impl road_model::sample::StepEngine for GpuStepEngine<'_> {
         window
             .shift(self.ctx, &batch.x, &list, shape)
             .map_err(engine_err)?;
+        // The kept estimate moves with its slots (`road_model::sample::estimate_shift`): the
+        // same kernel with nothing emitted and no noise.
+        if let (Some(estimate_window), Some(denoised)) = (&mut self.estimate_window, &self.denoised)
+        {
+            let zeros: Vec<(Vec<f32>, Vec<f32>)> = edits
+                .iter()
+                .map(|e| (vec![0.0; e.emitted.len()], vec![0.0; e.noise.len()]))
+                .collect();
+            let list: Vec<(usize, &[f32], &[f32])> = edits
+                .iter()
+                .zip(&zeros)
+                .map(|(e, (emitted, noise))| (e.scene, &emitted[..], &noise[..]))
+                .collect();
+            let still = road_model::sample::ShiftShape {
+                observed: shape.observed,
+                obs_noise: 0.0,
+                sigma_max: 0.0,
+            };
+            estimate_window
+                .shift(self.ctx, denoised, &list, still)
+                .map_err(engine_err)?;
+        }
         for e in edits {
             if e.valid.len() != v_len {
                 return Err(road_model::Error::Engine(format!(

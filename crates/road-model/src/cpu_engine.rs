@@ -8,9 +8,11 @@ use candle_core::{Device, Tensor};
 
 use crate::batch::AGENT_FEATURES;
 use crate::fast::{FastDenoiser, FastInputs, SceneCache, SceneMap};
-use crate::heun::{changing_scenes, gather_rows, heun_update, scatter_rows};
+use crate::heun::{changing_scenes, gather_rows, heun_update, multistep_correct, scatter_rows};
 use crate::model::{Denoiser, MapTokens, Mode};
-use crate::sample::{ShiftEdit, ShiftShape, StepEngine, window_emitted, window_shift};
+use crate::sample::{
+    ShiftEdit, ShiftShape, StepEngine, estimate_shift, window_emitted, window_shift,
+};
 use crate::{Error, Result};
 
 /// Every scene's window `[B, A, W, 3]` and validity `[B, A, W]` on the host.
@@ -107,6 +109,11 @@ impl HostWindows {
                 )));
             }
             window_shift(&mut self.windows[e.scene * x_len..][..x_len], w, e, shape);
+            estimate_shift(
+                &mut self.denoised[e.scene * x_len..][..x_len],
+                w,
+                shape.observed,
+            );
             self.valid[e.scene * v_len..][..v_len].copy_from_slice(e.valid);
         }
         Ok(())
@@ -152,6 +159,51 @@ impl HostWindows {
         )?;
         scatter_rows(&mut self.windows, &active, x_len, &stepped);
         scatter_rows(&mut self.denoised, &active, x_len, &last);
+        Ok(())
+    }
+
+    /// One multistep step (see [`StepEngine::step_multistep`]) of the scenes whose σ row
+    /// changes, the evaluation by `denoise` as in [`Self::step`].
+    fn step_multistep(
+        &mut self,
+        sigma_cur: &[f32],
+        sigma_next: &[f32],
+        gamma: &[f32],
+        mut denoise: impl FnMut(&[f32], &[f32], &[f32], &[usize]) -> Result<Vec<f32>>,
+    ) -> Result<()> {
+        let w = self.slots;
+        let active = changing_scenes(sigma_cur, sigma_next, self.scenes, w)?;
+        if gamma.len() != sigma_cur.len() {
+            return Err(Error::data(format!(
+                "multistep step: {} γ values for {} scenes × {w} slots",
+                gamma.len(),
+                self.scenes
+            )));
+        }
+        if active.is_empty() {
+            return Ok(());
+        }
+        let (x_len, v_len) = (self.agents * w * 3, self.agents * w);
+        let valid = gather_rows(&self.valid, &active, v_len);
+        let (mut stepped, estimate) = heun_update(
+            &gather_rows(&self.windows, &active, x_len),
+            self.agents,
+            w,
+            &gather_rows(sigma_cur, &active, w),
+            &gather_rows(sigma_next, &active, w),
+            false,
+            |x, sigma| denoise(x, sigma, &valid, &active),
+        )?;
+        multistep_correct(
+            &mut stepped,
+            &estimate,
+            &gather_rows(&self.denoised, &active, x_len),
+            &gather_rows(gamma, &active, w),
+            self.agents,
+            w,
+        );
+        scatter_rows(&mut self.windows, &active, x_len, &stepped);
+        scatter_rows(&mut self.denoised, &active, x_len, &estimate);
         Ok(())
     }
 }
@@ -240,6 +292,49 @@ impl<'a> CpuEngine<'a> {
     }
 }
 
+/// candle's denoiser as [`HostWindows`] calls it: `(x, σ, valid, scenes) → D` over the packed
+/// rows of `scenes` (the static inputs gathered when not the whole batch).
+fn candle_denoise<'m>(
+    model: &'m Denoiser,
+    host: &HostWindows,
+    features: &'m Tensor,
+    map_tokens: &'m MapTokens,
+    map_valid: &'m Tensor,
+) -> impl FnMut(&[f32], &[f32], &[f32], &[usize]) -> Result<Vec<f32>> + 'm {
+    let (a, w, all) = (host.agents, host.slots, host.scenes);
+    move |x, sigma, valid, scenes| {
+        let b = scenes.len();
+        let device = Device::Cpu;
+        // The whole batch as it is; a subset through an index (static inputs gathered).
+        let (feats, tokens, map_flags) = if b == all {
+            (features.clone(), map_tokens.clone(), map_valid.clone())
+        } else {
+            let index = Tensor::from_vec(
+                scenes.iter().map(|&s| s as u32).collect::<Vec<_>>(),
+                b,
+                &device,
+            )?;
+            (
+                features.index_select(&index, 0)?,
+                map_tokens.index_select(&index)?,
+                map_valid.index_select(&index, 0)?,
+            )
+        };
+        Ok(model
+            .denoise(
+                &Tensor::from_vec(x.to_vec(), (b, a, w, 3), &device)?,
+                &Tensor::from_vec(sigma.to_vec(), (b, w), &device)?,
+                &Tensor::from_vec(valid.to_vec(), (b, a, w), &device)?,
+                &feats,
+                &tokens,
+                &map_flags,
+                Mode::Infer,
+            )?
+            .flatten_all()?
+            .to_vec1::<f32>()?)
+    }
+}
+
 impl StepEngine for CpuEngine<'_> {
     fn window_slots(&self) -> usize {
         self.model.config.window_slots
@@ -301,45 +396,25 @@ impl StepEngine for CpuEngine<'_> {
         else {
             return Err(Error::data("engine used before prepare".into()));
         };
-        let model = self.model;
-        let (a, w) = (self.host.agents, self.host.slots);
-        let all = self.host.scenes;
-        self.host.step(
-            sigma_cur,
-            sigma_next,
-            second_evaluation,
-            |x, sigma, valid, scenes| {
-                let b = scenes.len();
-                let device = Device::Cpu;
-                // The whole batch as it is; a subset through an index (static inputs gathered).
-                let (feats, tokens, map_flags) = if b == all {
-                    (features.clone(), map_tokens.clone(), map_valid.clone())
-                } else {
-                    let index = Tensor::from_vec(
-                        scenes.iter().map(|&s| s as u32).collect::<Vec<_>>(),
-                        b,
-                        &device,
-                    )?;
-                    (
-                        features.index_select(&index, 0)?,
-                        map_tokens.index_select(&index)?,
-                        map_valid.index_select(&index, 0)?,
-                    )
-                };
-                Ok(model
-                    .denoise(
-                        &Tensor::from_vec(x.to_vec(), (b, a, w, 3), &device)?,
-                        &Tensor::from_vec(sigma.to_vec(), (b, w), &device)?,
-                        &Tensor::from_vec(valid.to_vec(), (b, a, w), &device)?,
-                        &feats,
-                        &tokens,
-                        &map_flags,
-                        Mode::Infer,
-                    )?
-                    .flatten_all()?
-                    .to_vec1::<f32>()?)
-            },
-        )
+        let denoise = candle_denoise(self.model, &self.host, features, map_tokens, map_valid);
+        self.host
+            .step(sigma_cur, sigma_next, second_evaluation, denoise)
+    }
+
+    fn step_multistep(
+        &mut self,
+        sigma_cur: &[f32],
+        sigma_next: &[f32],
+        gamma: &[f32],
+    ) -> Result<()> {
+        let (Some(features), Some(map_tokens), Some(map_valid)) =
+            (&self.features, &self.map_tokens, &self.map_valid)
+        else {
+            return Err(Error::data("engine used before prepare".into()));
+        };
+        let denoise = candle_denoise(self.model, &self.host, features, map_tokens, map_valid);
+        self.host
+            .step_multistep(sigma_cur, sigma_next, gamma, denoise)
     }
 
     fn read_emitted(&mut self, slots: &[Option<usize>], out: &mut [f32]) -> Result<()> {
@@ -424,6 +499,24 @@ impl<'a> FastCpuEngine<'a> {
     }
 }
 
+/// The fast denoiser as [`HostWindows`] calls it (see [`candle_denoise`]).
+fn fast_denoise<'m>(
+    fast: &'m FastDenoiser,
+    cache: &'m SceneCache,
+) -> impl FnMut(&[f32], &[f32], &[f32], &[usize]) -> Result<Vec<f32>> + 'm {
+    move |x, sigma, valid, scenes| {
+        let mut out = vec![0.0; x.len()];
+        let inputs = FastInputs {
+            x,
+            sigma,
+            valid,
+            scene_ids: scenes,
+        };
+        fast.denoise(cache, &inputs, &mut out)?;
+        Ok(out)
+    }
+}
+
 impl StepEngine for FastCpuEngine<'_> {
     fn window_slots(&self) -> usize {
         self.model.config.window_slots
@@ -481,22 +574,28 @@ impl StepEngine for FastCpuEngine<'_> {
         let Some(cache) = &self.cache else {
             return Err(Error::data("engine used before prepare".into()));
         };
-        let fast = &self.fast;
         self.host.step(
             sigma_cur,
             sigma_next,
             second_evaluation,
-            |x, sigma, valid, scenes| {
-                let mut out = vec![0.0; x.len()];
-                let inputs = FastInputs {
-                    x,
-                    sigma,
-                    valid,
-                    scene_ids: scenes,
-                };
-                fast.denoise(cache, &inputs, &mut out)?;
-                Ok(out)
-            },
+            fast_denoise(&self.fast, cache),
+        )
+    }
+
+    fn step_multistep(
+        &mut self,
+        sigma_cur: &[f32],
+        sigma_next: &[f32],
+        gamma: &[f32],
+    ) -> Result<()> {
+        let Some(cache) = &self.cache else {
+            return Err(Error::data("engine used before prepare".into()));
+        };
+        self.host.step_multistep(
+            sigma_cur,
+            sigma_next,
+            gamma,
+            fast_denoise(&self.fast, cache),
         )
     }
 

@@ -17,7 +17,7 @@
 use rand::rngs::StdRng;
 use rand::{RngCore, SeedableRng};
 use road_sched::{
-    PlannerId, PlannerSpec, SceneId, SceneSpec, Scheduler, TickOutcome, WindowUpdate,
+    PlannerId, PlannerSpec, Sampler, SceneId, SceneSpec, Scheduler, TickOutcome, WindowUpdate,
 };
 
 use crate::batch::{AGENT_FEATURES, normal_vec};
@@ -130,8 +130,15 @@ pub struct RolloutDriver {
     denoised: Vec<f32>, // [scenes, A, W, 3]: the estimates of `denoised_scenes`, read on request
     denoised_scenes: Vec<usize>,
     emit_slots: Vec<Option<usize>>, // [B]
-    sigma_cur: Vec<f32>,            // [B, W]
+    sigma_cur: Vec<f32>,            // [B, W]: the round's Heun scenes
     sigma_next: Vec<f32>,           // [B, W]
+    /// The round's multistep scenes: σ rows and γ `[B, W]` each.
+    multistep_sigma_cur: Vec<f32>,
+    multistep_sigma_next: Vec<f32>,
+    gamma: Vec<f32>,
+    /// `[B, W]`: the σ each slot's kept estimate in the engine was made at (0: none), moved
+    /// with the window as the engine moves the estimate: the multistep sampler's memory.
+    estimate_sigma: Vec<f32>,
     ticks: Vec<usize>,
 }
 
@@ -288,6 +295,10 @@ impl RolloutDriver {
             emit_slots: vec![None; b],
             sigma_cur: vec![IDLE_SIGMA; b * w],
             sigma_next: vec![IDLE_SIGMA; b * w],
+            multistep_sigma_cur: vec![IDLE_SIGMA; b * w],
+            multistep_sigma_next: vec![IDLE_SIGMA; b * w],
+            gamma: vec![0.0; b * w],
+            estimate_sigma: vec![0.0; b * w],
             ticks: vec![0; b],
         })
     }
@@ -631,24 +642,57 @@ impl RolloutDriver {
         let w = self.w;
         if self.sched.next_batch(self.states.len())? > 0 {
             let mut second_evaluation = false;
+            let (mut heun, mut multistep) = (false, false);
             for item in self.sched.batch() {
                 let i = self.scene_of_slot[item.scene.index()];
                 let plan = self.sched.step_plan(item);
+                let rows = i * w..(i + 1) * w;
                 if item.stage_start && self.needs_load[i] {
                     let s = &self.states[i];
                     engine.load_scene(i, &s.window, &s.valid)?;
                     self.needs_load[i] = false;
+                    // A loaded window has no estimate yet.
+                    self.estimate_sigma[rows.clone()].fill(0.0);
                 }
-                self.sigma_cur[i * w..(i + 1) * w].copy_from_slice(plan.sigma_cur);
-                self.sigma_next[i * w..(i + 1) * w].copy_from_slice(plan.sigma_next);
-                second_evaluation |= plan.nfe == 2;
+                if self.planners[i].sampler == Sampler::Multistep {
+                    self.multistep_sigma_cur[rows.clone()].copy_from_slice(plan.sigma_cur);
+                    self.multistep_sigma_next[rows.clone()].copy_from_slice(plan.sigma_next);
+                    let kept = &mut self.estimate_sigma[rows.clone()];
+                    let gamma = &mut self.gamma[rows];
+                    for k in 0..w {
+                        let (cur, next) = (plan.sigma_cur[k], plan.sigma_next[k]);
+                        gamma[k] = Sampler::multistep_gamma(kept[k], cur, next);
+                        // This step's evaluation replaces every slot's estimate.
+                        kept[k] = cur;
+                    }
+                    multistep = true;
+                } else {
+                    self.sigma_cur[rows.clone()].copy_from_slice(plan.sigma_cur);
+                    self.sigma_next[rows].copy_from_slice(plan.sigma_next);
+                    second_evaluation |= plan.nfe == 2;
+                    heun = true;
+                }
             }
-            let stepped = engine.step(&self.sigma_cur, &self.sigma_next, second_evaluation);
+            let mut stepped = Ok(());
+            if heun {
+                stepped = engine.step(&self.sigma_cur, &self.sigma_next, second_evaluation);
+            }
+            if multistep && stepped.is_ok() {
+                stepped = engine.step_multistep(
+                    &self.multistep_sigma_cur,
+                    &self.multistep_sigma_next,
+                    &self.gamma,
+                );
+            }
             // The batch's scenes hold still in later rounds unless they are in them again.
             for item in self.sched.batch() {
                 let i = self.scene_of_slot[item.scene.index()];
-                self.sigma_cur[i * w..(i + 1) * w].fill(IDLE_SIGMA);
-                self.sigma_next[i * w..(i + 1) * w].fill(IDLE_SIGMA);
+                let rows = i * w..(i + 1) * w;
+                self.sigma_cur[rows.clone()].fill(IDLE_SIGMA);
+                self.sigma_next[rows.clone()].fill(IDLE_SIGMA);
+                self.multistep_sigma_cur[rows.clone()].fill(IDLE_SIGMA);
+                self.multistep_sigma_next[rows.clone()].fill(IDLE_SIGMA);
+                self.gamma[rows].fill(0.0);
             }
             self.sched.complete_batch();
             stepped?;
@@ -764,6 +808,12 @@ impl RolloutDriver {
                             }
                         }
                     }
+                    // The engine's estimate moves with the slots (`estimate_shift`): so do
+                    // the levels it was made at.
+                    let kept = &mut self.estimate_sigma[i * w..(i + 1) * w];
+                    kept.copy_within(1..w, 0);
+                    kept[n - 1] = 0.0;
+                    kept[w - 1] = 0.0;
                     // Validity moves with the slots; the joining observation and the new slot
                     // are valid.
                     for a in 0..s.agents {

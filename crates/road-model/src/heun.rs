@@ -98,3 +98,24 @@ pub fn heun_update(
     }
     Ok((out, d2))
 }
+
+/// The multistep sampler's correction after an Euler step (`road_sched::Sampler::Multistep`):
+/// `x += γ·(D − D_prev)` for packed windows `x [B, A, W, 3]`, this step's estimate `denoised`
+/// and the slot's previous one `previous` (same shape), `gamma [B, W]` per scene and slot. The
+/// reference of the `multistep_correct` kernel.
+pub fn multistep_correct(
+    x: &mut [f32],
+    denoised: &[f32],
+    previous: &[f32],
+    gamma: &[f32],
+    agents: usize,
+    w: usize,
+) {
+    let row = |e: usize| (e / (3 * agents * w)) * w + (e / 3) % w;
+    for (e, xe) in x.iter_mut().enumerate() {
+        let g = gamma[row(e)];
+        if g != 0.0 {
+            *xe += g * (denoised[e] - previous[e]);
+        }
+    }
+}

@@ -94,8 +94,25 @@ pub trait StepEngine {
             "this engine does not keep its denoiser estimate (read_denoised)".into(),
         ))
     }
+    /// One step of the multistep sampler (`road_sched::Sampler::Multistep`), one evaluation:
+    /// with D = D(x; σ_cur), the Euler step of [`Self::step`], then `x += γ·(D − D_prev)` per
+    /// scene and slot, `gamma [B, W]` (0: no correction), D_prev being the kept estimate of
+    /// [`Self::read_denoised`] (moved along with each shift, [`estimate_shift`]); then D is
+    /// kept. Scenes whose σ row does not change hold still and keep their estimate.
+    fn step_multistep(
+        &mut self,
+        sigma_cur: &[f32],
+        sigma_next: &[f32],
+        gamma: &[f32],
+    ) -> Result<()> {
+        let _ = (sigma_cur, sigma_next, gamma);
+        Err(Error::data(
+            "this engine does not implement the multistep sampler (step_multistep)".into(),
+        ))
+    }
     /// After an emission, on the device: every scene with an edit shifts its window by one
-    /// slot (see [`window_shift`]) and takes the edit's validity `[A, W]`.
+    /// slot (see [`window_shift`]) and takes the edit's validity `[A, W]`; its kept estimate
+    /// moves with it ([`estimate_shift`]).
     fn shift(&mut self, edits: &[ShiftEdit<'_>], shape: ShiftShape) -> Result<()>;
 }
 
@@ -165,6 +182,26 @@ pub fn window_shift(window: &mut [f32], w: usize, edit: &ShiftEdit<'_>, shape: S
             window[3 * (row + w - 1) + d] = shape.sigma_max * new;
         }
     }
+}
+
+/// A scene's kept denoiser estimate `[A, W, 3]` after its window shifted: each slot's estimate
+/// moves up with the slot, so that the multistep sampler finds it where the slot now is; the
+/// slots that are new to their place (the joining observation n − 1 and the fresh slot W − 1)
+/// get zeros (the sampler does not correct them). [`window_shift`] with nothing emitted and
+/// no noise: the GPU engines run the same kernel on their estimate.
+pub fn estimate_shift(estimate: &mut [f32], w: usize, observed: usize) {
+    let edit = ShiftEdit {
+        scene: 0,
+        emitted: &[],
+        noise: &[],
+        valid: &[],
+    };
+    let shape = ShiftShape {
+        observed,
+        obs_noise: 0.0,
+        sigma_max: 0.0,
+    };
+    window_shift(estimate, w, &edit, shape);
 }
 
 /// Rolls out `steps` simulated steps of every scene with `planner` on the candle reference

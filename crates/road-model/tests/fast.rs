@@ -14,7 +14,7 @@ use road_model::sample::{
     rollout_with,
 };
 use road_model::{AgentFrame, AgentMap, AgentPairs, MapTokens, ModelConfig};
-use road_sched::PlannerSpec;
+use road_sched::{PlannerSpec, Sampler};
 
 /// Relative and absolute parts of the parity tolerance of one whole evaluation (f32 sums in
 /// another order through every block), as for the WGSL engine.
@@ -383,10 +383,15 @@ fn scenes(c: &ModelConfig, count: usize) -> Vec<RolloutScene> {
 }
 
 fn rollouts_agree(frame: Frame) {
+    rollouts_agree_under(frame, Sampler::Heun);
+}
+
+fn rollouts_agree_under(frame: Frame, sampler: Sampler) {
     let c = config(frame);
     let model = seeded_model(&c, 5);
     let planner = PlannerSpec {
         steps_per_diffusion: 10,
+        sampler,
         ..PlannerSpec::default()
     };
     let scenes = scenes(&c, 5);
@@ -424,6 +429,147 @@ fn fast_engine_rollouts_with_agent_maps_match_candle() {
 #[test]
 fn fast_engine_rollouts_with_agent_pairs_match_candle() {
     rollouts_agree(Frame::AgentPairs);
+}
+
+#[test]
+fn fast_engine_multistep_rollouts_match_candle() {
+    rollouts_agree_under(Frame::AgentPairs, Sampler::Multistep);
+}
+
+/// The CPU engine, recording the γ rows of every multistep step.
+struct GammaRecorder<'a> {
+    inner: CpuEngine<'a>,
+    /// (σ_cur, σ_next, γ) `[B, W]` each, per step.
+    steps: Vec<(Vec<f32>, Vec<f32>, Vec<f32>)>,
+}
+
+impl StepEngine for GammaRecorder<'_> {
+    fn window_slots(&self) -> usize {
+        self.inner.window_slots()
+    }
+    fn prepare(
+        &mut self,
+        scenes: usize,
+        agents: usize,
+        features: &[f32],
+        polylines: usize,
+        map: &[f32],
+        map_valid: &[f32],
+    ) -> road_model::Result<()> {
+        self.inner
+            .prepare(scenes, agents, features, polylines, map, map_valid)
+    }
+    fn load(&mut self, windows: &[f32], valid: &[f32]) -> road_model::Result<()> {
+        self.inner.load(windows, valid)
+    }
+    fn load_scene(
+        &mut self,
+        scene: usize,
+        window: &[f32],
+        valid: &[f32],
+    ) -> road_model::Result<()> {
+        self.inner.load_scene(scene, window, valid)
+    }
+    fn step(&mut self, _: &[f32], _: &[f32], _: bool) -> road_model::Result<()> {
+        panic!("a multistep planner took a Heun step");
+    }
+    fn step_multistep(
+        &mut self,
+        cur: &[f32],
+        next: &[f32],
+        gamma: &[f32],
+    ) -> road_model::Result<()> {
+        self.steps
+            .push((cur.to_vec(), next.to_vec(), gamma.to_vec()));
+        self.inner.step_multistep(cur, next, gamma)
+    }
+    fn read_emitted(&mut self, slots: &[Option<usize>], out: &mut [f32]) -> road_model::Result<()> {
+        self.inner.read_emitted(slots, out)
+    }
+    fn shift(&mut self, edits: &[ShiftEdit<'_>], shape: ShiftShape) -> road_model::Result<()> {
+        self.inner.shift(edits, shape)
+    }
+}
+
+/// The multistep sampler corrects exactly the future slots that have a previous, noisier
+/// estimate (made before the step, or before the shift one slot further up) and stay noisy:
+/// not a slot still at σ_max, the fresh slot of a stage's start, or one landing on 0; never
+/// an observation. Its evaluations are half of
+/// Heun's, and the correction changes what is emitted.
+#[test]
+fn multistep_corrects_every_slot_with_a_previous_estimate() {
+    let c = config(Frame::AgentPairs);
+    let model = seeded_model(&c, 5);
+    let (n, w) = (10, c.window_slots);
+    let planner = |sampler| PlannerSpec {
+        steps_per_diffusion: 20,
+        sampler,
+        ..PlannerSpec::default()
+    };
+    let scenes = scenes(&c, 2);
+    let ticks = 4;
+    let mut recorder = GammaRecorder {
+        inner: CpuEngine::new(&model),
+        steps: Vec::new(),
+    };
+    let multistep = rollout_with(
+        &mut recorder,
+        &planner(Sampler::Multistep),
+        &scenes,
+        ticks,
+        &mut StdRng::seed_from_u64(3),
+    )
+    .unwrap();
+    let heun = rollout_with(
+        &mut CpuEngine::new(&model),
+        &planner(Sampler::Heun),
+        &scenes,
+        ticks,
+        &mut StdRng::seed_from_u64(3),
+    )
+    .unwrap();
+    // Warm-up: K = 20 steps; each rolling stage K/F = 2.
+    assert_eq!(recorder.steps.len(), 20 + 2 * (ticks - 1));
+    assert_eq!(multistep.nfe as usize, recorder.steps.len());
+    assert!(
+        heun.nfe > multistep.nfe * 3 / 2,
+        "Heun {} against {}",
+        heun.nfe,
+        multistep.nfe
+    );
+    for (step, (cur, next, gamma)) in recorder.steps.iter().enumerate() {
+        // A rolling stage starts after a shift: the slot was one further up before it.
+        let shifted = step >= 20 && (step - 20) % 2 == 0;
+        for b in 0..scenes.len() {
+            for slot in 0..w {
+                let k = b * w + slot;
+                // The σ this slot's previous estimate was made at (0: none).
+                let previous = match step {
+                    0 => 0.0,
+                    _ if shifted && slot + 1 == w => 0.0,
+                    _ if shifted => recorder.steps[step - 1].0[k + 1],
+                    _ => recorder.steps[step - 1].0[k],
+                };
+                let corrected = slot >= n && previous > cur[k] && next[k] > 0.0 && next[k] < cur[k];
+                if corrected {
+                    assert!(
+                        gamma[k] > 0.0,
+                        "step {step} scene {b} slot {slot}: γ {}",
+                        gamma[k]
+                    );
+                } else {
+                    assert_eq!(gamma[k], 0.0, "step {step} scene {b} slot {slot}");
+                }
+            }
+        }
+    }
+    let differs = multistep
+        .states
+        .iter()
+        .zip(&heun.states)
+        .any(|(m, h)| m.iter().zip(h).any(|(a, b)| (a - b).abs() > 1e-4));
+    assert!(differs, "the samplers emitted the same states");
+    assert!(multistep.states.iter().flatten().all(|v| v.is_finite()));
 }
 
 /// Plan smoothing reads every emitting scene's denoised window: the engines agree with it on,

@@ -13,8 +13,8 @@ pub mod scheduler;
 pub use edm::{EdmSchedule, Preconditioning};
 pub use plan::{
     CollisionGuard, LaneGuard, MAX_GUARD_HORIZON_STEPS, MAX_LANE_GUARD_LOOKAHEAD_M,
-    MAX_PLAN_SMOOTHING_STEPS, PlannerKind, PlannerSpec, PlannerTables, StageKind, StageTable,
-    StepPlan, TickProgram, WindowUpdate,
+    MAX_PLAN_SMOOTHING_STEPS, PlannerKind, PlannerSpec, PlannerTables, Sampler, StageKind,
+    StageTable, StepPlan, TickProgram, WindowUpdate,
 };
 pub use scheduler::{PlannerId, SceneId, SceneSpec, SceneStats, Scheduler, TickOutcome, WorkItem};
 

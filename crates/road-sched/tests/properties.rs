@@ -2,7 +2,7 @@
 
 use proptest::prelude::*;
 use road_sched::{
-    EdmSchedule, PlannerKind, PlannerSpec, PlannerTables, SceneSpec, Scheduler, StageKind,
+    EdmSchedule, PlannerKind, PlannerSpec, PlannerTables, Sampler, SceneSpec, Scheduler, StageKind,
     TickOutcome, WindowUpdate,
 };
 
@@ -21,12 +21,23 @@ fn spec(kind: PlannerKind, n: usize, f: usize, k: usize, x: Option<usize>) -> Pl
         noise_temperature: None,
         collision_guard: None,
         lane_guard: None,
+        sampler: Sampler::Heun,
         edm: EdmSchedule::default(),
     }
 }
 
-/// Any valid planner: (kind, n, F, K, X).
+/// Any valid planner: (kind, n, F, K, X) under either sampler.
 fn any_planner() -> impl Strategy<Value = PlannerSpec> {
+    (any_heun_planner(), any::<bool>()).prop_map(|(mut spec, multistep)| {
+        if multistep {
+            spec.sampler = Sampler::Multistep;
+        }
+        spec
+    })
+}
+
+/// Any valid planner under the Heun sampler.
+fn any_heun_planner() -> impl Strategy<Value = PlannerSpec> {
     let rolling = (1usize..12, 1usize..24, 1usize..6)
         .prop_map(|(n, f, m)| spec(PlannerKind::Rolling, n, f, f * m, None));
     let ar = (1usize..12, 1usize..64)
@@ -176,6 +187,29 @@ proptest! {
         prop_assert!((nfe as f64 - expected).abs() < 1e-6, "counted {nfe} NFE, table says {expected}");
     }
 
+    /// The multistep correction is DPM-Solver++(2M)'s update written as Euler plus a term:
+    /// `(σn/σ)·x + (1 − σn/σ)·((1 + 1/2r)·D − D_prev/2r)` (k-diffusion's `sample_dpmpp_2m`).
+    #[test]
+    fn multistep_gamma_is_dpm_solver_2m(
+        sigma_next in 0.001f64..50.0,
+        up in 1.01f64..4.0,
+        up_prev in 1.01f64..4.0,
+        x in -3.0f64..3.0,
+        d in -3.0f64..3.0,
+        d_prev in -3.0f64..3.0,
+    ) {
+        let sigma = sigma_next * up;
+        let sigma_prev = sigma * up_prev;
+        let gamma = f64::from(Sampler::multistep_gamma(sigma_prev as f32, sigma as f32, sigma_next as f32));
+        let euler = x + (sigma_next - sigma) * (x - d) / sigma;
+        let ours = euler + gamma * (d - d_prev);
+        let h = (sigma / sigma_next).ln();
+        let r = (sigma_prev / sigma).ln() / h;
+        let a = sigma_next / sigma;
+        let theirs = a * x + (1.0 - a) * ((1.0 + 1.0 / (2.0 * r)) * d - d_prev / (2.0 * r));
+        prop_assert!((ours - theirs).abs() < 1e-4 * (1.0 + theirs.abs()), "{ours} against {theirs}");
+    }
+
     /// Many scenes of mixed planners, admitted and retired at random: every batch holds each
     /// scene at most once, every requested tick finishes, and no scene's work is lost.
     #[test]
@@ -252,6 +286,27 @@ fn nfe_table_of_the_math_doc() {
     assert!((mpc1.expected_nfe_per_step(long) - 79.0).abs() < 1e-3);
     assert!((mpc5.expected_nfe_per_step(long) - 79.0 / 5.0).abs() < 1e-3);
     assert!((one_shot.expected_nfe_per_step(30) * 30.0 - 79.0).abs() < 1e-9);
+}
+
+/// The multistep sampler: one evaluation per step, so RoAD-20 at K = 20 costs 2 per tick (Heun:
+/// 4); a slot without a previous estimate, or landing on 0, takes the Euler step (γ = 0).
+#[test]
+fn multistep_halves_the_evaluations() {
+    let mut road20 = spec(PlannerKind::Rolling, 10, 10, 20, None);
+    let long = 100_000;
+    assert!((road20.expected_nfe_per_step(long) - 4.0).abs() < 1e-3);
+    road20.sampler = Sampler::Multistep;
+    assert!((road20.expected_nfe_per_step(long) - 2.0).abs() < 1e-3);
+    let tables = PlannerTables::new("road20-2m", road20).unwrap();
+    for stage in [StageKind::Warmup, StageKind::Rolling] {
+        let table = tables.stage(stage);
+        assert_eq!(table.nfe() as usize, table.steps(), "{stage:?}");
+    }
+    assert_eq!(Sampler::multistep_gamma(0.0, 2.0, 1.0), 0.0);
+    assert_eq!(Sampler::multistep_gamma(4.0, 2.0, 0.0), 0.0);
+    assert_eq!(Sampler::multistep_gamma(2.0, 2.0, 2.0), 0.0);
+    // Equal log-steps (r = 1): γ = (1 − σn/σ)/2.
+    assert!((Sampler::multistep_gamma(4.0, 2.0, 1.0) - 0.25).abs() < 1e-6);
 }
 
 #[test]
