@@ -63,6 +63,10 @@ run)
     # Serving: scenes ticking through the scheduler, each engine in the same run.
     "$bin" bench serve --checkpoint models/road20-wide --engines cpu gpu \
         --scenes "${scenes[@]}" --ticks "$ticks" --cache "$out/cache" --json > "$out/serve.json"
+    # The same under the multistep sampler (one evaluation per step; docs/results.md).
+    "$bin" bench serve --checkpoint models/road20-wide --planner road20-nearfit-lanes-guarded-k20-2m \
+        --engines cpu gpu --scenes "${scenes[@]}" --ticks "$ticks" --cache "$out/cache" --json \
+        > "$out/serve-multistep.json"
     rm -rf "$out/cache"
     # The PyTorch peer: the same checkpoint's forward in eager PyTorch (fp32), one denoiser
     # evaluation per call, batches as above; `torch.compile` too unless --quick.
