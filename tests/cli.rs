@@ -354,7 +354,16 @@ fn sample_and_eval_run_with_the_shipped_checkpoint() {
     // with a scene joining.
     // `road bench serve` of 2 scenes for 2 ticks with `extra` flags, its JSON report.
     let bench_serve = |extra: &[&str]| {
-        let mut args = vec!["bench", "serve", "--scenes", "2", "--ticks", "2"];
+        let mut args = vec![
+            "bench",
+            "serve",
+            "--checkpoint",
+            "models/road20",
+            "--scenes",
+            "2",
+            "--ticks",
+            "2",
+        ];
         args.extend_from_slice(extra);
         args.extend_from_slice(&["--cache", dir_arg, "--json"]);
         let o = road(&args);
@@ -390,6 +399,14 @@ fn sample_and_eval_run_with_the_shipped_checkpoint() {
     assert_eq!(v["rows"][0]["nfe_per_scene_tick"], 2.0, "{v}");
     let gflop_per_sec = v["rows"][0]["gflop_per_sec"].as_f64().unwrap();
     assert!(gflop_per_sec.is_finite() && gflop_per_sec > 0.0, "{v}");
+    // The multistep sampler: one evaluation per step, so K = 20 costs 2 NFE per tick.
+    let v = bench_serve(&[
+        "--engines",
+        "cpu",
+        "--planner",
+        "road20-nearfit-lanes-guarded-k20-2m",
+    ]);
+    assert_eq!(v["rows"][0]["nfe_per_scene_tick"], 2.0, "{v}");
     let o = road(&[
         "bench",
         "serve",

@@ -292,6 +292,12 @@ impl<'a> CpuEngine<'a> {
     }
 }
 
+/// A denoiser as [`HostWindows`] calls it: `(x, σ, valid, scenes) → D` over the packed rows of
+/// `scenes`.
+trait DenoiseRows: FnMut(&[f32], &[f32], &[f32], &[usize]) -> Result<Vec<f32>> {}
+
+impl<T: FnMut(&[f32], &[f32], &[f32], &[usize]) -> Result<Vec<f32>>> DenoiseRows for T {}
+
 /// candle's denoiser as [`HostWindows`] calls it: `(x, σ, valid, scenes) → D` over the packed
 /// rows of `scenes` (the static inputs gathered when not the whole batch).
 fn candle_denoise<'m>(
@@ -300,7 +306,7 @@ fn candle_denoise<'m>(
     features: &'m Tensor,
     map_tokens: &'m MapTokens,
     map_valid: &'m Tensor,
-) -> impl FnMut(&[f32], &[f32], &[f32], &[usize]) -> Result<Vec<f32>> + 'm {
+) -> impl DenoiseRows + 'm {
     let (a, w, all) = (host.agents, host.slots, host.scenes);
     move |x, sigma, valid, scenes| {
         let b = scenes.len();
@@ -500,10 +506,7 @@ impl<'a> FastCpuEngine<'a> {
 }
 
 /// The fast denoiser as [`HostWindows`] calls it (see [`candle_denoise`]).
-fn fast_denoise<'m>(
-    fast: &'m FastDenoiser,
-    cache: &'m SceneCache,
-) -> impl FnMut(&[f32], &[f32], &[f32], &[usize]) -> Result<Vec<f32>> + 'm {
+fn fast_denoise<'m>(fast: &'m FastDenoiser, cache: &'m SceneCache) -> impl DenoiseRows + 'm {
     move |x, sigma, valid, scenes| {
         let mut out = vec![0.0; x.len()];
         let inputs = FastInputs {
