@@ -395,6 +395,103 @@ fn heun_step_matches_the_reference() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// One multistep step (the evaluation, the Euler update and `multistep_correct` on the GPU)
+/// against the CPU reference (`road_model::heun`) over candle's evaluation, with a previous
+/// estimate and γ per scene and slot (0 for observations and every fourth slot).
+#[test]
+fn multistep_step_matches_the_reference() {
+    use road_gpu::engine::StepRule;
+    use road_model::heun::{heun_update, multistep_correct};
+    let ctx = context();
+    let config = test_config();
+    let (dir, reference) = checkpoint_dir(&config, "multistep");
+    let gpu = GpuDenoiser::from_checkpoint(&ctx, &dir).unwrap();
+    let ds = validation_set();
+    let b = batch(&ds, &config);
+    let (scenes, agents, w, _) = b.x_noisy.dims4().unwrap();
+    let polylines = b.map_valid.dim(1).unwrap();
+    let edm = config.edm;
+    let sigma_cur = flat(&b.sigma);
+    let sigma_next: Vec<f32> = sigma_cur
+        .iter()
+        .enumerate()
+        .map(|(i, &s)| match i % w {
+            slot if slot < 10 => s,
+            10 => 0.0,
+            _ => edm.sigma(edm.u_of_sigma(f64::from(s)) - 1.0 / 40.0) as f32,
+        })
+        .collect();
+    let mut rng = StdRng::seed_from_u64(12);
+    let gamma: Vec<f32> = (0..scenes * w)
+        .map(|i| {
+            let slot = i % w;
+            if slot < 10 || slot % 4 == 0 {
+                0.0
+            } else {
+                rng.random_range(0.05f32..0.6)
+            }
+        })
+        .collect();
+    let x = flat(&b.x_noisy);
+    let previous: Vec<f32> = x
+        .iter()
+        .map(|v| 0.5 * v + rng.random_range(-0.2f32..0.2))
+        .collect();
+    let map_tokens = reference.encode_map(&b.map, Mode::Infer).unwrap();
+    let (mut want, d1) = heun_update(&x, agents, w, &sigma_cur, &sigma_next, false, |x, sigma| {
+        let x = Tensor::from_vec(x.to_vec(), (scenes, agents, w, 3), &Device::Cpu)?;
+        let s = Tensor::from_vec(sigma.to_vec(), (scenes, w), &Device::Cpu)?;
+        Ok(flat(&reference.denoise(
+            &x,
+            &s,
+            &b.valid,
+            &b.agent_features,
+            &map_tokens,
+            &b.map_valid,
+            Mode::Infer,
+        )?))
+    })
+    .unwrap();
+    let euler = want.clone();
+    multistep_correct(&mut want, &d1, &previous, &gamma, agents, w);
+
+    let map = gpu
+        .encode_map(&ctx, scenes, polylines, &flat(&b.map), &flat(&b.map_valid))
+        .unwrap();
+    let (valid, features) = (flat(&b.valid), flat(&b.agent_features));
+    let inputs = DenoiseInputs {
+        scenes,
+        agents,
+        x: &x,
+        sigma: &sigma_cur,
+        valid: &valid,
+        agent_features: &features,
+    };
+    let device_batch = gpu.upload_batch(&ctx, &inputs).unwrap();
+    let mut plan = gpu.heun_plan(&ctx, &device_batch, &map).unwrap();
+    let previous_buffer = road_gpu::kernels::storage_buffer(&ctx, "previous", (x.len() * 4) as u64);
+    ctx.queue
+        .write_buffer(&previous_buffer, 0, bytemuck::cast_slice(&previous));
+    plan.run_rule(
+        &ctx,
+        &device_batch,
+        &sigma_cur,
+        &sigma_next,
+        StepRule::Multistep { gamma: &gamma },
+        |enc, kept| enc.copy_buffer_to_buffer(&previous_buffer, 0, kept, 0, (x.len() * 4) as u64),
+        |_, _| {},
+    )
+    .unwrap();
+    let bytes = road_gpu::kernels::read_back(&ctx, &device_batch.x, (x.len() * 4) as u64).unwrap();
+    let got: &[f32] = bytemuck::cast_slice(&bytes);
+    if let Err(m) = WHOLE_MODEL.check(got, &want) {
+        panic!("multistep step on {}: {m}", ctx.describe());
+    }
+    // The correction matters here: the Euler step alone is far outside the tolerance.
+    assert!(WHOLE_MODEL.check(&euler, &want).is_err());
+    std::fs::remove_dir_all(&dir).ok();
+}
+
 /// `road sample --engine gpu|cpu`: the same rollout driver and seed give the same futures.
 #[test]
 fn gpu_and_cpu_rollouts_agree_for_a_seed() {
