@@ -234,7 +234,14 @@ fn shipped_configs_match_the_defaults_and_validate() {
     // road20: 2K/F NFE per simulated step in the long run; 40 steps include the warm-up.
     let o = road(&["sched", "plan", "road20", "--ticks", "40"]);
     assert!(
-        stdout(&o).contains("Rolling stage: 4 steps, 8 NFE"),
+        stdout(&o).contains("Rolling stage: 4 steps, 8 NFE (Heun)"),
+        "{}",
+        stdout(&o)
+    );
+    // The multistep sampler: one evaluation per step.
+    let o = road(&["sched", "plan", "road20-nearfit-lanes-guarded-k20-2m"]);
+    assert!(
+        stdout(&o).contains("Rolling stage: 2 steps, 2 NFE (Multistep)"),
         "{}",
         stdout(&o)
     );

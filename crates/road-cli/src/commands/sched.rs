@@ -55,8 +55,8 @@ pub fn load_planners(path: &std::path::Path) -> Result<Vec<(String, PlannerSpec)
 pub fn run(cmd: SchedCommand) -> Result<ExitCode> {
     match cmd {
         SchedCommand::List(args) => {
-            out!("| planner | kind | n | F | K | X | NFE per step (40 steps) |");
-            out!("|---|---|---:|---:|---:|---:|---:|");
+            out!("| planner | kind | sampler | n | F | K | X | NFE per step (40 steps) |");
+            out!("|---|---|---|---:|---:|---:|---:|---:|");
             for (name, spec) in load_planners(&args.planners)? {
                 let ticks = if spec.kind == road_sched::PlannerKind::OneShot {
                     spec.future_slots as u64
@@ -64,8 +64,9 @@ pub fn run(cmd: SchedCommand) -> Result<ExitCode> {
                     40
                 };
                 out!(
-                    "| {name} | {:?} | {} | {} | {} | {} | {:.2} |",
+                    "| {name} | {:?} | {:?} | {} | {} | {} | {} | {:.2} |",
                     spec.kind,
+                    spec.sampler,
                     spec.obs_slots,
                     spec.future_slots,
                     spec.steps_per_diffusion,
@@ -89,9 +90,10 @@ pub fn run(cmd: SchedCommand) -> Result<ExitCode> {
             for &stage in stages {
                 let table = tables.stage(stage);
                 out!(
-                    "{stage:?} stage: {} steps, {} NFE; σ per slot (observed slots first)",
+                    "{stage:?} stage: {} steps, {} NFE ({:?}); σ per slot (observed slots first)",
                     table.steps(),
-                    table.nfe()
+                    table.nfe(),
+                    spec.sampler
                 );
                 for s in 0..table.steps() {
                     let p = table.step(s);
