@@ -274,6 +274,21 @@ fn whole_denoiser_matches_candle(config: &ModelConfig, name: &str) {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// A rolling step of each scene's own σ `[B, W]`: σ_next one K-th (K = 40) lower in u, the
+/// observed slots unchanged, slot 10 landing on 0.
+fn rolling_step(config: &ModelConfig, sigma_cur: &[f32], w: usize) -> Vec<f32> {
+    let edm = config.edm;
+    sigma_cur
+        .iter()
+        .enumerate()
+        .map(|(i, &s)| match i % w {
+            slot if slot < 10 => s,
+            10 => 0.0,
+            _ => edm.sigma(edm.u_of_sigma(f64::from(s)) - 1.0 / 40.0) as f32,
+        })
+        .collect()
+}
+
 /// One Heun step (both evaluations and the update on the GPU) against the same step computed
 /// from candle's evaluations.
 #[test]
@@ -286,23 +301,8 @@ fn heun_step_matches_the_reference() {
     let b = batch(&ds, &config);
     let (scenes, agents, w, _) = b.x_noisy.dims4().unwrap();
     let polylines = b.map_valid.dim(1).unwrap();
-    // A rolling step of each scene's own σ: σ_next one K-th lower in u, slot 10 landing on 0.
-    let edm = config.edm;
     let sigma_cur = flat(&b.sigma);
-    let sigma_next: Vec<f32> = sigma_cur
-        .iter()
-        .enumerate()
-        .map(|(i, &s)| {
-            let slot = i % w;
-            if slot < 10 {
-                s
-            } else if slot == 10 {
-                0.0
-            } else {
-                edm.sigma(edm.u_of_sigma(f64::from(s)) - 1.0 / 40.0) as f32
-            }
-        })
-        .collect();
+    let sigma_next = rolling_step(&config, &sigma_cur, w);
     let eval_sigma: Vec<f32> = sigma_cur
         .iter()
         .zip(&sigma_next)
@@ -410,17 +410,8 @@ fn multistep_step_matches_the_reference() {
     let b = batch(&ds, &config);
     let (scenes, agents, w, _) = b.x_noisy.dims4().unwrap();
     let polylines = b.map_valid.dim(1).unwrap();
-    let edm = config.edm;
     let sigma_cur = flat(&b.sigma);
-    let sigma_next: Vec<f32> = sigma_cur
-        .iter()
-        .enumerate()
-        .map(|(i, &s)| match i % w {
-            slot if slot < 10 => s,
-            10 => 0.0,
-            _ => edm.sigma(edm.u_of_sigma(f64::from(s)) - 1.0 / 40.0) as f32,
-        })
-        .collect();
+    let sigma_next = rolling_step(&config, &sigma_cur, w);
     let mut rng = StdRng::seed_from_u64(12);
     let gamma: Vec<f32> = (0..scenes * w)
         .map(|i| {
