@@ -533,6 +533,20 @@ class Denoiser(nn.Module):
         """`D(x; σ)`: `x_noisy [B, A, W, 3]`, `sigma [B, W]` (> 0), `valid [B, A, W]` (0/1),
         `agent_features [B, A, 6]`, `map_points [B, P, Q, 2]` (scene frame), `map_valid [B, P]`
         → `[B, A, W, 3]`."""
+        out = self.forward_parts(x_noisy, sigma, valid, agent_features, map_points, map_valid)
+        return out.denoised(x_noisy)
+
+    def forward_parts(
+        self,
+        x_noisy: Tensor,
+        sigma: Tensor,
+        valid: Tensor,
+        agent_features: Tensor,
+        map_points: Tensor,
+        map_valid: Tensor,
+    ) -> Outputs:
+        """The network's output `F` and the preconditioning that forms `D` from it (the EDM
+        loss is written on `F`: scripts/torch_train.py, model.rs `edm_error_sum`)."""
         c = self.config
         b, a, w, _ = x_noisy.shape
         if w != c.window_slots:
@@ -607,11 +621,25 @@ class Denoiser(nn.Module):
                 [f0 * frame.cos - f1 * frame.sin, f0 * frame.sin + f1 * frame.cos, f2], dim=3
             )
         raw = out * valid4  # F, zero at invalid tokens
-        if residual is None:
-            return x_noisy * c_skip + raw * c_out
+        return Outputs(raw, c_skip, c_out, residual)
+
+
+@dataclass
+class Outputs:
+    """`F` (zero at invalid tokens) and what turns it into `D(x; σ)`."""
+
+    raw: Tensor  # [B, A, W, 3]
+    c_skip: Tensor  # [B, 1, W, 1]
+    c_out: Tensor  # [B, 1, W, 1]
+    residual: Residual | None
+
+    def denoised(self, x_noisy: Tensor) -> Tensor:
+        if self.residual is None:
+            return x_noisy * self.c_skip + self.raw * self.c_out
         # D = reference + (c_skip(σ·s)·y + c_out(σ·s)·F) / s.
-        y = residual.y * residual.c_skip + raw * residual.c_out
-        return residual.reference + y / residual.scale
+        r = self.residual
+        y = r.y * r.c_skip + self.raw * r.c_out
+        return r.reference + y / r.scale
 
 
 def load_denoiser(checkpoint: Path, device: torch.device) -> Denoiser:

@@ -231,9 +231,6 @@ pub fn task_sigma(
     warmup_prob: f64,
     aug_ratio: f64,
 ) -> Vec<f32> {
-    let w = config.window_slots;
-    let f = w - obs_slots;
-    let edm = &config.edm;
     let tau: f64 = rng.random_range(0.0..1.0);
     let profile: fn(usize, usize, f64) -> f64 = match task {
         TaskKind::Full => full_u,
@@ -245,6 +242,22 @@ pub fn task_sigma(
     } else {
         0.0
     };
+    task_sigma_of(config, obs_slots, profile, tau, u_ca)
+}
+
+/// The σ per slot of one drawn task: observed slots at σ(u_ca) (at least σ_min), future slot k
+/// at σ(profile(k, F, τ)) (at least σ_min). `profile` is `road_sched::edm`'s `rolling_u`,
+/// `warmup_u` or `full_u`.
+pub fn task_sigma_of(
+    config: &ModelConfig,
+    obs_slots: usize,
+    profile: fn(usize, usize, f64) -> f64,
+    tau: f64,
+    u_ca: f64,
+) -> Vec<f32> {
+    let w = config.window_slots;
+    let f = w - obs_slots;
+    let edm = &config.edm;
     let sigma_obs = edm.sigma(u_ca).max(edm.sigma_min);
     (0..w)
         .map(|slot| {

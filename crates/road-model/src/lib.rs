@@ -4,7 +4,9 @@
 //! - [`batch`]: scene windows → padded tensors, and the training tasks' noise;
 //! - [`model`]: the transformer and the EDM loss;
 //! - [`train`]: AdamW, EMA, validation, checkpoints and exact resume;
-//! - [`checkpoint`]: the on-disk format (`docs/checkpoint.md`).
+//! - [`checkpoint`]: the on-disk format (`docs/checkpoint.md`);
+//! - [`torch_export`]: the datasets as flat arrays for the PyTorch training path
+//!   (`docs/torch-training.md`).
 
 pub mod agent_map;
 pub mod agent_pairs;
@@ -20,6 +22,7 @@ pub mod heun;
 pub mod model;
 pub mod sample;
 pub mod smoothing;
+pub mod torch_export;
 pub mod train;
 
 use std::path::{Path, PathBuf};

@@ -374,6 +374,32 @@ pub fn learning_rate(run: &RunConfig, step: u64) -> f64 {
             * (1.0 + (std::f64::consts::PI * progress).cos())
 }
 
+/// The run's fixed validation batches: `val_batches` batches of `batch_scenes` scenes drawn
+/// from a seed of their own (not the run's), so that every run of a window size validates on
+/// the same scenes and noise. Scenes as recorded (no rotation), so that losses compare across
+/// augmentation settings. `torch_export` writes them for the PyTorch path.
+pub fn validation_batches(
+    run: &RunConfig,
+    validation_set: &Dataset,
+    device: &Device,
+) -> Result<Vec<Batch>> {
+    let mut rng = StdRng::seed_from_u64(VALIDATION_SEED);
+    let mut validation_run = run.clone();
+    validation_run.train.rotation_augmentation = false;
+    (0..run.train.val_batches)
+        .map(|_| {
+            sample_batch(
+                &validation_run,
+                validation_set,
+                run.train.batch_scenes,
+                None,
+                &mut rng,
+                device,
+            )
+        })
+        .collect()
+}
+
 fn step_rng(seed: u64, step: u64) -> StdRng {
     StdRng::seed_from_u64(seed ^ step.wrapping_mul(0x9E37_79B9_7F4A_7C15))
 }
@@ -447,22 +473,7 @@ impl Trainer {
             .iter()
             .map(|v| v.as_tensor().detach().copy())
             .collect::<candle_core::Result<Vec<_>>>()?;
-        let mut rng = StdRng::seed_from_u64(VALIDATION_SEED);
-        // Validation scenes as recorded, so that losses compare across augmentation settings.
-        let mut validation_run = run.clone();
-        validation_run.train.rotation_augmentation = false;
-        let validation = (0..run.train.val_batches)
-            .map(|_| {
-                sample_batch(
-                    &validation_run,
-                    validation_set,
-                    run.train.batch_scenes,
-                    None,
-                    &mut rng,
-                    &device,
-                )
-            })
-            .collect::<Result<Vec<_>>>()?;
+        let validation = validation_batches(&run, validation_set, &device)?;
         let mut trainer = Self {
             run,
             device,
@@ -581,9 +592,32 @@ impl Trainer {
                 loss: loss_value,
             });
         }
+        let (grad_norm, lr) = self.apply_gradients(&grad_list)?;
+        let secs = started.elapsed().as_secs_f64();
+        Ok(StepReport {
+            step: self.step,
+            loss: loss_value,
+            learning_rate: lr,
+            grad_norm,
+            samples_per_sec: self.run.train.batch_scenes as f64 / secs.max(1e-9),
+        })
+    }
+
+    /// One optimiser step with the given gradients (one per variable, in
+    /// [`Self::variable_names`] order): clipping by the global norm, AdamW (decoupled weight
+    /// decay, bias-corrected moments, ε added to the root), the EMA update, the step count.
+    /// Returns the gradient norm before clipping and the learning rate used.
+    pub fn apply_gradients(&mut self, grad_list: &[Tensor]) -> Result<(f64, f64)> {
+        if grad_list.len() != self.vars.len() {
+            return Err(Error::data(format!(
+                "{} gradients for {} variables",
+                grad_list.len(),
+                self.vars.len()
+            )));
+        }
         // Global gradient norm, for clipping.
         let mut sq = 0.0f64;
-        for g in &grad_list {
+        for g in grad_list {
             sq += f64::from(g.sqr()?.sum_all()?.to_scalar::<f32>()?);
         }
         let grad_norm = sq.sqrt();
@@ -610,14 +644,7 @@ impl Trainer {
             self.adam_v[i] = v;
         }
         self.step += 1;
-        let secs = started.elapsed().as_secs_f64();
-        Ok(StepReport {
-            step: self.step,
-            loss: loss_value,
-            learning_rate: lr,
-            grad_norm,
-            samples_per_sec: self.run.train.batch_scenes as f64 / secs.max(1e-9),
-        })
+        Ok((grad_norm, lr))
     }
 
     /// A model built from the EMA weights.

@@ -17,6 +17,29 @@ pub enum DataCommand {
     Stats(StatsArgs),
     /// Parse the recordings once and write one cache file per split (train, validation).
     Build(BuildArgs),
+    /// Write the caches as flat arrays for the PyTorch training path
+    /// (`scripts/torch_train.py`, docs/torch-training.md): `train.safetensors` and
+    /// `validation.safetensors` (tracks, lanelet centre lines, window index: what the caches
+    /// store, about their size) and, with `--config`, the run's fixed validation batches
+    /// (`validation_batches.safetensors`), so that PyTorch validates on `road train`'s scenes.
+    ExportTorch(ExportTorchArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct ExportTorchArgs {
+    /// Folder of `train.roadds` / `validation.roadds` (`road data build`).
+    #[arg(long, default_value = ".road-cache")]
+    pub cache: PathBuf,
+    /// Output folder (carried to a GPU machine: keep it under `.road-cache/`, git-ignored).
+    #[arg(long, default_value = ".road-cache/torch")]
+    pub out: PathBuf,
+    /// Run config whose fixed validation batches to write too, e.g. configs/road20-wide4.toml.
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Per-key override of the run config (as `road train --set`; `train.batch_scenes` and
+    /// `train.val_batches` shape the validation batches).
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub overrides: Vec<String>,
 }
 
 #[derive(Debug, Args)]
@@ -78,7 +101,73 @@ pub fn run(cmd: DataCommand) -> Result<ExitCode> {
     match cmd {
         DataCommand::Stats(args) => stats_cmd(&args),
         DataCommand::Build(args) => build_cmd(&args).map(|()| ExitCode::SUCCESS),
+        DataCommand::ExportTorch(args) => export_torch_cmd(&args).map(|()| ExitCode::SUCCESS),
     }
+}
+
+fn export_torch_cmd(args: &ExportTorchArgs) -> Result<()> {
+    use road_model::torch_export;
+    let mut total = 0u64;
+    let mut validation_set = None;
+    for split in [Split::Train, Split::Validation] {
+        let path = cache::cache_path(&args.cache, split);
+        let ds = cache::load_checked(&path, split, None, None).with_context(|| {
+            format!("cannot read the {split} cache (`road data build` writes it)")
+        })?;
+        let out = args.out.join(format!("{}.safetensors", split.name()));
+        let bytes = torch_export::dataset_arrays(&ds)
+            .and_then(|file| file.save(&out))
+            .with_context(|| format!("cannot export the {split} split to {}", out.display()))?;
+        total += bytes;
+        out!(
+            "{split:<10} {:>7} windows {:>4} recordings -> {} ({:.1} MiB)",
+            ds.len(),
+            ds.recordings.len(),
+            out.display(),
+            bytes as f64 / (1024.0 * 1024.0)
+        );
+        if split == Split::Validation {
+            validation_set = Some(ds);
+        }
+    }
+    if let Some(config) = &args.config {
+        let run: road_model::RunConfig = crate::config::load(Some(config), &args.overrides)?;
+        run.validate()
+            .map_err(anyhow::Error::msg)
+            .with_context(|| format!("bad run config {}", config.display()))?;
+        let ds = validation_set.expect("the validation split was read above");
+        anyhow::ensure!(
+            ds.config.window_steps >= run.model.window_slots
+                && ds.config.polyline_points == run.model.polyline_points,
+            "the validation cache's windows ({} steps, {} polyline points) do not fit the model \
+             of {} ({} slots, {} points)",
+            ds.config.window_steps,
+            ds.config.polyline_points,
+            config.display(),
+            run.model.window_slots,
+            run.model.polyline_points
+        );
+        let out = args.out.join("validation_batches.safetensors");
+        let bytes = torch_export::validation_batch_arrays(&run, &ds)
+            .and_then(|file| file.save(&out))
+            .with_context(|| format!("cannot write the validation batches to {}", out.display()))?;
+        total += bytes;
+        out!(
+            "{:<10} {} batches of {} scenes ({}) -> {} ({:.1} MiB)",
+            "batches",
+            run.train.val_batches,
+            run.train.batch_scenes,
+            run.name,
+            out.display(),
+            bytes as f64 / (1024.0 * 1024.0)
+        );
+    }
+    out!(
+        "total {:.1} MiB in {}",
+        total as f64 / (1024.0 * 1024.0),
+        args.out.display()
+    );
+    Ok(())
 }
 
 fn window_config(args: &SourceArgs) -> Result<WindowConfig> {
