@@ -407,50 +407,71 @@ class ExportedSplit:
 
     def scene(self, index: int, start: int, slots: int, c: td.ModelConfig) -> SceneInput:
         """Window `index`'s steps `start..start + slots` in model units."""
-        rec = self.window_recording[index]
-        tracks = self.recording_track_offsets[rec] + self.window_agents[
-            self.window_agent_offsets[index] : self.window_agent_offsets[index + 1]
-        ]  # global track indices [A]
-        a = len(tracks)
-        # Only the steps up to the crop's end matter: the heading unwraps from the window's
+        return self.scenes([index], [start], slots, c)[0]
+
+    def scenes(
+        self, indices: list[int], starts: list[int], slots: int, c: td.ModelConfig
+    ) -> list[SceneInput]:
+        """Windows `indices`, each cropped to `starts[i]..starts[i] + slots`, in model units:
+        the agents of all of them at once (the heading unwraps step by step, so a batch pays
+        one loop over the steps, not one per scene)."""
+        indices_a = np.asarray(indices, np.int64)
+        counts = self.agent_counts[indices_a]  # [B]
+        rec = self.window_recording[indices_a]  # [B]
+        scene_of = np.repeat(np.arange(len(indices)), counts)  # [N] scene of each agent row
+        agent_rows = np.concatenate(
+            [
+                np.arange(self.window_agent_offsets[i], self.window_agent_offsets[i + 1])
+                for i in indices
+            ]
+        )
+        tracks = self.recording_track_offsets[rec][scene_of] + self.window_agents[agent_rows]
+        # Only the steps up to the crops' ends matter: the heading unwraps from each window's
         # first step on.
-        steps = start + slots
-        frames = self.window_start_frame[index] + np.arange(steps)  # [S]
-        rel = frames[None, :] - self.track_first_frame[tracks][:, None]  # [A, S]
+        steps = max(starts) + slots
+        frames = self.window_start_frame[indices_a][scene_of][:, None] + np.arange(steps)
+        rel = frames - self.track_first_frame[tracks][:, None]  # [N, S]
         length = (self.track_offsets[tracks + 1] - self.track_offsets[tracks])[:, None]
         valid = (rel >= 0) & (rel < length)
         rows = np.where(valid, self.track_offsets[tracks][:, None] + rel, 0)
-        raw = self.track_states[rows]  # [A, S, 3] f32 metres and radians
-        origin = self.window_origin_m[index]
+        raw = self.track_states[rows]  # [N, S, 3] f32 metres and radians
+        origin = self.window_origin_m[indices_a][scene_of][:, None, :]  # [N, 1, 2]
         # SceneFrame::to_norm: f64 difference and division, then f32.
         xy = ((raw[..., :2].astype(np.float64) - origin) / self.scale_m).astype(np.float32)
         psi = raw[..., 2]
-        heading = np.zeros((a, steps), np.float32)
-        previous = np.zeros(a, np.float32)
-        seen = np.zeros(a, bool)
+        n = len(tracks)
+        heading = np.zeros((n, steps), np.float32)
+        previous = np.zeros(n, np.float32)
+        seen = np.zeros(n, bool)
         for s in range(steps):
             v = valid[:, s]
             h = np.where(seen, previous + wrap_angle(psi[:, s] - previous), wrap_angle(psi[:, s]))
             heading[:, s] = np.where(v, h, 0.0)
             previous = np.where(v, h, previous).astype(np.float32)
             seen |= v
-        crop = slice(start, start + slots)
-        v = valid[:, crop]
-        states = np.zeros((a, slots, 3), np.float32)
-        states[..., 0] = np.where(v, xy[:, crop, 0], 0.0)
-        states[..., 1] = np.where(v, xy[:, crop, 1], 0.0)
-        states[..., 2] = np.where(v, heading[:, crop] * np.float32(c.heading_scale), 0.0)
-        features = np.zeros((a, td.AGENT_FEATURES), np.float32)
+        heading *= np.float32(c.heading_scale)
+        features = np.zeros((n, td.AGENT_FEATURES), np.float32)
         features[:, 0] = self.track_length_m[tracks] / np.float32(5.0)
         features[:, 1] = self.track_width_m[tracks] / np.float32(2.5)
-        features[np.arange(a), 2 + self.track_type[tracks]] = 1.0
-        lanelets = self.window_polylines[
-            self.window_polyline_offsets[index] : self.window_polyline_offsets[index + 1]
-        ][: c.map_polylines]  # nearest first
-        first = self.map_lanelet_offsets[self.recording_map[rec]]
-        centres = self.lanelet_centres[first + lanelets]  # [P, Q, 2] f64 metres
-        polylines = ((centres - origin) / self.scale_m).astype(np.float32)
-        return SceneInput(states, v.copy(), features, polylines)
+        features[np.arange(n), 2 + self.track_type[tracks]] = 1.0
+        out = []
+        first_row = np.concatenate([[0], np.cumsum(counts)])
+        for i, (index, start) in enumerate(zip(indices, starts)):
+            agents = slice(first_row[i], first_row[i + 1])
+            crop = slice(start, start + slots)
+            v = valid[agents, crop]
+            states = np.zeros((counts[i], slots, 3), np.float32)
+            states[..., 0] = np.where(v, xy[agents, crop, 0], 0.0)
+            states[..., 1] = np.where(v, xy[agents, crop, 1], 0.0)
+            states[..., 2] = np.where(v, heading[agents, crop], 0.0)
+            lanelets = self.window_polylines[
+                self.window_polyline_offsets[index] : self.window_polyline_offsets[index + 1]
+            ][: c.map_polylines]  # nearest first
+            first = self.map_lanelet_offsets[self.recording_map[rec[i]]]
+            centres = self.lanelet_centres[first + lanelets]  # [P, Q, 2] f64 metres
+            polylines = ((centres - self.window_origin_m[index]) / self.scale_m).astype(np.float32)
+            out.append(SceneInput(states, v.copy(), features[agents].copy(), polylines))
+        return out
 
 
 class AgentBuckets:
@@ -539,27 +560,27 @@ def sample_scenes(
         if anchor is None:
             anchor = index
         start = int(rng.integers(ds.steps - w + 1))
-        scene = ds.scene(index, start, w, run.model)
-        angle = 0.0
-        if rotate:
-            angle = float(rng.uniform(0.0, 2.0 * math.pi))
-            scene.rotate(angle, run.model.heading_scale)
+        angle = float(rng.uniform(0.0, 2.0 * math.pi)) if rotate else 0.0
         tau = float(rng.random())
         warmup = run.rolling and bool(rng.random() < t.warmup_task_prob)
         u_ca = float(rng.uniform(0.0, t.augmentation_ratio)) if t.augmentation_ratio > 0 else 0.0
-        sigma = task_sigma_of(run, warmup, tau, u_ca)
-        raw = rng.standard_normal((scene.valid.shape[0], w, 3)).astype(np.float32)
-        noise = scene.drop_absent_agents(raw)
-        draw.inputs.append(scene)
-        draw.sigma.append(sigma)
-        draw.noise.append(noise)
+        agents = int(ds.agent_counts[index])
+        draw.raw_noise.append(rng.standard_normal((agents, w, 3)).astype(np.float32))
+        draw.sigma.append(task_sigma_of(run, warmup, tau, u_ca))
         draw.window.append(index)
         draw.start.append(start)
         draw.angle.append(angle)
         draw.tau.append(tau)
         draw.warmup.append(warmup)
         draw.u_ca.append(u_ca)
-        draw.raw_noise.append(raw)
+    # Materialising draws nothing: done for the whole batch at once.
+    for scene, angle, raw in zip(
+        ds.scenes(draw.window, draw.start, w, run.model), draw.angle, draw.raw_noise
+    ):
+        if rotate:
+            scene.rotate(angle, run.model.heading_scale)
+        draw.noise.append(scene.drop_absent_agents(raw))
+        draw.inputs.append(scene)
     return draw
 
 

@@ -51,6 +51,7 @@ fn every_subcommand_explains_itself() {
     for args in [
         &["data", "stats", "--help"][..],
         &["data", "build", "--help"],
+        &["data", "export-torch", "--help"],
         &["sched", "plan", "--help"],
         &["sched", "list", "--help"],
         &["gpu", "info", "--help"],
@@ -147,6 +148,42 @@ fn build_writes_a_cache_that_stats_reads() {
     let json: serde_json::Value = serde_json::from_str(&stdout(&o)).unwrap();
     assert_eq!(json["projection_check_passed"], true);
     assert_eq!(json["splits"][0]["files"], 24);
+
+    // The PyTorch export of it, with road20-wide4's fixed validation batches.
+    let export = out.join("torch");
+    let o = road(&[
+        "data",
+        "export-torch",
+        "--cache",
+        out.to_str().unwrap(),
+        "--out",
+        export.to_str().unwrap(),
+        "--split",
+        "validation",
+        "--config",
+        "configs/road20-wide4.toml",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(
+        stdout(&o).contains("6162 windows") && stdout(&o).contains("8 batches of 16 scenes"),
+        "{}",
+        stdout(&o)
+    );
+    for file in ["validation.safetensors", "validation_batches.safetensors"] {
+        let bytes = std::fs::metadata(export.join(file)).unwrap().len();
+        assert!(bytes > 100_000, "{file}: {bytes} bytes");
+    }
+    // Without a train cache the error names the file.
+    let o = road(&[
+        "data",
+        "export-torch",
+        "--cache",
+        out.to_str().unwrap(),
+        "--out",
+        export.to_str().unwrap(),
+    ]);
+    assert!(!o.status.success());
+    assert!(stderr(&o).contains("train.roadds"), "{}", stderr(&o));
 
     // A cache built with other settings is stale, and says so.
     let o = road(&[

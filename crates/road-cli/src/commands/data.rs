@@ -40,6 +40,9 @@ pub struct ExportTorchArgs {
     /// `train.val_batches` shape the validation batches).
     #[arg(long = "set", value_name = "KEY=VALUE")]
     pub overrides: Vec<String>,
+    /// Which splits to export: train, validation or both.
+    #[arg(long, value_enum, default_value_t = SplitChoice::Both)]
+    pub split: SplitChoice,
 }
 
 #[derive(Debug, Args)]
@@ -109,7 +112,7 @@ fn export_torch_cmd(args: &ExportTorchArgs) -> Result<()> {
     use road_model::torch_export;
     let mut total = 0u64;
     let mut validation_set = None;
-    for split in [Split::Train, Split::Validation] {
+    for &split in args.split.splits() {
         let path = cache::cache_path(&args.cache, split);
         let ds = cache::load_checked(&path, split, None, None).with_context(|| {
             format!("cannot read the {split} cache (`road data build` writes it)")
@@ -120,7 +123,8 @@ fn export_torch_cmd(args: &ExportTorchArgs) -> Result<()> {
             .with_context(|| format!("cannot export the {split} split to {}", out.display()))?;
         total += bytes;
         out!(
-            "{split:<10} {:>7} windows {:>4} recordings -> {} ({:.1} MiB)",
+            "{:<10} {:>7} windows {:>4} recordings -> {} ({:.1} MiB)",
+            split.name(),
             ds.len(),
             ds.recordings.len(),
             out.display(),
@@ -135,7 +139,9 @@ fn export_torch_cmd(args: &ExportTorchArgs) -> Result<()> {
         run.validate()
             .map_err(anyhow::Error::msg)
             .with_context(|| format!("bad run config {}", config.display()))?;
-        let ds = validation_set.expect("the validation split was read above");
+        let ds = validation_set.context(
+            "the validation batches need the validation split: leave out --split or pass both",
+        )?;
         anyhow::ensure!(
             ds.config.window_steps >= run.model.window_slots
                 && ds.config.polyline_points == run.model.polyline_points,
