@@ -4,14 +4,16 @@
 //!
 //! The model's vehicles leave the road where the map is unlike its training maps (issue 13: on
 //! `road demo`'s procedural roundabout about a third of them). Each tick, for every model-driven
-//! agent whose centre was on a lanelet before the tick and whose proposed centre is on none:
+//! agent whose centre was on a lanelet before the tick and whose proposed centre is off the road,
+//! or on a lane merging into its own entered against that lane's direction (a roundabout exit
+//! taken through the entry beside it, which leads off the road a few steps later):
 //! 1. **Steer.** Its lane is the lanelet under it whose centre line runs most nearly along its
 //!    step (or its heading when it barely moves); the target is the point `lookahead_m` ahead
 //!    along that centre line, continued into the successor the model's proposal is nearest to.
 //!    The agent keeps the model's step length (its speed) and takes its step towards the target
 //!    (pure pursuit), its heading along the new step.
-//! 2. **Stop at the edge.** If the steered step still ends off road, the agent moves only the
-//!    largest fraction of it that stays on a lanelet (bisection).
+//! 2. **Stop at the edge.** If the steered step still ends off road (or against a merging lane),
+//!    the agent moves only the largest fraction of it that does not (bisection).
 //!
 //! The guard keeps lane followers in their lane and nothing more: it leaves alone an agent that
 //! moves backwards or against every lanelet under it, and one that drives off the end of a
@@ -34,6 +36,9 @@ const MAX_LANELETS_AHEAD: usize = 4;
 const STANDSTILL_STEP_M: f64 = 0.05;
 /// A proposal projecting within this of a lanelet's end (metres) drives off that end.
 const END_TOLERANCE_M: f64 = 0.5;
+/// Steps at least this long (metres per 0.1 s step: 2 m/s, as the kinematic metrics' yaw) are
+/// checked against merging lanes.
+const DIRECTED_STEP_M: f64 = 0.2;
 
 /// What the lane guard did to one agent this tick.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -55,7 +60,7 @@ pub fn keep_on_road(
 ) -> Option<LaneAction> {
     let from = DVec2::new(before.x_m, before.y_m);
     let to = DVec2::new(proposed.x_m, proposed.y_m);
-    if on_road(map, to) || !on_road(map, from) {
+    if !on_road(map, from) {
         return None;
     }
     let step = to - from;
@@ -65,6 +70,14 @@ pub fn keep_on_road(
     }
     let direction = step / step_m;
     let (lanelet, along_m) = lane_under(map, from, direction)?;
+    // A slow vehicle's step is mostly position noise: its direction says nothing of its way.
+    let directed = step_m >= DIRECTED_STEP_M;
+    let stays_on_its_way = |p: DVec2, direction: DVec2| {
+        on_road(map, p) && !(directed && against_a_merging_lane(map, lanelet, p, direction))
+    };
+    if stays_on_its_way(to, direction) {
+        return None;
+    }
     let centre = &map.lanelets[lanelet].centre_m;
     if map.lanelets[lanelet].successors.is_empty()
         && project_on_polyline(centre, to).0 >= polyline_length_m(centre) - END_TOLERANCE_M
@@ -81,16 +94,17 @@ pub fn keep_on_road(
             y_m: steered.y,
             heading_rad: unwrap_near(steered_direction.to_angle(), before.heading_rad),
         };
-        if on_road(map, steered) {
+        if stays_on_its_way(steered, steered_direction) {
             return Some(LaneAction::Steered);
         }
     }
     // The steered step still leaves the road (a sharp bend, a narrow lanelet): stop at the edge.
     let end = DVec2::new(proposed.x_m, proposed.y_m);
+    let end_direction = (end - from).normalize_or(direction);
     let (mut inside, mut outside) = (0.0f64, 1.0f64);
     for _ in 0..BISECTION_ROUNDS {
         let mid = 0.5 * (inside + outside);
-        if on_road(map, from + (end - from) * mid) {
+        if stays_on_its_way(from + (end - from) * mid, end_direction) {
             inside = mid;
         } else {
             outside = mid;
@@ -104,6 +118,32 @@ pub fn keep_on_road(
 
 fn on_road(map: &LaneletMap, p: DVec2) -> bool {
     map.lanelet_at([p.x, p.y]).is_some()
+}
+
+/// Whether `p` lies, against its direction, on a lane that merges into the agent's `lane` (a
+/// lanelet whose successors are `lane` or one of its successors), and on no lanelet running
+/// along `direction` (within 90°): a roundabout's exit taken through the entry beside it, which
+/// leads off the road a few steps later. Other lanelets crossing the agent's way do not count:
+/// vehicles in the recordings cross them where the map has no lanelet for their own path.
+fn against_a_merging_lane(map: &LaneletMap, lane: usize, p: DVec2, direction: DVec2) -> bool {
+    // A merge: `l` ends where its successor starts, running its way (maps also link lanes of
+    // opposite ways end to end, as U-turns).
+    let merges_into = |l: &Lanelet, s: u32| {
+        let next = &map.lanelets[s as usize].centre_m;
+        next.len() >= 2 && end_tangent(&l.centre_m).dot(start_tangent(next)) > 0.0
+    };
+    let leads_on = |l: &Lanelet| {
+        l.successors.iter().any(|&s| {
+            (s as usize == lane || map.lanelets[lane].successors.contains(&s)) && merges_into(l, s)
+        })
+    };
+    let on_against = map.lanelets.iter().any(|l| {
+        l.centre_m.len() >= 2
+            && leads_on(l)
+            && l.contains([p.x, p.y])
+            && project_on_polyline(&l.centre_m, p).1.dot(direction) < 0.0
+    });
+    on_against && lane_under(map, p, direction).is_none()
 }
 
 /// The agent's lane: of the lanelets under `from`, the one whose centre line runs most nearly
@@ -199,6 +239,17 @@ fn distance_to_polyline(lanelet: &Lanelet, p: DVec2) -> f64 {
         .fold(f64::INFINITY, f64::min)
 }
 
+/// The unit direction of a polyline's (≥ 2 points) first segment.
+fn start_tangent(line: &[Point]) -> DVec2 {
+    (DVec2::from(line[1]) - DVec2::from(line[0])).normalize_or_zero()
+}
+
+/// The unit direction of a polyline's (≥ 2 points) last segment.
+fn end_tangent(line: &[Point]) -> DVec2 {
+    let n = line.len();
+    (DVec2::from(line[n - 1]) - DVec2::from(line[n - 2])).normalize_or_zero()
+}
+
 fn polyline_length_m(line: &[Point]) -> f64 {
     line.windows(2)
         .map(|pair| (DVec2::from(pair[1]) - DVec2::from(pair[0])).length())
@@ -260,6 +311,33 @@ mod tests {
         }
     }
 
+    /// `road()` with the opposite lane beside it: a lanelet along −x from 40 to 0, y in [2, 6].
+    fn two_way_road() -> LaneletMap {
+        let mut map = road();
+        let mut opposite = straight(3, 0.0, 40.0);
+        for p in opposite
+            .left_m
+            .iter_mut()
+            .chain(opposite.right_m.iter_mut())
+        {
+            p[1] += 4.0;
+        }
+        for p in &mut opposite.centre_m {
+            p[1] = 4.0;
+        }
+        // Driving −x, the left bound is the one at y = 2 and the centre line runs backwards.
+        std::mem::swap(&mut opposite.left_m, &mut opposite.right_m);
+        opposite.left_m.reverse();
+        opposite.right_m.reverse();
+        opposite.centre_m.reverse();
+        opposite.bounds = Aabb {
+            min: [0.0, 2.0],
+            max: [40.0, 6.0],
+        };
+        map.lanelets.push(opposite);
+        map
+    }
+
     fn pose(x_m: f64, y_m: f64, heading_rad: f64) -> Pose {
         Pose {
             x_m,
@@ -302,6 +380,101 @@ mod tests {
         let step = DVec2::new(proposed.x_m - before.x_m, proposed.y_m - before.y_m);
         let expected = DVec2::new(6.0, -1.9).normalize();
         assert!((step.normalize() - expected).length() < 1e-9, "{step}");
+    }
+
+    /// `road()` with a side road joining it from the left (+y) at x = 20: a lanelet 4 m wide
+    /// whose centre line is the quarter circle of radius 8 m about (20, 8) from (12, 8), heading
+    /// −y, to (20, 0), heading +x, where it leads into the second lanelet (as a roundabout's
+    /// entry leads into the ring just past the exit).
+    fn road_with_merging_lane() -> LaneletMap {
+        let centre = DVec2::new(20.0, 8.0);
+        let ring = |radius_m: f64| -> Vec<Point> {
+            (0..=16)
+                .map(|i| {
+                    let angle = std::f64::consts::PI * (1.0 + 0.5 * f64::from(i) / 16.0);
+                    (centre + DVec2::from_angle(angle) * radius_m).into()
+                })
+                .collect()
+        };
+        let mut map = road();
+        map.lanelets.push(Lanelet {
+            id: 3,
+            subtype: None,
+            left_way: 6,
+            right_way: 7,
+            // Counter-clockwise about the centre: the left bound is the inner one.
+            left_m: ring(6.0),
+            right_m: ring(10.0),
+            centre_m: ring(8.0),
+            successors: vec![1],
+            neighbours: Vec::new(),
+            bounds: Aabb {
+                min: [10.0, -2.0],
+                max: [20.0, 8.0],
+            },
+        });
+        map
+    }
+
+    #[test]
+    fn a_step_into_a_merging_lane_against_it_turns_back_to_its_own() {
+        let map = road_with_merging_lane();
+        let before = pose(13.0, 1.5, 1.0);
+        // Up and to the left, leaving its lane (y ≤ 2) onto the side road, whose centre line
+        // runs down and to the right there: about 120° against the step.
+        let mut proposed = pose(13.3, 2.45, 1.26);
+        assert!(map.lanelet_at([proposed.x_m, proposed.y_m]).is_some());
+        let action = keep_on_road(&map, before, &mut proposed, 6.0);
+        assert_eq!(action, Some(LaneAction::Steered));
+        // Towards the centre line 6 m ahead, (19, 0), at the same speed.
+        let step = DVec2::new(proposed.x_m - before.x_m, proposed.y_m - before.y_m);
+        let expected = DVec2::new(6.0, -1.5).normalize();
+        assert!((step.normalize() - expected).length() < 1e-9, "{step}");
+        assert!(
+            (step.length() - 0.3f64.hypot(0.95)).abs() < 1e-9,
+            "speed kept: {step}"
+        );
+    }
+
+    #[test]
+    fn a_slow_step_into_a_merging_lane_is_left_alone() {
+        // 0.1 m in 0.1 s, as the step above: a crawling vehicle's noise has no direction to
+        // judge.
+        let map = road_with_merging_lane();
+        let before = pose(13.0, 1.95, 1.0);
+        let mut proposed = pose(13.03, 2.045, 1.26);
+        let unchanged = proposed;
+        assert!(map.lanelets[0].contains([before.x_m, before.y_m]));
+        assert!(!map.lanelets[0].contains([proposed.x_m, proposed.y_m]));
+        assert!(map.lanelets[2].contains([proposed.x_m, proposed.y_m]));
+        assert_eq!(keep_on_road(&map, before, &mut proposed, 6.0), None);
+        assert_eq!(proposed, unchanged);
+    }
+
+    #[test]
+    fn a_step_onto_a_lane_that_does_not_lead_into_its_own_is_left_alone() {
+        // The same kind of step onto the opposite lane of a two-way road, linked end to end with
+        // the agent's as a U-turn: lanelets of other ways are crossed in the recordings where the
+        // map has none for a vehicle's own path.
+        let mut map = two_way_road();
+        map.lanelets[2].successors = vec![0];
+        let mut proposed = pose(10.0 + 0.5f64.sqrt(), 1.6 + 0.5f64.sqrt(), 0.785);
+        let unchanged = proposed;
+        assert_eq!(
+            keep_on_road(&map, pose(10.0, 1.6, 0.0), &mut proposed, 6.0),
+            None
+        );
+        assert_eq!(proposed, unchanged);
+    }
+
+    #[test]
+    fn the_merging_lane_is_a_lane_for_those_driving_it() {
+        let map = road_with_merging_lane();
+        // Driving down the side road (heading −y at x = 12), drifting within it: left alone.
+        let before = pose(12.0, 8.0, -std::f64::consts::FRAC_PI_2);
+        let mut proposed = pose(12.3, 7.0, -1.3);
+        assert_eq!(keep_on_road(&map, before, &mut proposed, 6.0), None);
+        assert_eq!(proposed, pose(12.3, 7.0, -1.3));
     }
 
     #[test]
