@@ -851,25 +851,32 @@ class Trainer:
         (weights decayed by (1 − lr·wd), then `lr · m̂ / (√v̂ + ε)` subtracted), the EMA, the
         step. Returns the gradient norm before clipping and the learning rate."""
         t = self.run.train
-        # Σ per tensor in f32, the total in f64 (train.rs sums each tensor's to_scalar).
-        sq = torch.stack([g.square().sum() for g in grads]).double().sum()
-        grad_norm = math.sqrt(float(sq))
+        # The norm per tensor in f32, the total in f64 (train.rs sums each tensor's Σ g²).
+        norms = torch.stack(torch._foreach_norm(grads)).double()
+        grad_norm = math.sqrt(float(norms.square().sum()))
         clip = t.grad_clip / grad_norm if grad_norm > t.grad_clip else 1.0
         lr = learning_rate(t, self.meta.step)
         step = self.meta.step + 1
         bc1 = 1.0 - ADAM_BETA1**step
         bc2 = 1.0 - ADAM_BETA2**step
         d = t.ema_decay
-        for i, p in enumerate(self.params):
-            g = grads[i] * clip
-            m = self.adam_m[i] * ADAM_BETA1 + g * (1.0 - ADAM_BETA1)
-            v = self.adam_v[i] * ADAM_BETA2 + g.square() * (1.0 - ADAM_BETA2)
-            update = (m / bc1) / ((v / bc2).sqrt() + ADAM_EPS)
-            new = p * (1.0 - lr * t.weight_decay) - update * lr
-            p.copy_(new)
-            self.ema[i] = self.ema[i] * d + new * (1.0 - d)
-            self.adam_m[i] = m
-            self.adam_v[i] = v
+        # Multi-tensor ops (a few kernels per line on CUDA, not one per parameter), in
+        # train.rs' order: m = β1·m + (1 − β1)·g, v = β2·v + (1 − β2)·g², update =
+        # (m / bc1) / (√(v / bc2) + ε), p = p·(1 − lr·wd) − lr·update, ema = d·ema + (1 − d)·p.
+        g = torch._foreach_mul(grads, clip)
+        m = torch._foreach_mul(self.adam_m, ADAM_BETA1)
+        torch._foreach_add_(m, torch._foreach_mul(g, 1.0 - ADAM_BETA1))
+        v = torch._foreach_mul(self.adam_v, ADAM_BETA2)
+        torch._foreach_add_(v, torch._foreach_mul(torch._foreach_mul(g, g), 1.0 - ADAM_BETA2))
+        root = torch._foreach_sqrt(torch._foreach_div(v, bc2))
+        torch._foreach_add_(root, ADAM_EPS)
+        update = torch._foreach_div(torch._foreach_div(m, bc1), root)
+        new = torch._foreach_mul([p.detach() for p in self.params], 1.0 - lr * t.weight_decay)
+        torch._foreach_sub_(new, torch._foreach_mul(update, lr))
+        torch._foreach_copy_([p.data for p in self.params], new)
+        ema = torch._foreach_mul(self.ema, d)
+        torch._foreach_add_(ema, torch._foreach_mul(new, 1.0 - d))
+        self.ema, self.adam_m, self.adam_v = ema, m, v
         self.meta.step = step
         return grad_norm, lr
 
@@ -1033,6 +1040,9 @@ class Batches:
                 initializer=_loader_init,
                 initargs=(run, str(export), True),
             )
+            # A fork pool starts every worker on its first task: do it now, before this
+            # process initialises CUDA (a forked child must not inherit a CUDA context).
+            self.pool.submit(int).result()
         else:
             _loader_init(run, str(export))
 
@@ -1107,6 +1117,11 @@ def train(args: argparse.Namespace) -> None:
     export = args.export
     validation_split = ExportedSplit(export / "validation.safetensors")
     out = args.out or Path("models") / run.name
+    until = min(args.until_step or t.steps, t.steps)
+    workers = args.loader_workers
+    if workers < 0:
+        workers = 0 if device.type == "cpu" else max(1, min(8, (os.cpu_count() or 2) - 2))
+    batches = Batches(run, export, workers, ahead=max(2, 2 * workers))
     trainer = Trainer(run, device)
     val_np = exported_validation_batches(export / "validation_batches.safetensors", run)
     if val_np is None:
@@ -1129,11 +1144,6 @@ def train(args: argparse.Namespace) -> None:
         "validation_windows": len(validation_split),
         "source": DATA_SOURCE,
     }
-    until = min(args.until_step or t.steps, t.steps)
-    workers = args.loader_workers
-    if workers < 0:
-        workers = 0 if device.type == "cpu" else max(1, min(8, (os.cpu_count() or 2) - 2))
-    batches = Batches(run, export, workers, ahead=max(2, 2 * workers))
     hw = hardware(device)
     print(
         f"training {run.name} ({trainer.parameter_count()} parameters) on {hw} from step "

@@ -1,0 +1,91 @@
+#!/usr/bin/env bash
+# Training on a lent GPU machine, one call at a time (docs/torch-training.md): runs
+# scripts/torch_train.py on CUDA (on the CPU with a warning where there is none), continuing the
+# run in OUT when OUT holds its state, and stops (validated, saved) before the time budget is
+# spent, so that the next call continues with the same command.
+#
+#   bash scripts/gpu-train.sh CONFIG OUT [--minutes M] [--from DIR] [torch_train.py train options]
+#
+#   CONFIG   a run config, configs/<run>.toml (its train.init_from folder must be in the tree)
+#   OUT      the checkpoint folder (on the lent machine: under $OUT, so that it comes back)
+#   --minutes M   wall-clock budget of this call, default 8 (a device call may run 10 minutes;
+#                 start-up and the last validation and checkpoint fit in the rest)
+#   --from DIR    the previous call's OUT, carried back to the machine: copied to OUT first
+#                 (when OUT has no state of its own), then resumed
+#   other options go to torch_train.py train, e.g. --set train.batch_scenes=256, --allow-tf32
+#
+# The machine needs the export of `road data export-torch` (.road-cache/torch, about 23 MiB:
+# carry it; ROAD_TORCH_EXPORT names another folder) and python3 with torch, safetensors and
+# numpy (PYTHON names another interpreter). Here, without a GPU, the same command trains on the
+# CPU: `bash scripts/gpu-train.sh configs/road20-wide4.toml /tmp/t --minutes 2`.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+if [ $# -lt 2 ]; then
+    sed -n '2,22p' "$0" >&2
+    exit 2
+fi
+config=$1
+out=$2
+shift 2
+minutes=8
+from=""
+rest=()
+while [ $# -gt 0 ]; do
+    case "$1" in
+    --minutes)
+        minutes=$2
+        shift 2
+        ;;
+    --from)
+        from=$2
+        shift 2
+        ;;
+    *)
+        rest+=("$1")
+        shift
+        ;;
+    esac
+done
+python=${PYTHON:-python3}
+export_dir=${ROAD_TORCH_EXPORT:-.road-cache/torch}
+
+if [ ! -f "$config" ]; then
+    echo "gpu-train: no run config $config" >&2
+    exit 2
+fi
+for split in train validation; do
+    if [ ! -f "$export_dir/$split.safetensors" ]; then
+        echo "gpu-train: no $export_dir/$split.safetensors: run 'road data export-torch --config $config' and carry $export_dir" >&2
+        exit 2
+    fi
+done
+if ! "$python" -c "import torch, safetensors, numpy" 2>/dev/null; then
+    echo "gpu-train: $python lacks torch, safetensors or numpy (PYTHON names another)" >&2
+    exit 2
+fi
+if "$python" -c "import sys, torch; sys.exit(0 if torch.cuda.is_available() else 1)"; then
+    device=cuda
+    if command -v nvidia-smi >/dev/null; then
+        nvidia-smi --query-gpu=name,memory.total --format=csv,noheader || true
+    fi
+else
+    echo "gpu-train: warning: CUDA is not available: training on the CPU" >&2
+    device=cpu
+fi
+if [ -n "$from" ] && [ ! -f "$out/train_state.safetensors" ]; then
+    if [ ! -f "$from/train_state.safetensors" ]; then
+        echo "gpu-train: --from $from holds no train_state.safetensors" >&2
+        exit 2
+    fi
+    mkdir -p "$out"
+    cp -r "$from"/. "$out"/
+    echo "gpu-train: continuing the run of $from (step $(sed -n 's/^step = //p' "$out/config.toml"))"
+fi
+resume=()
+if [ -f "$out/train_state.safetensors" ]; then
+    resume=(--resume)
+fi
+set -x
+exec "$python" scripts/torch_train.py train --config "$config" --out "$out" \
+    --export "$export_dir" --device "$device" --minutes "$minutes" "${resume[@]}" "${rest[@]}"
