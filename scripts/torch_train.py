@@ -873,7 +873,8 @@ class Trainer:
         update = torch._foreach_div(torch._foreach_div(m, bc1), root)
         new = torch._foreach_mul([p.detach() for p in self.params], 1.0 - lr * t.weight_decay)
         torch._foreach_sub_(new, torch._foreach_mul(update, lr))
-        torch._foreach_copy_([p.data for p in self.params], new)
+        for p, n in zip(self.params, new):
+            p.data = n  # the parameter takes the new tensor: no copy, any torch 2.x
         ema = torch._foreach_mul(self.ema, d)
         torch._foreach_add_(ema, torch._foreach_mul(new, 1.0 - d))
         self.ema, self.adam_m, self.adam_v = ema, m, v
