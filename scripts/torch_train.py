@@ -512,7 +512,10 @@ def task_sigma_of(run: Run, warmup: bool, tau: float, u_ca: float) -> np.ndarray
     profile = (warmup_u if warmup else rolling_u) if run.rolling else full_u
     e = run.edm
     obs = max(e.sigma(u_ca), e.sigma_min)
-    row = [obs if slot < n else max(e.sigma(profile(slot - n, f, tau)), e.sigma_min) for slot in range(w)]
+    row = [
+        obs if slot < n else max(e.sigma(profile(slot - n, f, tau)), e.sigma_min)
+        for slot in range(w)
+    ]
     return np.array(row, dtype=np.float64).astype(np.float32)
 
 
@@ -812,7 +815,8 @@ class Trainer:
             self.run.future_slots,
         ):
             raise ValueError(
-                f"{out / META_FILE}: the checkpoint's model or planner differs from the run's config"
+                f"{out / META_FILE}: the checkpoint's model or planner differs from the run's "
+                "config"
             )
         state = load_file(str(out / TRAIN_STATE_FILE))
         ema = load_file(str(out / WEIGHTS_FILE))
@@ -1385,7 +1389,9 @@ def main(argv: list[str] | None = None) -> None:
     run_args(va)
     va.add_argument("--checkpoint", type=Path, required=True)
     fx = sub.add_parser("make-train-fixture", help="write the training-parity fixture")
-    fx.add_argument("--out", type=Path, default=Path("crates/road-model/tests/fixtures/torch_train"))
+    fx.add_argument(
+        "--out", type=Path, default=Path("crates/road-model/tests/fixtures/torch_train")
+    )
     fx.add_argument(
         "--init",
         type=Path,
