@@ -22,7 +22,7 @@ use road_sched::{
 
 use crate::batch::{AGENT_FEATURES, normal_vec};
 use crate::sample::{Rollout, RolloutScene, ShiftEdit, ShiftShape, StepEngine};
-use crate::smoothing::{smooth_accelerations, smooth_with_plan};
+use crate::smoothing::{smooth_accelerations, smooth_with_plan, track_least_jerk};
 use crate::{Error, Result};
 
 /// Per-scene state in model units. The window lives in the engine; `window` is the host copy
@@ -95,6 +95,8 @@ fn scene_seed(base_seed: u64, i: usize) -> u64 {
 
 /// σ of a slot that holds still in a batch (any positive value: σ_cur = σ_next skips it).
 const IDLE_SIGMA: f32 = 1.0;
+/// Seconds per simulated step (the recordings' 10 Hz): the unit of least-jerk tracking's jerk.
+const STEP_SECS: f64 = 0.1;
 
 /// Drives the rollouts of many scenes on one engine; see the module's documentation.
 pub struct RolloutDriver {
@@ -736,7 +738,11 @@ impl RolloutDriver {
         self.denoised_scenes.clear();
         for o in &self.outcomes {
             let i = self.scene_of_slot[o.scene.index()];
-            if self.states[i].wants_plan || self.planners[i].plan_smoothing.is_some() {
+            let planner = &self.planners[i];
+            if self.states[i].wants_plan
+                || planner.plan_smoothing.is_some()
+                || planner.jerk_tracking.is_some()
+            {
                 self.denoised_scenes.push(i);
             }
         }
@@ -781,6 +787,19 @@ impl RolloutDriver {
                     w,
                     from,
                     fit,
+                    &mut emitted,
+                );
+            }
+            if let Some(tracking) = self.planners[i].jerk_tracking {
+                track_least_jerk(
+                    &s.history,
+                    &s.history_valid,
+                    denoised,
+                    &s.valid,
+                    w,
+                    from,
+                    tracking.ahead,
+                    tracking.jerk_weight(STEP_SECS),
                     &mut emitted,
                 );
             }

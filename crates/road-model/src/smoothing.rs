@@ -87,6 +87,123 @@ pub fn smooth_with_plan(
     }
 }
 
+/// Least-jerk tracking (`jerk_tracking`, [`road_sched::JerkTracking`]): each agent with its last
+/// three committed positions valid continues from their position `x`, velocity `v` and
+/// acceleration `a` (first and second differences) along the path `p_k = x + (k+1)·v +
+/// (k+1)(k+2)/2·a + Σ_{i≤k} (k−i+1)(k−i+2)/2·j_i` of jerks `j_0 … j_H−1` (third differences,
+/// per step), chosen to minimise `Σ_k |p_k − r_k|² + jerk_weight · Σ_k |j_k|²` over the emitted
+/// position `r_0` and the model's denoised estimate `r_1 …` of up to `planned_steps` slots from
+/// `first_planned_slot` (while valid); `p_0` replaces the emitted position. Unlike
+/// [`smooth_accelerations`], which low-passes the past, the path looks ahead along the model's
+/// plan, so a turn or a braking the model plans is taken smoothly but without lag. Headings
+/// stay the model's; agents without three valid committed positions are left as they are.
+///
+/// `denoised` and `window_valid` are the scene's `[agents, slots, 3]` estimate and
+/// `[agents, slots]` flags; `jerk_weight` is [`road_sched::JerkTracking::jerk_weight`].
+#[allow(clippy::too_many_arguments)] // one scene's history, window and emission
+pub fn track_least_jerk(
+    history: &[Vec<[f32; 3]>],
+    history_valid: &[Vec<bool>],
+    denoised: &[f32],
+    window_valid: &[f32],
+    slots: usize,
+    first_planned_slot: usize,
+    planned_steps: usize,
+    jerk_weight: f64,
+    emitted: &mut [f32],
+) {
+    for (a, state) in emitted.chunks_exact_mut(3).enumerate() {
+        let (past, past_valid) = (&history[a], &history_valid[a]);
+        let t = past.len();
+        if t < 3 || !past_valid[t - 3..].iter().all(|&v| v) {
+            continue;
+        }
+        let mut targets: Vec<[f64; 2]> = vec![[f64::from(state[0]), f64::from(state[1])]];
+        for k in 0..planned_steps {
+            let slot = first_planned_slot + k;
+            if slot >= slots || window_valid[a * slots + slot] <= 0.0 {
+                break;
+            }
+            let p = &denoised[3 * (a * slots + slot)..][..2];
+            targets.push([f64::from(p[0]), f64::from(p[1])]);
+        }
+        let h = targets.len();
+        // G[k][i] = (k−i+1)(k−i+2)/2 for i ≤ k: how jerk i moves position k.
+        let g = |k: usize, i: usize| {
+            if i > k {
+                0.0
+            } else {
+                let d = (k - i) as f64;
+                (d + 1.0) * (d + 2.0) / 2.0
+            }
+        };
+        // Normal equations (GᵀG + λI)·j = Gᵀ(r − b), both axes sharing the matrix.
+        let mut normal = vec![0.0f64; h * h];
+        for i in 0..h {
+            for l in 0..h {
+                normal[i * h + l] = (i.max(l)..h).map(|k| g(k, i) * g(k, l)).sum::<f64>()
+                    + if i == l { jerk_weight } else { 0.0 };
+            }
+        }
+        let Some(factor) = cholesky(&normal, h) else {
+            continue;
+        };
+        let (p0, p1, p2) = (past[t - 1], past[t - 2], past[t - 3]);
+        for d in 0..2 {
+            let x = f64::from(p0[d]);
+            let v = x - f64::from(p1[d]);
+            let acc = x - 2.0 * f64::from(p1[d]) + f64::from(p2[d]);
+            let residual: Vec<f64> = (0..h)
+                .map(|k| {
+                    let kf = k as f64;
+                    targets[k][d] - (x + (kf + 1.0) * v + (kf + 1.0) * (kf + 2.0) / 2.0 * acc)
+                })
+                .collect();
+            let rhs: Vec<f64> = (0..h)
+                .map(|i| (i..h).map(|k| g(k, i) * residual[k]).sum())
+                .collect();
+            let jerks = cholesky_solve(&factor, h, &rhs);
+            state[d] = (x + v + acc + jerks[0]) as f32;
+        }
+    }
+}
+
+/// The lower Cholesky factor `L` (row-major `[n, n]`) of a symmetric positive definite matrix;
+/// None when it is not.
+fn cholesky(matrix: &[f64], n: usize) -> Option<Vec<f64>> {
+    let mut l = vec![0.0f64; n * n];
+    for i in 0..n {
+        for j in 0..=i {
+            let sum: f64 = (0..j).map(|k| l[i * n + k] * l[j * n + k]).sum();
+            if i == j {
+                let d = matrix[i * n + i] - sum;
+                if d <= 0.0 {
+                    return None;
+                }
+                l[i * n + i] = d.sqrt();
+            } else {
+                l[i * n + j] = (matrix[i * n + j] - sum) / l[j * n + j];
+            }
+        }
+    }
+    Some(l)
+}
+
+/// Solves `L·Lᵀ·x = b` for the factor of [`cholesky`].
+fn cholesky_solve(l: &[f64], n: usize, b: &[f64]) -> Vec<f64> {
+    let mut y = vec![0.0f64; n];
+    for i in 0..n {
+        let sum: f64 = (0..i).map(|k| l[i * n + k] * y[k]).sum();
+        y[i] = (b[i] - sum) / l[i * n + i];
+    }
+    let mut x = vec![0.0f64; n];
+    for i in (0..n).rev() {
+        let sum: f64 = (i + 1..n).map(|k| l[k * n + i] * x[k]).sum();
+        x[i] = (y[i] - sum) / l[i * n + i];
+    }
+    x
+}
+
 /// The running sums of a least-squares quadratic's normal equations through points `(t, x, y)`,
 /// both axes at once: `M · c = r` with `M[i][j] = Σ t^(i+j)` and `r[i] = Σ t^i · y`.
 #[derive(Default)]
@@ -309,5 +426,96 @@ mod tests {
         let mut emitted = [0.9, 0.0, 0.0, 0.9, 0.0, 0.0];
         smooth_accelerations(&history, &valid, &mut emitted, 0.1);
         assert_eq!(emitted, [0.9, 0.0, 0.0, 0.9, 0.0, 0.0]);
+    }
+
+    /// [`track_least_jerk`] of a [`plan_case`] (12 slots, planned from slot 2).
+    fn track_case(case: &PlanCase, ahead: usize, jerk_weight: f64, emitted: &mut [f32]) {
+        let (history, valid, denoised, window_valid) = case;
+        track_least_jerk(
+            history,
+            valid,
+            denoised,
+            window_valid,
+            12,
+            2,
+            ahead,
+            jerk_weight,
+            emitted,
+        );
+    }
+
+    #[test]
+    fn least_jerk_tracking_keeps_a_path_of_constant_acceleration() {
+        let path = |t: f64| {
+            let (x, y) = (1.0 + 0.3 * t + 0.02 * t * t, -0.5 + 0.1 * t - 0.01 * t * t);
+            [x as f32, y as f32]
+        };
+        let case = plan_case(path, 6, 8);
+        for ahead in [0, 3, 8] {
+            let mut emitted = [path(0.0)[0], path(0.0)[1], 0.4];
+            track_case(&case, ahead, 100.0, &mut emitted);
+            assert!(
+                (emitted[0] - 1.0).abs() < 1e-5 && (emitted[1] + 0.5).abs() < 1e-5,
+                "ahead {ahead}: {emitted:?}"
+            );
+            assert_eq!(emitted[2], 0.4, "the heading stays the model's");
+        }
+    }
+
+    #[test]
+    fn without_a_plan_the_emission_moves_towards_the_jerk_free_continuation() {
+        // Constant velocity 0.1 per step: the jerk-free continuation is 0.5; the model says 0.6.
+        // One jerk, one target: p₀ = b₀ + (r₀ − b₀)/(1 + λ).
+        let case: PlanCase = (vec![line(0.1, 5)], vec![vec![true; 5]], vec![], vec![]);
+        for (weight, expected) in [(0.0, 0.6), (1.0, 0.55), (3.0, 0.525), (1e9, 0.5)] {
+            let (history, valid, _, _) = &case;
+            let mut emitted = [0.6, 1.0, 0.7];
+            track_least_jerk(history, valid, &[], &[], 0, 0, 0, weight, &mut emitted);
+            assert!(
+                (emitted[0] - expected).abs() < 1e-6,
+                "λ {weight}: {emitted:?}"
+            );
+            assert!((emitted[1] - 1.0).abs() < 1e-6);
+        }
+    }
+
+    #[test]
+    fn least_jerk_tracking_anticipates_the_plan() {
+        // Constant speed so far and in the emission; the plan brakes from the next step on.
+        let history = (0..5)
+            .map(|k| [0.1 * k as f32, 0.0, 0.0])
+            .collect::<Vec<_>>();
+        let braking = |t: f64| [(0.5 + 0.1 * t - 0.01 * t * t) as f32, 0.0];
+        let case = plan_case(braking, 0, 4);
+        let (_, _, denoised, window_valid) = case;
+        let case = (vec![history], vec![vec![true; 5]], denoised, window_valid);
+        let mut without_plan = [0.5, 0.0, 0.0];
+        track_case(&case, 0, 100.0, &mut without_plan);
+        assert!((without_plan[0] - 0.5).abs() < 1e-6);
+        let mut with_plan = [0.5, 0.0, 0.0];
+        track_case(&case, 4, 100.0, &mut with_plan);
+        assert!(
+            with_plan[0] < 0.5 - 1e-4,
+            "starts braking early: {with_plan:?}"
+        );
+        assert!(with_plan[0] > 0.49, "and only gently: {with_plan:?}");
+    }
+
+    #[test]
+    fn least_jerk_tracking_leaves_agents_without_three_valid_states() {
+        let history = vec![line(0.1, 2), line(0.1, 5)];
+        let valid = vec![vec![true; 2], vec![true, true, false, true, true]];
+        let mut emitted = [0.9, 0.0, 0.0, 0.9, 0.0, 0.0];
+        track_least_jerk(&history, &valid, &[], &[], 0, 0, 0, 10.0, &mut emitted);
+        assert_eq!(emitted, [0.9, 0.0, 0.0, 0.9, 0.0, 0.0]);
+    }
+
+    #[test]
+    fn the_jerk_weight_is_the_squared_cost_over_the_step_cubed() {
+        let tracking = road_sched::JerkTracking {
+            jerk_cost_m: 0.01,
+            ahead: 3,
+        };
+        assert!((tracking.jerk_weight(0.1) - 100.0).abs() < 1e-9);
     }
 }

@@ -89,6 +89,11 @@ pub struct PlannerSpec {
     /// (`road_model::smoothing`; a deviation from the paper against jitter). Absent: off.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub acceleration_smoothing: Option<f64>,
+    /// Least-jerk tracking (`road_model::smoothing`; a deviation from the paper against jitter):
+    /// each emitted position becomes the first of the jerk-penalised path from the agent's
+    /// committed motion through the emitted position and the model's plan. Absent: off.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub jerk_tracking: Option<JerkTracking>,
     /// h in 1..=`MAX_PLAN_SMOOTHING_STEPS`: each emitted position is replaced by the value at
     /// the emission step of the least-squares quadratic through the agent's last h committed
     /// positions, the emitted one and the model's denoised estimate of the next h slots of its
@@ -120,6 +125,32 @@ pub struct PlannerSpec {
     pub sampler: Sampler,
     #[serde(default)]
     pub edm: EdmSchedule,
+}
+
+/// Least-jerk tracking's settings. Each tick, every agent with three committed positions takes
+/// the path `p_0 … p_f` that continues its committed position, velocity and acceleration and
+/// minimises `Σ_k |p_k − r_k|² + jerk_cost_m² · Σ_k |j_k|²` (metres; jerk `j_k` in m/s³, the
+/// third difference of the positions over 0.1 s steps), where `r_0` is the emitted position and
+/// `r_1 … r_f` are the model's denoised estimate of the next `ahead` slots; `p_0` is emitted.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct JerkTracking {
+    /// Metres of tracking error that 1 m/s³ of jerk costs as much as: larger is smoother and
+    /// follows the model less closely.
+    pub jerk_cost_m: f64,
+    /// Planned slots the path tracks beyond the emitted one, 0..=`MAX_JERK_TRACKING_AHEAD`.
+    pub ahead: usize,
+}
+
+/// The most planned slots least-jerk tracking looks at.
+pub const MAX_JERK_TRACKING_AHEAD: usize = 10;
+
+impl JerkTracking {
+    /// The jerk's weight λ for positions in any unit and jerk as the third difference per step of
+    /// `step_secs`: `(jerk_cost_m / step_secs³)²` (the position unit cancels).
+    pub fn jerk_weight(&self, step_secs: f64) -> f64 {
+        (self.jerk_cost_m / step_secs.powi(3)).powi(2)
+    }
 }
 
 /// The collision guard's settings: model-driven agents closing in on another agent within
@@ -158,6 +189,7 @@ impl Default for PlannerSpec {
             obs_sigma: None,
             obs_noise: None,
             acceleration_smoothing: None,
+            jerk_tracking: None,
             plan_smoothing: None,
             plan_smoothing_ahead: None,
             noise_temperature: None,
@@ -234,6 +266,21 @@ impl PlannerSpec {
             if !(alpha > 0.0 && alpha <= 1.0) {
                 return bad(format!(
                     "acceleration_smoothing must be in (0, 1], got {alpha}"
+                ));
+            }
+        }
+        if let Some(tracking) = self.jerk_tracking {
+            if !(tracking.jerk_cost_m.is_finite() && tracking.jerk_cost_m > 0.0) {
+                return bad(format!(
+                    "jerk_tracking.jerk_cost_m must be positive and finite, got {}",
+                    tracking.jerk_cost_m
+                ));
+            }
+            if tracking.ahead > MAX_JERK_TRACKING_AHEAD.min(self.future_slots) {
+                return bad(format!(
+                    "jerk_tracking.ahead must be 0 to {} slots, got {}",
+                    MAX_JERK_TRACKING_AHEAD.min(self.future_slots),
+                    tracking.ahead
                 ));
             }
         }

@@ -16,6 +16,7 @@ fn spec(kind: PlannerKind, n: usize, f: usize, k: usize, x: Option<usize>) -> Pl
         obs_sigma: None,
         obs_noise: None,
         acceleration_smoothing: None,
+        jerk_tracking: None,
         plan_smoothing: None,
         plan_smoothing_ahead: None,
         noise_temperature: None,
@@ -426,4 +427,23 @@ fn plan_smoothing_options_are_checked_together() {
     );
     assert!(error(None, Some(2)).contains("plan_smoothing_ahead needs plan_smoothing"));
     assert!(error(Some(0), None).contains("plan_smoothing must be 1 to"));
+}
+
+#[test]
+fn jerk_tracking_options_are_checked() {
+    let with = |jerk_cost_m: f64, ahead: usize| PlannerSpec {
+        jerk_tracking: Some(road_sched::JerkTracking { jerk_cost_m, ahead }),
+        ..spec(PlannerKind::Rolling, 10, 5, 40, None)
+    };
+    assert!(with(0.01, 3).validate("p").is_ok());
+    assert!(with(0.01, 0).validate("p").is_ok());
+    let error = |cost, ahead| with(cost, ahead).validate("p").unwrap_err().to_string();
+    for cost in [0.0, -1.0, f64::NAN, f64::INFINITY] {
+        assert!(
+            error(cost, 3).contains("jerk_tracking.jerk_cost_m must be positive and finite"),
+            "{cost}"
+        );
+    }
+    // Five future slots: at most five to look at.
+    assert!(error(0.01, 6).contains("jerk_tracking.ahead must be 0 to 5 slots, got 6"));
 }
