@@ -53,18 +53,18 @@ run)
     "$bin" gpu info | tee "$out/gpu-info.txt"
     # Kernels and whole denoisers against the CPU references on this adapter: nothing is timed
     # unless they agree.
-    "$bin" gpu selftest --checkpoints models/road20-wide2 models/road20 | tee "$out/selftest.txt"
+    "$bin" gpu selftest --checkpoints models/road20-wide4 models/road20 | tee "$out/selftest.txt"
     # Engine throughput: the WGSL engine beside the candle CPU reference, same batches.
     mkdir -p "$out/cache"
     cp dist/validation.roadds "$out/cache/validation.roadds" 2>/dev/null \
         || cp .road-cache/validation.roadds "$out/cache/validation.roadds"
-    "$bin" bench engine --checkpoints models/road20 models/road20-long2 models/road20-wide2 \
+    "$bin" bench engine --checkpoints models/road20 models/road20-long2 models/road20-wide4 \
         --batches "${batches[@]}" --cache "$out/cache" --json > "$out/engine.json"
     # Serving: scenes ticking through the scheduler, each engine in the same run.
-    "$bin" bench serve --checkpoint models/road20-wide2 --engines cpu gpu \
+    "$bin" bench serve --checkpoint models/road20-wide4 --engines cpu gpu \
         --scenes "${scenes[@]}" --ticks "$ticks" --cache "$out/cache" --json > "$out/serve.json"
     # The same under the multistep sampler (one evaluation per step; docs/results.md).
-    "$bin" bench serve --checkpoint models/road20-wide2 --planner road20-nearfit-lanes-guarded-k20-2m \
+    "$bin" bench serve --checkpoint models/road20-wide4 --planner road20-nearfit-lanes-guarded-k20-2m \
         --engines cpu gpu --scenes "${scenes[@]}" --ticks "$ticks" --cache "$out/cache" --json \
         > "$out/serve-multistep.json"
     rm -rf "$out/cache"
@@ -77,7 +77,7 @@ run)
         fi
         compile=(--compile)
         $quick && compile=()
-        python3 scripts/torch_denoiser.py bench --checkpoint models/road20-wide2 \
+        python3 scripts/torch_denoiser.py bench --checkpoint models/road20-wide4 \
             --batches "${batches[@]}" --device "$device" "${compile[@]}" \
             --json-out "$out/torch.json" | tee "$out/torch.txt"
     else

@@ -299,7 +299,7 @@ fn gpu_selftest_passes_on_the_adapter_present() {
     ] {
         assert!(text.contains(&format!("{kernel}: ok")), "{kernel}: {text}");
     }
-    for checkpoint in ["models/road20-wide2", "models/road20"] {
+    for checkpoint in ["models/road20-wide4", "models/road20"] {
         assert!(
             text.contains(&format!("denoiser {checkpoint}: ok")),
             "{checkpoint}: {text}"
@@ -514,7 +514,7 @@ fn demo_runs_every_procedural_map() {
     ]);
     assert!(o.status.success(), "{}", stderr(&o));
     assert!(
-        stdout(&o).contains("road20-wide2 [road20]"),
+        stdout(&o).contains("road20-wide4 [road20]"),
         "{}",
         stdout(&o)
     );
@@ -536,7 +536,7 @@ fn demo_runs_every_procedural_map() {
     ]);
     assert!(!o.status.success());
     assert!(
-        stderr(&o).contains("planner `djinn30` does not fit checkpoint road20-wide2"),
+        stderr(&o).contains("planner `djinn30` does not fit checkpoint road20-wide4"),
         "{}",
         stderr(&o)
     );

@@ -10,7 +10,7 @@ pub use road_client::ZenohArgs;
 /// The checkpoint (a folder under `models/`) of requests that name none: RoAD-20 with agent maps,
 /// agent pairs and the constant-velocity residual at width 96: the best of the shipped ones
 /// (`docs/results.md`).
-pub const DEFAULT_CHECKPOINT: &str = "road20-wide2";
+pub const DEFAULT_CHECKPOINT: &str = "road20-wide4";
 
 /// What a server allows and where it records. `Default` is what `road serve` runs with.
 #[derive(Debug, Clone)]

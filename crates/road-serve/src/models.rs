@@ -17,8 +17,8 @@ const PLANNERS_TOML: &str = include_str!("../../../configs/planners.toml");
 /// wherever the binary is (a `models/` folder found at run time still wins for the same
 /// name). Its name must be [`crate::config::DEFAULT_CHECKPOINT`] (a test checks).
 pub mod embedded {
-    pub const CONFIG_TOML: &str = include_str!("../../../models/road20-wide2/config.toml");
-    pub const WEIGHTS: &[u8] = include_bytes!("../../../models/road20-wide2/weights.safetensors");
+    pub const CONFIG_TOML: &str = include_str!("../../../models/road20-wide4/config.toml");
+    pub const WEIGHTS: &[u8] = include_bytes!("../../../models/road20-wide4/weights.safetensors");
     /// The name requests and flags use for it.
     pub const NAME: &str = crate::config::DEFAULT_CHECKPOINT;
 }

@@ -46,7 +46,7 @@ pub enum BenchCommand {
 pub struct ServeBenchArgs {
     /// Checkpoint (its planner is what every scene runs, unless `--planner`); the shipped
     /// default's by default.
-    #[arg(long, default_value = "models/road20-wide2")]
+    #[arg(long, default_value = "models/road20-wide4")]
     pub checkpoint: PathBuf,
     /// Run every scene under this planner of `configs/planners.toml` instead of the
     /// checkpoint's own (e.g. `road20-nearfit-lanes-guarded-k10`: fewer sampler steps).

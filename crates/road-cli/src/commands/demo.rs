@@ -27,9 +27,9 @@ use crate::plot::{
 #[derive(Debug, Args)]
 pub struct DemoArgs {
     /// Checkpoint folder; the default is the shipped default, RoAD-20 with agent maps, agent
-    /// pairs and the constant-velocity residual at width 96 (`models/road20-wide2`,
+    /// pairs and the constant-velocity residual at width 96 (`models/road20-wide4`,
     /// docs/results.md; embedded in the binary, so it runs without the folder too).
-    #[arg(long, default_value = "models/road20-wide2")]
+    #[arg(long, default_value = "models/road20-wide4")]
     pub checkpoint: PathBuf,
     /// Simulated steps (10 Hz).
     #[arg(long, default_value_t = 60)]

@@ -54,7 +54,7 @@ impl Engines {
     }
 
     /// A checkpoint folder, or the checkpoint embedded in the binary when `dir` names the
-    /// embedded default (`models/road20-wide2`) and holds no checkpoint (a binary run outside
+    /// embedded default (`models/road20-wide4`) and holds no checkpoint (a binary run outside
     /// the repository).
     pub fn load_or_embedded(dir: &Path, choice: EngineChoice) -> Result<Self> {
         let embedded = dir.file_name()

@@ -18,7 +18,7 @@ pub enum GpuCommand {
     /// procedural scenes (no dataset needed). Exit code 1 on any mismatch.
     Selftest {
         /// Checkpoints whose whole denoiser is compared.
-        #[arg(long, num_args = 1.., default_values = ["models/road20-wide2", "models/road20"])]
+        #[arg(long, num_args = 1.., default_values = ["models/road20-wide4", "models/road20"])]
         checkpoints: Vec<PathBuf>,
     },
 }

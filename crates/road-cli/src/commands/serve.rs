@@ -1,5 +1,5 @@
 //! `road serve`: the networked NPC server (`road-serve`) over Eclipse Zenoh. With no
-//! arguments it runs the default checkpoint `road20-wide2` from `models/` (in the working directory,
+//! arguments it runs the default checkpoint `road20-wide4` from `models/` (in the working directory,
 //! next to the binary, or `--models` / `ROAD_MODELS`), peer mode with zenoh's defaults, and
 //! records every scene under `recordings/`. With `--foxglove ADDR` Foxglove can watch every live
 //! scene at `ws://ADDR` (the live view, `docs/protocol.md`). SIGINT and SIGTERM close every
