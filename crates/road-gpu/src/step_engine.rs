@@ -276,6 +276,10 @@ impl road_model::sample::StepEngine for GpuStepEngine<'_> {
         self.model.config.window_slots
     }
 
+    fn position_scale_m(&self) -> Option<f64> {
+        Some(self.model.config.position_scale_m)
+    }
+
     fn prepare(
         &mut self,
         scenes: usize,

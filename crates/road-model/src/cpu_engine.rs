@@ -346,6 +346,10 @@ impl StepEngine for CpuEngine<'_> {
         self.model.config.window_slots
     }
 
+    fn position_scale_m(&self) -> Option<f64> {
+        Some(self.model.config.position_scale_m)
+    }
+
     fn prepare(
         &mut self,
         scenes: usize,
@@ -523,6 +527,10 @@ fn fast_denoise<'m>(fast: &'m FastDenoiser, cache: &'m SceneCache) -> impl Denoi
 impl StepEngine for FastCpuEngine<'_> {
     fn window_slots(&self) -> usize {
         self.model.config.window_slots
+    }
+
+    fn position_scale_m(&self) -> Option<f64> {
+        Some(self.model.config.position_scale_m)
     }
 
     fn prepare(

@@ -710,6 +710,7 @@ impl RolloutDriver {
         overrides: &mut dyn FnMut(usize, &mut [f32]) -> Result<()>,
     ) -> Result<Vec<usize>> {
         let (n, w, a_max) = (self.n, self.w, self.a_max);
+        let position_scale_m = engine.position_scale_m();
         self.outcomes.clear();
         self.sched.take_outcomes(&mut self.outcomes);
         // Outcomes of scenes that left meanwhile are dropped with them.
@@ -791,6 +792,11 @@ impl RolloutDriver {
                 );
             }
             if let Some(tracking) = self.planners[i].jerk_tracking {
+                // m/s² → position units per step², where the engine knows the unit.
+                let max_acceleration = tracking
+                    .max_acceleration_mps2
+                    .zip(position_scale_m)
+                    .map(|(bound, scale_m)| bound * STEP_SECS * STEP_SECS / scale_m);
                 track_least_jerk(
                     &s.history,
                     &s.history_valid,
@@ -800,6 +806,7 @@ impl RolloutDriver {
                     from,
                     tracking.ahead,
                     tracking.jerk_weight(STEP_SECS),
+                    max_acceleration,
                     &mut emitted,
                 );
             }

@@ -42,6 +42,11 @@ pub struct Rollout {
 pub trait StepEngine {
     /// W of the model.
     fn window_slots(&self) -> usize;
+    /// Metres per model position unit (the model's `position_scale_m`), for planner options
+    /// given in metres; None for an engine that does not know it.
+    fn position_scale_m(&self) -> Option<f64> {
+        None
+    }
     /// `features [B, A, 6]`, `map [B, P, Q, 2]`, `map_valid [B, P]`.
     fn prepare(
         &mut self,

@@ -99,7 +99,9 @@ pub fn smooth_with_plan(
 /// stay the model's; agents without three valid committed positions are left as they are.
 ///
 /// `denoised` and `window_valid` are the scene's `[agents, slots, 3]` estimate and
-/// `[agents, slots]` flags; `jerk_weight` is [`road_sched::JerkTracking::jerk_weight`].
+/// `[agents, slots]` flags; `jerk_weight` is [`road_sched::JerkTracking::jerk_weight`];
+/// `max_acceleration` (position units per step², the planner's `max_acceleration_mps2`) bounds
+/// the committed acceleration's magnitude before the path carries it on.
 #[allow(clippy::too_many_arguments)] // one scene's history, window and emission
 pub fn track_least_jerk(
     history: &[Vec<[f32; 3]>],
@@ -110,6 +112,7 @@ pub fn track_least_jerk(
     first_planned_slot: usize,
     planned_steps: usize,
     jerk_weight: f64,
+    max_acceleration: Option<f64>,
     emitted: &mut [f32],
 ) {
     for (a, state) in emitted.chunks_exact_mut(3).enumerate() {
@@ -149,10 +152,17 @@ pub fn track_least_jerk(
             continue;
         };
         let (p0, p1, p2) = (past[t - 1], past[t - 2], past[t - 3]);
+        let committed_acceleration =
+            |d: usize| f64::from(p0[d]) - 2.0 * f64::from(p1[d]) + f64::from(p2[d]);
+        let magnitude = committed_acceleration(0).hypot(committed_acceleration(1));
+        let acceleration_scale = match max_acceleration {
+            Some(bound) if magnitude > bound => bound / magnitude,
+            _ => 1.0,
+        };
         for d in 0..2 {
             let x = f64::from(p0[d]);
             let v = x - f64::from(p1[d]);
-            let acc = x - 2.0 * f64::from(p1[d]) + f64::from(p2[d]);
+            let acc = committed_acceleration(d) * acceleration_scale;
             let residual: Vec<f64> = (0..h)
                 .map(|k| {
                     let kf = k as f64;
@@ -440,6 +450,7 @@ mod tests {
             2,
             ahead,
             jerk_weight,
+            None,
             emitted,
         );
     }
@@ -470,7 +481,18 @@ mod tests {
         for (weight, expected) in [(0.0, 0.6), (1.0, 0.55), (3.0, 0.525), (1e9, 0.5)] {
             let (history, valid, _, _) = &case;
             let mut emitted = [0.6, 1.0, 0.7];
-            track_least_jerk(history, valid, &[], &[], 0, 0, 0, weight, &mut emitted);
+            track_least_jerk(
+                history,
+                valid,
+                &[],
+                &[],
+                0,
+                0,
+                0,
+                weight,
+                None,
+                &mut emitted,
+            );
             assert!(
                 (emitted[0] - expected).abs() < 1e-6,
                 "λ {weight}: {emitted:?}"
@@ -506,7 +528,18 @@ mod tests {
         let history = vec![line(0.1, 2), line(0.1, 5)];
         let valid = vec![vec![true; 2], vec![true, true, false, true, true]];
         let mut emitted = [0.9, 0.0, 0.0, 0.9, 0.0, 0.0];
-        track_least_jerk(&history, &valid, &[], &[], 0, 0, 0, 10.0, &mut emitted);
+        track_least_jerk(
+            &history,
+            &valid,
+            &[],
+            &[],
+            0,
+            0,
+            0,
+            10.0,
+            None,
+            &mut emitted,
+        );
         assert_eq!(emitted, [0.9, 0.0, 0.0, 0.9, 0.0, 0.0]);
     }
 
@@ -515,7 +548,41 @@ mod tests {
         let tracking = road_sched::JerkTracking {
             jerk_cost_m: 0.01,
             ahead: 3,
+            max_acceleration_mps2: None,
         };
         assert!((tracking.jerk_weight(0.1) - 100.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn a_committed_acceleration_over_the_bound_is_scaled_down_first() {
+        // A kink in the committed path (a guard's correction): 0.3 per step² sideways.
+        let history = vec![vec![[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.2, 0.3, 0.0]]];
+        let valid = vec![vec![true; 3]];
+        let track = |bound: Option<f64>| {
+            // The model emits the kink carried on; with no cost the path is the emission.
+            let mut emitted = [0.3, 0.9, 0.0];
+            track_least_jerk(
+                &history,
+                &valid,
+                &[],
+                &[],
+                0,
+                0,
+                0,
+                1e9,
+                bound,
+                &mut emitted,
+            );
+            emitted
+        };
+        // Unbounded, a prohibitive jerk cost carries the kink on: x + v + a = (0.3, 0.9).
+        let carried = track(None);
+        assert!((carried[0] - 0.3).abs() < 1e-5 && (carried[1] - 0.9).abs() < 1e-5);
+        // Bounded at 0.01 per step²: (0.3, 0.3 + 0.3 + 0.01).
+        let bounded = track(Some(0.01));
+        assert!((bounded[0] - 0.3).abs() < 1e-5, "{bounded:?}");
+        assert!((bounded[1] - 0.61).abs() < 1e-5, "{bounded:?}");
+        // A bound above the committed acceleration changes nothing.
+        assert_eq!(track(Some(1.0)), carried);
     }
 }

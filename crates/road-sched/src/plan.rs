@@ -140,6 +140,10 @@ pub struct JerkTracking {
     pub jerk_cost_m: f64,
     /// Planned slots the path tracks beyond the emitted one, 0..=`MAX_JERK_TRACKING_AHEAD`.
     pub ahead: usize,
+    /// The largest committed acceleration (m/s²) the path carries on: a bigger one (a guard's
+    /// correction, a step off the map) is scaled down to it first. Absent: unbounded.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub max_acceleration_mps2: Option<f64>,
 }
 
 /// The most planned slots least-jerk tracking looks at.
@@ -275,6 +279,13 @@ impl PlannerSpec {
                     "jerk_tracking.jerk_cost_m must be positive and finite, got {}",
                     tracking.jerk_cost_m
                 ));
+            }
+            if let Some(bound) = tracking.max_acceleration_mps2 {
+                if !(bound.is_finite() && bound > 0.0) {
+                    return bad(format!(
+                        "jerk_tracking.max_acceleration_mps2 must be positive and finite, got {bound}"
+                    ));
+                }
             }
             if tracking.ahead > MAX_JERK_TRACKING_AHEAD.min(self.future_slots) {
                 return bad(format!(

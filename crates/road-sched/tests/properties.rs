@@ -432,7 +432,11 @@ fn plan_smoothing_options_are_checked_together() {
 #[test]
 fn jerk_tracking_options_are_checked() {
     let with = |jerk_cost_m: f64, ahead: usize| PlannerSpec {
-        jerk_tracking: Some(road_sched::JerkTracking { jerk_cost_m, ahead }),
+        jerk_tracking: Some(road_sched::JerkTracking {
+            jerk_cost_m,
+            ahead,
+            max_acceleration_mps2: Some(6.0),
+        }),
         ..spec(PlannerKind::Rolling, 10, 5, 40, None)
     };
     assert!(with(0.01, 3).validate("p").is_ok());
@@ -446,4 +450,19 @@ fn jerk_tracking_options_are_checked() {
     }
     // Five future slots: at most five to look at.
     assert!(error(0.01, 6).contains("jerk_tracking.ahead must be 0 to 5 slots, got 6"));
+    let unbounded = PlannerSpec {
+        jerk_tracking: Some(road_sched::JerkTracking {
+            jerk_cost_m: 0.01,
+            ahead: 2,
+            max_acceleration_mps2: Some(0.0),
+        }),
+        ..spec(PlannerKind::Rolling, 10, 5, 40, None)
+    };
+    assert!(
+        unbounded
+            .validate("p")
+            .unwrap_err()
+            .to_string()
+            .contains("jerk_tracking.max_acceleration_mps2 must be positive and finite, got 0")
+    );
 }
