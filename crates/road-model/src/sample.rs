@@ -43,7 +43,8 @@ pub trait StepEngine {
     /// W of the model.
     fn window_slots(&self) -> usize;
     /// Metres per model position unit (the model's `position_scale_m`), for planner options
-    /// given in metres; None for an engine that does not know it.
+    /// given in metres (without it `jerk_tracking.max_acceleration_mps2` cannot apply); None for
+    /// an engine that does not know it. Engines that wrap another pass its answer on.
     fn position_scale_m(&self) -> Option<f64> {
         None
     }

@@ -447,6 +447,9 @@ impl StepEngine for GammaRecorder<'_> {
     fn window_slots(&self) -> usize {
         self.inner.window_slots()
     }
+    fn position_scale_m(&self) -> Option<f64> {
+        self.inner.position_scale_m()
+    }
     fn prepare(
         &mut self,
         scenes: usize,
@@ -678,6 +681,9 @@ struct Recorder<'a> {
 impl StepEngine for Recorder<'_> {
     fn window_slots(&self) -> usize {
         self.inner.window_slots()
+    }
+    fn position_scale_m(&self) -> Option<f64> {
+        self.inner.position_scale_m()
     }
     fn prepare(
         &mut self,

@@ -129,8 +129,10 @@ fn against_a_merging_lane(map: &LaneletMap, lane: usize, p: DVec2, direction: DV
     // A merge: `l` ends where its successor starts, running its way (maps also link lanes of
     // opposite ways end to end, as U-turns).
     let merges_into = |l: &Lanelet, s: u32| {
-        let next = &map.lanelets[s as usize].centre_m;
-        next.len() >= 2 && end_tangent(&l.centre_m).dot(start_tangent(next)) > 0.0
+        map.lanelets.get(s as usize).is_some_and(|next| {
+            next.centre_m.len() >= 2
+                && end_tangent(&l.centre_m).dot(start_tangent(&next.centre_m)) > 0.0
+        })
     };
     let leads_on = |l: &Lanelet| {
         l.successors.iter().any(|&s| {
