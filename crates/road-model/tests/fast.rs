@@ -14,7 +14,7 @@ use road_model::sample::{
     rollout_with,
 };
 use road_model::{AgentFrame, AgentMap, AgentPairs, MapTokens, ModelConfig};
-use road_sched::{PlannerSpec, Sampler};
+use road_sched::{JerkTracking, PlannerSpec, Sampler};
 
 /// Relative and absolute parts of the parity tolerance of one whole evaluation (f32 sums in
 /// another order through every block), as for the WGSL engine.
@@ -616,6 +616,83 @@ fn fast_engine_rollouts_with_plan_smoothing_match_candle() {
         reference.states.iter().flatten().all(|v| v.is_finite()),
         "finite states"
     );
+}
+
+/// Least-jerk tracking reads the denoised window by itself (no plan smoothing here) and bounds
+/// the carried acceleration in the engine's position unit: the engines agree with it on, the
+/// emitted paths are smoother than without it, and the bound changes them.
+#[test]
+fn fast_engine_rollouts_with_least_jerk_tracking_match_candle() {
+    let c = config(Frame::AgentPairs);
+    let model = seeded_model(&c, 5);
+    let planner = |jerk_tracking| PlannerSpec {
+        steps_per_diffusion: 10,
+        jerk_tracking,
+        ..PlannerSpec::default()
+    };
+    let tracking = |max_acceleration_mps2| {
+        Some(JerkTracking {
+            jerk_cost_m: 0.03,
+            ahead: 2,
+            max_acceleration_mps2,
+        })
+    };
+    let scenes = scenes(&c, 3);
+    let steps = 10;
+    let run = |engine: &mut dyn StepEngine, planner: &PlannerSpec| {
+        rollout_with(
+            engine,
+            planner,
+            &scenes,
+            steps,
+            &mut StdRng::seed_from_u64(9),
+        )
+        .unwrap()
+    };
+    let tracked = planner(tracking(Some(6.0)));
+    let reference = run(&mut CpuEngine::new(&model), &tracked);
+    let fast = run(
+        &mut FastCpuEngine::with_threads(&model, 2).unwrap(),
+        &tracked,
+    );
+    for (f, r) in fast.states.iter().zip(&reference.states) {
+        assert_close(f, r, 1e-3, 1e-4, "rollout with least-jerk tracking");
+    }
+    assert!(reference.states.iter().flatten().all(|v| v.is_finite()));
+    // Mean |third difference| of the emitted positions over every agent and axis.
+    let roughness = |rollout: &road_model::sample::Rollout| {
+        let (mut sum, mut count) = (0.0f64, 0usize);
+        for (states, &agents) in rollout.states.iter().zip(&rollout.agents) {
+            for a in 0..agents {
+                let at = |t: usize, d: usize| f64::from(states[(a * rollout.steps + t) * 3 + d]);
+                for t in 3..rollout.steps {
+                    for d in 0..2 {
+                        let third =
+                            at(t, d) - 3.0 * at(t - 1, d) + 3.0 * at(t - 2, d) - at(t - 3, d);
+                        sum += third.abs();
+                        count += 1;
+                    }
+                }
+            }
+        }
+        sum / count as f64
+    };
+    let untracked = run(&mut CpuEngine::new(&model), &planner(None));
+    assert!(
+        roughness(&reference) < 0.5 * roughness(&untracked),
+        "tracked {} against {}",
+        roughness(&reference),
+        roughness(&untracked)
+    );
+    // A bound far below anything the paths do changes them: the unit reached the tracker.
+    let tight = run(&mut CpuEngine::new(&model), &planner(tracking(Some(1e-3))));
+    let moved: f32 = tight
+        .states
+        .iter()
+        .zip(&reference.states)
+        .flat_map(|(a, b)| a.iter().zip(b).map(|(x, y)| (x - y).abs()))
+        .sum();
+    assert!(moved > 1e-4, "the acceleration bound changed nothing");
 }
 
 /// Mixed phases: scenes tick in different subsets, so the engines evaluate gathered rows.
