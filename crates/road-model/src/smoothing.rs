@@ -311,12 +311,15 @@ mod tests {
         );
     }
 
+    /// A path of constant acceleration that turns: (1, −0.5) at t = 0.
+    fn accelerating_turn(t: f64) -> [f32; 2] {
+        let (x, y) = (1.0 + 0.3 * t + 0.02 * t * t, -0.5 + 0.1 * t - 0.01 * t * t);
+        [x as f32, y as f32]
+    }
+
     #[test]
     fn plan_smoothing_keeps_constant_acceleration_and_turns_exactly() {
-        let path = |t: f64| {
-            let (x, y) = (1.0 + 0.3 * t + 0.02 * t * t, -0.5 + 0.1 * t - 0.01 * t * t);
-            [x as f32, y as f32]
-        };
+        let path = accelerating_turn;
         let (history, valid, denoised, window_valid) = plan_case(path, 6, 8);
         let mut emitted = [path(0.0)[0], path(0.0)[1], 0.4];
         smooth_case(&history, &valid, &denoised, &window_valid, &mut emitted);
@@ -457,10 +460,7 @@ mod tests {
 
     #[test]
     fn least_jerk_tracking_keeps_a_path_of_constant_acceleration() {
-        let path = |t: f64| {
-            let (x, y) = (1.0 + 0.3 * t + 0.02 * t * t, -0.5 + 0.1 * t - 0.01 * t * t);
-            [x as f32, y as f32]
-        };
+        let path = accelerating_turn;
         let case = plan_case(path, 6, 8);
         for ahead in [0, 3, 8] {
             let mut emitted = [path(0.0)[0], path(0.0)[1], 0.4];
