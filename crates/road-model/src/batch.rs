@@ -148,6 +148,22 @@ pub struct Batch {
     pub map_valid: Tensor,
 }
 
+impl Batch {
+    /// Every tensor with its field name, in declaration order (the names the PyTorch export
+    /// and its parity fixture use).
+    pub fn named_tensors(&self) -> [(&'static str, &Tensor); 7] {
+        [
+            ("x0", &self.x0),
+            ("x_noisy", &self.x_noisy),
+            ("sigma", &self.sigma),
+            ("valid", &self.valid),
+            ("agent_features", &self.agent_features),
+            ("map", &self.map),
+            ("map_valid", &self.map_valid),
+        ]
+    }
+}
+
 /// Pads scenes to the batch's largest agent and polyline counts. `sigma` is `[B][W]`, `noise`
 /// `[B][A_b·W·3]` standard normal (or `None` for clean inputs).
 pub fn collate(

@@ -13,6 +13,8 @@
 //! model's. (Smoothing only the longitudinal part, along the direction of travel, was tried and
 //! measured worse: more collisions; `docs/results.md`.)
 
+use road_sched::MAX_JERK_TRACKING_AHEAD;
+
 /// Smooths `emitted` (`[agents, 3]`: x, y, heading) against each agent's history (its last
 /// three states must be valid; other agents are left as they are).
 pub fn smooth_accelerations(
@@ -115,22 +117,25 @@ pub fn track_least_jerk(
     max_acceleration: Option<f64>,
     emitted: &mut [f32],
 ) {
+    // Per agent and tick on the serving path: fixed-size buffers, no allocation.
+    let mut targets = [[0.0f64; 2]; MAX_PATH];
     for (a, state) in emitted.chunks_exact_mut(3).enumerate() {
         let (past, past_valid) = (&history[a], &history_valid[a]);
         let t = past.len();
         if t < 3 || !past_valid[t - 3..].iter().all(|&v| v) {
             continue;
         }
-        let mut targets: Vec<[f64; 2]> = vec![[f64::from(state[0]), f64::from(state[1])]];
-        for k in 0..planned_steps {
+        targets[0] = [f64::from(state[0]), f64::from(state[1])];
+        let mut h = 1;
+        for k in 0..planned_steps.min(MAX_PATH - 1) {
             let slot = first_planned_slot + k;
             if slot >= slots || window_valid[a * slots + slot] <= 0.0 {
                 break;
             }
             let p = &denoised[3 * (a * slots + slot)..][..2];
-            targets.push([f64::from(p[0]), f64::from(p[1])]);
+            targets[h] = [f64::from(p[0]), f64::from(p[1])];
+            h += 1;
         }
-        let h = targets.len();
         // G[k][i] = (k−i+1)(k−i+2)/2 for i ≤ k: how jerk i moves position k.
         let g = |k: usize, i: usize| {
             if i > k {
@@ -141,7 +146,7 @@ pub fn track_least_jerk(
             }
         };
         // Normal equations (GᵀG + λI)·j = Gᵀ(r − b), both axes sharing the matrix.
-        let mut normal = vec![0.0f64; h * h];
+        let mut normal = [0.0f64; MAX_PATH * MAX_PATH];
         for i in 0..h {
             for l in 0..h {
                 normal[i * h + l] = (i.max(l)..h).map(|k| g(k, i) * g(k, l)).sum::<f64>()
@@ -163,25 +168,28 @@ pub fn track_least_jerk(
             let x = f64::from(p0[d]);
             let v = x - f64::from(p1[d]);
             let acc = committed_acceleration(d) * acceleration_scale;
-            let residual: Vec<f64> = (0..h)
-                .map(|k| {
-                    let kf = k as f64;
-                    targets[k][d] - (x + (kf + 1.0) * v + (kf + 1.0) * (kf + 2.0) / 2.0 * acc)
-                })
-                .collect();
-            let rhs: Vec<f64> = (0..h)
-                .map(|i| (i..h).map(|k| g(k, i) * residual[k]).sum())
-                .collect();
+            let mut residual = [0.0f64; MAX_PATH];
+            for (k, r) in residual.iter_mut().enumerate().take(h) {
+                let kf = k as f64;
+                *r = targets[k][d] - (x + (kf + 1.0) * v + (kf + 1.0) * (kf + 2.0) / 2.0 * acc);
+            }
+            let mut rhs = [0.0f64; MAX_PATH];
+            for (i, r) in rhs.iter_mut().enumerate().take(h) {
+                *r = (i..h).map(|k| g(k, i) * residual[k]).sum();
+            }
             let jerks = cholesky_solve(&factor, h, &rhs);
             state[d] = (x + v + acc + jerks[0]) as f32;
         }
     }
 }
 
-/// The lower Cholesky factor `L` (row-major `[n, n]`) of a symmetric positive definite matrix;
-/// None when it is not.
-fn cholesky(matrix: &[f64], n: usize) -> Option<Vec<f64>> {
-    let mut l = vec![0.0f64; n * n];
+/// The longest tracked path: the emitted position and `MAX_JERK_TRACKING_AHEAD` planned slots.
+const MAX_PATH: usize = MAX_JERK_TRACKING_AHEAD + 1;
+
+/// The lower Cholesky factor `L` (row-major `[n, n]`, n ≤ [`MAX_PATH`]) of a symmetric positive
+/// definite matrix; None when it is not.
+fn cholesky(matrix: &[f64], n: usize) -> Option<[f64; MAX_PATH * MAX_PATH]> {
+    let mut l = [0.0f64; MAX_PATH * MAX_PATH];
     for i in 0..n {
         for j in 0..=i {
             let sum: f64 = (0..j).map(|k| l[i * n + k] * l[j * n + k]).sum();
@@ -199,14 +207,14 @@ fn cholesky(matrix: &[f64], n: usize) -> Option<Vec<f64>> {
     Some(l)
 }
 
-/// Solves `L·Lᵀ·x = b` for the factor of [`cholesky`].
-fn cholesky_solve(l: &[f64], n: usize, b: &[f64]) -> Vec<f64> {
-    let mut y = vec![0.0f64; n];
+/// Solves `L·Lᵀ·x = b` for the factor of [`cholesky`] (the first `n` entries of the result).
+fn cholesky_solve(l: &[f64], n: usize, b: &[f64]) -> [f64; MAX_PATH] {
+    let mut y = [0.0f64; MAX_PATH];
     for i in 0..n {
         let sum: f64 = (0..i).map(|k| l[i * n + k] * y[k]).sum();
         y[i] = (b[i] - sum) / l[i * n + i];
     }
-    let mut x = vec![0.0f64; n];
+    let mut x = [0.0f64; MAX_PATH];
     for i in (0..n).rev() {
         let sum: f64 = (i + 1..n).map(|k| l[k * n + i] * x[k]).sum();
         x[i] = (y[i] - sum) / l[i * n + i];

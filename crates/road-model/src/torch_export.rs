@@ -357,15 +357,7 @@ pub fn validation_batch_arrays(run: &RunConfig, validation_set: &Dataset) -> Res
     let batches = crate::train::validation_batches(run, validation_set, &Device::Cpu)?;
     let mut file = ArrayFile::default();
     for (i, batch) in batches.iter().enumerate() {
-        for (name, tensor) in [
-            ("x0", &batch.x0),
-            ("x_noisy", &batch.x_noisy),
-            ("sigma", &batch.sigma),
-            ("valid", &batch.valid),
-            ("agent_features", &batch.agent_features),
-            ("map", &batch.map),
-            ("map_valid", &batch.map_valid),
-        ] {
+        for (name, tensor) in batch.named_tensors() {
             let values = tensor.flatten_all()?.to_vec1::<f32>()?;
             file.push(
                 &format!("batch{i}.{name}"),

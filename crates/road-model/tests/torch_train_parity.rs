@@ -313,15 +313,7 @@ fn batches_losses_gradients_and_steps_match_pytorch() {
 
         // (a) The collated batch.
         let batch = draw.collate(0..draw.len(), &Device::Cpu).unwrap();
-        for (name, got) in [
-            ("x0", &batch.x0),
-            ("x_noisy", &batch.x_noisy),
-            ("sigma", &batch.sigma),
-            ("valid", &batch.valid),
-            ("agent_features", &batch.agent_features),
-            ("map", &batch.map),
-            ("map_valid", &batch.map_valid),
-        ] {
+        for (name, got) in batch.named_tensors() {
             let want = at(name);
             assert_eq!(got.dims(), want.dims(), "step {k} batch `{name}`: shapes");
             let difference = max_abs_difference(&f32s(got), &f32s(want));
