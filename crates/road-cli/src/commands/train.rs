@@ -119,7 +119,8 @@ validation: {val_windows} windows.\n\n\
 | same, {start} | {untrained} |\n\n\
 The loss is EDM's weighted denoising loss, averaged over valid agent-slots of fixed validation batches \
 (`train_log.csv`, `loss.png`). Files: `weights.safetensors` (EMA weights, format in `docs/checkpoint.md`), \
-`config.toml` (every hyperparameter), `train_state.safetensors` (for `road train --resume`).\n\n\
+`config.toml` (every hyperparameter); while the run goes on, `train_state.safetensors` (for `road train --resume`; \
+not shipped once the schedule is over).\n\n\
 ## Use\n\n\
 ```sh\nroad sample --checkpoint models/{name} --scene val:0 --out sample.png\n```\n\n\
 ## Limits\n\n\
