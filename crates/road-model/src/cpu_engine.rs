@@ -4,6 +4,8 @@
 //! evaluate only the scenes whose σ row changes: in a batch of scenes at different phases the
 //! others hold still, and on the CPU skipping them is free.
 
+use std::borrow::Cow;
+
 use candle_core::{Device, Tensor};
 
 use crate::batch::AGENT_FEATURES;
@@ -134,31 +136,18 @@ impl HostWindows {
             return Ok(());
         }
         let (x_len, v_len) = (self.agents * w * 3, self.agents * w);
-        if active.len() == self.scenes {
-            let valid = &self.valid;
-            (self.windows, self.denoised) = heun_update(
-                &self.windows,
-                self.agents,
-                w,
-                sigma_cur,
-                sigma_next,
-                second_evaluation,
-                |x, sigma| denoise(x, sigma, valid, &active),
-            )?;
-            return Ok(());
-        }
-        let valid = gather_rows(&self.valid, &active, v_len);
+        let all = active.len() == self.scenes;
+        let valid = rows_of(&self.valid, &active, all, v_len);
         let (stepped, last) = heun_update(
-            &gather_rows(&self.windows, &active, x_len),
+            &rows_of(&self.windows, &active, all, x_len),
             self.agents,
             w,
-            &gather_rows(sigma_cur, &active, w),
-            &gather_rows(sigma_next, &active, w),
+            &rows_of(sigma_cur, &active, all, w),
+            &rows_of(sigma_next, &active, all, w),
             second_evaluation,
             |x, sigma| denoise(x, sigma, &valid, &active),
         )?;
-        scatter_rows(&mut self.windows, &active, x_len, &stepped);
-        scatter_rows(&mut self.denoised, &active, x_len, &last);
+        self.put_rows(&active, all, stepped, last);
         Ok(())
     }
 
@@ -184,50 +173,49 @@ impl HostWindows {
             return Ok(());
         }
         let (x_len, v_len) = (self.agents * w * 3, self.agents * w);
-        if active.len() == self.scenes {
-            // Every scene moves: no rows to gather or scatter (as in `step`).
-            let valid = &self.valid;
-            let (mut stepped, estimate) = heun_update(
-                &self.windows,
-                self.agents,
-                w,
-                sigma_cur,
-                sigma_next,
-                false,
-                |x, sigma| denoise(x, sigma, valid, &active),
-            )?;
-            multistep_correct(
-                &mut stepped,
-                &estimate,
-                &self.denoised,
-                gamma,
-                self.agents,
-                w,
-            );
-            (self.windows, self.denoised) = (stepped, estimate);
-            return Ok(());
-        }
-        let valid = gather_rows(&self.valid, &active, v_len);
+        let all = active.len() == self.scenes;
+        let valid = rows_of(&self.valid, &active, all, v_len);
         let (mut stepped, estimate) = heun_update(
-            &gather_rows(&self.windows, &active, x_len),
+            &rows_of(&self.windows, &active, all, x_len),
             self.agents,
             w,
-            &gather_rows(sigma_cur, &active, w),
-            &gather_rows(sigma_next, &active, w),
+            &rows_of(sigma_cur, &active, all, w),
+            &rows_of(sigma_next, &active, all, w),
             false,
             |x, sigma| denoise(x, sigma, &valid, &active),
         )?;
         multistep_correct(
             &mut stepped,
             &estimate,
-            &gather_rows(&self.denoised, &active, x_len),
-            &gather_rows(gamma, &active, w),
+            &rows_of(&self.denoised, &active, all, x_len),
+            &rows_of(gamma, &active, all, w),
             self.agents,
             w,
         );
-        scatter_rows(&mut self.windows, &active, x_len, &stepped);
-        scatter_rows(&mut self.denoised, &active, x_len, &estimate);
+        self.put_rows(&active, all, stepped, estimate);
         Ok(())
+    }
+
+    /// Stepped windows and their estimate `[active, A, W, 3]` back into the batch: moved in
+    /// when every scene stepped, scattered to the active scenes' rows otherwise.
+    fn put_rows(&mut self, active: &[usize], all: bool, stepped: Vec<f32>, estimate: Vec<f32>) {
+        if all {
+            (self.windows, self.denoised) = (stepped, estimate);
+        } else {
+            let x_len = self.agents * self.slots * 3;
+            scatter_rows(&mut self.windows, active, x_len, &stepped);
+            scatter_rows(&mut self.denoised, active, x_len, &estimate);
+        }
+    }
+}
+
+/// The rows of scenes `active` of `values` (`len` per scene): borrowed when every scene is
+/// active (no copy on the common lockstep path), gathered otherwise.
+fn rows_of<'a>(values: &'a [f32], active: &[usize], all: bool, len: usize) -> Cow<'a, [f32]> {
+    if all {
+        Cow::Borrowed(values)
+    } else {
+        Cow::Owned(gather_rows(values, active, len))
     }
 }
 
