@@ -280,6 +280,10 @@ impl road_model::sample::StepEngine for GpuStepEngine<'_> {
         Some(self.model.config.position_scale_m)
     }
 
+    fn heading_scale(&self) -> Option<f64> {
+        Some(self.model.config.heading_scale)
+    }
+
     fn prepare(
         &mut self,
         scenes: usize,

@@ -361,6 +361,10 @@ impl StepEngine for CpuEngine<'_> {
         Some(self.model.config.position_scale_m)
     }
 
+    fn heading_scale(&self) -> Option<f64> {
+        Some(self.model.config.heading_scale)
+    }
+
     fn prepare(
         &mut self,
         scenes: usize,
@@ -542,6 +546,10 @@ impl StepEngine for FastCpuEngine<'_> {
 
     fn position_scale_m(&self) -> Option<f64> {
         Some(self.model.config.position_scale_m)
+    }
+
+    fn heading_scale(&self) -> Option<f64> {
+        Some(self.model.config.heading_scale)
     }
 
     fn prepare(

@@ -711,6 +711,7 @@ impl RolloutDriver {
     ) -> Result<Vec<usize>> {
         let (n, w, a_max) = (self.n, self.w, self.a_max);
         let position_scale_m = engine.position_scale_m();
+        let heading_scale = engine.heading_scale();
         self.outcomes.clear();
         self.sched.take_outcomes(&mut self.outcomes);
         // Outcomes of scenes that left meanwhile are dropped with them.
@@ -807,6 +808,7 @@ impl RolloutDriver {
                     tracking.ahead,
                     tracking.jerk_weight(STEP_SECS),
                     max_acceleration,
+                    heading_scale,
                     &mut emitted,
                 );
             }

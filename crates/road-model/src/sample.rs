@@ -48,6 +48,12 @@ pub trait StepEngine {
     fn position_scale_m(&self) -> Option<f64> {
         None
     }
+    /// State units per radian of heading (the model's `heading_scale`), for planner options
+    /// that need an agent's direction (least-jerk tracking's reversal check); None for an
+    /// engine that does not know it. Engines that wrap another pass its answer on.
+    fn heading_scale(&self) -> Option<f64> {
+        None
+    }
     /// `features [B, A, 6]`, `map [B, P, Q, 2]`, `map_valid [B, P]`.
     fn prepare(
         &mut self,

@@ -100,10 +100,16 @@ pub fn smooth_with_plan(
 /// plan, so a turn or a braking the model plans is taken smoothly but without lag. Headings
 /// stay the model's; agents without three valid committed positions are left as they are.
 ///
+/// A path that carries a braking on past standstill runs backwards (vehicles stopped hard by
+/// the collision guard reversed at up to 2 m/s, and the model, seeing them reverse, planned
+/// on backwards): given `heading_scale` (state units per radian), the tracked step loses any
+/// component backwards along the agent's committed heading. NPCs in traffic do not reverse.
+///
 /// `denoised` and `window_valid` are the scene's `[agents, slots, 3]` estimate and
 /// `[agents, slots]` flags; `jerk_weight` is [`road_sched::JerkTracking::jerk_weight`];
 /// `max_acceleration` (position units per step², the planner's `max_acceleration_mps2`) bounds
-/// the committed acceleration's magnitude before the path carries it on.
+/// the committed acceleration's magnitude before the path carries it on; without
+/// `heading_scale` there is no reversal check.
 #[allow(clippy::too_many_arguments)] // one scene's history, window and emission
 pub fn track_least_jerk(
     history: &[Vec<[f32; 3]>],
@@ -115,6 +121,7 @@ pub fn track_least_jerk(
     planned_steps: usize,
     jerk_weight: f64,
     max_acceleration: Option<f64>,
+    heading_scale: Option<f64>,
     emitted: &mut [f32],
 ) {
     // Per agent and tick on the serving path: fixed-size buffers, no allocation.
@@ -164,7 +171,8 @@ pub fn track_least_jerk(
             Some(bound) if magnitude > bound => bound / magnitude,
             _ => 1.0,
         };
-        for d in 0..2 {
+        let mut step = [0.0f64; 2];
+        for (d, step) in step.iter_mut().enumerate() {
             let x = f64::from(p0[d]);
             let v = x - f64::from(p1[d]);
             let acc = committed_acceleration(d) * acceleration_scale;
@@ -178,7 +186,21 @@ pub fn track_least_jerk(
                 *r = (i..h).map(|k| g(k, i) * residual[k]).sum();
             }
             let jerks = cholesky_solve(&factor, h, &rhs);
-            state[d] = (x + v + acc + jerks[0]) as f32;
+            *step = v + acc + jerks[0];
+        }
+        if let Some(scale) = heading_scale {
+            let heading_rad = f64::from(p0[2]) / scale;
+            let forward = [heading_rad.cos(), heading_rad.sin()];
+            let along = step[0] * forward[0] + step[1] * forward[1];
+            if along < 0.0 {
+                for d in 0..2 {
+                    step[d] -= along * forward[d];
+                }
+            }
+        }
+        let from = [f64::from(p0[0]), f64::from(p0[1])];
+        for d in 0..2 {
+            state[d] = (from[d] + step[d]) as f32;
         }
     }
 }
@@ -272,6 +294,8 @@ impl QuadraticFit {
 
 #[cfg(test)]
 mod tests {
+    use std::f32::consts::FRAC_1_SQRT_2;
+
     use super::*;
 
     /// (history, its flags, the window's denoised estimate, the window's flags) of one agent.
@@ -462,6 +486,7 @@ mod tests {
             ahead,
             jerk_weight,
             None,
+            None,
             emitted,
         );
     }
@@ -498,6 +523,7 @@ mod tests {
                 0,
                 0,
                 weight,
+                None,
                 None,
                 &mut emitted,
             );
@@ -546,6 +572,7 @@ mod tests {
             0,
             10.0,
             None,
+            None,
             &mut emitted,
         );
         assert_eq!(emitted, [0.9, 0.0, 0.0, 0.9, 0.0, 0.0]);
@@ -579,6 +606,7 @@ mod tests {
                 0,
                 1e9,
                 bound,
+                None,
                 &mut emitted,
             );
             emitted
@@ -592,5 +620,64 @@ mod tests {
         assert!((bounded[1] - 0.61).abs() < 1e-5, "{bounded:?}");
         // A bound above the committed acceleration changes nothing.
         assert_eq!(track(Some(1.0)), carried);
+    }
+
+    #[test]
+    fn a_braking_carried_on_past_standstill_does_not_reverse() {
+        // Heading north-east (state units 0.25 per radian), 0.1 per step along it, stopped dead
+        // last tick (a guard's brake): the committed acceleration, carried on, would step back.
+        let heading = 0.25 * std::f32::consts::FRAC_PI_4;
+        let at = |t: f32| [t * 0.1 * FRAC_1_SQRT_2, t * 0.1 * FRAC_1_SQRT_2, heading];
+        let history = vec![vec![at(0.0), at(1.0), at(1.0)]];
+        let valid = vec![vec![true; 3]];
+        let track = |heading_scale: Option<f64>, model: [f32; 2]| {
+            let mut emitted = [model[0], model[1], heading];
+            track_least_jerk(
+                &history,
+                &valid,
+                &[],
+                &[],
+                0,
+                0,
+                0,
+                1e9,
+                None,
+                heading_scale,
+                &mut emitted,
+            );
+            emitted
+        };
+        let stopped = at(1.0);
+        let reversed = track(None, [stopped[0], stopped[1]]);
+        assert!(
+            (reversed[0] - at(0.0)[0]).abs() < 1e-6,
+            "unchecked, it reverses: {reversed:?}"
+        );
+        let held = track(Some(0.25), [stopped[0], stopped[1]]);
+        assert!(
+            (held[0] - stopped[0]).abs() < 1e-6 && (held[1] - stopped[1]).abs() < 1e-6,
+            "stops where it is: {held:?}"
+        );
+        // A sideways component stays: only the backward one goes. Here the model's own step is
+        // all the path takes (no jerk cost), back and to the left.
+        let mut emitted = [stopped[0] - 0.05, stopped[1], heading];
+        track_least_jerk(
+            &history,
+            &valid,
+            &[],
+            &[],
+            0,
+            0,
+            0,
+            0.0,
+            None,
+            Some(0.25),
+            &mut emitted,
+        );
+        let step = [emitted[0] - stopped[0], emitted[1] - stopped[1]];
+        assert!(
+            (step[0] + step[1]).abs() < 1e-6 && step[1] > 0.02,
+            "the step left: {step:?}"
+        );
     }
 }

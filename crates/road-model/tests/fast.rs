@@ -450,6 +450,9 @@ impl StepEngine for GammaRecorder<'_> {
     fn position_scale_m(&self) -> Option<f64> {
         self.inner.position_scale_m()
     }
+    fn heading_scale(&self) -> Option<f64> {
+        self.inner.heading_scale()
+    }
     fn prepare(
         &mut self,
         scenes: usize,
@@ -761,6 +764,9 @@ impl StepEngine for Recorder<'_> {
     }
     fn position_scale_m(&self) -> Option<f64> {
         self.inner.position_scale_m()
+    }
+    fn heading_scale(&self) -> Option<f64> {
+        self.inner.heading_scale()
     }
     fn prepare(
         &mut self,

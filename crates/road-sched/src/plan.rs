@@ -167,6 +167,12 @@ pub struct CollisionGuard {
     pub horizon_steps: usize,
     /// Deceleration a braking agent takes this tick, m/s².
     pub brake_mps2: f64,
+    /// Agents that are not the model's (an ego stack, scripted and replayed agents) do not react
+    /// to the NPCs: a model-driven agent also brakes for a predicted collision with one of them
+    /// that closes in on it (a crossing ego that does not yield) when braking from this tick on
+    /// keeps it clear over the horizon. Off: only the agent closing in brakes.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub yield_to_unreactive: bool,
 }
 
 /// The lane guard's settings: a model-driven agent whose step would take it off every lanelet

@@ -685,7 +685,7 @@ impl<'m> SceneRuntime<'m> {
                 }
             })
             .collect();
-        let collision_actions = guard_step(&mut agents, guard.horizon_steps, guard.brake_mps2);
+        let collision_actions = guard_step(&mut agents, &guard);
         for &(a, _) in &collision_actions {
             let p = agents[a].proposed;
             let xy = frame.to_norm([p.x_m, p.y_m]);

@@ -9,7 +9,11 @@
 //!    `horizon_steps`. If the extrapolated boxes of a model agent and another agent meet, and the
 //!    model agent is the one closing in (its velocity towards the other exceeds the other's
 //!    towards it), its speed this tick is cut by `brake_mps2 · Δt` along its own step (its
-//!    heading stays the model's).
+//!    heading stays the model's). With `yield_to_unreactive`, an agent the guard does not move
+//!    (an ego stack, a scripted or replayed agent: none of them reacts) that closes in on a
+//!    model agent makes it brake too, when braking on at `brake_mps2` keeps it clear over the
+//!    horizon (it stops short of a crossing ego's path instead of creeping into it); when
+//!    braking cannot help (a car driving into its back) it keeps going.
 //! 2. **No new overlap.** A model agent whose box would overlap another's after the tick moves
 //!    only the largest fraction of its step that keeps it clear (bisection).
 //!
@@ -18,6 +22,7 @@
 //! the window, so the model plans on from where the vehicle really is.
 
 use glam::DVec2;
+use road_sched::CollisionGuard;
 
 use crate::Pose;
 use crate::geometry::OrientedBox;
@@ -56,12 +61,16 @@ pub enum GuardAction {
 }
 
 /// Applies the guard to `agents` in place (their `proposed` poses); returns what it did, per
-/// agent index. `horizon_steps` and `brake_mps2` as in [`road_sched::CollisionGuard`].
+/// agent index. The settings as in [`road_sched::CollisionGuard`].
 pub fn guard_step(
     agents: &mut [GuardAgent],
-    horizon_steps: usize,
-    brake_mps2: f64,
+    settings: &CollisionGuard,
 ) -> Vec<(usize, GuardAction)> {
+    let CollisionGuard {
+        horizon_steps,
+        brake_mps2,
+        yield_to_unreactive,
+    } = *settings;
     let n = agents.len();
     let box_at = |a: &GuardAgent, pose: Pose| OrientedBox {
         pose,
@@ -99,13 +108,26 @@ pub fn guard_step(
                 }
                 // Who closes in: the velocity component towards the other, both measured
                 // along the line between them.
-                if step_a.dot(towards) <= (-step_b).dot(towards) {
+                let closing_in = step_a.dot(towards) > (-step_b).dot(towards);
+                let yields = yield_to_unreactive && !b.movable;
+                if !closing_in && !yields {
                     return false;
                 }
-                (1..=horizon_steps).any(|k| {
-                    let k = k as f64;
-                    box_at(a, shifted(a.proposed, k * step_a))
-                        .overlaps(&box_at(b, shifted(b.proposed, k * step_b)))
+                let b_at = |k: f64| box_at(b, shifted(b.proposed, k * step_b));
+                let meet = (1..=horizon_steps).any(|k| {
+                    box_at(a, shifted(a.proposed, k as f64 * step_a)).overlaps(&b_at(k as f64))
+                });
+                if !meet || closing_in {
+                    return meet;
+                }
+                // The other closes in and will not react: brake if braking keeps this agent
+                // clear, from this tick's step on (it is the step braking cuts).
+                let direction = step_a.normalize_or_zero();
+                let mut travelled = 0.0;
+                (0..=horizon_steps).all(|k| {
+                    travelled += braked_step_length(step_a.length(), k + 1, brake_mps2);
+                    let pose = shifted(a.before, travelled * direction);
+                    !box_at(a, pose).overlaps(&b_at(k as f64))
                 })
             });
         }
@@ -118,7 +140,7 @@ pub fn guard_step(
             if length <= 0.0 {
                 continue;
             }
-            let braked = (length - brake_mps2 * STEP_SECS * STEP_SECS).max(0.0);
+            let braked = braked_step_length(length, 1, brake_mps2);
             agent.proposed = along(agent.before, agent.proposed, braked / length);
             actions.push((i, GuardAction::Braked));
         }
@@ -166,6 +188,12 @@ pub fn guard_step(
     actions
 }
 
+/// The length of a step of `step_m` after braking at `brake_mps2` for `steps` steps (this
+/// tick's is the first), never below standstill.
+fn braked_step_length(step_m: f64, steps: usize, brake_mps2: f64) -> f64 {
+    (step_m - steps as f64 * brake_mps2 * STEP_SECS * STEP_SECS).max(0.0)
+}
+
 /// Half the diagonal of an agent's box: no point of it is farther from its centre.
 fn reach(a: &GuardAgent) -> f64 {
     0.5 * a.length_m.hypot(a.width_m)
@@ -194,6 +222,8 @@ fn along(from: Pose, to: Pose, t: f64) -> Pose {
 
 #[cfg(test)]
 mod tests {
+    use std::f64::consts::FRAC_PI_2;
+
     use super::*;
 
     fn agent(x0: f64, x1: f64, y: f64, movable: bool) -> GuardAgent {
@@ -211,11 +241,69 @@ mod tests {
         }
     }
 
+    fn settings(horizon_steps: usize, yield_to_unreactive: bool) -> CollisionGuard {
+        CollisionGuard {
+            horizon_steps,
+            brake_mps2: 6.0,
+            yield_to_unreactive,
+        }
+    }
+
+    /// A model car at x = −7.7 m driving east at 3 m/s, and an external car (a turning ego
+    /// that does not yield) 4.7 m ahead of it and 6.8 m to its left, driving south at 7 m/s:
+    /// across the model car's lane, where the model car will be in a second.
+    fn crossing() -> [GuardAgent; 2] {
+        let model = agent(-8.0, -7.7, -1.8, true);
+        let pose = |y: f64| Pose {
+            x_m: -3.0,
+            y_m: y,
+            heading_rad: -FRAC_PI_2,
+        };
+        let ego = GuardAgent {
+            before: pose(5.7),
+            proposed: pose(5.0),
+            length_m: 4.6,
+            width_m: 1.9,
+            movable: false,
+        };
+        [model, ego]
+    }
+
+    #[test]
+    fn a_model_car_yields_to_a_crossing_ego_only_when_asked_to() {
+        let mut agents = crossing();
+        // The ego closes in; the model car, not closing in, is left alone by default and
+        // drives into the ego's path.
+        assert!(guard_step(&mut agents, &settings(10, false)).is_empty());
+        let mut agents = crossing();
+        let actions = guard_step(&mut agents, &settings(10, true));
+        assert_eq!(actions, vec![(0, GuardAction::Braked)]);
+        assert!(
+            (agents[0].proposed.x_m - (-7.7 - 0.06)).abs() < 1e-9,
+            "{:?}",
+            agents[0]
+        );
+        assert_eq!(
+            agents[1].proposed,
+            crossing()[1].proposed,
+            "the ego is never moved"
+        );
+    }
+
+    #[test]
+    fn a_model_car_does_not_brake_for_a_car_driving_into_its_back() {
+        // An external car 7 m behind (bumper to bumper: 3 m) at 8 m/s, the model car at 2 m/s:
+        // braking cannot keep it clear, so it keeps its step.
+        let mut agents = [agent(0.0, 0.2, 0.0, true), agent(-7.8, -7.0, 0.0, false)];
+        assert!(guard_step(&mut agents, &settings(10, true)).is_empty());
+        assert_eq!(agents[0].proposed.x_m, 0.2);
+    }
+
     #[test]
     fn free_agents_pass_unchanged() {
         let mut agents = [agent(0.0, 1.0, 0.0, true), agent(0.0, 1.0, 10.0, true)];
         let before = agents;
-        assert!(guard_step(&mut agents, 10, 6.0).is_empty());
+        assert!(guard_step(&mut agents, &settings(10, false)).is_empty());
         assert_eq!(agents, before);
     }
 
@@ -224,7 +312,7 @@ mod tests {
         // Follower at 10 m/s, 6 m of gap (bumper to bumper) to a stopped car: it would meet it
         // within 1 s at constant velocity.
         let mut agents = [agent(0.0, 1.0, 0.0, true), agent(11.0, 11.0, 0.0, true)];
-        let actions = guard_step(&mut agents, 10, 6.0);
+        let actions = guard_step(&mut agents, &settings(10, false));
         assert_eq!(actions, vec![(0, GuardAction::Braked)]);
         // 1 m this tick less 6 m/s² · 0.1 s · 0.1 s.
         assert!(
@@ -239,7 +327,7 @@ mod tests {
     fn a_step_into_another_car_stops_short_of_it() {
         // A 3 m step that would end inside a car (external) 6 m ahead.
         let mut agents = [agent(0.0, 3.0, 0.0, true), agent(6.0, 6.0, 0.0, false)];
-        let actions = guard_step(&mut agents, 0, 6.0);
+        let actions = guard_step(&mut agents, &settings(0, false));
         assert_eq!(actions, vec![(0, GuardAction::StoppedShort)]);
         let x = agents[0].proposed.x_m;
         assert!(
@@ -268,7 +356,7 @@ mod tests {
     fn pairs_that_overlapped_before_the_tick_are_left_alone() {
         let mut agents = [agent(0.0, 0.5, 0.0, true), agent(3.0, 3.0, 0.0, true)];
         let before = agents;
-        assert!(guard_step(&mut agents, 10, 6.0).is_empty());
+        assert!(guard_step(&mut agents, &settings(10, false)).is_empty());
         assert_eq!(agents, before);
     }
 
@@ -277,7 +365,7 @@ mod tests {
         // The movable agent stands still; an external car drives into it: nothing it can do
         // by braking, and it does not jump away.
         let mut agents = [agent(0.0, 0.0, 0.0, true), agent(-5.0, -3.0, 0.0, false)];
-        guard_step(&mut agents, 10, 6.0);
+        guard_step(&mut agents, &settings(10, false));
         assert_eq!(agents[0].proposed.x_m, 0.0);
     }
 }

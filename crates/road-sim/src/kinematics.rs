@@ -17,6 +17,26 @@ pub const STEP_SECS: f64 = 0.1;
 /// second: below it a few centimetres of position noise swing the course by whole radians.
 pub const YAW_MIN_SPEED_MPS: f64 = 2.0;
 
+/// A step counts as reversing where the agent moves backwards along its heading faster than
+/// this (position noise of a stopped vehicle is millimetres per step: 0.02 m/s).
+pub const REVERSING_MIN_SPEED_MPS: f64 = 0.2;
+
+/// Of the steps between consecutive poses of one agent (`STEP_SECS` apart), how many go
+/// backwards along the heading it has after the step faster than
+/// [`REVERSING_MIN_SPEED_MPS`]: (reversing, steps). Speeds and yaw above are blind to it (a
+/// car reversing at 1 m/s has the speed of one creeping forward).
+pub fn reversing_steps(poses: &[crate::Pose]) -> (usize, usize) {
+    let reversing = poses
+        .windows(2)
+        .filter(|p| {
+            let step = DVec2::new(p[1].x_m - p[0].x_m, p[1].y_m - p[0].y_m);
+            let forward = DVec2::from_angle(p[1].heading_rad);
+            step.dot(forward) < -REVERSING_MIN_SPEED_MPS * STEP_SECS
+        })
+        .count();
+    (reversing, poses.len().saturating_sub(1))
+}
+
 /// A histogram over fixed bins on `[lo, hi)`; values outside fall into the edge bins.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Histogram {
@@ -281,5 +301,26 @@ mod tests {
             h.add(v);
         }
         assert_eq!(h.counts, vec![2.0, 0.0, 0.0, 0.0, 2.0]);
+    }
+
+    #[test]
+    fn reversing_counts_steps_backwards_along_the_heading() {
+        let pose = |x_m: f64, heading_rad: f64| crate::Pose {
+            x_m,
+            y_m: 0.0,
+            heading_rad,
+        };
+        // Forward, stopped, a millimetre back (noise), 0.5 m/s back, then the same step
+        // forward for a car turned round (heading π).
+        let poses = [
+            pose(0.0, 0.0),
+            pose(0.5, 0.0),
+            pose(0.5, 0.0),
+            pose(0.499, 0.0),
+            pose(0.449, 0.0),
+            pose(0.399, std::f64::consts::PI),
+        ];
+        assert_eq!(reversing_steps(&poses), (1, 5));
+        assert_eq!(reversing_steps(&poses[..1]), (0, 0));
     }
 }

@@ -423,6 +423,7 @@ fn the_collision_guard_keeps_model_agents_out_of_each_other() {
         collision_guard: Some(road_sched::CollisionGuard {
             horizon_steps: 10,
             brake_mps2: 6.0,
+            yield_to_unreactive: false,
         }),
         ..planner()
     };

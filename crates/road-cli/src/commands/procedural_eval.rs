@@ -9,7 +9,9 @@ use std::time::Instant;
 
 use anyhow::Result;
 use anyhow::{Context, ensure};
+use road_sim::Pose;
 use road_sim::closed_loop::{GuardCounts, SceneTick, guard_actions};
+use road_sim::kinematics::{REVERSING_MIN_SPEED_MPS, reversing_steps as reversing_steps_of};
 use road_sim::metrics::{BOOTSTRAP_RESAMPLES, Estimate, bootstrap_ratio};
 use road_sim::procedural::ProceduralMap;
 use serde::Serialize;
@@ -78,6 +80,10 @@ struct MapSummary {
     off_road_by_rotation: Vec<usize>,
     /// What the planner's guards did, agent-ticks summed over runs (zeros without guards).
     guards: GuardCounts,
+    /// The model-driven vehicles' simulated steps, and those going backwards along their
+    /// heading (`road_sim::kinematics::reversing_steps`).
+    model_vehicle_steps: usize,
+    reversing_steps: usize,
     secs: f64,
 }
 
@@ -127,6 +133,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
             let mut by_rotation = vec![0; args.rotations_deg.len()];
             let (mut model_pairs, mut ego_pairs, mut clean_runs) = (0, 0, 0);
             let mut guards = GuardCounts::default();
+            let (mut vehicle_steps, mut reversing_steps) = (0, 0);
             for (r, &rotation_deg) in args.rotations_deg.iter().enumerate() {
                 for seed in args.seed..args.seed + args.seeds {
                     let ProceduralRun { scene, ticks, .. } = simulate_procedural(
@@ -148,6 +155,12 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
                     let found = RunInfractions::of(&ticks, scene.ego.agent);
                     guards += guard_actions(&ticks);
                     let vehicles = scene.window.agents - 1;
+                    for a in (0..scene.window.agents).filter(|&a| a != scene.ego.agent) {
+                        let poses: Vec<Pose> = ticks.iter().map(|t| t.poses[a]).collect();
+                        let (reversing, steps) = reversing_steps_of(&poses);
+                        reversing_steps += reversing;
+                        vehicle_steps += steps;
+                    }
                     model_pairs += found.model_pairs.len();
                     ego_pairs += found.ego_pairs.len();
                     clean_runs += usize::from(found.clean());
@@ -176,6 +189,8 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
                 clean_runs,
                 off_road_by_rotation: by_rotation,
                 guards,
+                model_vehicle_steps: vehicle_steps,
+                reversing_steps,
                 secs: map_started.elapsed().as_secs_f64(),
             });
         }
@@ -191,9 +206,9 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         args.engine
     );
     out!(
-        "| model | map | runs | model-driven vehicles off road | off-road rate [95 % CI] | off road by rotation | collisions between model-driven vehicles | collisions with the ego | clean runs | lane guard: steered / stopped at the edge | collision guard: braked / stopped short |"
+        "| model | map | runs | model-driven vehicles off road | off-road rate [95 % CI] | off road by rotation | collisions between model-driven vehicles | collisions with the ego | clean runs | lane guard: steered / stopped at the edge | collision guard: braked / stopped short | reversing steps |"
     );
-    out!("|---|---|---:|---:|---:|---|---:|---:|---:|---:|---:|");
+    out!("|---|---|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|");
     for s in &summaries {
         let by_rotation = args
             .rotations_deg
@@ -203,7 +218,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
             .collect::<Vec<_>>()
             .join(", ");
         out!(
-            "| {} | {} | {} | {} of {} | {:.3} | {by_rotation} | {} | {} | {} of {} | {} / {} | {} / {} |",
+            "| {} | {} | {} | {} of {} | {:.3} | {by_rotation} | {} | {} | {} of {} | {} / {} | {} / {} | {} of {} |",
             s.model,
             s.map,
             s.runs,
@@ -217,11 +232,13 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
             s.guards.steered_to_lane,
             s.guards.stopped_at_road_edge,
             s.guards.braked,
-            s.guards.stopped_short
+            s.guards.stopped_short,
+            s.reversing_steps,
+            s.model_vehicle_steps
         );
     }
     out!(
-        "(interval: 95 % percentile bootstrap over runs, {BOOTSTRAP_RESAMPLES} resamples; a clean run has no model-driven vehicle off road and no collision between two of them; guards' actions in agent-ticks over all runs)"
+        "(interval: 95 % percentile bootstrap over runs, {BOOTSTRAP_RESAMPLES} resamples; a clean run has no model-driven vehicle off road and no collision between two of them; guards' actions in agent-ticks over all runs; reversing steps: the model-driven vehicles' steps going backwards along their heading faster than {REVERSING_MIN_SPEED_MPS} m/s)"
     );
     if let Some(path) = &args.json {
         let json = serde_json::json!({

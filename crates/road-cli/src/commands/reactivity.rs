@@ -17,7 +17,10 @@ use road_sim::closed_loop::{
     simulate_scripted,
 };
 
-use road_sim::kinematics::{KinematicDivergence, Kinematics};
+use road_sim::Pose;
+use road_sim::kinematics::{
+    KinematicDivergence, Kinematics, REVERSING_MIN_SPEED_MPS, reversing_steps as reversing_steps_of,
+};
 use road_sim::metrics::{BOOTSTRAP_RESAMPLES, Estimate, bootstrap_ratio};
 
 use crate::commands::engine::{EngineChoice, Engines};
@@ -57,15 +60,18 @@ struct Totals {
     kinematics: Kinematics,
     /// Against the logged paths of the same agents over the same steps.
     kinematic_divergence: Option<KinematicDivergence>,
-    /// Per simulation: (scene, adversary collided, any collision, driven agents, off road).
+    /// Per simulation: its scene and its counts.
     #[serde(skip)]
-    per_simulation: Vec<(usize, bool, bool, usize, usize)>,
+    per_simulation: Vec<(usize, SceneCounts)>,
     /// Per scene (filled in before the report; what `road compare` pairs on).
     per_scene: Vec<SceneCounts>,
     /// The rates with 95 % bootstrap intervals over scenes (filled in before the report).
     adversary_collision_rate: Option<Estimate>,
     any_collision_rate: Option<Estimate>,
     off_road_rate: Option<Estimate>,
+    /// Share of the driven agents' simulated steps that go backwards along their heading
+    /// (`road_sim::kinematics::reversing_steps`).
+    reversing_rate: Option<Estimate>,
 }
 
 /// One scene's simulations, summed: its validation window and the counts of [`Totals`].
@@ -77,6 +83,9 @@ pub(crate) struct SceneCounts {
     any_collisions: usize,
     driven_agents: usize,
     off_road_agents: usize,
+    /// The driven agents' simulated steps, and those going backwards along the heading.
+    driven_steps: usize,
+    reversing_steps: usize,
 }
 
 impl Totals {
@@ -89,13 +98,15 @@ impl Totals {
                 ..SceneCounts::default()
             })
             .collect();
-        for &(k, adversary, any, driven, off) in &self.per_simulation {
-            let row = &mut per_scene[k];
-            row.simulations += 1;
-            row.adversary_collisions += usize::from(adversary);
-            row.any_collisions += usize::from(any);
-            row.driven_agents += driven;
-            row.off_road_agents += off;
+        for (k, sim) in &self.per_simulation {
+            let row = &mut per_scene[*k];
+            row.simulations += sim.simulations;
+            row.adversary_collisions += sim.adversary_collisions;
+            row.any_collisions += sim.any_collisions;
+            row.driven_agents += sim.driven_agents;
+            row.off_road_agents += sim.off_road_agents;
+            row.driven_steps += sim.driven_steps;
+            row.reversing_steps += sim.reversing_steps;
         }
         per_scene.retain(|row| row.simulations > 0);
         let rate = |f: fn(&SceneCounts) -> (usize, usize)| {
@@ -111,6 +122,7 @@ impl Totals {
         self.adversary_collision_rate = Some(rate(|r| (r.adversary_collisions, r.simulations)));
         self.any_collision_rate = Some(rate(|r| (r.any_collisions, r.simulations)));
         self.off_road_rate = Some(rate(|r| (r.off_road_agents, r.driven_agents)));
+        self.reversing_rate = Some(rate(|r| (r.reversing_steps, r.driven_steps)));
         self.per_scene = per_scene;
         self.kinematic_divergence = Some(self.kinematics.divergence_from(logged));
     }
@@ -165,12 +177,27 @@ fn score(totals: &mut Totals, k: usize, ticks: &[SceneTick], adversary: usize, a
     totals.guard_stopped_agent_ticks += guards.stopped_short;
     totals.guard_steered_to_lane_agent_ticks += guards.steered_to_lane;
     totals.guard_stopped_at_road_edge_agent_ticks += guards.stopped_at_road_edge;
+    let (mut reversing_steps, mut driven_steps) = (0, 0);
+    for a in (0..agents).filter(|&a| a != adversary) {
+        let poses: Vec<Pose> = ticks.iter().map(|t| t.poses[a]).collect();
+        let (reversing, steps) = reversing_steps_of(&poses);
+        reversing_steps += reversing;
+        driven_steps += steps;
+    }
     totals.per_simulation.push((
         k,
-        pairs.iter().any(|&(i, j)| i == adversary || j == adversary),
-        !pairs.is_empty(),
-        agents - 1,
-        off.len(),
+        SceneCounts {
+            window: 0, // the scene's window is `estimate`'s to fill in
+            simulations: 1,
+            adversary_collisions: usize::from(
+                pairs.iter().any(|&(i, j)| i == adversary || j == adversary),
+            ),
+            any_collisions: usize::from(!pairs.is_empty()),
+            driven_agents: agents - 1,
+            off_road_agents: off.len(),
+            driven_steps,
+            reversing_steps,
+        },
     ));
 }
 
@@ -399,9 +426,9 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         args.engine
     );
     out!(
-        "| model | collision rate (adversary) [95 % CI] | any collision [95 % CI] | off-road rate [95 % CI] | JS speed | JS accel. | JS jerk | JS yaw rate | JS yaw accel. | time per sample (s) | NFE per simulated step (expected) |"
+        "| model | collision rate (adversary) [95 % CI] | any collision [95 % CI] | off-road rate [95 % CI] | JS speed | JS accel. | JS jerk | JS yaw rate | JS yaw accel. | reversing steps [95 % CI] | time per sample (s) | NFE per simulated step (expected) |"
     );
-    out!("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
+    out!("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
     for r in &mut results {
         r.estimate(&logged, &scenes);
         let sims = r.simulations.max(1) as f64;
@@ -412,7 +439,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         let show = |e: Option<Estimate>| e.map_or_else(String::new, |e| format!("{e:.3}"));
         let js = r.kinematic_divergence.expect("estimated above");
         out!(
-            "| {} | {} | {} | {} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {nfe} |",
+            "| {} | {} | {} | {} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {} | {:.3} | {nfe} |",
             r.model,
             show(r.adversary_collision_rate),
             show(r.any_collision_rate),
@@ -422,11 +449,12 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
             js.jerk,
             js.yaw_rate,
             js.yaw_acceleration,
+            show(r.reversing_rate),
             r.secs / sims,
         );
     }
     out!(
-        "(intervals: 95 % percentile bootstrap over scenes, {BOOTSTRAP_RESAMPLES} resamples; JS: Jensen–Shannon divergence in bits of the driven agents' speed, acceleration, jerk, yaw rate and yaw acceleration histograms from the logged ones, agents the log holds throughout; yaw from the course of motion at ≥ 2 m/s)"
+        "(intervals: 95 % percentile bootstrap over scenes, {BOOTSTRAP_RESAMPLES} resamples; JS: Jensen–Shannon divergence in bits of the driven agents' speed, acceleration, jerk, yaw rate and yaw acceleration histograms from the logged ones, agents the log holds throughout; yaw from the course of motion at ≥ 2 m/s; reversing steps: share of the driven agents' simulated steps going backwards along their heading faster than {REVERSING_MIN_SPEED_MPS} m/s)"
     );
     for s in &skipped {
         out!("not run: {s}");
