@@ -590,6 +590,9 @@ fn procedural_suite_counts_every_run() {
     assert_eq!(report["suite"], "procedural");
     assert_eq!(report["runs"].as_array().unwrap().len(), 8);
     assert_eq!(report["results"][1]["model_vehicles"], 4 * 6);
+    // Two ticks: one step per vehicle between them, each checked for reversing.
+    assert_eq!(report["results"][1]["model_vehicle_steps"], 4 * 6);
+    assert!(report["results"][1]["reversing_steps"].as_u64().unwrap() <= 4 * 6);
     let o = road(&["eval", "--suite", "procedural", "--maps", "atlantis"]);
     assert!(!o.status.success());
     assert!(
@@ -731,6 +734,12 @@ fn reactivity_suite_runs_with_the_shipped_checkpoint() {
     let nfe = road20["nfe_per_step"].as_f64().unwrap();
     assert!((nfe - 120.0 / 6.0).abs() < 1e-9, "{nfe}");
     assert!((road20["expected_nfe_per_step"].as_f64().unwrap() - nfe).abs() < 1e-9);
+    // Reversing is counted over the driven agents' steps between the 6 simulated ticks.
+    let scene = &road20["per_scene"][0];
+    let driven = scene["driven_agents"].as_u64().unwrap();
+    assert_eq!(scene["driven_steps"].as_u64().unwrap(), driven * 5);
+    let reversing = road20["reversing_rate"]["value"].as_f64().unwrap();
+    assert!((0.0..=1.0).contains(&reversing), "{reversing}");
     for name in ["log-replay", "constant-velocity", "road20"] {
         let png = dir.join(format!("reactivity-{name}-00.png"));
         assert!(
