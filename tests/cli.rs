@@ -593,6 +593,8 @@ fn procedural_suite_counts_every_run() {
     // Two ticks: one step per vehicle between them, each checked for reversing.
     assert_eq!(report["results"][1]["model_vehicle_steps"], 4 * 6);
     assert!(report["results"][1]["reversing_steps"].as_u64().unwrap() <= 4 * 6);
+    let moving = report["results"][1]["moving_steps"].as_u64().unwrap();
+    assert!(moving <= 4 * 6 && report["results"][1]["sliding_steps"].as_u64().unwrap() <= moving);
     let o = road(&["eval", "--suite", "procedural", "--maps", "atlantis"]);
     assert!(!o.status.success());
     assert!(
@@ -740,6 +742,9 @@ fn reactivity_suite_runs_with_the_shipped_checkpoint() {
     assert_eq!(scene["driven_steps"].as_u64().unwrap(), driven * 5);
     let reversing = road20["reversing_rate"]["value"].as_f64().unwrap();
     assert!((0.0..=1.0).contains(&reversing), "{reversing}");
+    // Sliding is counted over the steps at 2 m/s or more.
+    let moving = scene["moving_steps"].as_u64().unwrap();
+    assert!(moving <= driven * 5 && scene["sliding_steps"].as_u64().unwrap() <= moving);
     for name in ["log-replay", "constant-velocity", "road20"] {
         let png = dir.join(format!("reactivity-{name}-00.png"));
         assert!(

@@ -809,6 +809,7 @@ impl RolloutDriver {
                     tracking.jerk_weight(STEP_SECS),
                     max_acceleration,
                     heading_scale,
+                    tracking.max_slip_deg.map(|deg| deg.to_radians().tan()),
                     &mut emitted,
                 );
             }

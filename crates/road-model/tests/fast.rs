@@ -638,6 +638,7 @@ fn fast_engine_rollouts_with_least_jerk_tracking_match_candle() {
             jerk_cost_m: 0.03,
             ahead: 2,
             max_acceleration_mps2,
+            max_slip_deg: None,
         })
     };
     let scenes = scenes(&c, 3);

@@ -144,6 +144,12 @@ pub struct JerkTracking {
     /// correction, a step off the map) is scaled down to it first. Absent: unbounded.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub max_acceleration_mps2: Option<f64>,
+    /// The tracked step moves sideways of the model's heading no more than the model's own
+    /// emitted step does, plus this angle's tangent times its forward motion (degrees): the path
+    /// may not carry a lateral correction on (a lane guard's) while the car heads elsewhere,
+    /// which slides it sideways. Absent: unbounded.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub max_slip_deg: Option<f64>,
 }
 
 /// The most planned slots least-jerk tracking looks at.
@@ -290,6 +296,13 @@ impl PlannerSpec {
                 if !(bound.is_finite() && bound > 0.0) {
                     return bad(format!(
                         "jerk_tracking.max_acceleration_mps2 must be positive and finite, got {bound}"
+                    ));
+                }
+            }
+            if let Some(slip) = tracking.max_slip_deg {
+                if !(slip.is_finite() && (0.0..90.0).contains(&slip)) {
+                    return bad(format!(
+                        "jerk_tracking.max_slip_deg must be 0 to below 90 degrees, got {slip}"
                     ));
                 }
             }

@@ -436,6 +436,7 @@ fn jerk_tracking_options_are_checked() {
             jerk_cost_m,
             ahead,
             max_acceleration_mps2: Some(6.0),
+            max_slip_deg: Some(5.0),
         }),
         ..spec(PlannerKind::Rolling, 10, 5, 40, None)
     };
@@ -455,6 +456,7 @@ fn jerk_tracking_options_are_checked() {
             jerk_cost_m: 0.01,
             ahead: 2,
             max_acceleration_mps2: Some(0.0),
+            max_slip_deg: None,
         }),
         ..spec(PlannerKind::Rolling, 10, 5, 40, None)
     };
@@ -465,4 +467,20 @@ fn jerk_tracking_options_are_checked() {
             .to_string()
             .contains("jerk_tracking.max_acceleration_mps2 must be positive and finite, got 0")
     );
+    for slip in [-1.0, 90.0, f64::NAN] {
+        let sliding = PlannerSpec {
+            jerk_tracking: Some(road_sched::JerkTracking {
+                jerk_cost_m: 0.01,
+                ahead: 2,
+                max_acceleration_mps2: None,
+                max_slip_deg: Some(slip),
+            }),
+            ..spec(PlannerKind::Rolling, 10, 5, 40, None)
+        };
+        let message = sliding.validate("p").unwrap_err().to_string();
+        assert!(
+            message.contains("jerk_tracking.max_slip_deg must be 0 to below 90 degrees"),
+            "{slip}: {message}"
+        );
+    }
 }

@@ -37,6 +37,26 @@ pub fn reversing_steps(poses: &[crate::Pose]) -> (usize, usize) {
     (reversing, poses.len().saturating_sub(1))
 }
 
+/// A step slides where it moves more than this off the agent's heading after it (degrees).
+pub const SLIDING_MIN_ANGLE_DEG: f64 = 10.0;
+
+/// Of one agent's steps at [`YAW_MIN_SPEED_MPS`] or faster, how many move more than
+/// [`SLIDING_MIN_ANGLE_DEG`] off the heading it has after the step (a car sliding sideways):
+/// (sliding, moving). Yaw rates read from the course cannot see it.
+pub fn sliding_steps(poses: &[crate::Pose]) -> (usize, usize) {
+    let (mut sliding, mut moving) = (0, 0);
+    for p in poses.windows(2) {
+        let step = DVec2::new(p[1].x_m - p[0].x_m, p[1].y_m - p[0].y_m);
+        if step.length() < YAW_MIN_SPEED_MPS * STEP_SECS {
+            continue;
+        }
+        moving += 1;
+        let off = DVec2::from_angle(p[1].heading_rad).angle_to(step).abs();
+        sliding += usize::from(off > SLIDING_MIN_ANGLE_DEG.to_radians());
+    }
+    (sliding, moving)
+}
+
 /// A histogram over fixed bins on `[lo, hi)`; values outside fall into the edge bins.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Histogram {
@@ -322,5 +342,25 @@ mod tests {
         ];
         assert_eq!(reversing_steps(&poses), (1, 5));
         assert_eq!(reversing_steps(&poses[..1]), (0, 0));
+    }
+
+    #[test]
+    fn sliding_counts_moving_steps_off_the_heading() {
+        let pose = |x_m: f64, y_m: f64, heading_deg: f64| crate::Pose {
+            x_m,
+            y_m,
+            heading_rad: heading_deg.to_radians(),
+        };
+        // East at 5 m/s: on its heading, 5° off, 20° off (sliding), then a crawl 45° off
+        // (too slow to count), then 5 m/s at heading 359° across the wrap.
+        let poses = [
+            pose(0.0, 0.0, 0.0),
+            pose(0.5, 0.0, 0.0),
+            pose(1.0, 0.0, 5.0),
+            pose(1.5, 0.0, 20.0),
+            pose(1.55, 0.0, 45.0),
+            pose(2.05, 0.0, 359.0),
+        ];
+        assert_eq!(sliding_steps(&poses), (1, 4));
     }
 }

@@ -138,6 +138,14 @@ pub fn bootstrap_ratio(per_scene: &[(f64, f64)], seed: u64) -> Estimate {
         })
         .filter(|v| v.is_finite())
         .collect();
+    if stats.is_empty() {
+        // Every resample's denominator was 0 (no step to count, say): no interval.
+        return Estimate {
+            value,
+            ci_low: f64::NAN,
+            ci_high: f64::NAN,
+        };
+    }
     stats.sort_by(f64::total_cmp);
     let at = |q: f64| stats[((stats.len() - 1) as f64 * q).round() as usize];
     Estimate {
@@ -174,5 +182,8 @@ mod bootstrap_tests {
         let e = bootstrap_ratio(&[(1.0, 1.0), (0.0, 9.0)], 3);
         assert!((e.value - 0.1).abs() < 1e-12, "{e}");
         assert!(bootstrap_ratio(&[], 0).value.is_nan());
+        // Nothing to count in any scene: no rate and no interval, and no panic.
+        let none = bootstrap_ratio(&[(0.0, 0.0), (0.0, 0.0)], 3);
+        assert!(none.value.is_nan() && none.ci_low.is_nan() && none.ci_high.is_nan());
     }
 }

@@ -11,7 +11,10 @@ use anyhow::Result;
 use anyhow::{Context, ensure};
 use road_sim::Pose;
 use road_sim::closed_loop::{GuardCounts, SceneTick, guard_actions};
-use road_sim::kinematics::{REVERSING_MIN_SPEED_MPS, reversing_steps as reversing_steps_of};
+use road_sim::kinematics::{
+    REVERSING_MIN_SPEED_MPS, SLIDING_MIN_ANGLE_DEG, YAW_MIN_SPEED_MPS,
+    reversing_steps as reversing_steps_of, sliding_steps as sliding_steps_of,
+};
 use road_sim::metrics::{BOOTSTRAP_RESAMPLES, Estimate, bootstrap_ratio};
 use road_sim::procedural::ProceduralMap;
 use serde::Serialize;
@@ -84,6 +87,10 @@ struct MapSummary {
     /// heading (`road_sim::kinematics::reversing_steps`).
     model_vehicle_steps: usize,
     reversing_steps: usize,
+    /// Their steps at 2 m/s or more, and those moving over 10° off the heading
+    /// (`road_sim::kinematics::sliding_steps`).
+    moving_steps: usize,
+    sliding_steps: usize,
     secs: f64,
 }
 
@@ -134,6 +141,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
             let (mut model_pairs, mut ego_pairs, mut clean_runs) = (0, 0, 0);
             let mut guards = GuardCounts::default();
             let (mut vehicle_steps, mut reversing_steps) = (0, 0);
+            let (mut moving_steps, mut sliding_steps) = (0, 0);
             for (r, &rotation_deg) in args.rotations_deg.iter().enumerate() {
                 for seed in args.seed..args.seed + args.seeds {
                     let ProceduralRun { scene, ticks, .. } = simulate_procedural(
@@ -160,6 +168,9 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
                         let (reversing, steps) = reversing_steps_of(&poses);
                         reversing_steps += reversing;
                         vehicle_steps += steps;
+                        let (sliding, moving) = sliding_steps_of(&poses);
+                        sliding_steps += sliding;
+                        moving_steps += moving;
                     }
                     model_pairs += found.model_pairs.len();
                     ego_pairs += found.ego_pairs.len();
@@ -191,6 +202,8 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
                 guards,
                 model_vehicle_steps: vehicle_steps,
                 reversing_steps,
+                moving_steps,
+                sliding_steps,
                 secs: map_started.elapsed().as_secs_f64(),
             });
         }
@@ -206,9 +219,9 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         args.engine
     );
     out!(
-        "| model | map | runs | model-driven vehicles off road | off-road rate [95 % CI] | off road by rotation | collisions between model-driven vehicles | collisions with the ego | clean runs | lane guard: steered / stopped at the edge | collision guard: braked / stopped short | reversing steps |"
+        "| model | map | runs | model-driven vehicles off road | off-road rate [95 % CI] | off road by rotation | collisions between model-driven vehicles | collisions with the ego | clean runs | lane guard: steered / stopped at the edge | collision guard: braked / stopped short | reversing steps | sliding steps |"
     );
-    out!("|---|---|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|");
+    out!("|---|---|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|");
     for s in &summaries {
         let by_rotation = args
             .rotations_deg
@@ -218,7 +231,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
             .collect::<Vec<_>>()
             .join(", ");
         out!(
-            "| {} | {} | {} | {} of {} | {:.3} | {by_rotation} | {} | {} | {} of {} | {} / {} | {} / {} | {} of {} |",
+            "| {} | {} | {} | {} of {} | {:.3} | {by_rotation} | {} | {} | {} of {} | {} / {} | {} / {} | {} of {} | {} of {} |",
             s.model,
             s.map,
             s.runs,
@@ -234,11 +247,13 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
             s.guards.braked,
             s.guards.stopped_short,
             s.reversing_steps,
-            s.model_vehicle_steps
+            s.model_vehicle_steps,
+            s.sliding_steps,
+            s.moving_steps
         );
     }
     out!(
-        "(interval: 95 % percentile bootstrap over runs, {BOOTSTRAP_RESAMPLES} resamples; a clean run has no model-driven vehicle off road and no collision between two of them; guards' actions in agent-ticks over all runs; reversing steps: the model-driven vehicles' steps going backwards along their heading faster than {REVERSING_MIN_SPEED_MPS} m/s)"
+        "(interval: 95 % percentile bootstrap over runs, {BOOTSTRAP_RESAMPLES} resamples; a clean run has no model-driven vehicle off road and no collision between two of them; guards' actions in agent-ticks over all runs; reversing steps: the model-driven vehicles' steps going backwards along their heading faster than {REVERSING_MIN_SPEED_MPS} m/s; sliding steps: their steps at ≥ {YAW_MIN_SPEED_MPS} m/s moving over {SLIDING_MIN_ANGLE_DEG}° off their heading)"
     );
     if let Some(path) = &args.json {
         let json = serde_json::json!({

@@ -19,7 +19,8 @@ use road_sim::closed_loop::{
 
 use road_sim::Pose;
 use road_sim::kinematics::{
-    KinematicDivergence, Kinematics, REVERSING_MIN_SPEED_MPS, reversing_steps as reversing_steps_of,
+    KinematicDivergence, Kinematics, REVERSING_MIN_SPEED_MPS, SLIDING_MIN_ANGLE_DEG,
+    YAW_MIN_SPEED_MPS, reversing_steps as reversing_steps_of, sliding_steps as sliding_steps_of,
 };
 use road_sim::metrics::{BOOTSTRAP_RESAMPLES, Estimate, bootstrap_ratio};
 
@@ -72,6 +73,9 @@ struct Totals {
     /// Share of the driven agents' simulated steps that go backwards along their heading
     /// (`road_sim::kinematics::reversing_steps`).
     reversing_rate: Option<Estimate>,
+    /// Share of their steps at 2 m/s or more that move over 10° off their heading
+    /// (`road_sim::kinematics::sliding_steps`).
+    sliding_rate: Option<Estimate>,
 }
 
 /// One scene's simulations, summed: its validation window and the counts of [`Totals`].
@@ -86,6 +90,9 @@ pub(crate) struct SceneCounts {
     /// The driven agents' simulated steps, and those going backwards along the heading.
     driven_steps: usize,
     reversing_steps: usize,
+    /// Their steps at 2 m/s or more, and those sliding sideways of the heading.
+    moving_steps: usize,
+    sliding_steps: usize,
 }
 
 impl Totals {
@@ -107,6 +114,8 @@ impl Totals {
             row.off_road_agents += sim.off_road_agents;
             row.driven_steps += sim.driven_steps;
             row.reversing_steps += sim.reversing_steps;
+            row.moving_steps += sim.moving_steps;
+            row.sliding_steps += sim.sliding_steps;
         }
         per_scene.retain(|row| row.simulations > 0);
         let rate = |f: fn(&SceneCounts) -> (usize, usize)| {
@@ -123,6 +132,7 @@ impl Totals {
         self.any_collision_rate = Some(rate(|r| (r.any_collisions, r.simulations)));
         self.off_road_rate = Some(rate(|r| (r.off_road_agents, r.driven_agents)));
         self.reversing_rate = Some(rate(|r| (r.reversing_steps, r.driven_steps)));
+        self.sliding_rate = Some(rate(|r| (r.sliding_steps, r.moving_steps)));
         self.per_scene = per_scene;
         self.kinematic_divergence = Some(self.kinematics.divergence_from(logged));
     }
@@ -178,11 +188,15 @@ fn score(totals: &mut Totals, k: usize, ticks: &[SceneTick], adversary: usize, a
     totals.guard_steered_to_lane_agent_ticks += guards.steered_to_lane;
     totals.guard_stopped_at_road_edge_agent_ticks += guards.stopped_at_road_edge;
     let (mut reversing_steps, mut driven_steps) = (0, 0);
+    let (mut sliding_steps, mut moving_steps) = (0, 0);
     for a in (0..agents).filter(|&a| a != adversary) {
         let poses: Vec<Pose> = ticks.iter().map(|t| t.poses[a]).collect();
         let (reversing, steps) = reversing_steps_of(&poses);
         reversing_steps += reversing;
         driven_steps += steps;
+        let (sliding, moving) = sliding_steps_of(&poses);
+        sliding_steps += sliding;
+        moving_steps += moving;
     }
     totals.per_simulation.push((
         k,
@@ -197,6 +211,8 @@ fn score(totals: &mut Totals, k: usize, ticks: &[SceneTick], adversary: usize, a
             off_road_agents: off.len(),
             driven_steps,
             reversing_steps,
+            moving_steps,
+            sliding_steps,
         },
     ));
 }
@@ -426,9 +442,9 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         args.engine
     );
     out!(
-        "| model | collision rate (adversary) [95 % CI] | any collision [95 % CI] | off-road rate [95 % CI] | JS speed | JS accel. | JS jerk | JS yaw rate | JS yaw accel. | reversing steps [95 % CI] | time per sample (s) | NFE per simulated step (expected) |"
+        "| model | collision rate (adversary) [95 % CI] | any collision [95 % CI] | off-road rate [95 % CI] | JS speed | JS accel. | JS jerk | JS yaw rate | JS yaw accel. | reversing steps [95 % CI] | sliding steps [95 % CI] | time per sample (s) | NFE per simulated step (expected) |"
     );
-    out!("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
+    out!("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
     for r in &mut results {
         r.estimate(&logged, &scenes);
         let sims = r.simulations.max(1) as f64;
@@ -439,7 +455,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         let show = |e: Option<Estimate>| e.map_or_else(String::new, |e| format!("{e:.3}"));
         let js = r.kinematic_divergence.expect("estimated above");
         out!(
-            "| {} | {} | {} | {} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {} | {:.3} | {nfe} |",
+            "| {} | {} | {} | {} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {} | {} | {:.3} | {nfe} |",
             r.model,
             show(r.adversary_collision_rate),
             show(r.any_collision_rate),
@@ -450,11 +466,12 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
             js.yaw_rate,
             js.yaw_acceleration,
             show(r.reversing_rate),
+            show(r.sliding_rate),
             r.secs / sims,
         );
     }
     out!(
-        "(intervals: 95 % percentile bootstrap over scenes, {BOOTSTRAP_RESAMPLES} resamples; JS: Jensen–Shannon divergence in bits of the driven agents' speed, acceleration, jerk, yaw rate and yaw acceleration histograms from the logged ones, agents the log holds throughout; yaw from the course of motion at ≥ 2 m/s; reversing steps: share of the driven agents' simulated steps going backwards along their heading faster than {REVERSING_MIN_SPEED_MPS} m/s)"
+        "(intervals: 95 % percentile bootstrap over scenes, {BOOTSTRAP_RESAMPLES} resamples; JS: Jensen–Shannon divergence in bits of the driven agents' speed, acceleration, jerk, yaw rate and yaw acceleration histograms from the logged ones, agents the log holds throughout; yaw from the course of motion at ≥ 2 m/s; reversing steps: share of the driven agents' simulated steps going backwards along their heading faster than {REVERSING_MIN_SPEED_MPS} m/s; sliding steps: share of their steps at ≥ {YAW_MIN_SPEED_MPS} m/s moving over {SLIDING_MIN_ANGLE_DEG}° off their heading)"
     );
     for s in &skipped {
         out!("not run: {s}");
