@@ -57,6 +57,37 @@ pub fn sliding_steps(poses: &[crate::Pose]) -> (usize, usize) {
     (sliding, moving)
 }
 
+/// Reversing and sliding steps of some agents over a closed loop's ticks, summed.
+#[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
+pub struct StepCounts {
+    /// Steps between consecutive ticks, and those going backwards ([`reversing_steps`]).
+    pub steps: usize,
+    pub reversing: usize,
+    /// Steps at [`YAW_MIN_SPEED_MPS`] or faster, and those sliding ([`sliding_steps`]).
+    pub moving: usize,
+    pub sliding: usize,
+}
+
+impl StepCounts {
+    /// The counts of `agents` over `ticks`.
+    pub fn of(
+        ticks: &[crate::closed_loop::SceneTick],
+        agents: impl Iterator<Item = usize>,
+    ) -> Self {
+        let mut counts = Self::default();
+        for a in agents {
+            let poses: Vec<crate::Pose> = ticks.iter().map(|t| t.poses[a]).collect();
+            let (reversing, steps) = reversing_steps(&poses);
+            let (sliding, moving) = sliding_steps(&poses);
+            counts.steps += steps;
+            counts.reversing += reversing;
+            counts.moving += moving;
+            counts.sliding += sliding;
+        }
+        counts
+    }
+}
+
 /// A histogram over fixed bins on `[lo, hi)`; values outside fall into the edge bins.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Histogram {

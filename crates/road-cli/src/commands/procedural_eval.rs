@@ -9,11 +9,9 @@ use std::time::Instant;
 
 use anyhow::Result;
 use anyhow::{Context, ensure};
-use road_sim::Pose;
 use road_sim::closed_loop::{GuardCounts, SceneTick, guard_actions};
 use road_sim::kinematics::{
-    REVERSING_MIN_SPEED_MPS, SLIDING_MIN_ANGLE_DEG, YAW_MIN_SPEED_MPS,
-    reversing_steps as reversing_steps_of, sliding_steps as sliding_steps_of,
+    REVERSING_MIN_SPEED_MPS, SLIDING_MIN_ANGLE_DEG, StepCounts, YAW_MIN_SPEED_MPS,
 };
 use road_sim::metrics::{BOOTSTRAP_RESAMPLES, Estimate, bootstrap_ratio};
 use road_sim::procedural::ProceduralMap;
@@ -163,15 +161,14 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
                     let found = RunInfractions::of(&ticks, scene.ego.agent);
                     guards += guard_actions(&ticks);
                     let vehicles = scene.window.agents - 1;
-                    for a in (0..scene.window.agents).filter(|&a| a != scene.ego.agent) {
-                        let poses: Vec<Pose> = ticks.iter().map(|t| t.poses[a]).collect();
-                        let (reversing, steps) = reversing_steps_of(&poses);
-                        reversing_steps += reversing;
-                        vehicle_steps += steps;
-                        let (sliding, moving) = sliding_steps_of(&poses);
-                        sliding_steps += sliding;
-                        moving_steps += moving;
-                    }
+                    let counts = StepCounts::of(
+                        &ticks,
+                        (0..scene.window.agents).filter(|&a| a != scene.ego.agent),
+                    );
+                    vehicle_steps += counts.steps;
+                    reversing_steps += counts.reversing;
+                    moving_steps += counts.moving;
+                    sliding_steps += counts.sliding;
                     model_pairs += found.model_pairs.len();
                     ego_pairs += found.ego_pairs.len();
                     clean_runs += usize::from(found.clean());

@@ -17,10 +17,9 @@ use road_sim::closed_loop::{
     simulate_scripted,
 };
 
-use road_sim::Pose;
 use road_sim::kinematics::{
-    KinematicDivergence, Kinematics, REVERSING_MIN_SPEED_MPS, SLIDING_MIN_ANGLE_DEG,
-    YAW_MIN_SPEED_MPS, reversing_steps as reversing_steps_of, sliding_steps as sliding_steps_of,
+    KinematicDivergence, Kinematics, REVERSING_MIN_SPEED_MPS, SLIDING_MIN_ANGLE_DEG, StepCounts,
+    YAW_MIN_SPEED_MPS,
 };
 use road_sim::metrics::{BOOTSTRAP_RESAMPLES, Estimate, bootstrap_ratio};
 
@@ -187,17 +186,7 @@ fn score(totals: &mut Totals, k: usize, ticks: &[SceneTick], adversary: usize, a
     totals.guard_stopped_agent_ticks += guards.stopped_short;
     totals.guard_steered_to_lane_agent_ticks += guards.steered_to_lane;
     totals.guard_stopped_at_road_edge_agent_ticks += guards.stopped_at_road_edge;
-    let (mut reversing_steps, mut driven_steps) = (0, 0);
-    let (mut sliding_steps, mut moving_steps) = (0, 0);
-    for a in (0..agents).filter(|&a| a != adversary) {
-        let poses: Vec<Pose> = ticks.iter().map(|t| t.poses[a]).collect();
-        let (reversing, steps) = reversing_steps_of(&poses);
-        reversing_steps += reversing;
-        driven_steps += steps;
-        let (sliding, moving) = sliding_steps_of(&poses);
-        sliding_steps += sliding;
-        moving_steps += moving;
-    }
+    let counts = StepCounts::of(ticks, (0..agents).filter(|&a| a != adversary));
     totals.per_simulation.push((
         k,
         SceneCounts {
@@ -209,10 +198,10 @@ fn score(totals: &mut Totals, k: usize, ticks: &[SceneTick], adversary: usize, a
             any_collisions: usize::from(!pairs.is_empty()),
             driven_agents: agents - 1,
             off_road_agents: off.len(),
-            driven_steps,
-            reversing_steps,
-            moving_steps,
-            sliding_steps,
+            driven_steps: counts.steps,
+            reversing_steps: counts.reversing,
+            moving_steps: counts.moving,
+            sliding_steps: counts.sliding,
         },
     ));
 }
