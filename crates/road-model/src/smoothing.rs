@@ -520,6 +520,33 @@ mod tests {
         );
     }
 
+    /// [`track_least_jerk`] of agents without a plan (the emission is the only target), with
+    /// the options that need no window.
+    fn track_unplanned(
+        history: &[Vec<[f32; 3]>],
+        valid: &[Vec<bool>],
+        jerk_weight: f64,
+        max_acceleration: Option<f64>,
+        heading_scale: Option<f64>,
+        max_slip_tan: Option<f64>,
+        emitted: &mut [f32],
+    ) {
+        track_least_jerk(
+            history,
+            valid,
+            &[],
+            &[],
+            0,
+            0,
+            0,
+            jerk_weight,
+            max_acceleration,
+            heading_scale,
+            max_slip_tan,
+            emitted,
+        );
+    }
+
     #[test]
     fn least_jerk_tracking_keeps_a_path_of_constant_acceleration() {
         let path = accelerating_turn;
@@ -543,20 +570,7 @@ mod tests {
         for (weight, expected) in [(0.0, 0.6), (1.0, 0.55), (3.0, 0.525), (1e9, 0.5)] {
             let (history, valid, _, _) = &case;
             let mut emitted = [0.6, 1.0, 0.7];
-            track_least_jerk(
-                history,
-                valid,
-                &[],
-                &[],
-                0,
-                0,
-                0,
-                weight,
-                None,
-                None,
-                None,
-                &mut emitted,
-            );
+            track_unplanned(history, valid, weight, None, None, None, &mut emitted);
             assert!(
                 (emitted[0] - expected).abs() < 1e-6,
                 "λ {weight}: {emitted:?}"
@@ -592,20 +606,7 @@ mod tests {
         let history = vec![line(0.1, 2), line(0.1, 5)];
         let valid = vec![vec![true; 2], vec![true, true, false, true, true]];
         let mut emitted = [0.9, 0.0, 0.0, 0.9, 0.0, 0.0];
-        track_least_jerk(
-            &history,
-            &valid,
-            &[],
-            &[],
-            0,
-            0,
-            0,
-            10.0,
-            None,
-            None,
-            None,
-            &mut emitted,
-        );
+        track_unplanned(&history, &valid, 10.0, None, None, None, &mut emitted);
         assert_eq!(emitted, [0.9, 0.0, 0.0, 0.9, 0.0, 0.0]);
     }
 
@@ -628,20 +629,7 @@ mod tests {
         let track = |bound: Option<f64>| {
             // The model emits the kink carried on; with no cost the path is the emission.
             let mut emitted = [0.3, 0.9, 0.0];
-            track_least_jerk(
-                &history,
-                &valid,
-                &[],
-                &[],
-                0,
-                0,
-                0,
-                1e9,
-                bound,
-                None,
-                None,
-                &mut emitted,
-            );
+            track_unplanned(&history, &valid, 1e9, bound, None, None, &mut emitted);
             emitted
         };
         // Unbounded, a prohibitive jerk cost carries the kink on: x + v + a = (0.3, 0.9).
@@ -665,14 +653,9 @@ mod tests {
         let valid = vec![vec![true; 3]];
         let track = |heading_scale: Option<f64>, model: [f32; 2]| {
             let mut emitted = [model[0], model[1], heading];
-            track_least_jerk(
+            track_unplanned(
                 &history,
                 &valid,
-                &[],
-                &[],
-                0,
-                0,
-                0,
                 1e9,
                 None,
                 heading_scale,
@@ -695,20 +678,7 @@ mod tests {
         // A sideways component stays: only the backward one goes. Here the model's own step is
         // all the path takes (no jerk cost), back and to the left.
         let mut emitted = [stopped[0] - 0.05, stopped[1], heading];
-        track_least_jerk(
-            &history,
-            &valid,
-            &[],
-            &[],
-            0,
-            0,
-            0,
-            0.0,
-            None,
-            Some(0.25),
-            None,
-            &mut emitted,
-        );
+        track_unplanned(&history, &valid, 0.0, None, Some(0.25), None, &mut emitted);
         let step = [emitted[0] - stopped[0], emitted[1] - stopped[1]];
         assert!(
             (step[0] + step[1]).abs() < 1e-6 && step[1] > 0.02,
@@ -725,14 +695,9 @@ mod tests {
         let valid = vec![vec![true; 3]];
         let track = |max_slip_tan: Option<f64>| {
             let mut emitted = [0.03, 0.005, 0.0];
-            track_least_jerk(
+            track_unplanned(
                 &history,
                 &valid,
-                &[],
-                &[],
-                0,
-                0,
-                0,
                 1e9,
                 None,
                 Some(0.25),

@@ -94,6 +94,21 @@ pub(crate) struct SceneCounts {
     sliding_steps: usize,
 }
 
+/// A simulation's counts added to its scene's (the scene keeps its window).
+impl std::ops::AddAssign<&SceneCounts> for SceneCounts {
+    fn add_assign(&mut self, sim: &SceneCounts) {
+        self.simulations += sim.simulations;
+        self.adversary_collisions += sim.adversary_collisions;
+        self.any_collisions += sim.any_collisions;
+        self.driven_agents += sim.driven_agents;
+        self.off_road_agents += sim.off_road_agents;
+        self.driven_steps += sim.driven_steps;
+        self.reversing_steps += sim.reversing_steps;
+        self.moving_steps += sim.moving_steps;
+        self.sliding_steps += sim.sliding_steps;
+    }
+}
+
 impl Totals {
     /// `windows[k]`: the validation window of scene k.
     fn estimate(&mut self, logged: &Kinematics, windows: &[usize]) {
@@ -105,16 +120,7 @@ impl Totals {
             })
             .collect();
         for (k, sim) in &self.per_simulation {
-            let row = &mut per_scene[*k];
-            row.simulations += sim.simulations;
-            row.adversary_collisions += sim.adversary_collisions;
-            row.any_collisions += sim.any_collisions;
-            row.driven_agents += sim.driven_agents;
-            row.off_road_agents += sim.off_road_agents;
-            row.driven_steps += sim.driven_steps;
-            row.reversing_steps += sim.reversing_steps;
-            row.moving_steps += sim.moving_steps;
-            row.sliding_steps += sim.sliding_steps;
+            per_scene[*k] += sim;
         }
         per_scene.retain(|row| row.simulations > 0);
         let rate = |f: fn(&SceneCounts) -> (usize, usize)| {
@@ -190,7 +196,7 @@ fn score(totals: &mut Totals, k: usize, ticks: &[SceneTick], adversary: usize, a
     totals.per_simulation.push((
         k,
         SceneCounts {
-            window: 0, // the scene's window is `estimate`'s to fill in
+            window: 0, // unused: added to the scene's row, which holds its window
             simulations: 1,
             adversary_collisions: usize::from(
                 pairs.iter().any(|&(i, j)| i == adversary || j == adversary),
