@@ -813,6 +813,58 @@ fn compare_pairs_scenes_across_eval_files() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// `road compare` on the reactivity suite pairs the reversing and sliding shares (per driven
+/// and per moving step) where both files count them, and says so where one file does not.
+#[test]
+fn compare_pairs_sliding_steps_where_both_files_count_them() {
+    let dir = temp_dir("compare-sliding");
+    let scene = |window: usize, sliding: Option<u64>| {
+        let mut s = serde_json::json!({ "window": window, "simulations": 3,
+            "adversary_collisions": 0, "any_collisions": 1, "driven_agents": 30,
+            "off_road_agents": 3 });
+        if let Some(sliding) = sliding {
+            s["driven_steps"] = 1170.into();
+            s["reversing_steps"] = 0.into();
+            s["moving_steps"] = 600.into();
+            s["sliding_steps"] = sliding.into();
+        }
+        s
+    };
+    let file = |name: &str, model: &str, per_scene: Vec<serde_json::Value>| {
+        let path = dir.join(name);
+        let json = serde_json::json!({ "suite": "reactivity", "results": [
+            { "model": model, "per_scene": per_scene } ] });
+        std::fs::write(&path, json.to_string()).unwrap();
+        path.to_str().unwrap().to_owned()
+    };
+    // 60 of 600 moving steps slide in the baseline, 30 under the lever: −0.05 on each scene.
+    let base = file(
+        "base.json",
+        "default",
+        vec![scene(3, Some(60)), scene(7, Some(60))],
+    );
+    let lever = file(
+        "lever.json",
+        "lever",
+        vec![scene(7, Some(30)), scene(3, Some(30))],
+    );
+    let old = file("old.json", "old", vec![scene(3, None), scene(7, None)]);
+    let o = road(&["compare", &base, &lever, &old]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = stdout(&o);
+    assert!(out.contains("Δsliding steps"), "{out}");
+    assert!(
+        out.contains("| +0.000 [+0.000, +0.000] | -0.050 [-0.050, -0.050] |"),
+        "{out}"
+    );
+    assert!(
+        out.lines()
+            .any(|l| l.starts_with("| old |") && l.contains("(not in every file)")),
+        "{out}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
 /// A fresh folder under the system's temporary one.
 fn temp_dir(name: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("road-cli-{name}-{}", std::process::id()));

@@ -37,8 +37,17 @@ type Difference = fn(&[f64], &[f64]) -> (f64, f64);
 /// A suite's per-scene fields and the differences `road compare` reports.
 struct Suite {
     fields: &'static [&'static str],
-    /// (column title, difference).
+    /// Fields that files written by older builds lack: NaN where absent, after `fields`.
+    optional_fields: &'static [&'static str],
+    /// (column title, difference); a column whose difference is NaN for some scene (a field
+    /// absent from one of the files) shows as such rather than a number.
     columns: &'static [(&'static str, Difference)],
+}
+
+/// A rate's per-scene value, 0 where the scene has nothing to count (no moving step, say);
+/// NaN stays NaN (a field the file lacks).
+fn rate(count: f64, of: f64) -> f64 {
+    if of == 0.0 { 0.0 } else { count / of }
 }
 
 const FORECASTING: Suite = Suite {
@@ -48,6 +57,7 @@ const FORECASTING: Suite = Suite {
         "missed_agents",
         "agents",
     ],
+    optional_fields: &[],
     columns: &[
         ("ΔminSceneADE (m)", |a, b| (a[0] - b[0], 1.0)),
         ("ΔminSceneFDE (m)", |a, b| (a[1] - b[1], 1.0)),
@@ -67,6 +77,13 @@ const REACTIVITY: Suite = Suite {
         "driven_agents",
         "off_road_agents",
     ],
+    // Since 2026-11-26: per driven step and per moving step (≥ 2 m/s).
+    optional_fields: &[
+        "driven_steps",
+        "reversing_steps",
+        "moving_steps",
+        "sliding_steps",
+    ],
     columns: &[
         ("Δadversary collision rate", |a, b| {
             (a[1] / a[0] - b[1] / b[0], 1.0)
@@ -77,6 +94,14 @@ const REACTIVITY: Suite = Suite {
         ("Δoff-road rate", |a, b| {
             let drivers = b[3] / b[0];
             (drivers * (a[4] / a[3] - b[4] / b[3]), drivers)
+        }),
+        ("Δreversing steps", |a, b| {
+            let steps = b[5] / b[0];
+            (steps * (rate(a[6], a[5]) - rate(b[6], b[5])), steps)
+        }),
+        ("Δsliding steps", |a, b| {
+            let steps = b[7] / b[0];
+            (steps * (rate(a[8], a[7]) - rate(b[8], b[7])), steps)
         }),
     ],
 };
@@ -145,7 +170,11 @@ pub fn run(args: CompareArgs) -> Result<ExitCode> {
             .iter()
             .map(|(_, diff)| {
                 let values: Vec<(f64, f64)> = pairs.iter().map(|(a, b)| diff(a, b)).collect();
-                show(bootstrap_ratio(&values, 0x5eed))
+                if values.iter().any(|(d, w)| d.is_nan() || w.is_nan()) {
+                    "(not in every file)".to_owned()
+                } else {
+                    show(bootstrap_ratio(&values, 0x5eed))
+                }
             })
             .collect();
         out!(
@@ -215,6 +244,12 @@ fn read(path: &Path) -> Result<(String, Vec<ModelRows>)> {
                         ))
                     })
                 })
+                .chain(
+                    suite
+                        .optional_fields
+                        .iter()
+                        .map(|field| Ok(scene[*field].as_f64().unwrap_or(f64::NAN))),
+                )
                 .collect::<Result<Vec<f64>>>()?;
             scenes.push((window, values));
         }
