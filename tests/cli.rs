@@ -667,9 +667,9 @@ fn demo_runs_closed_loop_on_both_engines() {
         let v: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
         assert_eq!(v["ticks"].as_array().unwrap().len(), 4);
-        // The default's RoAD-20 at K = 20: the warm-up (40 NFE) then rolling stages of K/F = 2
-        // steps (4 NFE).
-        assert_eq!(v["nfe"], 40 + 3 * 4);
+        // The default's RoAD-20 at K = 20 under the multistep sampler (one evaluation per
+        // step): the warm-up (20 NFE) then rolling stages of K/F = 2 steps (2 NFE).
+        assert_eq!(v["nfe"], 20 + 3 * 2);
         runs.push(v);
     }
     // The same seed: the same closed loop on both engines, to the rollout tolerance.

@@ -15,7 +15,8 @@
 //!    horizon (it stops short of a crossing ego's path instead of creeping into it); when
 //!    braking cannot help (a car driving into its back) it keeps going.
 //! 2. **No new overlap.** A model agent whose box would overlap another's after the tick moves
-//!    only the largest fraction of its step that keeps it clear (bisection).
+//!    only the largest fraction of its step that keeps it a centimetre clear (bisection), over
+//!    as many passes as it takes to settle (an agent stopped short can push its follower back).
 //!
 //! Pairs that already overlapped before the tick are left alone (braking cannot separate them,
 //! and the log has such pairs at standstill). The guarded state is what joins the history and
@@ -31,8 +32,11 @@ use crate::geometry::OrientedBox;
 const STEP_SECS: f64 = 0.1;
 /// Bisection rounds of the no-overlap fraction: 2⁻¹² of a step.
 const BISECTION_ROUNDS: usize = 12;
-/// Passes of the no-overlap rule over the agents (an agent that backs off can clear another).
-const OVERLAP_PASSES: usize = 3;
+/// The gap (metres) the no-overlap rule leaves between an agent it stops short and the other
+/// box: the guarded pose then survives the round trip through the engines' f32 model units
+/// (some micrometres at the scene scale) without touching. The bisection alone could stop an
+/// agent a micrometre from the other.
+const STOP_SHORT_CLEARANCE_M: f64 = 0.01;
 
 /// One agent as the guard sees it: its pose before the tick, the proposed pose after it, its
 /// footprint, and whether the guard may change it (model-driven).
@@ -146,21 +150,31 @@ pub fn guard_step(
         }
     }
 
-    // 2. No new overlap after the tick.
+    // 2. No new overlap after the tick. Agents only ever move back along their steps, towards
+    // poses clear of one another before the tick, so passes until nothing changes settle: a
+    // queue of followers behind an agent stopped short takes one pass per link.
     let movable: Vec<usize> = (0..n).filter(|&i| agents[i].movable).collect();
-    for _ in 0..OVERLAP_PASSES {
+    for _ in 0..=movable.len() {
         let mut changed = false;
         for &i in &movable {
-            let clear = |agents: &[GuardAgent], pose: Pose| {
+            // Clear of every other box by `margin_m` (this agent's box grown by it).
+            let clear = |agents: &[GuardAgent], pose: Pose, margin_m: f64| {
+                let a = &agents[i];
+                let grown = OrientedBox {
+                    pose,
+                    length_m: a.length_m + 2.0 * margin_m,
+                    width_m: a.width_m + 2.0 * margin_m,
+                };
                 (0..n).all(|j| {
-                    let (a, b) = (&agents[i], &agents[j]);
+                    let b = &agents[j];
                     j == i
                         || overlapped_before[i * n + j]
-                        || (position(pose) - position(b.proposed)).length() > reach(a) + reach(b)
-                        || !box_at(a, pose).overlaps(&box_at(b, b.proposed))
+                        || (position(pose) - position(b.proposed)).length()
+                            > reach(a) + reach(b) + margin_m
+                        || !grown.overlaps(&box_at(b, b.proposed))
                 })
             };
-            if clear(agents, agents[i].proposed) {
+            if clear(agents, agents[i].proposed, 0.0) {
                 continue;
             }
             let (before, proposed) = (agents[i].before, agents[i].proposed);
@@ -169,7 +183,7 @@ pub fn guard_step(
             let (mut lo, mut hi) = (0.0, 1.0);
             for _ in 0..BISECTION_ROUNDS {
                 let mid = 0.5 * (lo + hi);
-                if clear(agents, along(before, proposed, mid)) {
+                if clear(agents, along(before, proposed, mid), STOP_SHORT_CLEARANCE_M) {
                     lo = mid;
                 } else {
                     hi = mid;
@@ -331,8 +345,8 @@ mod tests {
         assert_eq!(actions, vec![(0, GuardAction::StoppedShort)]);
         let x = agents[0].proposed.x_m;
         assert!(
-            x <= 2.0 && x > 1.99,
-            "stops at the other's rear bumper: {x}"
+            x <= 2.0 - STOP_SHORT_CLEARANCE_M && x > 1.98,
+            "stops a centimetre short of the other's rear bumper: {x}"
         );
         assert!(
             !OrientedBox {
@@ -350,6 +364,35 @@ mod tests {
             agents[1].proposed.x_m, 6.0,
             "an external agent is never moved"
         );
+    }
+
+    #[test]
+    fn a_queue_behind_a_car_stopped_short_settles_without_overlap() {
+        // Five model cars 1 m apart behind an external car standing at x = 20, each stepping
+        // 3 m. The leader (listed last) stops short of the standing car, which pushes each
+        // follower back in turn: one pass per link, more than a fixed three.
+        let mut agents: Vec<GuardAgent> = (0..5)
+            .map(|k| {
+                let x = 14.5 - 5.0 * (4 - k) as f64;
+                agent(x, x + 3.0, 0.0, true)
+            })
+            .chain([agent(20.0, 20.0, 0.0, false)])
+            .collect();
+        let actions = guard_step(&mut agents, &settings(0, false));
+        assert_eq!(actions.len(), 5, "{actions:?}");
+        let footprint = |a: &GuardAgent| OrientedBox {
+            pose: a.proposed,
+            length_m: a.length_m,
+            width_m: a.width_m,
+        };
+        for i in 0..agents.len() {
+            for j in i + 1..agents.len() {
+                assert!(
+                    !footprint(&agents[i]).overlaps(&footprint(&agents[j])),
+                    "{i} and {j}: {agents:?}"
+                );
+            }
+        }
     }
 
     #[test]
