@@ -755,6 +755,15 @@ fn reactivity_suite_runs_with_the_shipped_checkpoint() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// Writes a `road eval --json` file of one suite with one model's per-scene figures; returns
+/// its path.
+fn eval_json(path: &Path, suite: &str, model: &str, per_scene: Vec<serde_json::Value>) -> String {
+    let json = serde_json::json!({ "suite": suite, "results": [
+        { "model": model, "per_scene": per_scene } ] });
+    std::fs::write(path, json.to_string()).unwrap();
+    path.to_str().unwrap().to_owned()
+}
+
 /// `road compare` pairs scenes by validation window across files: a model 0.5 m worse on every
 /// shared scene shows +0.5 with a zero-width interval, whatever the order of the scenes; mixed
 /// suites and files without per-scene figures are refused, naming the file.
@@ -766,12 +775,8 @@ fn compare_pairs_scenes_across_eval_files() {
         serde_json::json!({ "window": window, "agents": 4, "min_scene_ade_m": ade,
             "min_scene_fde_m": 2.0 * ade, "missed_agents": missed })
     };
-    let file = |name: &str, model: &str, per_scene: Vec<serde_json::Value>| {
-        let path = dir.join(name);
-        let json = serde_json::json!({ "suite": "forecasting", "results": [
-            { "model": model, "per_scene": per_scene } ] });
-        std::fs::write(&path, json.to_string()).unwrap();
-        path.to_str().unwrap().to_owned()
+    let file = |name: &str, model: &str, per_scene| {
+        eval_json(&dir.join(name), "forecasting", model, per_scene)
     };
     let base = file(
         "base.json",
@@ -830,12 +835,8 @@ fn compare_pairs_sliding_steps_where_both_files_count_them() {
         }
         s
     };
-    let file = |name: &str, model: &str, per_scene: Vec<serde_json::Value>| {
-        let path = dir.join(name);
-        let json = serde_json::json!({ "suite": "reactivity", "results": [
-            { "model": model, "per_scene": per_scene } ] });
-        std::fs::write(&path, json.to_string()).unwrap();
-        path.to_str().unwrap().to_owned()
+    let file = |name: &str, model: &str, per_scene| {
+        eval_json(&dir.join(name), "reactivity", model, per_scene)
     };
     // 60 of 600 moving steps slide in the baseline, 30 under the lever: −0.05 on each scene.
     let base = file(
