@@ -200,6 +200,10 @@ def parse_run(table: dict[str, Any], origin: str) -> Run:
             f"obs_slots + future_slots ({obs + future})"
         )
     train_table = dict(table.get("train", {}))
+    if "kink_augmentation" in train_table:
+        raise ConfigError(
+            f"train.kink_augmentation in {origin}: not in the PyTorch path (road train only)"
+        )
     known = set(TrainConfig.__dataclass_fields__)
     unknown = set(train_table) - known
     if unknown:

@@ -91,6 +91,39 @@ impl SceneInput {
         }
     }
 
+    /// Kink augmentation ([`crate::config::KinkAugmentation`]) of agent `agent`: its slots
+    /// before `obs_slots − 2` turn by `angle_rad` about its position at slot `obs_slots − 2`
+    /// (headings with them), so that its newest observed step runs as before from a history
+    /// that approached at another angle. Needs slots `obs_slots − 2` and `obs_slots − 1` valid
+    /// (else nothing changes); invalid slots stay as they are.
+    pub fn kink_history(
+        &mut self,
+        agent: usize,
+        obs_slots: usize,
+        angle_rad: f32,
+        heading_scale: f32,
+    ) {
+        let w = self.slots;
+        if obs_slots < 3 || obs_slots > w {
+            return;
+        }
+        let pivot_slot = obs_slots - 2;
+        let valid = &self.valid[agent * w..(agent + 1) * w];
+        if !(valid[pivot_slot] && valid[pivot_slot + 1]) {
+            return;
+        }
+        let (sin, cos) = angle_rad.sin_cos();
+        let states = &mut self.states[3 * agent * w..3 * (agent + 1) * w];
+        let (px, py) = (states[3 * pivot_slot], states[3 * pivot_slot + 1]);
+        for t in (0..pivot_slot).filter(|&t| valid[t]) {
+            let state = &mut states[3 * t..3 * t + 3];
+            let (dx, dy) = (state[0] - px, state[1] - py);
+            state[0] = px + cos * dx - sin * dy;
+            state[1] = py + sin * dx + cos * dy;
+            state[2] += angle_rad * heading_scale;
+        }
+    }
+
     /// Drops agents with no valid slot in the crop, and their rows of `noise`
     /// (`[agents, slots, 3]`); keeps every agent when none is valid. Padding is masked, so the
     /// loss does not change; the batch just pads to fewer agents.
@@ -291,6 +324,47 @@ pub fn task_sigma_of(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_kinked_history_turns_about_the_second_newest_observation() {
+        // One agent along +x at 0.1 per slot, heading 0; 5 observed slots of 7, slot 1 invalid.
+        let slots = 7;
+        let mut input = SceneInput {
+            agents: 1,
+            slots,
+            states: (0..slots)
+                .flat_map(|t| [0.1 * t as f32, 0.0, 0.0])
+                .collect(),
+            valid: vec![true, false, true, true, true, true, true],
+            agent_features: vec![0.0; AGENT_FEATURES],
+            polylines: 0,
+            points: 20,
+            map: vec![],
+        };
+        let before = input.clone();
+        let (angle, heading_scale) = (std::f32::consts::FRAC_PI_2, 0.25);
+        input.kink_history(0, 5, angle, heading_scale);
+        let state = |i: &SceneInput, t: usize| i.states[3 * t..3 * t + 3].to_vec();
+        // Slots 3 (the pivot) onwards, and the invalid slot 1, as they were.
+        for t in [1, 3, 4, 5, 6] {
+            assert_eq!(state(&input, t), state(&before, t), "slot {t}");
+        }
+        // Slots 0 and 2, 0.3 and 0.1 behind the pivot (0.3, 0), turned a quarter left: below it.
+        for (t, behind) in [(0, 0.3f32), (2, 0.1)] {
+            let s = state(&input, t);
+            assert!(
+                (s[0] - 0.3).abs() < 1e-6 && (s[1] + behind).abs() < 1e-6,
+                "{s:?}"
+            );
+            assert!((s[2] - angle * heading_scale).abs() < 1e-6);
+        }
+        // Without a valid pivot and newest step, nothing changes.
+        let mut gap = before.clone();
+        gap.valid[3] = false;
+        let unchanged = gap.clone();
+        gap.kink_history(0, 5, angle, heading_scale);
+        assert_eq!(gap.states, unchanged.states);
+    }
 
     #[test]
     fn absent_agents_are_dropped_with_their_noise() {

@@ -252,6 +252,23 @@ pub struct TrainConfig {
     /// moments and the schedule start afresh.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub init_from: Option<std::path::PathBuf>,
+    /// Histories with a kink, as a lane guard's steer leaves them (absent: none).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub kink_augmentation: Option<KinkAugmentation>,
+}
+
+/// Kink augmentation: with probability `prob` per agent, the agent's observed slots before its
+/// newest step turn about the second-newest observation by an angle drawn uniformly within
+/// ±`max_deg` (headings with them). The history then approached at another angle and the
+/// newest step runs as logged, into the logged future: the situation after a lane guard
+/// steered a vehicle back into its lane, which the model, never having seen one, answered by
+/// turning its heading back to where it had been going (`docs/results.md`, "vehicles slide
+/// sideways"). Training batches only; validation batches are left as recorded.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct KinkAugmentation {
+    pub prob: f64,
+    pub max_deg: f64,
 }
 
 impl Default for TrainConfig {
@@ -275,6 +292,7 @@ impl Default for TrainConfig {
             workers: 2,
             rotation_augmentation: false,
             init_from: None,
+            kink_augmentation: None,
         }
     }
 }
@@ -350,6 +368,13 @@ impl RunConfig {
         }
         if t.workers == 0 {
             return Err("train: workers ≥ 1".into());
+        }
+        if let Some(k) = t.kink_augmentation
+            && !((0.0..=1.0).contains(&k.prob) && (0.0..=180.0).contains(&k.max_deg))
+        {
+            return Err(format!(
+                "train.kink_augmentation: prob in [0, 1] and max_deg in [0, 180], got {k:?}"
+            ));
         }
         if let Some(frame) = &self.model.agent_frame {
             if frame.anchor_slot + 1 != self.planner.obs_slots {

@@ -182,6 +182,20 @@ pub fn sample_scenes(
             let angle_rad = rng.random_range(0.0..std::f32::consts::TAU);
             input.rotate(angle_rad, run.model.heading_scale as f32);
         }
+        if let Some(kink) = run.train.kink_augmentation {
+            let max_rad = kink.max_deg.to_radians() as f32;
+            for agent in 0..input.agents {
+                if max_rad > 0.0 && rng.random_bool(kink.prob) {
+                    let angle_rad = rng.random_range(-max_rad..=max_rad);
+                    input.kink_history(
+                        agent,
+                        run.planner.obs_slots,
+                        angle_rad,
+                        run.model.heading_scale as f32,
+                    );
+                }
+            }
+        }
         draw.sigma.push(task_sigma(
             rng,
             &run.model,
@@ -376,7 +390,7 @@ pub fn learning_rate(run: &RunConfig, step: u64) -> f64 {
 
 /// The run's fixed validation batches: `val_batches` batches of `batch_scenes` scenes drawn
 /// from a seed of their own (not the run's), so that every run of a window size validates on
-/// the same scenes and noise. Scenes as recorded (no rotation), so that losses compare across
+/// the same scenes and noise. Scenes as recorded (no rotation, no kinks), so that losses compare across
 /// augmentation settings. `torch_export` writes them for the PyTorch path.
 pub fn validation_batches(
     run: &RunConfig,
@@ -386,6 +400,7 @@ pub fn validation_batches(
     let mut rng = StdRng::seed_from_u64(VALIDATION_SEED);
     let mut validation_run = run.clone();
     validation_run.train.rotation_augmentation = false;
+    validation_run.train.kink_augmentation = None;
     (0..run.train.val_batches)
         .map(|_| {
             sample_batch(
