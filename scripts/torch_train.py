@@ -200,10 +200,11 @@ def parse_run(table: dict[str, Any], origin: str) -> Run:
             f"obs_slots + future_slots ({obs + future})"
         )
     train_table = dict(table.get("train", {}))
-    if "kink_augmentation" in train_table:
-        raise ConfigError(
-            f"train.kink_augmentation in {origin}: not in the PyTorch path (road train only)"
-        )
+    for key in ("kink_augmentation", "history_noise_m"):
+        if key in train_table:
+            raise ConfigError(
+                f"train.{key} in {origin}: not in the PyTorch path (road train only)"
+            )
     known = set(TrainConfig.__dataclass_fields__)
     unknown = set(train_table) - known
     if unknown:

@@ -124,6 +124,21 @@ impl SceneInput {
         }
     }
 
+    /// Adds `noise` (`[agents, obs_slots, 2]`, model units) to the positions of the first
+    /// `obs_slots` slots of every agent, where valid (`train.history_noise_m`).
+    pub fn perturb_history(&mut self, obs_slots: usize, noise: &[f32]) {
+        let w = self.slots;
+        let n = obs_slots.min(w);
+        for a in 0..self.agents {
+            for t in (0..n).filter(|&t| self.valid[a * w + t]) {
+                let k = 3 * (a * w + t);
+                let e = 2 * (a * n + t);
+                self.states[k] += noise[e];
+                self.states[k + 1] += noise[e + 1];
+            }
+        }
+    }
+
     /// Drops agents with no valid slot in the crop, and their rows of `noise`
     /// (`[agents, slots, 3]`); keeps every agent when none is valid. Padding is masked, so the
     /// loss does not change; the batch just pads to fewer agents.
@@ -364,6 +379,33 @@ mod tests {
         let unchanged = gap.clone();
         gap.kink_history(0, 5, angle, heading_scale);
         assert_eq!(gap.states, unchanged.states);
+    }
+
+    #[test]
+    fn history_noise_moves_only_valid_observed_positions() {
+        let (agents, slots) = (2, 4);
+        let mut input = SceneInput {
+            agents,
+            slots,
+            states: vec![0.0; agents * slots * 3],
+            valid: vec![true, true, true, true, true, false, true, true],
+            agent_features: vec![0.0; agents * AGENT_FEATURES],
+            polylines: 0,
+            points: 20,
+            map: vec![],
+        };
+        // 2 observed slots: [agents, 2, 2] noise values 1, 2, 3, ...
+        let noise: Vec<f32> = (1..=agents * 2 * 2).map(|v| v as f32).collect();
+        input.perturb_history(2, &noise);
+        let state = |a: usize, t: usize| input.states[3 * (a * slots + t)..][..3].to_vec();
+        assert_eq!(state(0, 0), vec![1.0, 2.0, 0.0]);
+        assert_eq!(state(0, 1), vec![3.0, 4.0, 0.0]);
+        assert_eq!(state(1, 0), vec![5.0, 6.0, 0.0]);
+        // Agent 1's slot 1 is invalid; the future slots and headings never move.
+        assert_eq!(state(1, 1), vec![0.0; 3]);
+        for (a, t) in [(0, 2), (0, 3), (1, 2), (1, 3)] {
+            assert_eq!(state(a, t), vec![0.0; 3]);
+        }
     }
 
     #[test]

@@ -255,6 +255,13 @@ pub struct TrainConfig {
     /// Histories with a kink, as a lane guard's steer leaves them (absent: none).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub kink_augmentation: Option<KinkAugmentation>,
+    /// Standard deviation (metres) of Gaussian noise added to the observed positions of every
+    /// training window, the model not told (its observed σ stays the task's): the noise an
+    /// MPC-1 planner feeds back, where every step's fresh first slot becomes history, so that
+    /// the model learns not to amplify it (`docs/results.md`, "DJINN-10 MPC-1 with road20-wide's
+    /// recipe: why it jitters"). Training batches only. Absent: none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub history_noise_m: Option<f64>,
 }
 
 /// Kink augmentation: with probability `prob` per agent, the agent's observed slots before its
@@ -293,6 +300,7 @@ impl Default for TrainConfig {
             rotation_augmentation: false,
             init_from: None,
             kink_augmentation: None,
+            history_noise_m: None,
         }
     }
 }
@@ -368,6 +376,13 @@ impl RunConfig {
         }
         if t.workers == 0 {
             return Err("train: workers ≥ 1".into());
+        }
+        if let Some(noise_m) = t.history_noise_m
+            && !(noise_m >= 0.0 && noise_m.is_finite())
+        {
+            return Err(format!(
+                "train.history_noise_m must be a finite number of metres ≥ 0, got {noise_m}"
+            ));
         }
         if let Some(k) = t.kink_augmentation
             && !((0.0..=1.0).contains(&k.prob) && (0.0..=180.0).contains(&k.max_deg))

@@ -196,6 +196,15 @@ pub fn sample_scenes(
                 }
             }
         }
+        if let Some(noise_m) = run.train.history_noise_m.filter(|&m| m > 0.0) {
+            let n = run.planner.obs_slots.min(w);
+            let scale = (noise_m / run.model.position_scale_m) as f32;
+            let noise: Vec<f32> = normal_vec(rng, input.agents * n * 2)
+                .into_iter()
+                .map(|z| z * scale)
+                .collect();
+            input.perturb_history(n, &noise);
+        }
         draw.sigma.push(task_sigma(
             rng,
             &run.model,
@@ -390,7 +399,7 @@ pub fn learning_rate(run: &RunConfig, step: u64) -> f64 {
 
 /// The run's fixed validation batches: `val_batches` batches of `batch_scenes` scenes drawn
 /// from a seed of their own (not the run's), so that every run of a window size validates on
-/// the same scenes and noise. Scenes as recorded (no rotation, no kinks), so that losses compare across
+/// the same scenes and noise. Scenes as recorded (no rotation, kinks or history noise), so that losses compare across
 /// augmentation settings. `torch_export` writes them for the PyTorch path.
 pub fn validation_batches(
     run: &RunConfig,
@@ -401,6 +410,7 @@ pub fn validation_batches(
     let mut validation_run = run.clone();
     validation_run.train.rotation_augmentation = false;
     validation_run.train.kink_augmentation = None;
+    validation_run.train.history_noise_m = None;
     (0..run.train.val_batches)
         .map(|_| {
             sample_batch(
