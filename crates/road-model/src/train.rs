@@ -399,8 +399,9 @@ pub fn learning_rate(run: &RunConfig, step: u64) -> f64 {
 
 /// The run's fixed validation batches: `val_batches` batches of `batch_scenes` scenes drawn
 /// from a seed of their own (not the run's), so that every run of a window size validates on
-/// the same scenes and noise. Scenes as recorded (no rotation, kinks or history noise), so that losses compare across
-/// augmentation settings. `torch_export` writes them for the PyTorch path.
+/// the same scenes and noise. Scenes as recorded (no rotation, kinks or history noise), so
+/// that losses compare across augmentation settings. `torch_export` writes them for the
+/// PyTorch path.
 pub fn validation_batches(
     run: &RunConfig,
     validation_set: &Dataset,
