@@ -314,42 +314,53 @@ impl<T: FnMut(&[f32], &[f32], &[f32], &[usize]) -> Result<Vec<f32>>> DenoiseRows
 fn candle_denoise<'m>(
     model: &'m Denoiser,
     host: &HostWindows,
-    features: &'m Tensor,
-    map_tokens: &'m MapTokens,
-    map_valid: &'m Tensor,
-) -> impl DenoiseRows + 'm {
+    features: &'m Option<Tensor>,
+    map_tokens: &'m Option<MapTokens>,
+    map_valid: &'m Option<Tensor>,
+) -> Result<impl DenoiseRows + 'm> {
+    let (Some(features), Some(map_tokens), Some(map_valid)) = (features, map_tokens, map_valid)
+    else {
+        return Err(not_prepared());
+    };
     let (a, w, all) = (host.agents, host.slots, host.scenes);
-    move |x, sigma, valid, scenes| {
-        let b = scenes.len();
-        let device = Device::Cpu;
-        // The whole batch as it is; a subset through an index (static inputs gathered).
-        let (feats, tokens, map_flags) = if b == all {
-            (features.clone(), map_tokens.clone(), map_valid.clone())
-        } else {
-            let index = Tensor::from_vec(
-                scenes.iter().map(|&s| s as u32).collect::<Vec<_>>(),
-                b,
-                &device,
-            )?;
-            (
-                features.index_select(&index, 0)?,
-                map_tokens.index_select(&index)?,
-                map_valid.index_select(&index, 0)?,
-            )
-        };
-        Ok(model
-            .denoise(
-                &Tensor::from_vec(x.to_vec(), (b, a, w, 3), &device)?,
-                &Tensor::from_vec(sigma.to_vec(), (b, w), &device)?,
-                &Tensor::from_vec(valid.to_vec(), (b, a, w), &device)?,
-                &feats,
-                &tokens,
-                &map_flags,
-                Mode::Infer,
-            )?
-            .flatten_all()?
-            .to_vec1::<f32>()?)
-    }
+    Ok(
+        move |x: &[f32], sigma: &[f32], valid: &[f32], scenes: &[usize]| {
+            let b = scenes.len();
+            let device = Device::Cpu;
+            // The whole batch as it is; a subset through an index (static inputs gathered).
+            let (feats, tokens, map_flags) = if b == all {
+                (features.clone(), map_tokens.clone(), map_valid.clone())
+            } else {
+                let index = Tensor::from_vec(
+                    scenes.iter().map(|&s| s as u32).collect::<Vec<_>>(),
+                    b,
+                    &device,
+                )?;
+                (
+                    features.index_select(&index, 0)?,
+                    map_tokens.index_select(&index)?,
+                    map_valid.index_select(&index, 0)?,
+                )
+            };
+            Ok(model
+                .denoise(
+                    &Tensor::from_vec(x.to_vec(), (b, a, w, 3), &device)?,
+                    &Tensor::from_vec(sigma.to_vec(), (b, w), &device)?,
+                    &Tensor::from_vec(valid.to_vec(), (b, a, w), &device)?,
+                    &feats,
+                    &tokens,
+                    &map_flags,
+                    Mode::Infer,
+                )?
+                .flatten_all()?
+                .to_vec1::<f32>()?)
+        },
+    )
+}
+
+/// A step before the batch's static inputs are prepared.
+fn not_prepared() -> Error {
+    Error::data("engine used before prepare".into())
 }
 
 impl StepEngine for CpuEngine<'_> {
@@ -416,12 +427,13 @@ impl StepEngine for CpuEngine<'_> {
         sigma_next: &[f32],
         second_evaluation: bool,
     ) -> Result<()> {
-        let (Some(features), Some(map_tokens), Some(map_valid)) =
-            (&self.features, &self.map_tokens, &self.map_valid)
-        else {
-            return Err(Error::data("engine used before prepare".into()));
-        };
-        let denoise = candle_denoise(self.model, &self.host, features, map_tokens, map_valid);
+        let denoise = candle_denoise(
+            self.model,
+            &self.host,
+            &self.features,
+            &self.map_tokens,
+            &self.map_valid,
+        )?;
         self.host
             .step(sigma_cur, sigma_next, second_evaluation, denoise)
     }
@@ -432,12 +444,13 @@ impl StepEngine for CpuEngine<'_> {
         sigma_next: &[f32],
         gamma: &[f32],
     ) -> Result<()> {
-        let (Some(features), Some(map_tokens), Some(map_valid)) =
-            (&self.features, &self.map_tokens, &self.map_valid)
-        else {
-            return Err(Error::data("engine used before prepare".into()));
-        };
-        let denoise = candle_denoise(self.model, &self.host, features, map_tokens, map_valid);
+        let denoise = candle_denoise(
+            self.model,
+            &self.host,
+            &self.features,
+            &self.map_tokens,
+            &self.map_valid,
+        )?;
         self.host
             .step_multistep(sigma_cur, sigma_next, gamma, denoise)
     }
@@ -601,9 +614,7 @@ impl StepEngine for FastCpuEngine<'_> {
         sigma_next: &[f32],
         second_evaluation: bool,
     ) -> Result<()> {
-        let Some(cache) = &self.cache else {
-            return Err(Error::data("engine used before prepare".into()));
-        };
+        let cache = self.cache.as_ref().ok_or_else(not_prepared)?;
         self.host.step(
             sigma_cur,
             sigma_next,
@@ -618,9 +629,7 @@ impl StepEngine for FastCpuEngine<'_> {
         sigma_next: &[f32],
         gamma: &[f32],
     ) -> Result<()> {
-        let Some(cache) = &self.cache else {
-            return Err(Error::data("engine used before prepare".into()));
-        };
+        let cache = self.cache.as_ref().ok_or_else(not_prepared)?;
         self.host.step_multistep(
             sigma_cur,
             sigma_next,
