@@ -49,8 +49,8 @@ pub trait StepEngine {
         None
     }
     /// State units per radian of heading (the model's `heading_scale`), for planner options
-    /// that need an agent's direction (least-jerk tracking's reversal check and slip bound); None for an
-    /// engine that does not know it. Engines that wrap another pass its answer on.
+    /// that need an agent's direction (least-jerk tracking's reversal check and slip bound);
+    /// None for an engine that does not know it. Engines that wrap another pass its answer on.
     fn heading_scale(&self) -> Option<f64> {
         None
     }

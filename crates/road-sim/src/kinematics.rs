@@ -68,6 +68,15 @@ pub struct StepCounts {
     pub sliding: usize,
 }
 
+impl std::ops::AddAssign for StepCounts {
+    fn add_assign(&mut self, other: Self) {
+        self.steps += other.steps;
+        self.reversing += other.reversing;
+        self.moving += other.moving;
+        self.sliding += other.sliding;
+    }
+}
+
 impl StepCounts {
     /// The counts of `agents` over `ticks`.
     pub fn of(
@@ -79,10 +88,12 @@ impl StepCounts {
             let poses: Vec<crate::Pose> = ticks.iter().map(|t| t.poses[a]).collect();
             let (reversing, steps) = reversing_steps(&poses);
             let (sliding, moving) = sliding_steps(&poses);
-            counts.steps += steps;
-            counts.reversing += reversing;
-            counts.moving += moving;
-            counts.sliding += sliding;
+            counts += Self {
+                steps,
+                reversing,
+                moving,
+                sliding,
+            };
         }
         counts
     }

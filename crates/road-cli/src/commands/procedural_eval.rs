@@ -138,8 +138,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
             let mut by_rotation = vec![0; args.rotations_deg.len()];
             let (mut model_pairs, mut ego_pairs, mut clean_runs) = (0, 0, 0);
             let mut guards = GuardCounts::default();
-            let (mut vehicle_steps, mut reversing_steps) = (0, 0);
-            let (mut moving_steps, mut sliding_steps) = (0, 0);
+            let mut steps = StepCounts::default();
             for (r, &rotation_deg) in args.rotations_deg.iter().enumerate() {
                 for seed in args.seed..args.seed + args.seeds {
                     let ProceduralRun { scene, ticks, .. } = simulate_procedural(
@@ -161,14 +160,10 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
                     let found = RunInfractions::of(&ticks, scene.ego.agent);
                     guards += guard_actions(&ticks);
                     let vehicles = scene.window.agents - 1;
-                    let counts = StepCounts::of(
+                    steps += StepCounts::of(
                         &ticks,
                         (0..scene.window.agents).filter(|&a| a != scene.ego.agent),
                     );
-                    vehicle_steps += counts.steps;
-                    reversing_steps += counts.reversing;
-                    moving_steps += counts.moving;
-                    sliding_steps += counts.sliding;
                     model_pairs += found.model_pairs.len();
                     ego_pairs += found.ego_pairs.len();
                     clean_runs += usize::from(found.clean());
@@ -197,10 +192,10 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
                 clean_runs,
                 off_road_by_rotation: by_rotation,
                 guards,
-                model_vehicle_steps: vehicle_steps,
-                reversing_steps,
-                moving_steps,
-                sliding_steps,
+                model_vehicle_steps: steps.steps,
+                reversing_steps: steps.reversing,
+                moving_steps: steps.moving,
+                sliding_steps: steps.sliding,
                 secs: map_started.elapsed().as_secs_f64(),
             });
         }
