@@ -4,7 +4,9 @@
 //   window_shift:   for scenes with shift[b] = 1, after an emission from slot n:
 //                   slots move up by one, slot n − 1 = emitted + σ_obs·noise_obs (the emitted
 //                   state, possibly overwritten by a controller, joins the observations),
-//                   slot W − 1 = σ_max·noise_new (a fresh pure-noise slot); other scenes copy.
+//                   slot W − 1 = σ_max·noise_new (a fresh pure-noise slot); the agent's plan,
+//                   slots n … W − 2, turns by its entry of `turns` (position rotated about the
+//                   pivot, heading changed: `road_model::sample::turn_plan`); other scenes copy.
 
 struct Params {
     count: u32,     // B · A · W · 3 (shift) or B · A · 3 (emitted)
@@ -23,6 +25,7 @@ struct Params {
 @group(0) @binding(3) var<storage, read> emitted: array<f32>;       // [B, A, 3] (shift only)
 @group(0) @binding(4) var<storage, read> noise: array<f32>;         // [B, A, 6]: obs 3, new 3 (shift only)
 @group(0) @binding(5) var<storage, read_write> out: array<f32>;
+@group(0) @binding(6) var<storage, read> turns: array<f32>;         // [B, A, 4]: pivot x, y, angle, heading change (shift only)
 
 fn index(gid: vec3<u32>, groups: vec3<u32>) -> u32 {
     return gid.x + gid.y * groups.x * 64u;
@@ -64,7 +67,30 @@ fn window_shift(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
         out[i] = params.sigma_max * noise[agent_row * 6u + 3u + d];
     } else if (s == params.observed - 1u) {
         out[i] = emitted[agent_row * 3u + d] + params.obs_sigma * noise[agent_row * 6u + d];
+    } else if (s >= params.observed) {
+        out[i] = turned(i + 3u - d, agent_row, d);
     } else {
         out[i] = x[i + 3u];
     }
+}
+
+// Component d of the state x[base .. base + 3] turned by agent_row's entry of `turns`; a
+// zero turn copies it bit for bit.
+fn turned(base: u32, agent_row: u32, d: u32) -> f32 {
+    let pivot = vec2<f32>(turns[agent_row * 4u], turns[agent_row * 4u + 1u]);
+    let angle = turns[agent_row * 4u + 2u];
+    let heading_change = turns[agent_row * 4u + 3u];
+    if (angle == 0.0 && heading_change == 0.0) {
+        return x[base + d];
+    }
+    if (d == 2u) {
+        return x[base + 2u] + heading_change;
+    }
+    let delta = vec2<f32>(x[base], x[base + 1u]) - pivot;
+    let c = cos(angle);
+    let s = sin(angle);
+    if (d == 0u) {
+        return pivot.x + (c * delta.x - s * delta.y);
+    }
+    return pivot.y + (s * delta.x + c * delta.y);
 }

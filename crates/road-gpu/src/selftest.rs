@@ -1,4 +1,4 @@
-//! `road gpu selftest`'s kernel checks: every kernel family against its CPU reference on the
+//! `road gpu selftest`'s kernel checks: the kernel families against their CPU references on the
 //! adapter at hand, on seeded random inputs of the shapes the engine runs (RoAD-20's D = 64,
 //! 4 heads, 20 slots, 12 of 32 polylines). A machine lent for a few minutes checks its
 //! kernels in one call before anything is timed; the parity tests check the same on lavapipe.
@@ -232,6 +232,87 @@ pub fn kernel_checks(ctx: &GpuContext) -> Result<Vec<KernelCheck>> {
         .collect();
     checks.push(KernelCheck {
         name: "edm.precondition",
+        values: got.len(),
+        tolerance: tol,
+        outcome: tol.check(&got, &want),
+    });
+
+    checks.extend(window_checks(ctx, &mut rng, b, a, w)?);
+    Ok(checks)
+}
+
+/// The window kernels on `b` scenes of `a` agents and `w` slots: the emitted-slot gather (one
+/// scene not read) and the shift after an emission (every scene but the last, with fewer real
+/// agents than the padded count, the first agent's plan turned, as a lane-guard steer does).
+fn window_checks(
+    ctx: &GpuContext,
+    rng: &mut Inputs,
+    b: usize,
+    a: usize,
+    w: usize,
+) -> Result<Vec<KernelCheck>> {
+    use crate::kernels::window::{ShiftList, WindowOps};
+    use road_model::sample::{NO_TURN, ShiftEdit, ShiftShape, window_emitted, window_shift};
+    let tol = Tolerance::F32;
+    let x = rng.uniform(b * a * w * 3, 3.0);
+    let buffer = crate::kernels::storage_buffer(ctx, "selftest window", (x.len() * 4) as u64);
+    ctx.queue.write_buffer(&buffer, 0, bytemuck::cast_slice(&x));
+    let mut ops = WindowOps::new(ctx, &buffer, b, a, w);
+    let slots: Vec<Option<usize>> = (0..b)
+        .map(|i| (i + 1 < b).then_some((7 * i + 3) % w))
+        .collect();
+    let mut got = vec![0.0f32; b * a * 3];
+    ops.emitted(ctx, &slots, &mut got)?;
+    let mut want = vec![0.0f32; b * a * 3];
+    window_emitted(&x, a, w, &slots, &mut want);
+    let mut checks = vec![KernelCheck {
+        name: "window_emitted",
+        values: got.len(),
+        tolerance: tol,
+        outcome: tol.check(&got, &want),
+    }];
+    let shape = ShiftShape {
+        observed: w / 2,
+        obs_noise: 0.002,
+        sigma_max: 80.0,
+    };
+    let real = a - 2;
+    // Per shifted scene: emitted [real, 3], noise [real, 6], turns [real, 4].
+    let edits: Vec<[Vec<f32>; 3]> = (0..b - 1)
+        .map(|_| {
+            let mut turns = rng.uniform(real * 4, 1.0);
+            for agent in 1..real {
+                turns[4 * agent..4 * agent + 4].copy_from_slice(&NO_TURN);
+            }
+            [
+                rng.uniform(real * 3, 2.0),
+                rng.uniform(real * 6, 2.0),
+                turns,
+            ]
+        })
+        .collect();
+    let list: Vec<ShiftList<'_>> = edits
+        .iter()
+        .enumerate()
+        .map(|(i, [e, z, t])| (i, e.as_slice(), z.as_slice(), t.as_slice()))
+        .collect();
+    ops.shift(ctx, &buffer, &list, shape)?;
+    let bytes = crate::kernels::read_back(ctx, &buffer, (x.len() * 4) as u64)?;
+    let got: Vec<f32> = bytemuck::cast_slice(&bytes).to_vec();
+    let mut want = x;
+    let valid = vec![1.0f32; a * w];
+    for (i, [e, z, t]) in edits.iter().enumerate() {
+        let edit = ShiftEdit {
+            scene: i,
+            emitted: e,
+            noise: z,
+            valid: &valid,
+            turns: t,
+        };
+        window_shift(&mut want[i * a * w * 3..][..a * w * 3], w, &edit, shape);
+    }
+    checks.push(KernelCheck {
+        name: "window_shift",
         values: got.len(),
         tolerance: tol,
         outcome: tol.check(&got, &want),

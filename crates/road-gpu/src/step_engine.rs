@@ -3,6 +3,7 @@
 //! tick's steps and compacted sub-batches for mixed-phase rounds.
 
 use crate::engine::{DenoiseInputs, DeviceBatch, GpuDenoiser, HeunPlan, MapTokens, StepRule};
+use crate::kernels::window::ShiftList;
 use crate::kernels::{read_back_ranges, storage_buffer};
 use crate::{Error, GpuContext, Result};
 
@@ -479,25 +480,25 @@ impl road_model::sample::StepEngine for GpuStepEngine<'_> {
             return Err(road_model::Error::Engine("shift before load".into()));
         };
         let v_len = self.agents * self.model.config.window_slots;
-        let list: Vec<(usize, &[f32], &[f32])> = edits
+        let list: Vec<ShiftList<'_>> = edits
             .iter()
-            .map(|e| (e.scene, e.emitted, e.noise))
+            .map(|e| (e.scene, e.emitted, e.noise, e.turns))
             .collect();
         window
             .shift(self.ctx, &batch.x, &list, shape)
             .map_err(engine_err)?;
         // The kept estimate moves with its slots (`road_model::sample::estimate_shift`): the
-        // same kernel with nothing emitted and no noise.
+        // same kernel with nothing emitted and no noise, its plan turned as the window's.
         if let (Some(estimate_window), Some(denoised)) = (&mut self.estimate_window, &self.denoised)
         {
             let zeros: Vec<(Vec<f32>, Vec<f32>)> = edits
                 .iter()
                 .map(|e| (vec![0.0; e.emitted.len()], vec![0.0; e.noise.len()]))
                 .collect();
-            let list: Vec<(usize, &[f32], &[f32])> = edits
+            let list: Vec<ShiftList<'_>> = edits
                 .iter()
                 .zip(&zeros)
-                .map(|(e, (emitted, noise))| (e.scene, &emitted[..], &noise[..]))
+                .map(|(e, (emitted, noise))| (e.scene, &emitted[..], &noise[..], e.turns))
                 .collect();
             let still = road_model::sample::ShiftShape {
                 observed: shape.observed,

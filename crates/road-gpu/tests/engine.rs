@@ -537,7 +537,8 @@ fn gpu_and_cpu_rollouts_agree_for_a_seed() {
 }
 
 /// Serving: scenes at different phases and planners share every batched step (per-scene σ
-/// rows, idle scenes holding still); the GPU engine agrees with the candle reference.
+/// rows, idle scenes holding still, plans turned at emissions); the GPU engine agrees with the
+/// candle reference.
 #[test]
 fn mixed_phase_batches_agree_with_the_reference() {
     mixed_phase_batches_agree(&test_config(), "mixed");
@@ -603,8 +604,13 @@ fn mixed_phase_batches_agree(config: &ModelConfig, name: &str) {
             }
             let which: &[usize] = if t == 3 { &[0, 2] } else { &[0, 1, 2] };
             driver
-                .tick_scenes(engine, which, &mut |i, e| {
+                .tick_scenes(engine, which, &mut |i, e, plan_turns| {
                     out[i].extend_from_slice(e);
+                    // From tick 2 on, agent 0's plan turns about its new position (as the
+                    // lane guard's `turn_plan` does), the window's and the kept estimate's.
+                    if t >= 2 {
+                        plan_turns[..4].copy_from_slice(&[e[0], e[1], 0.3, 0.1]);
+                    }
                     Ok(())
                 })
                 .unwrap();

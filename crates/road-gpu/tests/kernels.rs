@@ -260,20 +260,42 @@ fn window_kernels_match_the_cpu_reference() {
             obs_noise: 0.002,
             sigma_max: 80.0,
         };
-        let edits: Vec<(usize, Vec<f32>, Vec<f32>)> = (0..b)
+        // Every third shifted scene turns no plan; the others turn every other agent's.
+        // (scene, emitted, noise, turns)
+        type Edit = (usize, Vec<f32>, Vec<f32>, Vec<f32>);
+        let edits: Vec<Edit> = (0..b)
             .step_by(2)
             .map(|i| {
                 let real = 1 + i % a;
+                let turns = if i % 3 == 0 {
+                    Vec::new()
+                } else {
+                    (0..real)
+                        .flat_map(|agent| {
+                            if agent % 2 == 0 {
+                                [
+                                    rng.random_range(-2.0..2.0),
+                                    rng.random_range(-2.0..2.0),
+                                    rng.random_range(-1.2..1.2),
+                                    rng.random_range(-0.5..0.5),
+                                ]
+                            } else {
+                                road_model::sample::NO_TURN
+                            }
+                        })
+                        .collect()
+                };
                 (
                     i,
                     random(&mut rng, real * 3, 2.0),
                     random(&mut rng, real * 6, 2.0),
+                    turns,
                 )
             })
             .collect();
-        let list: Vec<(usize, &[f32], &[f32])> = edits
+        let list: Vec<road_gpu::kernels::window::ShiftList<'_>> = edits
             .iter()
-            .map(|(i, e, z)| (*i, e.as_slice(), z.as_slice()))
+            .map(|(i, e, z, t)| (*i, e.as_slice(), z.as_slice(), t.as_slice()))
             .collect();
         ops.shift(&ctx, &buffer, &list, shape).unwrap();
         let bytes = road_gpu::kernels::read_back(&ctx, &buffer, (x.len() * 4) as u64).unwrap();
@@ -281,12 +303,13 @@ fn window_kernels_match_the_cpu_reference() {
         let mut expected = x.clone();
         let per_scene = a * w * 3;
         let valid = vec![1.0f32; a * w];
-        for (i, e, z) in &edits {
+        for (i, e, z, t) in &edits {
             let edit = ShiftEdit {
                 scene: *i,
                 emitted: e,
                 noise: z,
                 valid: &valid,
+                turns: t,
             };
             window_shift(&mut expected[i * per_scene..][..per_scene], w, &edit, shape);
         }
@@ -417,6 +440,27 @@ fn pair_attention_matches_the_cpu_reference() {
         };
         if let Err(m) = tol.check(&got, &want) {
             panic!("{b} scenes × {a} agents × {w} slots, {heads} heads of {head_dim}: {m}");
+        }
+    }
+}
+
+/// `road gpu selftest`'s kernel checks, which a lent GPU runs before anything is timed, pass
+/// here (on lavapipe in CI), each comparing values.
+#[test]
+fn the_selftest_kernel_checks_pass() {
+    let ctx = context();
+    let checks = road_gpu::selftest::kernel_checks(&ctx).unwrap();
+    for name in ["linear", "attention", "window_emitted", "window_shift"] {
+        assert!(
+            checks.iter().any(|c| c.name == name),
+            "no {name} check among {:?}",
+            checks.iter().map(|c| c.name).collect::<Vec<_>>()
+        );
+    }
+    for c in &checks {
+        assert!(c.values > 0, "{} compares no values", c.name);
+        if let Err(m) = &c.outcome {
+            panic!("{}: {m}", c.name);
         }
     }
 }

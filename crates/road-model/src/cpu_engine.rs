@@ -110,11 +110,20 @@ impl HostWindows {
                     self.scenes
                 )));
             }
+            if !e.turns.is_empty() && e.turns.len() != e.emitted.len() / 3 * 4 {
+                return Err(Error::data(format!(
+                    "shift of scene {}: {} plan-turn values for {} emitted states",
+                    e.scene,
+                    e.turns.len(),
+                    e.emitted.len() / 3
+                )));
+            }
             window_shift(&mut self.windows[e.scene * x_len..][..x_len], w, e, shape);
             estimate_shift(
                 &mut self.denoised[e.scene * x_len..][..x_len],
                 w,
                 shape.observed,
+                e.turns,
             );
             self.valid[e.scene * v_len..][..v_len].copy_from_slice(e.valid);
         }

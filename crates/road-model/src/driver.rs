@@ -25,6 +25,22 @@ use crate::sample::{Rollout, RolloutScene, ShiftEdit, ShiftShape, StepEngine};
 use crate::smoothing::{smooth_accelerations, smooth_with_plan, track_least_jerk};
 use crate::{Error, Result};
 
+/// The caller's hook at each scene's emission, `overrides(scene, emitted, plan_turns)`: called
+/// once per ticked scene with the states the model emitted, `emitted [agents·3]` in model
+/// units; it may overwrite the agents it drives before they join the observations, and where
+/// it corrects an agent's state it may turn that agent's plan with it (`plan_turns
+/// [agents·4]`, zeros on entry: [`ShiftEdit::turns`]), so that the window's future slots go
+/// on from the corrected state.
+pub type Overrides<'a> = dyn FnMut(usize, &mut [f32], &mut [f32]) -> Result<()> + 'a;
+
+/// A scene's window shift, gathered while its emission is handled ([`ShiftEdit`] owned).
+struct PendingShift {
+    scene: usize,
+    emitted: Vec<f32>, // [agents, 3]
+    noise: Vec<f32>,   // [agents, 6]
+    turns: Vec<f32>,   // [agents, 4], or empty: no plan turns
+}
+
 /// Per-scene state in model units. The window lives in the engine; `window` is the host copy
 /// built from the history when the window is (re)built, `valid` the window's current validity.
 /// A free slot of a pool has no agents.
@@ -578,7 +594,7 @@ impl RolloutDriver {
     pub fn tick(
         &mut self,
         engine: &mut dyn StepEngine,
-        overrides: &mut dyn FnMut(usize, &mut [f32]) -> Result<()>,
+        overrides: &mut Overrides<'_>,
     ) -> Result<()> {
         let all: Vec<usize> = (0..self.states.len())
             .filter(|&i| self.ids[i].is_some())
@@ -587,14 +603,12 @@ impl RolloutDriver {
     }
 
     /// One simulated step of the given scenes, batched on `engine` whatever their planners and
-    /// phases: rounds until every one of them has emitted. `overrides(scene, emitted)` is
-    /// called once per ticked scene with the states the model emitted, `[agents·3]` in model
-    /// units, and may overwrite the agents it drives before they join the observations.
+    /// phases: rounds until every one of them has emitted; `overrides` as in [`Overrides`].
     pub fn tick_scenes(
         &mut self,
         engine: &mut dyn StepEngine,
         scenes: &[usize],
-        overrides: &mut dyn FnMut(usize, &mut [f32]) -> Result<()>,
+        overrides: &mut Overrides<'_>,
     ) -> Result<()> {
         for &i in scenes {
             self.request_tick(i)?;
@@ -639,7 +653,7 @@ impl RolloutDriver {
     pub fn round(
         &mut self,
         engine: &mut dyn StepEngine,
-        overrides: &mut dyn FnMut(usize, &mut [f32]) -> Result<()>,
+        overrides: &mut Overrides<'_>,
     ) -> Result<Vec<usize>> {
         let w = self.w;
         if self.sched.next_batch(self.states.len())? > 0 {
@@ -707,7 +721,7 @@ impl RolloutDriver {
     fn emit(
         &mut self,
         engine: &mut dyn StepEngine,
-        overrides: &mut dyn FnMut(usize, &mut [f32]) -> Result<()>,
+        overrides: &mut Overrides<'_>,
     ) -> Result<Vec<usize>> {
         let (n, w, a_max) = (self.n, self.w, self.a_max);
         let position_scale_m = engine.position_scale_m();
@@ -754,8 +768,7 @@ impl RolloutDriver {
         if !self.denoised_scenes.is_empty() {
             engine.read_denoised(&self.denoised_scenes, &mut self.denoised)?;
         }
-        // (scene, emitted [agents·3], noise [agents·6]) of the scenes that shift.
-        let mut shifts: Vec<(usize, Vec<f32>, Vec<f32>)> = Vec::new();
+        let mut shifts: Vec<PendingShift> = Vec::new();
         let mut done = Vec::with_capacity(self.outcomes.len());
         let mut read = 0;
         for o in &self.outcomes {
@@ -817,7 +830,11 @@ impl RolloutDriver {
                 // External agents' states replace theirs just below.
                 smooth_accelerations(&s.history, &s.history_valid, &mut emitted, alpha as f32);
             }
-            overrides(i, &mut emitted)?;
+            let mut turns = vec![0.0; s.agents * 4];
+            overrides(i, &mut emitted, &mut turns)?;
+            if turns.iter().all(|&v| v == 0.0) {
+                turns.clear();
+            }
             for a in 0..s.agents {
                 s.history[a].push([emitted[3 * a], emitted[3 * a + 1], emitted[3 * a + 2]]);
                 s.history_valid[a].push(true);
@@ -851,7 +868,12 @@ impl RolloutDriver {
                         s.valid[row + n - 1] = 1.0;
                         s.valid[row + w - 1] = 1.0;
                     }
-                    shifts.push((i, emitted, noise));
+                    shifts.push(PendingShift {
+                        scene: i,
+                        emitted,
+                        noise,
+                        turns,
+                    });
                 }
                 WindowUpdate::Rebuild => {
                     let tau = self.planners[i].noise_temperature() as f32;
@@ -867,11 +889,12 @@ impl RolloutDriver {
         if !shifts.is_empty() {
             let edits: Vec<ShiftEdit<'_>> = shifts
                 .iter()
-                .map(|(i, emitted, noise)| ShiftEdit {
-                    scene: *i,
-                    emitted,
-                    noise,
-                    valid: &self.states[*i].valid,
+                .map(|p| ShiftEdit {
+                    scene: p.scene,
+                    emitted: &p.emitted,
+                    noise: &p.noise,
+                    valid: &self.states[p.scene].valid,
+                    turns: &p.turns,
                 })
                 .collect();
             engine.shift(&edits, shape)?;

@@ -139,6 +139,29 @@ pub struct ShiftEdit<'a> {
     pub noise: &'a [f32],
     /// The window's validity after the shift, `[A, W]`.
     pub valid: &'a [f32],
+    /// Per agent, how its plan turns with a correction of its emitted state, `[agents, 4]`:
+    /// pivot x, pivot y (model units), angle (radians), heading change (model units); empty
+    /// when nothing turns ([`turn_plan`]).
+    pub turns: &'a [f32],
+}
+
+/// The values of one agent in [`ShiftEdit::turns`]: its plan left as it is.
+pub const NO_TURN: [f32; 4] = [0.0; 4];
+
+/// One future slot's state `[3]` turned by `turn` ([`ShiftEdit::turns`]): the position
+/// rotated by the angle about the pivot, the heading changed by as much. The reference of the
+/// turn in the `window_shift` kernel (which computes in the same order). A zero turn leaves
+/// the state bit for bit as it is.
+pub fn turn_plan(state: &mut [f32], turn: &[f32]) {
+    let [pivot_x, pivot_y, angle_rad, heading_change] = [turn[0], turn[1], turn[2], turn[3]];
+    if angle_rad == 0.0 && heading_change == 0.0 {
+        return;
+    }
+    let (sin, cos) = angle_rad.sin_cos();
+    let (dx, dy) = (state[0] - pivot_x, state[1] - pivot_y);
+    state[0] = pivot_x + (cos * dx - sin * dy);
+    state[1] = pivot_y + (sin * dx + cos * dy);
+    state[2] += heading_change;
 }
 
 /// What a shift needs to know of the planner.
@@ -172,8 +195,9 @@ pub fn window_emitted(
 
 /// The window after an emission from slot n of scene `scene` (`window [A, W, 3]` of that scene):
 /// slots move up by one, slot n − 1 = emitted + obs_noise·noise, slot W − 1 = σ_max·noise (agents past
-/// `emitted`'s count are padding and untouched but for the move). The reference of the
-/// `window_shift` kernel.
+/// `emitted`'s count are padding and untouched but for the move); then each agent's future
+/// slots n … W − 2 (its plan, not the fresh slot) turn by its entry of `edit.turns`
+/// ([`turn_plan`]). The reference of the `window_shift` kernel.
 pub fn window_shift(window: &mut [f32], w: usize, edit: &ShiftEdit<'_>, shape: ShiftShape) {
     let agents = window.len() / (3 * w);
     let real = edit.emitted.len() / 3;
@@ -193,20 +217,30 @@ pub fn window_shift(window: &mut [f32], w: usize, edit: &ShiftEdit<'_>, shape: S
             window[3 * (row + shape.observed - 1) + d] = e + shape.obs_noise * obs;
             window[3 * (row + w - 1) + d] = shape.sigma_max * new;
         }
+        if a < real && !edit.turns.is_empty() {
+            let turn = &edit.turns[4 * a..4 * a + 4];
+            for slot in shape.observed..w - 1 {
+                turn_plan(&mut window[3 * (row + slot)..3 * (row + slot) + 3], turn);
+            }
+        }
     }
 }
 
 /// A scene's kept denoiser estimate `[A, W, 3]` after its window shifted: each slot's estimate
 /// moves up with the slot, so that the multistep sampler finds it where the slot now is; the
 /// slots that are new to their place (the joining observation n − 1 and the fresh slot W − 1)
-/// get zeros (the sampler does not correct them). [`window_shift`] with nothing emitted and
-/// no noise: the GPU engines run the same kernel on their estimate.
-pub fn estimate_shift(estimate: &mut [f32], w: usize, observed: usize) {
+/// get zeros (the sampler does not correct them), and the plan turns as the window's does
+/// (`turns`, [`ShiftEdit::turns`]). [`window_shift`] with zeros emitted and no noise: the GPU
+/// engines run the same kernel on their estimate.
+pub fn estimate_shift(estimate: &mut [f32], w: usize, observed: usize, turns: &[f32]) {
+    let zeros = vec![0.0; turns.len() / 4 * 3];
+    let no_noise = vec![0.0; turns.len() / 4 * 6];
     let edit = ShiftEdit {
         scene: 0,
-        emitted: &[],
-        noise: &[],
+        emitted: &zeros,
+        noise: &no_noise,
         valid: &[],
+        turns,
     };
     let shape = ShiftShape {
         observed,
@@ -248,7 +282,7 @@ pub fn rollout_with(
     }
     let mut driver = RolloutDriver::new(engine, planner, scenes, steps, rng)?;
     for _ in 0..steps {
-        driver.tick(engine, &mut |_, _| Ok(()))?;
+        driver.tick(engine, &mut |_, _, _| Ok(()))?;
     }
     driver.into_rollout()
 }
@@ -256,5 +290,27 @@ pub fn rollout_with(
 impl From<road_sched::Error> for Error {
     fn from(e: road_sched::Error) -> Self {
         Error::data(format!("scheduler: {e}"))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_quarter_turn_rotates_about_the_pivot_and_changes_the_heading() {
+        let mut state = [3.0f32, 2.0, 0.1];
+        turn_plan(&mut state, &[2.0, 2.0, std::f32::consts::FRAC_PI_2, 0.4]);
+        let expected = [2.0f32, 3.0, 0.5];
+        for (got, want) in state.iter().zip(expected) {
+            assert!((got - want).abs() < 1e-6, "{state:?} against {expected:?}");
+        }
+    }
+
+    #[test]
+    fn no_turn_leaves_a_state_bit_for_bit() {
+        let mut state = [0.1f32, -7.3, 1e-3];
+        turn_plan(&mut state, &NO_TURN);
+        assert_eq!(state, [0.1f32, -7.3, 1e-3]);
     }
 }

@@ -719,7 +719,7 @@ fn fast_engine_matches_candle_when_only_some_scenes_tick() {
         let (mut out, mut plans) = (Vec::new(), Vec::new());
         for which in [&[0usize, 1, 2, 3][..], &[1, 3], &[0, 2, 3], &[2], &[0, 1]] {
             driver
-                .tick_scenes(engine, which, &mut |_, e| {
+                .tick_scenes(engine, which, &mut |_, e, _| {
                     out.push(e.to_vec());
                     Ok(())
                 })
@@ -883,7 +883,7 @@ fn pooled_ticks(
                   out: &mut Vec<(usize, Vec<f32>)>,
                   rounds: &mut Vec<Vec<usize>>| {
         let done = pool
-            .round(engine, &mut |i, e| {
+            .round(engine, &mut |i, e, _| {
                 out.push((i, e.to_vec()));
                 Ok(())
             })

@@ -816,7 +816,7 @@ fn scenes_at_different_phases_share_batches_without_changing_each_other() {
     let emitted = |driver: &mut RolloutDriver, engine: &mut CpuEngine, which: &[usize]| {
         let mut out: Vec<Vec<f32>> = vec![Vec::new(); driver.scenes()];
         driver
-            .tick_scenes(engine, which, &mut |i, e| {
+            .tick_scenes(engine, which, &mut |i, e, _| {
                 out[i] = e.to_vec();
                 Ok(())
             })
@@ -869,4 +869,85 @@ fn scenes_at_different_phases_share_batches_without_changing_each_other() {
         both.into_rollout().is_err(),
         "unequal ticks have no common rollout"
     );
+}
+
+/// A hook that turns an agent's plan at an emission (`plan_turns` of
+/// `road_model::driver::Overrides`) turns that agent's future slots n … W − 2 of the window and
+/// of the multistep sampler's kept estimate by `turn_plan`, and nothing else: the other agents,
+/// the observed slots and the fresh slot are as without the turn.
+#[test]
+fn a_turned_plan_turns_only_that_agent_s_future_slots() {
+    use road_model::sample::{CpuEngine, RolloutDriver, RolloutScene, StepEngine, turn_plan};
+    use road_sched::{PlannerSpec, Sampler};
+    let run = run_config();
+    let ds = dataset(Split::Train);
+    let (_, model) = model::init_seeded(&run.model, &Device::Cpu, 11).unwrap();
+    let n = 10;
+    let history = SceneInput::from_window(&ds.window(0).unwrap(), 0, n, &run.model);
+    let agents = history.agents;
+    assert!(agents >= 2, "the test needs two agents");
+    let scenes = [RolloutScene { history }];
+    let planner = PlannerSpec {
+        steps_per_diffusion: 10,
+        sampler: Sampler::Multistep,
+        ..PlannerSpec::default()
+    };
+    let turn = [0.3f32, -0.2, 0.5, 0.25];
+    let turned_agent = 1;
+    // Windows [A, W, 3] and estimates after 3 ticks, the last one turning `turned_agent`'s
+    // plan when `turned`.
+    let windows_after = |turned: bool| {
+        let mut engine = CpuEngine::new(&model);
+        let mut driver = RolloutDriver::new(
+            &mut engine,
+            &planner,
+            &scenes,
+            3,
+            &mut StdRng::seed_from_u64(5),
+        )
+        .unwrap();
+        for t in 0..3 {
+            driver
+                .tick(&mut engine, &mut |_, _, plan_turns| {
+                    if turned && t == 2 {
+                        plan_turns[4 * turned_agent..][..4].copy_from_slice(&turn);
+                    }
+                    Ok(())
+                })
+                .unwrap();
+        }
+        let w = engine.window_slots();
+        let mut window = vec![0.0f32; agents * w * 3];
+        let mut slot = vec![0.0f32; agents * 3];
+        for k in 0..w {
+            engine.read_emitted(&[Some(k)], &mut slot).unwrap();
+            for a in 0..agents {
+                window[3 * (a * w + k)..][..3].copy_from_slice(&slot[3 * a..][..3]);
+            }
+        }
+        let mut estimate = vec![0.0f32; agents * w * 3];
+        engine.read_denoised(&[0], &mut estimate).unwrap();
+        (w, window, estimate)
+    };
+    let (w, plain_window, plain_estimate) = windows_after(false);
+    let (_, turned_window, turned_estimate) = windows_after(true);
+    for (what, plain, turned) in [
+        ("window", &plain_window, &turned_window),
+        ("estimate", &plain_estimate, &turned_estimate),
+    ] {
+        for a in 0..agents {
+            for k in 0..w {
+                let mut expected = plain[3 * (a * w + k)..][..3].to_vec();
+                if a == turned_agent && (n..w - 1).contains(&k) {
+                    turn_plan(&mut expected, &turn);
+                    assert_ne!(expected, plain[3 * (a * w + k)..][..3], "{what} slot {k}");
+                }
+                assert_eq!(
+                    turned[3 * (a * w + k)..][..3],
+                    expected[..],
+                    "{what}: agent {a}, slot {k}"
+                );
+            }
+        }
+    }
 }

@@ -189,6 +189,12 @@ pub struct CollisionGuard {
 pub struct LaneGuard {
     /// Pure-pursuit look-ahead along the lane's centre line, metres.
     pub lookahead_m: f64,
+    /// Whether a steer turns the agent's plan with its step: the window's future slots
+    /// rotate about the agent's position before the tick by the steer's angle, their headings
+    /// with them, so that the model plans on from the corrected state rather than back
+    /// towards where it had meant to go. Off unless set.
+    #[serde(default)]
+    pub turn_plan: bool,
 }
 
 /// The longest lane-guard look-ahead accepted, metres (a few lanelets of an INTERACTION map).

@@ -6,6 +6,7 @@
 
 use std::sync::Arc;
 
+use glam::DVec2;
 use rand::rngs::StdRng;
 use road_data::{LaneletMap, SceneWindow, wrap_angle};
 use road_model::batch::SceneInput;
@@ -474,11 +475,18 @@ impl<'m> ClosedLoop<'m> {
         let (scenes, guards) = (&mut self.scenes, &self.guards);
         let heading_scale = self.heading_scale;
         let done = self.driver.round(engine, &mut |i: usize,
-                                                    emitted: &mut [f32]|
+                                                    emitted: &mut [f32],
+                                                    plan_turns: &mut [f32]|
          -> ModelResult<()> {
             let s = scenes[i].as_mut().expect("the driver ticks live scenes");
             let (lane_guard, collision_guard) = guards[i];
-            s.apply(emitted, heading_scale, lane_guard, collision_guard);
+            s.apply(
+                emitted,
+                plan_turns,
+                heading_scale,
+                lane_guard,
+                collision_guard,
+            );
             Ok(())
         })?;
         for i in done {
@@ -583,10 +591,12 @@ impl<'m> SceneRuntime<'m> {
     /// The model's emitted states `[agents·3]` (model units) with this tick's overrides put
     /// in, then the lane guard's and the collision guard's changes to model-driven agents
     /// (when the planner has them; the collision guard last, so that nobody steers into
-    /// another); the poses after the tick follow from them.
+    /// another); the poses after the tick follow from them. The lane guard's steers turn the
+    /// agents' plans where it says so (`plan_turns [agents·4]`, the driver's).
     fn apply(
         &mut self,
         emitted: &mut [f32],
+        plan_turns: &mut [f32],
         heading_scale: f64,
         lane_guard: Option<LaneGuard>,
         collision_guard: Option<CollisionGuard>,
@@ -598,7 +608,7 @@ impl<'m> SceneRuntime<'m> {
         }
         self.guarded.clear();
         if let (Some(guard), Some(map)) = (lane_guard, self.map.clone()) {
-            self.keep_on_road(emitted, heading_scale, guard, map.get());
+            self.keep_on_road(emitted, plan_turns, heading_scale, guard, map.get());
         }
         if let Some(guard) = collision_guard {
             self.guard(emitted, heading_scale, guard);
@@ -620,9 +630,12 @@ impl<'m> SceneRuntime<'m> {
 
     /// Runs the lane guard on this tick's states (model units, overrides in) of the model-driven
     /// agents: poses before the tick are `self.poses` (headings unwrapped), after it `emitted`.
+    /// With `guard.turn_plan`, a steered agent's plan turns about its position before the tick
+    /// by the angle its step turned (`plan_turns`).
     fn keep_on_road(
         &mut self,
         emitted: &mut [f32],
+        plan_turns: &mut [f32],
         heading_scale: f64,
         guard: LaneGuard,
         map: &LaneletMap,
@@ -642,9 +655,21 @@ impl<'m> SceneRuntime<'m> {
                 y_m: p[1],
                 heading_rad: f64::from(emitted[3 * a + 2]) / heading_scale,
             };
+            let model_step = DVec2::new(proposed.x_m - before.x_m, proposed.y_m - before.y_m);
             let Some(action) = keep_on_road(map, before, &mut proposed, guard.lookahead_m) else {
                 continue;
             };
+            if guard.turn_plan && action == LaneAction::Steered {
+                let steered_step = DVec2::new(proposed.x_m - before.x_m, proposed.y_m - before.y_m);
+                let angle_rad = model_step.angle_to(steered_step);
+                let pivot = frame.to_norm([before.x_m, before.y_m]);
+                plan_turns[4 * a..4 * a + 4].copy_from_slice(&[
+                    pivot[0],
+                    pivot[1],
+                    angle_rad as f32,
+                    (angle_rad * heading_scale) as f32,
+                ]);
+            }
             self.guarded.push((
                 a,
                 match action {

@@ -20,7 +20,11 @@
 //! lanelet without successor (out of the mapped area, as vehicles in the log do; stopping it
 //! there would park it in the way of the traffic behind). The guarded state is what joins the
 //! history and the window, so the model plans on from where the vehicle really is: back in its
-//! lane.
+//! lane. With `turn_plan` the closed loop turns the steered vehicle's plan too (the window's
+//! future slots rotated about its position before the tick by the angle its step turned,
+//! headings with them: `road_model::sample::turn_plan`); without it the model, its plan still
+//! pointing where it had meant to go, turns its heading back there while its positions follow the
+//! lane, and the vehicle slides sideways (`docs/results.md`, "the lane guard turns the plan").
 
 use glam::DVec2;
 use road_data::geometry::Point;

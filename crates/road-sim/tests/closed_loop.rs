@@ -503,7 +503,10 @@ fn the_lane_guard_keeps_model_agents_on_the_road() {
     };
     let unguarded = run(&own_planner);
     let guarded = run(&PlannerSpec {
-        lane_guard: Some(road_sched::LaneGuard { lookahead_m: 6.0 }),
+        lane_guard: Some(road_sched::LaneGuard {
+            lookahead_m: 6.0,
+            turn_plan: false,
+        }),
         ..own_planner.clone()
     });
     for (t, tick) in guarded.iter().enumerate() {

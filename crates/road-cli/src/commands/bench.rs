@@ -510,7 +510,7 @@ fn serve_bench(args: &ServeBenchArgs) -> Result<()> {
                 let mut rng = rand::rngs::StdRng::seed_from_u64(0);
                 let mut driver =
                     RolloutDriver::new(engine, &run.planner, &scenes, args.ticks + 1, &mut rng)?;
-                driver.tick(engine, &mut |_, _| Ok(()))?; // every scene's warm-up, untimed
+                driver.tick(engine, &mut |_, _, _| Ok(()))?; // every scene's warm-up, untimed
                 let nfe_before_of = (0..b)
                     .map(|i| driver.scene_nfe(i))
                     .collect::<road_model::Result<Vec<u64>>>()?;
@@ -520,7 +520,7 @@ fn serve_bench(args: &ServeBenchArgs) -> Result<()> {
                     if joining && t % args.join_every == 0 {
                         driver.switch_scene_planner((t / args.join_every) % b, &run.planner)?;
                     }
-                    driver.tick(engine, &mut |_, _| Ok(()))?;
+                    driver.tick(engine, &mut |_, _, _| Ok(()))?;
                 }
                 let secs = started.elapsed().as_secs_f64();
                 // Useful work: each scene's evaluations times its multiply-adds (agents with

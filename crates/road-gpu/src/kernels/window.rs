@@ -22,6 +22,10 @@ struct Params {
     _pad1: u32,
 }
 
+/// One scene's shift for [`WindowOps::shift`]: `(scene, emitted [agents, 3], noise
+/// [agents, 6], plan turns [agents, 4] or empty)`.
+pub type ShiftList<'a> = (usize, &'a [f32], &'a [f32], &'a [f32]);
+
 /// A `per_scene` entry meaning "not read".
 const NOT_READ: u32 = u32::MAX;
 
@@ -36,6 +40,7 @@ pub struct WindowOps {
     per_scene: wgpu::Buffer,  // [B] u32
     emitted_in: wgpu::Buffer, // [B, A, 3]
     noise: wgpu::Buffer,      // [B, A, 6]
+    turns: wgpu::Buffer,      // [B, A, 4]
     emitted_out: wgpu::Buffer,
     scratch: wgpu::Buffer, // [B, A, W, 3]
     gather: Dispatch,
@@ -44,6 +49,7 @@ pub struct WindowOps {
     per_scene_host: Vec<u32>,
     emitted_host: Vec<f32>,
     noise_host: Vec<f32>,
+    turns_host: Vec<f32>,
 }
 
 impl WindowOps {
@@ -84,6 +90,7 @@ impl WindowOps {
         let per_scene = storage_buffer(ctx, "window per scene", (scenes * 4) as u64);
         let emitted_in = storage_buffer(ctx, "window emitted in", (gather_count * 4) as u64);
         let noise = storage_buffer(ctx, "window noise", (scenes * agents * 6 * 4) as u64);
+        let turns = storage_buffer(ctx, "window plan turns", (scenes * agents * 4 * 4) as u64);
         let emitted_out = storage_buffer(ctx, "window emitted out", (gather_count * 4) as u64);
         let scratch = storage_buffer(ctx, "window scratch", (shift_count * 4) as u64);
         // The gather reads neither `emitted` (3) nor `noise` (4): its derived layout lacks them.
@@ -100,7 +107,7 @@ impl WindowOps {
         let shift = shift_pipeline.prepare_buffers(
             ctx,
             &shift_params,
-            &[x, &per_scene, &emitted_in, &noise, &scratch],
+            &[x, &per_scene, &emitted_in, &noise, &scratch, &turns],
             shift_count as u32,
         );
         Self {
@@ -111,6 +118,7 @@ impl WindowOps {
             per_scene,
             emitted_in,
             noise,
+            turns,
             emitted_out,
             scratch,
             gather,
@@ -118,6 +126,7 @@ impl WindowOps {
             per_scene_host: vec![0; scenes],
             emitted_host: vec![0.0; gather_count],
             noise_host: vec![0.0; scenes * agents * 6],
+            turns_host: vec![0.0; scenes * agents * 4],
         }
     }
 
@@ -171,12 +180,13 @@ impl WindowOps {
     }
 
     /// Shifts the windows of the scenes in `edits` (`(scene, emitted [agents, 3], noise
-    /// [agents, 6])`) on the device: `x` → scratch → `x`.
+    /// [agents, 6], plan turns [agents, 4] or empty)`, as `road_model::sample::ShiftEdit`) on
+    /// the device: `x` → scratch → `x`.
     pub fn shift(
         &mut self,
         ctx: &GpuContext,
         x: &wgpu::Buffer,
-        edits: &[(usize, &[f32], &[f32])],
+        edits: &[ShiftList<'_>],
         shape: ShiftShape,
     ) -> Result<()> {
         if shape.observed == 0 || shape.observed >= self.slots {
@@ -188,17 +198,24 @@ impl WindowOps {
         self.per_scene_host.fill(0);
         self.emitted_host.fill(0.0);
         self.noise_host.fill(0.0);
-        for &(scene, emitted, noise) in edits {
+        self.turns_host.fill(0.0);
+        for &(scene, emitted, noise, turns) in edits {
             let agents = emitted.len() / 3;
-            if scene >= self.scenes || agents > self.agents || noise.len() != agents * 6 {
+            if scene >= self.scenes
+                || agents > self.agents
+                || noise.len() != agents * 6
+                || !(turns.is_empty() || turns.len() == agents * 4)
+            {
                 return Err(Error::Input(format!(
-                    "shift of scene {scene}: {} emitted values and {} noise draws (batch: {} scenes × {} agents)",
+                    "shift of scene {scene}: {} emitted values, {} noise draws and {} plan-turn values (batch: {} scenes × {} agents)",
                     emitted.len(),
                     noise.len(),
+                    turns.len(),
                     self.scenes,
                     self.agents
                 )));
             }
+            self.turns_host[scene * self.agents * 4..][..turns.len()].copy_from_slice(turns);
             self.per_scene_host[scene] = 1;
             self.emitted_host[scene * self.agents * 3..][..emitted.len()].copy_from_slice(emitted);
             self.noise_host[scene * self.agents * 6..][..noise.len()].copy_from_slice(noise);
@@ -226,6 +243,7 @@ impl WindowOps {
             bytemuck::cast_slice(&self.emitted_host),
         );
         q.write_buffer(&self.noise, 0, bytemuck::cast_slice(&self.noise_host));
+        q.write_buffer(&self.turns, 0, bytemuck::cast_slice(&self.turns_host));
         let mut encoder = ctx
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
