@@ -6,7 +6,7 @@
 //! The forward pass is the one of `docs/checkpoint.md`, kernel by kernel:
 //! `linear` (embed_agent) → `embed_tokens` → per block: `layer_norm`, `linear` q/k/v,
 //! `attention` (time, agents, map layouts; `pair_attention` for agents with agent pairs), `linear` o, `add_in_place`, MLP → `layer_norm`,
-//! `linear` head → `precondition_output`.
+//! `linear` head → `precondition_output`. The sampler steps around it are in `sampler_step`.
 
 use std::collections::HashMap;
 use std::path::Path;
@@ -71,18 +71,9 @@ struct ElementwiseParams {
     _pad: [u32; 2],
 }
 
-#[repr(C)]
-#[derive(Debug, Clone, Copy, Pod, Zeroable)]
-struct HeunParams {
-    count: u32,
-    slots: u32,
-    agents: u32,
-    _pad: u32,
-}
-
 /// Every pipeline of the engine, compiled once.
 #[derive(Debug)]
-struct Pipelines {
+pub(crate) struct Pipelines {
     linear: Pipeline,
     layer_norm: Pipeline,
     attention: Pipeline,
@@ -91,9 +82,9 @@ struct Pipelines {
     precondition_output: Pipeline,
     embed_map_points: Pipeline,
     max_over_points: Pipeline,
-    heun_euler: Pipeline,
-    heun_correct: Pipeline,
-    multistep_correct: Pipeline,
+    pub(crate) heun_euler: Pipeline,
+    pub(crate) heun_correct: Pipeline,
+    pub(crate) multistep_correct: Pipeline,
     pick_agent_maps: Pipeline,
     pair_attention: Pipeline,
 }
@@ -171,7 +162,7 @@ pub struct GpuDenoiser {
     pub config: ModelConfig,
     weights: wgpu::Buffer,
     slices: HashMap<String, Slice>,
-    pipelines: Pipelines,
+    pub(crate) pipelines: Pipelines,
 }
 
 impl GpuDenoiser {
@@ -309,7 +300,7 @@ impl GpuDenoiser {
         }))
     }
 
-    fn params<T: Pod>(ctx: &GpuContext, p: &T) -> wgpu::Buffer {
+    pub(crate) fn params<T: Pod>(ctx: &GpuContext, p: &T) -> wgpu::Buffer {
         upload(
             ctx,
             "params",
@@ -605,7 +596,7 @@ impl GpuDenoiser {
     /// `x` and `sigma` from the given buffers (so that a sampler can evaluate at intermediate
     /// states) and working in `scratch`.
     #[allow(clippy::too_many_arguments)]
-    fn prepare_denoise(
+    pub(crate) fn prepare_denoise(
         &self,
         ctx: &GpuContext,
         ops: &mut Vec<Dispatch>,
@@ -985,120 +976,11 @@ impl GpuDenoiser {
         let bytes = read_back(ctx, &out, len)?;
         Ok(bytemuck::cast_slice::<u8, f32>(&bytes).to_vec())
     }
-
-    /// Everything a Heun step of this batch needs, made once: buffers, bind groups and the
-    /// dispatch lists of both evaluations and the updates. Steps then only write σ.
-    pub fn heun_plan(
-        &self,
-        ctx: &GpuContext,
-        batch: &DeviceBatch,
-        map: &MapTokens,
-    ) -> Result<HeunPlan> {
-        let (b, a, w) = (batch.scenes, batch.agents, self.config.window_slots);
-        let count = b * a * w * 3;
-        let len = (count * 4) as u64;
-        let sigma = |label| storage_buffer(ctx, label, (b * w * 4) as u64);
-        let (sigma_cur, sigma_next, sigma_eval) =
-            (sigma("sigma_cur"), sigma("sigma_next"), sigma("sigma_eval"));
-        let (first, second, x_e) = (
-            storage_buffer(ctx, "D1", len),
-            storage_buffer(ctx, "D2", len),
-            storage_buffer(ctx, "x_e", len),
-        );
-        let scratch = Scratch::new(ctx, &self.config, b, a, map);
-        let p = HeunParams {
-            count: count as u32,
-            slots: w as u32,
-            agents: a as u32,
-            _pad: 0,
-        };
-        let params = Self::params(ctx, &p);
-        let mut euler = Vec::new();
-        self.prepare_denoise(
-            ctx, &mut euler, batch, &batch.x, &sigma_cur, map, &scratch, &first,
-        )?;
-        euler.push(self.pipelines.heun_euler.prepare_buffers(
-            ctx,
-            &params,
-            &[&batch.x, &first, &sigma_cur, &sigma_next, &x_e],
-            p.count,
-        ));
-        let mut correct = Vec::new();
-        self.prepare_denoise(
-            ctx,
-            &mut correct,
-            batch,
-            &x_e,
-            &sigma_eval,
-            map,
-            &scratch,
-            &second,
-        )?;
-        correct.push(self.pipelines.heun_correct.prepare_buffers(
-            ctx,
-            &params,
-            &[&batch.x, &first, &sigma_cur, &sigma_next, &x_e, &second],
-            p.count,
-        ));
-        let previous = storage_buffer(ctx, "D_prev", len);
-        let gamma = storage_buffer(ctx, "gamma", (b * w * 4) as u64);
-        // Bindings of heun.wgsl's shared module that multistep_correct reads.
-        let multistep = self.pipelines.multistep_correct.prepare(
-            ctx,
-            &params,
-            &[
-                (2, first.as_entire_binding()),
-                (5, x_e.as_entire_binding()),
-                (7, previous.as_entire_binding()),
-                (8, gamma.as_entire_binding()),
-            ],
-            p.count,
-        );
-        Ok(HeunPlan {
-            sigma_cur,
-            sigma_next,
-            sigma_eval,
-            first,
-            second,
-            last_had_second: false,
-            x_e,
-            euler,
-            correct,
-            previous,
-            gamma,
-            multistep,
-            bytes: len,
-            sigma_eval_host: vec![0.0; b * w],
-        })
-    }
-
-    /// One Heun step for the whole batch (per-scene σ_cur, σ_next as `[B, W]`): both
-    /// evaluations and the update run on the device in one submission; `batch.x` is updated in
-    /// place and read back only when `read` is true.
-    #[allow(clippy::too_many_arguments)]
-    pub fn heun_step(
-        &self,
-        ctx: &GpuContext,
-        batch: &DeviceBatch,
-        map: &MapTokens,
-        sigma_cur: &[f32],
-        sigma_next: &[f32],
-        second_evaluation: bool,
-        read: bool,
-    ) -> Result<Option<Vec<f32>>> {
-        let mut plan = self.heun_plan(ctx, batch, map)?;
-        plan.run(ctx, batch, sigma_cur, sigma_next, second_evaluation)?;
-        if !read {
-            return Ok(None);
-        }
-        let bytes = read_back(ctx, &batch.x, plan.bytes)?;
-        Ok(Some(bytemuck::cast_slice::<u8, f32>(&bytes).to_vec()))
-    }
 }
 
 /// Scratch activations of one forward pass.
 #[derive(Debug)]
-struct Scratch {
+pub(crate) struct Scratch {
     h: wgpu::Buffer,
     t: wgpu::Buffer,
     q: wgpu::Buffer,
@@ -1147,7 +1029,7 @@ struct AgentMapScratch {
 }
 
 impl Scratch {
-    fn new(
+    pub(crate) fn new(
         ctx: &GpuContext,
         c: &ModelConfig,
         scenes: usize,
@@ -1182,170 +1064,6 @@ impl Scratch {
             mv: buf("map v", key_rows * d),
             f: buf("F", tokens * 3),
             agent_maps,
-        }
-    }
-}
-
-/// A batch's Heun step, prepared: see [`GpuDenoiser::heun_plan`].
-#[derive(Debug)]
-pub struct HeunPlan {
-    sigma_cur: wgpu::Buffer,
-    sigma_next: wgpu::Buffer,
-    sigma_eval: wgpu::Buffer,
-    /// D of the first and the second evaluation `[B, A, W, 3]`.
-    first: wgpu::Buffer,
-    second: wgpu::Buffer,
-    /// Whether the last [`HeunPlan::run`] made the second evaluation.
-    last_had_second: bool,
-    x_e: wgpu::Buffer,
-    euler: Vec<Dispatch>,
-    correct: Vec<Dispatch>,
-    /// The multistep sampler's previous estimate `[B, A, W, 3]` (filled by the caller before
-    /// each multistep step), its γ `[B, W]` and its correction.
-    previous: wgpu::Buffer,
-    gamma: wgpu::Buffer,
-    multistep: Dispatch,
-    bytes: u64,
-    sigma_eval_host: Vec<f32>,
-}
-
-/// How a [`HeunPlan`] moves the windows: Heun (EDM Algorithm 1, the Euler step alone without
-/// the second evaluation) or the multistep sampler with its γ `[B, W]`.
-#[derive(Debug, Clone, Copy)]
-pub enum StepRule<'g> {
-    Heun { second_evaluation: bool },
-    Multistep { gamma: &'g [f32] },
-}
-
-impl HeunPlan {
-    /// Writes this step's σ (`[B, W]` each) and submits the step.
-    pub fn run(
-        &mut self,
-        ctx: &GpuContext,
-        batch: &DeviceBatch,
-        sigma_cur: &[f32],
-        sigma_next: &[f32],
-        second_evaluation: bool,
-    ) -> Result<()> {
-        self.run_then(
-            ctx,
-            batch,
-            sigma_cur,
-            sigma_next,
-            second_evaluation,
-            |_, _| {},
-        )
-    }
-
-    /// [`Self::run`], with `then(encoder, D)` recording more commands into the same
-    /// submission after the step, D being this step's last denoiser estimate `[B, A, W, 3]`.
-    pub fn run_then(
-        &mut self,
-        ctx: &GpuContext,
-        batch: &DeviceBatch,
-        sigma_cur: &[f32],
-        sigma_next: &[f32],
-        second_evaluation: bool,
-        then: impl FnOnce(&mut wgpu::CommandEncoder, &wgpu::Buffer),
-    ) -> Result<()> {
-        self.run_rule(
-            ctx,
-            batch,
-            sigma_cur,
-            sigma_next,
-            StepRule::Heun { second_evaluation },
-            |_, _| {},
-            then,
-        )
-    }
-
-    /// One step under `rule` in one submission: `before(encoder, D_prev)` records first (a
-    /// multistep step's caller copies each scene's previous estimate into `D_prev`, `[B, A, W,
-    /// 3]`), then the step, then `then(encoder, D)` as in [`Self::run_then`].
-    #[allow(clippy::too_many_arguments)]
-    pub fn run_rule(
-        &mut self,
-        ctx: &GpuContext,
-        batch: &DeviceBatch,
-        sigma_cur: &[f32],
-        sigma_next: &[f32],
-        rule: StepRule<'_>,
-        before: impl FnOnce(&mut wgpu::CommandEncoder, &wgpu::Buffer),
-        then: impl FnOnce(&mut wgpu::CommandEncoder, &wgpu::Buffer),
-    ) -> Result<()> {
-        let expected = self.sigma_eval_host.len();
-        if sigma_cur.len() != expected || sigma_next.len() != expected {
-            return Err(Error::Input(format!(
-                "σ rows of {} and {} values; the batch is [B, W] = {expected}",
-                sigma_cur.len(),
-                sigma_next.len()
-            )));
-        }
-        let second_evaluation = match rule {
-            StepRule::Heun { second_evaluation } => second_evaluation,
-            StepRule::Multistep { gamma } => {
-                if gamma.len() != expected {
-                    return Err(Error::Input(format!(
-                        "{} γ values; the batch is [B, W] = {expected}",
-                        gamma.len()
-                    )));
-                }
-                ctx.queue
-                    .write_buffer(&self.gamma, 0, bytemuck::cast_slice(gamma));
-                false
-            }
-        };
-        ctx.queue
-            .write_buffer(&self.sigma_cur, 0, bytemuck::cast_slice(sigma_cur));
-        ctx.queue
-            .write_buffer(&self.sigma_next, 0, bytemuck::cast_slice(sigma_next));
-        // The second evaluation's σ: σ_next, or σ_cur where σ_next is 0 (those slots keep
-        // their Euler result, so the value there is never read).
-        for (e, (&s, &n)) in self
-            .sigma_eval_host
-            .iter_mut()
-            .zip(sigma_cur.iter().zip(sigma_next))
-        {
-            *e = if n > 0.0 { n } else { s };
-        }
-        ctx.queue.write_buffer(
-            &self.sigma_eval,
-            0,
-            bytemuck::cast_slice(&self.sigma_eval_host),
-        );
-        let mut enc = ctx
-            .device
-            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                label: Some("heun"),
-            });
-        before(&mut enc, &self.previous);
-        let after_euler: &[Dispatch] = match rule {
-            StepRule::Heun { .. } if second_evaluation => &self.correct,
-            StepRule::Heun { .. } => &[],
-            StepRule::Multistep { .. } => std::slice::from_ref(&self.multistep),
-        };
-        // One pass per dispatch: measured faster on lavapipe than one pass for all of them.
-        for d in self.euler.iter().chain(after_euler) {
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                label: Some("heun"),
-                timestamp_writes: None,
-            });
-            d.record(&mut pass);
-        }
-        enc.copy_buffer_to_buffer(&self.x_e, 0, &batch.x, 0, self.bytes);
-        self.last_had_second = second_evaluation;
-        then(&mut enc, self.denoised());
-        ctx.queue.submit([enc.finish()]);
-        Ok(())
-    }
-
-    /// The last run's last denoiser estimate D `[B, A, W, 3]` (the second evaluation's when
-    /// it made one).
-    pub fn denoised(&self) -> &wgpu::Buffer {
-        if self.last_had_second {
-            &self.second
-        } else {
-            &self.first
         }
     }
 }

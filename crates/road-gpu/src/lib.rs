@@ -13,6 +13,7 @@ pub mod context;
 pub mod engine;
 pub mod kernels;
 pub mod reference;
+pub mod sampler_step;
 pub mod selftest;
 pub mod shaders;
 pub mod step_engine;

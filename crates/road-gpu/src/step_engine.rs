@@ -2,9 +2,10 @@
 //! `StepEngine` over a [`GpuDenoiser`]'s kernels, with the windows kept on the device through a
 //! tick's steps and compacted sub-batches for mixed-phase rounds.
 
-use crate::engine::{DenoiseInputs, DeviceBatch, GpuDenoiser, HeunPlan, MapTokens, StepRule};
+use crate::engine::{DenoiseInputs, DeviceBatch, GpuDenoiser, MapTokens};
 use crate::kernels::window::ShiftList;
 use crate::kernels::{read_back_ranges, storage_buffer};
+use crate::sampler_step::{HeunPlan, StepRule};
 use crate::{Error, GpuContext, Result};
 
 /// The rollout driver's engine on the GPU: windows stay on the device through a tick's steps

@@ -400,7 +400,7 @@ fn heun_step_matches_the_reference() {
 /// estimate and γ per scene and slot (0 for observations and every fourth slot).
 #[test]
 fn multistep_step_matches_the_reference() {
-    use road_gpu::engine::StepRule;
+    use road_gpu::sampler_step::StepRule;
     use road_model::heun::{heun_update, multistep_correct};
     let ctx = context();
     let config = test_config();
