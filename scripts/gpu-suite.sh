@@ -9,7 +9,10 @@
 #                                            # lavapipe; writes $OUT (default gpu-suite-out/)
 #
 # `--quick` runs small batches only (how CI-sized machines and lavapipe test the script; it ran
-# end to end on lavapipe here on 2026-11-24: selftest ok, engine.json, serve.json).
+# end to end on lavapipe here on 2026-11-26 in 4 min: selftest ok, engine.json, serve.json,
+# serve-heun.json). A lent machine has 15 minutes of device time in all, starts included: give
+# the run call `timeout_s` 540. Each step below has its own time limit and the suite goes on past
+# a step that fails or overruns (`steps.txt` says which), so whatever finished comes back.
 # The PyTorch eager reference of the same weights (and `torch.compile`) runs where PyTorch and
 # safetensors are installed (the lent machine has them): `scripts/torch_denoiser.py bench`.
 set -euo pipefail
@@ -46,6 +49,19 @@ run)
         scenes=(1 16 128 512)
         ticks=12
     fi
+    # step NAME SECS OUTPUT COMMAND...: COMMAND's standard output into OUTPUT under a time
+    # limit (SECS on a lent GPU, 3 × SECS with --quick: lavapipe on 2 cores is slower than the
+    # full suite on a GPU); its outcome and time go to steps.txt, and the suite goes on whatever
+    # it was.
+    limit_scale=1
+    $quick && limit_scale=3
+    step() {
+        local name=$1 secs=$(($2 * limit_scale)) output=$3 start rc=0
+        shift 3
+        start=$(date +%s)
+        timeout "$secs" "$@" > "$output" || rc=$?
+        echo "$name: exit $rc after $(($(date +%s) - start)) s (limit $secs s)" | tee -a "$out/steps.txt"
+    }
     {
         echo "# $(date -u +%FT%TZ) $(uname -srm)"
         command -v nvidia-smi >/dev/null && nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv || true
@@ -58,15 +74,20 @@ run)
     mkdir -p "$out/cache"
     cp dist/validation.roadds "$out/cache/validation.roadds" 2>/dev/null \
         || cp .road-cache/validation.roadds "$out/cache/validation.roadds"
-    "$bin" bench engine --checkpoints models/road20 models/road20-long2 models/road20-wide4 \
-        --batches "${batches[@]}" --cache "$out/cache" --json > "$out/engine.json"
+    # The candle reference takes minutes per step at thousands of scenes: timed up to 64 only.
+    # road20 stands for every D = 64 checkpoint (the same shapes), road20-wide4 is the default.
+    step engine 180 "$out/engine.json" "$bin" bench engine \
+        --checkpoints models/road20 models/road20-wide4 --batches "${batches[@]}" \
+        --cpu-max-batch 64 --cache "$out/cache" --json
     # Serving: scenes ticking through the scheduler, each engine in the same run.
-    "$bin" bench serve --checkpoint models/road20-wide4 --engines cpu gpu \
-        --scenes "${scenes[@]}" --ticks "$ticks" --cache "$out/cache" --json > "$out/serve.json"
-    # The same under the multistep sampler (one evaluation per step; docs/results.md).
-    "$bin" bench serve --checkpoint models/road20-wide4 --planner road20-nearfit-lanes-guarded-k20-2m \
-        --engines cpu gpu --scenes "${scenes[@]}" --ticks "$ticks" --cache "$out/cache" --json \
-        > "$out/serve-multistep.json"
+    step serve 100 "$out/serve.json" "$bin" bench serve --checkpoint models/road20-wide4 \
+        --engines cpu gpu --scenes "${scenes[@]}" --ticks "$ticks" --cache "$out/cache" --json
+    # The same planner under Heun (two evaluations per step; the default samples by the
+    # multistep sampler's one: docs/results.md).
+    step serve-heun 80 "$out/serve-heun.json" "$bin" bench serve \
+        --checkpoint models/road20-wide4 \
+        --planner road20-nearfit-lanes-guarded-k20-jerk-3cm-a2-amax6-yield --engines cpu gpu \
+        --scenes "${scenes[@]}" --ticks "$ticks" --cache "$out/cache" --json
     rm -rf "$out/cache"
     # The PyTorch peer: the same checkpoint's forward in eager PyTorch (fp32), one denoiser
     # evaluation per call, batches as above; `torch.compile` too unless --quick.
@@ -77,9 +98,9 @@ run)
         fi
         compile=(--compile)
         $quick && compile=()
-        python3 scripts/torch_denoiser.py bench --checkpoint models/road20-wide4 \
-            --batches "${batches[@]}" --device "$device" "${compile[@]}" \
-            --json-out "$out/torch.json" | tee "$out/torch.txt"
+        step torch 120 "$out/torch.txt" python3 scripts/torch_denoiser.py bench \
+            --checkpoint models/road20-wide4 --batches "${batches[@]}" --device "$device" \
+            ${compile[@]+"${compile[@]}"} --json-out "$out/torch.json"
     else
         echo "no PyTorch with safetensors here: no PyTorch column" | tee "$out/torch.txt"
     fi

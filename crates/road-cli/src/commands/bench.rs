@@ -92,6 +92,11 @@ pub struct EngineBenchArgs {
     /// Timed repetitions per measurement (after one warm-up step).
     #[arg(long, default_value_t = 2)]
     pub reps: usize,
+    /// The largest batch the candle CPU reference is timed at (its columns are empty above):
+    /// at thousands of scenes one of its steps takes minutes, which a lent GPU machine cannot
+    /// spare. Default: every batch.
+    #[arg(long)]
+    pub cpu_max_batch: Option<usize>,
     #[arg(long, default_value = ".road-cache")]
     pub cache: PathBuf,
     #[arg(long)]
@@ -424,7 +429,11 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
                 &mut road_gpu::step_engine::GpuStepEngine::new(&ctx, &gpu_model),
                 &|| Ok(ctx.wait()?),
             )?;
-            let cpu_secs = time(&mut CpuEngine::new(&loaded.model), &|| Ok(()))?;
+            let cpu_secs = if args.cpu_max_batch.is_none_or(|max| b <= max) {
+                Some(time(&mut CpuEngine::new(&loaded.model), &|| Ok(()))?)
+            } else {
+                None
+            };
             rows.push(serde_json::json!({
                 "checkpoint": loaded.meta.run.name,
                 "scenes": b,
@@ -433,9 +442,9 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
                 "gpu_ms_per_step": gpu_secs * 1e3,
                 "gpu_scene_steps_per_sec": b as f64 / gpu_secs,
                 "gpu_gflops": flops * b as f64 / gpu_secs / 1e9,
-                "cpu_ms_per_step": cpu_secs * 1e3,
-                "cpu_scene_steps_per_sec": b as f64 / cpu_secs,
-                "cpu_gflops": flops * b as f64 / cpu_secs / 1e9,
+                "cpu_ms_per_step": cpu_secs.map(|s| s * 1e3),
+                "cpu_scene_steps_per_sec": cpu_secs.map(|s| b as f64 / s),
+                "cpu_gflops": cpu_secs.map(|s| flops * b as f64 / s / 1e9),
             }));
         }
     }
@@ -459,17 +468,22 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
     out!("|---|---:|---:|---:|---:|---:|---:|---:|---:|");
     for r in &rows {
         let f = |k: &str| r[k].as_f64().unwrap_or(0.0);
+        // The CPU columns are null above --cpu-max-batch.
+        let cpu = |k: &str, digits: usize| {
+            r[k].as_f64()
+                .map_or_else(|| "—".to_string(), |v| format!("{v:.digits$}"))
+        };
         out!(
-            "| {} | {} | {:.1} | {:.1} | {:.1} | {:.2} | {:.1} | {:.1} | {:.2} |",
+            "| {} | {} | {:.1} | {:.1} | {:.1} | {:.2} | {} | {} | {} |",
             r["checkpoint"].as_str().unwrap_or(""),
             r["scenes"],
             f("flops_per_scene_step") / 1e6,
             f("gpu_ms_per_step"),
             f("gpu_scene_steps_per_sec"),
             f("gpu_gflops"),
-            f("cpu_ms_per_step"),
-            f("cpu_scene_steps_per_sec"),
-            f("cpu_gflops")
+            cpu("cpu_ms_per_step", 1),
+            cpu("cpu_scene_steps_per_sec", 1),
+            cpu("cpu_gflops", 2)
         );
     }
     Ok(())
