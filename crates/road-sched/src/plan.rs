@@ -195,6 +195,22 @@ pub struct LaneGuard {
     /// towards where it had meant to go. Off unless set.
     #[serde(default)]
     pub turn_plan: bool,
+    /// Nudges ahead of the road's edge: a step that stays on the road but whose
+    /// constant-velocity continuation would leave it within `steps` turns towards the lane's
+    /// pure-pursuit target by at most `max_turn_rad_per_m` per metre of step, its heading with
+    /// it. Off unless set.
+    #[serde(default)]
+    pub anticipation: Option<LaneAnticipation>,
+}
+
+/// The lane guard's nudges ahead of the road's edge ([`LaneGuard::anticipation`]).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LaneAnticipation {
+    /// How many steps of the constant-velocity continuation are checked (1 ..= 50).
+    pub steps: usize,
+    /// The largest turn of a nudge, radians per metre of step (a curvature; (0, 1]).
+    pub max_turn_rad_per_m: f64,
 }
 
 /// The longest lane-guard look-ahead accepted, metres (a few lanelets of an INTERACTION map).
@@ -356,6 +372,16 @@ impl PlannerSpec {
                      ({} s), got {}",
                     MAX_GUARD_HORIZON_STEPS / 10,
                     guard.horizon_steps
+                ));
+            }
+        }
+        if let Some(anticipation) = self.lane_guard.and_then(|g| g.anticipation) {
+            let turn = anticipation.max_turn_rad_per_m;
+            if !((1..=50).contains(&anticipation.steps) && turn > 0.0 && turn <= 1.0) {
+                return bad(format!(
+                    "lane_guard.anticipation: steps must be in 1..=50 and max_turn_rad_per_m in \
+                     (0, 1], got {} and {}",
+                    anticipation.steps, anticipation.max_turn_rad_per_m
                 ));
             }
         }

@@ -484,3 +484,28 @@ fn jerk_tracking_options_are_checked() {
         );
     }
 }
+
+/// The lane guard's nudges take 1 to 50 steps of look-ahead and a turn in (0, 1] rad per metre;
+/// anything else is refused by name.
+#[test]
+fn lane_guard_anticipation_outside_its_bounds_is_refused() {
+    let with = |steps, max_turn_rad_per_m| PlannerSpec {
+        lane_guard: Some(road_sched::LaneGuard {
+            lookahead_m: 6.0,
+            turn_plan: true,
+            anticipation: Some(road_sched::LaneAnticipation {
+                steps,
+                max_turn_rad_per_m,
+            }),
+        }),
+        ..spec(PlannerKind::Rolling, 10, 5, 40, None)
+    };
+    assert!(with(3, 0.1).validate("p").is_ok());
+    for (steps, turn) in [(0, 0.1), (51, 0.1), (3, 0.0), (3, 1.5), (3, f64::NAN)] {
+        let message = with(steps, turn).validate("p").unwrap_err().to_string();
+        assert!(
+            message.contains("lane_guard.anticipation: steps must be in 1..=50"),
+            "{steps}, {turn}: {message}"
+        );
+    }
+}

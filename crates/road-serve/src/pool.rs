@@ -186,8 +186,9 @@ mod tests {
             }
             let (id, tick) = &done[0];
             assert_eq!(*id, 7);
+            let counts = road_sim::closed_loop::guard_actions(std::slice::from_ref(tick));
             acted +=
-                road_sim::closed_loop::guard_actions(std::slice::from_ref(tick)).steered_to_lane;
+                counts.nudged_towards_lane + counts.steered_to_lane + counts.stopped_at_road_edge;
         }
         acted
     }

@@ -18,7 +18,7 @@ use crate::controllers::{constant_velocity, slowed_replay};
 use crate::geometry::OrientedBox;
 use crate::guard::{GuardAction, GuardAgent, guard_step};
 use crate::infractions::{collisions, off_road};
-use crate::lane_guard::{LaneAction, keep_on_road};
+use crate::lane_guard::{LaneAction, keep_on_road, nudge_towards_lane};
 use crate::{Error, Pose, Result};
 
 /// Who drives an agent.
@@ -108,6 +108,8 @@ pub struct GuardCounts {
     pub stopped_short: usize,
     /// The lane guard turned an agent's step back towards its lane.
     pub steered_to_lane: usize,
+    /// The lane guard nudged an agent towards its lane ahead of the road's edge.
+    pub nudged_towards_lane: usize,
     /// The lane guard stopped an agent at the road's edge.
     pub stopped_at_road_edge: usize,
 }
@@ -117,6 +119,7 @@ impl std::ops::AddAssign for GuardCounts {
         self.braked += other.braked;
         self.stopped_short += other.stopped_short;
         self.steered_to_lane += other.steered_to_lane;
+        self.nudged_towards_lane += other.nudged_towards_lane;
         self.stopped_at_road_edge += other.stopped_at_road_edge;
     }
 }
@@ -129,6 +132,7 @@ pub fn guard_actions(ticks: &[SceneTick]) -> GuardCounts {
             GuardAction::Braked => counts.braked += 1,
             GuardAction::StoppedShort => counts.stopped_short += 1,
             GuardAction::SteeredToLane => counts.steered_to_lane += 1,
+            GuardAction::NudgedTowardsLane => counts.nudged_towards_lane += 1,
             GuardAction::StoppedAtRoadEdge => counts.stopped_at_road_edge += 1,
         }
     }
@@ -656,10 +660,30 @@ impl<'m> SceneRuntime<'m> {
                 heading_rad: f64::from(emitted[3 * a + 2]) / heading_scale,
             };
             let model_step = DVec2::new(proposed.x_m - before.x_m, proposed.y_m - before.y_m);
-            let Some(action) = keep_on_road(map, before, &mut proposed, guard.lookahead_m) else {
-                continue;
+            let action = match keep_on_road(map, before, &mut proposed, guard.lookahead_m) {
+                Some(LaneAction::Steered) => GuardAction::SteeredToLane,
+                Some(LaneAction::StoppedAtEdge) => GuardAction::StoppedAtRoadEdge,
+                None => match guard.anticipation {
+                    Some(anticipation)
+                        if nudge_towards_lane(
+                            map,
+                            before,
+                            &mut proposed,
+                            guard.lookahead_m,
+                            anticipation,
+                        ) =>
+                    {
+                        GuardAction::NudgedTowardsLane
+                    }
+                    _ => continue,
+                },
             };
-            if guard.turn_plan && action == LaneAction::Steered {
+            if guard.turn_plan
+                && matches!(
+                    action,
+                    GuardAction::SteeredToLane | GuardAction::NudgedTowardsLane
+                )
+            {
                 let steered_step = DVec2::new(proposed.x_m - before.x_m, proposed.y_m - before.y_m);
                 let angle_rad = model_step.angle_to(steered_step);
                 let pivot = frame.to_norm([before.x_m, before.y_m]);
@@ -670,13 +694,7 @@ impl<'m> SceneRuntime<'m> {
                     (angle_rad * heading_scale) as f32,
                 ]);
             }
-            self.guarded.push((
-                a,
-                match action {
-                    LaneAction::Steered => GuardAction::SteeredToLane,
-                    LaneAction::StoppedAtEdge => GuardAction::StoppedAtRoadEdge,
-                },
-            ));
+            self.guarded.push((a, action));
             let xy = frame.to_norm([proposed.x_m, proposed.y_m]);
             emitted[3 * a..3 * a + 3].copy_from_slice(&[
                 xy[0],

@@ -60,6 +60,8 @@ pub enum GuardAction {
     StoppedShort,
     /// Lane guard: its step turned back towards its lane.
     SteeredToLane,
+    /// Lane guard: its step turned a little towards its lane ahead of the road's edge.
+    NudgedTowardsLane,
     /// Lane guard: stopped at the road's edge.
     StoppedAtRoadEdge,
 }

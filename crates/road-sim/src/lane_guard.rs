@@ -15,6 +15,11 @@
 //! 2. **Stop at the edge.** If the steered step still ends off road (or against a merging lane),
 //!    the agent moves only the largest fraction of it that does not (bisection).
 //!
+//! With `anticipation` it also acts before that: a step that stays on the road but whose
+//! constant-velocity continuation would leave it within a few steps turns a little towards the
+//! same target ([`nudge_towards_lane`]), so that a vehicle drifting towards the edge bends back
+//! over several ticks instead of being steered 20–70° in one.
+//!
 //! The guard keeps lane followers in their lane and nothing more: it leaves alone an agent that
 //! moves backwards or against every lanelet under it, and one that drives off the end of a
 //! lanelet without successor (out of the mapped area, as vehicles in the log do; stopping it
@@ -31,6 +36,7 @@ use road_data::geometry::Point;
 use road_data::map::{Lanelet, LaneletMap};
 
 use crate::Pose;
+use road_sched::LaneAnticipation;
 
 /// Bisection rounds of the on-road fraction: 2⁻¹² of a step.
 const BISECTION_ROUNDS: usize = 12;
@@ -118,6 +124,73 @@ pub fn keep_on_road(
     proposed.x_m = stopped.x;
     proposed.y_m = stopped.y;
     Some(LaneAction::StoppedAtEdge)
+}
+
+/// The lane guard's nudge ahead of the road's edge (`anticipation`), for an agent
+/// [`keep_on_road`] left alone: when its step stays on the road but the step's
+/// constant-velocity continuation leaves it (or runs against a merging lane) within
+/// `anticipation.steps`, the step turns towards the lane's pure-pursuit target by at most
+/// `anticipation.max_turn_rad_per_m` per metre of step, the heading along the new step as
+/// after a steer (turned by as much as the step instead, it lagged behind the positions:
+/// `docs/results.md`, "the lane guard nudges"). Returns whether it nudged. Vehicles driving
+/// off the end of a lanelet without successor are left alone, as by [`keep_on_road`].
+pub fn nudge_towards_lane(
+    map: &LaneletMap,
+    before: Pose,
+    proposed: &mut Pose,
+    lookahead_m: f64,
+    anticipation: LaneAnticipation,
+) -> bool {
+    let from = DVec2::new(before.x_m, before.y_m);
+    let to = DVec2::new(proposed.x_m, proposed.y_m);
+    let step = to - from;
+    let step_m = step.length();
+    // Slow steps are mostly position noise, and reversing ones are not lane following.
+    if step_m < DIRECTED_STEP_M
+        || step.dot(DVec2::from_angle(before.heading_rad)) <= 0.0
+        || !on_road(map, from)
+    {
+        return false;
+    }
+    let direction = step / step_m;
+    let Some((lanelet, along_m)) = lane_under(map, from, direction) else {
+        return false;
+    };
+    let stays_on_its_way =
+        |p: DVec2| on_road(map, p) && !against_a_merging_lane(map, lanelet, p, direction);
+    if !stays_on_its_way(to) {
+        return false;
+    }
+    let Some(leaving) = (1..=anticipation.steps)
+        .map(|k| to + step * k as f64)
+        .find(|&p| !stays_on_its_way(p))
+    else {
+        return false;
+    };
+    let centre = &map.lanelets[lanelet].centre_m;
+    if map.lanelets[lanelet].successors.is_empty()
+        && project_on_polyline(centre, leaving).0 >= polyline_length_m(centre) - END_TOLERANCE_M
+    {
+        return false;
+    }
+    let target = lane_target(map, lanelet, along_m, to, lookahead_m);
+    let max_turn_rad = anticipation.max_turn_rad_per_m * step_m;
+    let turn_rad = step
+        .angle_to(target - from)
+        .clamp(-max_turn_rad, max_turn_rad);
+    if turn_rad.abs() < 1e-6 {
+        return false;
+    }
+    let nudged = from + DVec2::from_angle(turn_rad).rotate(step);
+    if !stays_on_its_way(nudged) {
+        return false;
+    }
+    *proposed = Pose {
+        x_m: nudged.x,
+        y_m: nudged.y,
+        heading_rad: unwrap_near((nudged - from).to_angle(), before.heading_rad),
+    };
+    true
 }
 
 fn on_road(map: &LaneletMap, p: DVec2) -> bool {
@@ -374,6 +447,72 @@ mod tests {
         assert!((step.normalize() - expected).length() < 1e-9, "{step}");
         assert!((proposed.heading_rad - expected.to_angle()).abs() < 1e-9);
         assert!(road().lanelet_at([proposed.x_m, proposed.y_m]).is_some());
+    }
+
+    const ANTICIPATION: LaneAnticipation = LaneAnticipation {
+        steps: 10,
+        max_turn_rad_per_m: 0.1,
+    };
+
+    #[test]
+    fn a_step_drifting_towards_the_edge_is_nudged_back_a_little() {
+        let before = pose(10.0, 1.0, 0.1);
+        // 1 m at 0.1 rad to the left: on the road (y = 1.1), its continuation leaves it
+        // within 10 steps (y = 2 after 9).
+        let drift = DVec2::from_angle(0.1);
+        let mut proposed = pose(10.0 + drift.x, 1.0 + drift.y, 0.12);
+        assert!(nudge_towards_lane(
+            &road(),
+            before,
+            &mut proposed,
+            6.0,
+            ANTICIPATION
+        ));
+        let step = DVec2::new(proposed.x_m - before.x_m, proposed.y_m - before.y_m);
+        assert!((step.length() - 1.0).abs() < 1e-9, "speed kept: {step}");
+        // The target (16, 0) lies 0.27 rad to the right: the turn stops at 0.1 rad per metre.
+        assert!((step.to_angle() - 0.0).abs() < 1e-9, "{step}");
+        assert!(proposed.heading_rad.abs() < 1e-9, "heading along the step");
+    }
+
+    #[test]
+    fn a_step_along_the_lane_or_off_its_end_is_not_nudged() {
+        let mut along = pose(11.0, 0.0, 0.0);
+        assert!(!nudge_towards_lane(
+            &road(),
+            pose(10.0, 0.0, 0.0),
+            &mut along,
+            6.0,
+            ANTICIPATION
+        ));
+        assert_eq!(along, pose(11.0, 0.0, 0.0));
+        // Near the end of the last lanelet (x = 40), which has no successor: out of the map.
+        let mut leaving_the_map = pose(38.0, 0.3, 0.05);
+        let before = pose(37.0, 0.25, 0.05);
+        assert!(!nudge_towards_lane(
+            &road(),
+            before,
+            &mut leaving_the_map,
+            6.0,
+            ANTICIPATION
+        ));
+        // Slow (position noise) and backwards steps.
+        let mut slow = pose(10.1, 1.9, 0.5);
+        assert!(!nudge_towards_lane(
+            &road(),
+            pose(10.0, 1.85, 0.5),
+            &mut slow,
+            6.0,
+            ANTICIPATION
+        ));
+        let mut backwards = pose(9.0, 1.9, 0.0);
+        assert!(!nudge_towards_lane(
+            &road(),
+            pose(10.0, 1.8, 0.0),
+            &mut backwards,
+            6.0,
+            ANTICIPATION
+        ));
     }
 
     #[test]

@@ -468,7 +468,7 @@ fn the_collision_guard_keeps_model_agents_out_of_each_other() {
 /// The lane guard on the shipped default checkpoint driving the procedural roundabout (a map
 /// unlike its training maps, where it leaves the road on its own): an agent the guard acts on
 /// ends that tick on the road, the guard says what it did, and fewer model-driven agents leave
-/// the road than without it.
+/// the road than without it; so do they with its nudges ahead of the edge and turned plans.
 #[test]
 fn the_lane_guard_keeps_model_agents_on_the_road() {
     let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../models/road20-long2");
@@ -506,9 +506,33 @@ fn the_lane_guard_keeps_model_agents_on_the_road() {
         lane_guard: Some(road_sched::LaneGuard {
             lookahead_m: 6.0,
             turn_plan: false,
+            anticipation: None,
         }),
         ..own_planner.clone()
     });
+    // The default's lane guard: nudges ahead of the edge, plans turned with every correction.
+    let nudging = run(&PlannerSpec {
+        lane_guard: Some(road_sched::LaneGuard {
+            lookahead_m: 6.0,
+            turn_plan: true,
+            anticipation: Some(road_sched::LaneAnticipation {
+                steps: 3,
+                max_turn_rad_per_m: 0.1,
+            }),
+        }),
+        ..own_planner.clone()
+    });
+    let nudging_counts = road_sim::closed_loop::guard_actions(&nudging);
+    assert!(
+        nudging_counts.nudged_towards_lane > 0,
+        "the lane guard nudges nobody: {nudging_counts:?}"
+    );
+    assert!(
+        model_agents_off_road(&nudging) < model_agents_off_road(&unguarded),
+        "model-driven agents off road: {} with the nudging lane guard, {} without a guard",
+        model_agents_off_road(&nudging),
+        model_agents_off_road(&unguarded)
+    );
     for (t, tick) in guarded.iter().enumerate() {
         for (agent, action) in &tick.guarded {
             assert!(

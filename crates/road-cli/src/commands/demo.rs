@@ -270,7 +270,8 @@ pub fn run(args: DemoArgs) -> Result<ExitCode> {
     let guards = road_sim::closed_loop::guard_actions(&ticks);
     if run.planner.lane_guard.is_some() {
         out!(
-            "lane guard (planner option): steered a vehicle back towards its lane {} time(s), stopped one at the road's edge {} time(s)",
+            "lane guard (planner option): nudged a vehicle towards its lane {} time(s), steered one back to it {} time(s), stopped one at the road's edge {} time(s)",
+            guards.nudged_towards_lane,
             guards.steered_to_lane,
             guards.stopped_at_road_edge
         );

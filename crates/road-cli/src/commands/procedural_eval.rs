@@ -211,7 +211,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         args.engine
     );
     out!(
-        "| model | map | runs | model-driven vehicles off road | off-road rate [95 % CI] | off road by rotation | collisions between model-driven vehicles | collisions with the ego | clean runs | lane guard: steered / stopped at the edge | collision guard: braked / stopped short | reversing steps | sliding steps |"
+        "| model | map | runs | model-driven vehicles off road | off-road rate [95 % CI] | off road by rotation | collisions between model-driven vehicles | collisions with the ego | clean runs | lane guard: nudged / steered / stopped at the edge | collision guard: braked / stopped short | reversing steps | sliding steps |"
     );
     out!("|---|---|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|");
     for s in &summaries {
@@ -223,7 +223,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
             .collect::<Vec<_>>()
             .join(", ");
         out!(
-            "| {} | {} | {} | {} of {} | {:.3} | {by_rotation} | {} | {} | {} of {} | {} / {} | {} / {} | {} of {} | {} of {} |",
+            "| {} | {} | {} | {} of {} | {:.3} | {by_rotation} | {} | {} | {} of {} | {} / {} / {} | {} / {} | {} of {} | {} of {} |",
             s.model,
             s.map,
             s.runs,
@@ -234,6 +234,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
             s.ego_collision_pairs,
             s.clean_runs,
             s.runs,
+            s.guards.nudged_towards_lane,
             s.guards.steered_to_lane,
             s.guards.stopped_at_road_edge,
             s.guards.braked,

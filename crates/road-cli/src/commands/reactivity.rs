@@ -51,6 +51,9 @@ struct Totals {
     /// Agent-ticks at which the lane guard turned a model-driven agent's step back towards its
     /// lane, and at which it stopped one at the road's edge (0 without a lane guard).
     guard_steered_to_lane_agent_ticks: usize,
+    /// Agent-ticks at which the lane guard nudged one towards its lane ahead of the road's edge
+    /// (0 without its `anticipation`).
+    guard_nudged_towards_lane_agent_ticks: usize,
     guard_stopped_at_road_edge_agent_ticks: usize,
     secs: f64,
     nfe_per_step: f64,
@@ -191,6 +194,7 @@ fn score(totals: &mut Totals, k: usize, ticks: &[SceneTick], adversary: usize, a
     totals.guard_braked_agent_ticks += guards.braked;
     totals.guard_stopped_agent_ticks += guards.stopped_short;
     totals.guard_steered_to_lane_agent_ticks += guards.steered_to_lane;
+    totals.guard_nudged_towards_lane_agent_ticks += guards.nudged_towards_lane;
     totals.guard_stopped_at_road_edge_agent_ticks += guards.stopped_at_road_edge;
     let counts = StepCounts::of(ticks, (0..agents).filter(|&a| a != adversary));
     totals.per_simulation.push((
