@@ -189,10 +189,10 @@ pub struct CollisionGuard {
 pub struct LaneGuard {
     /// Pure-pursuit look-ahead along the lane's centre line, metres.
     pub lookahead_m: f64,
-    /// Whether a steer turns the agent's plan with its step: the window's future slots
-    /// rotate about the agent's position before the tick by the steer's angle, their headings
-    /// with them, so that the model plans on from the corrected state rather than back
-    /// towards where it had meant to go. Off unless set.
+    /// Whether a steer (or a nudge, `anticipation`) turns the agent's plan with its step: the
+    /// window's future slots rotate about the agent's position before the tick by the angle
+    /// its step turned, their headings with them, so that the model plans on from the
+    /// corrected state rather than back towards where it had meant to go. Off unless set.
     #[serde(default)]
     pub turn_plan: bool,
     /// Nudges ahead of the road's edge: a step that stays on the road but whose

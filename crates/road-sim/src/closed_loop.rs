@@ -595,8 +595,8 @@ impl<'m> SceneRuntime<'m> {
     /// The model's emitted states `[agents·3]` (model units) with this tick's overrides put
     /// in, then the lane guard's and the collision guard's changes to model-driven agents
     /// (when the planner has them; the collision guard last, so that nobody steers into
-    /// another); the poses after the tick follow from them. The lane guard's steers turn the
-    /// agents' plans where it says so (`plan_turns [agents·4]`, the driver's).
+    /// another); the poses after the tick follow from them. The lane guard's steers and nudges
+    /// turn the agents' plans where it says so (`plan_turns [agents·4]`, the driver's).
     fn apply(
         &mut self,
         emitted: &mut [f32],
@@ -634,8 +634,9 @@ impl<'m> SceneRuntime<'m> {
 
     /// Runs the lane guard on this tick's states (model units, overrides in) of the model-driven
     /// agents: poses before the tick are `self.poses` (headings unwrapped), after it `emitted`.
-    /// With `guard.turn_plan`, a steered agent's plan turns about its position before the tick
-    /// by the angle its step turned (`plan_turns`).
+    /// With `guard.anticipation` it nudges agents bound to leave the road; with
+    /// `guard.turn_plan`, a steered or nudged agent's plan turns about its position before the
+    /// tick by the angle its step turned (`plan_turns`).
     fn keep_on_road(
         &mut self,
         emitted: &mut [f32],
