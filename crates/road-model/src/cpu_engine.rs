@@ -236,9 +236,16 @@ pub struct CpuEngine<'a> {
     /// The static inputs as prepared (`features [B, A, 6]`, `map [B, P, Q, 2]`, `map_valid
     /// [B, P]`), kept so that one scene's can be replaced.
     inputs: StaticInputs,
-    features: Option<Tensor>,
-    map_tokens: Option<MapTokens>,
-    map_valid: Option<Tensor>,
+    /// Their tensors, once prepared.
+    tensors: Option<StaticTensors>,
+}
+
+/// A batch's static inputs as the candle denoiser takes them.
+#[derive(Debug)]
+struct StaticTensors {
+    features: Tensor,      // [B, A, 6]
+    map_tokens: MapTokens, // of map [B, P, Q, 2]
+    map_valid: Tensor,     // [B, P]
 }
 
 /// A batch's static inputs on the host.
@@ -284,9 +291,7 @@ impl<'a> CpuEngine<'a> {
             model,
             host: HostWindows::default(),
             inputs: StaticInputs::default(),
-            features: None,
-            map_tokens: None,
-            map_valid: None,
+            tensors: None,
         }
     }
 
@@ -296,18 +301,20 @@ impl<'a> CpuEngine<'a> {
         let q = self.model.config.polyline_points;
         let (scenes, agents) = (self.host.scenes, self.host.agents);
         let polylines = self.inputs.polylines;
-        self.features = Some(Tensor::from_vec(
-            self.inputs.features.clone(),
-            (scenes, agents, AGENT_FEATURES),
-            &device,
-        )?);
         let map = Tensor::from_vec(self.inputs.map.clone(), (scenes, polylines, q, 2), &device)?;
-        self.map_tokens = Some(self.model.encode_map(&map, Mode::Infer)?);
-        self.map_valid = Some(Tensor::from_vec(
-            self.inputs.map_valid.clone(),
-            (scenes, polylines),
-            &device,
-        )?);
+        self.tensors = Some(StaticTensors {
+            features: Tensor::from_vec(
+                self.inputs.features.clone(),
+                (scenes, agents, AGENT_FEATURES),
+                &device,
+            )?,
+            map_tokens: self.model.encode_map(&map, Mode::Infer)?,
+            map_valid: Tensor::from_vec(
+                self.inputs.map_valid.clone(),
+                (scenes, polylines),
+                &device,
+            )?,
+        });
         Ok(())
     }
 }
@@ -323,11 +330,13 @@ impl<T: FnMut(&[f32], &[f32], &[f32], &[usize]) -> Result<Vec<f32>>> DenoiseRows
 fn candle_denoise<'m>(
     model: &'m Denoiser,
     host: &HostWindows,
-    features: &'m Option<Tensor>,
-    map_tokens: &'m Option<MapTokens>,
-    map_valid: &'m Option<Tensor>,
+    tensors: &'m Option<StaticTensors>,
 ) -> Result<impl DenoiseRows + 'm> {
-    let (Some(features), Some(map_tokens), Some(map_valid)) = (features, map_tokens, map_valid)
+    let Some(StaticTensors {
+        features,
+        map_tokens,
+        map_valid,
+    }) = tensors
     else {
         return Err(not_prepared());
     };
@@ -436,13 +445,7 @@ impl StepEngine for CpuEngine<'_> {
         sigma_next: &[f32],
         second_evaluation: bool,
     ) -> Result<()> {
-        let denoise = candle_denoise(
-            self.model,
-            &self.host,
-            &self.features,
-            &self.map_tokens,
-            &self.map_valid,
-        )?;
+        let denoise = candle_denoise(self.model, &self.host, &self.tensors)?;
         self.host
             .step(sigma_cur, sigma_next, second_evaluation, denoise)
     }
@@ -453,13 +456,7 @@ impl StepEngine for CpuEngine<'_> {
         sigma_next: &[f32],
         gamma: &[f32],
     ) -> Result<()> {
-        let denoise = candle_denoise(
-            self.model,
-            &self.host,
-            &self.features,
-            &self.map_tokens,
-            &self.map_valid,
-        )?;
+        let denoise = candle_denoise(self.model, &self.host, &self.tensors)?;
         self.host
             .step_multistep(sigma_cur, sigma_next, gamma, denoise)
     }
