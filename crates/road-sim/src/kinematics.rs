@@ -3,7 +3,8 @@
 //! against the logged ones, each compared by the Jensen–Shannon divergence over fixed histogram
 //! bins. Jitter (a stopped vehicle trembling in place) shows up as mass in the high |jerk|
 //! bins; weaving (a path that snakes from side to side of its lane) in the high |yaw rate| and
-//! |yaw acceleration| bins.
+//! |yaw acceleration| bins. Three counts see what the histograms cannot: steps going backwards,
+//! steps sliding sideways of the heading, and sharp turns of the course.
 
 use glam::DVec2;
 use road_data::geometry::hypot_length;
@@ -57,7 +58,31 @@ pub fn sliding_steps(poses: &[crate::Pose]) -> (usize, usize) {
     (sliding, moving)
 }
 
-/// Reversing and sliding steps of some agents over a closed loop's ticks, summed.
+/// Two consecutive moving steps turn sharply where the course turns by more than this between
+/// them (degrees in one 0.1 s step: a car at 10 m/s doing so pulls over 3 g sideways).
+pub const SHARP_TURN_MIN_DEG: f64 = 20.0;
+
+/// Of one agent's consecutive pairs of steps both at [`YAW_MIN_SPEED_MPS`] or faster, how many
+/// turn the course by more than [`SHARP_TURN_MIN_DEG`] (a kink no car drives, such as a lane
+/// guard's steer back onto the lane): (sharp, pairs). The yaw-rate histogram blurs a few of
+/// them into its tail.
+pub fn sharp_turns(poses: &[crate::Pose]) -> (usize, usize) {
+    let min_step_m = YAW_MIN_SPEED_MPS * STEP_SECS;
+    let (mut sharp, mut pairs) = (0, 0);
+    for p in poses.windows(3) {
+        let first = DVec2::new(p[1].x_m - p[0].x_m, p[1].y_m - p[0].y_m);
+        let second = DVec2::new(p[2].x_m - p[1].x_m, p[2].y_m - p[1].y_m);
+        if first.length() < min_step_m || second.length() < min_step_m {
+            continue;
+        }
+        pairs += 1;
+        sharp += usize::from(first.angle_to(second).abs() > SHARP_TURN_MIN_DEG.to_radians());
+    }
+    (sharp, pairs)
+}
+
+/// Reversing and sliding steps and sharp turns of some agents over a closed loop's ticks,
+/// summed.
 #[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
 pub struct StepCounts {
     /// Steps between consecutive ticks, and those going backwards ([`reversing_steps`]).
@@ -66,6 +91,9 @@ pub struct StepCounts {
     /// Steps at [`YAW_MIN_SPEED_MPS`] or faster, and those sliding ([`sliding_steps`]).
     pub moving: usize,
     pub sliding: usize,
+    /// Consecutive pairs of moving steps, and those turning sharply ([`sharp_turns`]).
+    pub moving_pairs: usize,
+    pub sharp_turns: usize,
 }
 
 impl std::ops::AddAssign for StepCounts {
@@ -74,6 +102,8 @@ impl std::ops::AddAssign for StepCounts {
         self.reversing += other.reversing;
         self.moving += other.moving;
         self.sliding += other.sliding;
+        self.moving_pairs += other.moving_pairs;
+        self.sharp_turns += other.sharp_turns;
     }
 }
 
@@ -88,11 +118,14 @@ impl StepCounts {
             let poses: Vec<crate::Pose> = ticks.iter().map(|t| t.poses[a]).collect();
             let (reversing, steps) = reversing_steps(&poses);
             let (sliding, moving) = sliding_steps(&poses);
+            let (sharp_turns, moving_pairs) = sharp_turns(&poses);
             counts += Self {
                 steps,
                 reversing,
                 moving,
                 sliding,
+                moving_pairs,
+                sharp_turns,
             };
         }
         counts
@@ -404,5 +437,33 @@ mod tests {
             pose(2.05, 0.0, 359.0),
         ];
         assert_eq!(sliding_steps(&poses), (1, 4));
+    }
+
+    #[test]
+    fn sharp_turns_count_kinks_between_moving_steps() {
+        let pose = |x_m: f64, y_m: f64| crate::Pose {
+            x_m,
+            y_m,
+            heading_rad: 0.0,
+        };
+        // At 5 m/s: east, 10° left (smooth), 40° left (sharp), a crawl (not counted on either
+        // side), then back to 5 m/s.
+        let step = |from: crate::Pose, deg: f64, m: f64| {
+            let d = DVec2::from_angle(deg.to_radians()) * m;
+            pose(from.x_m + d.x, from.y_m + d.y)
+        };
+        let mut poses = vec![pose(0.0, 0.0)];
+        for (deg, m) in [
+            (0.0, 0.5),
+            (10.0, 0.5),
+            (50.0, 0.5),
+            (50.0, 0.05),
+            (90.0, 0.5),
+        ] {
+            let next = step(*poses.last().unwrap(), deg, m);
+            poses.push(next);
+        }
+        assert_eq!(sharp_turns(&poses), (1, 2));
+        assert_eq!(sharp_turns(&poses[..2]), (0, 0));
     }
 }

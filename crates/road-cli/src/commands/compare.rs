@@ -77,12 +77,15 @@ const REACTIVITY: Suite = Suite {
         "driven_agents",
         "off_road_agents",
     ],
-    // Since 2026-11-26: per driven step and per moving step (≥ 2 m/s).
+    // Since 2026-11-26: per driven step and per moving step (≥ 2 m/s); since its fifth
+    // session, per pair of consecutive moving steps.
     optional_fields: &[
         "driven_steps",
         "reversing_steps",
         "moving_steps",
         "sliding_steps",
+        "moving_pairs",
+        "sharp_turns",
     ],
     columns: &[
         ("Δadversary collision rate", |a, b| {
@@ -102,6 +105,10 @@ const REACTIVITY: Suite = Suite {
         ("Δsliding steps", |a, b| {
             let steps = b[7] / b[0];
             (steps * (rate(a[8], a[7]) - rate(b[8], b[7])), steps)
+        }),
+        ("Δsharp turns", |a, b| {
+            let pairs = b[9] / b[0];
+            (pairs * (rate(a[10], a[9]) - rate(b[10], b[9])), pairs)
         }),
     ],
 };

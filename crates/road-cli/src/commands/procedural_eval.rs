@@ -11,7 +11,8 @@ use anyhow::Result;
 use anyhow::{Context, ensure};
 use road_sim::closed_loop::{GuardCounts, SceneTick, guard_actions};
 use road_sim::kinematics::{
-    REVERSING_MIN_SPEED_MPS, SLIDING_MIN_ANGLE_DEG, StepCounts, YAW_MIN_SPEED_MPS,
+    REVERSING_MIN_SPEED_MPS, SHARP_TURN_MIN_DEG, SLIDING_MIN_ANGLE_DEG, StepCounts,
+    YAW_MIN_SPEED_MPS,
 };
 use road_sim::metrics::{BOOTSTRAP_RESAMPLES, Estimate, bootstrap_ratio};
 use road_sim::procedural::ProceduralMap;
@@ -89,6 +90,10 @@ struct MapSummary {
     /// (`road_sim::kinematics::sliding_steps`).
     moving_steps: usize,
     sliding_steps: usize,
+    /// Their consecutive pairs of such steps, and those whose course turns over 20°
+    /// (`road_sim::kinematics::sharp_turns`).
+    moving_pairs: usize,
+    sharp_turns: usize,
     secs: f64,
 }
 
@@ -196,6 +201,8 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
                 reversing_steps: steps.reversing,
                 moving_steps: steps.moving,
                 sliding_steps: steps.sliding,
+                moving_pairs: steps.moving_pairs,
+                sharp_turns: steps.sharp_turns,
                 secs: map_started.elapsed().as_secs_f64(),
             });
         }
@@ -211,9 +218,9 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         args.engine
     );
     out!(
-        "| model | map | runs | model-driven vehicles off road | off-road rate [95 % CI] | off road by rotation | collisions between model-driven vehicles | collisions with the ego | clean runs | lane guard: nudged / steered / stopped at the edge | collision guard: braked / stopped short | reversing steps | sliding steps |"
+        "| model | map | runs | model-driven vehicles off road | off-road rate [95 % CI] | off road by rotation | collisions between model-driven vehicles | collisions with the ego | clean runs | lane guard: nudged / steered / stopped at the edge | collision guard: braked / stopped short | reversing steps | sliding steps | sharp turns |"
     );
-    out!("|---|---|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|");
+    out!("|---|---|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|");
     for s in &summaries {
         let by_rotation = args
             .rotations_deg
@@ -223,7 +230,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
             .collect::<Vec<_>>()
             .join(", ");
         out!(
-            "| {} | {} | {} | {} of {} | {:.3} | {by_rotation} | {} | {} | {} of {} | {} / {} / {} | {} / {} | {} of {} | {} of {} |",
+            "| {} | {} | {} | {} of {} | {:.3} | {by_rotation} | {} | {} | {} of {} | {} / {} / {} | {} / {} | {} of {} | {} of {} | {} of {} |",
             s.model,
             s.map,
             s.runs,
@@ -242,11 +249,13 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
             s.reversing_steps,
             s.model_vehicle_steps,
             s.sliding_steps,
-            s.moving_steps
+            s.moving_steps,
+            s.sharp_turns,
+            s.moving_pairs
         );
     }
     out!(
-        "(interval: 95 % percentile bootstrap over runs, {BOOTSTRAP_RESAMPLES} resamples; a clean run has no model-driven vehicle off road and no collision between two of them; guards' actions in agent-ticks over all runs; reversing steps: the model-driven vehicles' steps going backwards along their heading faster than {REVERSING_MIN_SPEED_MPS} m/s; sliding steps: their steps at ≥ {YAW_MIN_SPEED_MPS} m/s moving over {SLIDING_MIN_ANGLE_DEG}° off their heading)"
+        "(interval: 95 % percentile bootstrap over runs, {BOOTSTRAP_RESAMPLES} resamples; a clean run has no model-driven vehicle off road and no collision between two of them; guards' actions in agent-ticks over all runs; reversing steps: the model-driven vehicles' steps going backwards along their heading faster than {REVERSING_MIN_SPEED_MPS} m/s; sliding steps: their steps at ≥ {YAW_MIN_SPEED_MPS} m/s moving over {SLIDING_MIN_ANGLE_DEG}° off their heading; sharp turns: their consecutive pairs of such steps whose course turns over {SHARP_TURN_MIN_DEG}°)"
     );
     if let Some(path) = &args.json {
         let json = serde_json::json!({

@@ -18,8 +18,8 @@ use road_sim::closed_loop::{
 };
 
 use road_sim::kinematics::{
-    KinematicDivergence, Kinematics, REVERSING_MIN_SPEED_MPS, SLIDING_MIN_ANGLE_DEG, StepCounts,
-    YAW_MIN_SPEED_MPS,
+    KinematicDivergence, Kinematics, REVERSING_MIN_SPEED_MPS, SHARP_TURN_MIN_DEG,
+    SLIDING_MIN_ANGLE_DEG, StepCounts, YAW_MIN_SPEED_MPS,
 };
 use road_sim::metrics::{BOOTSTRAP_RESAMPLES, Estimate, bootstrap_ratio};
 
@@ -78,6 +78,9 @@ struct Totals {
     /// Share of their steps at 2 m/s or more that move over 10° off their heading
     /// (`road_sim::kinematics::sliding_steps`).
     sliding_rate: Option<Estimate>,
+    /// Share of their consecutive pairs of such steps whose course turns over 20°
+    /// (`road_sim::kinematics::sharp_turns`).
+    sharp_turn_rate: Option<Estimate>,
 }
 
 /// One scene's simulations, summed: its validation window and the counts of [`Totals`].
@@ -95,6 +98,9 @@ pub(crate) struct SceneCounts {
     /// Their steps at 2 m/s or more, and those sliding sideways of the heading.
     moving_steps: usize,
     sliding_steps: usize,
+    /// Their consecutive pairs of such steps, and those turning sharply.
+    moving_pairs: usize,
+    sharp_turns: usize,
 }
 
 /// A simulation's counts added to its scene's (the scene keeps its window).
@@ -109,6 +115,8 @@ impl std::ops::AddAssign<&SceneCounts> for SceneCounts {
         self.reversing_steps += sim.reversing_steps;
         self.moving_steps += sim.moving_steps;
         self.sliding_steps += sim.sliding_steps;
+        self.moving_pairs += sim.moving_pairs;
+        self.sharp_turns += sim.sharp_turns;
     }
 }
 
@@ -141,6 +149,7 @@ impl Totals {
         self.off_road_rate = Some(rate(|r| (r.off_road_agents, r.driven_agents)));
         self.reversing_rate = Some(rate(|r| (r.reversing_steps, r.driven_steps)));
         self.sliding_rate = Some(rate(|r| (r.sliding_steps, r.moving_steps)));
+        self.sharp_turn_rate = Some(rate(|r| (r.sharp_turns, r.moving_pairs)));
         self.per_scene = per_scene;
         self.kinematic_divergence = Some(self.kinematics.divergence_from(logged));
     }
@@ -212,6 +221,8 @@ fn score(totals: &mut Totals, k: usize, ticks: &[SceneTick], adversary: usize, a
             reversing_steps: counts.reversing,
             moving_steps: counts.moving,
             sliding_steps: counts.sliding,
+            moving_pairs: counts.moving_pairs,
+            sharp_turns: counts.sharp_turns,
         },
     ));
 }
@@ -441,9 +452,9 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         args.engine
     );
     out!(
-        "| model | collision rate (adversary) [95 % CI] | any collision [95 % CI] | off-road rate [95 % CI] | JS speed | JS accel. | JS jerk | JS yaw rate | JS yaw accel. | reversing steps [95 % CI] | sliding steps [95 % CI] | time per sample (s) | NFE per simulated step (expected) |"
+        "| model | collision rate (adversary) [95 % CI] | any collision [95 % CI] | off-road rate [95 % CI] | JS speed | JS accel. | JS jerk | JS yaw rate | JS yaw accel. | reversing steps [95 % CI] | sliding steps [95 % CI] | sharp turns [95 % CI] | time per sample (s) | NFE per simulated step (expected) |"
     );
-    out!("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
+    out!("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
     for r in &mut results {
         r.estimate(&logged, &scenes);
         let sims = r.simulations.max(1) as f64;
@@ -454,7 +465,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         let show = |e: Option<Estimate>| e.map_or_else(String::new, |e| format!("{e:.3}"));
         let js = r.kinematic_divergence.expect("estimated above");
         out!(
-            "| {} | {} | {} | {} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {} | {} | {:.3} | {nfe} |",
+            "| {} | {} | {} | {} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {} | {} | {} | {:.3} | {nfe} |",
             r.model,
             show(r.adversary_collision_rate),
             show(r.any_collision_rate),
@@ -466,11 +477,12 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
             js.yaw_acceleration,
             show(r.reversing_rate),
             show(r.sliding_rate),
+            show(r.sharp_turn_rate),
             r.secs / sims,
         );
     }
     out!(
-        "(intervals: 95 % percentile bootstrap over scenes, {BOOTSTRAP_RESAMPLES} resamples; JS: Jensen–Shannon divergence in bits of the driven agents' speed, acceleration, jerk, yaw rate and yaw acceleration histograms from the logged ones, agents the log holds throughout; yaw from the course of motion at ≥ 2 m/s; reversing steps: share of the driven agents' simulated steps going backwards along their heading faster than {REVERSING_MIN_SPEED_MPS} m/s; sliding steps: share of their steps at ≥ {YAW_MIN_SPEED_MPS} m/s moving over {SLIDING_MIN_ANGLE_DEG}° off their heading)"
+        "(intervals: 95 % percentile bootstrap over scenes, {BOOTSTRAP_RESAMPLES} resamples; JS: Jensen–Shannon divergence in bits of the driven agents' speed, acceleration, jerk, yaw rate and yaw acceleration histograms from the logged ones, agents the log holds throughout; yaw from the course of motion at ≥ 2 m/s; reversing steps: share of the driven agents' simulated steps going backwards along their heading faster than {REVERSING_MIN_SPEED_MPS} m/s; sliding steps: share of their steps at ≥ {YAW_MIN_SPEED_MPS} m/s moving over {SLIDING_MIN_ANGLE_DEG}° off their heading; sharp turns: share of their consecutive pairs of such steps whose course turns over {SHARP_TURN_MIN_DEG}°)"
     );
     for s in &skipped {
         out!("not run: {s}");
