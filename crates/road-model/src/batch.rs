@@ -112,15 +112,16 @@ impl SceneInput {
         if !(valid[pivot_slot] && valid[pivot_slot + 1]) {
             return;
         }
-        let (sin, cos) = angle_rad.sin_cos();
         let states = &mut self.states[3 * agent * w..3 * (agent + 1) * w];
-        let (px, py) = (states[3 * pivot_slot], states[3 * pivot_slot + 1]);
+        // The turn a lane guard's steer gives a plan, applied to the past instead.
+        let turn = [
+            states[3 * pivot_slot],
+            states[3 * pivot_slot + 1],
+            angle_rad,
+            angle_rad * heading_scale,
+        ];
         for t in (0..pivot_slot).filter(|&t| valid[t]) {
-            let state = &mut states[3 * t..3 * t + 3];
-            let (dx, dy) = (state[0] - px, state[1] - py);
-            state[0] = px + cos * dx - sin * dy;
-            state[1] = py + sin * dx + cos * dy;
-            state[2] += angle_rad * heading_scale;
+            crate::sample::turn_plan(&mut states[3 * t..3 * t + 3], &turn);
         }
     }
 

@@ -147,6 +147,8 @@ pub struct RolloutDriver {
     emitted: Vec<f32>,  // [B, A, 3] read back each tick
     denoised: Vec<f32>, // [scenes, A, W, 3]: the estimates of `denoised_scenes`, read on request
     denoised_scenes: Vec<usize>,
+    /// `[agents, 4]`: the emission hook's plan turns of the scene emitting, reused.
+    plan_turns: Vec<f32>,
     emit_slots: Vec<Option<usize>>, // [B]
     sigma_cur: Vec<f32>,            // [B, W]: the round's Heun scenes
     sigma_next: Vec<f32>,           // [B, W]
@@ -310,6 +312,7 @@ impl RolloutDriver {
             emitted: vec![0.0; b * a_max * 3],
             denoised: Vec::new(),
             denoised_scenes: Vec::new(),
+            plan_turns: Vec::new(),
             emit_slots: vec![None; b],
             sigma_cur: vec![IDLE_SIGMA; b * w],
             sigma_next: vec![IDLE_SIGMA; b * w],
@@ -830,11 +833,15 @@ impl RolloutDriver {
                 // External agents' states replace theirs just below.
                 smooth_accelerations(&s.history, &s.history_valid, &mut emitted, alpha as f32);
             }
-            let mut turns = vec![0.0; s.agents * 4];
-            overrides(i, &mut emitted, &mut turns)?;
-            if turns.iter().all(|&v| v == 0.0) {
-                turns.clear();
-            }
+            self.plan_turns.clear();
+            self.plan_turns.resize(s.agents * 4, 0.0);
+            overrides(i, &mut emitted, &mut self.plan_turns)?;
+            // Most ticks turn nothing: no copy then.
+            let turns = if self.plan_turns.iter().any(|&v| v != 0.0) {
+                self.plan_turns.clone()
+            } else {
+                Vec::new()
+            };
             for a in 0..s.agents {
                 s.history[a].push([emitted[3 * a], emitted[3 * a + 1], emitted[3 * a + 2]]);
                 s.history_valid[a].push(true);

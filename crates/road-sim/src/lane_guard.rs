@@ -88,10 +88,7 @@ pub fn keep_on_road(
     if stays_on_its_way(to, direction) {
         return None;
     }
-    let centre = &map.lanelets[lanelet].centre_m;
-    if map.lanelets[lanelet].successors.is_empty()
-        && project_on_polyline(centre, to).0 >= polyline_length_m(centre) - END_TOLERANCE_M
-    {
+    if drives_off_the_map(map, lanelet, to) {
         return None;
     }
     let target = lane_target(map, lanelet, along_m, to, lookahead_m);
@@ -167,10 +164,7 @@ pub fn nudge_towards_lane(
     else {
         return false;
     };
-    let centre = &map.lanelets[lanelet].centre_m;
-    if map.lanelets[lanelet].successors.is_empty()
-        && project_on_polyline(centre, leaving).0 >= polyline_length_m(centre) - END_TOLERANCE_M
-    {
+    if drives_off_the_map(map, lanelet, leaving) {
         return false;
     }
     let target = lane_target(map, lanelet, along_m, to, lookahead_m);
@@ -191,6 +185,15 @@ pub fn nudge_towards_lane(
         heading_rad: unwrap_near((nudged - from).to_angle(), before.heading_rad),
     };
     true
+}
+
+/// Whether `p`, off the road ahead of an agent on `lanelet`, lies past the end of that
+/// lanelet and it has no successor: the agent drives out of the mapped area, as vehicles in
+/// the log do, and the guard leaves it alone.
+fn drives_off_the_map(map: &LaneletMap, lanelet: usize, p: DVec2) -> bool {
+    let centre = &map.lanelets[lanelet].centre_m;
+    map.lanelets[lanelet].successors.is_empty()
+        && project_on_polyline(centre, p).0 >= polyline_length_m(centre) - END_TOLERANCE_M
 }
 
 fn on_road(map: &LaneletMap, p: DVec2) -> bool {
