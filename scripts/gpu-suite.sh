@@ -35,7 +35,14 @@ prepare)
     ;;
 run)
     quick=false
-    [ "${2:-}" = "--quick" ] && quick=true
+    torch=true
+    for option in "${@:2}"; do
+        case "$option" in
+        --quick) quick=true ;;
+        --no-torch) torch=false ;;
+        *) echo "unknown option $option (run [--quick] [--no-torch])" >&2; exit 2 ;;
+        esac
+    done
     bin="${ROAD_BIN:-dist/road}"
     out="${OUT:-gpu-suite-out}"
     mkdir -p "$out"
@@ -54,9 +61,9 @@ run)
         scenes=(1 8)
         ticks=4
     else
-        batches=(1 8 64 512 1024 4096)
-        scenes=(1 16 128 512)
-        ticks=12
+        batches=(1 8 64 512 2048 4096)
+        scenes=(1 16 128 512 1024)
+        ticks=8
     fi
     # step NAME SECS OUTPUT COMMAND...: COMMAND's standard output into OUTPUT under a time
     # limit (SECS on a lent GPU, 3 × SECS with --quick: lavapipe on 2 cores is slower than the
@@ -84,16 +91,25 @@ run)
     mkdir -p "$out/cache"
     cp dist/validation.roadds "$out/cache/validation.roadds" 2>/dev/null \
         || cp .road-cache/validation.roadds "$out/cache/validation.roadds"
-    # The candle reference takes minutes per step at thousands of scenes: timed up to 64 only.
+    # The candle reference takes minutes per step at thousands of scenes: timed up to 8 only
+    # (the first lent run, 2026-11-26, measured it to 64: docs/gpu-h100-2026-11-26/).
     # road20 stands for every D = 64 checkpoint (the same shapes), road20-wide4 is the default.
-    step engine 180 "$out/engine.json" "$bin" bench engine \
-        --checkpoints models/road20 models/road20-wide4 --batches "${batches[@]}" \
-        --cpu-max-batch 64 --cache "$out/cache" --json
+    # The linear kernel chosen per layer (auto) beside each alone, each step profiled kernel by
+    # kernel.
+    step engine 200 "$out/engine.json" "$bin" bench engine \
+        --checkpoints models/road20-wide4 models/road20 --batches "${batches[@]}" \
+        --cpu-max-batch 8 --linear-kernels auto rowwise tiled --profile --cache "$out/cache" --json
     # Serving: scenes ticking through the scheduler, each engine in the same run.
-    step serve 100 "$out/serve.json" "$bin" bench serve --checkpoint models/road20-wide4 \
+    step serve 150 "$out/serve.json" "$bin" bench serve --checkpoint models/road20-wide4 \
         --engines cpu gpu --scenes "${scenes[@]}" --ticks "$ticks" --cache "$out/cache" --json
     # The same planner under Heun (two evaluations per step; the default samples by the
     # multistep sampler's one: docs/results.md).
+    if ! $torch; then
+        # A short lend: the Heun serving bench and PyTorch were measured on the first one.
+        rm -rf "$out/cache"
+        ls -la "$out"
+        exit 0
+    fi
     step serve-heun 80 "$out/serve-heun.json" "$bin" bench serve \
         --checkpoint models/road20-wide4 \
         --planner road20-nearfit-lanes-guarded-k20-jerk-3cm-a2-amax6-yield --engines cpu gpu \

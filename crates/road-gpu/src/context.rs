@@ -3,6 +3,7 @@
 
 use std::time::Duration;
 
+use crate::kernels::linear::{LinearKernel, LinearParams};
 use crate::{Error, Result};
 
 /// How to open the device.
@@ -12,6 +13,13 @@ pub struct ContextOptions {
     pub validation: bool,
     /// Longest wait for one submission before a poll gives up.
     pub poll_timeout: Duration,
+    /// The linear layers' kernel; `None` picks per layer ([`LinearKernel::choose`]: tiled for
+    /// large layers on hardware, row-wise otherwise and on software adapters such as lavapipe).
+    pub linear_kernel: Option<LinearKernel>,
+    /// Most bytes of the map encoder's per-point activations at a time: it runs over the
+    /// polylines chunk by chunk (at least 64 polylines each) so that agent maps of large
+    /// batches fit one buffer binding. Tests make it tiny to run many chunks.
+    pub map_encoder_chunk_bytes: u64,
 }
 
 impl Default for ContextOptions {
@@ -19,6 +27,8 @@ impl Default for ContextOptions {
         Self {
             validation: false,
             poll_timeout: Duration::from_secs(120),
+            linear_kernel: None,
+            map_encoder_chunk_bytes: 64 << 20,
         }
     }
 }
@@ -31,6 +41,8 @@ pub struct GpuContext {
     pub queue: wgpu::Queue,
     pub info: wgpu::AdapterInfo,
     poll_timeout: Duration,
+    linear_kernel: Option<LinearKernel>,
+    map_encoder_chunk_bytes: u64,
 }
 
 /// Advice printed when no adapter exists.
@@ -84,6 +96,8 @@ impl GpuContext {
             queue,
             info,
             poll_timeout: options.poll_timeout,
+            linear_kernel: options.linear_kernel,
+            map_encoder_chunk_bytes: options.map_encoder_chunk_bytes,
         })
     }
 
@@ -101,6 +115,21 @@ impl GpuContext {
     /// True for CPU adapters such as lavapipe.
     pub fn is_software(&self) -> bool {
         self.info.device_type == wgpu::DeviceType::Cpu
+    }
+
+    /// The kernel for a linear layer of these dimensions on this context.
+    pub fn linear_kernel_for(&self, p: &LinearParams) -> LinearKernel {
+        LinearKernel::choose(self.linear_kernel, self.is_software(), p)
+    }
+
+    /// The linear kernel the options named, or `"auto"` (chosen per layer).
+    pub fn linear_kernel_setting(&self) -> &'static str {
+        self.linear_kernel.map_or("auto", LinearKernel::entry)
+    }
+
+    /// See [`ContextOptions::map_encoder_chunk_bytes`].
+    pub fn map_encoder_chunk_bytes(&self) -> u64 {
+        self.map_encoder_chunk_bytes
     }
 
     pub fn describe(&self) -> String {

@@ -18,7 +18,7 @@ use crate::kernels::agent_map::AgentMapParams;
 use crate::kernels::agent_pairs::PairAttentionParams;
 use crate::kernels::attention::{AttentionParams, MAX_HEAD_DIM, TokenLayout};
 use crate::kernels::layer_norm::LayerNormParams;
-use crate::kernels::linear::LinearParams;
+use crate::kernels::linear::{Linear, LinearKernel, LinearParams};
 use crate::kernels::{Dispatch, Pipeline, read_back, record_all, storage_buffer, upload};
 use crate::shaders::Shader;
 use crate::{Error, GpuContext, Result};
@@ -74,7 +74,8 @@ struct ElementwiseParams {
 /// Every pipeline of the engine, compiled once.
 #[derive(Debug)]
 pub(crate) struct Pipelines {
-    linear: Pipeline,
+    linear_rowwise: Linear,
+    linear_tiled: Linear,
     layer_norm: Pipeline,
     attention: Pipeline,
     embed_tokens: Pipeline,
@@ -92,7 +93,8 @@ pub(crate) struct Pipelines {
 impl Pipelines {
     fn new(ctx: &GpuContext) -> Self {
         Self {
-            linear: Pipeline::new(ctx, Shader::Linear, "linear"),
+            linear_rowwise: Linear::with_kernel(ctx, LinearKernel::Rowwise),
+            linear_tiled: Linear::with_kernel(ctx, LinearKernel::Tiled),
             layer_norm: Pipeline::new(ctx, Shader::LayerNorm, "layer_norm"),
             attention: Pipeline::new(ctx, Shader::Attention, "attention"),
             embed_tokens: Pipeline::new(ctx, Shader::Embed, "embed_tokens"),
@@ -335,11 +337,16 @@ impl GpuDenoiser {
             self.w(&format!("{layer}.bias"))?,
             y.as_entire_binding(),
         ];
-        ops.push(
-            self.pipelines
-                .linear
-                .prepare_resources(ctx, &params, &resources, p.threads()),
-        );
+        let linear = match ctx.linear_kernel_for(&p) {
+            LinearKernel::Rowwise => &self.pipelines.linear_rowwise,
+            LinearKernel::Tiled => &self.pipelines.linear_tiled,
+        };
+        ops.push(linear.pipeline.prepare_resources(
+            ctx,
+            &params,
+            &resources,
+            p.threads(linear.kernel),
+        ));
         Ok(())
     }
 
@@ -465,7 +472,23 @@ impl GpuDenoiser {
             picked: None,
         })
     }
+}
 
+/// `count` rows of `floats` values of `buffer` from row `first`, as a binding.
+fn rows_of(
+    buffer: &wgpu::Buffer,
+    first: usize,
+    count: usize,
+    floats: usize,
+) -> wgpu::BindingResource<'_> {
+    wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+        buffer,
+        offset: (first * floats * 4) as u64,
+        size: std::num::NonZeroU64::new((count * floats * 4) as u64),
+    })
+}
+
+impl GpuDenoiser {
     /// The polyline encoder's dispatches (`docs/checkpoint.md`, step 3): `points [n, Q, 2]` →
     /// `scratch.tokens [n, D]`.
     fn prepare_polyline_encoder(
@@ -476,57 +499,59 @@ impl GpuDenoiser {
         scratch: &PolylineScratch,
     ) -> Result<()> {
         let (n, q, d) = (scratch.polylines, scratch.points, self.config.hidden);
-        let n_points = n * q;
-        let p = ElementwiseParams {
-            count: (n_points * d) as u32,
-            slots: 0,
-            per_slot: 0,
-            agents: 0,
-            sigma_data: 0.0,
-            hidden: d as u32,
-            points: q as u32,
-            anchor_slot: NO_FRAME,
-            heading_scale: 1.0,
-            residual_scale: 0.0,
-            _pad: [0; 2],
-        };
-        let params = Self::params(ctx, &p);
-        // Bindings a, b and out of the elementwise family (c and e are unused by this entry).
-        let bound = [
-            (1, points.as_entire_binding()),
-            (2, self.w("packed.map_points")?),
-            (5, scratch.embedded.as_entire_binding()),
-        ];
-        ops.push(
-            self.pipelines
-                .embed_map_points
-                .prepare(ctx, &params, &bound, p.count),
-        );
-        self.linear(
-            ctx,
-            ops,
-            "map_mix",
-            &scratch.embedded,
-            &scratch.mixed,
-            n_points,
-            d,
-            d,
-            false,
-        )?;
-        let p = ElementwiseParams {
-            count: (n * d) as u32,
-            ..p
-        };
-        let params = Self::params(ctx, &p);
-        let bound = [
-            (1, scratch.mixed.as_entire_binding()),
-            (5, scratch.pooled.as_entire_binding()),
-        ];
-        ops.push(
-            self.pipelines
-                .max_over_points
-                .prepare(ctx, &params, &bound, p.count),
-        );
+        for first in (0..n).step_by(scratch.chunk) {
+            let rows = scratch.chunk.min(n - first);
+            let p = ElementwiseParams {
+                count: (rows * q * d) as u32,
+                slots: 0,
+                per_slot: 0,
+                agents: 0,
+                sigma_data: 0.0,
+                hidden: d as u32,
+                points: q as u32,
+                anchor_slot: NO_FRAME,
+                heading_scale: 1.0,
+                residual_scale: 0.0,
+                _pad: [0; 2],
+            };
+            let params = Self::params(ctx, &p);
+            // Bindings a, b and out of the elementwise family (c and e are unused by this entry).
+            let bound = [
+                (1, rows_of(points, first, rows, q * 2)),
+                (2, self.w("packed.map_points")?),
+                (5, scratch.embedded.as_entire_binding()),
+            ];
+            ops.push(
+                self.pipelines
+                    .embed_map_points
+                    .prepare(ctx, &params, &bound, p.count),
+            );
+            self.linear(
+                ctx,
+                ops,
+                "map_mix",
+                &scratch.embedded,
+                &scratch.mixed,
+                rows * q,
+                d,
+                d,
+                false,
+            )?;
+            let p = ElementwiseParams {
+                count: (rows * d) as u32,
+                ..p
+            };
+            let params = Self::params(ctx, &p);
+            let bound = [
+                (1, scratch.mixed.as_entire_binding()),
+                (5, rows_of(&scratch.pooled, first, rows, d)),
+            ];
+            ops.push(
+                self.pipelines
+                    .max_over_points
+                    .prepare(ctx, &params, &bound, p.count),
+            );
+        }
         self.layer_norm(ctx, ops, "ln_map_out", &scratch.pooled, &scratch.tokens, n)
     }
 
@@ -954,7 +979,7 @@ impl GpuDenoiser {
         let batch = self.upload_batch(ctx, inputs)?;
         let len = (inputs.x.len() * 4) as u64;
         let out = storage_buffer(ctx, "denoised", len);
-        let scratch = Scratch::new(ctx, &self.config, batch.scenes, batch.agents, map);
+        let scratch = Scratch::new(ctx, &self.config, batch.scenes, batch.agents, map)?;
         let mut ops = Vec::new();
         self.prepare_denoise(
             ctx,
@@ -995,13 +1020,16 @@ pub(crate) struct Scratch {
     agent_maps: Option<AgentMapScratch>,
 }
 
-/// The polyline encoder's activations for `polylines` polylines of `points` points.
+/// The polyline encoder's activations for `polylines` polylines of `points` points. The
+/// per-point activations hold `chunk` polylines at a time (the encoder runs chunk by chunk), so
+/// that agent maps of large batches (B·A·K polylines) fit one buffer binding.
 #[derive(Debug)]
 struct PolylineScratch {
     polylines: usize,
     points: usize,
-    embedded: wgpu::Buffer, // [n, Q, D]
-    mixed: wgpu::Buffer,    // [n, Q, D]
+    chunk: usize,
+    embedded: wgpu::Buffer, // [chunk, Q, D]
+    mixed: wgpu::Buffer,    // [chunk, Q, D]
     pooled: wgpu::Buffer,   // [n, D]
     tokens: wgpu::Buffer,   // [n, D]
 }
@@ -1009,11 +1037,22 @@ struct PolylineScratch {
 impl PolylineScratch {
     fn new(ctx: &GpuContext, polylines: usize, points: usize, d: usize) -> Self {
         let buf = |label: &str, floats: usize| storage_buffer(ctx, label, (floats * 4) as u64);
+        // Chunks of a multiple of 64 polylines: their offsets into the [n, Q, 2] points and the
+        // [n, D] pooled tokens are then multiples of 256 bytes, the storage offset alignment.
+        let limits = ctx.device.limits();
+        let max_bytes = ctx
+            .map_encoder_chunk_bytes()
+            .min(u64::from(limits.max_storage_buffer_binding_size))
+            .min(limits.max_buffer_size);
+        let per_polyline_bytes = (points * d * 4).max(1) as u64;
+        let chunk = ((max_bytes / per_polyline_bytes) as usize / 64 * 64).max(64);
+        let chunk = chunk.min(polylines).max(1);
         Self {
             polylines,
             points,
-            embedded: buf("map.embedded", polylines * points * d),
-            mixed: buf("map.mixed", polylines * points * d),
+            chunk,
+            embedded: buf("map.embedded", chunk * points * d),
+            mixed: buf("map.mixed", chunk * points * d),
             pooled: buf("map.pooled", polylines * d),
             tokens: buf("map.tokens", polylines * d),
         }
@@ -1035,9 +1074,34 @@ impl Scratch {
         scenes: usize,
         agents: usize,
         map: &MapTokens,
-    ) -> Self {
+    ) -> Result<Self> {
         let tokens = scenes * agents * c.window_slots;
         let d = c.hidden;
+        // The largest activation must fit one buffer binding (the point encoder's per-point
+        // activations are chunked to fit): a clear error instead of wgpu's validation panic.
+        let (key_rows_needed, point_floats) = match map.picked {
+            Some(k) => (
+                scenes * agents * k,
+                scenes * agents * k * c.polyline_points * 2,
+            ),
+            None => (scenes * map.polylines, 0),
+        };
+        let largest_bytes = 4
+            * (tokens * d * c.mlp_ratio)
+                .max(key_rows_needed * d)
+                .max(point_floats) as u64;
+        let limits = ctx.device.limits();
+        let max_bytes = limits
+            .max_buffer_size
+            .min(u64::from(limits.max_storage_buffer_binding_size));
+        if largest_bytes > max_bytes {
+            return Err(Error::Input(format!(
+                "a batch of {scenes} scenes × {agents} agents needs a {:.0} MiB activation buffer; \
+                 this adapter binds at most {:.0} MiB: use smaller batches",
+                largest_bytes as f64 / 1048576.0,
+                max_bytes as f64 / 1048576.0
+            )));
+        }
         let buf = |label: &str, floats: usize| storage_buffer(ctx, label, (floats * 4) as u64);
         let (key_rows, agent_maps) = match map.picked {
             None => (scenes * map.polylines, None),
@@ -1051,7 +1115,7 @@ impl Scratch {
                 (rows, Some(maps))
             }
         };
-        Self {
+        Ok(Self {
             h: buf("h", tokens * d),
             t: buf("normed", tokens * d),
             q: buf("q", tokens * d),
@@ -1064,6 +1128,6 @@ impl Scratch {
             mv: buf("map v", key_rows * d),
             f: buf("F", tokens * 3),
             agent_maps,
-        }
+        })
     }
 }

@@ -5,6 +5,7 @@
 //! - [`step_engine`]: the rollout driver's engine over them (windows kept on the device);
 //! - [`shaders`]: the embedded `shaders/*.wgsl` files;
 //! - [`kernels`]: one module per kernel family;
+//! - [`profile`]: a step's device time by kernel (for `road bench engine --profile`);
 //! - [`reference`]: the kernels' CPU references (plain f64 loops);
 //! - [`selftest`]: every kernel family against its reference on the adapter at hand;
 //! - [`tolerance`]: the relative + absolute tolerance every parity test uses.
@@ -12,6 +13,7 @@
 pub mod context;
 pub mod engine;
 pub mod kernels;
+pub mod profile;
 pub mod reference;
 pub mod sampler_step;
 pub mod selftest;

@@ -40,7 +40,7 @@ impl GpuDenoiser {
             storage_buffer(ctx, "D2", len),
             storage_buffer(ctx, "x_e", len),
         );
-        let scratch = Scratch::new(ctx, &self.config, b, a, map);
+        let scratch = Scratch::new(ctx, &self.config, b, a, map)?;
         let p = HeunParams {
             count: count as u32,
             slots: w as u32,
@@ -282,6 +282,12 @@ impl HeunPlan {
         then(&mut enc, self.denoised());
         ctx.queue.submit([enc.finish()]);
         Ok(())
+    }
+
+    /// The dispatches of a step without its second evaluation (one evaluation and the Euler
+    /// update), in order: what [`crate::profile`] times one by one.
+    pub fn euler_dispatches(&self) -> &[Dispatch] {
+        &self.euler
     }
 
     /// The last run's last denoiser estimate D `[B, A, W, 3]` (the second evaluation's when

@@ -7,7 +7,7 @@ use crate::kernels::agent_map::{AgentMap, AgentMapParams};
 use crate::kernels::agent_pairs::{PairAttention, PairAttentionParams};
 use crate::kernels::attention::{Attention, AttentionParams, TokenLayout};
 use crate::kernels::layer_norm::{LayerNorm, LayerNormParams};
-use crate::kernels::linear::{Linear, LinearParams};
+use crate::kernels::linear::{Linear, LinearKernel, LinearParams};
 use crate::tolerance::Mismatch;
 use crate::{GpuContext, Result, Tolerance, reference};
 
@@ -71,14 +71,17 @@ pub fn kernel_checks(ctx: &GpuContext) -> Result<Vec<KernelCheck>> {
         out_dim: d_out as u32,
         relu: 1,
     };
-    let got = Linear::new(ctx).run(ctx, p, &x, &wt, &bias)?;
     let want = reference::linear(&x, &wt, &bias, rows, d_in, d_out, true);
-    checks.push(KernelCheck {
-        name: "linear",
-        values: got.len(),
-        tolerance: loose,
-        outcome: loose.check(&got, &want),
-    });
+    // Both variants, whichever the engine uses here.
+    for kernel in [LinearKernel::Rowwise, LinearKernel::Tiled] {
+        let got = Linear::with_kernel(ctx, kernel).run(ctx, p, &x, &wt, &bias)?;
+        checks.push(KernelCheck {
+            name: kernel.entry(),
+            values: got.len(),
+            tolerance: loose,
+            outcome: loose.check(&got, &want),
+        });
+    }
 
     // layer_norm over every token.
     let (x, gamma, beta) = (

@@ -102,6 +102,16 @@ impl Compact {
 }
 
 impl GpuStepEngine<'_> {
+    /// Times one evaluation and Euler update of the loaded batch kernel by kernel (see
+    /// [`crate::profile`]); the windows move as in `repeats` Euler steps at the last step's σ.
+    pub fn profile_step(&self, repeats: usize) -> Result<crate::profile::StepProfile> {
+        let plan = self
+            .plan
+            .as_ref()
+            .ok_or_else(|| Error::Input("profile before a step made the batch's plan".into()))?;
+        crate::profile::profile(self.ctx, plan.euler_dispatches(), repeats)
+    }
+
     /// One step of every scene whose σ row changes, under `rule`; see `StepEngine::step` and
     /// `StepEngine::step_multistep`.
     fn step_rule(

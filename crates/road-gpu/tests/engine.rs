@@ -9,6 +9,7 @@ use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use road_data::{Dataset, SourceSet, Split, WindowConfig};
 use road_gpu::engine::{DenoiseInputs, GpuDenoiser};
+use road_gpu::kernels::linear::LinearKernel;
 use road_gpu::{ContextOptions, GpuContext, Tolerance};
 use road_model::batch::{Batch, SceneInput, collate, normal_vec, task_sigma};
 use road_model::checkpoint::{self, CheckpointMeta, DataIdentity};
@@ -28,8 +29,14 @@ const ROLLOUT: Tolerance = Tolerance {
 };
 
 fn context() -> GpuContext {
+    context_with(None)
+}
+
+/// As [`context`], with the linear layers' kernel named instead of picked by adapter.
+fn context_with(linear_kernel: Option<LinearKernel>) -> GpuContext {
     GpuContext::new(&ContextOptions {
         validation: true,
+        linear_kernel,
         ..ContextOptions::default()
     })
     .unwrap_or_else(|e| panic!("GPU tests need an adapter: {e}"))
@@ -196,6 +203,42 @@ fn whole_denoiser_with_agent_pairs_matches_candle() {
     whole_denoiser_matches_candle(&agent_pairs_config(), "denoiser-agent-pairs");
 }
 
+/// The agent maps' encoder run 64 polylines at a time (as large batches run it to fit one
+/// buffer binding) gives what one pass gives.
+#[test]
+fn whole_denoiser_with_the_map_encoder_in_chunks_matches_candle() {
+    let ctx = GpuContext::new(&ContextOptions {
+        validation: true,
+        map_encoder_chunk_bytes: 1,
+        ..ContextOptions::default()
+    })
+    .unwrap_or_else(|e| panic!("GPU tests need an adapter: {e}"));
+    let config = agent_map_config();
+    let b = batch(&validation_set(), &config);
+    let (scenes, agents, _, _) = b.x_noisy.dims4().unwrap();
+    let polylines = scenes * agents * config.agent_map.as_ref().unwrap().polylines;
+    assert!(
+        polylines > 2 * 64,
+        "{polylines} agent-map polylines: too few for 3 chunks"
+    );
+    whole_denoiser_matches_candle_on(&ctx, &config, "denoiser-map-chunks");
+}
+
+/// Both linear kernels in the whole denoiser, whichever this adapter picks (a hardware GPU
+/// picks the tiled one, lavapipe the row-wise one), with the default checkpoint's features.
+#[test]
+fn whole_denoiser_matches_candle_with_either_linear_kernel() {
+    for kernel in [LinearKernel::Rowwise, LinearKernel::Tiled] {
+        let ctx = context_with(Some(kernel));
+        assert_eq!(ctx.linear_kernel_setting(), kernel.entry());
+        whole_denoiser_matches_candle_on(
+            &ctx,
+            &agent_pairs_config(),
+            &format!("denoiser-{}", kernel.entry()),
+        );
+    }
+}
+
 fn agent_pairs_config() -> ModelConfig {
     ModelConfig {
         agent_pairs: Some(road_model::AgentPairs {
@@ -220,9 +263,12 @@ fn agent_map_config() -> ModelConfig {
 }
 
 fn whole_denoiser_matches_candle(config: &ModelConfig, name: &str) {
-    let ctx = context();
+    whole_denoiser_matches_candle_on(&context(), config, name);
+}
+
+fn whole_denoiser_matches_candle_on(ctx: &GpuContext, config: &ModelConfig, name: &str) {
     let (dir, reference) = checkpoint_dir(config, name);
-    let gpu = GpuDenoiser::from_checkpoint(&ctx, &dir).unwrap();
+    let gpu = GpuDenoiser::from_checkpoint(ctx, &dir).unwrap();
     let ds = validation_set();
     let mut b = batch(&ds, config);
     if let Some(frame) = &config.agent_frame {
@@ -251,7 +297,7 @@ fn whole_denoiser_matches_candle(config: &ModelConfig, name: &str) {
     );
 
     let map = gpu
-        .encode_map(&ctx, scenes, polylines, &flat(&b.map), &flat(&b.map_valid))
+        .encode_map(ctx, scenes, polylines, &flat(&b.map), &flat(&b.map_valid))
         .unwrap();
     let (x, sigma, valid, features) = (
         flat(&b.x_noisy),
@@ -267,7 +313,7 @@ fn whole_denoiser_matches_candle(config: &ModelConfig, name: &str) {
         valid: &valid,
         agent_features: &features,
     };
-    let got = gpu.denoise(&ctx, &inputs, &map).unwrap();
+    let got = gpu.denoise(ctx, &inputs, &map).unwrap();
     if let Err(m) = WHOLE_MODEL.check(&got, &want) {
         panic!("denoiser on {}: {m}", ctx.describe());
     }

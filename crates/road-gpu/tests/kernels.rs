@@ -61,10 +61,20 @@ fn random(rng: &mut rand::rngs::StdRng, n: usize, scale: f32) -> Vec<f32> {
 
 #[test]
 fn linear_matches_the_cpu_reference_on_random_shapes() {
-    use road_gpu::kernels::linear::{Linear, LinearParams};
+    use road_gpu::kernels::linear::{Linear, LinearKernel};
     let ctx = context();
-    let kernel = Linear::new(&ctx);
+    // Both variants, whichever this adapter would pick: a lent GPU runs the tiled one.
+    for variant in [LinearKernel::Rowwise, LinearKernel::Tiled] {
+        let kernel = Linear::with_kernel(&ctx, variant);
+        linear_matches_on_random_shapes(&ctx, &kernel);
+    }
+}
+
+fn linear_matches_on_random_shapes(ctx: &GpuContext, kernel: &road_gpu::kernels::linear::Linear) {
+    use road_gpu::kernels::linear::LinearParams;
     let mut rng = rand::rngs::StdRng::seed_from_u64(11);
+    // Shapes around the tiled kernel's tile edges (64 rows, 32 outputs, 16 inputs per chunk)
+    // as well as the model's (96 → 192 → 96, 3 → 96, 96 → 3).
     for (rows, in_dim, out_dim, relu) in [
         (1, 1, 1, false),
         (7, 3, 64, false),
@@ -72,6 +82,12 @@ fn linear_matches_the_cpu_reference_on_random_shapes() {
         (33, 64, 3, false),
         (5, 6, 17, true),
         (300, 128, 64, false),
+        (64, 16, 32, false),
+        (65, 17, 33, true),
+        (200, 96, 192, true),
+        (129, 192, 96, false),
+        (70, 3, 96, false),
+        (63, 96, 3, false),
     ] {
         let x = random(&mut rng, rows * in_dim, 2.0);
         let w = random(&mut rng, out_dim * in_dim, 0.5);
@@ -82,10 +98,13 @@ fn linear_matches_the_cpu_reference_on_random_shapes() {
             out_dim: out_dim as u32,
             relu: u32::from(relu),
         };
-        let got = kernel.run(&ctx, p, &x, &w, &b).unwrap();
+        let got = kernel.run(ctx, p, &x, &w, &b).unwrap();
         let want = road_gpu::reference::linear(&x, &w, &b, rows, in_dim, out_dim, relu);
         if let Err(m) = Tolerance::F32.check(&got, &want) {
-            panic!("linear {rows}×{in_dim}→{out_dim} relu {relu}: {m}");
+            panic!(
+                "{:?} linear {rows}×{in_dim}→{out_dim} relu {relu}: {m}",
+                kernel.kernel
+            );
         }
     }
 }
@@ -450,7 +469,13 @@ fn pair_attention_matches_the_cpu_reference() {
 fn the_selftest_kernel_checks_pass() {
     let ctx = context();
     let checks = road_gpu::selftest::kernel_checks(&ctx).unwrap();
-    for name in ["linear", "attention", "window_emitted", "window_shift"] {
+    for name in [
+        "linear",
+        "linear_tiled",
+        "attention",
+        "window_emitted",
+        "window_shift",
+    ] {
         assert!(
             checks.iter().any(|c| c.name == name),
             "no {name} check among {:?}",

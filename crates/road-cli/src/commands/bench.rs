@@ -97,10 +97,25 @@ pub struct EngineBenchArgs {
     /// spare. Default: every batch.
     #[arg(long)]
     pub cpu_max_batch: Option<usize>,
+    /// The linear layers' kernels to time, each a GPU row of the same run: `rowwise`, `tiled`
+    /// or `auto` (per layer: tiled for large layers on hardware, row-wise otherwise).
+    #[arg(long, num_args = 1.., default_values = ["auto"], value_parser = parse_linear_kernel)]
+    pub linear_kernels: Vec<Option<road_gpu::kernels::linear::LinearKernel>>,
+    /// Also time each GPU step kernel by kernel (one evaluation and the Euler update, each
+    /// dispatch waited for alone): where the device time goes.
+    #[arg(long)]
+    pub profile: bool,
     #[arg(long, default_value = ".road-cache")]
     pub cache: PathBuf,
     #[arg(long)]
     pub json: bool,
+}
+
+fn parse_linear_kernel(s: &str) -> Result<Option<road_gpu::kernels::linear::LinearKernel>, String> {
+    if s == "auto" {
+        return Ok(None);
+    }
+    s.parse().map(Some)
 }
 
 #[derive(Debug, Args)]
@@ -346,25 +361,50 @@ fn flops_per_evaluation(c: &road_model::ModelConfig, agents: usize, polylines: u
     let m = d * c.mlp_ratio as f64;
     let t = a * w;
     let linear = |rows: f64, i: f64, o: f64| 2.0 * rows * i * o;
+    // With agent maps each agent attends to its own K polylines, encoded in its frame every
+    // evaluation (the point encoder's D × D layer over K·Q points per agent); without, every
+    // token attends to the scene's P polylines, encoded once per scene (not counted here).
+    let (map_keys, map_kv_rows, map_encoder) = match &c.agent_map {
+        Some(spec) => {
+            let k = road_model::agent_map::polylines_per_agent(spec.polylines, polylines) as f64;
+            let q = c.polyline_points as f64;
+            (k, a * k, linear(a * k * q, d, d))
+        }
+        None => (p, p, 0.0),
+    };
     let per_block = 2.0 * 4.0 * linear(t, d, d) // time and agent attention projections
         + 2.0 * 2.0 * t * w * d // time attention scores and weighted sums
         + 2.0 * 2.0 * t * a * d // agent attention
-        + 2.0 * linear(t, d, d) + 2.0 * linear(p, d, d) // map q, o; k, v
-        + 2.0 * 2.0 * t * p * d // map attention
+        + 2.0 * linear(t, d, d) + 2.0 * linear(map_kv_rows, d, d) // map q, o; k, v
+        + 2.0 * 2.0 * t * map_keys * d // map attention
         + linear(t, d, m) + linear(t, m, d); // MLP
-    c.blocks as f64 * per_block + linear(t, 3.0, d) + linear(t, d, 3.0)
+    c.blocks as f64 * per_block + map_encoder + linear(t, 3.0, d) + linear(t, d, 3.0)
 }
 
 fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
     use road_model::batch::SceneInput;
     use road_model::sample::{CpuEngine, StepEngine};
     let validation = load_cache(&args.cache, Split::Validation)?;
-    let ctx = road_gpu::GpuContext::new(&road_gpu::ContextOptions::default())?;
+    // One context per linear kernel setting compared.
+    let contexts: Vec<road_gpu::GpuContext> = args
+        .linear_kernels
+        .iter()
+        .map(|&linear_kernel| {
+            road_gpu::GpuContext::new(&road_gpu::ContextOptions {
+                linear_kernel,
+                ..road_gpu::ContextOptions::default()
+            })
+        })
+        .collect::<Result<_, _>>()?;
+    let ctx = &contexts[0];
     let mut rows = Vec::new();
     for dir in &args.checkpoints {
         let loaded = road_model::checkpoint::load(dir, &candle_core::Device::Cpu)?;
         let config = loaded.meta.run.model.clone();
-        let gpu_model = road_gpu::engine::GpuDenoiser::from_checkpoint(&ctx, dir)?;
+        let gpu_models = contexts
+            .iter()
+            .map(|ctx| road_gpu::engine::GpuDenoiser::from_checkpoint(ctx, dir))
+            .collect::<Result<Vec<_>, _>>()?;
         let tables =
             road_sched::PlannerTables::new(&loaded.meta.run.name, loaded.meta.run.planner.clone())?;
         let stage = if tables.spec.kind == road_sched::PlannerKind::Rolling {
@@ -425,27 +465,67 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
                     wait()?;
                     Ok(started.elapsed().as_secs_f64() / args.reps as f64)
                 };
-            let gpu_secs = time(
-                &mut road_gpu::step_engine::GpuStepEngine::new(&ctx, &gpu_model),
-                &|| Ok(ctx.wait()?),
-            )?;
             let cpu_secs = if args.cpu_max_batch.is_none_or(|max| b <= max) {
                 Some(time(&mut CpuEngine::new(&loaded.model), &|| Ok(()))?)
             } else {
                 None
             };
-            rows.push(serde_json::json!({
-                "checkpoint": loaded.meta.run.name,
-                "scenes": b,
-                "padded_agents": a,
-                "flops_per_scene_step": flops,
-                "gpu_ms_per_step": gpu_secs * 1e3,
-                "gpu_scene_steps_per_sec": b as f64 / gpu_secs,
-                "gpu_gflops": flops * b as f64 / gpu_secs / 1e9,
-                "cpu_ms_per_step": cpu_secs.map(|s| s * 1e3),
-                "cpu_scene_steps_per_sec": cpu_secs.map(|s| b as f64 / s),
-                "cpu_gflops": cpu_secs.map(|s| flops * b as f64 / s / 1e9),
-            }));
+            for (ctx, gpu_model) in contexts.iter().zip(&gpu_models) {
+                let mut engine = road_gpu::step_engine::GpuStepEngine::new(ctx, gpu_model);
+                // A batch the adapter cannot hold is a row saying so, not the end of the run.
+                let gpu_secs = match time(&mut engine, &|| Ok(ctx.wait()?)) {
+                    Ok(secs) => secs,
+                    Err(e) => {
+                        tracing::warn!(scenes = b, "GPU column skipped: {e:#}");
+                        rows.push(serde_json::json!({
+                            "checkpoint": loaded.meta.run.name,
+                            "scenes": b,
+                            "padded_agents": a,
+                            "linear_kernel": ctx.linear_kernel_setting(),
+                            "gpu_error": format!("{e:#}"),
+                            "cpu_ms_per_step": cpu_secs.map(|s| s * 1e3),
+                            "cpu_scene_steps_per_sec": cpu_secs.map(|s| b as f64 / s),
+                            "cpu_gflops": cpu_secs.map(|s| flops * b as f64 / s / 1e9),
+                            "profile": serde_json::Value::Null,
+                        }));
+                        continue;
+                    }
+                };
+                let profile = if args.profile {
+                    let p = engine.profile_step(args.reps)?;
+                    let kernels: Vec<serde_json::Value> = p
+                        .kernels
+                        .iter()
+                        .map(|k| {
+                            serde_json::json!({
+                                "kernel": k.kernel,
+                                "dispatches": k.dispatches,
+                                "ms_per_step": k.secs_per_step * 1e3,
+                            })
+                        })
+                        .collect();
+                    serde_json::json!({
+                        "round_trip_ms": p.round_trip_secs * 1e3,
+                        "kernels": kernels,
+                    })
+                } else {
+                    serde_json::Value::Null
+                };
+                rows.push(serde_json::json!({
+                    "checkpoint": loaded.meta.run.name,
+                    "scenes": b,
+                    "padded_agents": a,
+                    "linear_kernel": ctx.linear_kernel_setting(),
+                    "flops_per_scene_step": flops,
+                    "gpu_ms_per_step": gpu_secs * 1e3,
+                    "gpu_scene_steps_per_sec": b as f64 / gpu_secs,
+                    "gpu_gflops": flops * b as f64 / gpu_secs / 1e9,
+                    "cpu_ms_per_step": cpu_secs.map(|s| s * 1e3),
+                    "cpu_scene_steps_per_sec": cpu_secs.map(|s| b as f64 / s),
+                    "cpu_gflops": cpu_secs.map(|s| flops * b as f64 / s / 1e9),
+                    "profile": profile,
+                }));
+            }
         }
     }
     if args.json {
@@ -463,9 +543,9 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
         crate::commands::train::hardware()
     );
     out!(
-        "| checkpoint | scenes | MFLOP per scene-step | GPU ms/step | GPU scene-steps/s | GPU GFLOP/s | CPU ms/step | CPU scene-steps/s | CPU GFLOP/s |"
+        "| checkpoint | scenes | GPU linear kernel | MFLOP per scene-step | GPU ms/step | GPU scene-steps/s | GPU GFLOP/s | CPU ms/step | CPU scene-steps/s | CPU GFLOP/s |"
     );
-    out!("|---|---:|---:|---:|---:|---:|---:|---:|---:|");
+    out!("|---|---:|---|---:|---:|---:|---:|---:|---:|---:|");
     for r in &rows {
         let f = |k: &str| r[k].as_f64().unwrap_or(0.0);
         // The CPU columns are null above --cpu-max-batch.
@@ -474,9 +554,10 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
                 .map_or_else(|| "—".to_string(), |v| format!("{v:.digits$}"))
         };
         out!(
-            "| {} | {} | {:.1} | {:.1} | {:.1} | {:.2} | {} | {} | {} |",
+            "| {} | {} | {} | {:.1} | {:.1} | {:.1} | {:.2} | {} | {} | {} |",
             r["checkpoint"].as_str().unwrap_or(""),
             r["scenes"],
+            r["linear_kernel"].as_str().unwrap_or(""),
             f("flops_per_scene_step") / 1e6,
             f("gpu_ms_per_step"),
             f("gpu_scene_steps_per_sec"),
@@ -485,6 +566,25 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
             cpu("cpu_scene_steps_per_sec", 1),
             cpu("cpu_gflops", 2)
         );
+    }
+    for r in rows.iter().filter(|r| !r["profile"].is_null()) {
+        out!(
+            "\nprofile: {} at {} scenes, {} (each dispatch waited for alone; one empty submission: {:.3} ms)",
+            r["checkpoint"].as_str().unwrap_or(""),
+            r["scenes"],
+            r["linear_kernel"].as_str().unwrap_or(""),
+            r["profile"]["round_trip_ms"].as_f64().unwrap_or(0.0)
+        );
+        out!("| kernel | dispatches | ms per evaluation + Euler update |");
+        out!("|---|---:|---:|");
+        for k in r["profile"]["kernels"].as_array().into_iter().flatten() {
+            out!(
+                "| {} | {} | {:.3} |",
+                k["kernel"].as_str().unwrap_or(""),
+                k["dispatches"],
+                k["ms_per_step"].as_f64().unwrap_or(0.0)
+            );
+        }
     }
     Ok(())
 }

@@ -166,6 +166,7 @@ impl Pipeline {
             pipeline: self.pipeline.clone(),
             bind_group,
             groups,
+            label: self.label,
         }
     }
 
@@ -215,9 +216,15 @@ pub struct Dispatch {
     pipeline: wgpu::ComputePipeline,
     bind_group: wgpu::BindGroup,
     groups: (u32, u32),
+    /// The entry point it runs (what a profile groups by).
+    label: &'static str,
 }
 
 impl Dispatch {
+    pub fn label(&self) -> &'static str {
+        self.label
+    }
+
     pub fn record(&self, pass: &mut wgpu::ComputePass<'_>) {
         pass.set_pipeline(&self.pipeline);
         pass.set_bind_group(0, &self.bind_group, &[]);
