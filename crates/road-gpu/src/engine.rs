@@ -1042,7 +1042,7 @@ impl PolylineScratch {
         let limits = ctx.device.limits();
         let max_bytes = ctx
             .map_encoder_chunk_bytes()
-            .min(u64::from(limits.max_storage_buffer_binding_size))
+            .min(limits.max_storage_buffer_binding_size)
             .min(limits.max_buffer_size);
         let per_polyline_bytes = (points * d * 4).max(1) as u64;
         let chunk = ((max_bytes / per_polyline_bytes) as usize / 64 * 64).max(64);
@@ -1093,7 +1093,7 @@ impl Scratch {
         let limits = ctx.device.limits();
         let max_bytes = limits
             .max_buffer_size
-            .min(u64::from(limits.max_storage_buffer_binding_size));
+            .min(limits.max_storage_buffer_binding_size);
         if largest_bytes > max_bytes {
             return Err(Error::Input(format!(
                 "a batch of {scenes} scenes × {agents} agents needs a {:.0} MiB activation buffer; \
