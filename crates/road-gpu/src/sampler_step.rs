@@ -163,7 +163,7 @@ pub enum StepRule<'g> {
 }
 
 impl HeunPlan {
-    /// Writes this step's σ (`[B, W]` each) and submits the step.
+    /// Writes this step's σ (`[B, W]` each) and submits a Heun step.
     pub fn run(
         &mut self,
         ctx: &GpuContext,
@@ -172,41 +172,22 @@ impl HeunPlan {
         sigma_next: &[f32],
         second_evaluation: bool,
     ) -> Result<()> {
-        self.run_then(
-            ctx,
-            batch,
-            sigma_cur,
-            sigma_next,
-            second_evaluation,
-            |_, _| {},
-        )
-    }
-
-    /// [`Self::run`], with `then(encoder, D)` recording more commands into the same
-    /// submission after the step, D being this step's last denoiser estimate `[B, A, W, 3]`.
-    pub fn run_then(
-        &mut self,
-        ctx: &GpuContext,
-        batch: &DeviceBatch,
-        sigma_cur: &[f32],
-        sigma_next: &[f32],
-        second_evaluation: bool,
-        then: impl FnOnce(&mut wgpu::CommandEncoder, &wgpu::Buffer),
-    ) -> Result<()> {
+        let rule = StepRule::Heun { second_evaluation };
         self.run_rule(
             ctx,
             batch,
             sigma_cur,
             sigma_next,
-            StepRule::Heun { second_evaluation },
+            rule,
             |_, _| {},
-            then,
+            |_, _| {},
         )
     }
 
     /// One step under `rule` in one submission: `before(encoder, D_prev)` records first (a
     /// multistep step's caller copies each scene's previous estimate into `D_prev`, `[B, A, W,
-    /// 3]`), then the step, then `then(encoder, D)` as in [`Self::run_then`].
+    /// 3]`), then the step, then `then(encoder, D)`, D being this step's last denoiser estimate
+    /// `[B, A, W, 3]`.
     #[allow(clippy::too_many_arguments)]
     pub fn run_rule(
         &mut self,

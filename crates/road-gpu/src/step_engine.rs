@@ -26,6 +26,8 @@ pub struct GpuStepEngine<'a> {
     /// Compacted sub-batches by capacity (powers of two), made on first use.
     compact: Vec<Compact>,
     features: Vec<f32>,
+    /// Zeros for the kept estimate's shift (nothing emitted, no noise), grown on demand.
+    zeros: Vec<f32>,
     scenes: usize,
     agents: usize,
 }
@@ -43,6 +45,7 @@ impl<'a> GpuStepEngine<'a> {
             estimate_window: None,
             compact: Vec::new(),
             features: Vec::new(),
+            zeros: Vec::new(),
             scenes: 0,
             agents: 0,
         }
@@ -502,14 +505,21 @@ impl road_model::sample::StepEngine for GpuStepEngine<'_> {
         // same kernel with nothing emitted and no noise, its plan turned as the window's.
         if let (Some(estimate_window), Some(denoised)) = (&mut self.estimate_window, &self.denoised)
         {
-            let zeros: Vec<(Vec<f32>, Vec<f32>)> = edits
+            let longest = edits
                 .iter()
-                .map(|e| (vec![0.0; e.emitted.len()], vec![0.0; e.noise.len()]))
-                .collect();
+                .map(|e| e.emitted.len().max(e.noise.len()))
+                .max()
+                .unwrap_or(0);
+            if self.zeros.len() < longest {
+                self.zeros.resize(longest, 0.0);
+            }
+            let zeros = &self.zeros;
             let list: Vec<ShiftList<'_>> = edits
                 .iter()
-                .zip(&zeros)
-                .map(|(e, (emitted, noise))| (e.scene, &emitted[..], &noise[..], e.turns))
+                .map(|e| {
+                    let (emitted, noise) = (&zeros[..e.emitted.len()], &zeros[..e.noise.len()]);
+                    (e.scene, emitted, noise, e.turns)
+                })
                 .collect();
             let still = road_model::sample::ShiftShape {
                 observed: shape.observed,

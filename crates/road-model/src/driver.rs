@@ -109,6 +109,27 @@ fn scene_seed(base_seed: u64, i: usize) -> u64 {
     base_seed ^ (i as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15)
 }
 
+/// Seeds of `scenes` noise streams drawn from `rng` as [`RolloutDriver::new`] draws them: a
+/// scene's stream then depends on its position in the batch and on what `rng` gave before.
+pub fn batch_seeds(rng: &mut StdRng, scenes: usize) -> Vec<u64> {
+    let base_seed = rng.next_u64();
+    (0..scenes).map(|i| scene_seed(base_seed, i)).collect()
+}
+
+/// The seed of the noise stream named `stream` in a run seeded `run_seed`: callers that name a
+/// stream by what it samples (a scene of the dataset, then a sample of it) get the same samples
+/// for it whatever shares its batch, its position there and the batch size. SplitMix64's
+/// finaliser over both, so that neighbouring names give unrelated seeds.
+pub fn stream_seed(run_seed: u64, stream: u64) -> u64 {
+    fn mix(mut z: u64) -> u64 {
+        z = z.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    }
+    mix(run_seed ^ mix(stream))
+}
+
 /// σ of a slot that holds still in a batch (any positive value: σ_cur = σ_next skips it).
 const IDLE_SIGMA: f32 = 1.0;
 /// Seconds per simulated step (the recordings' 10 Hz): the unit of least-jerk tracking's jerk.
@@ -175,7 +196,8 @@ impl std::fmt::Debug for RolloutDriver {
 
 impl RolloutDriver {
     /// Prepares `engine` with the scenes' static inputs, builds and loads every first window.
-    /// `rng` seeds the scenes' own noise streams; `steps_hint` only sizes buffers.
+    /// `rng` seeds the scenes' own noise streams ([`batch_seeds`]); `steps_hint` only sizes
+    /// buffers.
     pub fn new(
         engine: &mut dyn StepEngine,
         planner: &PlannerSpec,
@@ -183,8 +205,29 @@ impl RolloutDriver {
         steps_hint: usize,
         rng: &mut StdRng,
     ) -> Result<Self> {
+        let seeds = batch_seeds(rng, scenes.len());
+        Self::with_seeds(engine, planner, scenes, &seeds, steps_hint)
+    }
+
+    /// [`Self::new`] with each scene's noise stream seeded by the caller (`seeds[i]` for scene
+    /// `i`, [`stream_seed`] for seeds that do not depend on the batch): a scene samples what it
+    /// would sample alone with its seed.
+    pub fn with_seeds(
+        engine: &mut dyn StepEngine,
+        planner: &PlannerSpec,
+        scenes: &[RolloutScene],
+        seeds: &[u64],
+        steps_hint: usize,
+    ) -> Result<Self> {
         if scenes.is_empty() {
             return Err(Error::data("a rollout needs at least one scene".into()));
+        }
+        if seeds.len() != scenes.len() {
+            return Err(Error::data(format!(
+                "{} noise seeds for {} scenes",
+                seeds.len(),
+                scenes.len()
+            )));
         }
         let b = scenes.len();
         let a_max = scenes
@@ -214,9 +257,8 @@ impl RolloutDriver {
         }
         engine.prepare(b, a_max, &feats, p_max, &map, &map_valid)?;
 
-        let base_seed = rng.next_u64();
-        for (i, s) in scenes.iter().enumerate() {
-            driver.insert(i, s, planner, scene_seed(base_seed, i), steps_hint)?;
+        for (i, (s, &seed)) in scenes.iter().zip(seeds).enumerate() {
+            driver.insert(i, s, planner, seed, steps_hint)?;
         }
         driver.free.clear();
         let packed: Vec<f32> = driver

@@ -11,7 +11,7 @@ use road_sched::PlannerSpec;
 
 use crate::batch::SceneInput;
 pub use crate::cpu_engine::{CpuEngine, FastCpuEngine};
-pub use crate::driver::RolloutDriver;
+pub use crate::driver::{RolloutDriver, batch_seeds, stream_seed};
 use crate::model::Denoiser;
 use crate::{Error, Result};
 
@@ -272,6 +272,19 @@ pub fn rollout_with(
     steps: usize,
     rng: &mut StdRng,
 ) -> Result<Rollout> {
+    let seeds = crate::driver::batch_seeds(rng, scenes.len());
+    rollout_seeded(engine, planner, scenes, steps, &seeds)
+}
+
+/// [`rollout_with`] with each scene's noise stream seeded by the caller (`seeds[i]` for scene
+/// `i`; see `RolloutDriver::with_seeds`).
+pub fn rollout_seeded(
+    engine: &mut dyn StepEngine,
+    planner: &PlannerSpec,
+    scenes: &[RolloutScene],
+    steps: usize,
+    seeds: &[u64],
+) -> Result<Rollout> {
     if scenes.is_empty() {
         return Ok(Rollout {
             agents: vec![],
@@ -280,7 +293,7 @@ pub fn rollout_with(
             nfe: 0,
         });
     }
-    let mut driver = RolloutDriver::new(engine, planner, scenes, steps, rng)?;
+    let mut driver = RolloutDriver::with_seeds(engine, planner, scenes, seeds, steps)?;
     for _ in 0..steps {
         driver.tick(engine, &mut |_, _, _| Ok(()))?;
     }

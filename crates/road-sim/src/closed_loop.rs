@@ -279,6 +279,21 @@ impl<'m> ClosedLoop<'m> {
         steps: usize,
         rng: &mut StdRng,
     ) -> Result<Self> {
+        let seeds = road_model::sample::batch_seeds(rng, scenes.len());
+        Self::with_seeds(engine, model, planner, scenes, maps, steps, &seeds)
+    }
+
+    /// [`Self::new`] with scene `i`'s noise stream seeded by `seeds[i]`
+    /// (`road_model::sample::stream_seed` names streams independently of the batch).
+    pub fn with_seeds(
+        engine: &mut dyn StepEngine,
+        model: &ModelConfig,
+        planner: &PlannerSpec,
+        scenes: Vec<SimScene>,
+        maps: Vec<Option<&'m LaneletMap>>,
+        steps: usize,
+        seeds: &[u64],
+    ) -> Result<Self> {
         if maps.len() != scenes.len() {
             return Err(Error::Config(format!(
                 "{} maps for {} scenes",
@@ -300,7 +315,7 @@ impl<'m> ClosedLoop<'m> {
             inputs.push(input);
             runtimes.push(Some(runtime));
         }
-        let driver = RolloutDriver::new(engine, planner, &inputs, steps, rng)?;
+        let driver = RolloutDriver::with_seeds(engine, planner, &inputs, seeds, steps)?;
         Ok(Self {
             driver,
             scenes: runtimes,

@@ -8,10 +8,11 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use rand::SeedableRng;
 use road_data::{Dataset, SceneWindow, Split, WindowConfig};
 use road_model::batch::SceneInput;
-use road_model::sample::{CpuEngine, FastCpuEngine, RolloutScene, StepEngine, rollout_with};
+use road_model::sample::{
+    CpuEngine, FastCpuEngine, RolloutScene, StepEngine, rollout_seeded, stream_seed,
+};
 use road_sim::Pose;
 use road_sim::controllers::constant_velocity;
 use road_sim::metrics::{BOOTSTRAP_RESAMPLES, Estimate, bootstrap_ratio, scene_metrics};
@@ -304,7 +305,6 @@ fn forecasting(args: EvalArgs) -> Result<ExitCode> {
             model: run.name.clone(),
             ..Totals::default()
         };
-        let mut rng = rand::rngs::StdRng::seed_from_u64(args.seed);
         let mut nfe_total = 0u64;
         let started = Instant::now();
         let bar = indicatif::ProgressBar::new(windows.len() as u64);
@@ -339,7 +339,15 @@ fn forecasting(args: EvalArgs) -> Result<ExitCode> {
                     &mut fast_engine
                 }
             };
-            let out = rollout_with(engine, &run.planner, &batch, steps, &mut rng)?;
+            // Each sample's noise stream is named by its scene in the dataset and its index, so
+            // a scene samples the same futures whatever the chunking (`--batch-scenes`).
+            let seeds: Vec<u64> = (0..chunk.len())
+                .flat_map(|k| {
+                    let scene_stream = stream_seed(args.seed, scenes[c * batch_scenes + k] as u64);
+                    (0..sample_count).map(move |s| stream_seed(scene_stream, s as u64))
+                })
+                .collect();
+            let out = rollout_seeded(engine, &run.planner, &batch, steps, &seeds)?;
             nfe_total += out.nfe;
             for (k, w) in chunk.iter().enumerate() {
                 let samples: Vec<Vec<Vec<[f64; 2]>>> = (0..sample_count)

@@ -10,7 +10,6 @@ use std::process::ExitCode;
 use std::time::Instant;
 
 use anyhow::{Context, Result};
-use rand::SeedableRng;
 use road_data::{Dataset, SceneWindow, SourceSet, Split, WindowConfig};
 use road_sim::closed_loop::{
     ClosedLoop, Controller, NoExternal, SceneTick, SimScene, guard_actions, pick_adversary,
@@ -374,7 +373,6 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
             expected_nfe_per_step: Some(run.planner.expected_nfe_per_step(args.sim_steps as u64)),
             ..Totals::default()
         };
-        let mut rng = rand::rngs::StdRng::seed_from_u64(args.seed);
         let bar = indicatif::ProgressBar::new(windows.len() as u64);
         bar.set_message(run.name.clone());
         let mut nfe_sum = 0u64;
@@ -394,15 +392,25 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
                     sim_maps.push(Some(maps[k]));
                 }
             }
+            // Each sample's noise stream is named by its scene in the dataset and its index, so
+            // a scene samples the same futures whatever the chunking (`--batch-scenes`).
+            let seeds: Vec<u64> = chunk
+                .iter()
+                .flat_map(|&k| {
+                    let scene_stream = road_model::sample::stream_seed(args.seed, scenes[k] as u64);
+                    (0..samples)
+                        .map(move |s| road_model::sample::stream_seed(scene_stream, s as u64))
+                })
+                .collect();
             let mut engine = engines.engine()?;
-            let mut sim = ClosedLoop::new(
+            let mut sim = ClosedLoop::with_seeds(
                 engine.as_dyn(),
                 &run.model,
                 &run.planner,
                 sims,
                 sim_maps,
                 args.sim_steps,
-                &mut rng,
+                &seeds,
             )?;
             let mut per_sim: Vec<Vec<SceneTick>> =
                 vec![Vec::with_capacity(args.sim_steps); chunk.len() * samples];
