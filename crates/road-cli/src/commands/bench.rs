@@ -482,6 +482,7 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
                             "scenes": b,
                             "padded_agents": a,
                             "linear_kernel": ctx.linear_kernel_setting(),
+                            "flops_per_scene_step": flops,
                             "gpu_error": format!("{e:#}"),
                             "cpu_ms_per_step": cpu_secs.map(|s| s * 1e3),
                             "cpu_scene_steps_per_sec": cpu_secs.map(|s| b as f64 / s),
@@ -547,24 +548,33 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
     );
     out!("|---|---:|---|---:|---:|---:|---:|---:|---:|---:|");
     for r in &rows {
-        let f = |k: &str| r[k].as_f64().unwrap_or(0.0);
-        // The CPU columns are null above --cpu-max-batch.
-        let cpu = |k: &str, digits: usize| {
+        // The CPU columns are null above --cpu-max-batch, the GPU ones where the adapter could
+        // not hold the batch (its error follows the table).
+        let num = |k: &str, scale: f64, digits: usize| {
             r[k].as_f64()
-                .map_or_else(|| "—".to_string(), |v| format!("{v:.digits$}"))
+                .map_or_else(|| "—".to_string(), |v| format!("{:.digits$}", v * scale))
         };
         out!(
-            "| {} | {} | {} | {:.1} | {:.1} | {:.1} | {:.2} | {} | {} | {} |",
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
             r["checkpoint"].as_str().unwrap_or(""),
             r["scenes"],
             r["linear_kernel"].as_str().unwrap_or(""),
-            f("flops_per_scene_step") / 1e6,
-            f("gpu_ms_per_step"),
-            f("gpu_scene_steps_per_sec"),
-            f("gpu_gflops"),
-            cpu("cpu_ms_per_step", 1),
-            cpu("cpu_scene_steps_per_sec", 1),
-            cpu("cpu_gflops", 2)
+            num("flops_per_scene_step", 1e-6, 1),
+            num("gpu_ms_per_step", 1.0, 1),
+            num("gpu_scene_steps_per_sec", 1.0, 1),
+            num("gpu_gflops", 1.0, 2),
+            num("cpu_ms_per_step", 1.0, 1),
+            num("cpu_scene_steps_per_sec", 1.0, 1),
+            num("cpu_gflops", 1.0, 2)
+        );
+    }
+    for r in rows.iter().filter(|r| r["gpu_error"].is_string()) {
+        out!(
+            "\n{} at {} scenes ({}): no GPU figures: {}",
+            r["checkpoint"].as_str().unwrap_or(""),
+            r["scenes"],
+            r["linear_kernel"].as_str().unwrap_or(""),
+            r["gpu_error"].as_str().unwrap_or("")
         );
     }
     for r in rows.iter().filter(|r| !r["profile"].is_null()) {
