@@ -22,6 +22,7 @@ import argparse
 import json
 import math
 import re
+import struct
 import sys
 import time
 import tomllib
@@ -447,18 +448,22 @@ def agent_maps(
     return local, valid
 
 
+def round_to_f32(value: float) -> float:
+    """`value` rounded to the nearest f32, as a Python float."""
+    return struct.unpack("f", struct.pack("f", value))[0]
+
+
 def pair_features(
     x: Tensor, anchors: tuple[Tensor, ...], c: ModelConfig, pairs: AgentPairs
 ) -> Tensor:
     """Every (query i, key j) pair of every slot (agent_pairs.rs, `pair_features_of`):
     `x [B, A, W, 3]` → `[B·W, A (query), A (key), F]`."""
     b, a, w, _ = x.shape
-    # Length scales in state units, rounded to f32 as PairScales does.
-    direction = float(
-        torch.tensor(pairs.direction_scale_m / c.position_scale_m, dtype=torch.float32)
-    )
-    near = float(torch.tensor(pairs.near_scale_m / c.position_scale_m, dtype=torch.float32))
-    far = float(torch.tensor(pairs.far_scale_m / c.position_scale_m, dtype=torch.float32))
+    # Length scales in state units, rounded to f32 as PairScales does (in plain Python: a
+    # tensor's float() breaks torch.compile's graph).
+    direction = round_to_f32(pairs.direction_scale_m / c.position_scale_m)
+    near = round_to_f32(pairs.near_scale_m / c.position_scale_m)
+    far = round_to_f32(pairs.far_scale_m / c.position_scale_m)
     xt = x.transpose(1, 2)  # [B, W, A, 3]
     query = xt[:, :, :, None, :]  # [B, W, A, 1, 3]
     key = xt[:, :, None, :, :]  # [B, W, 1, A, 3]

@@ -728,8 +728,9 @@ fn serve_bench(args: &ServeBenchArgs) -> Result<()> {
     }
     out!(
         "(GFLOP/s: the denoiser's multiply-adds ×2 of every evaluation (`flops_per_evaluation`: \
-         projections, attention, MLP; the pair features and the memoised map keys not counted) \
-         over the timed ticks: compare it with the device's peak)"
+         projections, attention, MLP, the agent maps' point encoder and keys; the pair features \
+         not counted, and the encoder counted every evaluation although the fast CPU engine \
+         memoises it per anchor) over the timed ticks: compare it with the device's peak)"
     );
     Ok(())
 }
