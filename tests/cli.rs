@@ -291,6 +291,7 @@ fn gpu_selftest_passes_on_the_adapter_present() {
     let text = stdout(&o);
     for kernel in [
         "linear",
+        "linear_tiled",
         "layer_norm",
         "attention",
         "pair_attention",

@@ -22,7 +22,9 @@ use road_sched::{
 
 use crate::batch::{AGENT_FEATURES, normal_vec};
 use crate::sample::{Rollout, RolloutScene, ShiftEdit, ShiftShape, StepEngine};
-use crate::smoothing::{smooth_accelerations, smooth_with_plan, track_least_jerk};
+use crate::smoothing::{
+    align_heading_to_course, smooth_accelerations, smooth_with_plan, track_least_jerk,
+};
 use crate::{Error, Result};
 
 /// The caller's hook at each scene's emission, `overrides(scene, emitted, plan_turns)`: called
@@ -870,6 +872,21 @@ impl RolloutDriver {
                     tracking.max_slip_deg.map(|deg| deg.to_radians().tan()),
                     &mut emitted,
                 );
+                if let (Some(offset_deg), Some(scale), Some(scale_m)) = (
+                    tracking.max_course_offset_deg,
+                    heading_scale,
+                    position_scale_m,
+                ) {
+                    let min_step = road_sched::COURSE_MIN_SPEED_MPS * STEP_SECS / scale_m;
+                    align_heading_to_course(
+                        &s.history,
+                        &s.history_valid,
+                        &mut emitted,
+                        scale,
+                        min_step,
+                        offset_deg.to_radians(),
+                    );
+                }
             }
             if let Some(alpha) = self.planners[i].acceleration_smoothing {
                 // External agents' states replace theirs just below.

@@ -233,6 +233,43 @@ pub fn track_least_jerk(
     }
 }
 
+/// Turns each agent's emitted heading to within `max_offset_rad` of its step's course (from its
+/// newest history position to the emitted one) when the step is at least `min_step` position
+/// units long: a car's body follows its wheels, so at speed the box points where it moves.
+/// The heading moves by the least angle that does it and keeps the model's winding (no 2π
+/// jumps). Agents without a valid newest history position, and slower steps, keep the model's
+/// heading. `emitted` is `[agents, 3]` with headings in `heading_scale` units per radian.
+pub fn align_heading_to_course(
+    history: &[Vec<[f32; 3]>],
+    history_valid: &[Vec<bool>],
+    emitted: &mut [f32],
+    heading_scale: f64,
+    min_step: f64,
+    max_offset_rad: f64,
+) {
+    for (a, state) in emitted.chunks_exact_mut(3).enumerate() {
+        let (Some(p0), Some(true)) = (history[a].last(), history_valid[a].last()) else {
+            continue;
+        };
+        let step = [
+            f64::from(state[0]) - f64::from(p0[0]),
+            f64::from(state[1]) - f64::from(p0[1]),
+        ];
+        if step[0].hypot(step[1]) < min_step {
+            continue;
+        }
+        let course = step[1].atan2(step[0]);
+        let heading = f64::from(state[2]) / heading_scale;
+        // The heading's offset from the course in (−π, π].
+        let offset = (heading - course + std::f64::consts::PI).rem_euclid(std::f64::consts::TAU)
+            - std::f64::consts::PI;
+        let excess = offset - offset.clamp(-max_offset_rad, max_offset_rad);
+        if excess != 0.0 {
+            state[2] = ((heading - excess) * heading_scale) as f32;
+        }
+    }
+}
+
 /// The longest tracked path: the emitted position and `MAX_JERK_TRACKING_AHEAD` planned slots.
 const MAX_PATH: usize = MAX_JERK_TRACKING_AHEAD + 1;
 
@@ -325,6 +362,48 @@ mod tests {
     use std::f32::consts::FRAC_1_SQRT_2;
 
     use super::*;
+
+    #[test]
+    fn headings_turn_towards_the_course_of_fast_steps_only() {
+        let scale = 0.25f64; // heading units per radian (the default model's)
+        let deg = |d: f64| d.to_radians();
+        // Five agents, each from (0, 0) with its newest history state.
+        let history = vec![vec![[0.0f32, 0.0, 0.0]]; 5];
+        let mut history_valid = vec![vec![true]; 5];
+        history_valid[4] = vec![false];
+        let state = |x: f32, y: f32, heading_rad: f64| [x, y, (heading_rad * scale) as f32];
+        let mut emitted: Vec<f32> = [
+            state(1.0, 0.0, deg(30.0)),  // fast, 30° off: turned to 5°
+            state(1.0, 0.0, deg(-3.0)),  // within the bound: kept
+            state(0.01, 0.0, deg(30.0)), // slow: kept
+            state(0.0, 1.0, deg(90.0 + 40.0) + std::f64::consts::TAU), // wound once: stays so
+            state(1.0, 0.0, deg(30.0)),  // no valid history: kept
+        ]
+        .concat();
+        let before = emitted.clone();
+        align_heading_to_course(
+            &history,
+            &history_valid,
+            &mut emitted,
+            scale,
+            0.05,
+            deg(5.0),
+        );
+        let heading_deg = |a: usize| (f64::from(emitted[3 * a + 2]) / scale).to_degrees();
+        assert!((heading_deg(0) - 5.0).abs() < 1e-3, "{}", heading_deg(0));
+        assert!(
+            (heading_deg(3) - (95.0 + 360.0)).abs() < 1e-3,
+            "{}",
+            heading_deg(3)
+        );
+        for a in [1, 2, 4] {
+            assert_eq!(emitted[3 * a + 2], before[3 * a + 2], "agent {a}");
+        }
+        // Positions never move.
+        for a in 0..5 {
+            assert_eq!(emitted[3 * a..3 * a + 2], before[3 * a..3 * a + 2]);
+        }
+    }
 
     /// (history, its flags, the window's denoised estimate, the window's flags) of one agent.
     type PlanCase = (Vec<Vec<[f32; 3]>>, Vec<Vec<bool>>, Vec<f32>, Vec<f32>);
@@ -617,6 +696,7 @@ mod tests {
             ahead: 3,
             max_acceleration_mps2: None,
             max_slip_deg: None,
+            max_course_offset_deg: None,
         };
         assert!((tracking.jerk_weight(0.1) - 100.0).abs() < 1e-9);
     }

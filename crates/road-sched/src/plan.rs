@@ -150,7 +150,17 @@ pub struct JerkTracking {
     /// which slides it sideways. Absent: unbounded.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub max_slip_deg: Option<f64>,
+    /// A vehicle moving at 2 m/s or more heads within this angle (degrees) of its tracked step's
+    /// course: its emitted heading is turned that far towards the course, as a car's body
+    /// follows its wheels. The model's heading may disagree with its own step; without this the
+    /// box then moves sideways. Absent: the model's heading stands.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub max_course_offset_deg: Option<f64>,
 }
+
+/// The speed from which `JerkTracking::max_course_offset_deg` holds (m/s): the one from which
+/// the suites read a course of motion (`road_sim::kinematics`).
+pub const COURSE_MIN_SPEED_MPS: f64 = 2.0;
 
 /// The most planned slots least-jerk tracking looks at.
 pub const MAX_JERK_TRACKING_AHEAD: usize = 10;
@@ -325,6 +335,13 @@ impl PlannerSpec {
                 if !(slip.is_finite() && (0.0..90.0).contains(&slip)) {
                     return bad(format!(
                         "jerk_tracking.max_slip_deg must be 0 to below 90 degrees, got {slip}"
+                    ));
+                }
+            }
+            if let Some(offset) = tracking.max_course_offset_deg {
+                if !(offset.is_finite() && (0.0..90.0).contains(&offset)) {
+                    return bad(format!(
+                        "jerk_tracking.max_course_offset_deg must be 0 to below 90 degrees, got {offset}"
                     ));
                 }
             }

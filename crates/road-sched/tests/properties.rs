@@ -437,6 +437,7 @@ fn jerk_tracking_options_are_checked() {
             ahead,
             max_acceleration_mps2: Some(6.0),
             max_slip_deg: Some(5.0),
+            max_course_offset_deg: None,
         }),
         ..spec(PlannerKind::Rolling, 10, 5, 40, None)
     };
@@ -457,6 +458,7 @@ fn jerk_tracking_options_are_checked() {
             ahead: 2,
             max_acceleration_mps2: Some(0.0),
             max_slip_deg: None,
+            max_course_offset_deg: None,
         }),
         ..spec(PlannerKind::Rolling, 10, 5, 40, None)
     };
@@ -474,6 +476,7 @@ fn jerk_tracking_options_are_checked() {
                 ahead: 2,
                 max_acceleration_mps2: None,
                 max_slip_deg: Some(slip),
+                max_course_offset_deg: None,
             }),
             ..spec(PlannerKind::Rolling, 10, 5, 40, None)
         };
