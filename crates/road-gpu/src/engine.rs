@@ -19,7 +19,7 @@ use crate::kernels::agent_pairs::PairAttentionParams;
 use crate::kernels::attention::{AttentionParams, MAX_HEAD_DIM, TokenLayout};
 use crate::kernels::layer_norm::LayerNormParams;
 use crate::kernels::linear::{Linear, LinearKernel, LinearParams};
-use crate::kernels::{Dispatch, Pipeline, read_back, record_all, storage_buffer, upload};
+use crate::kernels::{Dispatch, Pipeline, read_back, record_all, rows_of, storage_buffer, upload};
 use crate::shaders::Shader;
 use crate::{Error, GpuContext, Result};
 
@@ -472,23 +472,7 @@ impl GpuDenoiser {
             picked: None,
         })
     }
-}
 
-/// `count` rows of `floats` values of `buffer` from row `first`, as a binding.
-fn rows_of(
-    buffer: &wgpu::Buffer,
-    first: usize,
-    count: usize,
-    floats: usize,
-) -> wgpu::BindingResource<'_> {
-    wgpu::BindingResource::Buffer(wgpu::BufferBinding {
-        buffer,
-        offset: (first * floats * 4) as u64,
-        size: std::num::NonZeroU64::new((count * floats * 4) as u64),
-    })
-}
-
-impl GpuDenoiser {
     /// The polyline encoder's dispatches (`docs/checkpoint.md`, step 3): `points [n, Q, 2]` →
     /// `scratch.tokens [n, D]`.
     fn prepare_polyline_encoder(

@@ -243,6 +243,21 @@ pub fn record_all(encoder: &mut wgpu::CommandEncoder, label: &str, dispatches: &
     }
 }
 
+/// `count` rows of `floats` values of `buffer` from row `first`, as a binding (the offset must
+/// meet the adapter's storage offset alignment: 256 bytes at most).
+pub(crate) fn rows_of(
+    buffer: &wgpu::Buffer,
+    first: usize,
+    count: usize,
+    floats: usize,
+) -> wgpu::BindingResource<'_> {
+    wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+        buffer,
+        offset: (first * floats * 4) as u64,
+        size: std::num::NonZeroU64::new((count * floats * 4) as u64),
+    })
+}
+
 /// A read-write storage buffer that can be copied out.
 pub fn storage_buffer(ctx: &GpuContext, label: &str, bytes: u64) -> wgpu::Buffer {
     ctx.device.create_buffer(&wgpu::BufferDescriptor {
