@@ -424,18 +424,13 @@ impl GpuDenoiser {
         let q = self.config.polyline_points;
         assert_eq!(map.len(), scenes * polylines * q * 2, "map is [B, P, Q, 2]");
         assert_eq!(map_valid.len(), scenes * polylines, "map_valid is [B, P]");
-        let points = upload(
-            ctx,
-            "map.points",
-            bytemuck::cast_slice(map),
-            wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
-        );
-        let valid = upload(
-            ctx,
-            "map.valid",
-            bytemuck::cast_slice(map_valid),
-            wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
-        );
+        // COPY_DST: a scene joining a running batch overwrites its rows (`GpuStepEngine`'s
+        // `prepare_scene`).
+        let usage = wgpu::BufferUsages::STORAGE
+            | wgpu::BufferUsages::COPY_SRC
+            | wgpu::BufferUsages::COPY_DST;
+        let points = upload(ctx, "map.points", bytemuck::cast_slice(map), usage);
+        let valid = upload(ctx, "map.valid", bytemuck::cast_slice(map_valid), usage);
         if let Some(spec) = &self.config.agent_map {
             if polylines > crate::kernels::agent_map::MAX_POLYLINES {
                 return Err(Error::Input(format!(
@@ -545,12 +540,7 @@ impl GpuDenoiser {
         ctx: &GpuContext,
         inputs: &DenoiseInputs<'_>,
     ) -> Result<DeviceBatch> {
-        let (b, a, w, d) = (
-            inputs.scenes,
-            inputs.agents,
-            self.config.window_slots,
-            self.config.hidden,
-        );
+        let (b, a, w) = (inputs.scenes, inputs.agents, self.config.window_slots);
         assert_eq!(inputs.x.len(), b * a * w * 3, "x is [B, A, W, 3]");
         assert_eq!(inputs.sigma.len(), b * w, "sigma is [B, W]");
         assert_eq!(inputs.valid.len(), b * a * w, "valid is [B, A, W]");
@@ -565,13 +555,32 @@ impl GpuDenoiser {
         let x = upload(ctx, "x", bytemuck::cast_slice(inputs.x), usage);
         let sigma = upload(ctx, "sigma", bytemuck::cast_slice(inputs.sigma), usage);
         let valid = upload(ctx, "valid", bytemuck::cast_slice(inputs.valid), usage);
+        let agent_embedding = self.embed_agents(ctx, inputs.agent_features, b * a)?;
+        Ok(DeviceBatch {
+            scenes: b,
+            agents: a,
+            x,
+            sigma,
+            valid,
+            agent_embedding,
+        })
+    }
+
+    /// The agents' static embedding `[rows, D]` of their features `[rows, 6]`, submitted.
+    pub(crate) fn embed_agents(
+        &self,
+        ctx: &GpuContext,
+        features: &[f32],
+        rows: usize,
+    ) -> Result<wgpu::Buffer> {
+        let d = self.config.hidden;
         let features = upload(
             ctx,
             "agent features",
-            bytemuck::cast_slice(inputs.agent_features),
+            bytemuck::cast_slice(features),
             wgpu::BufferUsages::STORAGE,
         );
-        let agent_embedding = storage_buffer(ctx, "agent embedding", (b * a * d * 4) as u64);
+        let agent_embedding = storage_buffer(ctx, "agent embedding", (rows * d * 4) as u64);
         let mut ops = Vec::new();
         self.linear(
             ctx,
@@ -579,7 +588,7 @@ impl GpuDenoiser {
             "embed_agent",
             &features,
             &agent_embedding,
-            b * a,
+            rows,
             6,
             d,
             false,
@@ -591,14 +600,7 @@ impl GpuDenoiser {
             });
         record_all(&mut enc, "agents", &ops);
         ctx.queue.submit([enc.finish()]);
-        Ok(DeviceBatch {
-            scenes: b,
-            agents: a,
-            x,
-            sigma,
-            valid,
-            agent_embedding,
-        })
+        Ok(agent_embedding)
     }
 
     /// Prepares the dispatches of `D(x; σ)` for the batch into `out` (`[B, A, W, 3]`), reading

@@ -326,6 +326,82 @@ impl road_model::sample::StepEngine for GpuStepEngine<'_> {
         Ok(())
     }
 
+    fn prepare_scene(
+        &mut self,
+        scene: usize,
+        features: &[f32],
+        map: &[f32],
+        map_valid: &[f32],
+    ) -> road_model::Result<()> {
+        let Some(batch_map) = &self.map else {
+            return Err(road_model::Error::Engine(
+                "prepare_scene before prepare".into(),
+            ));
+        };
+        let (a, p) = (self.agents, batch_map.polylines);
+        let q = self.model.config.polyline_points;
+        if scene >= self.scenes
+            || features.len() != a * 6
+            || map.len() != p * q * 2
+            || map_valid.len() != p
+        {
+            return Err(road_model::Error::Engine(format!(
+                "prepare_scene {scene}: {} features, {} map values, {} polyline flags for a \
+                 batch of {} scenes × {a} agents × {p} polylines of {q} points",
+                features.len(),
+                map.len(),
+                map_valid.len(),
+                self.scenes
+            )));
+        }
+        self.features[scene * a * 6..][..a * 6].copy_from_slice(features);
+        // The scene's map as the batch holds it (points with agent maps, else its encoded
+        // tokens), encoded alone and copied over its rows.
+        let one = self
+            .model
+            .encode_map(self.ctx, 1, p, map, map_valid)
+            .map_err(engine_err)?;
+        let mut enc = self
+            .ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("prepare scene"),
+            });
+        let data_bytes = (p * batch_map.per_polyline * 4) as u64;
+        enc.copy_buffer_to_buffer(
+            &one.data,
+            0,
+            &batch_map.data,
+            scene as u64 * data_bytes,
+            data_bytes,
+        );
+        let valid_bytes = (p * 4) as u64;
+        enc.copy_buffer_to_buffer(
+            &one.valid,
+            0,
+            &batch_map.valid,
+            scene as u64 * valid_bytes,
+            valid_bytes,
+        );
+        // Before the first load the batch takes every scene's features from the host copy.
+        if let Some(batch) = &self.batch {
+            let embedding = self
+                .model
+                .embed_agents(self.ctx, features, a)
+                .map_err(engine_err)?;
+            let bytes = (a * self.model.config.hidden * 4) as u64;
+            enc.copy_buffer_to_buffer(
+                &embedding,
+                0,
+                &batch.agent_embedding,
+                scene as u64 * bytes,
+                bytes,
+            );
+        }
+        self.ctx.queue.submit([enc.finish()]);
+        Ok(())
+    }
+
     fn load(&mut self, windows: &[f32], valid: &[f32]) -> road_model::Result<()> {
         // Later ticks only overwrite the state: buffers, bind groups and the plan stay.
         if let Some(batch) = &self.batch {

@@ -45,6 +45,20 @@ pub struct ServeConfig {
     /// Where the live view (a Foxglove WebSocket server, [`crate::live`]) listens; `None`: no
     /// live view. Port 0 takes any free port ([`crate::ServerHandle::foxglove_addr`]).
     pub foxglove_listen: Option<SocketAddr>,
+    /// The engine every pool runs on.
+    pub engine: ServeEngine,
+}
+
+/// What the pools' denoiser runs on.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum ServeEngine {
+    /// The fast CPU engine on every core: the lowest latency for a few scenes.
+    #[default]
+    Cpu,
+    /// The WGSL kernels on the GPU wgpu picks (lavapipe without one): more scenes per machine
+    /// where a GPU is present (an H100 passed 16 Xeon cores from 128 scenes on,
+    /// `docs/benchmarks.md`).
+    Gpu,
 }
 
 impl ServeConfig {
@@ -65,6 +79,7 @@ impl ServeConfig {
             default_checkpoint: DEFAULT_CHECKPOINT.into(),
             map_files: Vec::new(),
             foxglove_listen: None,
+            engine: ServeEngine::Cpu,
         }
     }
 

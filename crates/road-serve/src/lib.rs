@@ -30,7 +30,7 @@ pub mod scene;
 pub mod server;
 mod writer;
 
-pub use config::{ServeConfig, ZenohArgs};
+pub use config::{ServeConfig, ServeEngine, ZenohArgs};
 pub use server::{Server, ServerHandle};
 
 /// Errors of the server (setting up, running); bad client input is not an error of the
@@ -71,6 +71,9 @@ pub enum Error {
     Data(#[from] road_data::Error),
     #[error(transparent)]
     Model(#[from] road_model::Error),
+    /// The WGSL engine (`--engine gpu`): no adapter, or a checkpoint it cannot run.
+    #[error("GPU engine: {0}")]
+    Gpu(#[from] road_gpu::Error),
 }
 
 pub type Result<T, E = Error> = std::result::Result<T, E>;

@@ -5,6 +5,8 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
+use road_gpu::GpuContext;
+use road_gpu::engine::GpuDenoiser;
 use road_model::checkpoint::{self, LoadedModel};
 use road_sched::PlannerSpec;
 
@@ -68,11 +70,14 @@ pub fn planners() -> Result<BTreeMap<String, PlannerSpec>> {
 }
 
 /// Checkpoints loaded so far. Each stays loaded for the server's life (scenes' engines
-/// borrow it), so a name is loaded at most once.
+/// borrow it), so a name is loaded at most once; with a GPU context its weights are uploaded
+/// once too.
 #[derive(Debug)]
 pub struct Checkpoints {
     dir: Option<PathBuf>,
     loaded: BTreeMap<String, &'static LoadedModel>,
+    gpu: Option<&'static GpuContext>,
+    uploaded: BTreeMap<String, &'static GpuDenoiser>,
 }
 
 impl Checkpoints {
@@ -81,7 +86,40 @@ impl Checkpoints {
         Self {
             dir,
             loaded: BTreeMap::new(),
+            gpu: None,
+            uploaded: BTreeMap::new(),
         }
+    }
+
+    /// The same, their weights also uploaded to `gpu` when first used ([`Self::gpu_model`]).
+    pub fn with_gpu(dir: Option<PathBuf>, gpu: &'static GpuContext) -> Self {
+        Self {
+            gpu: Some(gpu),
+            ..Self::new(dir)
+        }
+    }
+
+    /// The GPU context and checkpoint `name`'s weights on it (uploaded on first use), or None
+    /// without a GPU context.
+    pub fn gpu_model(
+        &mut self,
+        name: &str,
+    ) -> Result<Option<(&'static GpuContext, &'static GpuDenoiser)>> {
+        let Some(ctx) = self.gpu else {
+            return Ok(None);
+        };
+        if let Some(m) = self.uploaded.get(name) {
+            return Ok(Some((ctx, m)));
+        }
+        let loaded = self.get(name)?;
+        let model = match self.folder(name) {
+            Some(path) => GpuDenoiser::from_checkpoint(ctx, &path)?,
+            None => GpuDenoiser::from_memory(ctx, loaded, embedded::WEIGHTS)?,
+        };
+        // Leaked for the reason `get` leaks the model: pools borrow it for the server's life.
+        let model: &'static GpuDenoiser = Box::leak(Box::new(model));
+        self.uploaded.insert(name.to_owned(), model);
+        Ok(Some((ctx, model)))
     }
 
     /// Where checkpoints are looked up, for messages.

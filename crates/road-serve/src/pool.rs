@@ -8,8 +8,11 @@
 use std::sync::Arc;
 
 use road_data::LaneletMap;
+use road_gpu::GpuContext;
+use road_gpu::engine::GpuDenoiser;
+use road_gpu::step_engine::GpuStepEngine;
 use road_model::checkpoint::LoadedModel;
-use road_model::sample::FastCpuEngine;
+use road_model::sample::{FastCpuEngine, StepEngine};
 use road_sched::PlannerSpec;
 use road_sim::closed_loop::{ClosedLoop, ExternalDriver, SceneMap, SceneTick, SimScene};
 
@@ -22,9 +25,17 @@ pub struct PoolKey {
     pub planner: String,
 }
 
+/// What a pool's engine runs on: the fast CPU engine, or the WGSL kernels with the
+/// checkpoint's weights already on the GPU.
+#[derive(Debug, Clone, Copy)]
+pub enum PoolEngine {
+    Cpu,
+    Gpu(&'static GpuContext, &'static GpuDenoiser),
+}
+
 /// One engine and the pool of scenes on it.
 pub struct Pool {
-    engine: FastCpuEngine<'static>,
+    engine: Box<dyn StepEngine + Send>,
     sim: ClosedLoop<'static>,
     /// The server's scene id in each slot of the pool.
     scene_ids: Vec<Option<u64>>,
@@ -41,17 +52,22 @@ impl std::fmt::Debug for Pool {
 }
 
 impl Pool {
-    /// An empty pool of `capacity` scenes of at most `agents` agents on the fast CPU engine
-    /// (candle's results to 1e-4; scenes that hold still and padding cost nothing there).
+    /// An empty pool of `capacity` scenes of at most `agents` agents on `engine` (both give
+    /// candle's results to 1e-4; scenes that hold still cost nothing on either, padding nothing
+    /// on the CPU).
     pub fn new(
         model: &'static LoadedModel,
+        engine: PoolEngine,
         planner: &PlannerSpec,
         capacity: usize,
         agents: usize,
     ) -> Result<Self> {
-        let mut engine = FastCpuEngine::new(&model.model)?;
+        let mut engine: Box<dyn StepEngine + Send> = match engine {
+            PoolEngine::Cpu => Box::new(FastCpuEngine::new(&model.model)?),
+            PoolEngine::Gpu(ctx, gpu_model) => Box::new(GpuStepEngine::new(ctx, gpu_model)),
+        };
         let sim = ClosedLoop::pool(
-            &mut engine,
+            engine.as_mut(),
             &model.meta.run.model,
             planner,
             capacity,
@@ -78,7 +94,7 @@ impl Pool {
         // The closed loop needs the map for the planner's lane guard (the server still checks
         // off-road itself, from its own copy of the poses).
         let slot = self.sim.add_scene(
-            &mut self.engine,
+            self.engine.as_mut(),
             scene,
             planner,
             map.map(SceneMap::Shared),
@@ -123,7 +139,7 @@ impl Pool {
     /// One batched round; returns the server's ids of the scenes whose tick finished, with
     /// what the tick did.
     pub fn round(&mut self) -> Result<Vec<(u64, SceneTick)>> {
-        self.sim.round(&mut self.engine, &mut self.finished)?;
+        self.sim.round(self.engine.as_mut(), &mut self.finished)?;
         Ok(self
             .finished
             .drain(..)
@@ -161,7 +177,7 @@ mod tests {
         let mut controllers = vec![Controller::Model; scene.window.agents];
         controllers[scene.ego.agent] = Controller::ConstantVelocity;
         let agents = scene.window.agents;
-        let mut pool = Pool::new(model, &planner, 1, agents).unwrap();
+        let mut pool = Pool::new(model, PoolEngine::Cpu, &planner, 1, agents).unwrap();
         let ticks = 40;
         let slot = pool
             .add(

@@ -23,6 +23,7 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant, SystemTime};
 
 use road_data::LaneletMap;
+use road_gpu::{ContextOptions, GpuContext};
 use road_protocol::{
     CloseScene, CreateScene, ErrorCode, ErrorReply, Keys, PROTOCOL_VERSION, Percentiles,
     SceneClosed, SceneCreated, SceneStatus, Status, parse,
@@ -33,10 +34,10 @@ use zenoh::qos::CongestionControl;
 use zenoh::query::Query;
 use zenoh::sample::SampleKind;
 
-use crate::config::ServeConfig;
+use crate::config::{ServeConfig, ServeEngine};
 use crate::live::LiveView;
 use crate::models::{Checkpoints, find_models_dir, planners};
-use crate::pool::{Pool, PoolKey};
+use crate::pool::{Pool, PoolEngine, PoolKey};
 use crate::record::{Recorder, agents_update, free_path, map_update, topics, unix_nanos};
 use crate::scene::{LiveScene, SetupContext, setup};
 use crate::writer::{LiveChannels, SceneWriter};
@@ -103,8 +104,28 @@ impl Server {
             Some(dir) => find_models_dir(Some(dir))?,
             None => None,
         };
-        let mut checkpoints = Checkpoints::new(models_dir);
+        // The GPU engine's context lives as long as the server's pools (leaked once per server,
+        // like the checkpoints they borrow); opening it first reports a missing adapter at start.
+        let (mut checkpoints, engine) = match config.engine {
+            ServeEngine::Cpu => (
+                Checkpoints::new(models_dir),
+                "fast CPU engine (continuous batching: one pool per checkpoint and planner)"
+                    .to_owned(),
+            ),
+            ServeEngine::Gpu => {
+                let ctx: &'static GpuContext =
+                    Box::leak(Box::new(GpuContext::new(&ContextOptions::default())?));
+                tracing::info!(adapter = %ctx.describe(), "serving on the GPU engine");
+                let engine = format!(
+                    "WGSL engine on {} (continuous batching: one pool per checkpoint and planner)",
+                    ctx.describe()
+                );
+                (Checkpoints::with_gpu(models_dir, ctx), engine)
+            }
+        };
         let default = checkpoints.get(&config.default_checkpoint)?;
+        // A checkpoint the kernels cannot run is refused now, not at the first scene.
+        checkpoints.gpu_model(&config.default_checkpoint)?;
         tracing::info!(
             checkpoint = %config.default_checkpoint,
             planner = %default.meta.run.name,
@@ -217,8 +238,7 @@ impl Server {
 
         let writer = SceneWriter::start(live_view.clone(), config.flush_interval)?;
         let core = Core {
-            engine: "fast CPU engine (continuous batching: one pool per checkpoint and planner)"
-                .into(),
+            engine,
             config,
             keys,
             session: session.clone(),
@@ -571,8 +591,23 @@ impl Core {
             planner: scene_setup.planner_name.clone(),
         };
         if !self.pools.contains_key(&key) {
+            let engine = match self.checkpoints.gpu_model(&key.checkpoint) {
+                Ok(Some((ctx, model))) => PoolEngine::Gpu(ctx, model),
+                Ok(None) => PoolEngine::Cpu,
+                Err(e) => {
+                    return reply_err(
+                        query,
+                        &ErrorReply::new(
+                            ErrorCode::Internal,
+                            None,
+                            format!("cannot put checkpoint {} on the GPU: {e}", key.checkpoint),
+                        ),
+                    );
+                }
+            };
             match Pool::new(
                 scene_setup.model,
+                engine,
                 &scene_setup.planner,
                 self.config.capacity,
                 self.config.max_agents,

@@ -134,3 +134,71 @@ fn a_late_ego_is_driven_by_the_model_and_flagged() {
     }
     server.stop().unwrap();
 }
+
+/// `--engine gpu`: the same scenes served on the WGSL engine (lavapipe in CI) and on the fast
+/// CPU engine, same seeds, answer the same NPC states to the engines' agreement, a second
+/// scene joining the GPU's running batch included; the status names the engine.
+#[test]
+fn the_gpu_engine_serves_what_the_cpu_engine_serves() {
+    let serve = |engine: road_serve::ServeEngine, name: &str| {
+        let dir = common::temp_dir(name);
+        let mut config = common::config(&dir);
+        config.engine = engine;
+        config.capacity = 2; // a small pool: lavapipe runs every slot of a round's batch
+        config.late_ego_deadline = Duration::ZERO;
+        let server = common::start(config);
+        let client = common::client(&server, name);
+        let status = client.status().unwrap();
+        let mut first = client.create(common::roundabout()).unwrap();
+        let first_history = first.created().agents[0].history.clone();
+        let mut answered = vec![
+            first
+                .step(1, vec![common::replay(&first_history, 1, 1)])
+                .unwrap(),
+        ];
+        // The second joins while the first's pool runs.
+        let mut request = common::roundabout();
+        request.seed = 5;
+        request.map = MapSource::Procedural("merge".into());
+        let mut second = client.create(request).unwrap();
+        let second_history = second.created().agents[0].history.clone();
+        for t in 2..=3 {
+            answered.push(
+                first
+                    .step(t, vec![common::replay(&first_history, 1, t)])
+                    .unwrap(),
+            );
+            answered.push(
+                second
+                    .step(t - 1, vec![common::replay(&second_history, 1, t - 1)])
+                    .unwrap(),
+            );
+        }
+        for npc in &answered {
+            common::assert_sane(npc, 300.0);
+        }
+        first.close().unwrap();
+        second.close().unwrap();
+        server.stop().unwrap();
+        (status.engine, answered)
+    };
+    let (gpu_engine, on_gpu) = serve(road_serve::ServeEngine::Gpu, "gpu-engine");
+    let (cpu_engine, on_cpu) = serve(road_serve::ServeEngine::Cpu, "cpu-engine");
+    assert!(gpu_engine.starts_with("WGSL engine on "), "{gpu_engine}");
+    assert!(cpu_engine.starts_with("fast CPU engine"), "{cpu_engine}");
+    assert_eq!(on_gpu.len(), 5);
+    for (gpu, cpu) in on_gpu.iter().zip(&on_cpu) {
+        assert_eq!((gpu.scene, gpu.tick), (cpu.scene, cpu.tick));
+        assert_eq!(gpu.npcs.len(), cpu.npcs.len());
+        for (g, c) in gpu.npcs.iter().zip(&cpu.npcs) {
+            let apart = (g.x_m - c.x_m).hypot(g.y_m - c.y_m);
+            assert!(
+                apart < 0.05,
+                "scene {} tick {}: agent {} {apart} m apart",
+                gpu.scene,
+                gpu.tick,
+                g.id
+            );
+        }
+    }
+}

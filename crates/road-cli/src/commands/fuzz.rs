@@ -316,6 +316,7 @@ impl Harness {
         // Leaked: the live scene refers to its pool's slot for the whole run.
         let pool: &'static mut Pool = Box::leak(Box::new(Pool::new(
             scene_setup.model,
+            road_serve::pool::PoolEngine::Cpu,
             &scene_setup.planner,
             1,
             config.max_agents,

@@ -54,6 +54,17 @@ pub struct ServeArgs {
     /// `ws://ADDR`): every live scene's map and agent boxes. Off by default.
     #[arg(long, value_name = "ADDR")]
     pub foxglove: Option<SocketAddr>,
+    /// What the model runs on: `cpu`, the fast CPU engine (the lowest latency for a few
+    /// scenes), or `gpu`, the WGSL kernels on the GPU wgpu picks (more scenes per machine: an
+    /// H100 passed 16 Xeon cores from 128 scenes on; lavapipe without a GPU, slow).
+    #[arg(long, value_enum, default_value_t = ServeEngineArg::Cpu)]
+    pub engine: ServeEngineArg,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum ServeEngineArg {
+    Cpu,
+    Gpu,
 }
 
 pub fn run(args: ServeArgs) -> Result<ExitCode> {
@@ -73,6 +84,10 @@ pub fn run(args: ServeArgs) -> Result<ExitCode> {
     config.idle_timeout = Duration::from_secs_f64(args.idle_timeout_s);
     config.max_payload_bytes = args.max_payload_bytes;
     config.foxglove_listen = args.foxglove;
+    config.engine = match args.engine {
+        ServeEngineArg::Cpu => road_serve::ServeEngine::Cpu,
+        ServeEngineArg::Gpu => road_serve::ServeEngine::Gpu,
+    };
     for item in &args.maps {
         let (name, path) = item
             .split_once('=')
