@@ -89,7 +89,8 @@ run)
     } 2>&1 | tee "$out/machine.txt"
     # Kernels and whole denoisers against the CPU references on this adapter: nothing is timed
     # unless they agree.
-    "$bin" gpu selftest --checkpoints models/road20-wide4 models/road20 | tee "$out/selftest.txt"
+    # (Into machine.txt too: a lent machine returns at most 8 files.)
+    "$bin" gpu selftest --checkpoints models/road20-wide4 models/road20 | tee -a "$out/machine.txt"
     # Engine throughput: the WGSL engine beside the candle CPU reference, same batches.
     mkdir -p "$out/cache"
     cp dist/validation.roadds "$out/cache/validation.roadds" 2>/dev/null \
@@ -105,14 +106,18 @@ run)
     # Serving: scenes ticking through the scheduler, each engine in the same run.
     step serve 150 "$out/serve.json" "$bin" bench serve --checkpoint models/road20-wide4 \
         --engines cpu gpu --scenes "${scenes[@]}" --ticks "$ticks" --cache "$out/cache" --json
-    # The same planner under Heun (two evaluations per step; the default samples by the
-    # multistep sampler's one: docs/results.md).
+    # The networked path: `road demo` served by `road serve --engine gpu` in-process over
+    # loopback zenoh (60 ticks of the roundabout; round trips and engine time per tick).
+    step demo-gpu 60 "$out/demo-gpu.txt" "$bin" demo --engine gpu --mcap "$out/cache/demo.mcap" \
+        --gif "$out/cache/demo.gif"
     if ! $torch; then
         # A short lend: the Heun serving bench and PyTorch were measured on the first one.
         rm -rf "$out/cache"
         ls -la "$out"
         exit 0
     fi
+    # The default's planner before the multistep sampler, under Heun (two evaluations per
+    # step; the default samples by the multistep sampler's one: docs/results.md).
     step serve-heun 80 "$out/serve-heun.json" "$bin" bench serve \
         --checkpoint models/road20-wide4 \
         --planner road20-nearfit-lanes-guarded-k20-jerk-3cm-a2-amax6-yield --engines cpu gpu \

@@ -45,8 +45,9 @@ pub struct DemoArgs {
     pub in_process: bool,
     /// With `--in-process`: `gpu` (WGSL kernels), `cpu` (the fast CPU engine), `candle` (the
     /// candle reference) or `auto` (default): a hardware GPU when wgpu finds one, else the fast
-    /// CPU engine. The served demo runs the server's engine.
-    #[arg(long, value_enum, requires = "in_process")]
+    /// CPU engine. Served (without `--in-process`): the server's engine, `cpu` (default, also
+    /// for `auto`) or `gpu` (`road serve --engine gpu`).
+    #[arg(long, value_enum)]
     pub engine: Option<EngineChoice>,
     /// With `--in-process`: drive under this planner of `configs/planners.toml` instead of the
     /// checkpoint's (e.g. `road20`, the paper's; `road20-calm-guarded`, the default before).
@@ -175,8 +176,16 @@ pub(crate) fn parse_map(name: &str) -> std::result::Result<ProceduralMap, String
 pub fn run(args: DemoArgs) -> Result<ExitCode> {
     anyhow::ensure!(args.steps > 0, "--steps must be at least 1");
     if !args.in_process {
+        let engine = match args.engine {
+            None | Some(EngineChoice::Auto | EngineChoice::Cpu) => road_serve::ServeEngine::Cpu,
+            Some(EngineChoice::Gpu) => road_serve::ServeEngine::Gpu,
+            Some(EngineChoice::Candle) => anyhow::bail!(
+                "--engine candle runs with --in-process only: the server serves on cpu or gpu"
+            ),
+        };
         return crate::commands::demo_zenoh::run(
             &args.checkpoint,
+            engine,
             args.map,
             args.steps,
             args.seed,

@@ -25,6 +25,7 @@ use crate::recording::Recording;
 
 pub fn run(
     checkpoint: &Path,
+    engine: road_serve::ServeEngine,
     map: ProceduralMap,
     steps: usize,
     seed: u64,
@@ -47,6 +48,7 @@ pub fn run(
     let mut config = ServeConfig::new(models);
     config.default_checkpoint = name.to_owned();
     config.record_dir = Some(record.clone());
+    config.engine = engine;
     let port = std::net::TcpListener::bind("127.0.0.1:0")?
         .local_addr()?
         .port();
