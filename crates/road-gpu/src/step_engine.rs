@@ -28,6 +28,9 @@ pub struct GpuStepEngine<'a> {
     features: Vec<f32>,
     /// Zeros for the kept estimate's shift (nothing emitted, no noise), grown on demand.
     zeros: Vec<f32>,
+    /// `[B]`: one past each scene's last agent row with a valid slot; the rows after it are
+    /// padding, which a compact sub-batch leaves out.
+    live_agents: Vec<usize>,
     scenes: usize,
     agents: usize,
 }
@@ -46,6 +49,7 @@ impl<'a> GpuStepEngine<'a> {
             compact: Vec::new(),
             features: Vec::new(),
             zeros: Vec::new(),
+            live_agents: Vec::new(),
             scenes: 0,
             agents: 0,
         }
@@ -177,30 +181,48 @@ impl GpuStepEngine<'_> {
         // Few scenes move (others idle in a mixed-phase batch): copy them into a compact
         // sub-batch, step it, copy the states back.
         let capacity = active.len().next_power_of_two();
-        if !self.compact.iter().any(|c| c.batch.scenes == capacity) {
-            let c = Compact::new(self.ctx, self.model, capacity, self.agents, map)
-                .map_err(engine_err)?;
+        // Only the moving scenes' live agent rows, rounded up to a multiple of 4 so that few
+        // sub-batch shapes are made: a pool pads every scene to its most agents.
+        let (a, d) = (self.agents, self.model.config.hidden);
+        let live = active
+            .iter()
+            .map(|&i| self.live_agents[i])
+            .max()
+            .unwrap_or(1);
+        let a_c = live.next_multiple_of(4).clamp(1, a);
+        if !self
+            .compact
+            .iter()
+            .any(|c| (c.batch.scenes, c.batch.agents) == (capacity, a_c))
+        {
+            let c = Compact::new(self.ctx, self.model, capacity, a_c, map).map_err(engine_err)?;
             self.compact.push(c);
         }
         let compact = self
             .compact
             .iter_mut()
-            .find(|c| c.batch.scenes == capacity)
+            .find(|c| (c.batch.scenes, c.batch.agents) == (capacity, a_c))
             .expect("made above");
-        let d = self.model.config.hidden;
-        let a = self.agents;
         let p = map.polylines;
-        // (source, destination, floats per scene) of every per-scene region.
+        // (source, destination, floats per scene in the batch, floats per scene in the compact
+        // sub-batch) of every per-scene region: agent rows come first in each, so a scene's
+        // first a_c agents are a prefix of its block.
         let regions = [
-            (&batch.x, &compact.batch.x, a * w * 3),
-            (&batch.valid, &compact.batch.valid, a * w),
+            (&batch.x, &compact.batch.x, a * w * 3, a_c * w * 3),
+            (&batch.valid, &compact.batch.valid, a * w, a_c * w),
             (
                 &batch.agent_embedding,
                 &compact.batch.agent_embedding,
                 a * d,
+                a_c * d,
             ),
-            (&map.data, &compact.map.data, p * map.per_polyline),
-            (&map.valid, &compact.map.valid, p),
+            (
+                &map.data,
+                &compact.map.data,
+                p * map.per_polyline,
+                p * map.per_polyline,
+            ),
+            (&map.valid, &compact.map.valid, p, p),
         ];
         let mut enc = self
             .ctx
@@ -209,9 +231,9 @@ impl GpuStepEngine<'_> {
                 label: Some("compact gather"),
             });
         for (k, &i) in active.iter().enumerate() {
-            for (src, dst, len) in regions {
-                let bytes = (len * 4) as u64;
-                enc.copy_buffer_to_buffer(src, i as u64 * bytes, dst, k as u64 * bytes, bytes);
+            for (src, dst, scene_len, compact_len) in regions {
+                let (from, to) = ((i * scene_len * 4) as u64, (k * compact_len * 4) as u64);
+                enc.copy_buffer_to_buffer(src, from, dst, to, (compact_len * 4) as u64);
             }
         }
         self.ctx.queue.submit([enc.finish()]);
@@ -244,9 +266,10 @@ impl GpuStepEngine<'_> {
                     let (StepRule::Multistep { .. }, Some(kept)) = (rule, denoised) else {
                         return;
                     };
+                    let compact_row_bytes = (a_c * w * 3 * 4) as u64;
                     for (k, &i) in active.iter().enumerate() {
-                        let (from, to) = (i as u64 * row_bytes, k as u64 * row_bytes);
-                        enc.copy_buffer_to_buffer(kept, from, previous, to, row_bytes);
+                        let (from, to) = (i as u64 * row_bytes, k as u64 * compact_row_bytes);
+                        enc.copy_buffer_to_buffer(kept, from, previous, to, compact_row_bytes);
                     }
                 },
                 |_, _| {},
@@ -258,28 +281,29 @@ impl GpuStepEngine<'_> {
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                 label: Some("compact scatter"),
             });
-        let bytes = (a * w * 3 * 4) as u64;
+        // The live rows back; a scene's padding rows beyond a_c hold still.
+        let compact_row_bytes = (a_c * w * 3 * 4) as u64;
         for (k, &i) in active.iter().enumerate() {
-            enc.copy_buffer_to_buffer(
-                &compact.batch.x,
-                k as u64 * bytes,
-                &batch.x,
-                i as u64 * bytes,
-                bytes,
-            );
+            let (from, to) = (k as u64 * compact_row_bytes, i as u64 * row_bytes);
+            enc.copy_buffer_to_buffer(&compact.batch.x, from, &batch.x, to, compact_row_bytes);
             if let Some(denoised) = &self.denoised {
-                enc.copy_buffer_to_buffer(
-                    compact.plan.denoised(),
-                    k as u64 * bytes,
-                    denoised,
-                    i as u64 * bytes,
-                    bytes,
-                );
+                let estimate = compact.plan.denoised();
+                enc.copy_buffer_to_buffer(estimate, from, denoised, to, compact_row_bytes);
             }
         }
         self.ctx.queue.submit([enc.finish()]);
         Ok(())
     }
+}
+
+/// One past the last of `agents` agent rows of a scene's validity `[A, W]` with a valid slot
+/// (at least 1): the rows after it are padding.
+fn live_agent_rows(valid: &[f32], agents: usize) -> usize {
+    let w = valid.len() / agents.max(1);
+    (0..agents)
+        .rev()
+        .find(|&a| valid[a * w..(a + 1) * w].iter().any(|&v| v > 0.0))
+        .map_or(1, |a| a + 1)
 }
 
 fn engine_err(e: Error) -> road_model::Error {
@@ -316,6 +340,7 @@ impl road_model::sample::StepEngine for GpuStepEngine<'_> {
         self.features = features.to_vec();
         self.scenes = scenes;
         self.agents = agents;
+        self.live_agents = vec![agents; scenes];
         // A new scene set: the next load makes its batch and plan.
         self.batch = None;
         self.plan = None;
@@ -403,6 +428,13 @@ impl road_model::sample::StepEngine for GpuStepEngine<'_> {
     }
 
     fn load(&mut self, windows: &[f32], valid: &[f32]) -> road_model::Result<()> {
+        let v_len = self.agents * self.model.config.window_slots;
+        if v_len > 0 {
+            self.live_agents = valid
+                .chunks(v_len)
+                .map(|scene| live_agent_rows(scene, self.agents))
+                .collect();
+        }
         // Later ticks only overwrite the state: buffers, bind groups and the plan stay.
         if let Some(batch) = &self.batch {
             self.ctx
@@ -482,6 +514,7 @@ impl road_model::sample::StepEngine for GpuStepEngine<'_> {
                 self.scenes
             )));
         }
+        self.live_agents[scene] = live_agent_rows(valid, self.agents);
         self.ctx.queue.write_buffer(
             &batch.x,
             (scene * x_len * 4) as u64,
@@ -614,6 +647,7 @@ impl road_model::sample::StepEngine for GpuStepEngine<'_> {
                     e.valid.len()
                 )));
             }
+            self.live_agents[e.scene] = live_agent_rows(e.valid, self.agents);
             self.ctx.queue.write_buffer(
                 &batch.valid,
                 (e.scene * v_len * 4) as u64,
