@@ -31,9 +31,9 @@ impl LinearKernel {
     /// Rows and outputs of one `linear_tiled` workgroup (the shader's `TILE_ROWS`, `TILE_OUTS`).
     pub const TILE: (u32, u32) = (64, 32);
     /// Fewest tiles for which a hardware GPU runs a layer tiled. On an H100 (2026-11-26,
-    /// `docs/benchmarks.md`) tiled lost 1.7× at one scene (3 tiles a layer), tied at 8 scenes
-    /// (114 tiles for the token layers) and won 2× from 64 scenes (960 tiles): below about two
-    /// tiles per multiprocessor, too few workgroups keep the card busy.
+    /// `docs/benchmarks.md`) tiled lost 1.7× at one scene (3 tiles a layer), tied or lost at 8
+    /// scenes (114 tiles for the token layers) and won 1.3–2× from 64 scenes (960 tiles): below
+    /// about two tiles per multiprocessor, too few workgroups keep the card busy.
     pub const MIN_TILES_ON_HARDWARE: u32 = 256;
 
     /// The kernel for one layer: the one named (`ContextOptions::linear_kernel`), else row-wise
