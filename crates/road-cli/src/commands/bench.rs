@@ -471,28 +471,33 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
                 None
             };
             for (ctx, gpu_model) in contexts.iter().zip(&gpu_models) {
+                // What every row holds; the GPU's figures (or why there are none) go in below.
+                let mut row = serde_json::json!({
+                    "checkpoint": loaded.meta.run.name,
+                    "scenes": b,
+                    "padded_agents": a,
+                    "linear_kernel": ctx.linear_kernel_setting(),
+                    "flops_per_scene_step": flops,
+                    "cpu_ms_per_step": cpu_secs.map(|s| s * 1e3),
+                    "cpu_scene_steps_per_sec": cpu_secs.map(|s| b as f64 / s),
+                    "cpu_gflops": cpu_secs.map(|s| flops * b as f64 / s / 1e9),
+                    "profile": serde_json::Value::Null,
+                });
                 let mut engine = road_gpu::step_engine::GpuStepEngine::new(ctx, gpu_model);
                 // A batch the adapter cannot hold is a row saying so, not the end of the run.
                 let gpu_secs = match time(&mut engine, &|| Ok(ctx.wait()?)) {
                     Ok(secs) => secs,
                     Err(e) => {
                         tracing::warn!(scenes = b, "GPU column skipped: {e:#}");
-                        rows.push(serde_json::json!({
-                            "checkpoint": loaded.meta.run.name,
-                            "scenes": b,
-                            "padded_agents": a,
-                            "linear_kernel": ctx.linear_kernel_setting(),
-                            "flops_per_scene_step": flops,
-                            "gpu_error": format!("{e:#}"),
-                            "cpu_ms_per_step": cpu_secs.map(|s| s * 1e3),
-                            "cpu_scene_steps_per_sec": cpu_secs.map(|s| b as f64 / s),
-                            "cpu_gflops": cpu_secs.map(|s| flops * b as f64 / s / 1e9),
-                            "profile": serde_json::Value::Null,
-                        }));
+                        row["gpu_error"] = format!("{e:#}").into();
+                        rows.push(row);
                         continue;
                     }
                 };
-                let profile = if args.profile {
+                row["gpu_ms_per_step"] = (gpu_secs * 1e3).into();
+                row["gpu_scene_steps_per_sec"] = (b as f64 / gpu_secs).into();
+                row["gpu_gflops"] = (flops * b as f64 / gpu_secs / 1e9).into();
+                if args.profile {
                     let p = engine.profile_step(args.reps)?;
                     let kernels: Vec<serde_json::Value> = p
                         .kernels
@@ -505,27 +510,12 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
                             })
                         })
                         .collect();
-                    serde_json::json!({
+                    row["profile"] = serde_json::json!({
                         "round_trip_ms": p.round_trip_secs * 1e3,
                         "kernels": kernels,
-                    })
-                } else {
-                    serde_json::Value::Null
-                };
-                rows.push(serde_json::json!({
-                    "checkpoint": loaded.meta.run.name,
-                    "scenes": b,
-                    "padded_agents": a,
-                    "linear_kernel": ctx.linear_kernel_setting(),
-                    "flops_per_scene_step": flops,
-                    "gpu_ms_per_step": gpu_secs * 1e3,
-                    "gpu_scene_steps_per_sec": b as f64 / gpu_secs,
-                    "gpu_gflops": flops * b as f64 / gpu_secs / 1e9,
-                    "cpu_ms_per_step": cpu_secs.map(|s| s * 1e3),
-                    "cpu_scene_steps_per_sec": cpu_secs.map(|s| b as f64 / s),
-                    "cpu_gflops": cpu_secs.map(|s| flops * b as f64 / s / 1e9),
-                    "profile": profile,
-                }));
+                    });
+                }
+                rows.push(row);
             }
         }
     }
