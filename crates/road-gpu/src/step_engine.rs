@@ -147,7 +147,18 @@ impl GpuStepEngine<'_> {
             return Ok(());
         }
         let row_bytes = (self.agents * w * 3 * 4) as u64;
-        if active.len() * 2 > b {
+        // The moving scenes' live agent rows, rounded up to a multiple of 4 so that few
+        // sub-batch shapes are made: a server's pool pads every scene to its most agents.
+        let a = self.agents;
+        let live = active
+            .iter()
+            .map(|&i| self.live_agents[i])
+            .max()
+            .unwrap_or(1);
+        let a_c = live.next_multiple_of(4).clamp(1, a);
+        // The whole batch in place when most of it moves and most of its agent rows are live;
+        // else the moving scenes' live rows in a compact sub-batch.
+        if active.len() * 2 > b && a_c * 4 > a * 3 {
             // σ rows are per scene: [B, W]; idle scenes hold still. The moved scenes'
             // estimates are kept in the same submission (idle rows were evaluated, not moved).
             let denoised = self.denoised.as_ref();
@@ -178,18 +189,10 @@ impl GpuStepEngine<'_> {
                 )
                 .map_err(engine_err);
         }
-        // Few scenes move (others idle in a mixed-phase batch): copy them into a compact
-        // sub-batch, step it, copy the states back.
+        // Few scenes move (others idle in a mixed-phase batch), or few of their agent rows are
+        // live: copy those into a compact sub-batch, step it, copy the states back.
         let capacity = active.len().next_power_of_two();
-        // Only the moving scenes' live agent rows, rounded up to a multiple of 4 so that few
-        // sub-batch shapes are made: a pool pads every scene to its most agents.
-        let (a, d) = (self.agents, self.model.config.hidden);
-        let live = active
-            .iter()
-            .map(|&i| self.live_agents[i])
-            .max()
-            .unwrap_or(1);
-        let a_c = live.next_multiple_of(4).clamp(1, a);
+        let d = self.model.config.hidden;
         if !self
             .compact
             .iter()

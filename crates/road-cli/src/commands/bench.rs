@@ -79,6 +79,9 @@ pub struct ServeBenchArgs {
     /// does (phases spread evenly over the period), instead of as soon as it has the NPCs.
     #[arg(long, requires = "zenoh")]
     pub rate_hz: Option<f64>,
+    /// With `--zenoh`: the server's engine (`road serve --engine`).
+    #[arg(long, value_enum, requires = "zenoh", default_value_t = crate::commands::serve::ServeEngineArg::Cpu)]
+    pub server_engine: crate::commands::serve::ServeEngineArg,
 }
 
 #[derive(Debug, Args)]
@@ -152,6 +155,7 @@ pub fn run(cmd: BenchCommand) -> Result<ExitCode> {
         BenchCommand::Serve(args) if args.zenoh => {
             let rows = crate::commands::zenoh_bench::run(
                 &args.checkpoint,
+                args.server_engine.into(),
                 &args.scenes,
                 args.ticks,
                 args.rate_hz,

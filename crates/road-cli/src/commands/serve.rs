@@ -67,6 +67,15 @@ pub enum ServeEngineArg {
     Gpu,
 }
 
+impl From<ServeEngineArg> for road_serve::ServeEngine {
+    fn from(engine: ServeEngineArg) -> Self {
+        match engine {
+            ServeEngineArg::Cpu => Self::Cpu,
+            ServeEngineArg::Gpu => Self::Gpu,
+        }
+    }
+}
+
 pub fn run(args: ServeArgs) -> Result<ExitCode> {
     let models = find_models_dir(args.models.as_deref())?;
     let mut config = ServeConfig::new(models);
@@ -84,10 +93,7 @@ pub fn run(args: ServeArgs) -> Result<ExitCode> {
     config.idle_timeout = Duration::from_secs_f64(args.idle_timeout_s);
     config.max_payload_bytes = args.max_payload_bytes;
     config.foxglove_listen = args.foxglove;
-    config.engine = match args.engine {
-        ServeEngineArg::Cpu => road_serve::ServeEngine::Cpu,
-        ServeEngineArg::Gpu => road_serve::ServeEngine::Gpu,
-    };
+    config.engine = args.engine.into();
     for item in &args.maps {
         let (name, path) = item
             .split_once('=')

@@ -23,6 +23,8 @@ use zenoh::Wait;
 /// One row of the table.
 #[derive(Debug, serde::Serialize)]
 pub struct ZenohRow {
+    /// The server's engine: `cpu` or `gpu`.
+    pub engine: &'static str,
     pub scenes: usize,
     /// The clients' tick rate; `None`: each puts its next ego as soon as it has the NPCs.
     pub rate_hz: Option<f64>,
@@ -57,6 +59,7 @@ fn free_port() -> Result<u16> {
 /// NPCs came later than that.
 pub fn run(
     checkpoint: &Path,
+    engine: road_serve::ServeEngine,
     scene_counts: &[usize],
     ticks: usize,
     rate_hz: Option<f64>,
@@ -87,6 +90,7 @@ pub fn run(
         };
         config.late_ego_deadline = Duration::ZERO;
         config.capacity = b.max(1);
+        config.engine = engine;
         let endpoint = format!("tcp/127.0.0.1:{}", free_port()?);
         let server = Server::new(
             config,
@@ -166,6 +170,10 @@ pub fn run(
             of(|t| t.round_trip_ms - t.latency_ms),
         );
         rows.push(ZenohRow {
+            engine: match engine {
+                road_serve::ServeEngine::Cpu => "cpu",
+                road_serve::ServeEngine::Gpu => "gpu",
+            },
             scenes: b,
             rate_hz,
             timed_ticks: ticks,
@@ -208,6 +216,9 @@ fn ego_at(created: &SceneCreated, tick: u64) -> Result<AgentState> {
 
 /// Prints the table and the real-time estimate.
 pub fn print(rows: &[ZenohRow]) {
+    if let Some(first) = rows.first() {
+        out!("server engine: {}", first.engine);
+    }
     if let Some(rate) = rows.first().and_then(|r| r.rate_hz) {
         out!("clients paced at {rate} Hz (phases spread over the period)");
     }
