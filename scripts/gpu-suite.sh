@@ -62,10 +62,12 @@ run)
     if $quick; then
         batches=(1 8)
         scenes=(1 8)
+        zenoh_scenes=(4)
         ticks=4
     else
         batches=(1 8 64 512 2048 4096)
         scenes=(1 16 128 512 1024)
+        zenoh_scenes=(16 128 512)
         ticks=8
     fi
     # step NAME SECS OUTPUT COMMAND...: COMMAND's standard output into OUTPUT under a time
@@ -110,6 +112,9 @@ run)
     # loopback zenoh (60 ticks of the roundabout; round trips and engine time per tick).
     step demo-gpu 60 "$out/demo-gpu.txt" "$bin" demo --engine gpu --mcap "$out/cache/demo.mcap" \
         --gif "$out/cache/demo.gif"
+    # The networked server on the GPU at scale: one zenoh client thread per scene.
+    step zenoh-gpu 90 "$out/zenoh-gpu.json" "$bin" bench serve --zenoh --server-engine gpu \
+        --checkpoint models/road20-wide4 --scenes "${zenoh_scenes[@]}" --ticks "$ticks" --json
     if ! $torch; then
         # A short lend: the Heun serving bench and PyTorch were measured on the first one.
         rm -rf "$out/cache"
@@ -132,11 +137,12 @@ run)
         fi
         compile=(--compile)
         $quick && compile=()
-        step torch 120 "$out/torch.txt" python3 scripts/torch_denoiser.py bench \
+        # Its table is torch.json's rows (a lent machine returns at most 8 files).
+        step torch 120 /dev/null python3 scripts/torch_denoiser.py bench \
             --checkpoint models/road20-wide4 --batches "${batches[@]}" --device "$device" \
             ${compile[@]+"${compile[@]}"} --json-out "$out/torch.json"
     else
-        echo "no PyTorch with safetensors here: no PyTorch column" | tee "$out/torch.txt"
+        echo "torch: no PyTorch with safetensors here: no PyTorch column" | tee -a "$out/steps.txt"
     fi
     ls -la "$out"
     ;;
