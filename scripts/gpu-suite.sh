@@ -9,13 +9,13 @@
 #                                         # there (device tool: carry ["dist", ".gl"]), or here
 #                                         # on lavapipe; writes $OUT (default gpu-suite-out/)
 #
-# `--quick` runs small batches only (how CI-sized machines and lavapipe test the script: about
-# 2 min here with --no-torch). `--no-torch` skips the Heun serving bench and PyTorch. The
-# procedure for a lent machine (what to move out of the tree so that it travels, the Vulkan
-# loader, the run call) is in docs/benchmarks.md, "The GPU suite: how a lent session runs it";
-# it ran on an H100 on 2026-11-26 in 203 s with --no-torch. Each step below has its own time
-# limit and the suite goes on past a step that fails or overruns (`steps.txt` says which), so
-# whatever finished comes back.
+# `--quick` runs small batches only (how CI-sized machines and lavapipe test the script: 2.5 min
+# here with --no-torch). `--no-torch` skips the Heun serving bench and PyTorch. The procedure for
+# a lent machine (what to move out of the tree so that it travels, the Vulkan loader, the run
+# call) is in docs/benchmarks.md, "The GPU suite: how a lent session runs it"; it ran on an H100
+# on 2026-11-26 in 203 s with --no-torch, before the demo-gpu and zenoh-gpu steps were added.
+# Each step below has its own time limit and the suite goes on past a step that fails or
+# overruns (`steps.txt` says which), so whatever finished comes back.
 # The PyTorch eager reference of the same weights (and `torch.compile`) runs where PyTorch and
 # safetensors are installed (the lent machine has them): `scripts/torch_denoiser.py bench`.
 set -euo pipefail

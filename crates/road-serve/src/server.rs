@@ -591,40 +591,29 @@ impl Core {
             planner: scene_setup.planner_name.clone(),
         };
         if !self.pools.contains_key(&key) {
-            let engine = match self.checkpoints.gpu_model(&key.checkpoint) {
-                Ok(Some((ctx, model))) => PoolEngine::Gpu(ctx, model),
-                Ok(None) => PoolEngine::Cpu,
-                Err(e) => {
-                    return reply_err(
-                        query,
-                        &ErrorReply::new(
-                            ErrorCode::Internal,
-                            None,
-                            format!("cannot put checkpoint {} on the GPU: {e}", key.checkpoint),
-                        ),
-                    );
-                }
-            };
-            match Pool::new(
-                scene_setup.model,
-                engine,
-                &scene_setup.planner,
-                self.config.capacity,
-                self.config.max_agents,
-            ) {
+            let pool = self
+                .checkpoints
+                .gpu_model(&key.checkpoint)
+                .map_err(|e| format!("cannot put checkpoint {} on the GPU: {e}", key.checkpoint))
+                .and_then(|gpu| {
+                    let engine =
+                        gpu.map_or(PoolEngine::Cpu, |(ctx, model)| PoolEngine::Gpu(ctx, model));
+                    Pool::new(
+                        scene_setup.model,
+                        engine,
+                        &scene_setup.planner,
+                        self.config.capacity,
+                        self.config.max_agents,
+                    )
+                    .map_err(|e| format!("cannot build the scene's engine: {e}"))
+                });
+            match pool {
                 Ok(pool) => {
                     tracing::info!(checkpoint = %key.checkpoint, planner = %key.planner, "new pool");
                     self.pools.insert(key.clone(), pool);
                 }
-                Err(e) => {
-                    return reply_err(
-                        query,
-                        &ErrorReply::new(
-                            ErrorCode::Internal,
-                            None,
-                            format!("cannot build the scene's engine: {e}"),
-                        ),
-                    );
+                Err(message) => {
+                    return reply_err(query, &ErrorReply::new(ErrorCode::Internal, None, message));
                 }
             }
         }
