@@ -98,7 +98,7 @@ run)
     cp dist/validation.roadds "$out/cache/validation.roadds" 2>/dev/null \
         || cp .road-cache/validation.roadds "$out/cache/validation.roadds"
     # The candle reference takes minutes per step at thousands of scenes: timed up to 8 only
-    # (the first lent run, 2026-11-26, measured it to 64: docs/gpu-h100-2026-11-26/).
+    # (the first lent run, 2026-11-26, measured it to 64: docs/experiments/2026-11-26-gpu-h100/).
     # road20 stands for every D = 64 checkpoint (the same shapes), road20-wide4 is the default.
     # The linear kernel chosen per layer (auto) beside each alone, each step profiled kernel by
     # kernel.

@@ -17,7 +17,7 @@
 # The machine needs the export of `road data export-torch` (.road-cache/torch, about 23 MiB:
 # carry it; ROAD_TORCH_EXPORT names another folder) and python3 with torch, safetensors and
 # numpy (PYTHON names another interpreter). Here, without a GPU, the same command trains on the
-# CPU: `bash scripts/gpu-train.sh configs/road20-wide4.toml /tmp/t --minutes 2`.
+# CPU: `bash scripts/gpu-train.sh configs/road20-wide5.toml /tmp/t --minutes 2`.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 

@@ -1,9 +1,9 @@
 #!/usr/bin/env bash
 # The whole test suite, from a fresh Debian/Ubuntu machine with a Rust toolchain and Python 3:
 # installs what the tests need (lavapipe; a virtual environment .venv-test with eclipse-zenoh,
-# mcap, pytest and the Python client), then formatting, clippy with -D warnings, every test of
-# the workspace, and the Python client's tests against the `road` binary. The data tests read
-# ../shared/data/interaction (or $ROAD_DATA).
+# mcap, pytest and the Python client), then formatting, the module-circle check, clippy with
+# -D warnings, every test of the workspace, and the Python client's tests against the `road`
+# binary. The data tests read ../shared/data/interaction (or $ROAD_DATA).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -32,6 +32,8 @@ echo "disk free for target/: $(df -h --output=avail . | tail -1 | tr -d ' ')"
 
 start=$(date +%s)
 cargo fmt --all -- --check
+# No module of a crate imports another in a circle (ARCHITECTURE.md).
+python3 scripts/module_cycles.py
 cargo clippy --workspace --all-targets --locked -- -D warnings
 cargo test --workspace --locked
 

@@ -8,8 +8,8 @@ that a machine with PyTorch and no Rust toolchain can run, benchmark or train th
 
     python scripts/torch_denoiser.py make-fixture \
         --out crates/road-model/tests/fixtures/torch_parity
-    python scripts/torch_denoiser.py check --checkpoint models/road20-wide
-    python scripts/torch_denoiser.py bench --checkpoint models/road20-long2 \
+    python scripts/torch_denoiser.py check --checkpoint models/road20-wide4
+    python scripts/torch_denoiser.py bench --checkpoint models/road20-wide4 \
         --batches 1 16 128 512 --device cuda
 
 Every operation follows the candle code in order (float32 throughout, TF32 off unless asked), so
@@ -1076,7 +1076,7 @@ def main(argv: list[str] | None = None) -> None:
     fixture.add_argument(
         "--template",
         type=Path,
-        default=Path("models/road20-wide/config.toml"),
+        default=Path("models/road20-wide4/config.toml"),
         help="a real checkpoint's config.toml whose sizes are replaced",
     )
     fixture.add_argument("--seed", type=int, default=15)

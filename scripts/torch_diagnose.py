@@ -9,7 +9,8 @@ on the exported validation split (`road data export-torch`; docs/torch-training.
                  future slots from the emitted history, its first slot emitted; the distance to
                  the log and the size of the emitted acceleration against the log's.
 
-docs/results.md, "DJINN-10 MPC-1 with road20-wide's recipe: why it jitters", reads these.
+docs/experiments/2026-11-26-baselines-d96.md, "DJINN-10 MPC-1 with road20-wide's recipe: why it
+jitters", reads these (its djinn10-from-wide is retired: docs/experiments/models/djinn10-from-wide/).
 """
 
 from __future__ import annotations

@@ -13,8 +13,8 @@ rate, EMA); random draws come from numpy, seeded per step (exact resume), not Ru
 `crates/road-model/tests/torch_train_parity.rs` checks the batches, loss, gradients and
 optimiser steps against candle on a fixture this script writes.
 
-    python scripts/torch_train.py train --config configs/road20-wide4.toml \\
-        --export .road-cache/torch --out /tmp/wide4-torch --minutes 8 [--resume] \\
+    python scripts/torch_train.py train --config configs/road20-wide5.toml \\
+        --export .road-cache/torch --out /tmp/wide5-torch --minutes 8 [--resume] \\
         [--set train.batch_scenes=256] [--device cuda]
     python scripts/torch_train.py make-train-fixture \\
         --out crates/road-model/tests/fixtures/torch_train

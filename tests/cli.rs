@@ -567,7 +567,7 @@ fn procedural_suite_counts_every_run() {
         "--suite",
         "procedural",
         "--checkpoints",
-        "models/road20-long2",
+        "models/road20-wide4",
         "--maps",
         "merge",
         "roundabout",
@@ -583,8 +583,8 @@ fn procedural_suite_counts_every_run() {
     ]);
     assert!(o.status.success(), "{}", stderr(&o));
     let out = stdout(&o);
-    assert!(out.contains("| road20-long2 | merge | 4 |"), "{out}");
-    assert!(out.contains("| road20-long2 | roundabout | 4 |"), "{out}");
+    assert!(out.contains("| road20-wide4 | merge | 4 |"), "{out}");
+    assert!(out.contains("| road20-wide4 | roundabout | 4 |"), "{out}");
     assert!(out.contains("0°: ") && out.contains("-90°: "), "{out}");
     let report: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
@@ -944,7 +944,7 @@ fn demo_runs_outside_the_repository_on_the_embedded_checkpoint() {
 fn demo_serves_the_scene_and_writes_its_recording_and_animation() {
     let dir = temp_dir("demo-served");
     // The checkpoint by absolute path: the files land in `dir`, the models are here.
-    let checkpoint = workspace().join("models/road20-long2");
+    let checkpoint = workspace().join("models/road20-wide4");
     let steps = 20;
     let o = Command::new(env!("CARGO_BIN_EXE_road"))
         .args(["demo", "--steps", &steps.to_string(), "--checkpoint"])

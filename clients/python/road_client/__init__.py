@@ -327,7 +327,7 @@ class Client:
     The client subscribes once to all its scenes' NPC states and errors
     (``<prefix>/client/<id>/scene/*/npc`` and ``…/error``), handing each sample to its scene,
     and once to the server's liveliness token: per-scene subscriptions would leave routing
-    entries behind in zenoh for every scene (docs/benchmarks.md, soak)."""
+    entries behind in zenoh for every scene (docs/experiments/bench-2026-11-24-soak.md)."""
 
     def __init__(self, session: zenoh.Session, client_id: str, prefix: str = DEFAULT_PREFIX,
                  timeout_s: float = 60.0, owns_session: bool = True):

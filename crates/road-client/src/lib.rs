@@ -175,7 +175,7 @@ impl ZenohArgs {
 /// A client subscribes once, not once a scene: to its scenes' NPC states and errors (handed to
 /// each [`Scene`] by scene id) and to the server's liveliness token. Per-scene subscriptions
 /// leave a routing-table entry per scene behind in zenoh (in the server, in every router)
-/// for as long as the client's session lives (`docs/benchmarks.md`, soak).
+/// for as long as the client's session lives (`docs/experiments/bench-2026-11-24-soak.md`).
 #[derive(Debug)]
 pub struct Client {
     session: zenoh::Session,

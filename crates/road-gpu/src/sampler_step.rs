@@ -3,7 +3,7 @@
 //! correction where σ_next > 0) or the multistep sampler's step (the Euler step and its
 //! correction against each slot's previous estimate), prepared once per batch shape
 //! ([`HeunPlan`]) so that a step only writes σ and submits. Kernels: `shaders/heun.wgsl`; CPU
-//! reference: `road_model::heun`.
+//! reference: `road_rollout::heun`.
 
 use bytemuck::{Pod, Zeroable};
 

@@ -255,7 +255,7 @@ fn window_checks(
     w: usize,
 ) -> Result<Vec<KernelCheck>> {
     use crate::kernels::window::{ShiftList, WindowOps};
-    use road_model::sample::{NO_TURN, ShiftEdit, ShiftShape, window_emitted, window_shift};
+    use road_rollout::{NO_TURN, ShiftEdit, ShiftShape, window_emitted, window_shift};
     let tol = Tolerance::F32;
     let x = rng.uniform(b * a * w * 3, 3.0);
     let buffer = crate::kernels::storage_buffer(ctx, "selftest window", (x.len() * 4) as u64);

@@ -313,7 +313,7 @@ fn engine_err(e: Error) -> road_model::Error {
     road_model::Error::Engine(e.to_string())
 }
 
-impl road_model::sample::StepEngine for GpuStepEngine<'_> {
+impl road_rollout::StepEngine for GpuStepEngine<'_> {
     fn window_slots(&self) -> usize {
         self.model.config.window_slots
     }
@@ -599,8 +599,8 @@ impl road_model::sample::StepEngine for GpuStepEngine<'_> {
 
     fn shift(
         &mut self,
-        edits: &[road_model::sample::ShiftEdit<'_>],
-        shape: road_model::sample::ShiftShape,
+        edits: &[road_rollout::ShiftEdit<'_>],
+        shape: road_rollout::ShiftShape,
     ) -> road_model::Result<()> {
         let (Some(batch), Some(window)) = (&self.batch, &mut self.window) else {
             return Err(road_model::Error::Engine("shift before load".into()));
@@ -613,7 +613,7 @@ impl road_model::sample::StepEngine for GpuStepEngine<'_> {
         window
             .shift(self.ctx, &batch.x, &list, shape)
             .map_err(engine_err)?;
-        // The kept estimate moves with its slots (`road_model::sample::estimate_shift`): the
+        // The kept estimate moves with its slots (`road_rollout::estimate_shift`): the
         // same kernel with nothing emitted and no noise, its plan turned as the window's.
         if let (Some(estimate_window), Some(denoised)) = (&mut self.estimate_window, &self.denoised)
         {
@@ -633,7 +633,7 @@ impl road_model::sample::StepEngine for GpuStepEngine<'_> {
                     (e.scene, emitted, noise, e.turns)
                 })
                 .collect();
-            let still = road_model::sample::ShiftShape {
+            let still = road_rollout::ShiftShape {
                 observed: shape.observed,
                 obs_noise: 0.0,
                 sigma_max: 0.0,

@@ -442,12 +442,12 @@ fn heun_step_matches_the_reference() {
 }
 
 /// One multistep step (the evaluation, the Euler update and `multistep_correct` on the GPU)
-/// against the CPU reference (`road_model::heun`) over candle's evaluation, with a previous
+/// against the CPU reference (`road_rollout::heun`) over candle's evaluation, with a previous
 /// estimate and γ per scene and slot (0 for observations and every fourth slot).
 #[test]
 fn multistep_step_matches_the_reference() {
     use road_gpu::sampler_step::StepRule;
-    use road_model::heun::{heun_update, multistep_correct};
+    use road_rollout::heun::{heun_update, multistep_correct};
     let ctx = context();
     let config = test_config();
     let (dir, reference) = checkpoint_dir(&config, "multistep");
@@ -532,8 +532,9 @@ fn multistep_step_matches_the_reference() {
 /// `road sample --engine gpu|cpu`: the same rollout driver and seed give the same futures.
 #[test]
 fn gpu_and_cpu_rollouts_agree_for_a_seed() {
+    use road_cpu::rollout;
     use road_gpu::step_engine::GpuStepEngine;
-    use road_model::sample::{RolloutScene, rollout, rollout_with};
+    use road_rollout::{RolloutScene, rollout_with};
     use road_sched::{PlannerKind, PlannerSpec};
     let ctx = context();
     let config = test_config();
@@ -603,8 +604,9 @@ fn mixed_phase_batches_with_agent_pairs_agree_with_the_reference() {
 }
 
 fn mixed_phase_batches_agree(config: &ModelConfig, name: &str) {
+    use road_cpu::CpuEngine;
     use road_gpu::step_engine::GpuStepEngine;
-    use road_model::sample::{CpuEngine, RolloutDriver, RolloutScene, StepEngine};
+    use road_rollout::{RolloutDriver, RolloutScene, StepEngine};
     use road_sched::{PlannerKind, PlannerSpec};
     let ctx = context();
     let config = config.clone();

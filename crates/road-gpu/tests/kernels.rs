@@ -245,13 +245,13 @@ fn attention_matches_the_cpu_reference_over_every_layout() {
 }
 
 /// `window.wgsl`: the emitted-slot gather and the shift after an emission, against
-/// `road_model::sample::{window_emitted, window_shift}` (what the candle engine runs), on
+/// `road_rollout::{window_emitted, window_shift}` (what the candle engine runs), on
 /// random shapes with some scenes not read or not shifted and padded agents.
 #[test]
 fn window_kernels_match_the_cpu_reference() {
     use road_gpu::kernels::storage_buffer;
     use road_gpu::kernels::window::WindowOps;
-    use road_model::sample::{ShiftEdit, ShiftShape, window_emitted, window_shift};
+    use road_rollout::{ShiftEdit, ShiftShape, window_emitted, window_shift};
     let ctx = context();
     let mut rng = rand::rngs::StdRng::seed_from_u64(21);
     for (b, a, w, n) in [
@@ -299,7 +299,7 @@ fn window_kernels_match_the_cpu_reference() {
                                     rng.random_range(-0.5..0.5),
                                 ]
                             } else {
-                                road_model::sample::NO_TURN
+                                road_rollout::NO_TURN
                             }
                         })
                         .collect()

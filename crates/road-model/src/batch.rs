@@ -121,7 +121,7 @@ impl SceneInput {
             angle_rad * heading_scale,
         ];
         for t in (0..pivot_slot).filter(|&t| valid[t]) {
-            crate::sample::turn_plan(&mut states[3 * t..3 * t + 3], &turn);
+            crate::plan_turn::turn_plan(&mut states[3 * t..3 * t + 3], &turn);
         }
     }
 

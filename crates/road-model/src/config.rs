@@ -258,8 +258,8 @@ pub struct TrainConfig {
     /// Standard deviation (metres) of Gaussian noise added to the observed positions of every
     /// training window, the model not told (its observed σ stays the task's): the noise an
     /// MPC-1 planner feeds back, where every step's fresh first slot becomes history, so that
-    /// the model learns not to amplify it (`docs/results.md`, "DJINN-10 MPC-1 with road20-wide's
-    /// recipe: why it jitters"). Training batches only. Absent: none.
+    /// the model learns not to amplify it
+    /// (`docs/experiments/2026-11-26-baselines-d96.md`). Training batches only. Absent: none.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub history_noise_m: Option<f64>,
 }
@@ -269,8 +269,8 @@ pub struct TrainConfig {
 /// ±`max_deg` (headings with them). The history then approached at another angle and the
 /// newest step runs as logged, into the logged future: the situation after a lane guard
 /// steered a vehicle back into its lane, which the model, never having seen one, answered by
-/// turning its heading back to where it had been going (`docs/results.md`, "vehicles slide
-/// sideways"). Training batches only; validation batches are left as recorded.
+/// turning its heading back to where it had been going
+/// (`docs/experiments/2026-11-26-sliding-sideways.md`). Training batches only; validation batches are left as recorded.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct KinkAugmentation {
@@ -474,7 +474,30 @@ mod tests {
                 runs += 1;
             }
         }
-        assert!(runs >= 10, "{runs} run configs in {}", dir.display());
+        assert!(runs >= 7, "{runs} run configs in {}", dir.display());
+    }
+
+    /// Every checkpoint under `models/` ships with its model card and the run config that made
+    /// it (`configs/<name>.toml`, named as the folder).
+    #[test]
+    fn every_shipped_checkpoint_has_its_card_and_run_config() {
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+        let mut checkpoints = 0;
+        for entry in std::fs::read_dir(root.join("models")).unwrap() {
+            let folder = entry.unwrap().path();
+            if !folder.is_dir() {
+                continue;
+            }
+            let name = folder.file_name().unwrap().to_str().unwrap().to_owned();
+            assert!(folder.join("README.md").is_file(), "{name}: no model card");
+            for file in ["config.toml", "weights.safetensors"] {
+                assert!(folder.join(file).is_file(), "{name}: no {file}");
+            }
+            let run = root.join("configs").join(format!("{name}.toml"));
+            assert!(run.is_file(), "{name}: no run config {}", run.display());
+            checkpoints += 1;
+        }
+        assert!(checkpoints >= 1, "no checkpoint under models/");
     }
 
     #[test]

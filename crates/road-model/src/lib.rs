@@ -1,10 +1,14 @@
 //! `road-model`: the DJINN-style scene denoiser in candle (CPU), its training and checkpoints.
+//! Sampling is a layer above (`road-rollout`), and so are the engines (`road-cpu`, `road-gpu`).
 //!
 //! - [`config`]: model, planner and training hyperparameters (`configs/<name>.toml`);
 //! - [`batch`]: scene windows → padded tensors, and the training tasks' noise;
 //! - [`model`]: the transformer and the EDM loss;
 //! - [`train`]: AdamW, EMA, validation, checkpoints and exact resume;
 //! - [`checkpoint`]: the on-disk format (`docs/checkpoint.md`);
+//! - [`agent_map`], [`agent_pairs`]: agent-centric maps and agent–agent pair features, shared
+//!   by every engine;
+//! - [`plan_turn`]: a plan turned with a correction of its agent's state;
 //! - [`torch_export`]: the datasets as flat arrays for the PyTorch training path
 //!   (`docs/torch-training.md`).
 
@@ -13,15 +17,9 @@ pub mod agent_pairs;
 pub mod batch;
 pub mod checkpoint;
 pub mod config;
-pub mod cpu_engine;
-mod driver;
-pub mod fast;
-mod fast_kernels;
 pub mod fused;
-pub mod heun;
 pub mod model;
-pub mod sample;
-pub mod smoothing;
+pub mod plan_turn;
 pub mod torch_export;
 pub mod train;
 
@@ -30,7 +28,8 @@ use std::path::{Path, PathBuf};
 pub use config::{AgentFrame, AgentMap, AgentPairs, ModelConfig, RunConfig, TrainConfig};
 pub use model::{Denoiser, MapTokens, Mode};
 
-/// Errors of the model layer.
+/// Errors of the model layer, and of the engine layers above it (`road-rollout`, `road-cpu`,
+/// `road-gpu`), whose `StepEngine` calls return them.
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
     #[error("tensor operation failed: {0}")]
@@ -64,15 +63,21 @@ pub enum DataError {
 }
 
 impl Error {
-    pub(crate) fn io(path: &Path, source: std::io::Error) -> Self {
+    pub fn io(path: &Path, source: std::io::Error) -> Self {
         Self::Io {
             path: path.to_owned(),
             source,
         }
     }
 
-    pub(crate) fn data(reason: String) -> Self {
+    pub fn data(reason: String) -> Self {
         Self::Data(DataError::Mismatch(reason))
+    }
+}
+
+impl From<road_sched::Error> for Error {
+    fn from(e: road_sched::Error) -> Self {
+        Error::data(format!("scheduler: {e}"))
     }
 }
 

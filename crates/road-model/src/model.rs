@@ -54,24 +54,25 @@ fn softmax(x: &Tensor, mode: Mode) -> Result<Tensor> {
     })
 }
 
+/// One attention layer's weights (public for the other engines, which read them: `road-cpu`).
 #[derive(Debug)]
-pub(crate) struct Attention {
-    pub(crate) q: Linear,
-    pub(crate) k: Linear,
-    pub(crate) v: Linear,
-    pub(crate) o: Linear,
-    pub(crate) heads: usize,
+pub struct Attention {
+    pub q: Linear,
+    pub k: Linear,
+    pub v: Linear,
+    pub o: Linear,
+    pub heads: usize,
     /// Agent attention with [`crate::config::AgentPairs`]: the key and value offsets' weights.
-    pub(crate) pairs: Option<PairWeights>,
+    pub pairs: Option<PairWeights>,
 }
 
 /// The key offset `pair_k · r` and value offset `pair_v · r` of a pair's features `r`, both
 /// `[D, F]` (head h owns rows h·dh…). Zero at initialisation, so that a model that gains them
 /// (`train.init_from`) starts as the one it comes from.
 #[derive(Debug)]
-pub(crate) struct PairWeights {
-    pub(crate) k: Tensor,
-    pub(crate) v: Tensor,
+pub struct PairWeights {
+    pub k: Tensor,
+    pub v: Tensor,
 }
 
 impl Attention {
@@ -164,17 +165,18 @@ impl Attention {
     }
 }
 
+/// One transformer block's weights.
 #[derive(Debug)]
-pub(crate) struct Block {
-    pub(crate) ln_time: LayerNorm,
-    pub(crate) time: Attention,
-    pub(crate) ln_agents: LayerNorm,
-    pub(crate) agents: Attention,
-    pub(crate) ln_map: LayerNorm,
-    pub(crate) map: Attention,
-    pub(crate) ln_mlp: LayerNorm,
-    pub(crate) mlp_in: Linear,
-    pub(crate) mlp_out: Linear,
+pub struct Block {
+    pub ln_time: LayerNorm,
+    pub time: Attention,
+    pub ln_agents: LayerNorm,
+    pub agents: Attention,
+    pub ln_map: LayerNorm,
+    pub map: Attention,
+    pub ln_mlp: LayerNorm,
+    pub mlp_in: Linear,
+    pub mlp_out: Linear,
 }
 
 impl Block {
@@ -304,24 +306,25 @@ struct MapKeys {
     per_agent: bool,
 }
 
-/// The denoiser `D(x; σ)`.
+/// The denoiser `D(x; σ)`. Its weights are public for the engines that run it outside candle
+/// (`road-cpu`'s fast path copies them into its own buffers).
 #[derive(Debug)]
 pub struct Denoiser {
     pub config: ModelConfig,
-    pub(crate) embed_state: Linear,
-    pub(crate) embed_noise: Linear,
-    pub(crate) embed_agent: Linear,
+    pub embed_state: Linear,
+    pub embed_noise: Linear,
+    pub embed_agent: Linear,
     /// With an agent frame: relative (x, y, heading), the anchor's validity and, with a
     /// constant-velocity reference, the last observed step → D.
-    pub(crate) embed_relative: Option<Linear>,
-    pub(crate) slot_embedding: Tensor, // [W, D]
-    pub(crate) map_point: Linear,
-    pub(crate) map_point_embedding: Tensor, // [Q, D]
-    pub(crate) map_mix: Linear,
-    pub(crate) ln_map_out: LayerNorm,
-    pub(crate) blocks: Vec<Block>,
-    pub(crate) ln_out: LayerNorm,
-    pub(crate) head: Linear,
+    pub embed_relative: Option<Linear>,
+    pub slot_embedding: Tensor, // [W, D]
+    pub map_point: Linear,
+    pub map_point_embedding: Tensor, // [Q, D]
+    pub map_mix: Linear,
+    pub ln_map_out: LayerNorm,
+    pub blocks: Vec<Block>,
+    pub ln_out: LayerNorm,
+    pub head: Linear,
 }
 
 impl Denoiser {

@@ -6,7 +6,7 @@
 //! crates/road-model/tests/fixtures/torch_parity` (docs/checkpoint.md).
 //!
 //! `ROAD_TORCH_PARITY_FIXTURE=DIR` points the tests at another fixture, e.g. one of a shipped
-//! checkpoint's own weights (`make-fixture --checkpoint models/road20-long2 --out DIR`).
+//! checkpoint's own weights (`make-fixture --checkpoint models/road20-wide4 --out DIR`).
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};

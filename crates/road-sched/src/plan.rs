@@ -86,10 +86,10 @@ pub struct PlannerSpec {
     pub obs_noise: Option<f64>,
     /// α in (0, 1]: each emitted state's acceleration is low-passed,
     /// `a = a_prev + α · (a_model − a_prev)`, before it joins the history and the window
-    /// (`road_model::smoothing`; a deviation from the paper against jitter). Absent: off.
+    /// (`road_planner::smoothing`; a deviation from the paper against jitter). Absent: off.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub acceleration_smoothing: Option<f64>,
-    /// Least-jerk tracking (`road_model::smoothing`; a deviation from the paper against jitter):
+    /// Least-jerk tracking (`road_planner::smoothing`; a deviation from the paper against jitter):
     /// each emitted position becomes the first of the jerk-penalised path from the agent's
     /// committed motion through the emitted position and the model's plan. Absent: off.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -97,7 +97,7 @@ pub struct PlannerSpec {
     /// h in 1..=`MAX_PLAN_SMOOTHING_STEPS`: each emitted position is replaced by the value at
     /// the emission step of the least-squares quadratic through the agent's last h committed
     /// positions, the emitted one and the model's denoised estimate of the next h slots of its
-    /// window (`road_model::smoothing`; a deviation from the paper against jitter that, unlike
+    /// window (`road_planner::smoothing`; a deviation from the paper against jitter that, unlike
     /// `acceleration_smoothing`, adds no lag). Absent: off.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub plan_smoothing: Option<usize>,
@@ -112,11 +112,11 @@ pub struct PlannerSpec {
     /// told σ_max). Absent: 1.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub noise_temperature: Option<f64>,
-    /// The collision guard in closed loop (`road_sim::guard`; a deviation from the paper, a
+    /// The collision guard in closed loop (`road_planner::collision_guard`; a deviation from the paper, a
     /// safety layer after the model). Absent: off.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub collision_guard: Option<CollisionGuard>,
-    /// The lane guard in closed loop (`road_sim::lane_guard`; a deviation from the paper, a
+    /// The lane guard in closed loop (`road_planner::lane_guard`; a deviation from the paper, a
     /// lane-keeping layer after the model). Absent: off.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub lane_guard: Option<LaneGuard>,

@@ -7,12 +7,13 @@
 
 use std::sync::Arc;
 
+use road_cpu::FastCpuEngine;
 use road_data::LaneletMap;
 use road_gpu::GpuContext;
 use road_gpu::engine::GpuDenoiser;
 use road_gpu::step_engine::GpuStepEngine;
 use road_model::checkpoint::LoadedModel;
-use road_model::sample::{FastCpuEngine, StepEngine};
+use road_rollout::StepEngine;
 use road_sched::PlannerSpec;
 use road_sim::closed_loop::{ClosedLoop, ExternalDriver, SceneMap, SceneTick, SimScene};
 

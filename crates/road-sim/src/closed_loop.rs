@@ -10,16 +10,16 @@ use glam::DVec2;
 use rand::rngs::StdRng;
 use road_data::{LaneletMap, SceneWindow, wrap_angle};
 use road_model::batch::SceneInput;
-use road_model::sample::{RolloutDriver, RolloutScene, StepEngine};
 use road_model::{ModelConfig, Result as ModelResult};
+use road_rollout::{RolloutDriver, RolloutScene, StepEngine};
 use road_sched::{CollisionGuard, LaneGuard, PlannerSpec};
 
 use crate::controllers::{constant_velocity, slowed_replay};
 use crate::geometry::OrientedBox;
-use crate::guard::{GuardAction, GuardAgent, guard_step};
 use crate::infractions::{collisions, off_road};
-use crate::lane_guard::{LaneAction, keep_on_road, nudge_towards_lane};
 use crate::{Error, Pose, Result};
+use road_planner::collision_guard::{GuardAction, GuardAgent, guard_step};
+use road_planner::lane_guard::{LaneAction, keep_on_road, nudge_towards_lane};
 
 /// Who drives an agent.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
@@ -279,12 +279,12 @@ impl<'m> ClosedLoop<'m> {
         steps: usize,
         rng: &mut StdRng,
     ) -> Result<Self> {
-        let seeds = road_model::sample::batch_seeds(rng, scenes.len());
+        let seeds = road_rollout::batch_seeds(rng, scenes.len());
         Self::with_seeds(engine, model, planner, scenes, maps, steps, &seeds)
     }
 
     /// [`Self::new`] with scene `i`'s noise stream seeded by `seeds[i]`
-    /// (`road_model::sample::stream_seed` names streams independently of the batch).
+    /// (`road_rollout::stream_seed` names streams independently of the batch).
     pub fn with_seeds(
         engine: &mut dyn StepEngine,
         model: &ModelConfig,

@@ -4,10 +4,10 @@
 use candle_core::Device;
 use rand::SeedableRng;
 use rand::rngs::StdRng;
+use road_cpu::CpuEngine;
 use road_data::WindowConfig;
 use road_model::ModelConfig;
 use road_model::model::init_seeded;
-use road_model::sample::CpuEngine;
 use road_sched::{PlannerKind, PlannerSpec};
 use road_sim::Pose;
 use road_sim::closed_loop::{ClosedLoop, Controller, NoExternal, SceneTick, SimScene};
@@ -471,7 +471,7 @@ fn the_collision_guard_keeps_model_agents_out_of_each_other() {
 /// the road than without it; so do they with its nudges ahead of the edge and turned plans.
 #[test]
 fn the_lane_guard_keeps_model_agents_on_the_road() {
-    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../models/road20-long2");
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../models/road20-wide4");
     let loaded = road_model::checkpoint::load(&dir, &Device::Cpu).unwrap();
     let model = &loaded.model;
     let own_planner = loaded.meta.run.planner.clone();
@@ -501,7 +501,10 @@ fn the_lane_guard_keeps_model_agents_on_the_road() {
         off.dedup();
         off.len()
     };
-    let unguarded = run(&own_planner);
+    let unguarded = run(&PlannerSpec {
+        lane_guard: None,
+        ..own_planner.clone()
+    });
     let guarded = run(&PlannerSpec {
         lane_guard: Some(road_sched::LaneGuard {
             lookahead_m: 6.0,

@@ -87,7 +87,7 @@ pub struct ServeBenchArgs {
 #[derive(Debug, Args)]
 pub struct EngineBenchArgs {
     /// Checkpoint folders to measure.
-    #[arg(long, num_args = 1.., default_values = ["models/road20", "models/ar", "models/djinn10"])]
+    #[arg(long, num_args = 1.., default_values = ["models/road20-wide4", "models/road20"])]
     pub checkpoints: Vec<PathBuf>,
     /// Scenes per batched step.
     #[arg(long, num_args = 1.., default_values_t = [1usize, 8, 64, 512])]
@@ -124,7 +124,7 @@ fn parse_linear_kernel(s: &str) -> Result<Option<road_gpu::kernels::linear::Line
 #[derive(Debug, Args)]
 pub struct TrainBenchArgs {
     /// Run configs to measure.
-    #[arg(long, num_args = 1.., default_values = ["configs/road20.toml", "configs/ar.toml", "configs/djinn10.toml"])]
+    #[arg(long, num_args = 1.., default_values = ["configs/road20.toml", "configs/road20-wide4.toml"])]
     pub configs: Vec<PathBuf>,
     /// Optimiser steps timed per config (after one warm-up step).
     #[arg(long, default_value_t = 10)]
@@ -386,8 +386,9 @@ fn flops_per_evaluation(c: &road_model::ModelConfig, agents: usize, polylines: u
 }
 
 fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
+    use road_cpu::CpuEngine;
     use road_model::batch::SceneInput;
-    use road_model::sample::{CpuEngine, StepEngine};
+    use road_rollout::StepEngine;
     let validation = load_cache(&args.cache, Split::Validation)?;
     // One context per linear kernel setting compared.
     let contexts: Vec<road_gpu::GpuContext> = args
@@ -594,7 +595,7 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
 }
 
 fn serve_bench(args: &ServeBenchArgs) -> Result<()> {
-    use road_model::sample::{RolloutDriver, RolloutScene, StepEngine};
+    use road_rollout::{RolloutDriver, RolloutScene, StepEngine};
 
     use crate::commands::engine::{EngineChoice, Engines};
     let validation = load_cache(&args.cache, Split::Validation)?;

@@ -64,7 +64,7 @@ pub struct DemoArgs {
     pub json: Option<PathBuf>,
     /// With `--in-process`: the whole scene (map, routes, histories) turned counter-clockwise by
     /// this many degrees: a model that reads the lanes drives it as it drives the unturned one
-    /// (docs/results.md, "the rotation lever").
+    /// (docs/experiments/2026-11-25-procedural-suite-rotation.md).
     #[arg(
         long,
         default_value_t = 0.0,

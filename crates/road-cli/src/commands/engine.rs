@@ -4,12 +4,13 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
+use road_cpu::{CpuEngine, FastCpuEngine};
 use road_gpu::engine::GpuDenoiser;
 use road_gpu::step_engine::GpuStepEngine;
 use road_gpu::{ContextOptions, GpuContext};
 use road_model::checkpoint::{self, LoadedModel};
 use road_model::config::RunConfig;
-use road_model::sample::{CpuEngine, FastCpuEngine, StepEngine};
+use road_rollout::StepEngine;
 
 /// What the user asked for.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]

@@ -8,8 +8,6 @@ pub mod engine;
 pub mod eval;
 pub mod fuzz;
 pub mod gpu;
-pub mod procedural_eval;
-pub mod reactivity;
 pub mod render;
 pub mod replay;
 pub mod router;

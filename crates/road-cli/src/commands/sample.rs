@@ -8,10 +8,11 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use rand::SeedableRng;
+use road_cpu::rollout;
 use road_data::{Dataset, Split, WindowConfig};
 use road_model::batch::SceneInput;
 use road_model::checkpoint;
-use road_model::sample::{RolloutScene, rollout, rollout_with};
+use road_rollout::{RolloutScene, rollout_with};
 
 use crate::commands::load_cache;
 use crate::plot::{HISTORY, LOGGED, PREDICTED, Stroke, scene_png, window_map_strokes};
@@ -101,7 +102,7 @@ pub fn run(args: SampleArgs) -> Result<ExitCode> {
     let out = match args.engine {
         Engine::Candle => rollout(&loaded.model, &run.planner, &scenes, steps, &mut rng)?,
         Engine::Cpu => {
-            let mut engine = road_model::sample::FastCpuEngine::new(&loaded.model)?;
+            let mut engine = road_cpu::FastCpuEngine::new(&loaded.model)?;
             rollout_with(&mut engine, &run.planner, &scenes, steps, &mut rng)?
         }
         Engine::Gpu => {

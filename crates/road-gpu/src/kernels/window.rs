@@ -1,9 +1,9 @@
 //! `shaders/window.wgsl`: window updates on the device, so that a tick reads back only the
-//! emitted slot of each scene. CPU references: `road_model::sample::{window_emitted,
+//! emitted slot of each scene. CPU references: `road_rollout::{window_emitted,
 //! window_shift}` (what the candle engine runs).
 
 use bytemuck::{Pod, Zeroable};
-use road_model::sample::ShiftShape;
+use road_rollout::ShiftShape;
 
 use super::{Dispatch, Pipeline, record_all, storage_buffer, upload};
 use crate::shaders::Shader;
@@ -180,7 +180,7 @@ impl WindowOps {
     }
 
     /// Shifts the windows of the scenes in `edits` (`(scene, emitted [agents, 3], noise
-    /// [agents, 6], plan turns [agents, 4] or empty)`, as `road_model::sample::ShiftEdit`) on
+    /// [agents, 6], plan turns [agents, 4] or empty)`, as `road_rollout::ShiftEdit`) on
     /// the device: `x` → scratch → `x`.
     pub fn shift(
         &mut self,

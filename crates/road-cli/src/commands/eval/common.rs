@@ -1,0 +1,156 @@
+//! What the evaluation suites share: their command-line arguments, the choice of scenes and
+//! progress for logs.
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+use std::time::Instant;
+
+use clap::Args;
+use road_data::Dataset;
+
+use crate::commands::sample::Engine;
+
+#[derive(Debug, Args)]
+pub struct EvalArgs {
+    /// Suite: `forecasting` (10 observed steps, 30 predicted, joint samples per scene),
+    /// `reactivity` (an adversarial agent per scene, 40 simulated steps after 10 observed) or
+    /// `procedural` (`road demo`'s closed loop on the procedural maps over seeds and rotations:
+    /// vehicles off road and collisions; no INTERACTION data needed).
+    #[arg(long, default_value = "forecasting")]
+    pub suite: String,
+    /// Checkpoints to evaluate; a constant-velocity baseline is always added.
+    #[arg(long, num_args = 1.., default_values = ["models/road20-wide4"])]
+    pub checkpoints: Vec<PathBuf>,
+    /// Run every checkpoint under this planner of `configs/planners.toml` instead of its own
+    /// (rows named `checkpoint [planner]`); it must fit the checkpoint's window.
+    #[arg(long)]
+    pub planner: Option<String>,
+    /// Joint samples per scene (default: 6 for forecasting, 3 for reactivity).
+    #[arg(long)]
+    pub samples: Option<usize>,
+    /// Scenes evaluated (spread evenly over the eligible ones); 0 = all.
+    #[arg(long, default_value_t = 60)]
+    pub limit: usize,
+    /// Locations kept: the ones with the most eligible scenes.
+    #[arg(long, default_value_t = 6)]
+    pub top_locations: usize,
+    /// Scenes with fewer agents present at the last observed step are left out.
+    #[arg(long, default_value_t = 4)]
+    pub min_agents: usize,
+    /// Miss threshold (metres) on the final displacement.
+    #[arg(long, default_value_t = 2.0)]
+    pub miss_threshold_m: f64,
+    /// Scenes per batched rollout (each repeated `samples` times in the batch).
+    #[arg(long, default_value_t = 8)]
+    pub batch_scenes: usize,
+    #[arg(long, value_enum, default_value_t = Engine::Cpu)]
+    pub engine: Engine,
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    #[arg(long, default_value = ".road-cache")]
+    pub cache: PathBuf,
+    /// Also write the results as JSON here.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+    /// Reactivity: the INTERACTION data folder (its windows are cut 50 steps long, longer than
+    /// the training caches' 40).
+    #[arg(long, env = "ROAD_DATA", default_value = "../shared/data/interaction")]
+    pub data: PathBuf,
+    /// Reactivity: simulated steps after the observations.
+    #[arg(long, default_value_t = 40)]
+    pub sim_steps: usize,
+    /// Draw the first this many scenes of every model (paper style) into `--figures` (both suites).
+    #[arg(long, default_value_t = 0)]
+    pub figure_scenes: usize,
+    /// Folder for the figures.
+    #[arg(long, default_value = "eval-figures")]
+    pub figures: PathBuf,
+    /// Procedural: runs per map and rotation, noise seeds `--seed`, `--seed` + 1, ….
+    #[arg(long, default_value_t = 5)]
+    pub seeds: u64,
+    /// Procedural: each map turned counter-clockwise by each of these angles (degrees).
+    #[arg(long, num_args = 1.., default_values_t = [0.0], allow_negative_numbers = true)]
+    pub rotations_deg: Vec<f64>,
+    /// Procedural: the maps (`roundabout`, `intersection`, `merge`); default all.
+    #[arg(long, num_args = 1..)]
+    pub maps: Vec<String>,
+    /// Procedural: simulated steps per run (`road demo`'s 60 by default).
+    #[arg(long, default_value_t = 60)]
+    pub procedural_steps: usize,
+}
+
+/// The scenes a suite evaluates.
+pub(crate) struct SceneSelection {
+    /// Window indices evaluated: spread evenly over the eligible ones, at most `limit`.
+    pub scenes: Vec<usize>,
+    /// Eligible windows of the kept locations (what `--limit 0` evaluates).
+    pub eligible: usize,
+}
+
+/// Scenes of the suite: eligible windows (enough agents, and `extra`) of the top locations,
+/// spread evenly up to `limit`.
+pub(crate) fn select_scenes(
+    ds: &Dataset,
+    args: &EvalArgs,
+    extra: impl Fn(usize) -> bool,
+) -> SceneSelection {
+    let eligible: Vec<usize> = (0..ds.len())
+        .filter(|&i| ds.windows[i].agents.len() >= args.min_agents && extra(i))
+        .collect();
+    let mut per_location: BTreeMap<&str, usize> = BTreeMap::new();
+    for &i in &eligible {
+        *per_location
+            .entry(
+                ds.recordings[ds.windows[i].recording as usize]
+                    .location
+                    .as_str(),
+            )
+            .or_default() += 1;
+    }
+    let mut ranked: Vec<(&str, usize)> = per_location.into_iter().collect();
+    ranked.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(b.0)));
+    let keep: Vec<&str> = ranked
+        .iter()
+        .take(args.top_locations)
+        .map(|r| r.0)
+        .collect();
+    let kept: Vec<usize> = eligible
+        .into_iter()
+        .filter(|&i| {
+            keep.contains(
+                &ds.recordings[ds.windows[i].recording as usize]
+                    .location
+                    .as_str(),
+            )
+        })
+        .collect();
+    let eligible = kept.len();
+    if args.limit == 0 || kept.len() <= args.limit {
+        return SceneSelection {
+            scenes: kept,
+            eligible,
+        };
+    }
+    let scenes = (0..args.limit)
+        .map(|k| kept[k * kept.len() / args.limit])
+        .collect();
+    SceneSelection { scenes, eligible }
+}
+
+/// Progress for logs, where the bar is hidden (stderr not a terminal): scenes done, elapsed
+/// and expected seconds.
+pub(crate) fn progress(bar: &indicatif::ProgressBar, model: &str, scenes: usize, started: Instant) {
+    if !bar.is_hidden() {
+        return;
+    }
+    let done = bar.position() as usize;
+    let secs = started.elapsed().as_secs_f64();
+    tracing::info!(
+        model,
+        done,
+        scenes,
+        elapsed_secs = secs.round(),
+        remaining_secs = (secs / done.max(1) as f64 * scenes.saturating_sub(done) as f64).round(),
+        "evaluating"
+    );
+}
