@@ -85,7 +85,7 @@ fn the_protocol_fuzzer_runs_every_target_and_finds_nothing() {
     ]);
     let out = stdout(&o);
     assert!(o.status.success(), "{out}{}", stderr(&o));
-    assert!(out.contains("3600 inputs"), "{out}");
+    assert!(out.contains("4800 inputs"), "{out}");
     for row in [
         "| Create | Mutated |",
         "| Ego | Json |",
@@ -106,6 +106,13 @@ fn the_protocol_fuzzer_runs_every_target_and_finds_nothing() {
         .parse()
         .unwrap();
     assert!(accepted > 0, "{ego_mutated}");
+    // A finite but absurd number anywhere in a valid creation or tick is refused (issue 41:
+    // `1e300` as a position or heading used to poison the scene).
+    for row in ["| Create | Absurd |", "| Ego | Absurd |"] {
+        let line = out.lines().find(|l| l.starts_with(row)).unwrap();
+        let accepted: usize = line.split('|').nth(4).unwrap().trim().parse().unwrap();
+        assert_eq!(accepted, 0, "{line}");
+    }
     assert!(out.contains("findings: none"), "{out}");
     assert!(!findings.exists());
 }

@@ -107,6 +107,8 @@ class SceneCreated:
     ego_key: str
     npc_key: str
     error_key: str
+    # The scene's secret: every tick and close of the scene carries it (protocol 4).
+    token: str = ""
     recording: Optional[str] = None
 
 
@@ -456,9 +458,12 @@ class Client:
     def status(self) -> dict:
         return self._query(f"{self.prefix}/status", b"")
 
-    def close_scene(self, scene: int) -> SceneClosed:
+    def close_scene(self, scene: int, token: str) -> SceneClosed:
+        """Closes scene ``scene`` with its secret (``SceneCreated.token``; ``Scene.close``
+        knows it)."""
         reply = self._query(f"{self.prefix}/scenes/close",
-                            json.dumps({"scene": scene, "client": self.client_id}).encode())
+                            json.dumps({"scene": scene, "client": self.client_id,
+                                        "token": token}).encode())
         return _reply(SceneClosed, reply)
 
     def close(self) -> None:
@@ -489,7 +494,7 @@ class Scene:
 
     def put(self, tick: int, agents: list[AgentState]) -> None:
         msg = {"tick": tick, "agents": [asdict(a) for a in agents],
-               "client": self.client.client_id}
+               "client": self.client.client_id, "token": self.created.token}
         # Block, not zenoh's default Drop: a tick is never lost to a full queue.
         self.client.session.put(self.created.ego_key, json.dumps(msg).encode(),
                                 congestion_control=zenoh.CongestionControl.BLOCK)
@@ -538,4 +543,4 @@ class Scene:
 
     def close(self) -> SceneClosed:
         self.client._close_inbox(self.id)
-        return self.client.close_scene(self.id)
+        return self.client.close_scene(self.id, self.created.token)

@@ -52,6 +52,9 @@ enum Command {
     Render(commands::render::RenderArgs),
     /// A scene recording's protocol messages published again over zenoh at the recorded pace.
     Replay(commands::replay::ReplayArgs),
+    /// Recordings cut off by a killed server rewritten whole (with their summary), so that the
+    /// default MCAP readers open them; a complete file is left as it is.
+    Recover(commands::recover::RecoverArgs),
     /// INTERACTION data: statistics and binary caches for training.
     #[command(subcommand)]
     Data(commands::data::DataCommand),
@@ -110,6 +113,7 @@ fn main() -> std::process::ExitCode {
         Command::Ego(args) => commands::ego::run(args),
         Command::Render(args) => commands::render::run(args),
         Command::Replay(args) => commands::replay::run(args),
+        Command::Recover(args) => commands::recover::run(args),
         Command::Data(cmd) => commands::data::run(cmd),
         Command::Sched(cmd) => commands::sched::run(cmd),
         Command::Gpu(cmd) => commands::gpu::run(cmd),

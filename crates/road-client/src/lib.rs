@@ -337,11 +337,13 @@ impl Client {
         self.query(&self.keys.status(), Vec::new())
     }
 
-    /// Closes a scene by id.
-    pub fn close_scene(&self, scene: u64) -> Result<SceneClosed> {
+    /// Closes a scene by id, with its secret (`SceneCreated::token`; [`Scene::close`] knows
+    /// it).
+    pub fn close_scene(&self, scene: u64, token: &str) -> Result<SceneClosed> {
         let payload = serde_json::to_vec(&CloseScene {
             scene,
-            client: Some(self.id.clone()),
+            client: self.id.clone(),
+            token: token.to_owned(),
         })
         .expect("requests serialise");
         self.query(&self.keys.close(), payload)
@@ -403,7 +405,8 @@ impl Scene {
         let msg = EgoTick {
             tick,
             agents,
-            client: Some(self.client.clone()),
+            client: self.client.clone(),
+            token: self.created.token.clone(),
         };
         self.put_raw(serde_json::to_vec(&msg).expect("ticks serialise"))
     }
@@ -546,7 +549,8 @@ impl Scene {
     pub fn close(self) -> Result<SceneClosed> {
         let payload = serde_json::to_vec(&CloseScene {
             scene: self.created.scene,
-            client: Some(self.client.clone()),
+            client: self.client.clone(),
+            token: self.created.token.clone(),
         })
         .expect("requests serialise");
         let key = self.keys.close();

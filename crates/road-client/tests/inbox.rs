@@ -23,6 +23,7 @@ fn created(client: &Client, scene: u64) -> SceneCreated {
         npc_key: keys.npc(client.id(), scene),
         error_key: keys.error(client.id(), &scene.to_string()),
         recording: None,
+        token: "0".repeat(32),
     }
 }
 

@@ -6,6 +6,7 @@
 //! - [`shaders`]: the embedded `shaders/*.wgsl` files;
 //! - [`kernels`]: one module per kernel family;
 //! - [`profile`]: a step's device time by kernel (for `road bench engine --profile`);
+//! - [`proxies`]: dispatches, binding bytes and padding per evaluation (no GPU needed);
 //! - [`reference`]: the kernels' CPU references (plain f64 loops);
 //! - [`selftest`]: every kernel family against its reference on the adapter at hand;
 //! - [`tolerance`]: the relative + absolute tolerance every parity test uses.
@@ -14,6 +15,7 @@ pub mod context;
 pub mod engine;
 pub mod kernels;
 pub mod profile;
+pub mod proxies;
 pub mod reference;
 pub mod sampler_step;
 pub mod selftest;

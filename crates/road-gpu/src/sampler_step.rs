@@ -8,7 +8,7 @@
 use bytemuck::{Pod, Zeroable};
 
 use crate::engine::{DeviceBatch, GpuDenoiser, MapTokens, Scratch};
-use crate::kernels::{Dispatch, read_back, storage_buffer};
+use crate::kernels::{Dispatch, Traffic, read_back, storage_buffer};
 use crate::{Error, GpuContext, Result};
 
 #[repr(C)]
@@ -104,6 +104,7 @@ impl GpuDenoiser {
             multistep,
             bytes: len,
             sigma_eval_host: vec![0.0; b * w],
+            recorded: Traffic::default(),
         })
     }
 
@@ -152,6 +153,8 @@ pub struct HeunPlan {
     multistep: Dispatch,
     bytes: u64,
     sigma_eval_host: Vec<f32>,
+    /// The dispatches recorded by the runs since [`HeunPlan::take_traffic`].
+    recorded: Traffic,
 }
 
 /// How a [`HeunPlan`] moves the windows: Heun (EDM Algorithm 1, the Euler step alone without
@@ -256,7 +259,7 @@ impl HeunPlan {
                 label: Some("heun"),
                 timestamp_writes: None,
             });
-            d.record(&mut pass);
+            d.record_counted(&mut pass, &mut self.recorded);
         }
         enc.copy_buffer_to_buffer(&self.x_e, 0, &batch.x, 0, self.bytes);
         self.last_had_second = second_evaluation;
@@ -269,6 +272,16 @@ impl HeunPlan {
     /// update), in order: what [`crate::profile`] times one by one.
     pub fn euler_dispatches(&self) -> &[Dispatch] {
         &self.euler
+    }
+
+    /// The dispatches a Heun step's second evaluation adds (the evaluation and the correction).
+    pub fn correct_dispatches(&self) -> &[Dispatch] {
+        &self.correct
+    }
+
+    /// The dispatches recorded by the runs since the last call, and their binding bytes.
+    pub fn take_traffic(&mut self) -> Traffic {
+        std::mem::take(&mut self.recorded)
     }
 
     /// The last run's last denoiser estimate D `[B, A, W, 3]` (the second evaluation's when

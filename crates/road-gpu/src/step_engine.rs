@@ -4,7 +4,8 @@
 
 use crate::engine::{DenoiseInputs, DeviceBatch, GpuDenoiser, MapTokens};
 use crate::kernels::window::ShiftList;
-use crate::kernels::{read_back_ranges, storage_buffer};
+use crate::kernels::{Traffic, read_back_ranges, storage_buffer};
+use crate::proxies::{Work, flops_per_evaluation};
 use crate::sampler_step::{HeunPlan, StepRule};
 use crate::{Error, GpuContext, Result};
 
@@ -31,6 +32,12 @@ pub struct GpuStepEngine<'a> {
     /// `[B]`: one past each scene's last agent row with a valid slot; the rows after it are
     /// padding, which a compact sub-batch leaves out.
     live_agents: Vec<usize>,
+    /// `[B]`: each scene's own agents (those with a valid slot) and polylines (valid flags):
+    /// the useful work of [`Work`].
+    own_agents: Vec<usize>,
+    own_polylines: Vec<usize>,
+    /// What the steps since the last [`GpuStepEngine::take_work`] computed.
+    work: Work,
     scenes: usize,
     agents: usize,
 }
@@ -50,9 +57,48 @@ impl<'a> GpuStepEngine<'a> {
             features: Vec::new(),
             zeros: Vec::new(),
             live_agents: Vec::new(),
+            own_agents: Vec::new(),
+            own_polylines: Vec::new(),
+            work: Work::default(),
             scenes: 0,
             agents: 0,
         }
+    }
+
+    /// What the steps since the last call did: evaluations, the dispatches recorded and their
+    /// binding bytes, the work computed against the moving scenes' own (`road bench engine`'s
+    /// proxies, [`crate::proxies`]).
+    pub fn take_work(&mut self) -> Work {
+        std::mem::take(&mut self.work)
+    }
+}
+
+/// The work of one step of `evaluations` evaluations computed at `computed_scenes` ×
+/// `computed_agents` × `polylines` (a batch or a compact sub-batch, padding included), of which
+/// the `active` scenes' own agents and polylines are the useful part.
+#[allow(clippy::too_many_arguments)]
+fn step_work(
+    config: &road_model::ModelConfig,
+    evaluations: u64,
+    computed_scenes: usize,
+    computed_agents: usize,
+    polylines: usize,
+    active: &[usize],
+    own_agents: &[usize],
+    own_polylines: &[usize],
+    traffic: Traffic,
+) -> Work {
+    let e = evaluations as f64;
+    Work {
+        evaluations,
+        traffic,
+        computed_flops: e
+            * computed_scenes as f64
+            * flops_per_evaluation(config, computed_agents, polylines),
+        useful_flops: e * active
+            .iter()
+            .map(|&i| flops_per_evaluation(config, own_agents[i], own_polylines[i]))
+            .sum::<f64>(),
     }
 }
 
@@ -146,6 +192,12 @@ impl GpuStepEngine<'_> {
         if active.is_empty() {
             return Ok(());
         }
+        let evaluations = match rule {
+            StepRule::Heun {
+                second_evaluation: true,
+            } => 2,
+            _ => 1,
+        };
         let row_bytes = (self.agents * w * 3 * 4) as u64;
         // The moving scenes' live agent rows, rounded up to a multiple of 4 so that few
         // sub-batch shapes are made: a server's pool pads every scene to its most agents.
@@ -163,31 +215,43 @@ impl GpuStepEngine<'_> {
             // estimates are kept in the same submission (idle rows were evaluated, not moved).
             let denoised = self.denoised.as_ref();
             let multistep = matches!(rule, StepRule::Multistep { .. });
-            return plan
-                .run_rule(
-                    self.ctx,
-                    batch,
-                    sigma_cur,
-                    sigma_next,
-                    rule,
-                    |enc, previous| {
-                        if let (true, Some(kept)) = (multistep, denoised) {
-                            enc.copy_buffer_to_buffer(kept, 0, previous, 0, b as u64 * row_bytes);
+            plan.run_rule(
+                self.ctx,
+                batch,
+                sigma_cur,
+                sigma_next,
+                rule,
+                |enc, previous| {
+                    if let (true, Some(kept)) = (multistep, denoised) {
+                        enc.copy_buffer_to_buffer(kept, 0, previous, 0, b as u64 * row_bytes);
+                    }
+                },
+                |enc, d| {
+                    let Some(kept) = denoised else { return };
+                    if active.len() == b {
+                        enc.copy_buffer_to_buffer(d, 0, kept, 0, b as u64 * row_bytes);
+                    } else {
+                        for &i in &active {
+                            let at = i as u64 * row_bytes;
+                            enc.copy_buffer_to_buffer(d, at, kept, at, row_bytes);
                         }
-                    },
-                    |enc, d| {
-                        let Some(kept) = denoised else { return };
-                        if active.len() == b {
-                            enc.copy_buffer_to_buffer(d, 0, kept, 0, b as u64 * row_bytes);
-                        } else {
-                            for &i in &active {
-                                let at = i as u64 * row_bytes;
-                                enc.copy_buffer_to_buffer(d, at, kept, at, row_bytes);
-                            }
-                        }
-                    },
-                )
-                .map_err(engine_err);
+                    }
+                },
+            )
+            .map_err(engine_err)?;
+            // Every scene of the batch was evaluated at its padded agents, idle ones too.
+            self.work += step_work(
+                &self.model.config,
+                evaluations,
+                b,
+                a,
+                map.polylines,
+                &active,
+                &self.own_agents,
+                &self.own_polylines,
+                plan.take_traffic(),
+            );
+            return Ok(());
         }
         // Few scenes move (others idle in a mixed-phase batch), or few of their agent rows are
         // live: copy those into a compact sub-batch, step it, copy the states back.
@@ -278,6 +342,18 @@ impl GpuStepEngine<'_> {
                 |_, _| {},
             )
             .map_err(engine_err)?;
+        // The sub-batch's empty places (up to a power of two) are computed too.
+        self.work += step_work(
+            &self.model.config,
+            evaluations,
+            capacity,
+            a_c,
+            p,
+            &active,
+            &self.own_agents,
+            &self.own_polylines,
+            compact.plan.take_traffic(),
+        );
         let mut enc = self
             .ctx
             .device
@@ -297,6 +373,14 @@ impl GpuStepEngine<'_> {
         self.ctx.queue.submit([enc.finish()]);
         Ok(())
     }
+}
+
+/// Agents of a scene's validity `[A, W]` with a valid slot: the scene's own.
+fn valid_agents(valid: &[f32], agents: usize) -> usize {
+    let w = valid.len() / agents.max(1);
+    (0..agents)
+        .filter(|&a| valid[a * w..(a + 1) * w].iter().any(|&v| v > 0.0))
+        .count()
 }
 
 /// One past the last of `agents` agent rows of a scene's validity `[A, W]` with a valid slot
@@ -344,6 +428,15 @@ impl road_rollout::StepEngine for GpuStepEngine<'_> {
         self.scenes = scenes;
         self.agents = agents;
         self.live_agents = vec![agents; scenes];
+        self.own_agents = vec![agents; scenes];
+        self.own_polylines = if polylines > 0 {
+            map_valid
+                .chunks(polylines)
+                .map(|flags| flags.iter().filter(|&&v| v > 0.0).count())
+                .collect()
+        } else {
+            vec![0; scenes]
+        };
         // A new scene set: the next load makes its batch and plan.
         self.batch = None;
         self.plan = None;
@@ -383,6 +476,7 @@ impl road_rollout::StepEngine for GpuStepEngine<'_> {
             )));
         }
         self.features[scene * a * 6..][..a * 6].copy_from_slice(features);
+        self.own_polylines[scene] = map_valid.iter().filter(|&&v| v > 0.0).count();
         // The scene's map as the batch holds it (points with agent maps, else its encoded
         // tokens), encoded alone and copied over its rows.
         let one = self
@@ -436,6 +530,10 @@ impl road_rollout::StepEngine for GpuStepEngine<'_> {
             self.live_agents = valid
                 .chunks(v_len)
                 .map(|scene| live_agent_rows(scene, self.agents))
+                .collect();
+            self.own_agents = valid
+                .chunks(v_len)
+                .map(|scene| valid_agents(scene, self.agents))
                 .collect();
         }
         // Later ticks only overwrite the state: buffers, bind groups and the plan stay.
@@ -518,6 +616,7 @@ impl road_rollout::StepEngine for GpuStepEngine<'_> {
             )));
         }
         self.live_agents[scene] = live_agent_rows(valid, self.agents);
+        self.own_agents[scene] = valid_agents(valid, self.agents);
         self.ctx.queue.write_buffer(
             &batch.x,
             (scene * x_len * 4) as u64,
@@ -651,6 +750,7 @@ impl road_rollout::StepEngine for GpuStepEngine<'_> {
                 )));
             }
             self.live_agents[e.scene] = live_agent_rows(e.valid, self.agents);
+            self.own_agents[e.scene] = valid_agents(e.valid, self.agents);
             self.ctx.queue.write_buffer(
                 &batch.valid,
                 (e.scene * v_len * 4) as u64,

@@ -17,7 +17,9 @@ use serde::{Deserialize, Serialize};
 /// 2: a scene's ego, NPC and error keys name its client (`<prefix>/client/<id>/scene/<n>/…`),
 /// and a scene must have a client.
 /// 3: `NpcTick::queue_ms`; clients ignore reply fields they do not know.
-pub const PROTOCOL_VERSION: u32 = 3;
+/// 4: a scene's secret ([`SceneCreated::token`]) and its client id are required on every ego
+/// tick and close; `client_silent` closes a scene whose client went quiet.
+pub const PROTOCOL_VERSION: u32 = 4;
 
 /// The key prefix a server uses unless configured otherwise.
 pub const DEFAULT_PREFIX: &str = "road";
@@ -82,6 +84,14 @@ impl Keys {
         format!("{}/client/{client}/scene/{scene}/error", self.prefix)
     }
 
+    /// Where the server answers a put on `client`'s ego key of scene `scene` that lacks the
+    /// scene's token ([`SceneCreated::token`]): not on the error key, whose messages end the
+    /// owner's wait, since anyone may put on any key. A client writer debugging its puts
+    /// subscribes here.
+    pub fn refused(&self, client: &str, scene: &str) -> String {
+        format!("{}/client/{client}/scene/{scene}/refused", self.prefix)
+    }
+
     /// The NPC keys of all of `client`'s scenes (the client's one subscription to them).
     pub fn client_npc_any(&self, client: &str) -> String {
         format!("{}/client/{client}/scene/*/npc", self.prefix)
@@ -133,6 +143,23 @@ pub fn servers_alive_under(root: &str) -> String {
 pub fn server_prefix_of(key: &str) -> Option<&str> {
     key.strip_suffix("/alive/server")
         .filter(|prefix| !prefix.is_empty())
+}
+
+/// The `token` field of a JSON payload, if it has one as a string: what a put is checked
+/// against before anything else of it is read (a payload that does not parse still names its
+/// token when it has one).
+pub fn token_of(payload: &[u8]) -> Option<String> {
+    let value: serde_json::Value = serde_json::from_slice(payload).ok()?;
+    value.get("token")?.as_str().map(str::to_owned)
+}
+
+/// Compares two tokens in time independent of where they differ.
+pub fn same_token(a: &str, b: &str) -> bool {
+    a.len() == b.len()
+        && a.bytes()
+            .zip(b.bytes())
+            .fold(0u8, |acc, (x, y)| acc | (x ^ y))
+            == 0
 }
 
 /// Whether `id` can be a client id: one key chunk of 1 to 64 ASCII letters, digits, `-` or
@@ -264,6 +291,11 @@ pub struct SceneCreated {
     /// The MCAP file recording the scene, on the server's machine.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub recording: Option<String>,
+    /// The scene's secret (32 hex digits, drawn at random for this scene): every [`EgoTick`]
+    /// and [`CloseScene`] of the scene must carry it. Zenoh does not tell a server who sent a
+    /// put, so a client id alone can be faked by anyone who can read or guess it; the token
+    /// reaches only the creating query's reply.
+    pub token: String,
 }
 
 impl SceneCreated {
@@ -313,10 +345,10 @@ pub struct EgoTick {
     pub tick: u64,
     /// Every external agent of the scene, once each.
     pub agents: Vec<AgentState>,
-    /// The scene's client id. Optional: the ego key names the client already; when given, it
-    /// must be that one.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub client: Option<String>,
+    /// The scene's client id: the one its ego key names.
+    pub client: String,
+    /// The scene's secret, [`SceneCreated::token`].
+    pub token: String,
 }
 
 /// Every NPC at step `tick` (published on the scene's npc key), with the step's
@@ -367,8 +399,10 @@ pub struct AgentPlan {
 #[serde(deny_unknown_fields)]
 pub struct CloseScene {
     pub scene: u64,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub client: Option<String>,
+    /// The scene's client id.
+    pub client: String,
+    /// The scene's secret, [`SceneCreated::token`].
+    pub token: String,
 }
 
 /// The `close` queryable's reply.
@@ -401,6 +435,10 @@ pub struct SceneStatus {
     /// Seconds since the scene last heard from its client.
     pub idle_s: f64,
     pub late_ticks: u64,
+    /// Puts on the scene's ego key refused for a missing or wrong token (not answered: the
+    /// sender cannot be told apart from the owner on that key).
+    #[serde(default)]
+    pub refused_puts: u64,
 }
 
 /// The `status` queryable's reply.
@@ -453,9 +491,12 @@ pub enum ErrorCode {
     NotOwner,
     /// The server failed; the scene is closed.
     Internal,
-    /// The server closed the scene without its client asking: idle timeout, the client's
-    /// liveliness token went, the server stops (the message says which).
+    /// The server closed the scene without its client asking: the client's liveliness token
+    /// went, the server stops (the message says which).
     SceneClosed,
+    /// The server closed the scene because its client went quiet: nothing from it for the
+    /// idle timeout, or too many ticks in a row that the model drove for want of its ego.
+    ClientSilent,
 }
 
 /// An error reply (a query's error reply, or a message on a scene's error key).
@@ -512,24 +553,54 @@ pub fn parse<T: serde::de::DeserializeOwned>(payload: &[u8]) -> Result<T, ErrorR
             format!("the payload is not UTF-8 text: {e}"),
         )
     })?;
-    serde_json::from_str(text).map_err(|e| {
-        let message = e.to_string();
+    let mut deserializer = serde_json::Deserializer::from_str(text);
+    let value = serde_path_to_error::deserialize(&mut deserializer).map_err(|e| {
+        // Where serde was in the document: `agents[2].history[0]`, or `.` at the top.
+        let path = e.path().to_string();
+        let inner = e.into_inner();
+        // A document that ends early names no field (its message gives where it ended).
+        let data_fault = inner.classify() != serde_json::error::Category::Eof;
+        let message = inner.to_string();
+        let at = |name: Option<&str>| -> Option<String> {
+            let within = (path != ".").then_some(path.as_str());
+            match (within, name) {
+                (Some(p), Some(n)) => Some(format!("{p}.{n}")),
+                (Some(p), None) => Some(p.to_owned()),
+                (None, Some(n)) => Some(n.to_owned()),
+                (None, None) => None,
+            }
+        };
         // serde_json words these `unknown field `x`, expected ...` and `missing field `x``.
-        let quoted = message.split('`').nth(1).map(str::to_owned);
-        if message.starts_with("unknown field") || message.starts_with("unknown variant") {
+        let quoted = message.split('`').nth(1);
+        // The path of an unknown field already ends in its name; an unknown variant's is
+        // the enum's.
+        if message.starts_with("unknown field") {
             ErrorReply {
-                field: quoted,
+                field: at(None),
+                ..ErrorReply::new(ErrorCode::UnknownField, None, message)
+            }
+        } else if message.starts_with("unknown variant") {
+            ErrorReply {
+                field: at(quoted),
                 ..ErrorReply::new(ErrorCode::UnknownField, None, message)
             }
         } else if message.starts_with("missing field") {
             ErrorReply {
-                field: quoted,
+                field: at(quoted),
                 ..ErrorReply::new(ErrorCode::MalformedJson, None, message)
             }
         } else {
-            ErrorReply::new(ErrorCode::MalformedJson, None, message)
+            ErrorReply {
+                field: data_fault.then(|| at(None)).flatten(),
+                ..ErrorReply::new(ErrorCode::MalformedJson, None, message)
+            }
         }
-    })
+    })?;
+    // Trailing characters after the document.
+    deserializer
+        .end()
+        .map_err(|e| ErrorReply::new(ErrorCode::MalformedJson, None, e.to_string()))?;
+    Ok(value)
 }
 
 #[cfg(test)]
@@ -591,6 +662,25 @@ mod tests {
         let e = parse::<EgoTick>(&[0xff, 0xfe, 0x00]).unwrap_err();
         assert_eq!(e.code, ErrorCode::MalformedJson);
         assert!(e.message.contains("UTF-8"), "{e}");
+        // Deeper faults name their path (issue 41: `map: {}` named nothing).
+        let e = parse::<CreateScene>(br#"{"map":{},"client":"c"}"#).unwrap_err();
+        assert_eq!(e.field.as_deref(), Some("map"), "{e}");
+        let e = parse::<CreateScene>(br#"{"map":{"atlantis":"x"},"client":"c"}"#).unwrap_err();
+        assert_eq!(e.code, ErrorCode::UnknownField);
+        assert_eq!(e.field.as_deref(), Some("map.atlantis"), "{e}");
+        let e = parse::<CreateScene>(
+            br#"{"map":{"procedural":"merge"},"client":"c","agents":[
+                {"id":1,"length_m":4,"width_m":2,"history":[{"x_m":0,"y_m":"north","heading_rad":0}]}]}"#,
+        )
+        .unwrap_err();
+        assert_eq!(e.code, ErrorCode::MalformedJson);
+        assert_eq!(e.field.as_deref(), Some("agents[0].history[0].y_m"), "{e}");
+        let e = parse::<EgoTick>(br#"{"tick":1,"agents":[{"id":1}],"client":"c","token":"t"}"#)
+            .unwrap_err();
+        assert_eq!(e.field.as_deref(), Some("agents[0].x_m"), "{e}");
+        let e =
+            parse::<EgoTick>(br#"{"tick":1,"agents":[],"client":"c","token":"t"} x"#).unwrap_err();
+        assert_eq!(e.code, ErrorCode::MalformedJson);
     }
 
     #[test]
@@ -638,6 +728,7 @@ mod tests {
             npc_key: String::new(),
             error_key: String::new(),
             recording: None,
+            token: String::new(),
         };
         let at = created.constant_velocity(4, 2).unwrap();
         assert_eq!((at.id, at.x_m, at.y_m), (4, 2.5, 1.0));
@@ -646,6 +737,24 @@ mod tests {
             CreateScene::procedural("merge", vec![1], 3).map,
             MapSource::Procedural("merge".into())
         );
+    }
+
+    #[test]
+    fn tokens_are_read_from_any_json_and_compared_whole() {
+        assert_eq!(
+            token_of(br#"{"tick": 1, "token": "ab12"}"#).as_deref(),
+            Some("ab12")
+        );
+        // Read before the rest of the message is checked: unknown fields do not hide it.
+        assert_eq!(
+            token_of(br#"{"nonsense": [1, 2], "token": "ab12"}"#).as_deref(),
+            Some("ab12")
+        );
+        for payload in [&b"{\"token\": 7}"[..], b"[]", b"not json", b"{\"tick\": 1}"] {
+            assert_eq!(token_of(payload), None);
+        }
+        assert!(same_token("ab12", "ab12"));
+        assert!(!same_token("ab12", "ab13") && !same_token("ab12", "ab1") && !same_token("", "a"));
     }
 
     #[test]

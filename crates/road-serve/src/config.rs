@@ -24,8 +24,12 @@ pub struct ServeConfig {
     /// After publishing tick t − 1 the server waits this long for tick t's ego, then lets the
     /// model drive the external agents for tick t (flagged in the reply). Zero: wait forever.
     pub late_ego_deadline: Duration,
-    /// A scene that has heard nothing from its client for this long is closed.
+    /// A scene whose client has said nothing for this long since the server last gave it
+    /// something to answer is closed (`client_silent`), whatever the model drove meanwhile.
     pub idle_timeout: Duration,
+    /// A scene whose external agents the model drove this many ticks in a row for want of
+    /// the client's ego is closed (`client_silent`).
+    pub max_consecutive_late_ticks: u64,
     /// Ticks a scene may run at most (and the default of a request's `max_ticks`).
     pub max_ticks: u64,
     /// Agents per scene at most (the windows the model was trained on held 32).
@@ -70,6 +74,7 @@ impl ServeConfig {
             max_payload_bytes: 8 << 20,
             late_ego_deadline: Duration::from_millis(1000),
             idle_timeout: Duration::from_secs(30),
+            max_consecutive_late_ticks: 300,
             max_ticks: 6_000,
             max_agents: road_data::WindowConfig::default().max_agents,
             max_external_speed_mps: 70.0,

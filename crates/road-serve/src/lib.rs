@@ -11,6 +11,8 @@
 //! - [`pool`]: continuous batching: the scenes of one checkpoint and planner share an engine,
 //!   one batched Heun round at a time;
 //! - [`record`]: one MCAP file per scene (raw protocol messages and `foxglove.SceneUpdate`);
+//! - [`recover`]: a recording cut off by a killed server rewritten whole, with its summary
+//!   (`road recover`; a server recovers its folder's at start);
 //! - `writer`: the thread that records every scene and feeds the live view, so that the
 //!   core's rounds never wait on either;
 //! - [`live`]: the live view, a Foxglove WebSocket server showing every live scene's map and
@@ -26,6 +28,7 @@ pub mod live;
 pub mod models;
 pub mod pool;
 pub mod record;
+pub mod recover;
 pub mod scene;
 pub mod server;
 mod writer;
@@ -60,11 +63,24 @@ pub enum Error {
         addr: std::net::SocketAddr,
         source: std::io::Error,
     },
+    /// One scene's tick could not be computed (the scene closes; the others go on).
+    #[error("scene {scene}: {reason}")]
+    SceneFailed { scene: u64, reason: String },
     #[error("recording {path}: {reason}")]
     Record {
         path: std::path::PathBuf,
         reason: String,
     },
+    /// A recording that [`recover`] cannot rewrite (not MCAP, damaged, or the new file could
+    /// not be written); the file is left as it was.
+    #[error("cannot recover {path}: {reason}")]
+    Recover {
+        path: std::path::PathBuf,
+        reason: String,
+    },
+    /// A recording whose lock another open file holds: a running server is writing it.
+    #[error("{path} is being written by a running server (it holds the file's lock); left as is")]
+    RecordingInUse { path: std::path::PathBuf },
     #[error(transparent)]
     Sim(#[from] road_sim::Error),
     #[error(transparent)]

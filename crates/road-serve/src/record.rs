@@ -2,7 +2,10 @@
 //! it was received) and NPC output (log time = when it was published), the errors, the map
 //! once; and `foxglove.SceneUpdate` messages in JSON (lane lines on `/map`, agent boxes on
 //! `/agents`) that Foxglove's 3D panel shows without configuration. Chunks are written out at
-//! least every `flush_interval`, so a killed server's file reads back to its last chunk.
+//! least every `flush_interval`, so a killed server's file reads back to its last chunk with a
+//! stream reader, and [`crate::recover`] (`road recover`, or the next server's start) rewrites
+//! it whole for the readers that need its summary. A recorder holds its file's lock
+//! ([`try_lock_exclusive`]) while it writes.
 
 use std::collections::BTreeMap;
 use std::fs::File;
@@ -87,6 +90,45 @@ pub fn free_path(dir: &Path, scene: u64) -> Result<PathBuf> {
         .ok_or_else(|| Error::Config(format!("no free recording name in {}", dir.display())))
 }
 
+/// Whether `name` is a recording's file name as [`free_path`] gives it: `scene-<id>.mcap` or
+/// `scene-<id>-<k>.mcap` (what a restarted server recovers when a killed one left it cut off,
+/// [`crate::recover`]).
+pub fn is_recording_name(name: &str) -> bool {
+    let Some(stem) = name
+        .strip_prefix("scene-")
+        .and_then(|s| s.strip_suffix(".mcap"))
+    else {
+        return false;
+    };
+    let digits = |s: &str| !s.is_empty() && s.bytes().all(|b| b.is_ascii_digit());
+    match stem.split_once('-') {
+        Some((id, k)) => digits(id) && digits(k),
+        None => digits(stem),
+    }
+}
+
+/// Takes the advisory lock (`flock`, exclusive, without waiting) that marks a recording as
+/// being written: a recorder holds it on its file until the file is finished, and recovery
+/// leaves a file whose lock is held alone (another server, sharing the folder, is writing
+/// it). The lock goes with the file's descriptor, and with its process however it ends: a
+/// killed server's files are free. `Ok(false)`: another open file holds the lock.
+#[allow(unsafe_code)]
+pub(crate) fn try_lock_exclusive(file: &File) -> std::io::Result<bool> {
+    use std::os::fd::AsRawFd;
+    // SAFETY: flock reads only the descriptor's number, which `file` keeps open for the call;
+    // no memory is shared.
+    let rc = unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) };
+    if rc == 0 {
+        return Ok(true);
+    }
+    let err = std::io::Error::last_os_error();
+    if err.raw_os_error() == Some(libc::EWOULDBLOCK) {
+        Ok(false)
+    } else {
+        Err(err)
+    }
+}
+
 fn stamp(nanos: u64) -> Value {
     json!({ "sec": nanos / 1_000_000_000, "nsec": nanos % 1_000_000_000 })
 }
@@ -132,6 +174,14 @@ impl Recorder {
                 path: path.clone(),
                 source,
             })?;
+        // Held until the file is finished (or the process ends): recovery leaves it alone.
+        match try_lock_exclusive(&file) {
+            Ok(true) => {}
+            Ok(false) => {
+                return Err(Error::RecordingInUse { path });
+            }
+            Err(source) => return Err(Error::Io { path, source }),
+        }
         let rec_err = |path: &Path, e: mcap::McapError| Error::Record {
             path: path.to_owned(),
             reason: e.to_string(),

@@ -31,6 +31,83 @@ use crate::pool::{Pool, PoolKey};
 /// Box sizes beyond these are refused as absurd (a semi-trailer is ≈ 25 m by 2.6 m).
 const MAX_LENGTH_M: f64 = 30.0;
 const MAX_WIDTH_M: f64 = 5.0;
+/// How far outside its map's lanes (their bounding box) a position may be: room for parking
+/// lots and driveways the map leaves out, and none for a number that is not a place.
+pub const MAP_MARGIN_M: f64 = 500.0;
+/// The largest heading magnitude taken (any number of turns up to it; the model unwraps).
+pub const MAX_ABS_HEADING_RAD: f64 = 100.0;
+
+/// Where positions may be: the bounding box of the map's lanelets grown by [`MAP_MARGIN_M`].
+#[derive(Debug, Clone, Copy)]
+pub struct Extent {
+    min: DVec2,
+    max: DVec2,
+}
+
+impl Extent {
+    pub fn of(map: &LaneletMap) -> Option<Self> {
+        let (min, max) =
+            map.lanelets
+                .iter()
+                .fold((DVec2::INFINITY, DVec2::NEG_INFINITY), |(min, max), l| {
+                    (
+                        min.min(DVec2::from(l.bounds.min)),
+                        max.max(DVec2::from(l.bounds.max)),
+                    )
+                });
+        (min.is_finite() && max.is_finite()).then(|| Self {
+            min: min - DVec2::splat(MAP_MARGIN_M),
+            max: max + DVec2::splat(MAP_MARGIN_M),
+        })
+    }
+
+    fn contains(&self, x_m: f64, y_m: f64) -> bool {
+        (self.min.x..=self.max.x).contains(&x_m) && (self.min.y..=self.max.y).contains(&y_m)
+    }
+
+    fn describe(&self) -> String {
+        format!(
+            "x in [{:.3}, {:.3}] m, y in [{:.3}, {:.3}] m (the map's lanes and {MAP_MARGIN_M} m around them)",
+            self.min.x, self.max.x, self.min.y, self.max.y
+        )
+    }
+}
+
+/// The first field of `p` that is not a usable number (not finite, outside `extent`, a
+/// heading beyond ±[`MAX_ABS_HEADING_RAD`]), with what is wrong with it.
+fn pose_fault(p: &Pose, extent: Option<&Extent>) -> Option<(&'static str, String)> {
+    if let Some(f) = finite_pose(p) {
+        return Some((f, format!("{f} is not finite")));
+    }
+    if p.heading_rad.abs() > MAX_ABS_HEADING_RAD {
+        return Some((
+            "heading_rad",
+            format!(
+                "heading_rad {} is beyond ±{MAX_ABS_HEADING_RAD} rad",
+                p.heading_rad
+            ),
+        ));
+    }
+    if let Some(extent) = extent {
+        if !extent.contains(p.x_m, p.y_m) {
+            let field = if (extent.min.x..=extent.max.x).contains(&p.x_m) {
+                "y_m"
+            } else {
+                "x_m"
+            };
+            return Some((
+                field,
+                format!(
+                    "({}, {}) m is off the map: positions must lie within {}",
+                    p.x_m,
+                    p.y_m,
+                    extent.describe()
+                ),
+            ));
+        }
+    }
+    None
+}
 
 /// What [`setup`] needs besides the request.
 #[derive(Debug)]
@@ -252,6 +329,7 @@ pub fn setup(req: &CreateScene, ctx: &mut SetupContext<'_>) -> Result<SceneSetup
             ),
         ));
     }
+    let extent = map.as_deref().and_then(Extent::of);
     let mut seen = HashSet::new();
     for (i, a) in agents.iter().enumerate() {
         if !seen.insert(a.id) {
@@ -281,12 +359,27 @@ pub fn setup(req: &CreateScene, ctx: &mut SetupContext<'_>) -> Result<SceneSetup
                 ),
             ));
         }
+        let max_step_m = ctx.config.max_external_speed_mps * STEP_SECS;
         for (k, p) in a.history.iter().enumerate() {
-            if let Some(f) = finite_pose(p) {
+            if let Some((f, why)) = pose_fault(p, extent.as_ref()) {
                 return Err(invalid(
                     format!("agents[{i}].history[{k}].{f}"),
-                    format!("agent {} history step {k}: {f} is not finite", a.id),
+                    format!("agent {} history step {k}: {why}", a.id),
                 ));
+            }
+            if let Some(previous) = k.checked_sub(1).map(|j| &a.history[j]) {
+                let moved_m = DVec2::new(p.x_m - previous.x_m, p.y_m - previous.y_m).length();
+                if moved_m > max_step_m {
+                    return Err(invalid(
+                        format!("agents[{i}].history[{k}]"),
+                        format!(
+                            "agent {} moved {moved_m:.1} m from history step {} to {k}, one {STEP_SECS} s step; at most {max_step_m:.1} m ({} m/s)",
+                            a.id,
+                            k - 1,
+                            ctx.config.max_external_speed_mps
+                        ),
+                    ));
+                }
             }
         }
     }
@@ -529,7 +622,19 @@ pub struct LiveScene {
     pub waiting_since: Instant,
     /// When the client was last heard from (creation, an ego put).
     pub last_heard: Instant,
+    /// Since when the server has waited for its client: the first publication after the
+    /// client's last word (`None` while the client has had nothing to answer, e.g. during a
+    /// long warm-up). Ticks the model drives for want of the ego do not reset it.
+    pub awaiting_client_since: Option<Instant>,
     pub late_ticks: u64,
+    /// Late ticks since the last tick the client's ego came for.
+    pub consecutive_late_ticks: u64,
+    /// The scene's secret ([`road_protocol::SceneCreated::token`]).
+    pub token: String,
+    /// Puts on the scene's key refused for a missing or wrong token.
+    pub refused_puts: u64,
+    /// Where the scene's positions may be.
+    extent: Option<Extent>,
 }
 
 /// A tick in the pool's batches.
@@ -567,6 +672,7 @@ impl LiveScene {
         setup: SceneSetup,
         pool_key: PoolKey,
         pool: &mut Pool,
+        token: String,
         now: Instant,
     ) -> crate::Result<Self> {
         let controllers = setup
@@ -605,6 +711,7 @@ impl LiveScene {
             }
             None => vec![false; start.len()],
         };
+        let extent = setup.map.as_deref().and_then(Extent::of);
         Ok(Self {
             id,
             client: setup.client,
@@ -628,7 +735,12 @@ impl LiveScene {
             in_flight: None,
             waiting_since: now,
             last_heard: now,
+            awaiting_client_since: None,
             late_ticks: 0,
+            consecutive_late_ticks: 0,
+            token,
+            refused_puts: 0,
+            extent,
         })
     }
 
@@ -655,20 +767,19 @@ impl LiveScene {
         if key_client != owner {
             return Err(bad(
                 ErrorCode::NotOwner,
-                "client",
+                "key",
                 format!(
-                    "scene {} belongs to client {owner:?}; this tick came on client \
-                     {key_client:?}'s key",
+                    "scene {} is not client {key_client}'s: this tick came on its ego key",
                     self.id
                 ),
             ));
         }
-        if msg.client.as_deref().is_some_and(|named| named != owner) {
+        if msg.client != *owner {
             return Err(bad(
                 ErrorCode::NotOwner,
                 "client",
                 format!(
-                    "scene {} belongs to client {owner:?}; this tick names {:?}",
+                    "scene {} is not client {}'s: put ticks under the id that created it",
                     self.id, msg.client
                 ),
             ));
@@ -748,11 +859,11 @@ impl LiveScene {
                     format!("agent {} appears twice in the tick", a.id),
                 ));
             }
-            if let Some(f) = finite_pose(&a.pose()) {
+            if let Some((f, why)) = pose_fault(&a.pose(), self.extent.as_ref()) {
                 return Err(bad(
                     ErrorCode::InvalidField,
                     &format!("agents[{i}].{f}"),
-                    format!("agent {}: {f} is not finite", a.id),
+                    format!("agent {}: {why}", a.id),
                 ));
             }
             let from = DVec2::new(world[index].x_m, world[index].y_m);
@@ -826,11 +937,40 @@ impl LiveScene {
                 self.id
             ))
         })?;
+        // A number the engine could not compute never reaches a client as `null`: the tick
+        // fails and the scene closes with an `internal` error.
+        let finite =
+            |p: &SimPose| p.x_m.is_finite() && p.y_m.is_finite() && p.heading_rad.is_finite();
+        if let Some(i) = result.poses.iter().position(|p| !finite(p)) {
+            return Err(crate::Error::SceneFailed {
+                scene: self.id,
+                reason: format!(
+                    "the engine computed a non-finite pose for agent {} at tick {}",
+                    self.agents[i].id, flight.tick
+                ),
+            });
+        }
+        if let Some(i) = result
+            .plans
+            .iter()
+            .position(|plan| !plan.iter().all(finite))
+        {
+            return Err(crate::Error::SceneFailed {
+                scene: self.id,
+                reason: format!(
+                    "the engine computed a non-finite plan for agent {} at tick {}",
+                    self.agents[i].id, flight.tick
+                ),
+            });
+        }
         self.tick = flight.tick;
         self.poses.clone_from(&result.poses);
         let late = flight.late;
         if late {
             self.late_ticks += 1;
+            self.consecutive_late_ticks += 1;
+        } else {
+            self.consecutive_late_ticks = 0;
         }
         let id_of = |i: usize| self.agents[i].id;
         let state = |i: usize| {

@@ -26,7 +26,7 @@ use road_data::LaneletMap;
 use road_gpu::{ContextOptions, GpuContext};
 use road_protocol::{
     CloseScene, CreateScene, ErrorCode, ErrorReply, Keys, PROTOCOL_VERSION, Percentiles,
-    SceneClosed, SceneCreated, SceneStatus, Status, parse,
+    SceneClosed, SceneCreated, SceneStatus, Status, parse, same_token,
 };
 use zenoh::Wait;
 use zenoh::liveliness::LivelinessToken;
@@ -100,6 +100,10 @@ impl Server {
     pub fn start(self) -> Result<ServerHandle> {
         let config = self.config;
         config.validate()?;
+        // The recordings a killed predecessor left cut off, rewritten whole before any scene.
+        if let Some(dir) = &config.record_dir {
+            crate::recover::recover_folder(dir);
+        }
         let models_dir = match &config.models_dir {
             Some(dir) => find_models_dir(Some(dir))?,
             None => None,
@@ -157,7 +161,8 @@ impl Server {
             .ok()
             .and_then(|json| serde_json::from_str::<Vec<String>>(&json).ok())
             .unwrap_or_default();
-        let session = zenoh::open(self.zenoh).wait()?;
+        let session =
+            zenoh::open(bounded_messages(self.zenoh, config.max_payload_bytes)?).wait()?;
         let (tx, rx) = mpsc::channel::<Event>();
 
         let sender = tx.clone();
@@ -428,11 +433,39 @@ struct Core {
     writer: SceneWriter,
 }
 
-fn payload_of(query: &Query) -> Vec<u8> {
-    query
+/// Zenoh's default reassembles messages of up to 1 GiB: a client could make the server buffer
+/// that much before `max_payload_bytes` is checked. Unless the config sets its own limit, the
+/// server's links refuse messages over twice `max_payload_bytes` (at least 1 MiB): payloads
+/// between the two get the `payload_too_large` reply, larger ones are dropped by zenoh.
+fn bounded_messages(mut zenoh: zenoh::Config, max_payload_bytes: usize) -> Result<zenoh::Config> {
+    const KEY: &str = "transport/link/rx/max_message_size";
+    const ZENOH_DEFAULT: u64 = 1 << 30;
+    let current: Option<u64> = zenoh
+        .get_json(KEY)
+        .ok()
+        .and_then(|v| serde_json::from_str(&v).ok());
+    if current.is_none_or(|v| v == ZENOH_DEFAULT) {
+        let limit = (2 * max_payload_bytes).max(1 << 20);
+        zenoh
+            .insert_json5(KEY, &limit.to_string())
+            .map_err(|e| Error::ZenohConfig {
+                input: format!("{KEY}: {limit}"),
+                reason: e.to_string(),
+            })?;
+    }
+    Ok(zenoh)
+}
+
+/// A query's payload in bytes, and the copy to read, which is made only when the payload is
+/// within `max_bytes` (a refused payload costs no allocation of its size).
+fn payload_of(query: &Query, max_bytes: usize) -> (usize, Vec<u8>) {
+    let size = query.payload().map_or(0, |p| p.len());
+    let bytes = query
         .payload()
+        .filter(|_| size <= max_bytes)
         .map(|p| p.to_bytes().into_owned())
-        .unwrap_or_default()
+        .unwrap_or_default();
+    (size, bytes)
 }
 
 fn reply_ok<T: serde::Serialize>(query: &Query, value: &T) {
@@ -483,7 +516,7 @@ impl Core {
         }
         let ids: Vec<u64> = self.scenes.keys().copied().collect();
         for id in ids {
-            self.close_notifying(id, "the server stops");
+            self.close_notifying(id, ErrorCode::SceneClosed, "the server stops");
         }
         Ok(())
     }
@@ -531,7 +564,8 @@ impl Core {
                     .map(|(&id, _)| id)
                     .collect();
                 for id in ids {
-                    self.close_notifying(id, &format!("its client {client} went away"));
+                    let why = format!("its client {client} went away");
+                    self.close_notifying(id, ErrorCode::SceneClosed, &why);
                 }
             }
             Event::Stop => return false,
@@ -553,8 +587,8 @@ impl Core {
     }
 
     fn on_create(&mut self, query: &Query, at: SystemTime) {
-        let payload = payload_of(query);
-        if let Some(e) = self.too_large(payload.len()) {
+        let (size, payload) = payload_of(query, self.config.max_payload_bytes);
+        if let Some(e) = self.too_large(size) {
             return reply_err(query, &e);
         }
         let request: CreateScene = match parse(&payload) {
@@ -623,7 +657,10 @@ impl Core {
             None => None,
         };
         let pool = self.pools.get_mut(&key).expect("inserted above");
-        let live = match LiveScene::new(id, scene_setup, key, pool, Instant::now()) {
+        // The scene's secret: only this query's reply carries it (zenoh does not tell the
+        // server who puts on a key, so a client id alone proves nothing).
+        let token = format!("{:032x}", rand::random::<u128>());
+        let live = match LiveScene::new(id, scene_setup, key, pool, token, Instant::now()) {
             Ok(l) => l,
             Err(e) => {
                 return reply_err(
@@ -651,6 +688,7 @@ impl Core {
             npc_key: self.keys.npc(&live.client, id),
             error_key: self.keys.error(&live.client, &id.to_string()),
             recording: recording.as_ref().map(|p| p.display().to_string()),
+            token: live.token.clone(),
         };
         let created_json = serde_json::to_vec(&created).expect("replies serialise");
         // The scene's SceneUpdates, built once for the recording and the live view.
@@ -706,8 +744,9 @@ impl Core {
                 .start_scene(id, live.agents.clone(), recorder, channels);
         }
         let mut live = live;
-        // The late-ego clock starts when the client has the reply.
+        // The late-ego clock starts when the client has the reply, and so does its silence.
         live.waiting_since = Instant::now();
+        live.awaiting_client_since = Some(live.waiting_since);
         self.scenes.insert(
             id,
             SceneEntry {
@@ -720,8 +759,8 @@ impl Core {
     }
 
     fn on_close(&mut self, query: &Query) {
-        let payload = payload_of(query);
-        if let Some(e) = self.too_large(payload.len()) {
+        let (size, payload) = payload_of(query, self.config.max_payload_bytes);
+        if let Some(e) = self.too_large(size) {
             return reply_err(query, &e);
         }
         let request: CloseScene = match parse(&payload) {
@@ -742,22 +781,23 @@ impl Core {
                 },
             );
         };
-        let owner = &entry.live.client;
-        if request.client.as_deref() != Some(owner.as_str()) {
-            return reply_err(
-                query,
-                &ErrorReply {
-                    scene: Some(request.scene),
-                    ..ErrorReply::new(
-                        ErrorCode::NotOwner,
-                        Some("client"),
-                        format!(
-                            "scene {} belongs to client {owner:?}; the request names {:?}",
-                            request.scene, request.client
-                        ),
-                    )
-                },
+        let not_owner = |field: &str, message: String| ErrorReply {
+            scene: Some(request.scene),
+            ..ErrorReply::new(ErrorCode::NotOwner, Some(field), message)
+        };
+        if request.client != entry.live.client {
+            let message = format!(
+                "scene {} is not client {}'s: close it under the id that created it",
+                request.scene, request.client
             );
+            return reply_err(query, &not_owner("client", message));
+        }
+        if !same_token(&request.token, &entry.live.token) {
+            let message = format!(
+                "the token is not scene {}'s: close it with the token its creation reply gave",
+                request.scene
+            );
+            return reply_err(query, &not_owner("token", message));
         }
         let closed = self.close(request.scene, "the client closed it");
         match closed {
@@ -770,8 +810,9 @@ impl Core {
     }
 
     /// Closes a scene its client did not ask to close, telling the client why on the scene's
-    /// error key (`scene_closed`), so that a client waiting for a tick hears of it.
-    fn close_notifying(&mut self, id: u64, why: &str) {
+    /// error key (`code`: `scene_closed` or `client_silent`), so that a client waiting for a
+    /// tick hears of it.
+    fn close_notifying(&mut self, id: u64, code: ErrorCode, why: &str) {
         let Some(live) = self.scenes.get(&id).map(|e| &e.live) else {
             return;
         };
@@ -779,11 +820,7 @@ impl Core {
         let error = ErrorReply {
             scene: Some(id),
             tick,
-            ..ErrorReply::new(
-                ErrorCode::SceneClosed,
-                None,
-                format!("the server closed the scene: {why}"),
-            )
+            ..ErrorReply::new(code, None, format!("the server closed the scene: {why}"))
         };
         self.publish_error(&client, &id.to_string(), &error);
         self.close(id, why);
@@ -850,9 +887,6 @@ impl Core {
         received: Instant,
         at: SystemTime,
     ) {
-        if let Some(e) = self.too_large(size) {
-            return self.publish_error(client, chunk, &e);
-        }
         let Ok(id) = chunk.parse::<u64>() else {
             return self.publish_error(
                 client,
@@ -864,6 +898,67 @@ impl Core {
                 ),
             );
         };
+        if !self.scenes.contains_key(&id) {
+            let message = if self.closed.contains(&id) {
+                format!("scene {id} is closed")
+            } else {
+                format!("no scene {id}")
+            };
+            let error = self.too_large(size).unwrap_or_else(|| ErrorReply {
+                scene: Some(id),
+                tick: parse::<road_protocol::EgoTick>(&payload)
+                    .ok()
+                    .map(|m| m.tick),
+                ..ErrorReply::new(ErrorCode::UnknownScene, Some("key"), message)
+            });
+            return self.publish_error(client, chunk, &error);
+        }
+        // Only a put that carries the scene's token is read on, and answered on the error key:
+        // anyone can put on any key, and a message on the owner's error key ends the owner's
+        // wait. Any other put is answered on the scene's `refused` key, recorded and counted.
+        let too_large = self.too_large(size);
+        let Some(entry) = self.scenes.get_mut(&id) else {
+            return;
+        };
+        let refusal = if let Some(e) = too_large {
+            Some(e)
+        } else if road_protocol::token_of(&payload)
+            .is_some_and(|token| same_token(&token, &entry.live.token))
+        {
+            None
+        } else {
+            Some(match parse::<road_protocol::EgoTick>(&payload) {
+                Err(e) => e,
+                Ok(_) => ErrorReply::new(
+                    ErrorCode::NotOwner,
+                    Some("token"),
+                    format!(
+                        "the tick lacks scene {id}'s token (the creation reply's `token`); it is not read"
+                    ),
+                ),
+            })
+        };
+        if let Some(error) = refusal {
+            entry.live.refused_puts += 1;
+            let error = ErrorReply {
+                scene: Some(id),
+                ..error
+            };
+            tracing::debug!(scene = id, key_client = client, "refused: {error}");
+            let json = serde_json::to_vec(&error).expect("errors serialise");
+            if entry.recorded {
+                self.writer.record(id, topics::ERROR, json.clone(), at);
+            }
+            if let Err(e) = self
+                .session
+                .put(self.keys.refused(client, chunk), json)
+                .congestion_control(CongestionControl::Block)
+                .wait()
+            {
+                tracing::warn!(scene = id, "cannot publish a refusal: {e}");
+            }
+            return;
+        }
         let msg = match parse::<road_protocol::EgoTick>(&payload) {
             Ok(m) => m,
             Err(e) => {
@@ -877,22 +972,7 @@ impl Core {
                 );
             }
         };
-        let Some(entry) = self.scenes.get_mut(&id) else {
-            let message = if self.closed.contains(&id) {
-                format!("scene {id} is closed")
-            } else {
-                format!("no scene {id}")
-            };
-            return self.publish_error(
-                client,
-                chunk,
-                &ErrorReply {
-                    scene: Some(id),
-                    tick: Some(msg.tick),
-                    ..ErrorReply::new(ErrorCode::UnknownScene, Some("key"), message)
-                },
-            );
-        };
+        let entry = self.scenes.get_mut(&id).expect("looked up above");
         match entry
             .live
             .check_ego(client, &msg, self.config.max_external_speed_mps, received)
@@ -900,6 +980,7 @@ impl Core {
             Ok(pending) => {
                 entry.live.pending = Some(pending);
                 entry.live.last_heard = received;
+                entry.live.awaiting_client_since = None;
                 if entry.recorded {
                     // The payload goes to the recording as received, without a copy.
                     self.writer.record(id, topics::EGO, payload, at);
@@ -1011,6 +1092,10 @@ impl Core {
                 tracing::warn!(scene = id, "cannot publish: {e}");
             }
             entry.live.waiting_since = Instant::now();
+            // The client has something to answer from now on (its silence counts from here).
+            if entry.live.awaiting_client_since.is_none() {
+                entry.live.awaiting_client_since = Some(entry.live.waiting_since);
+            }
             Stats::push(&mut self.stats.latency_ms, out.npc.latency_ms);
             Stats::push(&mut self.stats.compute_ms, out.compute_secs * 1e3);
             Stats::push(&mut self.stats.queue_ms, out.npc.queue_ms);
@@ -1037,27 +1122,48 @@ impl Core {
         }
     }
 
-    /// Closes idle scenes.
+    /// Closes the scenes whose client went quiet: nothing from it for the idle timeout since
+    /// the server last gave it something to answer (ticks the model drove for want of its ego
+    /// do not count as an answer), or more ticks in a row driven for want of its ego than the
+    /// server allows.
     fn housekeeping(&mut self) {
-        // Idle: no tick in progress or waiting, and nothing from the client since it last
-        // heard from us (a long warm-up is the server's silence, not the client's).
-        let idle: Vec<u64> = self
+        let timeout = self.config.idle_timeout;
+        let max_late = self.config.max_consecutive_late_ticks;
+        let silent: Vec<(u64, String)> = self
             .scenes
             .iter()
-            .filter(|(_, e)| {
+            .filter_map(|(&id, e)| {
                 let live = &e.live;
-                live.in_flight.is_none()
-                    && live.pending.is_none()
-                    && live.last_heard.max(live.waiting_since).elapsed() > self.config.idle_timeout
+                let quiet = live
+                    .awaiting_client_since
+                    .filter(|_| live.pending.is_none())
+                    .map(|since| since.elapsed())
+                    .filter(|&quiet| quiet > timeout);
+                if let Some(quiet) = quiet {
+                    Some((
+                        id,
+                        format!(
+                            "client silent: nothing from client {} for {:.1} s (the idle timeout is {} s)",
+                            live.client,
+                            quiet.as_secs_f64(),
+                            timeout.as_secs_f64()
+                        ),
+                    ))
+                } else if live.consecutive_late_ticks >= max_late {
+                    Some((
+                        id,
+                        format!(
+                            "client silent: the model drove client {}'s agents {} ticks in a row for want of its ego (at most {max_late})",
+                            live.client, live.consecutive_late_ticks
+                        ),
+                    ))
+                } else {
+                    None
+                }
             })
-            .map(|(&id, _)| id)
             .collect();
-        for id in idle {
-            let timeout = self.config.idle_timeout.as_secs_f64();
-            self.close_notifying(
-                id,
-                &format!("idle timeout ({timeout} s without a word from its client)"),
-            );
+        for (id, why) in silent {
+            self.close_notifying(id, ErrorCode::ClientSilent, &why);
         }
     }
 
@@ -1080,6 +1186,7 @@ impl Core {
                     client: Some(e.live.client.clone()),
                     idle_s: e.live.last_heard.elapsed().as_secs_f64(),
                     late_ticks: e.live.late_ticks,
+                    refused_puts: e.live.refused_puts,
                 })
                 .collect(),
             rounds: self.stats.rounds,

@@ -12,6 +12,7 @@ use road_client::protocol::{
 };
 use road_client::{Client, Error, Scene};
 use road_serve::ServerHandle;
+use zenoh::Wait;
 
 /// One server for the file; payloads over 64 KiB are refused; the late-ego deadline is off
 /// so that slow debug ticks never turn late.
@@ -98,6 +99,27 @@ fn tick_err(scene: &Scene) -> ErrorReply {
         .expect("the server must publish an error")
 }
 
+/// Puts `payload` on `scene`'s ego key and returns what the server answers on the scene's
+/// `refused` key (puts without the scene's token are answered there, not on the error key).
+fn refusal_of(c: &Client, scene: &Scene, payload: Vec<u8>) -> ErrorReply {
+    let key = c.keys().refused(c.id(), &scene.id().to_string());
+    let refused = c.session().declare_subscriber(key).wait().unwrap();
+    scene.put_raw(payload).unwrap();
+    let sample = refused
+        .recv_timeout(Duration::from_secs(30))
+        .unwrap()
+        .expect("the server must answer on the refused key");
+    serde_json::from_slice(&sample.payload().to_bytes()).unwrap()
+}
+
+/// A tick as JSON with the scene's client id and token, for raw edits.
+fn tick_json(scene: &Scene, client: &str, history: &[Pose], tick: u64) -> serde_json::Value {
+    serde_json::json!({
+        "tick": tick, "client": client, "token": scene.created().token,
+        "agents": [ego_at(history, tick)],
+    })
+}
+
 /// The scene still ticks: tick `t` is answered.
 fn still_ticks(scene: &mut Scene, history: &[Pose], t: u64) -> NpcTick {
     let npc = scene.step(t, vec![ego_at(history, t)]).unwrap();
@@ -119,8 +141,10 @@ fn binary_garbage_is_refused_on_create_and_on_a_tick() {
     assert_refused(&e, ErrorCode::MalformedJson, None);
     assert!(e.message.contains("UTF-8"), "{e}");
     let (mut scene, history) = live_scene(&c);
-    scene.put_raw(vec![0xde, 0xad, 0xbe, 0xef]).unwrap();
-    assert_refused(&tick_err(&scene), ErrorCode::MalformedJson, None);
+    // Garbage cannot carry the scene's token: it is answered on the refused key.
+    let e = refusal_of(&c, &scene, vec![0xde, 0xad, 0xbe, 0xef]);
+    assert_refused(&e, ErrorCode::MalformedJson, None);
+    assert_eq!(scene.wait_error(Duration::from_millis(300)).unwrap(), None);
     still_ticks(&mut scene, &history, 1);
 }
 
@@ -130,8 +154,9 @@ fn an_oversized_payload_is_refused() {
     let e = create_raw(&c, vec![b' '; 100 << 10]);
     assert_refused(&e, ErrorCode::PayloadTooLarge, None);
     let (mut scene, history) = live_scene(&c);
-    scene.put_raw(vec![b' '; 100 << 10]).unwrap();
-    assert_refused(&tick_err(&scene), ErrorCode::PayloadTooLarge, None);
+    // Refused unread (so its token cannot be known): answered on the refused key.
+    let e = refusal_of(&c, &scene, vec![b' '; 100 << 10]);
+    assert_refused(&e, ErrorCode::PayloadTooLarge, None);
     still_ticks(&mut scene, &history, 1);
 }
 
@@ -254,7 +279,7 @@ fn nan_or_infinite_history_values_are_refused() {
     assert_refused(
         &create_raw(&c, r.into_bytes()),
         ErrorCode::MalformedJson,
-        None,
+        Some("agents[0].history[0].x_m"),
     );
     let r = serde_json::to_value(agents_request(vec![common::straight_agent(1, 10.0, 2.0)]))
         .unwrap()
@@ -263,8 +288,109 @@ fn nan_or_infinite_history_values_are_refused() {
     assert_refused(
         &create_raw(&c, r.into_bytes()),
         ErrorCode::MalformedJson,
-        None,
+        Some("agents[0].history[0].y_m"),
     );
+}
+
+/// The bound a refusal's message states: the numbers in "`axis` in [low, high] m".
+fn bound_in(message: &str, axis: &str) -> (f64, f64) {
+    let rest = message
+        .split(&format!("{axis} in ["))
+        .nth(1)
+        .unwrap_or_else(|| panic!("no {axis} bound in {message}"));
+    let (low, rest) = rest.split_once(", ").unwrap();
+    let high = rest.split_once(']').unwrap().0;
+    (low.parse().unwrap(), high.parse().unwrap())
+}
+
+/// Issue 41, finding 1: finite but absurd numbers (`1e300`) in a creation are refused by
+/// field, each at and just past its bound; an NPC whose whole history sits at `1e300` too.
+#[test]
+fn absurd_finite_history_values_are_refused_at_their_bounds() {
+    let c = client("absurd-history");
+    let create = |edit: &dyn Fn(&mut road_client::protocol::AgentInit)| {
+        let mut a = common::straight_agent(1, 10.0, 2.0);
+        edit(&mut a);
+        c.create(agents_request(vec![
+            a,
+            common::straight_agent(2, 30.0, 2.0),
+        ]))
+    };
+    let refused = |edit: &dyn Fn(&mut road_client::protocol::AgentInit)| match create(edit) {
+        Err(Error::Refused(e)) => e,
+        other => panic!("expected a refusal, got {other:?}"),
+    };
+    let e = refused(&|a| a.history[3].x_m = 1e300);
+    assert_refused(
+        &e,
+        ErrorCode::InvalidField,
+        Some("agents[0].history[3].x_m"),
+    );
+    assert_refused(
+        &refused(&|a| a.history[3].heading_rad = 1e300),
+        ErrorCode::InvalidField,
+        Some("agents[0].history[3].heading_rad"),
+    );
+    assert_refused(
+        &refused(&|a| a.history.iter_mut().for_each(|p| p.y_m = -1e300)),
+        ErrorCode::InvalidField,
+        Some("agents[0].history[0].y_m"),
+    );
+    // The map's extent (its lanes and 500 m around them), read from the refusal (to the
+    // millimetre): a history along its far edge is taken, one a centimetre past it is not.
+    let (_, x_high) = bound_in(&e.message, "x");
+    let x_high = x_high - 0.001;
+    let along = |x_end: f64| {
+        move |a: &mut road_client::protocol::AgentInit| {
+            for (k, p) in a.history.iter_mut().enumerate() {
+                p.x_m = x_end - 0.5 * (9 - k) as f64;
+            }
+        }
+    };
+    create(&along(x_high)).unwrap().close().unwrap();
+    assert_refused(
+        &refused(&along(x_high + 0.01)),
+        ErrorCode::InvalidField,
+        Some("agents[0].history[9].x_m"),
+    );
+    // Headings: any number of turns up to ±100 rad.
+    create(&|a| a.history.iter_mut().for_each(|p| p.heading_rad = -100.0))
+        .unwrap()
+        .close()
+        .unwrap();
+    assert_refused(
+        &refused(&|a| a.history[0].heading_rad = 100.001),
+        ErrorCode::InvalidField,
+        Some("agents[0].history[0].heading_rad"),
+    );
+    // Speeds: a history step longer than the server's speed bound (70 m/s: 7 m a step).
+    assert_refused(
+        &refused(&|a| a.history[5].x_m += 8.0),
+        ErrorCode::InvalidField,
+        Some("agents[0].history[5]"),
+    );
+}
+
+/// Issue 41, finding 1: `1e300` as an ego tick's position or heading is refused by field
+/// (it used to poison every later NPC pose into `null`, or blame the ego for moving `inf`
+/// m); the scene goes on.
+#[test]
+fn absurd_finite_ego_values_are_refused() {
+    let c = client("absurd-ego");
+    let (mut scene, history) = live_scene(&c);
+    for (field, value) in [("x_m", 1e300), ("y_m", -1e300), ("heading_rad", 1e300)] {
+        let mut tick = tick_json(&scene, "absurd-ego", &history, 1);
+        tick["agents"][0][field] = value.into();
+        scene.put_raw(serde_json::to_vec(&tick).unwrap()).unwrap();
+        let e = tick_err(&scene);
+        assert_refused(
+            &e,
+            ErrorCode::InvalidField,
+            Some(&format!("agents[0].{field}")),
+        );
+    }
+    let npc = still_ticks(&mut scene, &history, 1);
+    common::assert_sane(&npc, 500.0);
 }
 
 #[test]
@@ -433,18 +559,18 @@ fn a_nan_or_infinite_ego_state_is_refused() {
     let c = client("nan-ego");
     let (mut scene, history) = live_scene(&c);
     let good = serde_json::json!({
-        "tick": 1, "client": "nan-ego",
+        "tick": 1, "client": "nan-ego", "token": scene.created().token,
         "agents": [{"id": 1, "x_m": 0.0, "y_m": 0.0, "heading_rad": 0.0}],
     })
     .to_string();
+    // Not JSON, so not read for its token: answered on the refused key.
     for bad in ["NaN", "Infinity", "1e999"] {
-        scene
-            .put_raw(
-                good.replace("\"x_m\":0.0", &format!("\"x_m\":{bad}"))
-                    .into_bytes(),
-            )
-            .unwrap();
-        assert_refused(&tick_err(&scene), ErrorCode::MalformedJson, None);
+        let payload = good.replace("\"x_m\":0.0", &format!("\"x_m\":{bad}"));
+        assert_refused(
+            &refusal_of(&c, &scene, payload.into_bytes()),
+            ErrorCode::MalformedJson,
+            Some("agents[0].x_m"),
+        );
     }
     still_ticks(&mut scene, &history, 1);
 }
@@ -480,39 +606,91 @@ fn an_ego_that_jumps_too_far_is_refused() {
     still_ticks(&mut scene, &history, 1);
 }
 
+/// Issue 41, finding 2: ownership is the scene's token, not a name. Two real sessions: the
+/// owner's and an intruder's, which knows the owner's id and scene id but not the token.
 #[test]
 fn a_second_client_claiming_the_ego_is_refused() {
     let owner = client("owner");
     let (mut scene, history) = live_scene(&owner);
     let intruder = client("intruder");
+    // On its own key, with the owner's reply in hand (token included): not its scene.
     let theirs = intruder.attach(scene.created().clone()).unwrap();
     theirs.put(1, vec![ego_at(&history, 1)]).unwrap();
     let e = tick_err(&theirs);
-    assert_refused(&e, ErrorCode::NotOwner, Some("client"));
+    assert_refused(&e, ErrorCode::NotOwner, Some("key"));
+    assert!(!e.message.contains("Some("), "{e}");
     // The refusal went to the intruder's own error key: the owner heard nothing.
     assert_eq!(scene.wait_error(Duration::from_millis(500)).unwrap(), None);
-    // A tick on the owner's key that names another client is refused too.
-    let forged = road_client::protocol::EgoTick {
-        tick: 1,
-        agents: vec![ego_at(&history, 1)],
-        client: Some("intruder".into()),
+    // On the owner's key under the owner's name, without the token (no `client` field, and
+    // the owner's id): refused on the refused key, never on the owner's error key.
+    let forged_scene = road_client::protocol::SceneCreated {
+        token: "0".repeat(32),
+        ..scene.created().clone()
     };
-    scene.put_raw(serde_json::to_vec(&forged).unwrap()).unwrap();
+    let spoof = client("owner-spoof");
+    let key = owner.keys().ego("owner", scene.id());
+    for payload in [
+        serde_json::json!({"tick": 1, "agents": [ego_at(&history, 1)]}),
+        serde_json::json!({"tick": 1, "agents": [ego_at(&history, 1)], "client": "owner",
+                           "token": forged_scene.token}),
+    ] {
+        spoof
+            .session()
+            .put(key.as_str(), serde_json::to_vec(&payload).unwrap())
+            .wait()
+            .unwrap();
+    }
+    assert_eq!(scene.wait_error(Duration::from_millis(500)).unwrap(), None);
+    let status = owner.status().unwrap();
+    let mine = status
+        .scenes
+        .iter()
+        .find(|s| s.scene == scene.id())
+        .unwrap();
+    assert_eq!(mine.refused_puts, 2, "{mine:?}");
+    assert_eq!(mine.tick, 0, "no forged tick ran");
+    // With the token but naming another client on the owner's key: refused by field.
+    let mut named = tick_json(&scene, "intruder", &history, 1);
+    named["client"] = "intruder".into();
+    scene.put_raw(serde_json::to_vec(&named).unwrap()).unwrap();
     let e = tick_err(&scene);
     assert_refused(&e, ErrorCode::NotOwner, Some("client"));
-    assert!(e.message.contains("intruder"), "{e}");
+    assert!(
+        e.message.contains("intruder") && !e.message.contains("Some("),
+        "{e}"
+    );
     still_ticks(&mut scene, &history, 1);
-    let e = match intruder.close_scene(scene.id()) {
+    // A close under the intruder's own id, then under the owner's id without the token.
+    let closing = |c: &Client, token: &str| match c.close_scene(scene.id(), token) {
         Err(Error::Refused(e)) => e,
         other => panic!("expected a refusal, got {other:?}"),
     };
-    assert_refused(&e, ErrorCode::NotOwner, Some("client"));
+    assert_refused(
+        &closing(&intruder, &scene.created().token),
+        ErrorCode::NotOwner,
+        Some("client"),
+    );
+    let as_owner = {
+        let request = serde_json::json!({"scene": scene.id(), "client": "owner",
+                                         "token": "f".repeat(32)});
+        intruder
+            .query_raw(
+                &intruder.keys().close(),
+                serde_json::to_vec(&request).unwrap(),
+            )
+            .unwrap()
+            .expect_err("a close without the token must be refused")
+    };
+    assert_refused(&as_owner, ErrorCode::NotOwner, Some("token"));
+    // The owner was not told, and its scene goes on.
+    assert_eq!(scene.wait_error(Duration::from_millis(500)).unwrap(), None);
+    still_ticks(&mut scene, &history, 2);
 }
 
 #[test]
 fn closing_an_unknown_scene_is_refused() {
     let c = client("close-unknown");
-    let e = match c.close_scene(424_242) {
+    let e = match c.close_scene(424_242, &"0".repeat(32)) {
         Err(Error::Refused(e)) => e,
         other => panic!("expected a refusal, got {other:?}"),
     };

@@ -9,6 +9,7 @@ use anyhow::Result;
 use clap::{Args, Subcommand};
 use rand::SeedableRng;
 use road_data::{Split, WindowConfig};
+use road_gpu::proxies::flops_per_evaluation;
 use road_model::RunConfig;
 use road_model::checkpoint::DataIdentity;
 use road_model::model::{Mode, edm_loss};
@@ -27,7 +28,9 @@ pub enum BenchCommand {
     Sched(SchedBenchArgs),
     /// Batched denoiser steps (one Heun step, 2 evaluations) of real validation scenes on the
     /// WGSL engine (the adapter wgpu picks) side by side with the candle CPU reference:
-    /// scene-steps/s, ms per batched step, FLOPs per scene-step and achieved FLOP/s.
+    /// scene-steps/s, ms per batched step, FLOPs per scene-step and achieved FLOP/s, and the
+    /// engine's proxies per evaluation (dispatches, bytes of their bindings, work computed over
+    /// the scenes' own), which need no GPU to measure.
     Engine(EngineBenchArgs),
     /// Serving: B validation scenes ticking together through the scheduler and the rollout
     /// driver (windows on the engine, only emitted slots read back), with scenes joining (a
@@ -37,6 +40,10 @@ pub enum BenchCommand {
     /// resident memory, open file descriptors and threads before, after a warm-up (the
     /// baseline) and along the way.
     Soak(crate::commands::soak::SoakBenchArgs),
+    /// What refused input costs the others: one scene ticking at 10 Hz, then the same while
+    /// another session floods the server with oversized creations; the scene's round trips,
+    /// the server's resident memory, and what became of the floods.
+    Flood(crate::commands::flood::FloodBenchArgs),
     /// The server's protocol decoders and checks on generated inputs (arbitrary bytes,
     /// arbitrary JSON, mutated valid messages): inputs run, outcomes by error code, panics.
     Fuzz(crate::commands::fuzz::FuzzBenchArgs),
@@ -169,6 +176,7 @@ pub fn run(cmd: BenchCommand) -> Result<ExitCode> {
         }
         BenchCommand::Serve(args) => serve_bench(&args),
         BenchCommand::Soak(args) => crate::commands::soak::run(&args),
+        BenchCommand::Flood(args) => crate::commands::flood::run(&args),
         BenchCommand::Fuzz(args) => return crate::commands::fuzz::run(&args),
     }
     .map(|()| ExitCode::SUCCESS)
@@ -354,37 +362,6 @@ fn sched_bench(args: &SchedBenchArgs) -> Result<()> {
     Ok(())
 }
 
-/// Multiply-adds ×2 of one denoiser evaluation of one scene: `A` agents, `P` polylines.
-fn flops_per_evaluation(c: &road_model::ModelConfig, agents: usize, polylines: usize) -> f64 {
-    let (a, p, w, d) = (
-        agents as f64,
-        polylines as f64,
-        c.window_slots as f64,
-        c.hidden as f64,
-    );
-    let m = d * c.mlp_ratio as f64;
-    let t = a * w;
-    let linear = |rows: f64, i: f64, o: f64| 2.0 * rows * i * o;
-    // With agent maps each agent attends to its own K polylines, encoded in its frame every
-    // evaluation (the point encoder's D × D layer over K·Q points per agent); without, every
-    // token attends to the scene's P polylines, encoded once per scene (not counted here).
-    let (map_keys, map_kv_rows, map_encoder) = match &c.agent_map {
-        Some(spec) => {
-            let k = road_model::agent_map::polylines_per_agent(spec.polylines, polylines) as f64;
-            let q = c.polyline_points as f64;
-            (k, a * k, linear(a * k * q, d, d))
-        }
-        None => (p, p, 0.0),
-    };
-    let per_block = 2.0 * 4.0 * linear(t, d, d) // time and agent attention projections
-        + 2.0 * 2.0 * t * w * d // time attention scores and weighted sums
-        + 2.0 * 2.0 * t * a * d // agent attention
-        + 2.0 * linear(t, d, d) + 2.0 * linear(map_kv_rows, d, d) // map q, o; k, v
-        + 2.0 * 2.0 * t * map_keys * d // map attention
-        + linear(t, d, m) + linear(t, m, d); // MLP
-    c.blocks as f64 * per_block + map_encoder + linear(t, 3.0, d) + linear(t, d, 3.0)
-}
-
 fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
     use road_cpu::CpuEngine;
     use road_model::batch::SceneInput;
@@ -481,6 +458,7 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
                     "checkpoint": loaded.meta.run.name,
                     "scenes": b,
                     "padded_agents": a,
+                    "scene_agents": scenes.iter().map(|s| s.agents).collect::<Vec<_>>(),
                     "linear_kernel": ctx.linear_kernel_setting(),
                     "flops_per_scene_step": flops,
                     "cpu_ms_per_step": cpu_secs.map(|s| s * 1e3),
@@ -502,6 +480,12 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
                 row["gpu_ms_per_step"] = (gpu_secs * 1e3).into();
                 row["gpu_scene_steps_per_sec"] = (b as f64 / gpu_secs).into();
                 row["gpu_gflops"] = (flops * b as f64 / gpu_secs / 1e9).into();
+                // The proxies of issue 40 over the timed steps and the warm-up (all alike):
+                // counted as the engine records its dispatches, so fusion moves them by itself.
+                let work = engine.take_work();
+                row["dispatches_per_evaluation"] = work.dispatches_per_evaluation().into();
+                row["bytes_per_evaluation"] = work.bytes_per_evaluation().into();
+                row["computed_over_useful"] = work.computed_over_useful().into();
                 if args.profile {
                     let p = engine.profile_step(args.reps)?;
                     let kernels: Vec<serde_json::Value> = p
@@ -539,9 +523,9 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
         crate::commands::train::hardware()
     );
     out!(
-        "| checkpoint | scenes | GPU linear kernel | MFLOP per scene-step | GPU ms/step | GPU scene-steps/s | GPU GFLOP/s | CPU ms/step | CPU scene-steps/s | CPU GFLOP/s |"
+        "| checkpoint | scenes | GPU linear kernel | MFLOP per scene-step | GPU ms/step | GPU scene-steps/s | GPU GFLOP/s | CPU ms/step | CPU scene-steps/s | CPU GFLOP/s | dispatches per evaluation | MB read + written per evaluation | computed ÷ useful |"
     );
-    out!("|---|---:|---|---:|---:|---:|---:|---:|---:|---:|");
+    out!("|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
     for r in &rows {
         // The CPU columns are null above --cpu-max-batch, the GPU ones where the adapter could
         // not hold the batch (its error follows the table).
@@ -550,7 +534,7 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
                 .map_or_else(|| "—".to_string(), |v| format!("{:.digits$}", v * scale))
         };
         out!(
-            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
             r["checkpoint"].as_str().unwrap_or(""),
             r["scenes"],
             r["linear_kernel"].as_str().unwrap_or(""),
@@ -560,9 +544,17 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
             num("gpu_gflops", 1.0, 2),
             num("cpu_ms_per_step", 1.0, 1),
             num("cpu_scene_steps_per_sec", 1.0, 1),
-            num("cpu_gflops", 1.0, 2)
+            num("cpu_gflops", 1.0, 2),
+            num("dispatches_per_evaluation", 1.0, 1),
+            num("bytes_per_evaluation", 1e-6, 1),
+            num("computed_over_useful", 1.0, 2)
         );
     }
+    out!(
+        "(the last three, per evaluation and its sampler update: compute dispatches recorded; \
+         bytes of their bindings, read-only ones read, read-write ones read and written; work \
+         computed at the padded shape over each scene's own, agents with a valid slot)"
+    );
     for r in rows.iter().filter(|r| r["gpu_error"].is_string()) {
         out!(
             "\n{} at {} scenes ({}): no GPU figures: {}",

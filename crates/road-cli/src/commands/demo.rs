@@ -72,6 +72,10 @@ pub struct DemoArgs {
         allow_negative_numbers = true
     )]
     pub rotate_deg: f64,
+    /// The scripted ego's speed as a share of its route's (0: it stops where its history
+    /// ends; 0.5: it crawls), to see the model's vehicles around an ego that holds them up.
+    #[arg(long, default_value_t = 1.0, requires = "in_process")]
+    pub ego_speed_scale: f64,
     /// The served scene's MCAP recording (Foxglove shows `/map` and `/agents`; `road render`,
     /// `road replay`).
     #[arg(long, default_value = "demo.mcap", conflicts_with = "in_process")]
@@ -95,13 +99,16 @@ pub(crate) struct ProceduralRun {
 }
 
 /// `map` turned by `rotation_rad`, simulated for `steps` ticks with `run`'s model and planner
-/// on `engines` (noise seeded by `seed`): the scripted ego that does not yield, every other
+/// on `engines` (noise seeded by `seed`): the scripted ego that does not yield, at its
+/// route's speed times `ego_speed_scale` (0: it stands where its history ends), every other
 /// vehicle the model's. What `road demo --in-process` and `road eval --suite procedural` run.
+#[allow(clippy::too_many_arguments)] // one run's map, orientation, ego, noise and length
 pub(crate) fn simulate_procedural(
     engines: &Engines,
     run: &RunConfig,
     map: ProceduralMap,
     rotation_rad: f64,
+    ego_speed_scale: f64,
     seed: u64,
     steps: usize,
     progress: bool,
@@ -118,6 +125,7 @@ pub(crate) fn simulate_procedural(
     let mut controllers = vec![Controller::Model; agents];
     controllers[scene.ego.agent] = Controller::External;
     let mut ego = scene.ego.clone();
+    ego.speed_mps *= ego_speed_scale;
 
     let mut engine = engines.engine()?;
     let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
@@ -202,6 +210,11 @@ pub fn run(args: DemoArgs) -> Result<ExitCode> {
     let run =
         &crate::commands::engine::with_planner(&engines.cpu.meta.run, args.planner.as_deref())?;
     anyhow::ensure!(
+        args.ego_speed_scale.is_finite() && args.ego_speed_scale >= 0.0,
+        "--ego-speed-scale must be a finite share of the route's speed, 0 or more, got {}",
+        args.ego_speed_scale
+    );
+    anyhow::ensure!(
         args.rotate_deg.is_finite(),
         "--rotate-deg must be a finite angle in degrees, got {}",
         args.rotate_deg
@@ -217,6 +230,7 @@ pub fn run(args: DemoArgs) -> Result<ExitCode> {
         run,
         args.map,
         args.rotate_deg.to_radians(),
+        args.ego_speed_scale,
         args.seed,
         args.steps,
         true,

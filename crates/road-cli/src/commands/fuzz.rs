@@ -132,14 +132,60 @@ fn templates(kind: Target, ego: road_protocol::Pose) -> Vec<Value> {
                    "agents": [
                      {"id": 1, "length_m": 4.5, "width_m": 1.8, "history": history(10, 0.0)},
                      {"id": 2, "length_m": 4.0, "width_m": 1.9, "history": history(12, 20.0)}],
-                   "external": [1], "planner": "road20", "checkpoint": "road20-cvpairs",
+                   "external": [1], "planner": "road20", "checkpoint": "road20",
                    "client": "ego-2"}),
         ],
         Target::Ego => vec![
             json!({"tick": 1, "agents": [{"id": 1, "x_m": ego.x_m, "y_m": ego.y_m,
-                   "heading_rad": ego.heading_rad}], "client": "fuzz"}),
+                   "heading_rad": ego.heading_rad}], "client": "fuzz", "token": FUZZ_TOKEN}),
         ],
-        Target::Close => vec![json!({"scene": 1, "client": "fuzz"})],
+        Target::Close => vec![json!({"scene": 1, "client": "fuzz", "token": FUZZ_TOKEN})],
+    }
+}
+
+/// The fuzz scene's secret.
+const FUZZ_TOKEN: &str = "0123456789abcdef0123456789abcdef";
+
+/// Finite numbers no field of the protocol can take: positions far off any map, headings of
+/// millions of turns, boxes the size of continents (and not integers, for the id and count
+/// fields). What a client that computes garbage sends, and what JSON's own checks let through.
+const ABSURD: [f64; 8] = [1e300, -1e300, f64::MAX, -f64::MAX, 1e30, -1e30, 1e9, -1e9];
+
+/// `template` with its `which`-th number (in document order) replaced by `value`.
+fn with_absurd_number(template: &Value, which: usize, value: f64) -> Value {
+    fn count(v: &Value) -> usize {
+        match v {
+            Value::Number(_) => 1,
+            Value::Object(m) => m.values().map(count).sum(),
+            Value::Array(a) => a.iter().map(count).sum(),
+            _ => 0,
+        }
+    }
+    let mut v = template.clone();
+    let numbers = count(&v);
+    if numbers > 0 {
+        replace_nth_number(&mut v, which % numbers, &mut 0, value);
+    }
+    v
+}
+
+fn replace_nth_number(v: &mut Value, target: usize, index: &mut usize, value: f64) -> bool {
+    match v {
+        Value::Number(_) => {
+            if *index == target {
+                *v = json!(value);
+                return true;
+            }
+            *index += 1;
+            false
+        }
+        Value::Object(m) => m
+            .values_mut()
+            .any(|c| replace_nth_number(c, target, index, value)),
+        Value::Array(a) => a
+            .iter_mut()
+            .any(|c| replace_nth_number(c, target, index, value)),
+        _ => false,
     }
 }
 
@@ -269,6 +315,8 @@ enum Family {
     Bytes,
     Json,
     Mutated,
+    /// A valid message with one number replaced by a finite but absurd one ([`ABSURD`]).
+    Absurd,
 }
 
 /// Counts of one target and family.
@@ -321,7 +369,7 @@ impl Harness {
             1,
             config.max_agents,
         )?));
-        let live = LiveScene::new(1, scene_setup, key, pool, Instant::now())?;
+        let live = LiveScene::new(1, scene_setup, key, pool, FUZZ_TOKEN.into(), Instant::now())?;
         Ok(Self {
             config,
             checkpoints,
@@ -372,6 +420,7 @@ pub fn run(args: &FuzzBenchArgs) -> Result<ExitCode> {
     let bytes = prop::collection::vec(any::<u8>(), 0..512);
     let documents = json_value();
     let mutations = (any::<usize>(), any::<usize>(), mutation());
+    let absurd_picks = (any::<usize>(), any::<usize>(), any::<usize>());
     let mut tallies: BTreeMap<(Target, Family), Tally> = BTreeMap::new();
     let mut findings = Vec::new();
     let started = Instant::now();
@@ -384,7 +433,7 @@ pub fn run(args: &FuzzBenchArgs) -> Result<ExitCode> {
             .last()
             .context("the fuzz scene's ego has no history")?;
         let templates = templates(target, ego);
-        for family in [Family::Bytes, Family::Json, Family::Mutated] {
+        for family in [Family::Bytes, Family::Json, Family::Mutated, Family::Absurd] {
             let tally = tallies.entry((target, family)).or_default();
             for _ in 0..args.execs {
                 let input: Vec<u8> = match family {
@@ -393,6 +442,12 @@ pub fn run(args: &FuzzBenchArgs) -> Result<ExitCode> {
                     Family::Mutated => {
                         let (t, which, m) = current(&mutations, &mut runner)?;
                         serde_json::to_vec(&mutate(&templates[t % templates.len()], which, &m))?
+                    }
+                    Family::Absurd => {
+                        let (t, which, k) = current(&absurd_picks, &mut runner)?;
+                        let template = &templates[t % templates.len()];
+                        let value = ABSURD[k % ABSURD.len()];
+                        serde_json::to_vec(&with_absurd_number(template, which, value))?
                     }
                 };
                 let t0 = Instant::now();

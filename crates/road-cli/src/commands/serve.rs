@@ -41,9 +41,14 @@ pub struct ServeArgs {
     /// forever.
     #[arg(long, default_value_t = 1000)]
     pub late_ego_ms: u64,
-    /// Seconds without a word from a scene's client before the scene is closed.
+    /// Seconds without a word from a scene's client (since the server last published to it)
+    /// before the scene is closed as `client_silent`, whatever the model drove meanwhile.
     #[arg(long, default_value_t = 30.0)]
     pub idle_timeout_s: f64,
+    /// Ticks in a row the model may drive a scene's external agents for want of its ego
+    /// before the scene is closed as `client_silent`.
+    #[arg(long, default_value_t = 300)]
+    pub max_late_ticks: u64,
     /// Largest payload accepted, bytes.
     #[arg(long, default_value_t = 8 << 20)]
     pub max_payload_bytes: usize,
@@ -91,6 +96,12 @@ pub fn run(args: ServeArgs) -> Result<ExitCode> {
         args.idle_timeout_s
     );
     config.idle_timeout = Duration::from_secs_f64(args.idle_timeout_s);
+    anyhow::ensure!(
+        args.max_late_ticks >= 1,
+        "--max-late-ticks {} must be at least 1",
+        args.max_late_ticks
+    );
+    config.max_consecutive_late_ticks = args.max_late_ticks;
     config.max_payload_bytes = args.max_payload_bytes;
     config.foxglove_listen = args.foxglove;
     config.engine = args.engine.into();

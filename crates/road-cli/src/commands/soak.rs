@@ -58,7 +58,7 @@ pub struct Footprint {
 }
 
 /// Kills the server when the bench ends, however it ends.
-struct ServerProcess(Child);
+pub(crate) struct ServerProcess(pub(crate) Child);
 
 impl Drop for ServerProcess {
     /// SIGTERM first (the server closes its scenes; a profiler wrapping it writes its report),
@@ -79,7 +79,8 @@ impl Drop for ServerProcess {
     }
 }
 
-fn footprint(pid: u32, cycles: usize, record: &std::path::Path) -> Result<Footprint> {
+/// The server process's resident memory, descriptors and threads now (`/proc`, Linux).
+pub(crate) fn footprint(pid: u32, cycles: usize, record: &std::path::Path) -> Result<Footprint> {
     let status_path = format!("/proc/{pid}/status");
     let status = std::fs::read_to_string(&status_path)
         .with_context(|| format!("cannot read {status_path} (Linux only)"))?;
@@ -107,52 +108,10 @@ fn footprint(pid: u32, cycles: usize, record: &std::path::Path) -> Result<Footpr
 pub fn run(args: &SoakBenchArgs) -> Result<()> {
     anyhow::ensure!(args.cycles >= 1, "--cycles must be at least 1");
     anyhow::ensure!(args.sample_every >= 1, "--sample-every must be at least 1");
-    let port = std::net::TcpListener::bind("127.0.0.1:0")?
-        .local_addr()?
-        .port();
-    let endpoint = format!("tcp/127.0.0.1:{port}");
     let record: PathBuf = std::env::temp_dir().join(format!("road-soak-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&record);
-    let exe = std::env::current_exe().context("cannot find this binary")?;
-    let mut command = match args.wrapper.split_first() {
-        Some((program, rest)) => {
-            let mut c = Command::new(program);
-            c.args(rest).arg(&exe);
-            c
-        }
-        None => Command::new(&exe),
-    };
-    let mut server = ServerProcess(
-        command
-            .args(["serve", "--listen", &endpoint, "--no-multicast-scouting"])
-            .args(["--late-ego-ms", "0"])
-            .args(if args.no_record {
-                vec!["--no-record".into()]
-            } else {
-                vec!["--record".into(), record.clone().into_os_string()]
-            })
-            .env("RUST_LOG", "warn")
-            .stdout(Stdio::null())
-            .spawn()
-            .with_context(|| format!("cannot start {} serve", exe.display()))?,
-    );
+    let recording = (!args.no_record).then_some(record.as_path());
+    let (server, endpoint, session) = start_server(&args.wrapper, recording, &[])?;
     let pid = server.0.id();
-    let session = zenoh::open(ZenohArgs::loopback(None, Some(&endpoint)).to_config()?)
-        .wait()
-        .map_err(|e| anyhow::anyhow!("{e}"))?;
-    let deadline = Instant::now() + Duration::from_secs(120);
-    loop {
-        if let Some(status) = server.0.try_wait()? {
-            bail!("road serve exited early: {status}");
-        }
-        let mut probe = Client::with_session(session.clone(), DEFAULT_PREFIX, "soak-probe")?;
-        probe.set_timeout(Duration::from_secs(2));
-        if probe.status().is_ok() {
-            break;
-        }
-        anyhow::ensure!(Instant::now() < deadline, "road serve did not come up");
-        std::thread::sleep(Duration::from_millis(200));
-    }
     let mut samples = vec![footprint(pid, 0, &record)?];
     let total = args.warmup + args.cycles;
     let started = Instant::now();
@@ -252,4 +211,61 @@ fn cycle(session: &zenoh::Session, client: &str, i: usize, ticks: u64) -> Result
         closed.ticks
     );
     Ok(())
+}
+
+/// A `road serve` child of this binary on a free loopback port (under `wrapper`, when given),
+/// recording into `record` (a fresh folder) or not, with `extra` flags; returns once its status
+/// answers: the process, its endpoint and a session connected to it.
+pub(crate) fn start_server(
+    wrapper: &[String],
+    record: Option<&std::path::Path>,
+    extra: &[&str],
+) -> Result<(ServerProcess, String, zenoh::Session)> {
+    let port = std::net::TcpListener::bind("127.0.0.1:0")?
+        .local_addr()?
+        .port();
+    let endpoint = format!("tcp/127.0.0.1:{port}");
+    if let Some(record) = record {
+        let _ = std::fs::remove_dir_all(record);
+    }
+    let exe = std::env::current_exe().context("cannot find this binary")?;
+    let mut command = match wrapper.split_first() {
+        Some((program, rest)) => {
+            let mut c = Command::new(program);
+            c.args(rest).arg(&exe);
+            c
+        }
+        None => Command::new(&exe),
+    };
+    let mut server = ServerProcess(
+        command
+            .args(["serve", "--listen", &endpoint, "--no-multicast-scouting"])
+            .args(["--late-ego-ms", "0"])
+            .args(match record {
+                None => vec!["--no-record".into()],
+                Some(dir) => vec!["--record".into(), dir.as_os_str().to_owned()],
+            })
+            .args(extra)
+            .env("RUST_LOG", "warn")
+            .stdout(Stdio::null())
+            .spawn()
+            .with_context(|| format!("cannot start {} serve", exe.display()))?,
+    );
+    let session = zenoh::open(ZenohArgs::loopback(None, Some(&endpoint)).to_config()?)
+        .wait()
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let deadline = Instant::now() + Duration::from_secs(120);
+    loop {
+        if let Some(status) = server.0.try_wait()? {
+            bail!("road serve exited early: {status}");
+        }
+        let mut probe = Client::with_session(session.clone(), DEFAULT_PREFIX, "bench-probe")?;
+        probe.set_timeout(Duration::from_secs(2));
+        if probe.status().is_ok() {
+            break;
+        }
+        anyhow::ensure!(Instant::now() < deadline, "road serve did not come up");
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    Ok((server, endpoint, session))
 }

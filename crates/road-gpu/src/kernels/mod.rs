@@ -20,12 +20,99 @@ pub const WORKGROUP: u32 = 64;
 /// Most workgroups along one dispatch dimension (the WebGPU default limit).
 const MAX_GROUPS_X: u32 = 65_535;
 
+/// How a shader reads or writes one of its bindings, as the shader declares it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum BindingAccess {
+    /// `var<uniform>` or `var<storage, read>`.
+    Read,
+    /// `var<storage, read_write>`: counted as read and written.
+    ReadWrite,
+}
+
+/// `(binding, access)` of every group-0 buffer `shader` declares, reflected by naga: what a
+/// dispatch's traffic counts ([`Traffic`]). A source naga cannot parse (which wgpu would refuse
+/// anyway) declares nothing, and its bindings count as read and written.
+fn declared_access(shader: Shader) -> Vec<(u32, BindingAccess)> {
+    let module = match naga::front::wgsl::parse_str(shader.source()) {
+        Ok(module) => module,
+        Err(e) => {
+            tracing::warn!(
+                shader = shader.file_name(),
+                "cannot reflect the bindings: {e}"
+            );
+            return Vec::new();
+        }
+    };
+    module
+        .global_variables
+        .iter()
+        .filter_map(|(_, var)| {
+            let binding = var.binding.as_ref().filter(|b| b.group == 0)?;
+            let access = match var.space {
+                naga::AddressSpace::Uniform => BindingAccess::Read,
+                naga::AddressSpace::Storage { access }
+                    if !access.contains(naga::StorageAccess::STORE) =>
+                {
+                    BindingAccess::Read
+                }
+                naga::AddressSpace::Storage { .. } => BindingAccess::ReadWrite,
+                _ => return None,
+            };
+            Some((binding.binding, access))
+        })
+        .collect()
+}
+
+/// Bytes of a bound buffer range: its size, or the rest of the buffer from its offset.
+fn bound_bytes(resource: &wgpu::BindingResource<'_>) -> u64 {
+    match resource {
+        wgpu::BindingResource::Buffer(b) => b
+            .size
+            .map_or_else(|| b.buffer.size().saturating_sub(b.offset), |s| s.get()),
+        _ => 0,
+    }
+}
+
+/// What recorded dispatches cost in launches and memory traffic: the proxies of
+/// `road bench engine` that need no GPU to measure. Every binding counts at the size of its
+/// bound range: read-only storage and uniforms as read, read-write storage as read and written.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Traffic {
+    pub dispatches: u64,
+    pub bytes_read: u64,
+    pub bytes_written: u64,
+}
+
+impl Traffic {
+    /// Counts one recorded dispatch.
+    pub fn count(&mut self, d: &Dispatch) {
+        self.dispatches += 1;
+        self.bytes_read += d.bytes_read;
+        self.bytes_written += d.bytes_written;
+    }
+
+    /// Bytes read and written.
+    pub fn bytes(&self) -> u64 {
+        self.bytes_read + self.bytes_written
+    }
+}
+
+impl std::ops::AddAssign for Traffic {
+    fn add_assign(&mut self, other: Self) {
+        self.dispatches += other.dispatches;
+        self.bytes_read += other.bytes_read;
+        self.bytes_written += other.bytes_written;
+    }
+}
+
 /// A compiled entry point and its bind group layout.
 #[derive(Debug)]
 pub struct Pipeline {
     pipeline: wgpu::ComputePipeline,
     layout: wgpu::BindGroupLayout,
     label: &'static str,
+    /// `(binding, access)` as the shader declares them.
+    access: Vec<(u32, BindingAccess)>,
 }
 
 impl Pipeline {
@@ -46,6 +133,7 @@ impl Pipeline {
             pipeline,
             layout,
             label: entry,
+            access: declared_access(shader),
         }
     }
 
@@ -151,6 +239,19 @@ impl Pipeline {
                     resource: resource.clone(),
                 }),
         );
+        let (mut bytes_read, mut bytes_written) = (0, 0);
+        for entry in &entries {
+            let bytes = bound_bytes(&entry.resource);
+            let access = self
+                .access
+                .iter()
+                .find(|(binding, _)| *binding == entry.binding)
+                .map_or(BindingAccess::ReadWrite, |&(_, access)| access);
+            bytes_read += bytes;
+            if access == BindingAccess::ReadWrite {
+                bytes_written += bytes;
+            }
+        }
         let bind_group = ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some(self.label),
             layout: &self.layout,
@@ -167,6 +268,8 @@ impl Pipeline {
             bind_group,
             groups,
             label: self.label,
+            bytes_read,
+            bytes_written,
         }
     }
 
@@ -218,6 +321,9 @@ pub struct Dispatch {
     groups: (u32, u32),
     /// The entry point it runs (what a profile groups by).
     label: &'static str,
+    /// Bytes its bindings read (every binding's bound range) and write (the read-write ones').
+    bytes_read: u64,
+    bytes_written: u64,
 }
 
 impl Dispatch {
@@ -225,10 +331,27 @@ impl Dispatch {
         self.label
     }
 
+    /// Bytes of its bindings read: every binding's bound range, the uniform params included.
+    pub fn bytes_read(&self) -> u64 {
+        self.bytes_read
+    }
+
+    /// Bytes of its bindings written: the bound ranges of its read-write storage bindings.
+    pub fn bytes_written(&self) -> u64 {
+        self.bytes_written
+    }
+
     pub fn record(&self, pass: &mut wgpu::ComputePass<'_>) {
         pass.set_pipeline(&self.pipeline);
         pass.set_bind_group(0, &self.bind_group, &[]);
         pass.dispatch_workgroups(self.groups.0, self.groups.1, 1);
+    }
+
+    /// [`Self::record`], counted in `traffic`: the engine's steps record through this, so that
+    /// its dispatch and byte counts follow whatever kernels it runs.
+    pub fn record_counted(&self, pass: &mut wgpu::ComputePass<'_>, traffic: &mut Traffic) {
+        self.record(pass);
+        traffic.count(self);
     }
 }
 

@@ -77,6 +77,10 @@ pub struct EvalArgs {
     /// Procedural: simulated steps per run (`road demo`'s 60 by default).
     #[arg(long, default_value_t = 60)]
     pub procedural_steps: usize,
+    /// Procedural: the scripted ego's speed as a share of its route's (0: it stops where its
+    /// history ends, holding up the vehicles behind it and those that must pass it).
+    #[arg(long, default_value_t = 1.0)]
+    pub ego_speed_scale: f64,
 }
 
 /// The scenes a suite evaluates.

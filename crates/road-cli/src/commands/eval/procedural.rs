@@ -103,6 +103,11 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         args.procedural_steps > 0,
         "--procedural-steps must be at least 1"
     );
+    ensure!(
+        args.ego_speed_scale.is_finite() && args.ego_speed_scale >= 0.0,
+        "--ego-speed-scale must be a finite share of the route's speed, 0 or more, got {}",
+        args.ego_speed_scale
+    );
     for &r in &args.rotations_deg {
         ensure!(
             r.is_finite(),
@@ -121,11 +126,12 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
     };
     let choice: EngineChoice = args.engine.into();
     eprintln!(
-        "procedural suite: maps {}, {} seeds × rotations {:?}°, {} steps",
+        "procedural suite: maps {}, {} seeds × rotations {:?}°, {} steps, the ego at {} × its route's speed",
         maps.iter().map(|m| m.name()).collect::<Vec<_>>().join(", "),
         args.seeds,
         args.rotations_deg,
-        args.procedural_steps
+        args.procedural_steps,
+        args.ego_speed_scale
     );
     let mut summaries = Vec::new();
     let mut records = Vec::new();
@@ -151,6 +157,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
                         &run,
                         map,
                         rotation_deg.to_radians(),
+                        args.ego_speed_scale,
                         seed,
                         args.procedural_steps,
                         false,
@@ -264,6 +271,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
             "first_seed": args.seed,
             "rotations_deg": args.rotations_deg,
             "steps": args.procedural_steps,
+            "ego_speed_scale": args.ego_speed_scale,
             "results": summaries,
             "runs": records,
         });

@@ -1,0 +1,93 @@
+//! The engine's speed proxies, which need no GPU to measure (issue 40: "Without a GPU"): how
+//! many compute dispatches one denoiser evaluation records, how many bytes their bindings read
+//! and write, and how much of the work computed is padding. Fusing kernels lowers the first two
+//! on any adapter, lavapipe included; bucketing scenes by agent count lowers the third.
+//!
+//! The dispatch and byte counts are counted as the engine records its dispatches
+//! ([`crate::kernels::Dispatch::record_counted`]), so they follow whatever kernels it runs; the
+//! work is [`flops_per_evaluation`] of each scene at its own size against the same at the
+//! shape the engine computes (agents padded to the batch's, or to a compact sub-batch's, idle
+//! and padding scenes included).
+
+use road_model::ModelConfig;
+
+use crate::kernels::Traffic;
+
+/// Multiply-adds ×2 of one denoiser evaluation of one scene of `agents` agents and `polylines`
+/// polylines: projections, attention, MLP, the agent maps' point encoder and keys. Not counted:
+/// the agent-pair features, layer norms and elementwise kernels, and (without agent maps) the
+/// map encoder, which runs once per scene set. The one FLOP model of `road bench engine` and
+/// `road bench serve` (their GFLOP/s) and of [`Work::computed_over_useful`].
+pub fn flops_per_evaluation(c: &ModelConfig, agents: usize, polylines: usize) -> f64 {
+    let (a, p, w, d) = (
+        agents as f64,
+        polylines as f64,
+        c.window_slots as f64,
+        c.hidden as f64,
+    );
+    let m = d * c.mlp_ratio as f64;
+    let t = a * w;
+    let linear = |rows: f64, i: f64, o: f64| 2.0 * rows * i * o;
+    // With agent maps each agent attends to its own K polylines, encoded in its frame every
+    // evaluation (the point encoder's D × D layer over K·Q points per agent); without, every
+    // token attends to the scene's P polylines, encoded once per scene (not counted here).
+    let (map_keys, map_kv_rows, map_encoder) = match &c.agent_map {
+        Some(spec) => {
+            let k = road_model::agent_map::polylines_per_agent(spec.polylines, polylines) as f64;
+            let q = c.polyline_points as f64;
+            (k, a * k, linear(a * k * q, d, d))
+        }
+        None => (p, p, 0.0),
+    };
+    let per_block = 2.0 * 4.0 * linear(t, d, d) // time and agent attention projections
+        + 2.0 * 2.0 * t * w * d // time attention scores and weighted sums
+        + 2.0 * 2.0 * t * a * d // agent attention
+        + 2.0 * linear(t, d, d) + 2.0 * linear(map_kv_rows, d, d) // map q, o; k, v
+        + 2.0 * 2.0 * t * map_keys * d // map attention
+        + linear(t, d, m) + linear(t, m, d); // MLP
+    c.blocks as f64 * per_block + map_encoder + linear(t, 3.0, d) + linear(t, d, 3.0)
+}
+
+/// What an engine's steps did, summed since it was last taken
+/// ([`crate::step_engine::GpuStepEngine::take_work`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Work {
+    /// Denoiser evaluations of the batch (a Heun step with its second evaluation makes 2).
+    pub evaluations: u64,
+    /// The dispatches recorded: every evaluation's and its sampler update's.
+    pub traffic: Traffic,
+    /// FLOPs at the shape computed: scenes and agents as the engine padded them.
+    pub computed_flops: f64,
+    /// FLOPs of the moving scenes at their own agents and polylines.
+    pub useful_flops: f64,
+}
+
+impl Work {
+    /// Dispatches recorded per evaluation (its share of the sampler update included).
+    pub fn dispatches_per_evaluation(&self) -> f64 {
+        self.traffic.dispatches as f64 / self.evaluations.max(1) as f64
+    }
+
+    /// Bytes read and written by the bindings of an evaluation's dispatches.
+    pub fn bytes_per_evaluation(&self) -> f64 {
+        self.traffic.bytes() as f64 / self.evaluations.max(1) as f64
+    }
+
+    /// Work computed (padding included) over the scenes' own: 1 without padding.
+    pub fn computed_over_useful(&self) -> f64 {
+        if self.useful_flops > 0.0 {
+            self.computed_flops / self.useful_flops
+        } else {
+            f64::NAN
+        }
+    }
+}
+
+impl std::ops::AddAssign for Work {
+    fn add_assign(&mut self, other: Self) {
+        self.evaluations += other.evaluations;
+        self.traffic += other.traffic;
+        self.computed_flops += other.computed_flops;
+        self.useful_flops += other.useful_flops;
+    }
+}

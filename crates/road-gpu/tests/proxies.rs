@@ -1,0 +1,232 @@
+//! The engine's proxies (`road bench engine`'s `dispatches_per_evaluation`,
+//! `bytes_per_evaluation`, `computed_over_useful`) on the adapter at hand (lavapipe in CI):
+//! counted as dispatches are recorded, equal to the sum of their bindings, stable from step to
+//! step, and padding counted as computed but not useful.
+
+use std::collections::HashMap;
+
+use road_gpu::engine::{DenoiseInputs, GpuDenoiser};
+use road_gpu::kernels::Dispatch;
+use road_gpu::proxies::{Work, flops_per_evaluation};
+use road_gpu::step_engine::GpuStepEngine;
+use road_gpu::{ContextOptions, GpuContext};
+use road_model::ModelConfig;
+use road_rollout::StepEngine;
+
+/// Scenes, agents and polylines of the padded test batch.
+const SCENES: usize = 3;
+const AGENTS: usize = 4;
+const POLYLINES: usize = 6;
+
+fn context() -> GpuContext {
+    GpuContext::new(&ContextOptions {
+        validation: true,
+        ..ContextOptions::default()
+    })
+    .unwrap_or_else(|e| panic!("GPU tests need an adapter: {e}"))
+}
+
+/// road20-wide4's features (agent frame, agent maps, agent pairs) at a small size.
+fn config() -> ModelConfig {
+    ModelConfig {
+        hidden: 32,
+        heads: 2,
+        blocks: 2,
+        agent_frame: Some(road_model::AgentFrame {
+            anchor_slot: 9,
+            relative_scale: 1.0,
+            residual_scale: Some(40.0),
+        }),
+        agent_map: Some(road_model::AgentMap { polylines: 4 }),
+        agent_pairs: Some(road_model::AgentPairs {
+            direction_scale_m: 10.0,
+            near_scale_m: 5.0,
+            far_scale_m: 20.0,
+        }),
+        ..ModelConfig::default()
+    }
+}
+
+fn denoiser(ctx: &GpuContext, config: &ModelConfig) -> GpuDenoiser {
+    let (varmap, _) =
+        road_model::model::init_seeded(config, &candle_core::Device::Cpu, 42).unwrap();
+    let tensors: HashMap<String, Vec<f32>> = varmap
+        .data()
+        .lock()
+        .unwrap()
+        .iter()
+        .map(|(name, var)| {
+            let values = var.as_tensor().flatten_all().unwrap().to_vec1().unwrap();
+            (name.clone(), values)
+        })
+        .collect();
+    GpuDenoiser::new(ctx, config, &tensors).unwrap()
+}
+
+/// A padded batch, host side: `agents[i]` valid agents and `polylines[i]` valid polylines of
+/// scene i, the rest padding.
+struct Scenes {
+    features: Vec<f32>,  // [B, A, 6]
+    map: Vec<f32>,       // [B, P, Q, 2]
+    map_valid: Vec<f32>, // [B, P]
+    x: Vec<f32>,         // [B, A, W, 3]
+    valid: Vec<f32>,     // [B, A, W]
+}
+
+fn scenes(config: &ModelConfig, agents: [usize; SCENES], polylines: [usize; SCENES]) -> Scenes {
+    let (w, q) = (config.window_slots, config.polyline_points);
+    let wave = |i: usize, scale: f32| ((i as f32) * 0.37).sin() * scale;
+    let mut valid = vec![0.0f32; SCENES * AGENTS * w];
+    let mut map_valid = vec![0.0f32; SCENES * POLYLINES];
+    for b in 0..SCENES {
+        valid[b * AGENTS * w..][..agents[b] * w].fill(1.0);
+        map_valid[b * POLYLINES..][..polylines[b]].fill(1.0);
+    }
+    Scenes {
+        features: (0..SCENES * AGENTS * 6).map(|i| wave(i, 1.0)).collect(),
+        map: (0..SCENES * POLYLINES * q * 2)
+            .map(|i| wave(i, 2.0))
+            .collect(),
+        map_valid,
+        x: (0..SCENES * AGENTS * w * 3).map(|i| wave(i, 1.5)).collect(),
+        valid,
+    }
+}
+
+/// Every scene's σ `[B, W]` one step down, or (`idle`) held.
+fn sigma_rows(config: &ModelConfig, idle: &[usize]) -> (Vec<f32>, Vec<f32>) {
+    let w = config.window_slots;
+    let cur = vec![2.0f32; SCENES * w];
+    let next = (0..SCENES * w)
+        .map(|i| if idle.contains(&(i / w)) { 2.0 } else { 1.5 })
+        .collect();
+    (cur, next)
+}
+
+fn engine_on<'a>(ctx: &'a GpuContext, gpu: &'a GpuDenoiser, s: &Scenes) -> GpuStepEngine<'a> {
+    let mut engine = GpuStepEngine::new(ctx, gpu);
+    engine
+        .prepare(SCENES, AGENTS, &s.features, POLYLINES, &s.map, &s.map_valid)
+        .unwrap();
+    engine.load(&s.x, &s.valid).unwrap();
+    engine
+}
+
+fn bytes(dispatches: &[Dispatch]) -> u64 {
+    dispatches
+        .iter()
+        .map(|d| d.bytes_read() + d.bytes_written())
+        .sum()
+}
+
+/// Dispatch and byte counts: positive, the same for two steps of the same batch, half for a
+/// step without its second evaluation, and equal to the sum of the plan's dispatches' bindings,
+/// which for `ln_out` and the Euler update are checked by hand.
+#[test]
+fn dispatches_and_bytes_are_the_bindings_of_the_recorded_dispatches() {
+    let ctx = context();
+    let config = config();
+    let gpu = denoiser(&ctx, &config);
+    let s = scenes(&config, [AGENTS; SCENES], [POLYLINES; SCENES]);
+    let (sigma_cur, sigma_next) = sigma_rows(&config, &[]);
+
+    let mut engine = engine_on(&ctx, &gpu, &s);
+    let mut heun_step = |second: bool| -> Work {
+        engine.step(&sigma_cur, &sigma_next, second).unwrap();
+        engine.take_work()
+    };
+    let first = heun_step(true);
+    let again = heun_step(true);
+    let euler_only = heun_step(false);
+    assert_eq!(first, again, "the same batch, the same counts");
+    assert_eq!(first.evaluations, 2);
+    assert_eq!(euler_only.evaluations, 1);
+    assert!(first.traffic.dispatches > 0 && first.traffic.bytes_written > 0);
+    assert!(first.traffic.bytes_read > first.traffic.bytes_written);
+    assert_eq!(
+        first.dispatches_per_evaluation(),
+        euler_only.dispatches_per_evaluation(),
+        "both evaluations and their updates record alike"
+    );
+
+    // The same batch through a Heun plan: its counts are the sums over its dispatch lists.
+    let inputs = DenoiseInputs {
+        scenes: SCENES,
+        agents: AGENTS,
+        x: &s.x,
+        sigma: &sigma_cur,
+        valid: &s.valid,
+        agent_features: &s.features,
+    };
+    let batch = gpu.upload_batch(&ctx, &inputs).unwrap();
+    let map = gpu
+        .encode_map(&ctx, SCENES, POLYLINES, &s.map, &s.map_valid)
+        .unwrap();
+    let mut plan = gpu.heun_plan(&ctx, &batch, &map).unwrap();
+    plan.run(&ctx, &batch, &sigma_cur, &sigma_next, true)
+        .unwrap();
+    let traffic = plan.take_traffic();
+    let (euler, correct) = (plan.euler_dispatches(), plan.correct_dispatches());
+    assert_eq!(traffic.dispatches as usize, euler.len() + correct.len());
+    assert_eq!(traffic.bytes(), bytes(euler) + bytes(correct));
+    assert_eq!(
+        traffic, first.traffic,
+        "the engine records the plan's dispatches"
+    );
+    assert_eq!(euler_only.traffic.dispatches as usize, euler.len());
+    assert_eq!(euler_only.traffic.bytes(), bytes(euler));
+
+    // By hand. `ln_out` (the last layer norm): 16 bytes of params, x [T, D], γ [D], β [D]
+    // read; y [T, D] read and written.
+    let (w, d) = (config.window_slots as u64, config.hidden as u64);
+    let tokens = (SCENES * AGENTS) as u64 * w;
+    let ln_out = euler
+        .iter()
+        .rev()
+        .find(|d| d.label() == "layer_norm")
+        .unwrap();
+    assert_eq!(ln_out.bytes_read(), 16 + 4 * (2 * tokens * d + 2 * d));
+    assert_eq!(ln_out.bytes_written(), 4 * tokens * d);
+    // The Euler update: params, x, D₁ [B, A, W, 3], σ_cur, σ_next [B, W] read; x_e read and
+    // written.
+    let update = euler.last().unwrap();
+    assert_eq!(update.label(), "heun_euler");
+    let (states, sigma) = (4 * tokens * 3, 4 * SCENES as u64 * w);
+    assert_eq!(update.bytes_read(), 16 + 3 * states + 2 * sigma);
+    assert_eq!(update.bytes_written(), states);
+}
+
+/// Work computed over useful: 1 when every scene fills the batch's agents and polylines; above
+/// 1 by exactly the padding when they do not; idle scenes of a step are computed, not useful.
+#[test]
+fn computed_over_useful_counts_the_padding() {
+    let ctx = context();
+    let config = config();
+    let gpu = denoiser(&ctx, &config);
+    let f = |agents, polylines| flops_per_evaluation(&config, agents, polylines);
+    let ratio = |agents: [usize; SCENES], polylines: [usize; SCENES], idle: &[usize]| {
+        let s = scenes(&config, agents, polylines);
+        let mut engine = engine_on(&ctx, &gpu, &s);
+        let (sigma_cur, sigma_next) = sigma_rows(&config, idle);
+        engine.step(&sigma_cur, &sigma_next, true).unwrap();
+        let work = engine.take_work();
+        assert_eq!(work.evaluations, 2);
+        work.computed_over_useful()
+    };
+
+    let full = ratio([AGENTS; SCENES], [POLYLINES; SCENES], &[]);
+    assert!((full - 1.0).abs() < 1e-12, "no padding: {full}");
+
+    // Mixed: 4, 2 and 1 agents, 6, 3 and 6 polylines, padded to 4 × 6.
+    let (agents, polylines) = ([4, 2, 1], [6, 3, 6]);
+    let mixed = ratio(agents, polylines, &[]);
+    let useful: f64 = (0..SCENES).map(|i| f(agents[i], polylines[i])).sum();
+    let want = SCENES as f64 * f(AGENTS, POLYLINES) / useful;
+    assert!(mixed > 1.0, "padding: {mixed}");
+    assert!((mixed - want).abs() < 1e-9 * want, "{mixed} against {want}");
+
+    // Only scene 1 moves: a compact sub-batch of one scene at 4 agents (its 2 rounded up).
+    let one = ratio(agents, polylines, &[0, 2]);
+    let want = f(AGENTS, POLYLINES) / f(2, 3);
+    assert!((one - want).abs() < 1e-9 * want, "{one} against {want}");
+}

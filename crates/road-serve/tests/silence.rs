@@ -1,0 +1,82 @@
+//! Issue 41, finding 3: a scene whose client goes quiet is closed as `client_silent`, however
+//! many ticks the late-ego policy drove for it meanwhile; and so is one whose ego has been
+//! missing for too many ticks in a row.
+
+mod common;
+
+use std::time::{Duration, Instant};
+
+use road_client::protocol::ErrorCode;
+
+/// A client that creates a scene and then says nothing (no liveliness token is needed for
+/// this: its client stays connected) sees it closed within the idle timeout, while the
+/// model drives its ego every late-ego deadline.
+#[test]
+fn a_silent_clients_scene_is_closed_despite_late_ticks() {
+    let dir = common::temp_dir("silence");
+    let mut config = common::config(&dir);
+    config.late_ego_deadline = Duration::from_millis(100);
+    config.idle_timeout = Duration::from_secs(2);
+    let server = common::start(config);
+    let c = common::client(&server, "quiet");
+    let scene = c.create(common::roundabout()).unwrap();
+    let started = Instant::now();
+    let e = scene
+        .wait_error(Duration::from_secs(60))
+        .unwrap()
+        .expect("the server must close the silent scene");
+    assert_eq!(e.code, ErrorCode::ClientSilent, "{e}");
+    assert!(e.message.contains("quiet"), "{e}");
+    assert!(
+        started.elapsed() >= Duration::from_secs(2),
+        "closed too early"
+    );
+    // Ticks the model drove on the late-ego deadline came meanwhile; none of them kept it.
+    assert!(scene.last().is_none() || scene.last().unwrap().tick >= 1);
+    let status = c.status().unwrap();
+    assert!(status.scenes.iter().all(|s| s.scene != scene.id()));
+    server.stop().unwrap();
+}
+
+/// The cap on consecutive late ticks closes a scene long before the idle timeout.
+#[test]
+fn too_many_late_ticks_in_a_row_close_the_scene() {
+    let dir = common::temp_dir("late-cap");
+    let mut config = common::config(&dir);
+    config.late_ego_deadline = Duration::from_millis(50);
+    config.idle_timeout = Duration::from_secs(600);
+    config.max_consecutive_late_ticks = 5;
+    let server = common::start(config);
+    let c = common::client(&server, "late");
+    let scene = c.create(common::roundabout()).unwrap();
+    let e = scene
+        .wait_error(Duration::from_secs(120))
+        .unwrap()
+        .expect("the server must close the scene");
+    assert_eq!(e.code, ErrorCode::ClientSilent, "{e}");
+    assert!(e.message.contains("5 ticks in a row"), "{e}");
+    server.stop().unwrap();
+}
+
+/// A client that answers every tick keeps its scene past the idle timeout, however slow the
+/// server's first tick (its warm-up is the server's silence, not the client's).
+#[test]
+fn a_client_that_answers_keeps_its_scene() {
+    let dir = common::temp_dir("answering");
+    let mut config = common::config(&dir);
+    config.late_ego_deadline = Duration::ZERO;
+    config.idle_timeout = Duration::from_secs(1);
+    let server = common::start(config);
+    let c = common::client(&server, "talker");
+    let mut scene = c.create(common::roundabout()).unwrap();
+    let history = scene.created().agents[0].history.clone();
+    let until = Instant::now() + Duration::from_secs(3);
+    let mut t = 1;
+    while Instant::now() < until {
+        let npc = scene.step(t, vec![common::replay(&history, 1, t)]).unwrap();
+        assert_eq!(npc.tick, t);
+        t += 1;
+    }
+    scene.close().unwrap();
+    server.stop().unwrap();
+}
