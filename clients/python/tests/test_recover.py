@@ -17,8 +17,8 @@ import pytest
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
 
-from road_client import AgentState, Client, RoadError
-from road_test_support import REPO, free_port, road_bin
+from road_client import AgentState, RoadError
+from road_test_support import road_bin, start_server
 
 TICKS = 5
 
@@ -33,33 +33,9 @@ def npc_ticks(path: Path) -> list[int]:
 
 def test_recover_makes_a_killed_servers_recording_readable(tmp_path):
     record = tmp_path / "rec"
-    port = free_port()
-    endpoint = f"tcp/127.0.0.1:{port}"
-    # The server's log goes to a file: a pipe nobody reads would fill and stall it.
     log = open(tmp_path / "serve.log", "w+")
-    proc = subprocess.Popen(
-        [road_bin(), "serve", "--listen", endpoint, "--no-multicast-scouting",
-         "--models", str(REPO / "models"), "--record", str(record), "--late-ego-ms", "0"],
-        stderr=log, text=True)
-    client = None
+    proc, client = start_server(record, "pyrecover", log)
     try:
-        deadline = time.monotonic() + 120
-        while True:
-            if proc.poll() is not None:
-                log.seek(0)
-                pytest.fail(f"road serve exited with {proc.returncode}: {log.read()}")
-            try:
-                client = Client.open(connect=[endpoint], client_id="pyrecover", timeout_s=5.0)
-                client.status()
-                break
-            except Exception:
-                if client is not None:
-                    client.close()
-                    client = None
-                if time.monotonic() > deadline:
-                    raise
-                time.sleep(0.5)
-        client.timeout_s = 120.0
         scene = client.create_scene({"procedural": "roundabout"}, external=[1], seed=3)
         path = Path(scene.created.recording)
         ego = next(a for a in scene.created.agents if a.external)
@@ -76,8 +52,7 @@ def test_recover_makes_a_killed_servers_recording_readable(tmp_path):
             scene.step(TICKS + 1, [state])
         assert e.value.code == "server_gone"
     finally:
-        if client is not None:
-            client.close()
+        client.close()
         if proc.poll() is None:
             proc.kill()
             proc.wait()

@@ -12,52 +12,26 @@ import json
 import math
 import subprocess
 import tempfile
-import time
 from pathlib import Path
 
 import pytest
 from mcap.reader import make_reader
 
-from road_client import AgentState, Client, RoadError
-from road_test_support import REPO, free_port, road_bin
+from road_client import AgentState, RoadError
+from road_test_support import start_server
 
 TICKS = 100
 
 
 @pytest.fixture(scope="module")
 def server():
-    port = free_port()
     record = tempfile.mkdtemp(prefix="road-py-")
-    # The server's log goes to a file: a pipe nobody reads would fill and stall it.
     log = open(Path(record) / "serve.log", "w+")
-    proc = subprocess.Popen(
-        [road_bin(), "serve", "--listen", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting",
-         "--models", str(REPO / "models"), "--record", record, "--late-ego-ms", "0"],
-        stderr=log, text=True)
-    endpoint = f"tcp/127.0.0.1:{port}"
-    client = None
+    proc, client = start_server(Path(record), "pytest", log)
     try:
-        deadline = time.monotonic() + 120
-        while True:
-            if proc.poll() is not None:
-                log.seek(0)
-                pytest.fail(f"road serve exited with {proc.returncode}: {log.read()}")
-            try:
-                client = Client.open(connect=[endpoint], client_id="pytest", timeout_s=5.0)
-                client.status()
-                break
-            except Exception:
-                if client is not None:
-                    client.close()
-                    client = None
-                if time.monotonic() > deadline:
-                    raise
-                time.sleep(0.5)
-        client.timeout_s = 120.0
         yield client, record
     finally:
-        if client is not None:
-            client.close()
+        client.close()
         proc.terminate()
         try:
             proc.wait(timeout=30)
