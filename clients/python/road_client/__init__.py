@@ -135,6 +135,8 @@ class NpcTick:
     late_external: list[AgentState] = field(default_factory=list)
     # Each NPC's plan, when the scene was created with ``plans=True``.
     plans: list[AgentPlan] = field(default_factory=list)
+    # NPCs that drove off the map this tick (a lane's end): gone from later ticks (protocol 4).
+    left: list[int] = field(default_factory=list)
 
 
 @dataclass

@@ -1028,7 +1028,14 @@ fn fast_engine_rollouts_are_bitwise_the_same_on_one_or_two_threads() {
     let scenes = scenes(&c, 5);
     let run = |threads: usize| {
         let mut engine = FastCpuEngine::with_threads(&model, threads).unwrap();
-        rollout_with(&mut engine, &planner, &scenes, 6, &mut StdRng::seed_from_u64(9)).unwrap()
+        rollout_with(
+            &mut engine,
+            &planner,
+            &scenes,
+            6,
+            &mut StdRng::seed_from_u64(9),
+        )
+        .unwrap()
     };
     let (one, two) = (run(1), run(2));
     assert_eq!(one.states, two.states);

@@ -370,6 +370,10 @@ pub struct NpcTick {
     /// agents this step; their poses are here.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub late_external: Vec<AgentState>,
+    /// NPCs that drove off the map this tick, through the end of a lane with no successor:
+    /// they have left the scene and are in no later tick (protocol 4).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub left: Vec<u32>,
     /// When the scene was created with `plans`: each NPC's plan, the model's estimate of its
     /// poses at the steps after this one (its window's later slots; the far ones the least
     /// certain). The NPCs' next states may differ: the model replans every tick.

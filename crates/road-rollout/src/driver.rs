@@ -62,6 +62,9 @@ struct SceneState {
     /// The last tick's plan `[agents, plan_steps, 3]` (model units) when `wants_plan`.
     plan: Vec<f32>,
     plan_steps: usize,
+    /// Agents that left the scene ([`RolloutDriver::retire_agent`]): no slot of theirs is
+    /// valid from their retirement on, so the engines treat them as padding.
+    retired: Vec<bool>,
 }
 
 impl SceneState {
@@ -76,6 +79,7 @@ impl SceneState {
             wants_plan: false,
             plan: Vec::new(),
             plan_steps: 0,
+            retired: Vec::new(),
         }
     }
 
@@ -104,6 +108,7 @@ impl SceneState {
             wants_plan: false,
             plan: Vec::new(),
             plan_steps: 0,
+            retired: vec![false; h.agents],
         }
     }
 }
@@ -584,6 +589,32 @@ impl RolloutDriver {
         Ok(())
     }
 
+    /// Agent `agent` of scene `scene` has left it (driven off the map): from the next window
+    /// shift on none of its slots is valid, so the engines treat it as padding and the other
+    /// agents no longer attend to it. Its emitted states are meaningless from then on; the
+    /// caller holds its last pose. Not undone: a scene's agents keep their indices.
+    pub fn retire_agent(&mut self, scene: usize, agent: usize) -> Result<()> {
+        let s = self
+            .states
+            .get_mut(scene)
+            .ok_or_else(|| Error::data(format!("no scene {scene} to retire an agent of")))?;
+        let flag = s
+            .retired
+            .get_mut(agent)
+            .ok_or_else(|| Error::data(format!("scene {scene} has no agent {agent} to retire")))?;
+        *flag = true;
+        Ok(())
+    }
+
+    /// Whether agent `agent` of scene `scene` has been retired ([`Self::retire_agent`]).
+    pub fn is_retired(&self, scene: usize, agent: usize) -> bool {
+        self.states
+            .get(scene)
+            .and_then(|s| s.retired.get(agent))
+            .copied()
+            .unwrap_or(false)
+    }
+
     /// Scene `scene`'s plan after its last tick: the denoiser's last estimate of the window's
     /// slots after the emitted one, `(steps, [agents, steps, 3])` in model units (the same
     /// units as the emitted states); `None` unless requested and a tick has emitted since.
@@ -905,7 +936,7 @@ impl RolloutDriver {
             };
             for a in 0..s.agents {
                 s.history[a].push([emitted[3 * a], emitted[3 * a + 1], emitted[3 * a + 2]]);
-                s.history_valid[a].push(true);
+                s.history_valid[a].push(!s.retired[a]);
             }
             s.emitted.extend_from_slice(&emitted);
             let rng = &mut self.rngs[i];
@@ -932,6 +963,10 @@ impl RolloutDriver {
                     // are valid.
                     for a in 0..s.agents {
                         let row = a * w;
+                        if s.retired[a] {
+                            s.valid[row..row + w].fill(0.0);
+                            continue;
+                        }
                         s.valid.copy_within(row + 1..row + w, row);
                         s.valid[row + n - 1] = 1.0;
                         s.valid[row + w - 1] = 1.0;
@@ -1043,7 +1078,7 @@ fn rebuild_window(
                 for d in 0..3 {
                     s.window[3 * k + d] = sigma_max * noise[3 * k + d];
                 }
-                s.valid[k] = 1.0;
+                s.valid[k] = if s.retired[a] { 0.0 } else { 1.0 };
             }
         }
     }

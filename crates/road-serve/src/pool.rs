@@ -102,6 +102,8 @@ impl Pool {
             steps,
             seed,
         )?;
+        // A served scene's vehicles leave it at the map's edge instead of driving on.
+        self.sim.retire_on_exit(slot, true)?;
         self.scene_ids[slot] = Some(id);
         Ok(slot)
     }

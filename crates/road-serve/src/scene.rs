@@ -593,6 +593,8 @@ pub struct TickOutput {
     pub npc: NpcTick,
     /// Every agent's pose after the tick, by agent index.
     pub poses: Vec<SimPose>,
+    /// Which agents are still in the scene (not those that left the map), by agent index.
+    pub present: Vec<bool>,
     pub compute_secs: f64,
 }
 
@@ -635,6 +637,8 @@ pub struct LiveScene {
     pub refused_puts: u64,
     /// Where the scene's positions may be.
     extent: Option<Extent>,
+    /// Agents that left the map (driven off a lane's end): no longer in the scene's ticks.
+    retired: Vec<bool>,
 }
 
 /// A tick in the pool's batches.
@@ -712,6 +716,7 @@ impl LiveScene {
             None => vec![false; start.len()],
         };
         let extent = setup.map.as_deref().and_then(Extent::of);
+        let agent_count = setup.agents.len();
         Ok(Self {
             id,
             client: setup.client,
@@ -741,6 +746,7 @@ impl LiveScene {
             token,
             refused_puts: 0,
             extent,
+            retired: vec![false; agent_count],
         })
     }
 
@@ -982,9 +988,18 @@ impl LiveScene {
                 heading_rad: p.heading_rad,
             }
         };
+        for &a in &result.left {
+            self.retired[a] = true;
+        }
         let off = match &self.map {
             Some(map) => {
-                let mut off = off_road(&boxes(&self.agents, &result.poses), map);
+                let mut present = boxes(&self.agents, &result.poses);
+                for (a, b) in present.iter_mut().enumerate() {
+                    if self.retired[a] {
+                        *b = None;
+                    }
+                }
+                let mut off = off_road(&present, map);
                 off.retain(|&a| self.initially_on_road[a]);
                 off
             }
@@ -995,9 +1010,10 @@ impl LiveScene {
             tick: self.tick,
             time_s: self.tick as f64 * STEP_SECS,
             npcs: (0..self.agents.len())
-                .filter(|&i| !self.agents[i].external)
+                .filter(|&i| !self.agents[i].external && !self.retired[i])
                 .map(state)
                 .collect(),
+            left: result.left.iter().map(|&i| id_of(i)).collect(),
             collisions: result
                 .collisions
                 .iter()
@@ -1019,7 +1035,7 @@ impl LiveScene {
                 .plans
                 .iter()
                 .enumerate()
-                .filter(|&(i, _)| !self.agents[i].external)
+                .filter(|&(i, _)| !self.agents[i].external && !self.retired[i])
                 .map(|(i, poses)| AgentPlan {
                     id: id_of(i),
                     poses: poses
@@ -1039,6 +1055,7 @@ impl LiveScene {
         Ok(TickOutput {
             npc,
             poses: result.poses.clone(),
+            present: self.retired.iter().map(|gone| !gone).collect(),
             compute_secs: flight.compute_secs,
         })
     }

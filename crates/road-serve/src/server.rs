@@ -40,7 +40,7 @@ use crate::models::{Checkpoints, find_models_dir, planners};
 use crate::pool::{Pool, PoolEngine, PoolKey};
 use crate::record::{Recorder, agents_update, free_path, map_update, topics, unix_nanos};
 use crate::scene::{LiveScene, SetupContext, setup};
-use crate::writer::{LiveChannels, SceneWriter};
+use crate::writer::{LiveChannels, PublishedTick, SceneWriter};
 use crate::{Error, Result};
 
 /// Latency samples kept for the status percentiles.
@@ -1101,8 +1101,17 @@ impl Core {
             Stats::push(&mut self.stats.queue_ms, out.npc.queue_ms);
             if let Some(json) = kept {
                 let late = !out.npc.late_external.is_empty();
-                self.writer
-                    .tick(id, json, out.poses, out.npc.plans, late, at);
+                self.writer.tick(
+                    id,
+                    PublishedTick {
+                        npc_json: json,
+                        poses: out.poses,
+                        present: out.present,
+                        plans: out.npc.plans,
+                        late,
+                        at,
+                    },
+                );
             }
         }
         for (id, message) in failed {

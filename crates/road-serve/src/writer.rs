@@ -62,6 +62,19 @@ impl LiveChannels {
     }
 }
 
+/// A tick as published, for the scene's recording and live view: its NPC message, and every
+/// agent's pose for the boxes (of the agents still `present`: not those that left the map).
+#[derive(Debug)]
+pub struct PublishedTick {
+    pub npc_json: Vec<u8>,
+    pub poses: Vec<Pose>,
+    pub present: Vec<bool>,
+    pub plans: Vec<AgentPlan>,
+    /// The model drove the client's agents this tick (drawn grey).
+    pub late: bool,
+    pub at: SystemTime,
+}
+
 enum Job {
     /// A new scene: its recording (map and creation written already) and live channels.
     Start {
@@ -78,14 +91,10 @@ enum Job {
         data: Vec<u8>,
         at: SystemTime,
     },
-    /// A published tick: its NPC message, and every agent's pose for the boxes.
+    /// A published tick (boxed: the queue's other jobs are small).
     Tick {
         scene: u64,
-        npc_json: Vec<u8>,
-        poses: Vec<Pose>,
-        plans: Vec<AgentPlan>,
-        late: bool,
-        at: SystemTime,
+        tick: Box<PublishedTick>,
     },
     /// The scene closed: finish its file (the path comes back) and clear it from viewers.
     Finish {
@@ -156,22 +165,10 @@ impl SceneWriter {
         });
     }
 
-    pub fn tick(
-        &self,
-        scene: u64,
-        npc_json: Vec<u8>,
-        poses: Vec<Pose>,
-        plans: Vec<AgentPlan>,
-        late: bool,
-        at: SystemTime,
-    ) {
+    pub fn tick(&self, scene: u64, tick: PublishedTick) {
         self.send(Job::Tick {
             scene,
-            npc_json,
-            poses,
-            plans,
-            late,
-            at,
+            tick: Box::new(tick),
         });
     }
 
@@ -251,19 +248,28 @@ fn handle(job: Job, scenes: &mut BTreeMap<u64, WriterScene>, view: Option<&LiveV
                 }
             }
         }
-        Job::Tick {
-            scene,
-            npc_json,
-            poses,
-            plans,
-            late,
-            at,
-        } => {
+        Job::Tick { scene, tick } => {
+            let PublishedTick {
+                npc_json,
+                poses,
+                present,
+                plans,
+                late,
+                at,
+            } = *tick;
             let Some(s) = scenes.get_mut(&scene) else {
                 return;
             };
             let nanos = unix_nanos(at);
-            let boxes = agents_update(&s.agents, &poses, &plans, late, nanos).to_string();
+            let (agents, poses): (Vec<AgentInfo>, Vec<Pose>) = s
+                .agents
+                .iter()
+                .cloned()
+                .zip(poses)
+                .zip(&present)
+                .filter_map(|(agent_pose, &here)| here.then_some(agent_pose))
+                .unzip();
+            let boxes = agents_update(&agents, &poses, &plans, late, nanos).to_string();
             if let Some(rec) = s.recorder.as_mut() {
                 let written = rec
                     .write(topics::NPC, &npc_json, at)

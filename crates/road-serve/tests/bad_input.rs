@@ -52,28 +52,9 @@ fn assert_refused(e: &ErrorReply, code: ErrorCode, field: Option<&str>) {
     assert!(!e.message.is_empty());
 }
 
-fn osm(lanelets: bool) -> String {
-    let mut s = String::from("<?xml version=\"1.0\"?>\n<osm version=\"0.6\">\n");
-    for (id, lat, lon) in [
-        (1, 0.0, 0.0),
-        (2, 0.0, 0.001),
-        (3, 0.00004, 0.0),
-        (4, 0.00004, 0.001),
-    ] {
-        s += &format!("  <node id=\"{id}\" lat=\"{lat}\" lon=\"{lon}\"/>\n");
-    }
-    s += "  <way id=\"10\"><nd ref=\"3\"/><nd ref=\"4\"/></way>\n";
-    s += "  <way id=\"11\"><nd ref=\"1\"/><nd ref=\"2\"/></way>\n";
-    if lanelets {
-        s += "  <relation id=\"100\"><member type=\"way\" ref=\"10\" role=\"left\"/><member type=\"way\" ref=\"11\" role=\"right\"/><tag k=\"type\" v=\"lanelet\"/><tag k=\"subtype\" v=\"road\"/></relation>\n";
-    }
-    s += "</osm>\n";
-    s
-}
-
 fn agents_request(agents: Vec<road_client::protocol::AgentInit>) -> CreateScene {
     CreateScene {
-        map: MapSource::Osm(osm(true)),
+        map: MapSource::Osm(common::osm(true)),
         agents: Some(agents),
         external: vec![],
         ..common::roundabout()
@@ -215,7 +196,7 @@ fn an_osm_that_does_not_parse_is_refused() {
 fn a_map_with_no_lanelets_is_refused() {
     let c = client("no-lanelets");
     let mut r = agents_request(vec![common::straight_agent(1, 10.0, 2.0)]);
-    r.map = MapSource::Osm(osm(false));
+    r.map = MapSource::Osm(common::osm(false));
     let e = create_err(&c, r);
     assert_refused(&e, ErrorCode::BadMap, Some("map.osm"));
     assert!(e.message.contains("no lanelet"), "{e}");

@@ -71,6 +71,7 @@ fn a_non_finite_engine_output_fails_the_tick() {
             off_road: vec![],
             guarded: vec![],
             plans: vec![],
+            left: Vec::new(),
         };
         let e = live.finish_tick(&tick).unwrap_err().to_string();
         let id = live.agents[agent].id;

@@ -158,6 +158,12 @@ pub struct SceneTick {
     /// estimate of its poses at the steps after this one (metres, radians), one list per agent.
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub plans: Vec<Vec<Pose>>,
+    /// With [`ClosedLoop::retire_on_exit`]: agents that drove off the map through the end of a
+    /// lane this tick (a lane with no successor: the map's edge). They are retired: from now on
+    /// their pose is held, they count in no collision or off-road check, and the model no
+    /// longer simulates them. Leaving the map is not an off-road event.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub left: Vec<usize>,
 }
 
 struct SceneRuntime<'m> {
@@ -179,6 +185,14 @@ struct SceneRuntime<'m> {
     map: Option<SceneMap<'m>>,
     /// Ticks the scene was built for (its scripts' length).
     steps: usize,
+    /// Whether agents that drive off the map's lane ends are retired (see [`SceneTick::left`]).
+    retire_on_exit: bool,
+    /// Agents retired so far, and those retired this tick.
+    retired: Vec<bool>,
+    left: Vec<usize>,
+    /// The lanelet each agent was last on (a map exit is the end of a lanelet without
+    /// successors).
+    last_lanelet: Vec<Option<usize>>,
 }
 
 /// Simulates many scenes on one engine: in lockstep with one planner ([`ClosedLoop::new`],
@@ -513,11 +527,26 @@ impl<'m> ClosedLoop<'m> {
                 .as_ref()
                 .expect("the driver ticks live scenes");
             let mut report = s.report();
+            for &a in &report.left {
+                self.driver.retire_agent(i, a)?;
+            }
             if let Some((steps, plan)) = self.driver.plan(i) {
                 report.plans = s.plan_poses(steps, plan, heading_scale);
             }
             out.push((i, report));
         }
+        Ok(())
+    }
+
+    /// Whether agents of scene `scene` that drive off the map through the end of a lane leave
+    /// the scene ([`SceneTick::left`]) instead of driving on into the void (off by default:
+    /// the paper's suites keep every agent for their 4 s).
+    pub fn retire_on_exit(&mut self, scene: usize, on: bool) -> Result<()> {
+        self.scenes
+            .get_mut(scene)
+            .and_then(Option::as_mut)
+            .ok_or_else(|| Error::Config(format!("no scene {scene}")))?
+            .retire_on_exit = on;
         Ok(())
     }
 
@@ -589,6 +618,7 @@ impl<'m> SceneRuntime<'m> {
         let input = RolloutScene {
             history: SceneInput::from_window(w, scene.observed_steps - n, n, model),
         };
+        let agents = w.agents;
         Ok((
             input,
             Self {
@@ -601,6 +631,10 @@ impl<'m> SceneRuntime<'m> {
                 scripted,
                 controllers: scene.controllers,
                 window: scene.window,
+                retire_on_exit: false,
+                retired: vec![false; agents],
+                left: Vec::new(),
+                last_lanelet: vec![None; agents],
                 map,
                 steps,
             },
@@ -625,7 +659,17 @@ impl<'m> SceneRuntime<'m> {
                 emitted[3 * a..3 * a + 3].copy_from_slice(state);
             }
         }
+        // A retired agent stays where it left: the model's states for it are padding.
+        for a in (0..self.retired.len()).filter(|&a| self.retired[a]) {
+            let xy = self
+                .window
+                .frame
+                .to_norm([self.poses[a].x_m, self.poses[a].y_m]);
+            let heading = (self.heading_unwrapped[a] * heading_scale) as f32;
+            emitted[3 * a..3 * a + 3].copy_from_slice(&[xy[0], xy[1], heading]);
+        }
         self.guarded.clear();
+        self.left.clear();
         if let (Some(guard), Some(map)) = (lane_guard, self.map.clone()) {
             self.keep_on_road(emitted, plan_turns, heading_scale, guard, map.get());
         }
@@ -645,6 +689,34 @@ impl<'m> SceneRuntime<'m> {
                 heading_rad: f64::from(wrap_angle(heading as f32)),
             };
         }
+        if self.retire_on_exit {
+            if let Some(map) = self.map.clone() {
+                self.retire_exits(map.get());
+            }
+        }
+    }
+
+    /// Marks the agents (not the client's) that have just driven past the end of a lane with no
+    /// successor: off every lanelet, ahead of that lane's last centre-line point and within
+    /// [`EXIT_LATERAL_MARGIN_M`] of the lane's width sideways.
+    fn retire_exits(&mut self, map: &LaneletMap) {
+        for a in 0..self.poses.len() {
+            if self.retired[a] || self.controllers[a] == Controller::External {
+                continue;
+            }
+            let at = [self.poses[a].x_m, self.poses[a].y_m];
+            if let Some(l) = map.lanelet_at(at) {
+                self.last_lanelet[a] = Some(l);
+                continue;
+            }
+            let Some(lane) = self.last_lanelet[a].map(|l| &map.lanelets[l]) else {
+                continue;
+            };
+            if lane.successors.is_empty() && past_lane_end(lane, at) {
+                self.retired[a] = true;
+                self.left.push(a);
+            }
+        }
     }
 
     /// Runs the lane guard on this tick's states (model units, overrides in) of the model-driven
@@ -662,7 +734,10 @@ impl<'m> SceneRuntime<'m> {
     ) {
         let frame = &self.window.frame;
         for a in 0..self.controllers.len() {
-            if self.controllers[a] != Controller::Model || self.overrides[a].is_some() {
+            if self.controllers[a] != Controller::Model
+                || self.overrides[a].is_some()
+                || self.retired[a]
+            {
                 continue;
             }
             let before = Pose {
@@ -724,8 +799,13 @@ impl<'m> SceneRuntime<'m> {
     /// before the tick are `self.poses` (headings unwrapped), after it `emitted`.
     fn guard(&mut self, emitted: &mut [f32], heading_scale: f64, guard: CollisionGuard) {
         let frame = &self.window.frame;
-        let mut agents: Vec<GuardAgent> = (0..self.controllers.len())
-            .map(|a| {
+        // Retired agents are out of the scene: nobody brakes for them.
+        let present: Vec<usize> = (0..self.controllers.len())
+            .filter(|&a| !self.retired[a])
+            .collect();
+        let mut agents: Vec<GuardAgent> = present
+            .iter()
+            .map(|&a| {
                 let p = frame.to_metres([emitted[3 * a], emitted[3 * a + 1]]);
                 GuardAgent {
                     before: Pose {
@@ -744,9 +824,15 @@ impl<'m> SceneRuntime<'m> {
                 }
             })
             .collect();
-        let collision_actions = guard_step(&mut agents, &guard);
-        for &(a, _) in &collision_actions {
-            let p = agents[a].proposed;
+        let collision_actions: Vec<(usize, GuardAction)> = guard_step(&mut agents, &guard)
+            .into_iter()
+            .map(|(k, action)| (present[k], action))
+            .collect();
+        for (k, &a) in present.iter().enumerate() {
+            if !collision_actions.iter().any(|&(b, _)| b == a) {
+                continue;
+            }
+            let p = agents[k].proposed;
             let xy = frame.to_norm([p.x_m, p.y_m]);
             emitted[3 * a..3 * a + 3].copy_from_slice(&[
                 xy[0],
@@ -781,7 +867,12 @@ impl<'m> SceneRuntime<'m> {
 
     /// The poses after the tick and its infractions.
     fn report(&self) -> SceneTick {
-        let b = boxes(&self.window, &self.poses);
+        let mut b = boxes(&self.window, &self.poses);
+        for (a, gone) in self.retired.iter().enumerate() {
+            if *gone {
+                b[a] = None;
+            }
+        }
         let mut hits = collisions(&b);
         hits.retain(|pair| !self.initial_overlaps.contains(pair));
         let mut off = self
@@ -796,8 +887,32 @@ impl<'m> SceneRuntime<'m> {
             off_road: off,
             guarded: self.guarded.clone(),
             plans: Vec::new(),
+            left: self.left.clone(),
         }
     }
+}
+
+/// How far sideways of a lane's end an agent may be and still count as having left the map
+/// through it (beyond half the lane's width).
+pub const EXIT_LATERAL_MARGIN_M: f64 = 2.0;
+
+/// Whether `at` lies ahead of the end of `lane`'s centre line (past the line through its last
+/// point, square to its last segment) and within half the lane's end width plus
+/// [`EXIT_LATERAL_MARGIN_M`] of that line's axis.
+fn past_lane_end(lane: &road_data::map::Lanelet, at: road_data::geometry::Point) -> bool {
+    let [.., before, end] = lane.centre_m.as_slice() else {
+        return false;
+    };
+    let (end, before) = (DVec2::from(*end), DVec2::from(*before));
+    let Some(along) = (end - before).try_normalize() else {
+        return false;
+    };
+    let offset = DVec2::from(at) - end;
+    let half_width = match (lane.left_m.last(), lane.right_m.last()) {
+        (Some(&l), Some(&r)) => 0.5 * DVec2::from(l).distance(DVec2::from(r)),
+        _ => 0.0,
+    };
+    offset.dot(along) > 0.0 && offset.perp_dot(along).abs() <= half_width + EXIT_LATERAL_MARGIN_M
 }
 
 /// Simulates a scene whose every agent is scripted (replay, adversarial, constant velocity):
@@ -846,6 +961,7 @@ pub fn simulate_scripted(
                 off_road: off,
                 guarded: Vec::new(),
                 plans: Vec::new(),
+                left: Vec::new(),
             }
         })
         .collect())

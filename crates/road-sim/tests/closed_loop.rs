@@ -556,3 +556,68 @@ fn the_lane_guard_keeps_model_agents_on_the_road() {
         model_agents_off_road(&unguarded)
     );
 }
+
+/// With `retire_on_exit`, vehicles that drive past the end of a lane with no successor (the
+/// map's edge) leave the scene once (`SceneTick::left`), their pose held from then on, and are
+/// never counted off road; without it the same vehicles drive on into the void, off road.
+#[test]
+fn vehicles_that_drive_off_the_map_leave_the_scene() {
+    use road_sim::procedural::{ProceduralMap, procedural};
+    let model = small_model();
+    let scene = procedural(ProceduralMap::Merge, &WindowConfig::default(), 10).unwrap();
+    let controllers = vec![Controller::ConstantVelocity; scene.window.agents];
+    let steps = 150;
+    let run = |retire: bool| {
+        let mut engine = CpuEngine::new(&model);
+        let mut rng = StdRng::seed_from_u64(0);
+        let mut sim = closed_loop(
+            &mut engine,
+            &model,
+            &scene,
+            controllers.clone(),
+            true,
+            steps,
+            &mut rng,
+        )
+        .unwrap();
+        sim.retire_on_exit(0, retire).unwrap();
+        let mut out = Vec::new();
+        let mut ticks = Vec::new();
+        for _ in 0..steps {
+            sim.tick(&mut engine, &mut NoExternal, &mut out).unwrap();
+            ticks.push(out[0].clone());
+        }
+        ticks
+    };
+    let kept = run(false);
+    let off_before: std::collections::BTreeSet<usize> =
+        kept.iter().flat_map(|t| t.off_road.clone()).collect();
+    assert!(kept.iter().all(|t| t.left.is_empty()));
+    let retired = run(true);
+    let mut left = std::collections::BTreeMap::new();
+    for (t, tick) in retired.iter().enumerate() {
+        for &a in &tick.left {
+            assert!(left.insert(a, t).is_none(), "agent {a} left twice");
+        }
+    }
+    assert!(
+        !left.is_empty(),
+        "no vehicle reached the map's end in {steps} ticks"
+    );
+    for (&a, &t) in &left {
+        // Off road without retirement: that is what leaving the map used to count as.
+        assert!(
+            off_before.contains(&a),
+            "agent {a} left without going off road before"
+        );
+        let held = retired[t].poses[a];
+        for tick in &retired[t..] {
+            assert!(
+                !tick.off_road.contains(&a),
+                "agent {a} off road after it left"
+            );
+            assert!(close(tick.poses[a], held), "agent {a} moved after it left");
+            assert!(tick.collisions.iter().all(|&(i, j)| i != a && j != a));
+        }
+    }
+}

@@ -123,3 +123,24 @@ pub fn assert_sane(npc: &road_client::protocol::NpcTick, radius_m: f64) {
         npc.queue_ms
     );
 }
+
+/// A Lanelet2 map of one straight lanelet along +x, 111 m long and 4.4 m wide from lat/lon
+/// (0, 0) (`lanelets: false`: its two ways and no lanelet).
+pub fn osm(lanelets: bool) -> String {
+    let mut s = String::from("<?xml version=\"1.0\"?>\n<osm version=\"0.6\">\n");
+    for (id, lat, lon) in [
+        (1, 0.0, 0.0),
+        (2, 0.0, 0.001),
+        (3, 0.00004, 0.0),
+        (4, 0.00004, 0.001),
+    ] {
+        s += &format!("  <node id=\"{id}\" lat=\"{lat}\" lon=\"{lon}\"/>\n");
+    }
+    s += "  <way id=\"10\"><nd ref=\"3\"/><nd ref=\"4\"/></way>\n";
+    s += "  <way id=\"11\"><nd ref=\"1\"/><nd ref=\"2\"/></way>\n";
+    if lanelets {
+        s += "  <relation id=\"100\"><member type=\"way\" ref=\"10\" role=\"left\"/><member type=\"way\" ref=\"11\" role=\"right\"/><tag k=\"type\" v=\"lanelet\"/><tag k=\"subtype\" v=\"road\"/></relation>\n";
+    }
+    s += "</osm>\n";
+    s
+}

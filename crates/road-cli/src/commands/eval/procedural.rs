@@ -300,6 +300,7 @@ mod tests {
             off_road,
             guarded: Vec::new(),
             plans: Vec::new(),
+            left: Vec::new(),
         }
     }
 
