@@ -1,4 +1,4 @@
-// Elementwise steps of the denoiser and the sampler.
+// Elementwise steps of the denoiser: the output preconditioning.
 
 struct Params {
     count: u32,      // elements of the main operand
@@ -6,12 +6,13 @@ struct Params {
     per_slot: u32,   // elements per (scene, slot) row of x: 3 for states
     agents: u32,     // A
     sigma_data: f32,
-    hidden: u32,     // D (point embeddings) or unused
-    points: u32,     // Q (point embeddings) or unused
     anchor_slot: u32, // precondition_output: the agent frame's anchor slot, or NO_FRAME
     heading_scale: f32, // precondition_output with an agent frame: state units per radian
     residual_scale: f32, // precondition_output: the constant-velocity reference's scale, 0 without
     _pad1: u32,
+    _pad2: u32,
+    _pad3: u32,
+    _pad4: u32,
 }
 
 const NO_FRAME: u32 = 0xffffffffu;
@@ -25,16 +26,6 @@ const NO_FRAME: u32 = 0xffffffffu;
 
 fn flat_index(gid: vec3<u32>, groups: vec3<u32>) -> u32 {
     return gid.x + gid.y * groups.x * 64u;
-}
-
-// out += a (residual connections). b, c, e unused.
-@compute @workgroup_size(64)
-fn add_in_place(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
-    let i = flat_index(gid, groups);
-    if (i >= params.count) {
-        return;
-    }
-    out[i] = out[i] + a[i];
 }
 
 // D = c_skip · x + c_out · F · valid. a = x [B, A, W, 3], b = F [B, A, W, 3], c = σ [B, W],
@@ -83,39 +74,4 @@ fn precondition_output(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(n
     let denom = s * s + sd * sd;
     let y = (a[i] - reference) * scale;
     out[i] = reference + (sd * sd / denom * y + s * sd * inverseSqrt(denom) * f * e[token]) / scale;
-}
-
-// Map points: out[b, p, q, :] = relu(W · point + bias + point_embedding[q, :]).
-// a = points [B, P, Q, 2], b = packed (W [D, 2] | bias [D] | point_embedding [Q, D]).
-@compute @workgroup_size(64)
-fn embed_map_points(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
-    let i = flat_index(gid, groups);
-    if (i >= params.count) {
-        return;
-    }
-    let d_count = params.hidden;
-    let d = i % d_count;
-    let point = i / d_count; // (b, p, q)
-    let q = point % params.points;
-    let bias = 2u * d_count;
-    let pe = bias + d_count;
-    let v = b[2u * d] * a[2u * point] + b[2u * d + 1u] * a[2u * point + 1u] + b[bias + d] + b[pe + q * d_count + d];
-    out[i] = max(v, 0.0);
-}
-
-// Max over the Q points of each polyline: a = [B·P, Q, D] → out [B·P, D].
-@compute @workgroup_size(64)
-fn max_over_points(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
-    let i = flat_index(gid, groups);
-    if (i >= params.count) {
-        return;
-    }
-    let d_count = params.hidden;
-    let d = i % d_count;
-    let poly = i / d_count;
-    var m = -3.0e38;
-    for (var q = 0u; q < params.points; q++) {
-        m = max(m, a[(poly * params.points + q) * d_count + d]);
-    }
-    out[i] = m;
 }

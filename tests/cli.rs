@@ -299,7 +299,9 @@ fn gpu_selftest_passes_on_the_adapter_present() {
     for kernel in [
         "linear",
         "linear_tiled",
-        "layer_norm",
+        "linear (norm, residual)",
+        "linear_tiled (norm, residual)",
+        "encode_polylines",
         "attention",
         "pair_attention",
         "pick_agent_maps",

@@ -1,6 +1,7 @@
 """The Python client against a real ``road serve`` on loopback: one scene on the procedural
 roundabout with a log-replay ego (its history's velocity, held) for 100 ticks. Every tick is
-answered, every NPC state is finite and on the map's frame, and the scene's MCAP recording
+answered, every NPC state is finite and on the map's frame (an NPC that drives off the map's
+edge leaves, once), and the scene's MCAP recording
 reads back with the ``mcap`` package holding the 100 ticks.
 
 The server binary comes from ``$ROAD_BIN`` (``scripts/test.sh`` builds it), else
@@ -51,6 +52,9 @@ def test_log_replay_ego_for_100_ticks(server):
         npc = scene.step(t, [AgentState(ego.id, last.x_m + vx * t, last.y_m + vy * t,
                                         last.heading_rad)])
         assert npc.tick == t
+        # An NPC that drove off the map's edge leaves once and is in no later tick.
+        assert set(npc.left) <= npc_ids, (t, npc.left)
+        npc_ids -= set(npc.left)
         assert {a.id for a in npc.npcs} == npc_ids
         assert not npc.late_external
         # Protocol 3: the wait for other scenes' rounds is a part of the latency, like compute.

@@ -16,9 +16,9 @@ pub struct ContextOptions {
     /// The linear layers' kernel; `None` picks per layer ([`LinearKernel::choose`]: tiled for
     /// large layers on hardware, row-wise otherwise and on software adapters such as lavapipe).
     pub linear_kernel: Option<LinearKernel>,
-    /// Most bytes of the map encoder's per-point activations at a time: it runs over the
-    /// polylines chunk by chunk (at least 64 polylines each) so that agent maps of large
-    /// batches fit one buffer binding. Tests make it tiny to run many chunks.
+    /// Most bytes of the map encoder's points a dispatch binds: it runs over the polylines
+    /// chunk by chunk (at least 64 polylines each) so that agent maps of large batches fit one
+    /// buffer binding. Tests make it tiny to run many chunks.
     pub map_encoder_chunk_bytes: u64,
 }
 

@@ -4,9 +4,12 @@
 //! agent's own every evaluation (`agent_map.wgsl` picks them from the anchors).
 //!
 //! The forward pass is the one of `docs/checkpoint.md`, kernel by kernel:
-//! `linear` (embed_agent) → `embed_tokens` → per block: `layer_norm`, `linear` q/k/v,
-//! `attention` (time, agents, map layouts; `pair_attention` for agents with agent pairs), `linear` o, `add_in_place`, MLP → `layer_norm`,
-//! `linear` head → `precondition_output`. The sampler steps around it are in `sampler_step`.
+//! `linear` (embed_agent) → `embed_tokens` → per block and attention: `linear` q/k/v (the
+//! layer norm in its prologue, one layer of 3·D outputs), `attention` (time, agents, map
+//! layouts; `pair_attention` for agents with agent pairs), `linear` o (the residual add in its
+//! epilogue); MLP: `linear` in (norm, ReLU), `linear` out (residual) → `linear` head (`ln_out`
+//! in its prologue) → `precondition_output`. The sampler steps around it are in
+//! `sampler_step`.
 
 use std::collections::HashMap;
 use std::path::Path;
@@ -17,8 +20,8 @@ use road_model::ModelConfig;
 use crate::kernels::agent_map::AgentMapParams;
 use crate::kernels::agent_pairs::PairAttentionParams;
 use crate::kernels::attention::{AttentionParams, MAX_HEAD_DIM, TokenLayout};
-use crate::kernels::layer_norm::LayerNormParams;
 use crate::kernels::linear::{Linear, LinearKernel, LinearParams};
+use crate::kernels::polyline::PolylineParams;
 use crate::kernels::{Dispatch, Pipeline, read_back, record_all, rows_of, storage_buffer, upload};
 use crate::shaders::Shader;
 use crate::{Error, GpuContext, Result};
@@ -62,13 +65,55 @@ struct ElementwiseParams {
     per_slot: u32,
     agents: u32,
     sigma_data: f32,
-    hidden: u32,
-    points: u32,
     anchor_slot: u32,
     heading_scale: f32,
     /// `AgentFrame::residual_scale`, 0 without a constant-velocity reference.
     residual_scale: f32,
-    _pad: [u32; 2],
+    _pad: [u32; 4],
+}
+
+/// What a linear layer fuses with its neighbours (`linear.wgsl`), each a dispatch saved.
+#[derive(Debug, Clone, Copy, Default)]
+struct Fused {
+    /// ReLU after the bias.
+    relu: bool,
+    /// Add into `y` (the residual stream) instead of overwriting it.
+    residual: bool,
+    /// The layer norm before the layer, in its prologue (its γ, β folded into the layer's
+    /// weights on upload).
+    norm: bool,
+    /// Outputs per part of `y` (0: one part): stacked projections into separate tensors.
+    part: usize,
+}
+
+impl Fused {
+    fn residual() -> Self {
+        Self {
+            residual: true,
+            ..Self::default()
+        }
+    }
+}
+
+/// Floats of one part of a split buffer holding `floats`: rounded up so that every part starts
+/// at the adapter's storage offset alignment (parts are bound as separate tensors).
+fn part_floats(ctx: &GpuContext, floats: usize) -> usize {
+    let align = (ctx.device.limits().min_storage_buffer_offset_alignment as usize / 4).max(1);
+    floats.div_ceil(align) * align
+}
+
+/// Part `index` (`len` floats) of a buffer split into parts `stride` floats apart.
+fn part_of(
+    buffer: &wgpu::Buffer,
+    index: usize,
+    stride: usize,
+    len: usize,
+) -> wgpu::BindingResource<'_> {
+    wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+        buffer,
+        offset: (index * stride * 4) as u64,
+        size: std::num::NonZeroU64::new((len.max(1) * 4) as u64),
+    })
 }
 
 /// Every pipeline of the engine, compiled once.
@@ -76,13 +121,10 @@ struct ElementwiseParams {
 pub(crate) struct Pipelines {
     linear_rowwise: Linear,
     linear_tiled: Linear,
-    layer_norm: Pipeline,
     attention: Pipeline,
     embed_tokens: Pipeline,
-    add_in_place: Pipeline,
     precondition_output: Pipeline,
-    embed_map_points: Pipeline,
-    max_over_points: Pipeline,
+    encode_polylines: Pipeline,
     pub(crate) heun_euler: Pipeline,
     pub(crate) heun_correct: Pipeline,
     pub(crate) multistep_correct: Pipeline,
@@ -95,13 +137,10 @@ impl Pipelines {
         Self {
             linear_rowwise: Linear::with_kernel(ctx, LinearKernel::Rowwise),
             linear_tiled: Linear::with_kernel(ctx, LinearKernel::Tiled),
-            layer_norm: Pipeline::new(ctx, Shader::LayerNorm, "layer_norm"),
             attention: Pipeline::new(ctx, Shader::Attention, "attention"),
             embed_tokens: Pipeline::new(ctx, Shader::Embed, "embed_tokens"),
-            add_in_place: Pipeline::new(ctx, Shader::Elementwise, "add_in_place"),
             precondition_output: Pipeline::new(ctx, Shader::Elementwise, "precondition_output"),
-            embed_map_points: Pipeline::new(ctx, Shader::Elementwise, "embed_map_points"),
-            max_over_points: Pipeline::new(ctx, Shader::Elementwise, "max_over_points"),
+            encode_polylines: Pipeline::new(ctx, Shader::Polyline, "encode_polylines"),
             heun_euler: Pipeline::new(ctx, Shader::Heun, "heun_euler"),
             heun_correct: Pipeline::new(ctx, Shader::Heun, "heun_correct"),
             multistep_correct: Pipeline::new(ctx, Shader::Heun, "multistep_correct"),
@@ -259,15 +298,74 @@ impl GpuDenoiser {
         .copied()
         .collect();
         packed.push(("packed.map_points".into(), map_points));
+        // Projections that read the same input run as one layer (`Fused::part`): q, k, v of
+        // each self-attention, k, v of each map attention, weights [parts·D, D] and biases
+        // stacked. Their own tensors are then not uploaded.
+        let mut stacked = std::collections::HashSet::new();
+        // Layer norms before a linear layer are folded into its weights (the kernel's `norm`
+        // prologue only standardises the rows): the folded layers replace theirs, and the
+        // norms' own tensors are not uploaded.
+        let mut normed: Vec<(String, &str)> = vec![("ln_out".into(), "head")];
+        for i in 0..config.blocks {
+            for (norm, layer) in [
+                ("ln_time", "time.q"),
+                ("ln_time", "time.k"),
+                ("ln_time", "time.v"),
+                ("ln_agents", "agents.q"),
+                ("ln_agents", "agents.k"),
+                ("ln_agents", "agents.v"),
+                ("ln_map", "map.q"),
+                ("ln_mlp", "mlp_in"),
+            ] {
+                normed.push((format!("blocks.{i}.{norm}"), layer));
+            }
+        }
+        let mut folded: HashMap<String, Vec<f32>> = HashMap::new();
+        for (norm, layer) in &normed {
+            // `head` is global, the rest per block (`blocks.{i}.ln_time` → `blocks.{i}.time.q`).
+            let layer = match norm.rsplit_once('.') {
+                Some((block, _)) => format!("{block}.{layer}"),
+                None => layer.to_string(),
+            };
+            let (w, b) = crate::kernels::linear::fold_layer_norm(
+                get(&format!("{layer}.weight"))?,
+                get(&format!("{layer}.bias"))?,
+                get(&format!("{norm}.weight"))?,
+                get(&format!("{norm}.bias"))?,
+            );
+            folded.insert(format!("{layer}.weight"), w);
+            folded.insert(format!("{layer}.bias"), b);
+            stacked.insert(format!("{norm}.weight"));
+            stacked.insert(format!("{norm}.bias"));
+        }
+        let get =
+            |name: &str| -> Result<&Vec<f32>> { folded.get(name).map_or_else(|| get(name), Ok) };
+        for i in 0..config.blocks {
+            for (group, name, parts) in [
+                ("time", "qkv", &["q", "k", "v"][..]),
+                ("agents", "qkv", &["q", "k", "v"][..]),
+                ("map", "kv", &["k", "v"][..]),
+            ] {
+                for kind in ["weight", "bias"] {
+                    let mut values = Vec::new();
+                    for part in parts {
+                        let tensor = format!("blocks.{i}.{group}.{part}.{kind}");
+                        values.extend_from_slice(get(&tensor)?);
+                        stacked.insert(tensor);
+                    }
+                    packed.push((format!("blocks.{i}.{group}.{name}.{kind}"), values));
+                }
+            }
+        }
 
         let align = u64::from(ctx.device.limits().min_storage_buffer_offset_alignment).max(4);
         let mut blob: Vec<u8> = Vec::new();
         let mut slices = HashMap::new();
-        let mut names: Vec<&String> = tensors.keys().collect();
+        let mut names: Vec<&String> = tensors.keys().filter(|n| !stacked.contains(*n)).collect();
         names.sort();
         for (name, values) in names
             .into_iter()
-            .map(|n| (n.clone(), &tensors[n]))
+            .map(|n| (n.clone(), folded.get(n).unwrap_or(&tensors[n])))
             .chain(packed.iter().map(|(n, v)| (n.clone(), v)))
         {
             let offset = (blob.len() as u64).div_ceil(align) * align;
@@ -311,6 +409,8 @@ impl GpuDenoiser {
         )
     }
 
+    /// One linear layer `layer` (its `.weight`, `.bias`) of `(rows, in, out)`, fused as `fused`
+    /// says: `x [rows, in]` → `y` (`[rows, out]`, or its parts).
     #[allow(clippy::too_many_arguments)]
     fn linear(
         &self,
@@ -318,24 +418,26 @@ impl GpuDenoiser {
         ops: &mut Vec<Dispatch>,
         layer: &str,
         x: &wgpu::Buffer,
-        y: &wgpu::Buffer,
-        rows: usize,
-        in_dim: usize,
-        out_dim: usize,
-        relu: bool,
+        y: wgpu::BindingResource<'_>,
+        (rows, in_dim, out_dim): (usize, usize, usize),
+        fused: Fused,
     ) -> Result<()> {
+        let part = if fused.part == 0 { out_dim } else { fused.part };
         let p = LinearParams {
-            rows: rows as u32,
-            in_dim: in_dim as u32,
-            out_dim: out_dim as u32,
-            relu: u32::from(relu),
+            relu: u32::from(fused.relu),
+            residual: u32::from(fused.residual),
+            norm: u32::from(fused.norm),
+            eps: LN_EPS,
+            part: part as u32,
+            part_stride: part_floats(ctx, rows * part) as u32,
+            ..LinearParams::new(rows, in_dim, out_dim)
         };
         let params = Self::params(ctx, &p);
         let resources = [
             x.as_entire_binding(),
             self.w(&format!("{layer}.weight"))?,
             self.w(&format!("{layer}.bias"))?,
-            y.as_entire_binding(),
+            y,
         ];
         let linear = match ctx.linear_kernel_for(&p) {
             LinearKernel::Rowwise => &self.pipelines.linear_rowwise,
@@ -348,66 +450,6 @@ impl GpuDenoiser {
             p.threads(linear.kernel),
         ));
         Ok(())
-    }
-
-    fn layer_norm(
-        &self,
-        ctx: &GpuContext,
-        ops: &mut Vec<Dispatch>,
-        name: &str,
-        x: &wgpu::Buffer,
-        y: &wgpu::Buffer,
-        rows: usize,
-    ) -> Result<()> {
-        let p = LayerNormParams {
-            rows: rows as u32,
-            dim: self.config.hidden as u32,
-            eps: LN_EPS,
-            _pad: 0,
-        };
-        let params = Self::params(ctx, &p);
-        let resources = [
-            x.as_entire_binding(),
-            self.w(&format!("{name}.weight"))?,
-            self.w(&format!("{name}.bias"))?,
-            y.as_entire_binding(),
-        ];
-        ops.push(
-            self.pipelines
-                .layer_norm
-                .prepare_resources(ctx, &params, &resources, p.rows),
-        );
-        Ok(())
-    }
-
-    fn add(
-        &self,
-        ctx: &GpuContext,
-        ops: &mut Vec<Dispatch>,
-        from: &wgpu::Buffer,
-        into: &wgpu::Buffer,
-        count: usize,
-    ) {
-        let p = ElementwiseParams {
-            count: count as u32,
-            slots: 0,
-            per_slot: 0,
-            agents: 0,
-            sigma_data: 0.0,
-            hidden: 0,
-            points: 0,
-            anchor_slot: NO_FRAME,
-            heading_scale: 1.0,
-            residual_scale: 0.0,
-            _pad: [0; 2],
-        };
-        let params = Self::params(ctx, &p);
-        let bound = [(1, from.as_entire_binding()), (5, into.as_entire_binding())];
-        ops.push(
-            self.pipelines
-                .add_in_place
-                .prepare(ctx, &params, &bound, p.count),
-        );
     }
 
     /// The map of `scenes` scenes: `map [B, P, Q, 2]` (normalised), `map_valid [B, P]`:
@@ -480,58 +522,31 @@ impl GpuDenoiser {
         let (n, q, d) = (scratch.polylines, scratch.points, self.config.hidden);
         for first in (0..n).step_by(scratch.chunk) {
             let rows = scratch.chunk.min(n - first);
-            let p = ElementwiseParams {
-                count: (rows * q * d) as u32,
-                slots: 0,
-                per_slot: 0,
-                agents: 0,
-                sigma_data: 0.0,
-                hidden: d as u32,
+            let p = PolylineParams {
+                polylines: rows as u32,
                 points: q as u32,
-                anchor_slot: NO_FRAME,
-                heading_scale: 1.0,
-                residual_scale: 0.0,
-                _pad: [0; 2],
+                hidden: d as u32,
+                eps: LN_EPS,
             };
+            p.check()?;
             let params = Self::params(ctx, &p);
-            // Bindings a, b and out of the elementwise family (c and e are unused by this entry).
-            let bound = [
-                (1, rows_of(points, first, rows, q * 2)),
-                (2, self.w("packed.map_points")?),
-                (5, scratch.embedded.as_entire_binding()),
+            let resources = [
+                rows_of(points, first, rows, q * 2),
+                self.w("packed.map_points")?,
+                self.w("map_mix.weight")?,
+                self.w("map_mix.bias")?,
+                self.w("ln_map_out.weight")?,
+                self.w("ln_map_out.bias")?,
+                rows_of(&scratch.tokens, first, rows, d),
             ];
-            ops.push(
-                self.pipelines
-                    .embed_map_points
-                    .prepare(ctx, &params, &bound, p.count),
-            );
-            self.linear(
+            ops.push(self.pipelines.encode_polylines.prepare_resources(
                 ctx,
-                ops,
-                "map_mix",
-                &scratch.embedded,
-                &scratch.mixed,
-                rows * q,
-                d,
-                d,
-                false,
-            )?;
-            let p = ElementwiseParams {
-                count: (rows * d) as u32,
-                ..p
-            };
-            let params = Self::params(ctx, &p);
-            let bound = [
-                (1, scratch.mixed.as_entire_binding()),
-                (5, rows_of(&scratch.pooled, first, rows, d)),
-            ];
-            ops.push(
-                self.pipelines
-                    .max_over_points
-                    .prepare(ctx, &params, &bound, p.count),
-            );
+                &params,
+                &resources,
+                p.threads(),
+            ));
         }
-        self.layer_norm(ctx, ops, "ln_map_out", &scratch.pooled, &scratch.tokens, n)
+        Ok(())
     }
 
     /// Uploads one evaluation's inputs and embeds the agents' static features.
@@ -587,11 +602,9 @@ impl GpuDenoiser {
             &mut ops,
             "embed_agent",
             &features,
-            &agent_embedding,
-            rows,
-            6,
-            d,
-            false,
+            agent_embedding.as_entire_binding(),
+            (rows, 6, d),
+            Fused::default(),
         )?;
         let mut enc = ctx
             .device
@@ -625,18 +638,16 @@ impl GpuDenoiser {
         let m = d * c.mlp_ratio;
         let Scratch {
             h,
-            t,
-            q,
-            k,
-            v,
+            qkv,
+            token_part,
             att,
-            y,
             hidden,
-            mk,
-            mv,
+            mkv,
+            key_part,
             f,
             agent_maps,
         } = scratch;
+        let (token_part, key_part) = (*token_part, *key_part);
 
         let p = EmbedParams {
             scenes: b as u32,
@@ -757,48 +768,29 @@ impl GpuDenoiser {
                     },
                 ),
             ] {
-                self.layer_norm(ctx, ops, &format!("{blk}.ln_{part}"), h, t, tokens)?;
+                // The layer norm and q, k, v: one layer of 3·D outputs into qkv's parts.
                 self.linear(
                     ctx,
                     ops,
-                    &format!("{blk}.{part}.q"),
-                    t,
-                    q,
-                    tokens,
-                    d,
-                    d,
-                    false,
+                    &format!("{blk}.{part}.qkv"),
+                    h,
+                    qkv.as_entire_binding(),
+                    (tokens, d, 3 * d),
+                    Fused {
+                        norm: true,
+                        part: d,
+                        ..Fused::default()
+                    },
                 )?;
-                self.linear(
-                    ctx,
-                    ops,
-                    &format!("{blk}.{part}.k"),
-                    t,
-                    k,
-                    tokens,
-                    d,
-                    d,
-                    false,
-                )?;
-                self.linear(
-                    ctx,
-                    ops,
-                    &format!("{blk}.{part}.v"),
-                    t,
-                    v,
-                    tokens,
-                    d,
-                    d,
-                    false,
-                )?;
+                let [q, k, v] = [0, 1, 2].map(|j| part_of(qkv, j, token_part, tokens * d));
                 if part == "agents" && c.agent_pairs.is_some() {
                     // Agent pairs: their features from this `x`, in the pair kernel.
                     let pairs = PairAttentionParams::of(c, b, a)?;
                     let params = Self::params(ctx, &pairs);
                     let resources = [
-                        q.as_entire_binding(),
-                        k.as_entire_binding(),
-                        v.as_entire_binding(),
+                        q,
+                        k,
+                        v,
                         batch.valid.as_entire_binding(),
                         x.as_entire_binding(),
                         self.w(&format!("{blk}.agents.pair_k"))?,
@@ -813,47 +805,61 @@ impl GpuDenoiser {
                     ));
                 } else {
                     let params = Self::params(ctx, &attn);
-                    ops.push(self.pipelines.attention.prepare_buffers(
+                    let resources = [
+                        q,
+                        k,
+                        v,
+                        batch.valid.as_entire_binding(),
+                        att.as_entire_binding(),
+                    ];
+                    ops.push(self.pipelines.attention.prepare_resources(
                         ctx,
                         &params,
-                        &[q, k, v, &batch.valid, att],
+                        &resources,
                         attn.threads(),
                     ));
                 }
+                // The output projection adds into the residual stream.
                 self.linear(
                     ctx,
                     ops,
                     &format!("{blk}.{part}.o"),
                     att,
-                    y,
-                    tokens,
-                    d,
-                    d,
-                    false,
+                    h.as_entire_binding(),
+                    (tokens, d, d),
+                    Fused::residual(),
                 )?;
-                self.add(ctx, ops, y, h, tokens * d);
             }
             // Map cross-attention: queries [B, A·W, D], keys [B, P, D]; with agent maps each
             // agent's W queries [B·A, W, D] to its own keys [B·A, K, D].
-            self.layer_norm(ctx, ops, &format!("{blk}.ln_map"), h, t, tokens)?;
-            self.linear(ctx, ops, &format!("{blk}.map.q"), t, q, tokens, d, d, false)?;
+            self.linear(
+                ctx,
+                ops,
+                &format!("{blk}.map.q"),
+                h,
+                part_of(qkv, 0, token_part, tokens * d),
+                (tokens, d, d),
+                Fused {
+                    norm: true,
+                    ..Fused::default()
+                },
+            )?;
             let (keys, key_rows) = match (agent_maps, map.picked) {
                 (Some(maps), Some(k)) => (&maps.encoder.tokens, b * a * k),
                 _ => (&map.data, b * map.polylines),
             };
-            for (part, into) in [("k", mk), ("v", mv)] {
-                self.linear(
-                    ctx,
-                    ops,
-                    &format!("{blk}.map.{part}"),
-                    keys,
-                    into,
-                    key_rows,
-                    d,
-                    d,
-                    false,
-                )?;
-            }
+            self.linear(
+                ctx,
+                ops,
+                &format!("{blk}.map.kv"),
+                keys,
+                mkv.as_entire_binding(),
+                (key_rows, d, 2 * d),
+                Fused {
+                    part: d,
+                    ..Fused::default()
+                },
+            )?;
             let (attn, key_valid) = match (agent_maps, map.picked) {
                 (Some(maps), Some(k)) => {
                     let k = k as u32;
@@ -883,10 +889,17 @@ impl GpuDenoiser {
                 }
             };
             let params = Self::params(ctx, &attn);
-            ops.push(self.pipelines.attention.prepare_buffers(
+            let resources = [
+                part_of(qkv, 0, token_part, tokens * d),
+                part_of(mkv, 0, key_part, key_rows * d),
+                part_of(mkv, 1, key_part, key_rows * d),
+                key_valid.as_entire_binding(),
+                att.as_entire_binding(),
+            ];
+            ops.push(self.pipelines.attention.prepare_resources(
                 ctx,
                 &params,
-                &[q, mk, mv, key_valid, att],
+                &resources,
                 attn.threads(),
             ));
             self.linear(
@@ -894,56 +907,60 @@ impl GpuDenoiser {
                 ops,
                 &format!("{blk}.map.o"),
                 att,
-                y,
-                tokens,
-                d,
-                d,
-                false,
+                h.as_entire_binding(),
+                (tokens, d, d),
+                Fused::residual(),
             )?;
-            self.add(ctx, ops, y, h, tokens * d);
-            // MLP.
-            self.layer_norm(ctx, ops, &format!("{blk}.ln_mlp"), h, t, tokens)?;
+            // MLP: the layer norm and ReLU fused into its first layer, the residual into its
+            // second.
             self.linear(
                 ctx,
                 ops,
                 &format!("{blk}.mlp_in"),
-                t,
-                hidden,
-                tokens,
-                d,
-                m,
-                true,
+                h,
+                hidden.as_entire_binding(),
+                (tokens, d, m),
+                Fused {
+                    relu: true,
+                    norm: true,
+                    ..Fused::default()
+                },
             )?;
             self.linear(
                 ctx,
                 ops,
                 &format!("{blk}.mlp_out"),
                 hidden,
-                y,
-                tokens,
-                m,
-                d,
-                false,
+                h.as_entire_binding(),
+                (tokens, m, d),
+                Fused::residual(),
             )?;
-            self.add(ctx, ops, y, h, tokens * d);
         }
-        self.layer_norm(ctx, ops, "ln_out", h, t, tokens)?;
-        self.linear(ctx, ops, "head", t, f, tokens, d, 3, false)?;
+        self.linear(
+            ctx,
+            ops,
+            "head",
+            h,
+            f.as_entire_binding(),
+            (tokens, d, 3),
+            Fused {
+                norm: true,
+                ..Fused::default()
+            },
+        )?;
         let p = ElementwiseParams {
             count: (tokens * 3) as u32,
             slots: w32,
             per_slot: 3,
             agents: a32,
             sigma_data: c.edm.sigma_data as f32,
-            hidden: d as u32,
-            points: 0,
             anchor_slot: c
                 .agent_frame
                 .as_ref()
                 .map_or(NO_FRAME, |f| f.anchor_slot as u32),
             heading_scale: c.heading_scale as f32,
             residual_scale: residual_scale(c),
-            _pad: [0; 2],
+            _pad: [0; 4],
         };
         let params = Self::params(ctx, &p);
         ops.push(self.pipelines.precondition_output.prepare_buffers(
@@ -992,55 +1009,48 @@ impl GpuDenoiser {
 /// Scratch activations of one forward pass.
 #[derive(Debug)]
 pub(crate) struct Scratch {
-    h: wgpu::Buffer,
-    t: wgpu::Buffer,
-    q: wgpu::Buffer,
-    k: wgpu::Buffer,
-    v: wgpu::Buffer,
-    att: wgpu::Buffer,
-    y: wgpu::Buffer,
-    hidden: wgpu::Buffer,
-    mk: wgpu::Buffer,
-    mv: wgpu::Buffer,
-    f: wgpu::Buffer,
+    h: wgpu::Buffer, // [T, D]: the residual stream
+    /// `[3, token_part]`: q, k, v `[T, D]` each, from one fused projection.
+    qkv: wgpu::Buffer,
+    /// Floats from one part of `qkv` to the next: `T · D` rounded up to the offset alignment.
+    token_part: usize,
+    att: wgpu::Buffer,    // [T, D]
+    hidden: wgpu::Buffer, // [T, M]
+    /// `[2, key_part]`: the map's k, v `[key rows, D]`.
+    mkv: wgpu::Buffer,
+    key_part: usize,
+    f: wgpu::Buffer, // [T, 3]
     agent_maps: Option<AgentMapScratch>,
 }
 
-/// The polyline encoder's activations for `polylines` polylines of `points` points. The
-/// per-point activations hold `chunk` polylines at a time (the encoder runs chunk by chunk), so
-/// that agent maps of large batches (B·A·K polylines) fit one buffer binding.
+/// The polyline encoder's output for `polylines` polylines of `points` points. It runs
+/// `chunk` polylines a dispatch, so that the points of agent maps of large batches (B·A·K
+/// polylines) fit one buffer binding.
 #[derive(Debug)]
 struct PolylineScratch {
     polylines: usize,
     points: usize,
     chunk: usize,
-    embedded: wgpu::Buffer, // [chunk, Q, D]
-    mixed: wgpu::Buffer,    // [chunk, Q, D]
-    pooled: wgpu::Buffer,   // [n, D]
-    tokens: wgpu::Buffer,   // [n, D]
+    tokens: wgpu::Buffer, // [n, D]
 }
 
 impl PolylineScratch {
     fn new(ctx: &GpuContext, polylines: usize, points: usize, d: usize) -> Self {
-        let buf = |label: &str, floats: usize| storage_buffer(ctx, label, (floats * 4) as u64);
         // Chunks of a multiple of 64 polylines: their offsets into the [n, Q, 2] points and the
-        // [n, D] pooled tokens are then multiples of 256 bytes, the storage offset alignment.
+        // [n, D] tokens are then multiples of 256 bytes, the storage offset alignment.
         let limits = ctx.device.limits();
         let max_bytes = ctx
             .map_encoder_chunk_bytes()
             .min(limits.max_storage_buffer_binding_size)
             .min(limits.max_buffer_size);
-        let per_polyline_bytes = (points * d * 4).max(1) as u64;
+        let per_polyline_bytes = (points * 2 * 4).max(1) as u64;
         let chunk = ((max_bytes / per_polyline_bytes) as usize / 64 * 64).max(64);
         let chunk = chunk.min(polylines).max(1);
         Self {
             polylines,
             points,
             chunk,
-            embedded: buf("map.embedded", chunk * points * d),
-            mixed: buf("map.mixed", chunk * points * d),
-            pooled: buf("map.pooled", polylines * d),
-            tokens: buf("map.tokens", polylines * d),
+            tokens: storage_buffer(ctx, "map.tokens", (polylines * d * 4) as u64),
         }
     }
 }
@@ -1074,7 +1084,8 @@ impl Scratch {
         };
         let largest_bytes = 4
             * (tokens * d * c.mlp_ratio)
-                .max(key_rows_needed * d)
+                .max(3 * part_floats(ctx, tokens * d))
+                .max(2 * part_floats(ctx, key_rows_needed * d))
                 .max(point_floats) as u64;
         let limits = ctx.device.limits();
         let max_bytes = limits
@@ -1101,17 +1112,15 @@ impl Scratch {
                 (rows, Some(maps))
             }
         };
+        let (token_part, key_part) = (part_floats(ctx, tokens * d), part_floats(ctx, key_rows * d));
         Ok(Self {
             h: buf("h", tokens * d),
-            t: buf("normed", tokens * d),
-            q: buf("q", tokens * d),
-            k: buf("k", tokens * d),
-            v: buf("v", tokens * d),
+            qkv: buf("qkv", 3 * token_part),
+            token_part,
             att: buf("attention", tokens * d),
-            y: buf("y", tokens * d),
             hidden: buf("mlp", tokens * d * c.mlp_ratio),
-            mk: buf("map k", key_rows * d),
-            mv: buf("map v", key_rows * d),
+            mkv: buf("map kv", 2 * key_part),
+            key_part,
             f: buf("F", tokens * 3),
             agent_maps,
         })

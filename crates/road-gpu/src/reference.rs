@@ -30,6 +30,38 @@ pub fn linear(
     y
 }
 
+/// The fused linear layer of `linear.wgsl`: `y + act(n(x) · wᵀ + b)` with `n` the layer norm
+/// of [`layer_norm`] (`norm`: γ, β, eps) or the identity, `y` the residual (`[rows, out]`, or
+/// none: zeros). The output split into parts is a layout only, checked by its test.
+#[allow(clippy::too_many_arguments)]
+pub fn linear_fused(
+    x: &[f32],
+    w: &[f32],
+    b: &[f32],
+    rows: usize,
+    in_dim: usize,
+    out_dim: usize,
+    relu: bool,
+    norm: Option<(&[f32], &[f32], f32)>,
+    residual: Option<&[f32]>,
+) -> Vec<f32> {
+    let normed;
+    let x = match norm {
+        Some((gamma, beta, eps)) => {
+            normed = layer_norm(x, gamma, beta, rows, in_dim, eps);
+            &normed[..]
+        }
+        None => x,
+    };
+    let mut y = linear(x, w, b, rows, in_dim, out_dim, relu);
+    if let Some(residual) = residual {
+        for (y, r) in y.iter_mut().zip(residual) {
+            *y = (f64::from(*y) + f64::from(*r)) as f32;
+        }
+    }
+    y
+}
+
 /// Layer norm with the biased variance.
 pub fn layer_norm(
     x: &[f32],
@@ -55,6 +87,47 @@ pub fn layer_norm(
         }
     }
     y
+}
+
+/// The map's polyline encoder of `polyline.wgsl` over `n` polylines of `q` points:
+/// `layer_norm(max_q (mix_w · relu(W_point · point + b_point + point_embedding[q]) + mix_b))`,
+/// `embed` packed as W_point `[D, 2]` | b_point `[D]` | point embedding `[Q, D]`.
+#[allow(clippy::too_many_arguments)]
+pub fn encode_polylines(
+    points: &[f32],
+    embed: &[f32],
+    mix_w: &[f32],
+    mix_b: &[f32],
+    gamma: &[f32],
+    beta: &[f32],
+    (n, q, d): (usize, usize, usize),
+    eps: f32,
+) -> Vec<f32> {
+    let (b_point, pe) = (2 * d, 3 * d);
+    let mut embedded = vec![0.0f32; n * q * d];
+    for (point, row) in embedded.chunks_exact_mut(d).enumerate() {
+        let (x, y) = (
+            f64::from(points[2 * point]),
+            f64::from(points[2 * point + 1]),
+        );
+        for (k, e) in row.iter_mut().enumerate() {
+            let v = f64::from(embed[2 * k]) * x
+                + f64::from(embed[2 * k + 1]) * y
+                + f64::from(embed[b_point + k])
+                + f64::from(embed[pe + (point % q) * d + k]);
+            *e = v.max(0.0) as f32;
+        }
+    }
+    let mixed = linear(&embedded, mix_w, mix_b, n * q, d, d, false);
+    let pooled: Vec<f32> = (0..n * d)
+        .map(|i| {
+            let (poly, o) = (i / d, i % d);
+            (0..q)
+                .map(|p| mixed[(poly * q + p) * d + o])
+                .fold(f32::NEG_INFINITY, f32::max)
+        })
+        .collect();
+    layer_norm(&pooled, gamma, beta, n, d, eps)
 }
 
 /// Softmax attention per (group, head, query) over valid keys; zeros where no key is valid.

@@ -6,8 +6,8 @@
 use crate::kernels::agent_map::{AgentMap, AgentMapParams};
 use crate::kernels::agent_pairs::{PairAttention, PairAttentionParams};
 use crate::kernels::attention::{Attention, AttentionParams, TokenLayout};
-use crate::kernels::layer_norm::{LayerNorm, LayerNormParams};
-use crate::kernels::linear::{Linear, LinearKernel, LinearParams};
+use crate::kernels::linear::{Linear, LinearKernel, LinearParams, fold_layer_norm};
+use crate::kernels::polyline::{PolylineEncoder, PolylineParams};
 use crate::tolerance::Mismatch;
 use crate::{GpuContext, Result, Tolerance, reference};
 
@@ -66,10 +66,8 @@ pub fn kernel_checks(ctx: &GpuContext) -> Result<Vec<KernelCheck>> {
         rng.uniform(d_out, 0.1),
     );
     let p = LinearParams {
-        rows: rows as u32,
-        in_dim: d_in as u32,
-        out_dim: d_out as u32,
         relu: 1,
+        ..LinearParams::new(rows, d_in, d_out)
     };
     let want = reference::linear(&x, &wt, &bias, rows, d_in, d_out, true);
     // Both variants, whichever the engine uses here.
@@ -82,23 +80,75 @@ pub fn kernel_checks(ctx: &GpuContext) -> Result<Vec<KernelCheck>> {
             outcome: loose.check(&got, &want),
         });
     }
+    // The same, fused as the engine's output projections and MLP: the layer norm in the
+    // prologue, the residual add in the epilogue.
+    let (gamma, beta, residual) = (
+        rng.uniform(d_in, 1.0),
+        rng.uniform(d_in, 0.5),
+        rng.uniform(rows * d_out, 1.0),
+    );
+    let p = LinearParams {
+        residual: 1,
+        norm: 1,
+        eps: 1e-5,
+        ..p
+    };
+    let want = reference::linear_fused(
+        &x,
+        &wt,
+        &bias,
+        rows,
+        d_in,
+        d_out,
+        true,
+        Some((&gamma, &beta, 1e-5)),
+        Some(&residual),
+    );
+    // γ, β folded into the weights, as the engine uploads them.
+    let (wt, bias) = fold_layer_norm(&wt, &bias, &gamma, &beta);
+    for kernel in [LinearKernel::Rowwise, LinearKernel::Tiled] {
+        let got = Linear::with_kernel(ctx, kernel).run_fused(ctx, p, &x, &wt, &bias, &residual)?;
+        checks.push(KernelCheck {
+            name: match kernel {
+                LinearKernel::Rowwise => "linear (norm, residual)",
+                LinearKernel::Tiled => "linear_tiled (norm, residual)",
+            },
+            values: got.len(),
+            tolerance: loose,
+            outcome: loose.check(&got, &want),
+        });
+    }
 
-    // layer_norm over every token.
-    let (x, gamma, beta) = (
-        rng.uniform(tokens * d, 2.0),
+    // The polyline encoder over 3 scenes' 32 polylines of 20 points.
+    let (n, q) = (3 * 32, 20);
+    let (points, embed, mix_w, mix_b, gamma, beta) = (
+        rng.uniform(n * q * 2, 2.0),
+        rng.uniform(3 * d + q * d, 0.5),
+        rng.uniform(d * d, 0.2),
+        rng.uniform(d, 0.1),
         rng.uniform(d, 1.0),
         rng.uniform(d, 0.5),
     );
-    let p = LayerNormParams {
-        rows: tokens as u32,
-        dim: d as u32,
+    let p = PolylineParams {
+        polylines: n as u32,
+        points: q as u32,
+        hidden: d as u32,
         eps: 1e-5,
-        _pad: 0,
     };
-    let got = LayerNorm::new(ctx).run(ctx, p, &x, &gamma, &beta)?;
-    let want = reference::layer_norm(&x, &gamma, &beta, tokens, d, 1e-5);
+    let got =
+        PolylineEncoder::new(ctx).run(ctx, p, &points, &embed, &mix_w, &mix_b, &gamma, &beta)?;
+    let want = reference::encode_polylines(
+        &points,
+        &embed,
+        &mix_w,
+        &mix_b,
+        &gamma,
+        &beta,
+        (n, q, d),
+        1e-5,
+    );
     checks.push(KernelCheck {
-        name: "layer_norm",
+        name: "encode_polylines",
         values: got.len(),
         tolerance: loose,
         outcome: loose.check(&got, &want),

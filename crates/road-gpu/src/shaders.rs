@@ -6,15 +6,15 @@
 pub enum Shader {
     /// EDM preconditioning coefficients per window slot.
     Edm,
-    /// Linear layers (+ bias, optional ReLU).
+    /// Linear layers (+ bias, optional ReLU; layer norm, residual add and split outputs fused).
     Linear,
-    /// Layer norm over the last dimension.
-    LayerNorm,
+    /// The map's polyline encoder: points to tokens in one workgroup per polyline.
+    Polyline,
     /// Masked multi-head attention over strided token layouts.
     Attention,
     /// Token embeddings of the denoiser.
     Embed,
-    /// Residual adds, output preconditioning, map point embedding and pooling.
+    /// Output preconditioning.
     Elementwise,
     /// The per-slot Heun step of the sampler.
     Heun,
@@ -30,7 +30,7 @@ impl Shader {
     pub const ALL: [Shader; 10] = [
         Shader::Edm,
         Shader::Linear,
-        Shader::LayerNorm,
+        Shader::Polyline,
         Shader::Attention,
         Shader::Embed,
         Shader::Elementwise,
@@ -45,7 +45,7 @@ impl Shader {
         match self {
             Shader::Edm => "edm.wgsl",
             Shader::Linear => "linear.wgsl",
-            Shader::LayerNorm => "layer_norm.wgsl",
+            Shader::Polyline => "polyline.wgsl",
             Shader::Attention => "attention.wgsl",
             Shader::Embed => "embed.wgsl",
             Shader::Elementwise => "elementwise.wgsl",
@@ -60,7 +60,7 @@ impl Shader {
         match self {
             Shader::Edm => include_str!("../../../shaders/edm.wgsl"),
             Shader::Linear => include_str!("../../../shaders/linear.wgsl"),
-            Shader::LayerNorm => include_str!("../../../shaders/layer_norm.wgsl"),
+            Shader::Polyline => include_str!("../../../shaders/polyline.wgsl"),
             Shader::Attention => include_str!("../../../shaders/attention.wgsl"),
             Shader::Embed => include_str!("../../../shaders/embed.wgsl"),
             Shader::Elementwise => include_str!("../../../shaders/elementwise.wgsl"),

@@ -93,10 +93,8 @@ fn linear_matches_on_random_shapes(ctx: &GpuContext, kernel: &road_gpu::kernels:
         let w = random(&mut rng, out_dim * in_dim, 0.5);
         let b = random(&mut rng, out_dim, 0.5);
         let p = LinearParams {
-            rows: rows as u32,
-            in_dim: in_dim as u32,
-            out_dim: out_dim as u32,
             relu: u32::from(relu),
+            ..LinearParams::new(rows, in_dim, out_dim)
         };
         let got = kernel.run(ctx, p, &x, &w, &b).unwrap();
         let want = road_gpu::reference::linear(&x, &w, &b, rows, in_dim, out_dim, relu);
@@ -109,41 +107,149 @@ fn linear_matches_on_random_shapes(ctx: &GpuContext, kernel: &road_gpu::kernels:
     }
 }
 
+/// The fusions the engine runs (`linear.wgsl`'s prologue and epilogue, and outputs split into
+/// parts), each variant against [`road_gpu::reference::linear_fused`]: the layer norm of the
+/// rows first (γ, β folded into the weights as the engine folds them), ReLU, the residual
+/// added into what `y` held; parts at an aligned stride with the gaps between them untouched.
 #[test]
-fn layer_norm_matches_the_cpu_reference_on_random_shapes() {
-    use road_gpu::kernels::layer_norm::{LayerNorm, LayerNormParams};
+fn fused_linear_matches_the_cpu_reference_on_random_shapes() {
+    use road_gpu::kernels::linear::{Linear, LinearKernel, LinearParams, fold_layer_norm};
     let ctx = context();
-    let kernel = LayerNorm::new(&ctx);
-    let mut rng = rand::rngs::StdRng::seed_from_u64(12);
-    for (rows, dim) in [(1, 2), (9, 64), (257, 64), (40, 128), (3, 7)] {
-        let x: Vec<f32> = random(&mut rng, rows * dim, 3.0)
+    let mut rng = rand::rngs::StdRng::seed_from_u64(13);
+    // (rows, in, out, part, relu, norm, residual): the engine's q/k/v (3 parts), map k/v
+    // (2 parts), MLP (norm + ReLU, then residual), output projections and head, and tile edges.
+    for (rows, in_dim, out_dim, part, relu, norm, residual) in [
+        (1, 2, 3, 3, false, true, false),
+        (130, 64, 192, 64, false, true, false),
+        (65, 32, 64, 32, false, false, false),
+        (200, 96, 384, 384, true, true, false),
+        (129, 384, 96, 96, false, false, true),
+        (63, 96, 3, 3, false, true, false),
+        (70, 17, 33, 11, true, true, true),
+        (300, 128, 128, 128, false, true, true),
+    ] {
+        let x: Vec<f32> = random(&mut rng, rows * in_dim, 2.0)
             .iter()
-            .map(|v| v + 1.5)
+            .map(|v| v + 0.7)
             .collect();
-        let gamma = random(&mut rng, dim, 1.0);
-        let beta = random(&mut rng, dim, 1.0);
-        let p = LayerNormParams {
-            rows: rows as u32,
-            dim: dim as u32,
+        let w = random(&mut rng, out_dim * in_dim, 0.5);
+        let b = random(&mut rng, out_dim, 0.5);
+        let gamma = random(&mut rng, in_dim, 1.0);
+        let beta = random(&mut rng, in_dim, 1.0);
+        // Parts 8 floats apart beyond their rows · part: the gaps must keep their values.
+        let part_stride = rows * part + 8;
+        let p = LinearParams {
+            relu: u32::from(relu),
+            residual: u32::from(residual),
+            norm: u32::from(norm),
             eps: 1e-5,
-            _pad: 0,
+            part: part as u32,
+            part_stride: part_stride as u32,
+            ..LinearParams::new(rows, in_dim, out_dim)
         };
-        let got = kernel.run(&ctx, p, &x, &gamma, &beta).unwrap();
-        let want = road_gpu::reference::layer_norm(&x, &gamma, &beta, rows, dim, 1e-5);
+        let y0 = random(&mut rng, p.y_len(), 1.0);
+        // y0 in [rows, out] order: the residual the reference adds.
+        let parts = out_dim.div_ceil(part);
+        let at = |r: usize, o: usize| (o / part) * part_stride + r * part + o % part;
+        let residual_in: Vec<f32> = (0..rows * out_dim)
+            .map(|i| y0[at(i / out_dim, i % out_dim)])
+            .collect();
+        let want = road_gpu::reference::linear_fused(
+            &x,
+            &w,
+            &b,
+            rows,
+            in_dim,
+            out_dim,
+            relu,
+            norm.then_some((&gamma[..], &beta[..], 1e-5)),
+            residual.then_some(&residual_in[..]),
+        );
+        // Outputs near 0 come from differences of O(1) terms: the absolute part covers them.
+        let tol = Tolerance {
+            rel: 1e-4,
+            abs: 1e-5,
+        };
+        let (w, b) = if norm {
+            fold_layer_norm(&w, &b, &gamma, &beta)
+        } else {
+            (w, b)
+        };
+        for variant in [LinearKernel::Rowwise, LinearKernel::Tiled] {
+            let kernel = Linear::with_kernel(&ctx, variant);
+            let y = kernel.run_fused(&ctx, p, &x, &w, &b, &y0).unwrap();
+            let got: Vec<f32> = (0..rows * out_dim)
+                .map(|i| y[at(i / out_dim, i % out_dim)])
+                .collect();
+            let shape = format!(
+                "{variant:?} {rows}×{in_dim}→{out_dim} in {parts} parts, relu {relu}, \
+                 norm {norm}, residual {residual}"
+            );
+            if let Err(m) = tol.check(&got, &want) {
+                panic!("{shape}: {m}");
+            }
+            for j in 0..parts.saturating_sub(1) {
+                let gap = j * part_stride + rows * part..(j + 1) * part_stride;
+                assert_eq!(y[gap.clone()], y0[gap], "{shape}: the gap after part {j}");
+            }
+        }
+    }
+}
+
+/// The fused polyline encoder (point embedding, mixing layer, max over points, layer norm in
+/// one workgroup per polyline) on shapes around its edges: one point, points staged in several
+/// chunks (Q · D above its 2 048 staged floats), D above the workgroup's 64 invocations, up to
+/// its largest (512: chunks of 4 points), Q not a multiple of 4.
+#[test]
+fn polyline_encoder_matches_the_cpu_reference_on_random_shapes() {
+    use road_gpu::kernels::polyline::{PolylineEncoder, PolylineParams};
+    let ctx = context();
+    let kernel = PolylineEncoder::new(&ctx);
+    let mut rng = rand::rngs::StdRng::seed_from_u64(12);
+    for (n, q, d) in [
+        (1, 1, 2),
+        (5, 20, 64),
+        (70, 20, 96),
+        (3, 30, 160),
+        (2, 7, 7),
+        (2, 9, 512),
+    ] {
+        let points = random(&mut rng, n * q * 2, 2.0);
+        let embed = random(&mut rng, 3 * d + q * d, 0.7);
+        let mix_w = random(&mut rng, d * d, 0.3);
+        let mix_b = random(&mut rng, d, 0.2);
+        let gamma = random(&mut rng, d, 1.0);
+        let beta = random(&mut rng, d, 1.0);
+        let p = PolylineParams {
+            polylines: n as u32,
+            points: q as u32,
+            hidden: d as u32,
+            eps: 1e-5,
+        };
+        let got = kernel
+            .run(&ctx, p, &points, &embed, &mix_w, &mix_b, &gamma, &beta)
+            .unwrap();
+        let want = road_gpu::reference::encode_polylines(
+            &points,
+            &embed,
+            &mix_w,
+            &mix_b,
+            &gamma,
+            &beta,
+            (n, q, d),
+            1e-5,
+        );
         // Outputs near 0 come from a difference of O(1) terms: the absolute part covers them.
         let tol = Tolerance {
             rel: 1e-4,
             abs: 1e-5,
         };
         if let Err(m) = tol.check(&got, &want) {
-            panic!("layer norm {rows}×{dim}: {m}");
+            panic!("polyline encoder {n} × {q} points × {d}: {m}");
         }
     }
 }
 
-/// Time attention and agent attention read one `[B, A, W, D]` tensor through different
-/// layouts; map attention reads separate keys. Masks drop random keys, including every key of
-/// some groups.
 #[test]
 fn attention_matches_the_cpu_reference_over_every_layout() {
     use road_gpu::kernels::attention::{Attention, AttentionParams, TokenLayout};

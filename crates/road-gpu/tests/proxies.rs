@@ -121,7 +121,7 @@ fn bytes(dispatches: &[Dispatch]) -> u64 {
 
 /// Dispatch and byte counts: positive, the same for two steps of the same batch, half for a
 /// step without its second evaluation, and equal to the sum of the plan's dispatches' bindings,
-/// which for `ln_out` and the Euler update are checked by hand.
+/// which for the head and the Euler update are checked by hand.
 #[test]
 fn dispatches_and_bytes_are_the_bindings_of_the_recorded_dispatches() {
     let ctx = context();
@@ -176,17 +176,21 @@ fn dispatches_and_bytes_are_the_bindings_of_the_recorded_dispatches() {
     assert_eq!(euler_only.traffic.dispatches as usize, euler.len());
     assert_eq!(euler_only.traffic.bytes(), bytes(euler));
 
-    // By hand. `ln_out` (the last layer norm): 16 bytes of params, x [T, D], γ [D], β [D]
-    // read; y [T, D] read and written.
+    // By hand. The head (`ln_out` in its prologue, γ and β folded into its weights; the last
+    // linear layer): 48 bytes of params, x [T, D], w [3, D], b [3] read; y [T, 3] read and
+    // written.
     let (w, d) = (config.window_slots as u64, config.hidden as u64);
     let tokens = (SCENES * AGENTS) as u64 * w;
-    let ln_out = euler
+    let head = euler
         .iter()
         .rev()
-        .find(|d| d.label() == "layer_norm")
+        .find(|d| d.label().starts_with("linear"))
         .unwrap();
-    assert_eq!(ln_out.bytes_read(), 16 + 4 * (2 * tokens * d + 2 * d));
-    assert_eq!(ln_out.bytes_written(), 4 * tokens * d);
+    assert_eq!(
+        head.bytes_read(),
+        48 + 4 * (tokens * d + 3 * d + 3 + tokens * 3)
+    );
+    assert_eq!(head.bytes_written(), 4 * tokens * 3);
     // The Euler update: params, x, D₁ [B, A, W, 3], σ_cur, σ_next [B, W] read; x_e read and
     // written.
     let update = euler.last().unwrap();

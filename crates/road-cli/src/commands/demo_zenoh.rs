@@ -114,6 +114,11 @@ pub fn run(
                 events.push(format!("tick {t:>3} ({secs:4.1} s): agent {a} off road"));
             }
         }
+        for a in &npc.left {
+            events.push(format!(
+                "tick {t:>3} ({secs:4.1} s): agent {a} drove off the map and left the scene"
+            ));
+        }
         let mut infractions: Vec<String> = npc
             .collisions
             .iter()

@@ -1,11 +1,14 @@
-//! `shaders/linear.wgsl`: `y = act(x · wᵀ + b)` over the last dimension, in two variants with
-//! the same bindings and results: row-wise (no workgroup memory; lavapipe's best, and a GPU's
-//! for small layers) and tiled (workgroup-memory tiles; a GPU's best for large layers).
-//! [`LinearKernel::choose`] says which one the engine runs for a layer.
+//! `shaders/linear.wgsl`: `y (+)= act(n(x) · wᵀ + b)` over the last dimension, in two variants
+//! with the same bindings and results: row-wise (no workgroup memory; lavapipe's best, and a
+//! GPU's for small layers) and tiled (workgroup-memory tiles; a GPU's best for large layers).
+//! [`LinearKernel::choose`] says which one the engine runs for a layer. Fused into both: the
+//! layer norm `n` of the rows (prologue; its γ, β folded into the weights by
+//! [`fold_layer_norm`]), the residual add (epilogue) and outputs split into parts (the q/k/v
+//! projections as one layer), each saving a dispatch.
 
 use bytemuck::{Pod, Zeroable};
 
-use super::{Pipeline, WORKGROUP};
+use super::{Pipeline, WORKGROUP, read_back, storage_buffer, upload};
 use crate::shaders::Shader;
 use crate::{GpuContext, Result};
 
@@ -15,7 +18,19 @@ pub struct LinearParams {
     pub rows: u32,
     pub in_dim: u32,
     pub out_dim: u32,
+    /// 1: ReLU after the bias.
     pub relu: u32,
+    /// 1: add into `y` (the residual stream) instead of overwriting it.
+    pub residual: u32,
+    /// 1: standardise each row of `x` first, `(x − mean) / √(var + eps)`: a layer norm with
+    /// its γ, β folded into the weights ([`fold_layer_norm`]).
+    pub norm: u32,
+    pub eps: f32,
+    /// Outputs per part: output `o` goes to part `o / part` of `y`, a `[rows, part]` tensor
+    /// `part_stride` floats after the previous one. `out_dim` for an unsplit layer.
+    pub part: u32,
+    pub part_stride: u32,
+    pub _pad: [u32; 3],
 }
 
 /// Which entry point of `linear.wgsl` computes the layer.
@@ -76,6 +91,28 @@ impl std::str::FromStr for LinearKernel {
 }
 
 impl LinearParams {
+    /// A plain layer `y = x · wᵀ + b` of `rows` rows (no norm, activation or residual).
+    pub fn new(rows: usize, in_dim: usize, out_dim: usize) -> Self {
+        Self {
+            rows: rows as u32,
+            in_dim: in_dim as u32,
+            out_dim: out_dim as u32,
+            relu: 0,
+            residual: 0,
+            norm: 0,
+            eps: 0.0,
+            part: out_dim as u32,
+            part_stride: (rows * out_dim) as u32,
+            _pad: [0; 3],
+        }
+    }
+
+    /// Floats of the `y` this layer writes: every part, the last one `rows · part` long.
+    pub fn y_len(&self) -> usize {
+        let parts = self.out_dim.div_ceil(self.part.max(1)) as usize;
+        (parts.saturating_sub(1)) * self.part_stride as usize + (self.rows * self.part) as usize
+    }
+
     /// Invocations of one dispatch of `kernel`.
     pub fn threads(&self, kernel: LinearKernel) -> u32 {
         match kernel {
@@ -86,6 +123,32 @@ impl LinearParams {
             }
         }
     }
+}
+
+/// A layer norm (γ, β `[in]`) folded into the linear layer after it (`w [out, in]`, `b [out]`):
+/// `LN(x) · wᵀ + b = z · (w ∘ γ)ᵀ + (w · β + b)` with `z` the standardised row, which the
+/// kernel's `norm` prologue computes. Done once on upload, so the prologue reads no γ, β.
+pub fn fold_layer_norm(w: &[f32], b: &[f32], gamma: &[f32], beta: &[f32]) -> (Vec<f32>, Vec<f32>) {
+    let in_dim = gamma.len();
+    assert_eq!(beta.len(), in_dim, "β is [in]");
+    assert_eq!(w.len(), b.len() * in_dim, "w is [out, in]");
+    let folded_w = w
+        .chunks_exact(in_dim)
+        .flat_map(|row| row.iter().zip(gamma).map(|(w, g)| w * g))
+        .collect();
+    let folded_b = w
+        .chunks_exact(in_dim)
+        .zip(b)
+        .map(|(row, &b)| {
+            let shift: f64 = row
+                .iter()
+                .zip(beta)
+                .map(|(&w, &beta)| f64::from(w) * f64::from(beta))
+                .sum();
+            (f64::from(b) + shift) as f32
+        })
+        .collect();
+    (folded_w, folded_b)
 }
 
 #[derive(Debug)]
@@ -102,7 +165,8 @@ impl Linear {
         }
     }
 
-    /// `x [rows, in]`, `w [out, in]`, `b [out]` → `[rows, out]`.
+    /// `x [rows, in]`, `w [out, in]`, `b [out]` → `[rows, out]` (a plain layer: `p` without
+    /// residual or parts).
     pub fn run(
         &self,
         ctx: &GpuContext,
@@ -111,13 +175,58 @@ impl Linear {
         w: &[f32],
         b: &[f32],
     ) -> Result<Vec<f32>> {
-        self.pipeline.run_once(
+        let y = vec![0.0; (p.rows * p.out_dim) as usize];
+        self.run_fused(ctx, p, x, w, b, &y)
+    }
+
+    /// Any fusion of `p`: `y` is the output's initial contents (`p.y_len()` floats; added to
+    /// when `p.residual` is 1) → `y` after.
+    pub fn run_fused(
+        &self,
+        ctx: &GpuContext,
+        p: LinearParams,
+        x: &[f32],
+        w: &[f32],
+        b: &[f32],
+        y: &[f32],
+    ) -> Result<Vec<f32>> {
+        assert_eq!(y.len(), p.y_len(), "y holds every part");
+        let input = |label: &str, data: &[f32]| {
+            upload(
+                ctx,
+                label,
+                bytemuck::cast_slice(data),
+                wgpu::BufferUsages::STORAGE,
+            )
+        };
+        let params = upload(
             ctx,
+            "params",
             bytemuck::bytes_of(&p),
-            &[x, w, b],
-            (p.rows * p.out_dim) as usize,
+            wgpu::BufferUsages::UNIFORM,
+        );
+        let (x, w, b) = (input("x", x), input("w", w), input("b", b));
+        let bytes = (y.len() * 4) as u64;
+        let out = storage_buffer(ctx, "y", bytes);
+        ctx.queue.write_buffer(&out, 0, bytemuck::cast_slice(y));
+        let mut encoder = ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("linear"),
+            });
+        self.pipeline.encode(
+            ctx,
+            &mut encoder,
+            &params,
+            &[&x, &w, &b, &out],
             p.threads(self.kernel),
-        )
+        );
+        ctx.queue.submit([encoder.finish()]);
+        if y.is_empty() {
+            return Ok(Vec::new());
+        }
+        let bytes = read_back(ctx, &out, bytes)?;
+        Ok(bytemuck::cast_slice::<u8, f32>(&bytes).to_vec())
     }
 }
 
@@ -126,12 +235,7 @@ mod tests {
     use super::*;
 
     fn layer(rows: u32, out_dim: u32) -> LinearParams {
-        LinearParams {
-            rows,
-            in_dim: 96,
-            out_dim,
-            relu: 0,
-        }
+        LinearParams::new(rows as usize, 96, out_dim as usize)
     }
 
     #[test]

@@ -6,8 +6,8 @@ pub mod agent_map;
 pub mod agent_pairs;
 pub mod attention;
 pub mod edm;
-pub mod layer_norm;
 pub mod linear;
+pub mod polyline;
 pub mod window;
 
 use wgpu::util::DeviceExt;
