@@ -480,6 +480,42 @@ fn sample_and_eval_run_with_the_shipped_checkpoint() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// Issues 39 and 41: around an ego that stops where its history ends, the default's vehicles
+/// stay on the roundabout. On seed 2 one used to creep off its lane onto the median, a few
+/// centimetres a tick, which the lane guard left alone as a standing vehicle's jitter.
+#[test]
+fn vehicles_held_up_by_a_stopped_ego_stay_on_the_road() {
+    let dir = std::env::temp_dir().join(format!("road-cli-held-up-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let json = dir.join("held-up.json");
+    let o = road(&[
+        "demo",
+        "--in-process",
+        "--seed",
+        "2",
+        "--steps",
+        "60",
+        "--ego-speed-scale",
+        "0",
+        "--engine",
+        "cpu",
+        "--json",
+        json.to_str().unwrap(),
+        "--out",
+        dir.join("held-up.png").to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let run: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let ticks = run["ticks"].as_array().unwrap();
+    assert_eq!(ticks.len(), 60);
+    for (t, tick) in ticks.iter().enumerate() {
+        assert_eq!(tick["off_road"], serde_json::json!([]), "tick {}", t + 1);
+        assert_eq!(tick["collisions"], serde_json::json!([]), "tick {}", t + 1);
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}
+
 /// `road demo --in-process --map`: the intersection and the merge run too; an unknown map is
 /// refused with the known ones named; the in-process flags are refused without `--in-process`.
 #[test]

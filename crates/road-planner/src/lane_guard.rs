@@ -20,10 +20,12 @@
 //! same target ([`nudge_towards_lane`]), so that a vehicle drifting towards the edge bends back
 //! over several ticks instead of being steered 20–70° in one.
 //!
-//! The guard keeps lane followers in their lane and nothing more: it leaves alone an agent that
-//! moves backwards or against every lanelet under it, and one that drives off the end of a
-//! lanelet without successor (out of the mapped area, as vehicles in the log do; stopping it
-//! there would park it in the way of the traffic behind). The guarded state is what joins the
+//! The guard keeps lane followers in their lane: it leaves alone an agent that moves backwards,
+//! and one that drives off the end of a lanelet without successor (out of the mapped area, as
+//! vehicles in the log do; stopping it there would park it in the way of the traffic behind).
+//! An agent moving across or against every lanelet under it, or creeping, has no lane to be
+//! steered into: it stops at the road's edge rather than leave the road (issues 39 and 41: one
+//! crept onto a median, another crossed a roundabout's median and drove on over the fields). The guarded state is what joins the
 //! history and the window, so the model plans on from where the vehicle really is: back in its
 //! lane. With `turn_plan` the closed loop turns the steered vehicle's plan too (the window's
 //! future slots rotated about its position before the tick by the angle its step turned,
@@ -42,7 +44,8 @@ use road_sched::LaneAnticipation;
 const BISECTION_ROUNDS: usize = 12;
 /// Lanelets the look-ahead may walk through (the agent's own and its successors).
 const MAX_LANELETS_AHEAD: usize = 4;
-/// Steps shorter than this (metres) are left alone: a standing vehicle's jitter.
+/// Steps shorter than this (metres) are a standing vehicle's jitter: not steered, only kept
+/// on the road.
 const STANDSTILL_STEP_M: f64 = 0.05;
 /// A proposal projecting within this of a lanelet's end (metres) drives off that end.
 const END_TOLERANCE_M: f64 = 0.5;
@@ -75,11 +78,33 @@ pub fn keep_on_road(
     }
     let step = to - from;
     let step_m = step.length();
-    if step_m < STANDSTILL_STEP_M || step.dot(DVec2::from_angle(before.heading_rad)) <= 0.0 {
+    if step_m < STANDSTILL_STEP_M {
+        // A standing vehicle's jitter says nothing of its way, but it may not carry it off the
+        // road a few centimetres a tick either (issue 39: a vehicle held up beside the ego
+        // crept onto the median): it stays where it is.
+        if on_road(map, to) {
+            return None;
+        }
+        proposed.x_m = before.x_m;
+        proposed.y_m = before.y_m;
+        return Some(LaneAction::StoppedAtEdge);
+    }
+    if step.dot(DVec2::from_angle(before.heading_rad)) <= 0.0 {
         return None;
     }
     let direction = step / step_m;
-    let (lanelet, along_m) = lane_under(map, from, direction)?;
+    let Some((lanelet, along_m)) = lane_under(map, from, direction) else {
+        // On the road but on no lane that runs its way (across or against its lane): no lane
+        // to steer back into, and no right to leave the road either (issue 41 saw one cross a
+        // roundabout's median and drive on over the fields): it stops at the edge.
+        if on_road(map, to) {
+            return None;
+        }
+        let stopped = stop_at_edge(from, to, direction, |p, _| on_road(map, p));
+        proposed.x_m = stopped.x;
+        proposed.y_m = stopped.y;
+        return Some(LaneAction::StoppedAtEdge);
+    };
     // A slow vehicle's step is mostly position noise: its direction says nothing of its way.
     let directed = step_m >= DIRECTED_STEP_M;
     let stays_on_its_way = |p: DVec2, direction: DVec2| {
@@ -107,20 +132,31 @@ pub fn keep_on_road(
     }
     // The steered step still leaves the road (a sharp bend, a narrow lanelet): stop at the edge.
     let end = DVec2::new(proposed.x_m, proposed.y_m);
+    let stopped = stop_at_edge(from, end, direction, stays_on_its_way);
+    proposed.x_m = stopped.x;
+    proposed.y_m = stopped.y;
+    Some(LaneAction::StoppedAtEdge)
+}
+
+/// The farthest point of the step from `from` to `end` that `stays` accepts (bisection; `from`
+/// itself when none does), the step's direction passed along (`direction` for a null step).
+fn stop_at_edge(
+    from: DVec2,
+    end: DVec2,
+    direction: DVec2,
+    stays: impl Fn(DVec2, DVec2) -> bool,
+) -> DVec2 {
     let end_direction = (end - from).normalize_or(direction);
     let (mut inside, mut outside) = (0.0f64, 1.0f64);
     for _ in 0..BISECTION_ROUNDS {
         let mid = 0.5 * (inside + outside);
-        if stays_on_its_way(from + (end - from) * mid, end_direction) {
+        if stays(from + (end - from) * mid, end_direction) {
             inside = mid;
         } else {
             outside = mid;
         }
     }
-    let stopped = from + (end - from) * inside;
-    proposed.x_m = stopped.x;
-    proposed.y_m = stopped.y;
-    Some(LaneAction::StoppedAtEdge)
+    from + (end - from) * inside
 }
 
 /// The lane guard's nudge ahead of the road's edge (`anticipation`), for an agent
@@ -428,6 +464,19 @@ mod tests {
         }
     }
 
+    /// A standing vehicle's jitter is not steered, but it may not creep off the road.
+    #[test]
+    fn a_creeping_vehicle_stays_on_the_road() {
+        let before = pose(10.0, 1.98, 0.0);
+        let mut creeping = pose(10.01, 2.02, 0.0);
+        let action = keep_on_road(&road(), before, &mut creeping, 6.0);
+        assert_eq!(action, Some(LaneAction::StoppedAtEdge));
+        assert_eq!((creeping.x_m, creeping.y_m), (10.0, 1.98));
+        let mut jitter = pose(10.01, 1.97, 0.0);
+        assert_eq!(keep_on_road(&road(), before, &mut jitter, 6.0), None);
+        assert_eq!(jitter, pose(10.01, 1.97, 0.0));
+    }
+
     #[test]
     fn a_step_that_stays_on_road_is_left_alone() {
         let mut proposed = pose(11.0, 1.0, 0.1);
@@ -634,12 +683,21 @@ mod tests {
     }
 
     #[test]
-    fn an_agent_against_its_lane_is_left_alone() {
+    fn an_agent_against_its_lane_stepping_off_the_side_stops_at_the_edge() {
         // Heading −x on a lanelet that runs +x, stepping off the road's side.
         let before = pose(10.0, 1.6, std::f64::consts::PI);
         let mut proposed = pose(9.3, 2.3, std::f64::consts::PI - 0.785);
-        assert_eq!(keep_on_road(&road(), before, &mut proposed, 6.0), None);
-        assert_eq!(proposed, pose(9.3, 2.3, std::f64::consts::PI - 0.785));
+        let action = keep_on_road(&road(), before, &mut proposed, 6.0);
+        assert_eq!(action, Some(LaneAction::StoppedAtEdge));
+        assert!(road().lanelet_at([proposed.x_m, proposed.y_m]).is_some());
+        assert!(
+            proposed.y_m > 1.9,
+            "it went as far as the edge: {proposed:?}"
+        );
+        // On the road it is left alone.
+        let mut staying = pose(9.0, 1.0, std::f64::consts::PI);
+        assert_eq!(keep_on_road(&road(), before, &mut staying, 6.0), None);
+        assert_eq!(staying, pose(9.0, 1.0, std::f64::consts::PI));
     }
 
     #[test]
