@@ -606,15 +606,6 @@ impl RolloutDriver {
         Ok(())
     }
 
-    /// Whether agent `agent` of scene `scene` has been retired ([`Self::retire_agent`]).
-    pub fn is_retired(&self, scene: usize, agent: usize) -> bool {
-        self.states
-            .get(scene)
-            .and_then(|s| s.retired.get(agent))
-            .copied()
-            .unwrap_or(false)
-    }
-
     /// Scene `scene`'s plan after its last tick: the denoiser's last estimate of the window's
     /// slots after the emitted one, `(steps, [agents, steps, 3])` in model units (the same
     /// units as the emitted states); `None` unless requested and a tick has emitted since.

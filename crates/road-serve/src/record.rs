@@ -278,7 +278,7 @@ impl Recorder {
         late: bool,
         at: SystemTime,
     ) -> Result<()> {
-        let update = agents_update(agents, poses, plans, late, unix_nanos(at));
+        let update = agents_update(agents, poses, None, plans, late, unix_nanos(at));
         self.write(topics::AGENTS, update.to_string().as_bytes(), at)
     }
 
@@ -377,11 +377,13 @@ pub fn clear_update(nanos: u64) -> Value {
     })
 }
 
-/// Every agent's box at one step, one entity (replacing the previous step's), with each
-/// planned path (`plans`, by agent id) as a thin line from the agent's pose.
+/// Every agent's box at one step (of the agents `present`, all when `None`), one entity
+/// (replacing the previous step's), with each planned path (`plans`, by agent id) as a thin
+/// line from the agent's pose.
 pub fn agents_update(
     agents: &[AgentInfo],
     poses: &[Pose],
+    present: Option<&[bool]>,
     plans: &[AgentPlan],
     late: bool,
     nanos: u64,
@@ -390,7 +392,10 @@ pub fn agents_update(
     let cubes: Vec<Value> = agents
         .iter()
         .zip(poses)
-        .map(|(a, p)| {
+        .enumerate()
+        // An agent that left the scene (`present` false) has no box.
+        .filter(|&(i, _)| present.is_none_or(|here| here[i]))
+        .map(|(_, (a, p))| {
             let q = DQuat::from_rotation_z(p.heading_rad);
             let centre = DVec3::new(p.x_m, p.y_m, 0.5 * HEIGHT_M);
             let c = match (a.external, late) {

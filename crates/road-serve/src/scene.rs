@@ -135,6 +135,8 @@ pub struct SceneSetup {
     pub client: String,
     /// Whether each tick's reply carries the NPCs' plans.
     pub plans: bool,
+    /// Where the scene's positions may be (checked at creation, and on every ego tick).
+    pub extent: Option<Extent>,
 }
 
 fn invalid(field: impl Into<String>, message: impl Into<String>) -> ErrorReply {
@@ -427,6 +429,7 @@ pub fn setup(req: &CreateScene, ctx: &mut SetupContext<'_>) -> Result<SceneSetup
         max_ticks,
         plans: req.plans,
         client: client.clone(),
+        extent,
     })
 }
 
@@ -715,7 +718,7 @@ impl LiveScene {
             }
             None => vec![false; start.len()],
         };
-        let extent = setup.map.as_deref().and_then(Extent::of);
+        let extent = setup.extent;
         let agent_count = setup.agents.len();
         Ok(Self {
             id,

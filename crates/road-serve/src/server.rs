@@ -698,8 +698,9 @@ impl Core {
             .as_deref()
             .filter(|_| updates_wanted)
             .map(|m| map_update(m, nanos).to_string());
-        let start_json = updates_wanted
-            .then(|| agents_update(&live.agents, live.poses(), &[], false, nanos).to_string());
+        let start_json = updates_wanted.then(|| {
+            agents_update(&live.agents, live.poses(), None, &[], false, nanos).to_string()
+        });
         let recorder = match &recording {
             Some(path) => {
                 let map_bytes = map_json.as_deref().map(str::as_bytes);

@@ -261,15 +261,8 @@ fn handle(job: Job, scenes: &mut BTreeMap<u64, WriterScene>, view: Option<&LiveV
                 return;
             };
             let nanos = unix_nanos(at);
-            let (agents, poses): (Vec<AgentInfo>, Vec<Pose>) = s
-                .agents
-                .iter()
-                .cloned()
-                .zip(poses)
-                .zip(&present)
-                .filter_map(|(agent_pose, &here)| here.then_some(agent_pose))
-                .unzip();
-            let boxes = agents_update(&agents, &poses, &plans, late, nanos).to_string();
+            let boxes =
+                agents_update(&s.agents, &poses, Some(&present), &plans, late, nanos).to_string();
             if let Some(rec) = s.recorder.as_mut() {
                 let written = rec
                     .write(topics::NPC, &npc_json, at)

@@ -54,7 +54,6 @@ pub fn run(args: &FloodBenchArgs) -> Result<()> {
     );
     let (server, endpoint, session) = start_server(&[], None, &[])?;
     let pid = server.0.id();
-    let record = std::env::temp_dir();
     let mut victim = Client::with_session(session.clone(), DEFAULT_PREFIX, "victim")?;
     victim.set_timeout(Duration::from_secs(60));
     let mut scene = victim.create(CreateScene::procedural("roundabout", vec![1], 0))?;
@@ -112,13 +111,13 @@ pub fn run(args: &FloodBenchArgs) -> Result<()> {
                 Ok(())
             })
         });
-        let before = footprint(pid, 0, &record)?.rss_mib;
+        let before = footprint(pid, 0, None)?.rss_mib;
         let mut peak = before;
         let mut round_trips = Vec::new();
         let started = Instant::now();
         for i in 0..args.ticks {
             round_trips.push(step(&mut scene)?);
-            peak = peak.max(footprint(pid, 0, &record)?.rss_mib);
+            peak = peak.max(footprint(pid, 0, None)?.rss_mib);
             let next = started + period.mul_f64((i + 1) as f64);
             std::thread::sleep(next.saturating_duration_since(Instant::now()));
         }
@@ -134,7 +133,7 @@ pub fn run(args: &FloodBenchArgs) -> Result<()> {
             round_trip: road_serve::server::percentiles(&round_trips),
             rss_before_mib: before,
             rss_peak_mib: peak,
-            rss_after_mib: footprint(pid, 0, &record)?.rss_mib,
+            rss_after_mib: footprint(pid, 0, None)?.rss_mib,
             floods_sent: sent.load(Ordering::Relaxed),
             floods_refused: refused.load(Ordering::Relaxed),
             floods_unanswered: unanswered.load(Ordering::Relaxed),

@@ -80,7 +80,12 @@ impl Drop for ServerProcess {
 }
 
 /// The server process's resident memory, descriptors and threads now (`/proc`, Linux).
-pub(crate) fn footprint(pid: u32, cycles: usize, record: &std::path::Path) -> Result<Footprint> {
+/// `record`: the folder whose recordings are counted (none: 0).
+pub(crate) fn footprint(
+    pid: u32,
+    cycles: usize,
+    record: Option<&std::path::Path>,
+) -> Result<Footprint> {
     let status_path = format!("/proc/{pid}/status");
     let status = std::fs::read_to_string(&status_path)
         .with_context(|| format!("cannot read {status_path} (Linux only)"))?;
@@ -95,7 +100,9 @@ pub(crate) fn footprint(pid: u32, cycles: usize, record: &std::path::Path) -> Re
     let open_fds = std::fs::read_dir(format!("/proc/{pid}/fd"))
         .with_context(|| format!("cannot list /proc/{pid}/fd"))?
         .count();
-    let recordings = std::fs::read_dir(record).map(|d| d.count()).unwrap_or(0);
+    let recordings = record
+        .and_then(|r| std::fs::read_dir(r).ok())
+        .map_or(0, |d| d.count());
     Ok(Footprint {
         cycles,
         rss_mib: field("VmRSS:")? as f64 / 1024.0,
@@ -112,7 +119,7 @@ pub fn run(args: &SoakBenchArgs) -> Result<()> {
     let recording = (!args.no_record).then_some(record.as_path());
     let (server, endpoint, session) = start_server(&args.wrapper, recording, &[])?;
     let pid = server.0.id();
-    let mut samples = vec![footprint(pid, 0, &record)?];
+    let mut samples = vec![footprint(pid, 0, Some(&record))?];
     let total = args.warmup + args.cycles;
     let started = Instant::now();
     let mut timed_from = Instant::now();
@@ -132,12 +139,12 @@ pub fn run(args: &SoakBenchArgs) -> Result<()> {
             cycle(&session, &client, i, args.ticks).with_context(|| format!("cycle {i}"))?;
         }
         if i == args.warmup {
-            samples.push(footprint(pid, i, &record)?);
+            samples.push(footprint(pid, i, Some(&record))?);
             timed_from = Instant::now();
         } else if i > args.warmup
             && ((i - args.warmup).is_multiple_of(args.sample_every) || i == total)
         {
-            samples.push(footprint(pid, i, &record)?);
+            samples.push(footprint(pid, i, Some(&record))?);
         }
     }
     let timed_secs = timed_from.elapsed().as_secs_f64();
