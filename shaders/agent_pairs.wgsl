@@ -6,7 +6,8 @@
 // Tokens are [B, A, W, D] (q, k, v, out), states [B, A, W, 3], flags [B, A, W]; group n =
 // (scene, slot); token l = agent. The pair weights are [D, F] (head h owns rows h·head_dim…).
 // Masked keys carry exactly zero weight; a query with no valid key yields zeros (as
-// attention.wgsl). One invocation per (group, head, query) with an online softmax.
+// attention.wgsl). One invocation per (group, head, query) with an online softmax; heads of 16
+// keep the query and the accumulator in registers (as attention.wgsl).
 
 struct Params {
     groups: u32,
@@ -91,6 +92,10 @@ fn pair_attention(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wo
         }
         q_pair[f] = acc;
     }
+    if (hd == 16u) {
+        pair_attend16(group, q_row, q_base, head, d, cos_a, sin_a, q_pair);
+        return;
+    }
 
     var acc: array<f32, MAX_HEAD_DIM>;
     for (var c = 0u; c < hd; c++) {
@@ -136,5 +141,80 @@ fn pair_attention(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wo
             offset += pair_v[(head * hd + c) * F + f] * acc_pair[f];
         }
         out[q_base + c] = (acc[c] + offset) * inv;
+    }
+}
+
+// Four consecutive floats of q, k or v from `i`.
+fn q4(i: u32) -> vec4<f32> {
+    return vec4<f32>(q[i], q[i + 1u], q[i + 2u], q[i + 3u]);
+}
+fn k4(i: u32) -> vec4<f32> {
+    return vec4<f32>(k[i], k[i + 1u], k[i + 2u], k[i + 3u]);
+}
+fn v4(i: u32) -> vec4<f32> {
+    return vec4<f32>(v[i], v[i + 1u], v[i + 2u], v[i + 3u]);
+}
+
+// `pair_attention`'s key loop and output for a head of 16, the query and the accumulator in
+// four vec4 registers.
+fn pair_attend16(
+    group: u32, q_row: u32, q_base: u32, head: u32, d: u32, cos_a: f32, sin_a: f32,
+    q_pair: array<f32, 6>,
+) {
+    let q0 = q4(q_base);
+    let q1 = q4(q_base + 4u);
+    let q2 = q4(q_base + 8u);
+    let q3 = q4(q_base + 12u);
+    var a0 = vec4<f32>(0.0);
+    var a1 = vec4<f32>(0.0);
+    var a2 = vec4<f32>(0.0);
+    var a3 = vec4<f32>(0.0);
+    var acc_pair: array<f32, 6>;
+    for (var f = 0u; f < F; f++) {
+        acc_pair[f] = 0.0;
+    }
+    var running_max = -3.0e38;
+    var denom = 0.0;
+    for (var j = 0u; j < params.agents; j++) {
+        let k_row = row_of(group, j);
+        if (valid[k_row] == 0.0) {
+            continue;
+        }
+        let r = pair_features(q_row, k_row, cos_a, sin_a);
+        let k_base = k_row * d + head * 16u;
+        var score = dot(q0, k4(k_base)) + dot(q1, k4(k_base + 4u)) + dot(q2, k4(k_base + 8u))
+            + dot(q3, k4(k_base + 12u));
+        for (var f = 0u; f < F; f++) {
+            score += q_pair[f] * r[f];
+        }
+        score *= params.scale;
+        let new_max = max(running_max, score);
+        let correction = exp(running_max - new_max);
+        let weight = exp(score - new_max);
+        denom = denom * correction + weight;
+        a0 = a0 * correction + weight * v4(k_base);
+        a1 = a1 * correction + weight * v4(k_base + 4u);
+        a2 = a2 * correction + weight * v4(k_base + 8u);
+        a3 = a3 * correction + weight * v4(k_base + 12u);
+        for (var f = 0u; f < F; f++) {
+            acc_pair[f] = acc_pair[f] * correction + weight * r[f];
+        }
+        running_max = new_max;
+    }
+    let inv = select(0.0, 1.0 / denom, denom > 0.0);
+    for (var c = 0u; c < 16u; c++) {
+        var offset = 0.0;
+        for (var f = 0u; f < F; f++) {
+            offset += pair_v[(head * 16u + c) * F + f] * acc_pair[f];
+        }
+        var value = a3[c % 4u];
+        if (c < 4u) {
+            value = a0[c];
+        } else if (c < 8u) {
+            value = a1[c % 4u];
+        } else if (c < 12u) {
+            value = a2[c % 4u];
+        }
+        out[q_base + c] = (value + offset) * inv;
     }
 }

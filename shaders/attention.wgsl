@@ -11,6 +11,8 @@
 // Masked keys carry exactly zero weight (as an additive −1e9 bias does after exp in f32).
 // One invocation per (group, head, query) with an online softmax; a query with no valid key
 // yields zeros (the reference's output there is never read: such tokens are invalid).
+// Heads of 16 (every model here) take a path whose query and accumulator are four vec4 in
+// registers; other head sizes index an array, which a GPU keeps in local memory.
 
 struct Layout {
     inner_count: u32,
@@ -60,6 +62,10 @@ fn attention(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgro
     let d = params.heads * params.head_dim;
     let hd = params.head_dim;
     let q_base = row_of(params.q_layout, group, query) * d + head * hd;
+    if (hd == 16u) {
+        attend16(group, q_base, head * hd, d);
+        return;
+    }
 
     var acc: array<f32, MAX_HEAD_DIM>;
     for (var c = 0u; c < hd; c++) {
@@ -89,5 +95,59 @@ fn attention(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgro
     let inv = select(0.0, 1.0 / denom, denom > 0.0);
     for (var c = 0u; c < hd; c++) {
         out[q_base + c] = acc[c] * inv;
+    }
+}
+
+// Four consecutive floats of q, k or v from `i` (a row's offset: any alignment).
+fn q4(i: u32) -> vec4<f32> {
+    return vec4<f32>(q[i], q[i + 1u], q[i + 2u], q[i + 3u]);
+}
+fn k4(i: u32) -> vec4<f32> {
+    return vec4<f32>(k[i], k[i + 1u], k[i + 2u], k[i + 3u]);
+}
+fn v4(i: u32) -> vec4<f32> {
+    return vec4<f32>(v[i], v[i + 1u], v[i + 2u], v[i + 3u]);
+}
+
+// `attention` for a head of 16: the same online softmax, the query and the accumulator in
+// registers. `head_offset` is the head's first column, `d` the row width.
+fn attend16(group: u32, q_base: u32, head_offset: u32, d: u32) {
+    let q0 = q4(q_base);
+    let q1 = q4(q_base + 4u);
+    let q2 = q4(q_base + 8u);
+    let q3 = q4(q_base + 12u);
+    var a0 = vec4<f32>(0.0);
+    var a1 = vec4<f32>(0.0);
+    var a2 = vec4<f32>(0.0);
+    var a3 = vec4<f32>(0.0);
+    var running_max = -3.0e38;
+    var denom = 0.0;
+    for (var j = 0u; j < params.keys; j++) {
+        if (key_valid[row_of(params.mask_layout, group, j)] == 0.0) {
+            continue;
+        }
+        let k_base = row_of(params.kv_layout, group, j) * d + head_offset;
+        let score = (dot(q0, k4(k_base)) + dot(q1, k4(k_base + 4u))
+            + dot(q2, k4(k_base + 8u)) + dot(q3, k4(k_base + 12u))) * params.scale;
+        let new_max = max(running_max, score);
+        let correction = exp(running_max - new_max);
+        let weight = exp(score - new_max);
+        denom = denom * correction + weight;
+        a0 = a0 * correction + weight * v4(k_base);
+        a1 = a1 * correction + weight * v4(k_base + 4u);
+        a2 = a2 * correction + weight * v4(k_base + 8u);
+        a3 = a3 * correction + weight * v4(k_base + 12u);
+        running_max = new_max;
+    }
+    let inv = select(0.0, 1.0 / denom, denom > 0.0);
+    let r0 = a0 * inv;
+    let r1 = a1 * inv;
+    let r2 = a2 * inv;
+    let r3 = a3 * inv;
+    for (var c = 0u; c < 4u; c++) {
+        out[q_base + c] = r0[c];
+        out[q_base + 4u + c] = r1[c];
+        out[q_base + 8u + c] = r2[c];
+        out[q_base + 12u + c] = r3[c];
     }
 }

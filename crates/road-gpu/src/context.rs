@@ -20,6 +20,11 @@ pub struct ContextOptions {
     /// chunk by chunk (at least 64 polylines each) so that agent maps of large batches fit one
     /// buffer binding. Tests make it tiny to run many chunks.
     pub map_encoder_chunk_bytes: u64,
+    /// Compile the kernels without wgpu's runtime checks (index clamping, loop bounding,
+    /// division guards): every kernel here bounds its own indices and loops, and divides by
+    /// sizes the engine sets. Off by default until measured on a card (`road bench engine
+    /// --shader-checks checked unchecked`).
+    pub unchecked_shaders: bool,
 }
 
 impl Default for ContextOptions {
@@ -29,6 +34,7 @@ impl Default for ContextOptions {
             poll_timeout: Duration::from_secs(120),
             linear_kernel: None,
             map_encoder_chunk_bytes: 64 << 20,
+            unchecked_shaders: false,
         }
     }
 }
@@ -43,6 +49,7 @@ pub struct GpuContext {
     poll_timeout: Duration,
     linear_kernel: Option<LinearKernel>,
     map_encoder_chunk_bytes: u64,
+    unchecked_shaders: bool,
 }
 
 /// Advice printed when no adapter exists.
@@ -98,6 +105,7 @@ impl GpuContext {
             poll_timeout: options.poll_timeout,
             linear_kernel: options.linear_kernel,
             map_encoder_chunk_bytes: options.map_encoder_chunk_bytes,
+            unchecked_shaders: options.unchecked_shaders,
         })
     }
 
@@ -125,6 +133,20 @@ impl GpuContext {
     /// The linear kernel the options named, or `"auto"` (chosen per layer).
     pub fn linear_kernel_setting(&self) -> &'static str {
         self.linear_kernel.map_or("auto", LinearKernel::entry)
+    }
+
+    /// See [`ContextOptions::unchecked_shaders`].
+    pub fn unchecked_shaders(&self) -> bool {
+        self.unchecked_shaders
+    }
+
+    /// `"checked"` or `"unchecked"`: how the kernels were compiled.
+    pub fn shader_checks_setting(&self) -> &'static str {
+        if self.unchecked_shaders {
+            "unchecked"
+        } else {
+            "checked"
+        }
     }
 
     /// See [`ContextOptions::map_encoder_chunk_bytes`].

@@ -121,6 +121,7 @@ fn part_of(
 pub(crate) struct Pipelines {
     linear_rowwise: Linear,
     linear_tiled: Linear,
+    linear_blocked: Linear,
     attention: Pipeline,
     embed_tokens: Pipeline,
     precondition_output: Pipeline,
@@ -137,6 +138,7 @@ impl Pipelines {
         Self {
             linear_rowwise: Linear::with_kernel(ctx, LinearKernel::Rowwise),
             linear_tiled: Linear::with_kernel(ctx, LinearKernel::Tiled),
+            linear_blocked: Linear::with_kernel(ctx, LinearKernel::Blocked),
             attention: Pipeline::new(ctx, Shader::Attention, "attention"),
             embed_tokens: Pipeline::new(ctx, Shader::Embed, "embed_tokens"),
             precondition_output: Pipeline::new(ctx, Shader::Elementwise, "precondition_output"),
@@ -442,6 +444,7 @@ impl GpuDenoiser {
         let linear = match ctx.linear_kernel_for(&p) {
             LinearKernel::Rowwise => &self.pipelines.linear_rowwise,
             LinearKernel::Tiled => &self.pipelines.linear_tiled,
+            LinearKernel::Blocked => &self.pipelines.linear_blocked,
         };
         ops.push(linear.pipeline.prepare_resources(
             ctx,

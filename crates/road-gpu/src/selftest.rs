@@ -70,8 +70,8 @@ pub fn kernel_checks(ctx: &GpuContext) -> Result<Vec<KernelCheck>> {
         ..LinearParams::new(rows, d_in, d_out)
     };
     let want = reference::linear(&x, &wt, &bias, rows, d_in, d_out, true);
-    // Both variants, whichever the engine uses here.
-    for kernel in [LinearKernel::Rowwise, LinearKernel::Tiled] {
+    // Every variant, whichever the engine uses here.
+    for kernel in LinearKernel::ALL {
         let got = Linear::with_kernel(ctx, kernel).run(ctx, p, &x, &wt, &bias)?;
         checks.push(KernelCheck {
             name: kernel.entry(),
@@ -106,12 +106,13 @@ pub fn kernel_checks(ctx: &GpuContext) -> Result<Vec<KernelCheck>> {
     );
     // γ, β folded into the weights, as the engine uploads them.
     let (wt, bias) = fold_layer_norm(&wt, &bias, &gamma, &beta);
-    for kernel in [LinearKernel::Rowwise, LinearKernel::Tiled] {
+    for kernel in LinearKernel::ALL {
         let got = Linear::with_kernel(ctx, kernel).run_fused(ctx, p, &x, &wt, &bias, &residual)?;
         checks.push(KernelCheck {
             name: match kernel {
                 LinearKernel::Rowwise => "linear (norm, residual)",
                 LinearKernel::Tiled => "linear_tiled (norm, residual)",
+                LinearKernel::Blocked => "linear_blocked (norm, residual)",
             },
             values: got.len(),
             tolerance: loose,

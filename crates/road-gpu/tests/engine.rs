@@ -34,9 +34,15 @@ fn context() -> GpuContext {
 
 /// As [`context`], with the linear layers' kernel named instead of picked by adapter.
 fn context_with(linear_kernel: Option<LinearKernel>) -> GpuContext {
+    context_with_checks(linear_kernel, false)
+}
+
+/// As [`context_with`], the kernels compiled without wgpu's runtime checks when `unchecked`.
+fn context_with_checks(linear_kernel: Option<LinearKernel>, unchecked: bool) -> GpuContext {
     GpuContext::new(&ContextOptions {
         validation: true,
         linear_kernel,
+        unchecked_shaders: unchecked,
         ..ContextOptions::default()
     })
     .unwrap_or_else(|e| panic!("GPU tests need an adapter: {e}"))
@@ -224,17 +230,29 @@ fn whole_denoiser_with_the_map_encoder_in_chunks_matches_candle() {
     whole_denoiser_matches_candle_on(&ctx, &config, "denoiser-map-chunks");
 }
 
-/// Both linear kernels in the whole denoiser, whichever this adapter picks (a hardware GPU
-/// picks the tiled one, lavapipe the row-wise one), with the default checkpoint's features.
+/// Every linear kernel in the whole denoiser, whichever this adapter picks (a hardware GPU
+/// picks by layer size, lavapipe too, with other thresholds), with the default
+/// checkpoint's features.
 #[test]
-fn whole_denoiser_matches_candle_with_either_linear_kernel() {
-    for kernel in [LinearKernel::Rowwise, LinearKernel::Tiled] {
-        let ctx = context_with(Some(kernel));
+fn whole_denoiser_matches_candle_with_every_linear_kernel() {
+    // Each kernel checked, and the blocked one (with every other kernel) also compiled without
+    // wgpu's runtime checks, as `ContextOptions::unchecked_shaders` runs them.
+    let settings = LinearKernel::ALL
+        .map(|kernel| (kernel, false))
+        .into_iter()
+        .chain([(LinearKernel::Blocked, true)]);
+    for (kernel, unchecked) in settings {
+        let ctx = context_with_checks(Some(kernel), unchecked);
         assert_eq!(ctx.linear_kernel_setting(), kernel.entry());
+        assert_eq!(ctx.unchecked_shaders(), unchecked);
         whole_denoiser_matches_candle_on(
             &ctx,
             &agent_pairs_config(),
-            &format!("denoiser-{}", kernel.entry()),
+            &format!(
+                "denoiser-{}-{}",
+                kernel.entry(),
+                ctx.shader_checks_setting()
+            ),
         );
     }
 }

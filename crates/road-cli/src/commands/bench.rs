@@ -107,10 +107,15 @@ pub struct EngineBenchArgs {
     /// spare. Default: every batch.
     #[arg(long)]
     pub cpu_max_batch: Option<usize>,
-    /// The linear layers' kernels to time, each a GPU row of the same run: `rowwise`, `tiled`
-    /// or `auto` (per layer: tiled for large layers on hardware, row-wise otherwise).
+    /// The linear layers' kernels to time, each a GPU row of the same run: `rowwise`, `tiled`,
+    /// `blocked` or `auto` (per layer on hardware: blocked for large layers, tiled for middle
+    /// ones, row-wise for small; row-wise on software adapters).
     #[arg(long, num_args = 1.., default_values = ["auto"], value_parser = parse_linear_kernel)]
     pub linear_kernels: Vec<Option<road_gpu::kernels::linear::LinearKernel>>,
+    /// How the kernels are compiled, each a GPU row per linear kernel: `checked` (wgpu's
+    /// runtime checks, the default) or `unchecked` (`ContextOptions::unchecked_shaders`).
+    #[arg(long, num_args = 1.., default_values = ["checked"], value_parser = ["checked", "unchecked"])]
+    pub shader_checks: Vec<String>,
     /// Also time each GPU step kernel by kernel (one evaluation and the Euler update, each
     /// dispatch waited for alone): where the device time goes.
     #[arg(long)]
@@ -119,6 +124,16 @@ pub struct EngineBenchArgs {
     pub cache: PathBuf,
     #[arg(long)]
     pub json: bool,
+}
+
+/// An engine row's GPU setting: its linear kernel, and `unchecked` when its kernels were
+/// compiled without wgpu's runtime checks.
+fn gpu_setting(row: &serde_json::Value) -> String {
+    let kernel = row["linear_kernel"].as_str().unwrap_or("");
+    match row["shader_checks"].as_str() {
+        Some("unchecked") => format!("{kernel}, unchecked"),
+        _ => kernel.to_string(),
+    }
 }
 
 fn parse_linear_kernel(s: &str) -> Result<Option<road_gpu::kernels::linear::LinearKernel>, String> {
@@ -367,13 +382,19 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
     use road_model::batch::SceneInput;
     use road_rollout::StepEngine;
     let validation = load_cache(&args.cache, Split::Validation)?;
-    // One context per linear kernel setting compared.
+    // One context per linear kernel and shader-check setting compared.
     let contexts: Vec<road_gpu::GpuContext> = args
-        .linear_kernels
+        .shader_checks
         .iter()
-        .map(|&linear_kernel| {
+        .flat_map(|checks| {
+            args.linear_kernels
+                .iter()
+                .map(move |&linear_kernel| (linear_kernel, checks == "unchecked"))
+        })
+        .map(|(linear_kernel, unchecked_shaders)| {
             road_gpu::GpuContext::new(&road_gpu::ContextOptions {
                 linear_kernel,
+                unchecked_shaders,
                 ..road_gpu::ContextOptions::default()
             })
         })
@@ -460,6 +481,7 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
                     "padded_agents": a,
                     "scene_agents": scenes.iter().map(|s| s.agents).collect::<Vec<_>>(),
                     "linear_kernel": ctx.linear_kernel_setting(),
+                    "shader_checks": ctx.shader_checks_setting(),
                     "flops_per_scene_step": flops,
                     "cpu_ms_per_step": cpu_secs.map(|s| s * 1e3),
                     "cpu_scene_steps_per_sec": cpu_secs.map(|s| b as f64 / s),
@@ -537,7 +559,7 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
             "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
             r["checkpoint"].as_str().unwrap_or(""),
             r["scenes"],
-            r["linear_kernel"].as_str().unwrap_or(""),
+            gpu_setting(r),
             num("flops_per_scene_step", 1e-6, 1),
             num("gpu_ms_per_step", 1.0, 1),
             num("gpu_scene_steps_per_sec", 1.0, 1),
@@ -560,7 +582,7 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
             "\n{} at {} scenes ({}): no GPU figures: {}",
             r["checkpoint"].as_str().unwrap_or(""),
             r["scenes"],
-            r["linear_kernel"].as_str().unwrap_or(""),
+            gpu_setting(r),
             r["gpu_error"].as_str().unwrap_or("")
         );
     }
@@ -569,7 +591,7 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
             "\nprofile: {} at {} scenes, {} (each dispatch waited for alone; one empty submission: {:.3} ms)",
             r["checkpoint"].as_str().unwrap_or(""),
             r["scenes"],
-            r["linear_kernel"].as_str().unwrap_or(""),
+            gpu_setting(r),
             r["profile"]["round_trip_ms"].as_f64().unwrap_or(0.0)
         );
         out!("| kernel | dispatches | ms per evaluation + Euler update |");

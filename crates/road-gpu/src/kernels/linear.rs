@@ -1,6 +1,8 @@
-//! `shaders/linear.wgsl`: `y (+)= act(n(x) · wᵀ + b)` over the last dimension, in two variants
+//! `shaders/linear.wgsl`: `y (+)= act(n(x) · wᵀ + b)` over the last dimension, in three variants
 //! with the same bindings and results: row-wise (no workgroup memory; lavapipe's best, and a
-//! GPU's for small layers) and tiled (workgroup-memory tiles; a GPU's best for large layers).
+//! GPU's for small layers), tiled (64 × 32 workgroup-memory tiles, the first GPU variant) and
+//! blocked (128 × 96 blocks of 8 × 8 per invocation, the layer norm's statistics gathered
+//! while staging; a GPU's best for large layers).
 //! [`LinearKernel::choose`] says which one the engine runs for a layer. Fused into both: the
 //! layer norm `n` of the rows (prologue; its γ, β folded into the weights by
 //! [`fold_layer_norm`]), the residual add (epilogue) and outputs split into parts (the q/k/v
@@ -40,30 +42,55 @@ pub enum LinearKernel {
     Rowwise,
     /// `linear_tiled`: one workgroup per 64 rows × 32 outputs, K staged in workgroup memory.
     Tiled,
+    /// `linear_blocked`: one workgroup of 192 per 128 rows × 96 outputs, 8 × 8 per invocation.
+    Blocked,
 }
 
 impl LinearKernel {
+    /// Every variant, in the order command lines list them.
+    pub const ALL: [Self; 3] = [Self::Rowwise, Self::Tiled, Self::Blocked];
     /// Rows and outputs of one `linear_tiled` workgroup (the shader's `TILE_ROWS`, `TILE_OUTS`).
     pub const TILE: (u32, u32) = (64, 32);
+    /// Rows and outputs of one `linear_blocked` workgroup (`BLOCK_ROWS`, `BLOCK_OUTS`).
+    pub const BLOCK: (u32, u32) = (128, 96);
+    /// Invocations of one `linear_blocked` workgroup.
+    pub const BLOCK_WORKGROUP: u32 = 192;
     /// Fewest tiles for which a hardware GPU runs a layer tiled. On an H100 (2026-11-26,
     /// `docs/benchmarks.md`) tiled lost 1.7× at one scene (3 tiles a layer), tied or lost at 8
     /// scenes (114 tiles for the token layers) and won 1.3–2× from 64 scenes (960 tiles): below
     /// about two tiles per multiprocessor, too few workgroups keep the card busy.
     pub const MIN_TILES_ON_HARDWARE: u32 = 256;
+    /// Fewest blocks for which a hardware GPU runs a layer blocked: about one per
+    /// multiprocessor of an H100 (132); a block holds six tiles' outputs with three tiles'
+    /// invocations.
+    pub const MIN_BLOCKS_ON_HARDWARE: u32 = 128;
+    /// Fewest blocks for which a software adapter runs a layer blocked. On lavapipe (2 cores,
+    /// 2026-11-26) blocked beat row-wise by 24 % (road20-wide4) and 25 % (road20) a Heun step at
+    /// 8 scenes, and tied at one scene.
+    pub const MIN_BLOCKS_ON_SOFTWARE: u32 = 4;
 
-    /// The kernel for one layer: the one named (`ContextOptions::linear_kernel`), else row-wise
-    /// on a software adapter, else tiled for layers of at least [`Self::MIN_TILES_ON_HARDWARE`]
-    /// tiles.
+    /// The kernel for one layer: the one named (`ContextOptions::linear_kernel`), else on a
+    /// software adapter blocked for layers of at least [`Self::MIN_BLOCKS_ON_SOFTWARE`] blocks
+    /// and row-wise below; on hardware blocked for layers of at least
+    /// [`Self::MIN_BLOCKS_ON_HARDWARE`] blocks, tiled for layers of at least
+    /// [`Self::MIN_TILES_ON_HARDWARE`] tiles, row-wise below.
     pub fn choose(named: Option<Self>, software_adapter: bool, p: &LinearParams) -> Self {
         if let Some(kernel) = named {
             return kernel;
         }
-        let (tile_rows, tile_outs) = Self::TILE;
-        let tiles = p.rows.div_ceil(tile_rows) * p.out_dim.div_ceil(tile_outs);
-        if software_adapter || tiles < Self::MIN_TILES_ON_HARDWARE {
-            Self::Rowwise
-        } else {
+        let count = |(rows, outs): (u32, u32)| p.rows.div_ceil(rows) * p.out_dim.div_ceil(outs);
+        if software_adapter {
+            if count(Self::BLOCK) >= Self::MIN_BLOCKS_ON_SOFTWARE {
+                Self::Blocked
+            } else {
+                Self::Rowwise
+            }
+        } else if count(Self::BLOCK) >= Self::MIN_BLOCKS_ON_HARDWARE {
+            Self::Blocked
+        } else if count(Self::TILE) >= Self::MIN_TILES_ON_HARDWARE {
             Self::Tiled
+        } else {
+            Self::Rowwise
         }
     }
 
@@ -72,6 +99,15 @@ impl LinearKernel {
         match self {
             Self::Rowwise => "linear",
             Self::Tiled => "linear_tiled",
+            Self::Blocked => "linear_blocked",
+        }
+    }
+
+    /// The entry point's `@workgroup_size`.
+    pub fn workgroup_size(self) -> u32 {
+        match self {
+            Self::Rowwise | Self::Tiled => WORKGROUP,
+            Self::Blocked => Self::BLOCK_WORKGROUP,
         }
     }
 }
@@ -83,8 +119,10 @@ impl std::str::FromStr for LinearKernel {
         match s {
             "linear" | "rowwise" => Ok(Self::Rowwise),
             "linear_tiled" | "tiled" => Ok(Self::Tiled),
+            "linear_blocked" | "blocked" => Ok(Self::Blocked),
             other => Err(format!(
-                "unknown linear kernel {other:?}: expected rowwise (linear) or tiled (linear_tiled)"
+                "unknown linear kernel {other:?}: expected rowwise (linear), tiled \
+                 (linear_tiled) or blocked (linear_blocked)"
             )),
         }
     }
@@ -120,6 +158,12 @@ impl LinearParams {
             LinearKernel::Tiled => {
                 let (tile_rows, tile_outs) = LinearKernel::TILE;
                 self.rows.div_ceil(tile_rows) * self.out_dim.div_ceil(tile_outs) * WORKGROUP
+            }
+            LinearKernel::Blocked => {
+                let (block_rows, block_outs) = LinearKernel::BLOCK;
+                self.rows.div_ceil(block_rows)
+                    * self.out_dim.div_ceil(block_outs)
+                    * LinearKernel::BLOCK_WORKGROUP
             }
         }
     }
@@ -160,7 +204,12 @@ pub struct Linear {
 impl Linear {
     pub fn with_kernel(ctx: &GpuContext, kernel: LinearKernel) -> Self {
         Self {
-            pipeline: Pipeline::new(ctx, Shader::Linear, kernel.entry()),
+            pipeline: Pipeline::with_workgroup_size(
+                ctx,
+                Shader::Linear,
+                kernel.entry(),
+                kernel.workgroup_size(),
+            ),
             kernel,
         }
     }
@@ -239,23 +288,33 @@ mod tests {
     }
 
     #[test]
-    fn large_layers_run_tiled_on_hardware_only() {
-        let small = layer(2400, 96); // 8 scenes' tokens: 38 × 3 tiles
-        let large = layer(28_800, 96); // their agent maps' points: 450 × 3 tiles
+    fn layers_run_by_size_and_adapter() {
+        let small = layer(2400, 96); // 8 scenes' tokens: 38 × 3 tiles, 19 blocks
+        let large = layer(28_800, 96); // their agent maps' points: 450 × 3 tiles, 225 blocks
+        let middle = layer(9_600, 96); // 150 × 3 tiles, 75 blocks
         assert_eq!(
             LinearKernel::choose(None, false, &small),
             LinearKernel::Rowwise
         );
         assert_eq!(
-            LinearKernel::choose(None, false, &large),
+            LinearKernel::choose(None, false, &middle),
             LinearKernel::Tiled
         );
         assert_eq!(
+            LinearKernel::choose(None, false, &large),
+            LinearKernel::Blocked
+        );
+        assert_eq!(
             LinearKernel::choose(None, true, &large),
+            LinearKernel::Blocked
+        );
+        let tiny = layer(300, 96); // one scene's tokens: 3 blocks
+        assert_eq!(
+            LinearKernel::choose(None, true, &tiny),
             LinearKernel::Rowwise
         );
-        for named in [LinearKernel::Rowwise, LinearKernel::Tiled] {
-            for p in [small, large] {
+        for named in LinearKernel::ALL {
+            for p in [small, middle, large] {
                 assert_eq!(LinearKernel::choose(Some(named), false, &p), named);
                 assert_eq!(LinearKernel::choose(Some(named), true, &p), named);
             }
@@ -264,9 +323,10 @@ mod tests {
 
     #[test]
     fn names_parse_to_their_kernel() {
-        for kernel in [LinearKernel::Rowwise, LinearKernel::Tiled] {
+        for kernel in LinearKernel::ALL {
             assert_eq!(kernel.entry().parse::<LinearKernel>(), Ok(kernel));
         }
+        assert_eq!("blocked".parse::<LinearKernel>(), Ok(LinearKernel::Blocked));
         assert_eq!("tiled".parse::<LinearKernel>(), Ok(LinearKernel::Tiled));
         let err = "fast".parse::<LinearKernel>().unwrap_err();
         assert!(err.contains("\"fast\""), "{err}");

@@ -15,7 +15,8 @@ use wgpu::util::DeviceExt;
 use crate::shaders::Shader;
 use crate::{Error, GpuContext, Result};
 
-/// Threads per workgroup of every kernel here (`@workgroup_size(64)`).
+/// Threads per workgroup of the kernels here (`@workgroup_size(64)`), unless a pipeline is
+/// made with another ([`Pipeline::with_workgroup_size`]).
 pub const WORKGROUP: u32 = 64;
 /// Most workgroups along one dispatch dimension (the WebGPU default limit).
 const MAX_GROUPS_X: u32 = 65_535;
@@ -105,6 +106,20 @@ impl std::ops::AddAssign for Traffic {
     }
 }
 
+/// `shader` compiled without wgpu's runtime checks ([`crate::ContextOptions::unchecked_shaders`]).
+#[allow(unsafe_code)]
+fn unchecked_module(ctx: &GpuContext, shader: Shader) -> wgpu::ShaderModule {
+    // SAFETY: every kernel of `shaders/` bounds its indices by the sizes in its params and its
+    // loops by those sizes, and divides only by sizes the engine sets non-zero; the tolerance
+    // tests run the whole denoiser this way too.
+    unsafe {
+        ctx.device.create_shader_module_trusted(
+            shader.module_descriptor(),
+            wgpu::ShaderRuntimeChecks::unchecked(),
+        )
+    }
+}
+
 /// A compiled entry point and its bind group layout.
 #[derive(Debug)]
 pub struct Pipeline {
@@ -113,11 +128,28 @@ pub struct Pipeline {
     label: &'static str,
     /// `(binding, access)` as the shader declares them.
     access: Vec<(u32, BindingAccess)>,
+    /// The entry point's `@workgroup_size`: a dispatch of `threads` runs
+    /// `threads / workgroup_size` workgroups.
+    workgroup_size: u32,
 }
 
 impl Pipeline {
     pub fn new(ctx: &GpuContext, shader: Shader, entry: &'static str) -> Self {
-        let module = ctx.device.create_shader_module(shader.module_descriptor());
+        Self::with_workgroup_size(ctx, shader, entry, WORKGROUP)
+    }
+
+    /// An entry point whose `@workgroup_size` is `workgroup_size` rather than [`WORKGROUP`].
+    pub fn with_workgroup_size(
+        ctx: &GpuContext,
+        shader: Shader,
+        entry: &'static str,
+        workgroup_size: u32,
+    ) -> Self {
+        let module = if ctx.unchecked_shaders() {
+            unchecked_module(ctx, shader)
+        } else {
+            ctx.device.create_shader_module(shader.module_descriptor())
+        };
         let pipeline = ctx
             .device
             .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
@@ -134,6 +166,7 @@ impl Pipeline {
             layout,
             label: entry,
             access: declared_access(shader),
+            workgroup_size,
         }
     }
 
@@ -257,7 +290,7 @@ impl Pipeline {
             layout: &self.layout,
             entries: &entries,
         });
-        let groups = threads.div_ceil(WORKGROUP).max(1);
+        let groups = threads.div_ceil(self.workgroup_size).max(1);
         let groups = if groups <= MAX_GROUPS_X {
             (groups, 1)
         } else {
