@@ -4,6 +4,7 @@
 use std::time::Duration;
 
 use crate::kernels::linear::{LinearKernel, LinearParams};
+use crate::kernels::polyline::{PolylineKernel, PolylineParams};
 use crate::{Error, Result};
 
 /// How to open the device.
@@ -16,6 +17,8 @@ pub struct ContextOptions {
     /// The linear layers' kernel; `None` picks per layer ([`LinearKernel::choose`]: tiled for
     /// large layers on hardware, row-wise otherwise and on software adapters such as lavapipe).
     pub linear_kernel: Option<LinearKernel>,
+    /// The polyline encoder's kernel; `None` picks by shape ([`PolylineKernel::choose`]).
+    pub polyline_kernel: Option<PolylineKernel>,
     /// Most bytes of the map encoder's points a dispatch binds: it runs over the polylines
     /// chunk by chunk (at least 64 polylines each) so that agent maps of large batches fit one
     /// buffer binding. Tests make it tiny to run many chunks.
@@ -33,6 +36,7 @@ impl Default for ContextOptions {
             validation: false,
             poll_timeout: Duration::from_secs(120),
             linear_kernel: None,
+            polyline_kernel: None,
             map_encoder_chunk_bytes: 64 << 20,
             unchecked_shaders: false,
         }
@@ -48,6 +52,7 @@ pub struct GpuContext {
     pub info: wgpu::AdapterInfo,
     poll_timeout: Duration,
     linear_kernel: Option<LinearKernel>,
+    polyline_kernel: Option<PolylineKernel>,
     map_encoder_chunk_bytes: u64,
     unchecked_shaders: bool,
 }
@@ -104,6 +109,7 @@ impl GpuContext {
             info,
             poll_timeout: options.poll_timeout,
             linear_kernel: options.linear_kernel,
+            polyline_kernel: options.polyline_kernel,
             map_encoder_chunk_bytes: options.map_encoder_chunk_bytes,
             unchecked_shaders: options.unchecked_shaders,
         })
@@ -128,6 +134,21 @@ impl GpuContext {
     /// The kernel for a linear layer of these dimensions on this context.
     pub fn linear_kernel_for(&self, p: &LinearParams) -> LinearKernel {
         LinearKernel::choose(self.linear_kernel, self.is_software(), p)
+    }
+
+    /// The polyline encoder's kernel for this shape on this context: the one named if it
+    /// takes the shape, else [`PolylineKernel::choose`]'s.
+    pub fn polyline_kernel_for(&self, p: &PolylineParams) -> PolylineKernel {
+        match self.polyline_kernel {
+            Some(PolylineKernel::Blocked) if !p.blocked_fits() => PolylineKernel::PerPolyline,
+            Some(kernel) => kernel,
+            None => PolylineKernel::choose(p),
+        }
+    }
+
+    /// The polyline kernel the options named, or `"auto"`.
+    pub fn polyline_kernel_setting(&self) -> &'static str {
+        self.polyline_kernel.map_or("auto", PolylineKernel::entry)
     }
 
     /// The linear kernel the options named, or `"auto"` (chosen per layer).

@@ -21,7 +21,7 @@ use crate::kernels::agent_map::AgentMapParams;
 use crate::kernels::agent_pairs::PairAttentionParams;
 use crate::kernels::attention::{AttentionParams, MAX_HEAD_DIM, TokenLayout};
 use crate::kernels::linear::{Linear, LinearKernel, LinearParams};
-use crate::kernels::polyline::PolylineParams;
+use crate::kernels::polyline::{PolylineEncoder, PolylineKernel, PolylineParams};
 use crate::kernels::{Dispatch, Pipeline, read_back, record_all, rows_of, storage_buffer, upload};
 use crate::shaders::Shader;
 use crate::{Error, GpuContext, Result};
@@ -125,7 +125,8 @@ pub(crate) struct Pipelines {
     attention: Pipeline,
     embed_tokens: Pipeline,
     precondition_output: Pipeline,
-    encode_polylines: Pipeline,
+    encode_polylines: PolylineEncoder,
+    encode_polylines_blocked: PolylineEncoder,
     pub(crate) heun_euler: Pipeline,
     pub(crate) heun_correct: Pipeline,
     pub(crate) multistep_correct: Pipeline,
@@ -142,7 +143,8 @@ impl Pipelines {
             attention: Pipeline::new(ctx, Shader::Attention, "attention"),
             embed_tokens: Pipeline::new(ctx, Shader::Embed, "embed_tokens"),
             precondition_output: Pipeline::new(ctx, Shader::Elementwise, "precondition_output"),
-            encode_polylines: Pipeline::new(ctx, Shader::Polyline, "encode_polylines"),
+            encode_polylines: PolylineEncoder::new(ctx, PolylineKernel::PerPolyline),
+            encode_polylines_blocked: PolylineEncoder::new(ctx, PolylineKernel::Blocked),
             heun_euler: Pipeline::new(ctx, Shader::Heun, "heun_euler"),
             heun_correct: Pipeline::new(ctx, Shader::Heun, "heun_correct"),
             multistep_correct: Pipeline::new(ctx, Shader::Heun, "multistep_correct"),
@@ -542,11 +544,15 @@ impl GpuDenoiser {
                 self.w("ln_map_out.bias")?,
                 rows_of(&scratch.tokens, first, rows, d),
             ];
-            ops.push(self.pipelines.encode_polylines.prepare_resources(
+            let encoder = match ctx.polyline_kernel_for(&p) {
+                PolylineKernel::PerPolyline => &self.pipelines.encode_polylines,
+                PolylineKernel::Blocked => &self.pipelines.encode_polylines_blocked,
+            };
+            ops.push(encoder.pipeline.prepare_resources(
                 ctx,
                 &params,
                 &resources,
-                p.threads(),
+                p.threads(encoder.kernel),
             ));
         }
         Ok(())

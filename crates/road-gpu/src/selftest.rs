@@ -7,7 +7,7 @@ use crate::kernels::agent_map::{AgentMap, AgentMapParams};
 use crate::kernels::agent_pairs::{PairAttention, PairAttentionParams};
 use crate::kernels::attention::{Attention, AttentionParams, TokenLayout};
 use crate::kernels::linear::{Linear, LinearKernel, LinearParams, fold_layer_norm};
-use crate::kernels::polyline::{PolylineEncoder, PolylineParams};
+use crate::kernels::polyline::{PolylineEncoder, PolylineKernel, PolylineParams};
 use crate::tolerance::Mismatch;
 use crate::{GpuContext, Result, Tolerance, reference};
 
@@ -136,8 +136,7 @@ pub fn kernel_checks(ctx: &GpuContext) -> Result<Vec<KernelCheck>> {
         hidden: d as u32,
         eps: 1e-5,
     };
-    let got =
-        PolylineEncoder::new(ctx).run(ctx, p, &points, &embed, &mix_w, &mix_b, &gamma, &beta)?;
+    // Both variants, whichever the engine uses here.
     let want = reference::encode_polylines(
         &points,
         &embed,
@@ -148,12 +147,16 @@ pub fn kernel_checks(ctx: &GpuContext) -> Result<Vec<KernelCheck>> {
         (n, q, d),
         1e-5,
     );
-    checks.push(KernelCheck {
-        name: "encode_polylines",
-        values: got.len(),
-        tolerance: loose,
-        outcome: loose.check(&got, &want),
-    });
+    for kernel in PolylineKernel::ALL {
+        let got = PolylineEncoder::new(ctx, kernel)
+            .run(ctx, p, &points, &embed, &mix_w, &mix_b, &gamma, &beta)?;
+        checks.push(KernelCheck {
+            name: kernel.entry(),
+            values: got.len(),
+            tolerance: loose,
+            outcome: loose.check(&got, &want),
+        });
+    }
 
     // attention, agents layout (groups (scene, slot), tokens agents), random masks.
     let (q, k, v) = (

@@ -215,10 +215,12 @@ fn fused_linear_matches_the_cpu_reference_on_random_shapes() {
 /// its largest (512: chunks of 4 points), Q not a multiple of 4.
 #[test]
 fn polyline_encoder_matches_the_cpu_reference_on_random_shapes() {
-    use road_gpu::kernels::polyline::{PolylineEncoder, PolylineParams};
+    use road_gpu::kernels::polyline::{PolylineEncoder, PolylineKernel, PolylineParams};
     let ctx = context();
-    let kernel = PolylineEncoder::new(&ctx);
+    let encoders = PolylineKernel::ALL.map(|kernel| PolylineEncoder::new(&ctx, kernel));
     let mut rng = rand::rngs::StdRng::seed_from_u64(12);
+    // The blocked variant's edges too: a last block of fewer polylines, D over one block of
+    // 96 outputs and not a multiple of 16, Q from 4 (8 polylines a block) to 128 (one).
     for (n, q, d) in [
         (1, 1, 2),
         (5, 20, 64),
@@ -226,6 +228,10 @@ fn polyline_encoder_matches_the_cpu_reference_on_random_shapes() {
         (3, 30, 160),
         (2, 7, 7),
         (2, 9, 512),
+        (13, 20, 192),
+        (9, 4, 40),
+        (3, 128, 100),
+        (17, 12, 97),
     ] {
         let points = random(&mut rng, n * q * 2, 2.0);
         let embed = random(&mut rng, 3 * d + q * d, 0.7);
@@ -239,9 +245,6 @@ fn polyline_encoder_matches_the_cpu_reference_on_random_shapes() {
             hidden: d as u32,
             eps: 1e-5,
         };
-        let got = kernel
-            .run(&ctx, p, &points, &embed, &mix_w, &mix_b, &gamma, &beta)
-            .unwrap();
         let want = road_gpu::reference::encode_polylines(
             &points,
             &embed,
@@ -257,8 +260,23 @@ fn polyline_encoder_matches_the_cpu_reference_on_random_shapes() {
             rel: 1e-4,
             abs: 1e-5,
         };
-        if let Err(m) = tol.check(&got, &want) {
-            panic!("polyline encoder {n} × {q} points × {d}: {m}");
+        for encoder in &encoders {
+            if encoder.kernel == PolylineKernel::Blocked && !p.blocked_fits() {
+                let err = encoder
+                    .run(&ctx, p, &points, &embed, &mix_w, &mix_b, &gamma, &beta)
+                    .unwrap_err();
+                assert!(err.to_string().contains("Q = "), "{err}");
+                continue;
+            }
+            let got = encoder
+                .run(&ctx, p, &points, &embed, &mix_w, &mix_b, &gamma, &beta)
+                .unwrap();
+            if let Err(m) = tol.check(&got, &want) {
+                panic!(
+                    "{:?} polyline encoder {n} × {q} points × {d}: {m}",
+                    encoder.kernel
+                );
+            }
         }
     }
 }

@@ -112,6 +112,10 @@ pub struct EngineBenchArgs {
     /// ones, row-wise for small; row-wise on software adapters).
     #[arg(long, num_args = 1.., default_values = ["auto"], value_parser = parse_linear_kernel)]
     pub linear_kernels: Vec<Option<road_gpu::kernels::linear::LinearKernel>>,
+    /// The polyline encoder's kernels to time, each a GPU row per linear kernel:
+    /// `per-polyline`, `blocked` or `auto` (blocked where the shape fits).
+    #[arg(long, num_args = 1.., default_values = ["auto"], value_parser = parse_polyline_kernel)]
+    pub polyline_kernels: Vec<Option<road_gpu::kernels::polyline::PolylineKernel>>,
     /// How the kernels are compiled, each a GPU row per linear kernel: `checked` (wgpu's
     /// runtime checks, the default) or `unchecked` (`ContextOptions::unchecked_shaders`).
     #[arg(long, num_args = 1.., default_values = ["checked"], value_parser = ["checked", "unchecked"])]
@@ -126,14 +130,27 @@ pub struct EngineBenchArgs {
     pub json: bool,
 }
 
-/// An engine row's GPU setting: its linear kernel, and `unchecked` when its kernels were
-/// compiled without wgpu's runtime checks.
+/// An engine row's GPU setting: its linear kernel, the polyline kernel when one was named,
+/// and `unchecked` when its kernels were compiled without wgpu's runtime checks.
 fn gpu_setting(row: &serde_json::Value) -> String {
-    let kernel = row["linear_kernel"].as_str().unwrap_or("");
-    match row["shader_checks"].as_str() {
-        Some("unchecked") => format!("{kernel}, unchecked"),
-        _ => kernel.to_string(),
+    let mut setting = row["linear_kernel"].as_str().unwrap_or("").to_string();
+    match row["polyline_kernel"].as_str() {
+        Some("auto") | None => {}
+        Some(polyline) => setting += &format!(", {polyline}"),
     }
+    if row["shader_checks"].as_str() == Some("unchecked") {
+        setting += ", unchecked";
+    }
+    setting
+}
+
+fn parse_polyline_kernel(
+    s: &str,
+) -> Result<Option<road_gpu::kernels::polyline::PolylineKernel>, String> {
+    if s == "auto" {
+        return Ok(None);
+    }
+    s.parse().map(Some)
 }
 
 fn parse_linear_kernel(s: &str) -> Result<Option<road_gpu::kernels::linear::LinearKernel>, String> {
@@ -382,18 +399,21 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
     use road_model::batch::SceneInput;
     use road_rollout::StepEngine;
     let validation = load_cache(&args.cache, Split::Validation)?;
-    // One context per linear kernel and shader-check setting compared.
-    let contexts: Vec<road_gpu::GpuContext> = args
-        .shader_checks
-        .iter()
-        .flat_map(|checks| {
-            args.linear_kernels
-                .iter()
-                .map(move |&linear_kernel| (linear_kernel, checks == "unchecked"))
-        })
-        .map(|(linear_kernel, unchecked_shaders)| {
+    // One context per shader-check, polyline and linear kernel setting compared.
+    let mut settings = Vec::new();
+    for checks in &args.shader_checks {
+        for &polyline_kernel in &args.polyline_kernels {
+            for &linear_kernel in &args.linear_kernels {
+                settings.push((checks == "unchecked", polyline_kernel, linear_kernel));
+            }
+        }
+    }
+    let contexts: Vec<road_gpu::GpuContext> = settings
+        .into_iter()
+        .map(|(unchecked_shaders, polyline_kernel, linear_kernel)| {
             road_gpu::GpuContext::new(&road_gpu::ContextOptions {
                 linear_kernel,
+                polyline_kernel,
                 unchecked_shaders,
                 ..road_gpu::ContextOptions::default()
             })
@@ -482,6 +502,7 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
                     "scene_agents": scenes.iter().map(|s| s.agents).collect::<Vec<_>>(),
                     "linear_kernel": ctx.linear_kernel_setting(),
                     "shader_checks": ctx.shader_checks_setting(),
+                    "polyline_kernel": ctx.polyline_kernel_setting(),
                     "flops_per_scene_step": flops,
                     "cpu_ms_per_step": cpu_secs.map(|s| s * 1e3),
                     "cpu_scene_steps_per_sec": cpu_secs.map(|s| b as f64 / s),

@@ -55,40 +55,32 @@ impl LinearKernel {
     pub const BLOCK: (u32, u32) = (128, 96);
     /// Invocations of one `linear_blocked` workgroup.
     pub const BLOCK_WORKGROUP: u32 = 192;
-    /// Fewest tiles for which a hardware GPU runs a layer tiled. On an H100 (2026-11-26,
-    /// `docs/benchmarks.md`) tiled lost 1.7× at one scene (3 tiles a layer), tied or lost at 8
-    /// scenes (114 tiles for the token layers) and won 1.3–2× from 64 scenes (960 tiles): below
-    /// about two tiles per multiprocessor, too few workgroups keep the card busy.
-    pub const MIN_TILES_ON_HARDWARE: u32 = 256;
-    /// Fewest blocks for which a hardware GPU runs a layer blocked: about one per
-    /// multiprocessor of an H100 (132); a block holds six tiles' outputs with three tiles'
-    /// invocations.
-    pub const MIN_BLOCKS_ON_HARDWARE: u32 = 128;
+    /// Fewest blocks for which a hardware GPU runs a layer blocked. On an H100 (2026-11-26,
+    /// `docs/benchmarks.md`) blocked won from 8 scenes (19 blocks for the token layers: 1.4×
+    /// over row-wise and tiled) and lost 1.5× at one scene (a block a layer).
+    pub const MIN_BLOCKS_ON_HARDWARE: u32 = 8;
     /// Fewest blocks for which a software adapter runs a layer blocked. On lavapipe (2 cores,
     /// 2026-11-26) blocked beat row-wise by 24 % (road20-wide4) and 25 % (road20) a Heun step at
     /// 8 scenes, and tied at one scene.
     pub const MIN_BLOCKS_ON_SOFTWARE: u32 = 4;
 
-    /// The kernel for one layer: the one named (`ContextOptions::linear_kernel`), else on a
-    /// software adapter blocked for layers of at least [`Self::MIN_BLOCKS_ON_SOFTWARE`] blocks
-    /// and row-wise below; on hardware blocked for layers of at least
-    /// [`Self::MIN_BLOCKS_ON_HARDWARE`] blocks, tiled for layers of at least
-    /// [`Self::MIN_TILES_ON_HARDWARE`] tiles, row-wise below.
+    /// The kernel for one layer: the one named (`ContextOptions::linear_kernel`), else
+    /// blocked for layers of at least [`Self::MIN_BLOCKS_ON_HARDWARE`] blocks on hardware
+    /// ([`Self::MIN_BLOCKS_ON_SOFTWARE`] on a software adapter), row-wise below. Tiled is
+    /// never the choice: blocked beat it at every batch on the H100.
     pub fn choose(named: Option<Self>, software_adapter: bool, p: &LinearParams) -> Self {
         if let Some(kernel) = named {
             return kernel;
         }
-        let count = |(rows, outs): (u32, u32)| p.rows.div_ceil(rows) * p.out_dim.div_ceil(outs);
-        if software_adapter {
-            if count(Self::BLOCK) >= Self::MIN_BLOCKS_ON_SOFTWARE {
-                Self::Blocked
-            } else {
-                Self::Rowwise
-            }
-        } else if count(Self::BLOCK) >= Self::MIN_BLOCKS_ON_HARDWARE {
+        let (block_rows, block_outs) = Self::BLOCK;
+        let blocks = p.rows.div_ceil(block_rows) * p.out_dim.div_ceil(block_outs);
+        let least = if software_adapter {
+            Self::MIN_BLOCKS_ON_SOFTWARE
+        } else {
+            Self::MIN_BLOCKS_ON_HARDWARE
+        };
+        if blocks >= least {
             Self::Blocked
-        } else if count(Self::TILE) >= Self::MIN_TILES_ON_HARDWARE {
-            Self::Tiled
         } else {
             Self::Rowwise
         }
@@ -289,32 +281,18 @@ mod tests {
 
     #[test]
     fn layers_run_by_size_and_adapter() {
-        let small = layer(2400, 96); // 8 scenes' tokens: 38 × 3 tiles, 19 blocks
-        let large = layer(28_800, 96); // their agent maps' points: 450 × 3 tiles, 225 blocks
-        let middle = layer(9_600, 96); // 150 × 3 tiles, 75 blocks
-        assert_eq!(
-            LinearKernel::choose(None, false, &small),
-            LinearKernel::Rowwise
-        );
-        assert_eq!(
-            LinearKernel::choose(None, false, &middle),
-            LinearKernel::Tiled
-        );
-        assert_eq!(
-            LinearKernel::choose(None, false, &large),
-            LinearKernel::Blocked
-        );
-        assert_eq!(
-            LinearKernel::choose(None, true, &large),
-            LinearKernel::Blocked
-        );
-        let tiny = layer(300, 96); // one scene's tokens: 3 blocks
-        assert_eq!(
-            LinearKernel::choose(None, true, &tiny),
-            LinearKernel::Rowwise
-        );
+        let one_scene = layer(60, 96); // one scene's tokens (3 agents): 1 block
+        let small = layer(600, 96); // 5 blocks
+        let large = layer(2400, 96); // 8 scenes' tokens: 19 blocks
+        let choose = |software, p| LinearKernel::choose(None, software, p);
+        assert_eq!(choose(false, &one_scene), LinearKernel::Rowwise);
+        assert_eq!(choose(false, &small), LinearKernel::Rowwise);
+        assert_eq!(choose(false, &large), LinearKernel::Blocked);
+        assert_eq!(choose(true, &one_scene), LinearKernel::Rowwise);
+        assert_eq!(choose(true, &small), LinearKernel::Blocked);
+        assert_eq!(choose(true, &large), LinearKernel::Blocked);
         for named in LinearKernel::ALL {
-            for p in [small, middle, large] {
+            for p in [one_scene, small, large] {
                 assert_eq!(LinearKernel::choose(Some(named), false, &p), named);
                 assert_eq!(LinearKernel::choose(Some(named), true, &p), named);
             }
