@@ -86,7 +86,7 @@ impl PolylineParams {
     /// four consecutive rows are points of one polyline) up to 128 (a block's rows), D up to
     /// [`MAX_BLOCKED_HIDDEN`] (its pooled features in workgroup memory).
     pub fn blocked_fits(&self) -> bool {
-        self.points % 4 == 0
+        self.points.is_multiple_of(4)
             && (4..=128).contains(&self.points)
             && self.hidden <= MAX_BLOCKED_HIDDEN
     }
