@@ -11,8 +11,9 @@
 #
 # `--quick` runs small batches only (how CI-sized machines and lavapipe test the script: 2.5 min
 # here with --no-torch). `--no-torch` skips the Heun serving bench and PyTorch. `--engine-only`
-# runs the self-test, the engine and the serving bench alone (about 3 minutes on an H100): what a
-# lend measures when the kernels changed and the front end did not, leaving time to train. The procedure for
+# runs the self-test, the engine and the GPU's serving bench alone (about 2 minutes on an H100):
+# what a lend measures when the kernels changed and the front end did not, leaving time to
+# train (scripts/gpu-session.sh runs it so). The procedure for
 # a lent machine (what to move out of the tree so that it travels, the Vulkan loader, the run
 # call) is in docs/benchmarks.md, "The GPU suite: how a lent session runs it"; it ran on an H100
 # on 2026-11-26 in 203 s with --no-torch, before the demo-gpu and zenoh-gpu steps were added.
@@ -104,22 +105,28 @@ run)
     # The candle reference takes minutes per step at thousands of scenes: timed up to 8 only
     # (the first lent run, 2026-11-26, measured it to 64: docs/experiments/2026-11-26-gpu-h100/).
     # road20 stands for every D = 64 checkpoint (the same shapes), road20-wide4 is the default.
-    # The linear kernel chosen per layer (auto) beside the GPU variants alone, each compiled
-    # with and without wgpu's runtime checks; then the default's steps profiled kernel by
-    # kernel at two batches (a step of its own: a step cut off at its limit returns nothing).
+    # The kernels chosen per layer (auto) beside each linear variant alone, each with the
+    # polyline encoder chosen (blocked) and per polyline (rowwise or tiled with per-polyline is
+    # the engine before 2026-11-26's blocked kernels); then the default's steps profiled kernel
+    # by kernel at two batches, compiled with and without wgpu's runtime checks (a step of its
+    # own: a step cut off at its limit returns nothing).
     step engine 150 "$out/engine.json" "$bin" bench engine \
         --checkpoints models/road20-wide4 models/road20 --batches "${batches[@]}" \
-        --cpu-max-batch 8 --linear-kernels auto tiled blocked \
-        --shader-checks checked unchecked --cache "$out/cache" --json
+        --cpu-max-batch 8 --linear-kernels auto rowwise tiled blocked \
+        --polyline-kernels auto per-polyline --cache "$out/cache" --json
     profile_batches=(512 4096)
     $quick && profile_batches=(8)
     step engine-profile 90 "$out/engine-profile.json" "$bin" bench engine \
         --checkpoints models/road20-wide4 --batches "${profile_batches[@]}" --cpu-max-batch 0 \
         --linear-kernels auto --shader-checks checked unchecked --profile --cache "$out/cache" \
         --json
-    # Serving: scenes ticking through the scheduler, each engine in the same run.
+    # Serving: scenes ticking through the scheduler, each engine in the same run (the GPU's
+    # alone with --engine-only: the CPU column does not change with the kernels).
+    serve_engines=(cpu gpu)
+    $engine_only && serve_engines=(gpu)
     step serve 150 "$out/serve.json" "$bin" bench serve --checkpoint models/road20-wide4 \
-        --engines cpu gpu --scenes "${scenes[@]}" --ticks "$ticks" --cache "$out/cache" --json
+        --engines "${serve_engines[@]}" --scenes "${scenes[@]}" --ticks "$ticks" \
+        --cache "$out/cache" --json
     if $engine_only; then
         rm -rf "$out/cache"
         ls -la "$out"

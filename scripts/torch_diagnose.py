@@ -25,11 +25,12 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import torch_denoiser as td  # noqa: E402
 import torch_train as tt  # noqa: E402
+import torch_train_data as ttd  # noqa: E402
 
 STEP_S = 0.1  # INTERACTION's frame interval
 
 
-def heun_levels(edm: tt.Edm, steps: int) -> list[float]:
+def heun_levels(edm: ttd.Edm, steps: int) -> list[float]:
     """EDM's Karras levels from σ_max to σ_min, then 0 (the Heun sampler's schedule)."""
     lo, hi = edm.sigma_min ** (1 / edm.rho), edm.sigma_max ** (1 / edm.rho)
     return [(hi + i / (steps - 1) * (lo - hi)) ** edm.rho for i in range(steps)] + [0.0]
@@ -39,7 +40,7 @@ def sample_future(
     model: td.Denoiser,
     batch: dict[str, torch.Tensor],
     obs_slots: int,
-    edm: tt.Edm,
+    edm: ttd.Edm,
     steps: int,
     generator: torch.Generator,
 ) -> torch.Tensor:
@@ -68,7 +69,7 @@ def sample_future(
     return x
 
 
-def collate(scenes: list[tt.SceneInput], window_slots: int) -> dict[str, torch.Tensor]:
+def collate(scenes: list[ttd.SceneInput], window_slots: int) -> dict[str, torch.Tensor]:
     draw = tt.Draw(inputs=scenes)
     for s in scenes:
         draw.sigma.append(np.zeros(window_slots, np.float32))
@@ -76,9 +77,9 @@ def collate(scenes: list[tt.SceneInput], window_slots: int) -> dict[str, torch.T
     return {k: torch.from_numpy(v) for k, v in tt.collate(draw).items()}
 
 
-def load(args: argparse.Namespace) -> tuple[tt.Run, tt.ExportedSplit]:
-    run = tt.load_run(Path(args.config), [])
-    split = tt.ExportedSplit(Path(args.export) / "validation.safetensors")
+def load(args: argparse.Namespace) -> tuple[ttd.Run, ttd.ExportedSplit]:
+    run = ttd.load_run(Path(args.config), [])
+    split = ttd.ExportedSplit(Path(args.export) / "validation.safetensors")
     if run.rolling:
         raise SystemExit(f"{args.config}: a rolling planner; these diagnostics are for full diffusion")
     return run, split
@@ -138,7 +139,7 @@ def closed_loop(args: argparse.Namespace) -> None:
                 x = np.zeros((states.shape[0], w, 3), np.float32)
                 x[:, :n] = states
                 v = np.concatenate([valid, np.repeat(d[:, None], w - n, 1)], 1)
-                windows_now.append(tt.SceneInput(x, v, s.features, s.map))
+                windows_now.append(ttd.SceneInput(x, v, s.features, s.map))
             batch = collate(windows_now, w)
             with torch.no_grad():
                 x = sample_future(model, batch, n, run.edm, args.steps, g)

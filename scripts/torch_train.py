@@ -20,8 +20,21 @@ optimiser steps against candle on a fixture this script writes.
         --out crates/road-model/tests/fixtures/torch_train
     python scripts/torch_train.py validate --config configs/road20-wide4.toml \\
         --checkpoint models/road20-wide4 --export .road-cache/torch
+    python scripts/torch_train.py bench --config configs/road20-wide5.toml \\
+        [--variants fp32,fp32+device,bf16+device,bf16+device+compile] \\
+        [--batch-scenes 256,1024] [--size base] [--json OUT.json]
 
-fp32 throughout, TF32 off unless `--allow-tf32`.
+By default fp32 throughout, TF32 off unless `--allow-tf32`, eager, batches made by numpy on
+loader processes: the parity-checked path. Off by default, for speed on a GPU: `--precision
+bf16` (autocast, f32 weights, optimiser state, loss and validation), `--compile`
+(torch.compile, eager again if it fails) and `--pipeline device` (the training split on the
+device, batches gathered there, no step waiting for the device; other random streams).
+`bench` times them.
+
+This file holds training, validation, the parity fixture and the command line; the device
+pipeline is torch_device_pipeline.py, `bench` torch_train_bench.py, and what both pipelines
+read (the run config, the export, the agent buckets, the per-step random stream)
+torch_train_data.py.
 """
 
 from __future__ import annotations
@@ -34,7 +47,6 @@ import platform
 import sys
 import time
 import tomllib
-import zlib
 from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -45,24 +57,29 @@ import torch
 from safetensors import safe_open
 from safetensors.numpy import load_file as load_numpy
 from safetensors.torch import load_file, save_file
-from torch import Tensor
+from torch import Tensor, nn
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import torch_denoiser as td  # noqa: E402  (the forward pass, its config parsing and names)
+from torch_device_pipeline import DeviceBatches, DeviceData  # noqa: E402
+from torch_train_data import (  # noqa: E402  (the run config, the export, the step stream)
+    AgentBuckets,
+    ConfigError,
+    ExportedSplit,
+    Run,
+    SceneInput,
+    TrainConfig,
+    load_run,
+    parse_run,
+    step_rng,
+)
 
 ADAM_BETA1 = 0.9
 ADAM_BETA2 = 0.999
 ADAM_EPS = 1e-8
 # train.rs VALIDATION_SEED: the validation draws' own seed (numpy's stream here, not Rust's).
 VALIDATION_SEED = 0x005EED0F7A11
-# train.rs AgentBuckets::MIN_BUCKET.
-MIN_BUCKET = 256
-EXPORT_FORMAT = "road-torch-dataset"
 BATCHES_FORMAT = "road-torch-validation-batches"
-EXPORT_VERSION = "1"
-STATES_ENCODING = "u32-delta-byteplanes-zlib"
-PI32 = np.float32(np.pi)
-TAU32 = np.float32(2.0) * PI32
 WEIGHTS_FILE = "weights.safetensors"
 TRAIN_STATE_FILE = "train_state.safetensors"
 META_FILE = "config.toml"
@@ -70,55 +87,9 @@ LOG_HEADER = "step,loss,learning_rate,grad_norm,samples_per_sec,validation_loss,
 DATA_SOURCE = "INTERACTION DR v1.0 (non-commercial licence), official validation split"
 
 
-class ConfigError(ValueError):
-    """A bad run config or override; the message names the file and key."""
-
-
 # --------------------------------------------------------------------------------------------
-# Run config: configs/<run>.toml (config.rs RunConfig) with `--set key=value` overrides.
+# Schedules: batch.rs's task profiles, train.rs's learning rate.
 # --------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class TrainConfig:
-    """config.rs `TrainConfig`; defaults as its `Default`."""
-
-    batch_scenes: int = 16
-    steps: int = 20_000
-    learning_rate: float = 1e-3
-    warmup_steps: int = 200
-    min_learning_rate: float = 1e-5
-    weight_decay: float = 0.0
-    grad_clip: float = 1.0
-    ema_decay: float = 0.999
-    warmup_task_prob: float = 0.1
-    augmentation_ratio: float = 0.5
-    seed: int = 0
-    val_every_steps: int = 250
-    val_batches: int = 8
-    checkpoint_every_secs: int = 300
-    bucket_by_agents: bool = True
-    workers: int = 2  # candle's data parallelism: no effect on the math here
-    rotation_augmentation: bool = False
-    init_from: str | None = None
-
-
-@dataclass(frozen=True)
-class Edm:
-    sigma_min: float = 0.002
-    sigma_max: float = 80.0
-    rho: float = 7.0
-    sigma_data: float = 0.5
-
-    def sigma(self, u: float) -> float:
-        """road_sched::edm `EdmSchedule::sigma`: clamped, 0 at u = 0."""
-        u = min(max(u, 0.0), 1.0)
-        if u == 0.0:
-            return 0.0
-        inv_rho = 1.0 / self.rho
-        lo = self.sigma_min**inv_rho
-        hi = self.sigma_max**inv_rho
-        return (lo + u * (hi - lo)) ** self.rho
 
 
 def warmup_u(k: int, f: int, tau: float) -> float:
@@ -131,124 +102,6 @@ def rolling_u(k: int, f: int, tau: float) -> float:
 
 def full_u(k: int, f: int, tau: float) -> float:
     return min(max(tau, 0.0), 1.0)
-
-
-@dataclass
-class Run:
-    """A parsed run: the raw tables (written back into checkpoints) and typed views."""
-
-    table: dict[str, Any]
-    name: str
-    model: td.ModelConfig
-    edm: Edm
-    obs_slots: int
-    future_slots: int
-    rolling: bool  # planner kind "rolling": warm-up or rolling tasks; else full diffusion
-    train: TrainConfig
-
-
-def parse_override(item: str) -> tuple[list[str], Any]:
-    """`key=value` as road's `--set`: the value is TOML (`40`, `0.5`, `"text"`, `true`), a
-    bare word a string; dotted keys reach into tables."""
-    if "=" not in item:
-        raise ConfigError(f"an override must look like key=value, got `{item}`")
-    key, raw = item.split("=", 1)
-    try:
-        value = tomllib.loads(f"v = {raw}")["v"]
-    except tomllib.TOMLDecodeError:
-        value = raw
-    return key.split("."), value
-
-
-def load_run_table(path: Path, overrides: list[str]) -> dict[str, Any]:
-    try:
-        with open(path, "rb") as f:
-            table = tomllib.load(f)
-    except (OSError, tomllib.TOMLDecodeError) as e:
-        raise ConfigError(f"cannot read run config {path}: {e}") from e
-    for item in overrides:
-        keys, value = parse_override(item)
-        target = table
-        for part in keys[:-1]:
-            target = target.setdefault(part, {})
-            if not isinstance(target, dict):
-                raise ConfigError(f"override `{item}`: `{part}` is not a table")
-        target[keys[-1]] = value
-    return table
-
-
-def parse_run(table: dict[str, Any], origin: str) -> Run:
-    """The checks of config.rs `RunConfig::validate` this script relies on; unknown `[train]`
-    keys are an error naming them (config.rs denies unknown fields)."""
-    unknown = set(table) - {"name", "model", "planner", "train"}
-    if unknown:
-        raise ConfigError(f"unknown key(s) {sorted(unknown)} in {origin}")
-    if "name" not in table or "planner" not in table:
-        raise ConfigError(f"{origin} lacks `name` or `[planner]`")
-    try:
-        model = td.parse_model_config(table.get("model", {}))
-    except ValueError as e:
-        raise ConfigError(f"{origin}: {e}") from e
-    edm_table = table.get("model", {}).get("edm", {})
-    edm = Edm(**{k: float(v) for k, v in edm_table.items()})
-    planner = table["planner"]
-    obs = int(planner.get("obs_slots", 10))
-    future = int(planner.get("future_slots", 10))
-    if obs + future != model.window_slots:
-        raise ConfigError(
-            f"{origin}: model.window_slots ({model.window_slots}) must equal planner "
-            f"obs_slots + future_slots ({obs + future})"
-        )
-    train_table = dict(table.get("train", {}))
-    for key in ("kink_augmentation", "history_noise_m"):
-        if key in train_table:
-            raise ConfigError(
-                f"train.{key} in {origin}: not in the PyTorch path (road train only)"
-            )
-    known = set(TrainConfig.__dataclass_fields__)
-    unknown = set(train_table) - known
-    if unknown:
-        raise ConfigError(f"unknown [train] key(s) {sorted(unknown)} in {origin}")
-    defaults = TrainConfig()
-    typed: dict[str, Any] = {}
-    for key in known:
-        default = getattr(defaults, key)
-        value = train_table.get(key, default)
-        if key == "init_from":
-            typed[key] = None if value is None else str(value)
-        elif isinstance(default, bool):
-            if not isinstance(value, bool):
-                raise ConfigError(f"train.{key} must be true or false in {origin}")
-            typed[key] = value
-        elif isinstance(default, int):
-            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-                raise ConfigError(f"train.{key} must be a whole number ≥ 0 in {origin}")
-            typed[key] = value
-        else:
-            if isinstance(value, bool) or not isinstance(value, (int, float)):
-                raise ConfigError(f"train.{key} must be a number in {origin}")
-            typed[key] = float(value)
-    t = TrainConfig(**typed)
-    if t.batch_scenes == 0 or not t.learning_rate > 0 or not 0 <= t.ema_decay < 1:
-        raise ConfigError(
-            f"{origin}: train: batch_scenes ≥ 1, learning_rate > 0, 0 ≤ ema_decay < 1"
-        )
-    if not (0 <= t.warmup_task_prob <= 1 and 0 <= t.augmentation_ratio <= 1):
-        raise ConfigError(f"{origin}: train: warmup_task_prob and augmentation_ratio in [0, 1]")
-    return Run(
-        table=table,
-        name=str(table["name"]),
-        model=model,
-        edm=edm,
-        obs_slots=obs,
-        future_slots=future,
-        rolling=planner.get("kind", "rolling") == "rolling",
-        train=t,
-    )
-
-
-def load_run(path: Path, overrides: list[str]) -> Run:
-    return parse_run(load_run_table(path, overrides), f"{path} with overrides {overrides}")
 
 
 def learning_rate(t: TrainConfig, step: int) -> float:
@@ -299,209 +152,6 @@ def dump_toml(table: dict[str, Any], prefix: str = "") -> str:
             name = f"{prefix}.{k}" if prefix else k
             out += f"\n[{name}]\n" + dump_toml(v, name)
     return out
-
-
-# --------------------------------------------------------------------------------------------
-# The export: road data export-torch (crates/road-model/src/torch_export.rs).
-# --------------------------------------------------------------------------------------------
-
-
-def unpack_states(packed: np.ndarray, frames: int) -> np.ndarray:
-    """torch_export.rs `pack_states` inverted: `[frames, 3]` f32."""
-    planes = np.frombuffer(zlib.decompress(packed.tobytes()), dtype=np.uint8)
-    if planes.size != frames * 12:
-        raise ValueError(f"packed track states hold {planes.size} bytes, expected {frames * 12}")
-    deltas = planes.reshape(3, 4, frames).transpose(2, 0, 1).copy().view("<u4")[..., 0]
-    bits = np.cumsum(deltas, axis=0, dtype=np.uint32)  # wraps modulo 2³², as the deltas did
-    return bits.view(np.float32)
-
-
-def wrap_angle(a: np.ndarray) -> np.ndarray:
-    """dataset.rs `wrap_angle` in f32: `(a + π).rem_euclid(2π) − π`, −π itself to +π."""
-    r = np.fmod(a + PI32, TAU32)
-    r = np.where(r < 0, r + TAU32, r)
-    w = r - PI32
-    return np.where(w <= -PI32, w + TAU32, w).astype(np.float32)
-
-
-@dataclass
-class SceneInput:
-    """batch.rs `SceneInput`: one scene cropped to the model's window, model units."""
-
-    states: np.ndarray  # [A, W, 3] f32: x, y, heading·heading_scale; 0 where invalid
-    valid: np.ndarray  # [A, W] bool
-    features: np.ndarray  # [A, 6] f32
-    map: np.ndarray  # [P, Q, 2] f32
-
-    def rotate(self, angle_rad: float, heading_scale: float) -> None:
-        """batch.rs `SceneInput::rotate`, f32: valid states and every map point turn."""
-        a = np.float32(angle_rad)
-        sin, cos = np.sin(a), np.cos(a)
-        x, y = self.states[..., 0].copy(), self.states[..., 1].copy()
-        turned_x = cos * x - sin * y
-        turned_y = sin * x + cos * y
-        heading = self.states[..., 2] + a * np.float32(heading_scale)
-        v = self.valid
-        self.states[..., 0] = np.where(v, turned_x, self.states[..., 0])
-        self.states[..., 1] = np.where(v, turned_y, self.states[..., 1])
-        self.states[..., 2] = np.where(v, heading, self.states[..., 2])
-        mx, my = self.map[..., 0].copy(), self.map[..., 1].copy()
-        self.map[..., 0] = cos * mx - sin * my
-        self.map[..., 1] = sin * mx + cos * my
-
-    def drop_absent_agents(self, noise: np.ndarray) -> np.ndarray:
-        """batch.rs `drop_absent_agents`: agents with no valid slot go with their noise rows,
-        unless none is valid. Returns the kept noise."""
-        keep = self.valid.any(axis=1)
-        if not keep.any() or keep.all():
-            return noise
-        self.states = self.states[keep]
-        self.valid = self.valid[keep]
-        self.features = self.features[keep]
-        return noise[keep]
-
-
-class ExportedSplit:
-    """One split of the export; `scene(index, start, …)` materialises a window as
-    dataset.rs `Dataset::window` and crops it as batch.rs `SceneInput::from_window`."""
-
-    def __init__(self, path: Path) -> None:
-        if not path.is_file():
-            raise FileNotFoundError(
-                f"no export at {path}: run `road data export-torch` (docs/torch-training.md)"
-            )
-        with safe_open(str(path), framework="numpy") as f:
-            meta = f.metadata() or {}
-        if meta.get("format") != EXPORT_FORMAT or meta.get("format_version") != EXPORT_VERSION:
-            raise ValueError(
-                f"{path} is not a version-{EXPORT_VERSION} road torch export "
-                f"(format {meta.get('format')!r}, version {meta.get('format_version')!r})"
-            )
-        if meta.get("track_states_encoding") != STATES_ENCODING:
-            raise ValueError(f"{path}: unknown track state encoding")
-        self.path = path
-        self.split = meta["split"]
-        self.window_config = tomllib.loads(meta["window_config"])
-        a = load_numpy(str(path))
-        frames = int(meta["track_states_shape"].split(",")[0])
-        self.track_states = unpack_states(a["track_states_packed"], frames)  # [frames, 3]
-        self.track_offsets = a["track_offsets"]
-        self.track_first_frame = a["track_first_frame"].astype(np.int64)
-        self.track_type = a["track_type"].astype(np.int64)
-        self.track_length_m = a["track_length_m"]
-        self.track_width_m = a["track_width_m"]
-        self.recording_track_offsets = a["recording_track_offsets"]
-        self.recording_map = a["recording_map"].astype(np.int64)
-        self.lanelet_centres = a["lanelet_centres"]  # [L, Q, 2] f64 metres
-        self.map_lanelet_offsets = a["map_lanelet_offsets"]
-        self.window_recording = a["window_recording"].astype(np.int64)
-        self.window_start_frame = a["window_start_frame"].astype(np.int64)
-        self.window_origin_m = a["window_origin_m"]
-        self.window_agent_offsets = a["window_agent_offsets"]
-        self.window_agents = a["window_agents"].astype(np.int64)
-        self.window_polyline_offsets = a["window_polyline_offsets"]
-        self.window_polylines = a["window_polylines"].astype(np.int64)
-        self.steps = int(self.window_config["window_steps"])
-        self.scale_m = float(self.window_config["position_scale_m"])
-        self.points = int(self.window_config["polyline_points"])
-        # Per-window agent counts (for the agent buckets).
-        self.agent_counts = np.diff(self.window_agent_offsets)
-
-    def __len__(self) -> int:
-        return len(self.window_recording)
-
-    def scene(self, index: int, start: int, slots: int, c: td.ModelConfig) -> SceneInput:
-        """Window `index`'s steps `start..start + slots` in model units."""
-        return self.scenes([index], [start], slots, c)[0]
-
-    def scenes(
-        self, indices: list[int], starts: list[int], slots: int, c: td.ModelConfig
-    ) -> list[SceneInput]:
-        """Windows `indices`, each cropped to `starts[i]..starts[i] + slots`, in model units:
-        the agents of all of them at once (the heading unwraps step by step, so a batch pays
-        one loop over the steps, not one per scene)."""
-        indices_a = np.asarray(indices, np.int64)
-        counts = self.agent_counts[indices_a]  # [B]
-        rec = self.window_recording[indices_a]  # [B]
-        scene_of = np.repeat(np.arange(len(indices)), counts)  # [N] scene of each agent row
-        agent_rows = np.concatenate(
-            [
-                np.arange(self.window_agent_offsets[i], self.window_agent_offsets[i + 1])
-                for i in indices
-            ]
-        )
-        tracks = self.recording_track_offsets[rec][scene_of] + self.window_agents[agent_rows]
-        # Only the steps up to the crops' ends matter: the heading unwraps from each window's
-        # first step on.
-        steps = max(starts) + slots
-        frames = self.window_start_frame[indices_a][scene_of][:, None] + np.arange(steps)
-        rel = frames - self.track_first_frame[tracks][:, None]  # [N, S]
-        length = (self.track_offsets[tracks + 1] - self.track_offsets[tracks])[:, None]
-        valid = (rel >= 0) & (rel < length)
-        rows = np.where(valid, self.track_offsets[tracks][:, None] + rel, 0)
-        raw = self.track_states[rows]  # [N, S, 3] f32 metres and radians
-        origin = self.window_origin_m[indices_a][scene_of][:, None, :]  # [N, 1, 2]
-        # SceneFrame::to_norm: f64 difference and division, then f32.
-        xy = ((raw[..., :2].astype(np.float64) - origin) / self.scale_m).astype(np.float32)
-        psi = raw[..., 2]
-        n = len(tracks)
-        heading = np.zeros((n, steps), np.float32)
-        previous = np.zeros(n, np.float32)
-        seen = np.zeros(n, bool)
-        for s in range(steps):
-            v = valid[:, s]
-            h = np.where(seen, previous + wrap_angle(psi[:, s] - previous), wrap_angle(psi[:, s]))
-            heading[:, s] = np.where(v, h, 0.0)
-            previous = np.where(v, h, previous).astype(np.float32)
-            seen |= v
-        heading *= np.float32(c.heading_scale)
-        features = np.zeros((n, td.AGENT_FEATURES), np.float32)
-        features[:, 0] = self.track_length_m[tracks] / np.float32(5.0)
-        features[:, 1] = self.track_width_m[tracks] / np.float32(2.5)
-        features[np.arange(n), 2 + self.track_type[tracks]] = 1.0
-        out = []
-        first_row = np.concatenate([[0], np.cumsum(counts)])
-        for i, (index, start) in enumerate(zip(indices, starts)):
-            agents = slice(first_row[i], first_row[i + 1])
-            crop = slice(start, start + slots)
-            v = valid[agents, crop]
-            states = np.zeros((counts[i], slots, 3), np.float32)
-            states[..., 0] = np.where(v, xy[agents, crop, 0], 0.0)
-            states[..., 1] = np.where(v, xy[agents, crop, 1], 0.0)
-            states[..., 2] = np.where(v, heading[agents, crop], 0.0)
-            lanelets = self.window_polylines[
-                self.window_polyline_offsets[index] : self.window_polyline_offsets[index + 1]
-            ][: c.map_polylines]  # nearest first
-            first = self.map_lanelet_offsets[self.recording_map[rec[i]]]
-            centres = self.lanelet_centres[first + lanelets]  # [P, Q, 2] f64 metres
-            polylines = ((centres - self.window_origin_m[index]) / self.scale_m).astype(np.float32)
-            out.append(SceneInput(states, v.copy(), features[agents].copy(), polylines))
-        return out
-
-
-class AgentBuckets:
-    """train.rs `AgentBuckets`: contiguous agent-count ranges of at least MIN_BUCKET windows."""
-
-    def __init__(self, counts: np.ndarray) -> None:
-        members: list[list[int]] = [[]]
-        by_count: dict[int, list[int]] = {}
-        for i, c in enumerate(counts.tolist()):
-            by_count.setdefault(c, []).append(i)
-        for c in range(int(counts.max(initial=0)) + 1):
-            members[-1].extend(by_count.get(c, []))
-            if len(members[-1]) >= MIN_BUCKET:
-                members.append([])
-        if len(members) > 1 and len(members[-1]) < MIN_BUCKET:
-            tail = members.pop()
-            members[-1].extend(tail)
-        self.members = [np.array(m, np.int64) for m in members]
-        self.bucket_of = np.zeros(len(counts), np.int64)
-        for b, m in enumerate(self.members):
-            self.bucket_of[m] = b
-
-    def pick(self, anchor: int, rng: np.random.Generator) -> int:
-        m = self.members[self.bucket_of[anchor]]
-        return int(m[rng.integers(len(m))])
 
 
 # --------------------------------------------------------------------------------------------
@@ -657,21 +307,29 @@ def edm_error_sum(model: td.Denoiser, batch: dict[str, Tensor]) -> tuple[Tensor,
         batch["map"],
         batch["map_valid"],
     )
+    return error_sum_of(model.config, batch, out)
+
+
+def error_sum_of(
+    config: td.ModelConfig, batch: dict[str, Tensor], out: td.Outputs
+) -> tuple[Tensor, Tensor]:
+    """`edm_error_sum` from the forward's outputs (in f32: a bf16 forward's F is widened)."""
     x0 = batch["x0"]
     valid4 = batch["valid"].unsqueeze(3)
     r = out.residual
+    raw = out.raw if out.raw.dtype == torch.float32 else out.raw.float()
     if r is None:
         target = (x0 - batch["x_noisy"] * out.c_skip) / out.c_out
-        err = (out.raw - target).square()
+        err = (raw - target).square()
     else:
         y0 = (x0 - r.reference) * r.scale
         target = (y0 - r.y * r.c_skip) / r.c_out
-        sd = model.config.sigma_data
+        sd = config.sigma_data
         b, w = batch["sigma"].shape
         s2 = batch["sigma"].square().reshape(b, 1, w, 1)
         lam = (s2 + sd * sd) / (s2 * (sd * sd))  # [B, 1, W, 1]
         weight = (r.c_out / r.scale).square() * lam  # [B, A, W, 1]
-        err = (out.raw - target).square() * weight
+        err = (raw - target).square() * weight
     err = err * valid4
     count = batch["valid"].sum() * 3.0
     return err.sum(), count
@@ -680,6 +338,27 @@ def edm_error_sum(model: td.Denoiser, batch: dict[str, Tensor]) -> tuple[Tensor,
 def batch_loss(model: td.Denoiser, batch: dict[str, Tensor]) -> Tensor:
     """The training loss: the error sum over the batch's value count (at least 1)."""
     error_sum, count = edm_error_sum(model, batch)
+    return error_sum / count.clamp(min=1.0)
+
+
+def mixed_batch_loss(
+    model: td.Denoiser, batch: dict[str, Tensor], dtype: torch.dtype | None
+) -> Tensor:
+    """`batch_loss` with the network's forward under `torch.autocast(dtype)` (`--precision
+    bf16`: products in bf16, softmax, norms and sums in f32; the weights stay f32) and the
+    loss itself in f32; `dtype` None is `batch_loss`."""
+    if dtype is None:
+        return batch_loss(model, batch)
+    with torch.autocast(device_type=batch["x0"].device.type, dtype=dtype):
+        out = model.forward_parts(
+            batch["x_noisy"],
+            batch["sigma"],
+            batch["valid"],
+            batch["agent_features"],
+            batch["map"],
+            batch["map_valid"],
+        )
+    error_sum, count = error_sum_of(model.config, batch, out)
     return error_sum / count.clamp(min=1.0)
 
 
@@ -753,15 +432,69 @@ class Meta:
     validation_loss: float | None = None
 
 
-class Trainer:
-    """Parameters (the model's, sorted by name), AdamW moments and the EMA, on `device`."""
+PRECISIONS = ("fp32", "bf16")
+# The layers a bf16 forward keeps in f32: the input embeddings (positions in 40 m units and
+# log σ lose too much to bf16's 8-bit mantissa) and the output head; a few FLOPs in all. On
+# road20-wide4's weights (6 batches of 64) bf16 everywhere shifted the loss by +0.9 to +2.3 %
+# (gradient cosine to f32's 0.90–0.98); with these in f32, +0.35 to +0.8 % (0.988–0.999).
+F32_LAYERS = ("embed_state", "embed_noise", "embed_agent", "embed_relative", "map_point", "head")
 
-    def __init__(self, run: Run, device: torch.device) -> None:
+
+class F32Linear(nn.Linear):
+    """A linear layer that stays f32 under autocast (`F32_LAYERS`). With a fan-in of at most 8
+    (all but the head) its product is a few multiply-adds per output written out, not a matrix
+    product, so that it stays f32 where TF32 is allowed too (a GPU's TF32 products round
+    their inputs to 10 bits)."""
+
+    def forward(self, x: Tensor) -> Tensor:
+        with torch.autocast(device_type=x.device.type, enabled=False):
+            x = x.float()
+            if self.in_features > 8:
+                return nn.functional.linear(x, self.weight, self.bias)
+            y = self.bias + x[..., 0:1] * self.weight[:, 0]
+            for k in range(1, self.in_features):
+                y = y + x[..., k : k + 1] * self.weight[:, k]
+            return y
+
+
+class Trainer:
+    """Parameters (the model's, sorted by name), AdamW moments and the EMA, on `device`.
+
+    `precision` "bf16" runs the training forward under bf16 autocast (f32 weights, moments,
+    EMA and loss); `compile` runs it (forward and loss, and so their backward) through
+    `torch.compile`, falling back to eager, with a warning, if compiling raises. Validation is
+    f32 eager either way."""
+
+    def __init__(
+        self,
+        run: Run,
+        device: torch.device,
+        precision: str = "fp32",
+        compile: bool = False,
+        compile_mode: str = "default",
+    ) -> None:
+        if precision not in PRECISIONS:
+            raise ValueError(f"precision {precision!r}: one of {', '.join(PRECISIONS)}")
         self.run = run
         self.device = device
+        self.precision = precision
+        self.autocast_dtype = torch.bfloat16 if precision == "bf16" else None
+        self.compile_mode = compile_mode if compile else None
+        self.compile_error: str | None = None
+        self._compiled: Any = None
+        # TF32 during validation: None leaves the flags as they are.
+        self.validation_tf32: bool | None = None
+        # Compile with the batch dimension dynamic as well (`bench`: one graph for every
+        # batch size of a model).
+        self.dynamic_batch = False
         self.model = td.Denoiser(run.model)
         seeded_init(self.model, run.train.seed)
         self.model.to(device)
+        if self.autocast_dtype is not None:
+            for name in F32_LAYERS:
+                layer = getattr(self.model, name, None)
+                if type(layer) is nn.Linear:
+                    layer.__class__ = F32Linear  # the same parameters, an f32 forward
         named = dict(self.model.named_parameters())
         self.names = sorted(named)
         if set(self.names) != set(self.model.state_dict()):
@@ -772,6 +505,73 @@ class Trainer:
         self.ema = [p.detach().clone() for p in self.params]
         self.meta = Meta()
         self.ema_model = td.Denoiser(run.model).to(device).eval()
+        if compile:
+            self._compiled = self._compile(compile_mode)
+
+    def _compile(self, mode: str) -> Any:
+        dtype = self.autocast_dtype
+        try:
+            import torch._dynamo as dynamo
+
+            # Agent counts vary by batch (and, in `bench`, models and batch sizes by case):
+            # room for the recompilations.
+            dynamo.config.cache_size_limit = max(dynamo.config.cache_size_limit, 64)
+            return torch.compile(
+                lambda model, batch: mixed_batch_loss(model, batch, dtype), mode=mode
+            )
+        except Exception as e:  # noqa: BLE001  (any failure: train uncompiled)
+            self._compile_failed(e)
+            return None
+
+    def _compile_failed(self, e: BaseException) -> None:
+        self.compile_error = " ".join(f"{type(e).__name__}: {e}".split())[:500]
+        self._compiled = None
+        print(
+            f"warning: torch.compile failed ({self.compile_error}); continuing uncompiled",
+            file=sys.stderr,
+            flush=True,
+        )
+
+    @property
+    def compiled(self) -> bool:
+        """Whether the training forward runs compiled (False after a fallback)."""
+        return self._compiled is not None
+
+    def mode(self) -> str:
+        """What the training forward runs as, for the checkpoint's `hardware` line."""
+        label = "bf16 autocast" if self.precision == "bf16" else "fp32"
+        if torch.backends.cuda.matmul.allow_tf32 and self.device.type == "cuda":
+            label += " (TF32)"
+        return label + (", compiled" if self.compiled else "")
+
+    def _loss_backward(self, batch: dict[str, Tensor]) -> Tensor:
+        """The batch loss, its gradient accumulated into the parameters' `.grad`."""
+        self.model.train()
+        for p in self.params:
+            p.grad = None
+        if self._compiled is not None:
+            try:
+                if hasattr(torch._dynamo, "maybe_mark_dynamic"):
+                    for key in ("x0", "x_noisy", "valid", "agent_features"):
+                        torch._dynamo.maybe_mark_dynamic(batch[key], 1)  # agents
+                    if self.dynamic_batch:
+                        for tensor in batch.values():
+                            torch._dynamo.maybe_mark_dynamic(tensor, 0)
+                loss = self._compiled(self.model, batch)
+                loss.backward()
+                return loss
+            except torch.cuda.OutOfMemoryError:
+                raise
+            except Exception as e:  # noqa: BLE001  (any compile failure: go on eager)
+                self._compile_failed(e)
+                for p in self.params:
+                    p.grad = None
+        if self.autocast_dtype is None:
+            loss = batch_loss(self.model, batch)
+        else:
+            loss = mixed_batch_loss(self.model, batch, self.autocast_dtype)
+        loss.backward()
+        return loss
 
     def parameter_count(self) -> int:
         return sum(p.numel() for p in self.params)
@@ -846,13 +646,54 @@ class Trainer:
 
     def gradients(self, batch: dict[str, Tensor]) -> tuple[float, list[Tensor]]:
         """The batch loss and its gradient for every parameter (sorted names)."""
-        self.model.train()
-        for p in self.params:
-            p.grad = None
-        loss = batch_loss(self.model, batch)
-        loss.backward()
+        loss = self._loss_backward(batch)
         grads = [p.grad if p.grad is not None else torch.zeros_like(p) for p in self.params]
         return float(loss.detach()), grads
+
+    def device_step(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor, float]:
+        """One training step that never waits for the device (`--pipeline device`): the
+        gradients, then `apply_gradients`' update in place with the clipping factor computed
+        on the device. Returns the loss and the gradient norm as device scalars (read them
+        later, in bulk) and the learning rate."""
+        loss = self._loss_backward(batch)
+        grads = [p.grad if p.grad is not None else torch.zeros_like(p) for p in self.params]
+        grad_norm, lr = self.apply_gradients_on_device(grads)
+        return loss.detach(), grad_norm, lr
+
+    @torch.no_grad()
+    def apply_gradients_on_device(self, grads: list[Tensor]) -> tuple[Tensor, float]:
+        """`apply_gradients` without a host round trip: the same operations in the same
+        order, the global norm (f64) and `min(1, clip / norm)` kept on the device, the
+        weights, moments and EMA updated in place. Returns the norm (a device scalar) and the
+        learning rate."""
+        t = self.run.train
+        norms = torch.stack(torch._foreach_norm(grads)).double()
+        grad_norm = norms.square().sum().sqrt()
+        clip = torch.where(
+            grad_norm > t.grad_clip, t.grad_clip / grad_norm, torch.ones_like(grad_norm)
+        ).float()
+        lr = learning_rate(t, self.meta.step)
+        step = self.meta.step + 1
+        bc1 = 1.0 - ADAM_BETA1**step
+        bc2 = 1.0 - ADAM_BETA2**step
+        d = t.ema_decay
+        g = torch._foreach_mul(grads, clip)
+        torch._foreach_mul_(self.adam_m, ADAM_BETA1)
+        torch._foreach_add_(self.adam_m, torch._foreach_mul(g, 1.0 - ADAM_BETA1))
+        torch._foreach_mul_(self.adam_v, ADAM_BETA2)
+        torch._foreach_add_(
+            self.adam_v, torch._foreach_mul(torch._foreach_mul(g, g), 1.0 - ADAM_BETA2)
+        )
+        root = torch._foreach_sqrt(torch._foreach_div(self.adam_v, bc2))
+        torch._foreach_add_(root, ADAM_EPS)
+        update = torch._foreach_div(torch._foreach_div(self.adam_m, bc1), root)
+        params = [p.detach() for p in self.params]
+        torch._foreach_mul_(params, 1.0 - lr * t.weight_decay)
+        torch._foreach_sub_(params, torch._foreach_mul(update, lr))
+        torch._foreach_mul_(self.ema, d)
+        torch._foreach_add_(self.ema, torch._foreach_mul(params, 1.0 - d))
+        self.meta.step = step
+        return grad_norm, lr
 
     @torch.no_grad()
     def apply_gradients(self, grads: list[Tensor]) -> tuple[float, float]:
@@ -901,10 +742,18 @@ class Trainer:
         """Mean loss of the EMA weights over the fixed validation batches (train.rs
         `validate`: each batch's error sum over its count, averaged over batches)."""
         model = self.load_ema_model()
-        total = 0.0
-        for batch in batches:
-            error_sum, count = edm_error_sum(model, batch)
-            total += float(error_sum / count.clamp(min=1.0))
+        flags = (torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32)
+        if self.validation_tf32 is not None:
+            # `--precision bf16` allows TF32 for training's f32 products, not validation's.
+            torch.backends.cuda.matmul.allow_tf32 = self.validation_tf32
+            torch.backends.cudnn.allow_tf32 = self.validation_tf32
+        try:
+            total = 0.0
+            for batch in batches:
+                error_sum, count = edm_error_sum(model, batch)
+                total += float(error_sum / count.clamp(min=1.0))
+        finally:
+            torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32 = flags
         loss = total / max(len(batches), 1)
         self.meta.validation_loss = loss
         return loss
@@ -1007,10 +856,6 @@ def own_validation_batches(run: Run, ds: ExportedSplit) -> list[dict[str, np.nda
 _LOADER: dict[str, Any] = {}
 
 
-def step_rng(seed: int, step: int) -> np.random.Generator:
-    return np.random.default_rng([seed, step])
-
-
 def _loader_init(run: Run, export: str, helper: bool = False) -> None:
     if helper:
         torch.set_num_threads(1)  # numpy work only: leave the cores to the main process
@@ -1021,8 +866,9 @@ def _loader_init(run: Run, export: str, helper: bool = False) -> None:
     )
 
 
-def _loader_batch(step: int) -> dict[str, np.ndarray]:
-    run: Run = _LOADER["run"]
+def _loader_batch(step: int, run: Run | None = None) -> dict[str, np.ndarray]:
+    """Step `step`'s batch of `run` (default: the loader's own run)."""
+    run = run or _LOADER["run"]
     draw = sample_scenes(
         run,
         _LOADER["train"],
@@ -1034,38 +880,63 @@ def _loader_batch(step: int) -> dict[str, np.ndarray]:
     return collate(draw)
 
 
-class Batches:
-    """Training batches by step: inline, or `workers` processes preparing the next steps."""
+def loader_pool(run: Run, export: Path, workers: int) -> ProcessPoolExecutor:
+    """`workers` helper processes holding the training split (forked: make it before this
+    process initialises CUDA)."""
+    import multiprocessing
 
-    def __init__(self, run: Run, export: Path, workers: int, ahead: int) -> None:
-        self.pool: ProcessPoolExecutor | None = None
+    pool = ProcessPoolExecutor(
+        workers,
+        mp_context=multiprocessing.get_context("fork"),
+        initializer=_loader_init,
+        initargs=(run, str(export), True),
+    )
+    # A fork pool starts every worker on its first task: do it now, before this process
+    # initialises CUDA (a forked child must not inherit a CUDA context).
+    pool.submit(int).result()
+    return pool
+
+
+class Batches:
+    """Training batches by step: inline, or `workers` processes preparing the next steps
+    (or those of a shared `pool` of `loader_pool`, given each task's run: `bench`)."""
+
+    def __init__(
+        self,
+        run: Run,
+        export: Path,
+        workers: int,
+        ahead: int,
+        pool: ProcessPoolExecutor | None = None,
+    ) -> None:
+        self.pool: ProcessPoolExecutor | None = pool
+        self.shared = pool is not None
+        self.run = run
         self.pending: dict[int, Future[dict[str, np.ndarray]]] = {}
         self.ahead = ahead
-        if workers > 0:
-            import multiprocessing
-
-            self.pool = ProcessPoolExecutor(
-                workers,
-                mp_context=multiprocessing.get_context("fork"),
-                initializer=_loader_init,
-                initargs=(run, str(export), True),
-            )
-            # A fork pool starts every worker on its first task: do it now, before this
-            # process initialises CUDA (a forked child must not inherit a CUDA context).
-            self.pool.submit(int).result()
+        if self.shared:
+            pass
+        elif workers > 0:
+            self.pool = loader_pool(run, export, workers)
         else:
             _loader_init(run, str(export))
 
     def get(self, step: int, last: int) -> dict[str, np.ndarray]:
         if self.pool is None:
-            return _loader_batch(step)
+            return _loader_batch(step, self.run)
         for s in range(step, min(step + self.ahead, last)):
             if s not in self.pending:
-                self.pending[s] = self.pool.submit(_loader_batch, s)
+                self.pending[s] = self.pool.submit(
+                    _loader_batch, s, self.run if self.shared else None
+                )
         return self.pending.pop(step).result()
 
     def close(self) -> None:
-        if self.pool is not None:
+        if self.shared:
+            for future in self.pending.values():
+                future.cancel()
+            self.pending = {}
+        elif self.pool is not None:
             self.pool.shutdown(cancel_futures=True)
 
 
@@ -1083,9 +954,10 @@ def pick_device(name: str) -> torch.device:
     return torch.device(name)
 
 
-def hardware(device: torch.device) -> str:
+def hardware(device: torch.device, mode: str = "fp32") -> str:
+    """The checkpoint's `hardware` line; `mode` what the training forward ran as."""
     if device.type == "cuda":
-        return f"{torch.cuda.get_device_name(device)}, PyTorch {torch.__version__} fp32"
+        return f"{torch.cuda.get_device_name(device)}, PyTorch {torch.__version__} {mode}"
     cpu = platform.processor() or "CPU"
     try:
         for line in open("/proc/cpuinfo"):
@@ -1094,7 +966,7 @@ def hardware(device: torch.device) -> str:
                 break
     except OSError:
         pass
-    return f"{cpu}, {torch.get_num_threads()} threads, PyTorch {torch.__version__} fp32"
+    return f"{cpu}, {torch.get_num_threads()} threads, PyTorch {torch.__version__} {mode}"
 
 
 def prepare_log(path: Path, step: int, untrained: float | None) -> None:
@@ -1118,8 +990,10 @@ def train(args: argparse.Namespace) -> None:
     run = load_run(args.config, args.overrides)
     t = run.train
     device = pick_device(args.device)
-    torch.backends.cuda.matmul.allow_tf32 = args.allow_tf32
-    torch.backends.cudnn.allow_tf32 = args.allow_tf32
+    # bf16 runs allow TF32 for the f32 products left outside autocast (validation stays f32).
+    tf32 = args.allow_tf32 or args.precision == "bf16"
+    torch.backends.cuda.matmul.allow_tf32 = tf32
+    torch.backends.cudnn.allow_tf32 = tf32
     if args.threads:
         torch.set_num_threads(args.threads)
     started = time.monotonic()
@@ -1128,11 +1002,19 @@ def train(args: argparse.Namespace) -> None:
     validation_split = ExportedSplit(export / "validation.safetensors")
     out = args.out or Path("models") / run.name
     until = min(args.until_step or t.steps, t.steps)
+    on_device = args.pipeline == "device"
     workers = args.loader_workers
     if workers < 0:
         workers = 0 if device.type == "cpu" else max(1, min(8, (os.cpu_count() or 2) - 2))
-    batches = Batches(run, export, workers, ahead=max(2, 2 * workers))
-    trainer = Trainer(run, device)
+    batches: Batches | DeviceBatches
+    if on_device:
+        batches = DeviceBatches(
+            run, DeviceData(ExportedSplit(export / "train.safetensors"), run.model, device)
+        )
+    else:
+        batches = Batches(run, export, workers, ahead=max(2, 2 * workers))
+    trainer = Trainer(run, device, args.precision, args.compile, args.compile_mode)
+    trainer.validation_tf32 = args.allow_tf32
     val_np = exported_validation_batches(export / "validation_batches.safetensors", run)
     if val_np is None:
         val_np = own_validation_batches(run, validation_split)
@@ -1154,9 +1036,10 @@ def train(args: argparse.Namespace) -> None:
         "validation_windows": len(validation_split),
         "source": DATA_SOURCE,
     }
-    hw = hardware(device)
+    hw = hardware(device, trainer.mode())
     print(
-        f"training {run.name} ({trainer.parameter_count()} parameters) on {hw} from step "
+        f"training {run.name} ({trainer.parameter_count()} parameters) on {hw} "
+        f"({args.pipeline} pipeline) from step "
         f"{trainer.meta.step} to {until}; batch {t.batch_scenes} scenes; train {train_windows} "
         f"windows, validation {len(validation_split)}; starting validation loss "
         f"{trainer.meta.untrained_validation_loss if not resume else trainer.meta.validation_loss}",
@@ -1176,8 +1059,83 @@ def train(args: argparse.Namespace) -> None:
     step_secs = 0.0
     reserve = 10.0  # seconds kept for the last validation and checkpoint; measured below
     stopped_early = False
+    pending: list[tuple[int, Tensor, Tensor, float]] = []  # device pipeline: steps not logged
+    flushed_at = time.monotonic()
     try:
-        while trainer.meta.step < until:
+        while on_device and trainer.meta.step < until:
+            # The device pipeline: no step waits for the device; losses, norms and the time
+            # per step are read in bulk when a row must be printed, validated or saved.
+            if deadline is not None and time.monotonic() + 1.5 * step_secs + reserve > deadline:
+                stopped_early = True
+                break
+            loss_t, norm_t, lr = trainer.device_step(batches.get(trainer.meta.step, until))
+            step = trainer.meta.step
+            pending.append((step, loss_t, norm_t, lr))
+            now = time.monotonic()
+            due_val = step % max(t.val_every_steps, 1) == 0 or step == until
+            due_print = now - last_print >= args.print_every_secs or step == until
+            due_save = now - last_checkpoint >= checkpoint_every or step == until
+            if not (due_val or due_print or due_save or len(pending) >= 500):
+                continue
+            values = torch.stack(
+                [torch.stack([lo.double(), no.double()]) for _, lo, no, _ in pending]
+            ).tolist()  # waits for the device
+            now = time.monotonic()
+            secs = (now - flushed_at) / len(pending)
+            flushed_at = now
+            step_secs = secs if step_secs == 0 else 0.9 * step_secs + 0.1 * secs
+            val = ""
+            if due_val:
+                val_start = time.monotonic()
+                val = repr(trainer.validate(val_batches))
+                reserve = max(reserve, 2.0 * (time.monotonic() - val_start) + 5.0)
+                flushed_at = time.monotonic()
+            wall = wall_before + time.monotonic() - session_start
+            for (row_step, _, _, row_lr), (row_loss, row_norm) in zip(pending, values):
+                if not math.isfinite(row_loss):
+                    raise SystemExit(f"training diverged: loss {row_loss} at step {row_step}")
+                log.write(
+                    f"{row_step},{row_loss!r},{row_lr!r},{row_norm!r},"
+                    f"{t.batch_scenes / max(secs, 1e-9):.2f},"
+                    f"{val if row_step == step else ''},{wall:.1f}\n"
+                )
+                window_steps += 1
+                window_losses.append(row_loss)
+            grad_norm = values[-1][1]
+            pending = []
+            now = time.monotonic()
+            if due_print:
+                rate = window_steps / (now - window_t)
+                print(
+                    f"step {step}/{until} loss {np.mean(window_losses):.4f} lr {lr:.2e} "
+                    f"grad {grad_norm:.3f} {rate:.2f} steps/s {rate * t.batch_scenes:.1f} "
+                    f"scene-samples/s val {trainer.meta.validation_loss}",
+                    flush=True,
+                )
+                window_t, window_steps, window_losses, last_print = now, 0, [], now
+            if due_save:
+                log.flush()
+                trainer.meta.wall_secs = wall
+                trainer.save(out, data, hardware(device, trainer.mode()))
+                last_checkpoint = time.monotonic()
+                print(f"checkpoint at step {step} in {out}", flush=True)
+                flushed_at = time.monotonic()
+        if on_device and pending:
+            # Stopped for the budget with steps not logged yet.
+            values = torch.stack(
+                [torch.stack([lo.double(), no.double()]) for _, lo, no, _ in pending]
+            ).tolist()
+            secs = (time.monotonic() - flushed_at) / len(pending)
+            wall = wall_before + time.monotonic() - session_start
+            for (row_step, _, _, row_lr), (row_loss, row_norm) in zip(pending, values):
+                if not math.isfinite(row_loss):
+                    raise SystemExit(f"training diverged: loss {row_loss} at step {row_step}")
+                log.write(
+                    f"{row_step},{row_loss!r},{row_lr!r},{row_norm!r},"
+                    f"{t.batch_scenes / max(secs, 1e-9):.2f},,{wall:.1f}\n"
+                )
+            pending = []
+        while not on_device and trainer.meta.step < until:
             if deadline is not None and time.monotonic() + 1.5 * step_secs + reserve > deadline:
                 stopped_early = True
                 break
@@ -1217,7 +1175,7 @@ def train(args: argparse.Namespace) -> None:
             if now - last_checkpoint >= checkpoint_every or step == until:
                 log.flush()
                 trainer.meta.wall_secs = wall
-                trainer.save(out, data, hw)
+                trainer.save(out, data, hardware(device, trainer.mode()))
                 last_checkpoint = time.monotonic()
                 print(f"checkpoint at step {step} in {out}", flush=True)
         if stopped_early:
@@ -1228,7 +1186,7 @@ def train(args: argparse.Namespace) -> None:
             log.write(f"{trainer.meta.step},,,,,{loss_val!r},{wall:.1f}\n")
             log.flush()
             trainer.meta.wall_secs = wall
-            trainer.save(out, data, hw)
+            trainer.save(out, data, hardware(device, trainer.mode()))
             print(
                 f"time budget of {args.minutes} min spent: checkpoint at step "
                 f"{trainer.meta.step} in {out} (validation loss {loss_val:.5f}); continue with "
@@ -1245,7 +1203,9 @@ def train(args: argparse.Namespace) -> None:
             {
                 "run": run.name,
                 "out": str(out),
-                "device": hw,
+                "device": hardware(device, trainer.mode()),
+                "pipeline": args.pipeline,
+                "compile_error": trainer.compile_error,
                 "step": trainer.meta.step,
                 "until": until,
                 "steps_this_call": done,
@@ -1342,6 +1302,11 @@ def make_train_fixture(out: Path, init: Path, seed: int) -> None:
     print(f"wrote {out / 'expected.safetensors'}: {len(record)} tensors; the fixture {size} bytes")
 
 
+# `bench`'s defaults (its code: torch_train_bench.py, imported when the command runs).
+BENCH_VARIANTS = "fp32,fp32+device,bf16+device,bf16+device+compile"
+BENCH_SIZES = ("base", "h192x4:model.hidden=192,model.heads=12,model.blocks=4")
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -1363,6 +1328,34 @@ def main(argv: list[str] | None = None) -> None:
             help="`road data export-torch`'s folder",
         )
         p.add_argument("--device", default="auto", help="auto (cuda if available), cuda, cpu")
+
+    def speed_args(p: argparse.ArgumentParser) -> None:
+        p.add_argument(
+            "--precision",
+            choices=PRECISIONS,
+            default="fp32",
+            help="bf16: the training forward under bf16 autocast, f32 weights, optimiser "
+            "state and loss, TF32 for the remaining f32 products (validation stays f32)",
+        )
+        p.add_argument(
+            "--compile",
+            action="store_true",
+            help="torch.compile the training forward and loss (eager, with a warning, if "
+            "compiling fails)",
+        )
+        p.add_argument(
+            "--compile-mode",
+            default="default",
+            help="torch.compile's mode (default, max-autotune-no-cudagraphs, …)",
+        )
+        p.add_argument(
+            "--pipeline",
+            choices=("host", "device"),
+            default="host",
+            help="host: batches made by numpy on loader processes, as road train's (the "
+            "default); device: the training split moved to the device once, batches gathered "
+            "there, no step waiting for the device (other random streams: another run)",
+        )
 
     tr = sub.add_parser("train", help="train (or continue with --resume) a run")
     run_args(tr)
@@ -1390,6 +1383,54 @@ def main(argv: list[str] | None = None) -> None:
     )
     tr.add_argument("--threads", type=int, default=0, help="torch CPU threads (default: torch's)")
     tr.add_argument("--allow-tf32", action="store_true", help="TF32 matrix products (not fp32)")
+    speed_args(tr)
+    be = sub.add_parser(
+        "bench",
+        help="training throughput of sizes × batch sizes × variants (no checkpoints)",
+    )
+    run_args(be)
+    be.add_argument(
+        "--variants",
+        default=BENCH_VARIANTS,
+        help="comma-separated; each `+`-joined tokens: fp32 | bf16, compile, host | device "
+        f"(the pipeline; host by default), tf32 (default {BENCH_VARIANTS})",
+    )
+    be.add_argument(
+        "--batch-scenes", default="256,1024", help="comma-separated batch sizes (scenes)"
+    )
+    be.add_argument(
+        "--size",
+        action="append",
+        default=None,
+        metavar="LABEL[:KEY=VALUE,…]",
+        help="a model size: `base` (the config's) or overrides, repeatable (default: "
+        + " and ".join(f"`{x}`" for x in BENCH_SIZES)
+        + ")",
+    )
+    be.add_argument("--steps", type=int, default=20, help="timed steps per case (at most)")
+    be.add_argument(
+        "--case-secs", type=float, default=5.0, help="stop a case's timing after this (≥ 3 steps)"
+    )
+    be.add_argument("--warmup-steps", type=int, default=3, help="untimed steps per case")
+    be.add_argument(
+        "--compile-warmup-steps",
+        type=int,
+        default=5,
+        help="more untimed steps for compiled cases (recompilations for new agent counts)",
+    )
+    be.add_argument(
+        "--budget-secs", type=float, default=0.0, help="skip the cases left after this"
+    )
+    be.add_argument(
+        "--no-data-rows",
+        dest="data_rows",
+        action="store_false",
+        help="leave out the pipeline-only rows (batches/s without a model)",
+    )
+    be.add_argument("--compile-mode", default="default", help="torch.compile's mode")
+    be.add_argument("--loader-workers", type=int, default=-1, help="as train's")
+    be.add_argument("--threads", type=int, default=0, help="torch CPU threads (default: torch's)")
+    be.add_argument("--json", type=Path, default=None, help="write the results here as well")
     va = sub.add_parser("validate", help="a checkpoint's validation loss on the export")
     run_args(va)
     va.add_argument("--checkpoint", type=Path, required=True)
@@ -1408,6 +1449,10 @@ def main(argv: list[str] | None = None) -> None:
     try:
         if args.command == "train":
             train(args)
+        elif args.command == "bench":
+            import torch_train_bench  # here, not at the top: it imports this module
+
+            torch_train_bench.bench(args)
         elif args.command == "validate":
             torch.backends.cuda.matmul.allow_tf32 = False
             validate_cmd(args)
