@@ -9,7 +9,7 @@
 // `part_stride` floats apart, so that attention binds each as before).
 // Weights as stored in the checkpoint: w [out, in] row-major, b [out].
 // One invocation computes 4 consecutive outputs of one row, so that each x element it loads
-// serves 4 products (lavapipe favours no workgroup memory and several outputs per thread).
+// serves 4 products (no workgroup memory: small layers, and lavapipe's below 4 blocks).
 
 struct Params {
     rows: u32,
@@ -117,8 +117,8 @@ fn linear(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
 // K-chunks of x and w in workgroup memory so that each global load serves 32 (x) or 64 (w)
 // products and loads coalesce; each invocation accumulates 8 rows × 4 outputs in registers.
 // With `norm`, the workgroup first computes its 64 rows' statistics, one row per invocation.
-// (The row-wise entry above stays the choice on lavapipe, where workgroup memory and barriers
-// cost more than they save.)
+// (Superseded by `linear_blocked` below, which the engine chooses instead; kept as a variant
+// to measure against.)
 
 const TILE_ROWS: u32 = 64u;
 const TILE_OUTS: u32 = 32u;

@@ -14,8 +14,9 @@ pub struct ContextOptions {
     pub validation: bool,
     /// Longest wait for one submission before a poll gives up.
     pub poll_timeout: Duration,
-    /// The linear layers' kernel; `None` picks per layer ([`LinearKernel::choose`]: tiled for
-    /// large layers on hardware, row-wise otherwise and on software adapters such as lavapipe).
+    /// The linear layers' kernel; `None` picks per layer ([`LinearKernel::choose`]: blocked
+    /// for large layers, row-wise for small ones, with a lower bar on software adapters such as
+    /// lavapipe).
     pub linear_kernel: Option<LinearKernel>,
     /// The polyline encoder's kernel; `None` picks by shape ([`PolylineKernel::choose`]).
     pub polyline_kernel: Option<PolylineKernel>,
@@ -25,8 +26,8 @@ pub struct ContextOptions {
     pub map_encoder_chunk_bytes: u64,
     /// Compile the kernels without wgpu's runtime checks (index clamping, loop bounding,
     /// division guards): every kernel here bounds its own indices and loops, and divides by
-    /// sizes the engine sets. Off by default until measured on a card (`road bench engine
-    /// --shader-checks checked unchecked`).
+    /// sizes the engine sets. Off by default: on the H100 it gained 2–5 % a step (2026-11-26,
+    /// `road bench engine --shader-checks checked unchecked`), too little yet for the risk.
     pub unchecked_shaders: bool,
 }
 

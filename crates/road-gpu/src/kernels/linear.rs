@@ -3,7 +3,7 @@
 //! GPU's for small layers), tiled (64 × 32 workgroup-memory tiles, the first GPU variant) and
 //! blocked (128 × 96 blocks of 8 × 8 per invocation, the layer norm's statistics gathered
 //! while staging; a GPU's best for large layers).
-//! [`LinearKernel::choose`] says which one the engine runs for a layer. Fused into both: the
+//! [`LinearKernel::choose`] says which one the engine runs for a layer. Fused into each: the
 //! layer norm `n` of the rows (prologue; its γ, β folded into the weights by
 //! [`fold_layer_norm`]), the residual add (epilogue) and outputs split into parts (the q/k/v
 //! projections as one layer), each saving a dispatch.
