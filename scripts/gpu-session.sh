@@ -45,7 +45,7 @@ while [ $# -gt 0 ]; do
     --train-bench-secs) bench_secs=$2; shift 2 ;;
     --quick) quick=(--quick); shift ;;
     --) shift; train_options=("$@"); break ;;
-    *) sed -n 2,20p "$0" >&2; exit 2 ;;
+    *) sed -n '2,/^set -euo/p' "$0" | sed '$d' >&2; exit 2 ;;
     esac
 done
 out="${OUT:-gpu-session-out}"
