@@ -116,6 +116,11 @@ run)
         --polyline-kernels auto per-polyline --cache "$out/cache" --json
     profile_batches=(512 4096)
     $quick && profile_batches=(8)
+    # Scenes bucketed by agent count (the default since 2026-11-26) against one batch padded to
+    # the most agents, the default kernels.
+    step engine-buckets 60 "$out/engine-buckets.json" "$bin" bench engine \
+        --checkpoints models/road20-wide4 models/road20 --batches "${batches[@]}" \
+        --cpu-max-batch 0 --bucketing on off --cache "$out/cache" --json
     step engine-profile 90 "$out/engine-profile.json" "$bin" bench engine \
         --checkpoints models/road20-wide4 --batches "${profile_batches[@]}" --cpu-max-batch 0 \
         --linear-kernels auto --shader-checks checked unchecked --profile --cache "$out/cache" \

@@ -24,6 +24,9 @@ pub struct ContextOptions {
     /// chunk by chunk (at least 64 polylines each) so that agent maps of large batches fit one
     /// buffer binding. Tests make it tiny to run many chunks.
     pub map_encoder_chunk_bytes: u64,
+    /// Step scenes of mixed agent counts in buckets of like counts once enough of them move
+    /// (`GpuStepEngine`; on by default): less padded work for more dispatches.
+    pub bucket_scenes: bool,
     /// Compile the kernels without wgpu's runtime checks (index clamping, loop bounding,
     /// division guards): every kernel here bounds its own indices and loops, and divides by
     /// sizes the engine sets. Off by default: on the H100 it gained 2–5 % a step (2026-11-26,
@@ -40,6 +43,7 @@ impl Default for ContextOptions {
             polyline_kernel: None,
             map_encoder_chunk_bytes: 64 << 20,
             unchecked_shaders: false,
+            bucket_scenes: true,
         }
     }
 }
@@ -56,6 +60,7 @@ pub struct GpuContext {
     polyline_kernel: Option<PolylineKernel>,
     map_encoder_chunk_bytes: u64,
     unchecked_shaders: bool,
+    bucket_scenes: bool,
 }
 
 /// Advice printed when no adapter exists.
@@ -113,6 +118,7 @@ impl GpuContext {
             polyline_kernel: options.polyline_kernel,
             map_encoder_chunk_bytes: options.map_encoder_chunk_bytes,
             unchecked_shaders: options.unchecked_shaders,
+            bucket_scenes: options.bucket_scenes,
         })
     }
 
@@ -155,6 +161,11 @@ impl GpuContext {
     /// The linear kernel the options named, or `"auto"` (chosen per layer).
     pub fn linear_kernel_setting(&self) -> &'static str {
         self.linear_kernel.map_or("auto", LinearKernel::entry)
+    }
+
+    /// See [`ContextOptions::bucket_scenes`].
+    pub fn bucket_scenes(&self) -> bool {
+        self.bucket_scenes
     }
 
     /// See [`ContextOptions::unchecked_shaders`].

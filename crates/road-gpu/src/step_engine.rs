@@ -1,6 +1,7 @@
 //! The rollout driver's engine on the GPU ([`GpuStepEngine`]): `road-model`'s
 //! `StepEngine` over a [`GpuDenoiser`]'s kernels, with the windows kept on the device through a
-//! tick's steps and compacted sub-batches for mixed-phase rounds.
+//! tick's steps, and compacted sub-batches for mixed-phase rounds and for buckets of scenes of
+//! like agent counts.
 
 use crate::engine::{DenoiseInputs, DeviceBatch, GpuDenoiser, MapTokens};
 use crate::kernels::window::ShiftList;
@@ -8,6 +9,23 @@ use crate::kernels::{Traffic, read_back_ranges, storage_buffer};
 use crate::proxies::{Work, flops_per_evaluation};
 use crate::sampler_step::{HeunPlan, StepRule};
 use crate::{Error, GpuContext, Result};
+
+/// Fewest moving scenes for which a step buckets them by agent count: below, one batch's
+/// dispatches cost more than the padding they would save.
+const MIN_BUCKETED_SCENES: usize = 32;
+/// Fewest scenes of a bucket: a smaller one joins the next larger agent count.
+const MIN_BUCKET_SCENES: usize = 16;
+/// Most compact sub-batch shapes kept (each with its buffers and plan); beyond, the least
+/// recently used is dropped.
+const MAX_COMPACTS: usize = 24;
+
+/// Scenes of a compact sub-batch holding `scenes`: rounded up to an eighth of the next power
+/// of two, so that few shapes are made (each with its own buffers and plan) and at most an
+/// eighth of it is empty places.
+fn compact_capacity(scenes: usize) -> usize {
+    let step = (scenes.next_power_of_two() / 8).max(1);
+    scenes.next_multiple_of(step)
+}
 
 /// The rollout driver's engine on the GPU: windows stay on the device through a tick's steps
 /// and are read back once per tick.
@@ -24,8 +42,11 @@ pub struct GpuStepEngine<'a> {
     /// with each shift).
     denoised: Option<wgpu::Buffer>,
     estimate_window: Option<crate::kernels::window::WindowOps>,
-    /// Compacted sub-batches by capacity (powers of two), made on first use.
+    /// Compacted sub-batches by shape ([`compact_capacity`] scenes × agent rows), made on
+    /// first use, at most [`MAX_COMPACTS`].
     compact: Vec<Compact>,
+    /// Compact sub-batch steps so far: each sub-batch's `last_use` is one of them.
+    compact_uses: u64,
     features: Vec<f32>,
     /// Zeros for the kept estimate's shift (nothing emitted, no noise), grown on demand.
     zeros: Vec<f32>,
@@ -54,6 +75,7 @@ impl<'a> GpuStepEngine<'a> {
             denoised: None,
             estimate_window: None,
             compact: Vec::new(),
+            compact_uses: 0,
             features: Vec::new(),
             zeros: Vec::new(),
             live_agents: Vec::new(),
@@ -112,6 +134,8 @@ struct Compact {
     sigma_cur: Vec<f32>,  // [capacity, W]
     sigma_next: Vec<f32>, // [capacity, W]
     gamma: Vec<f32>,      // [capacity, W]
+    /// `GpuStepEngine::compact_uses` when it last stepped.
+    last_use: u64,
 }
 
 impl Compact {
@@ -150,6 +174,7 @@ impl Compact {
             sigma_cur: vec![1.0; capacity * w],
             sigma_next: vec![1.0; capacity * w],
             gamma: vec![0.0; capacity * w],
+            last_use: 0,
         })
     }
 }
@@ -173,11 +198,11 @@ impl GpuStepEngine<'_> {
         sigma_next: &[f32],
         rule: StepRule<'_>,
     ) -> road_model::Result<()> {
-        let (Some(batch), Some(plan), Some(map)) = (&self.batch, &mut self.plan, &self.map) else {
+        if self.batch.is_none() || self.plan.is_none() || self.map.is_none() {
             return Err(road_model::Error::Engine(
                 "step before prepare and load".into(),
             ));
-        };
+        }
         let (b, w) = (self.scenes, self.model.config.window_slots);
         if sigma_cur.len() != b * w || sigma_next.len() != b * w {
             return Err(road_model::Error::Engine(format!(
@@ -208,6 +233,18 @@ impl GpuStepEngine<'_> {
             .max()
             .unwrap_or(1);
         let a_c = live.next_multiple_of(4).clamp(1, a);
+        // Scenes of mixed agent counts: a compact sub-batch per bucket of like counts, when
+        // that saves enough of the padding.
+        let buckets = self.buckets(&active);
+        if !buckets.is_empty() {
+            for (scenes, rows) in &buckets {
+                self.step_compact(scenes, *rows, sigma_cur, sigma_next, rule, evaluations)?;
+            }
+            return Ok(());
+        }
+        let (Some(batch), Some(plan), Some(map)) = (&self.batch, &mut self.plan, &self.map) else {
+            unreachable!("checked above");
+        };
         // The whole batch in place when most of it moves and most of its agent rows are live;
         // else the moving scenes' live rows in a compact sub-batch.
         if active.len() * 2 > b && a_c * 4 > a * 3 {
@@ -255,13 +292,93 @@ impl GpuStepEngine<'_> {
         }
         // Few scenes move (others idle in a mixed-phase batch), or few of their agent rows are
         // live: copy those into a compact sub-batch, step it, copy the states back.
-        let capacity = active.len().next_power_of_two();
+        self.step_compact(&active, a_c, sigma_cur, sigma_next, rule, evaluations)
+    }
+
+    /// Scenes of mixed agent counts in buckets of like counts, one compact sub-batch each, when
+    /// that saves at least a fifth of the padded batch's work: `(scenes, agent rows)` per
+    /// bucket, or nothing to step the batch as one. Agent rows are each scene's live rows
+    /// rounded up to 4; buckets of fewer than [`MIN_BUCKET_SCENES`] scenes join the next larger.
+    fn buckets(&self, active: &[usize]) -> Vec<(Vec<usize>, usize)> {
+        let a = self.agents;
+        if !self.ctx.bucket_scenes() || active.len() < MIN_BUCKETED_SCENES {
+            return Vec::new();
+        }
+        let mut by_agents = std::collections::BTreeMap::<usize, Vec<usize>>::new();
+        for &i in active {
+            let rows = self.live_agents[i].next_multiple_of(4).clamp(1, a);
+            by_agents.entry(rows).or_default().push(i);
+        }
+        let mut buckets: Vec<(Vec<usize>, usize)> = Vec::new();
+        let mut pending: Vec<usize> = Vec::new();
+        let mut pending_rows = 0;
+        for (rows, scenes) in by_agents {
+            pending.extend(scenes);
+            pending_rows = rows;
+            if pending.len() >= MIN_BUCKET_SCENES {
+                buckets.push((std::mem::take(&mut pending), rows));
+            }
+        }
+        if !pending.is_empty() {
+            // The largest counts, too few for a bucket of their own: the last bucket takes them
+            // at their rows.
+            match buckets.last_mut() {
+                Some((scenes, rows)) => {
+                    scenes.extend(pending);
+                    *rows = pending_rows;
+                }
+                None => buckets.push((pending, pending_rows)),
+            }
+        }
+        // Against one step of them all as `step_rule` would take it: the whole batch in place,
+        // or one compact sub-batch at the most live rows.
+        let padded = |(scenes, rows): &(Vec<usize>, usize)| compact_capacity(scenes.len()) * rows;
+        let bucketed: usize = buckets.iter().map(padded).sum();
+        let most_rows = buckets.iter().map(|(_, rows)| *rows).max().unwrap_or(a);
+        let single = if active.len() * 2 > self.scenes && most_rows * 4 > a * 3 {
+            self.scenes * a
+        } else {
+            compact_capacity(active.len()) * most_rows
+        };
+        if buckets.len() < 2 || bucketed * 5 > single * 4 {
+            return Vec::new();
+        }
+        buckets
+    }
+
+    /// Steps the `active` scenes' first `a_c` agent rows in a compact sub-batch (made on first
+    /// use and kept, the least recently used dropped beyond [`MAX_COMPACTS`]): their rows are
+    /// copied in, stepped under `rule`, and copied back with their estimates.
+    fn step_compact(
+        &mut self,
+        active: &[usize],
+        a_c: usize,
+        sigma_cur: &[f32],
+        sigma_next: &[f32],
+        rule: StepRule<'_>,
+        evaluations: u64,
+    ) -> road_model::Result<()> {
+        let (Some(batch), Some(map)) = (&self.batch, &self.map) else {
+            return Err(road_model::Error::Engine(
+                "step before prepare and load".into(),
+            ));
+        };
+        let (a, w) = (self.agents, self.model.config.window_slots);
+        let row_bytes = (a * w * 3 * 4) as u64;
+        let capacity = compact_capacity(active.len());
         let d = self.model.config.hidden;
+        self.compact_uses += 1;
         if !self
             .compact
             .iter()
             .any(|c| (c.batch.scenes, c.batch.agents) == (capacity, a_c))
         {
+            if self.compact.len() >= MAX_COMPACTS {
+                let oldest = (0..self.compact.len())
+                    .min_by_key(|&k| self.compact[k].last_use)
+                    .expect("not empty");
+                self.compact.swap_remove(oldest);
+            }
             let c = Compact::new(self.ctx, self.model, capacity, a_c, map).map_err(engine_err)?;
             self.compact.push(c);
         }
@@ -270,6 +387,7 @@ impl GpuStepEngine<'_> {
             .iter_mut()
             .find(|c| (c.batch.scenes, c.batch.agents) == (capacity, a_c))
             .expect("made above");
+        compact.last_use = self.compact_uses;
         let p = map.polylines;
         // (source, destination, floats per scene in the batch, floats per scene in the compact
         // sub-batch) of every per-scene region: agent rows come first in each, so a scene's
@@ -349,7 +467,7 @@ impl GpuStepEngine<'_> {
             capacity,
             a_c,
             p,
-            &active,
+            active,
             &self.own_agents,
             &self.own_polylines,
             compact.plan.take_traffic(),

@@ -702,3 +702,81 @@ fn mixed_phase_batches_agree(config: &ModelConfig, name: &str) {
     }
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// Scenes of mixed agent counts step in buckets of like counts (a compact sub-batch each) once
+/// enough of them move: the same rollouts as the CPU reference, at less padded work than one
+/// batch at the most agents.
+#[test]
+fn bucketed_batches_agree_with_the_reference() {
+    use road_cpu::CpuEngine;
+    use road_gpu::proxies::flops_per_evaluation;
+    use road_gpu::step_engine::GpuStepEngine;
+    use road_rollout::{RolloutDriver, RolloutScene, StepEngine};
+    use road_sched::PlannerSpec;
+    let ctx = context();
+    let config = test_config();
+    let (dir, reference) = checkpoint_dir(&config, "bucketed");
+    let gpu = GpuDenoiser::from_checkpoint(&ctx, &dir).unwrap();
+    let ds = validation_set();
+    let scenes: Vec<RolloutScene> = (0..40)
+        .map(|i| RolloutScene {
+            history: SceneInput::from_window(
+                &ds.window((i * 131) % ds.len()).unwrap(),
+                0,
+                10,
+                &config,
+            ),
+        })
+        .collect();
+    let counts: Vec<usize> = scenes.iter().map(|s| s.history.agents).collect();
+    let (most_agents, most_polylines) = (
+        *counts.iter().max().unwrap(),
+        scenes.iter().map(|s| s.history.polylines).max().unwrap(),
+    );
+    let padded: f64 =
+        scenes.len() as f64 * flops_per_evaluation(&config, most_agents, most_polylines);
+    let own: f64 = scenes
+        .iter()
+        .map(|s| flops_per_evaluation(&config, s.history.agents, s.history.polylines))
+        .sum();
+    assert!(
+        padded / own > 1.5,
+        "the scenes' agent counts {counts:?} should be mixed enough to bucket"
+    );
+    let planner = PlannerSpec {
+        steps_per_diffusion: 10,
+        ..PlannerSpec::default()
+    };
+    let run = |engine: &mut dyn StepEngine| -> Vec<Vec<f32>> {
+        let mut driver =
+            RolloutDriver::new(engine, &planner, &scenes, 3, &mut StdRng::seed_from_u64(5))
+                .unwrap();
+        let all: Vec<usize> = (0..scenes.len()).collect();
+        let mut out: Vec<Vec<f32>> = vec![Vec::new(); scenes.len()];
+        for _ in 0..3 {
+            driver
+                .tick_scenes(engine, &all, &mut |i, e, _| {
+                    out[i].extend_from_slice(e);
+                    Ok(())
+                })
+                .unwrap();
+        }
+        out
+    };
+    let cpu = run(&mut CpuEngine::new(&reference));
+    let mut engine = GpuStepEngine::new(&ctx, &gpu);
+    let on_gpu = run(&mut engine);
+    for (i, (c, g)) in cpu.iter().zip(&on_gpu).enumerate() {
+        if let Err(m) = ROLLOUT.check(g, c) {
+            panic!("scene {i} ({} agents): {m}", counts[i]);
+        }
+    }
+    let work = engine.take_work();
+    let ratio = work.computed_flops / work.useful_flops;
+    assert!(
+        ratio < 0.8 * padded / own,
+        "computed over useful {ratio:.2}: one batch at the most agents would be {:.2}",
+        padded / own
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -116,6 +116,10 @@ pub struct EngineBenchArgs {
     /// `per-polyline`, `blocked` or `auto` (blocked where the shape fits).
     #[arg(long, num_args = 1.., default_values = ["auto"], value_parser = parse_polyline_kernel)]
     pub polyline_kernels: Vec<Option<road_gpu::kernels::polyline::PolylineKernel>>,
+    /// Whether the engine steps scenes of mixed agent counts in buckets of like counts
+    /// (`on`, the default) or as one batch padded to the most agents (`off`), each a GPU row.
+    #[arg(long, num_args = 1.., default_values = ["on"], value_parser = ["on", "off"])]
+    pub bucketing: Vec<String>,
     /// How the kernels are compiled, each a GPU row per linear kernel: `checked` (wgpu's
     /// runtime checks, the default) or `unchecked` (`ContextOptions::unchecked_shaders`).
     #[arg(long, num_args = 1.., default_values = ["checked"], value_parser = ["checked", "unchecked"])]
@@ -131,7 +135,8 @@ pub struct EngineBenchArgs {
 }
 
 /// An engine row's GPU setting: its linear kernel, the polyline kernel when one was named,
-/// and `unchecked` when its kernels were compiled without wgpu's runtime checks.
+/// `unchecked` when its kernels were compiled without wgpu's runtime checks, and `one batch`
+/// when its scenes were not bucketed by agent count.
 fn gpu_setting(row: &serde_json::Value) -> String {
     let mut setting = row["linear_kernel"].as_str().unwrap_or("").to_string();
     match row["polyline_kernel"].as_str() {
@@ -140,6 +145,9 @@ fn gpu_setting(row: &serde_json::Value) -> String {
     }
     if row["shader_checks"].as_str() == Some("unchecked") {
         setting += ", unchecked";
+    }
+    if row["bucketing"].as_str() == Some("off") {
+        setting += ", one batch";
     }
     setting
 }
@@ -401,23 +409,33 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
     let validation = load_cache(&args.cache, Split::Validation)?;
     // One context per shader-check, polyline and linear kernel setting compared.
     let mut settings = Vec::new();
-    for checks in &args.shader_checks {
-        for &polyline_kernel in &args.polyline_kernels {
-            for &linear_kernel in &args.linear_kernels {
-                settings.push((checks == "unchecked", polyline_kernel, linear_kernel));
+    for bucketing in &args.bucketing {
+        for checks in &args.shader_checks {
+            for &polyline_kernel in &args.polyline_kernels {
+                for &linear_kernel in &args.linear_kernels {
+                    settings.push((
+                        bucketing == "on",
+                        checks == "unchecked",
+                        polyline_kernel,
+                        linear_kernel,
+                    ));
+                }
             }
         }
     }
     let contexts: Vec<road_gpu::GpuContext> = settings
         .into_iter()
-        .map(|(unchecked_shaders, polyline_kernel, linear_kernel)| {
-            road_gpu::GpuContext::new(&road_gpu::ContextOptions {
-                linear_kernel,
-                polyline_kernel,
-                unchecked_shaders,
-                ..road_gpu::ContextOptions::default()
-            })
-        })
+        .map(
+            |(bucket_scenes, unchecked_shaders, polyline_kernel, linear_kernel)| {
+                road_gpu::GpuContext::new(&road_gpu::ContextOptions {
+                    linear_kernel,
+                    polyline_kernel,
+                    unchecked_shaders,
+                    bucket_scenes,
+                    ..road_gpu::ContextOptions::default()
+                })
+            },
+        )
         .collect::<Result<_, _>>()?;
     let ctx = &contexts[0];
     let mut rows = Vec::new();
@@ -503,6 +521,7 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
                     "linear_kernel": ctx.linear_kernel_setting(),
                     "shader_checks": ctx.shader_checks_setting(),
                     "polyline_kernel": ctx.polyline_kernel_setting(),
+                    "bucketing": if ctx.bucket_scenes() { "on" } else { "off" },
                     "flops_per_scene_step": flops,
                     "cpu_ms_per_step": cpu_secs.map(|s| s * 1e3),
                     "cpu_scene_steps_per_sec": cpu_secs.map(|s| b as f64 / s),
