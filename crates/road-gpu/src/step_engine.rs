@@ -15,9 +15,10 @@ use crate::{Error, GpuContext, Result};
 const MIN_BUCKETED_SCENES: usize = 32;
 /// Fewest scenes of a bucket: a smaller one joins the next larger agent count.
 const MIN_BUCKET_SCENES: usize = 16;
-/// Most compact sub-batch shapes kept (each with its buffers and plan); beyond, the least
-/// recently used is dropped.
-const MAX_COMPACTS: usize = 24;
+/// Most compact sub-batch shapes kept (each with its buffers and plan: up to a whole batch's
+/// memory); beyond, the least recently used is dropped. A step makes at most one per bucket
+/// (a quarter of the agent count's range).
+const MAX_COMPACTS: usize = 12;
 
 /// Scenes of a compact sub-batch holding `scenes`: rounded up to an eighth of the next power
 /// of two, so that few shapes are made (each with its own buffers and plan) and at most an
