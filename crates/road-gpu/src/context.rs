@@ -192,6 +192,30 @@ impl GpuContext {
     }
 }
 
+/// The hardware adapter (a GPU, not a CPU adapter such as lavapipe) that [`GpuContext::new`]
+/// would pick here, described; `None` without one. Honours `WGPU_BACKEND` and
+/// `WGPU_ADAPTER_NAME` as it does; opens no device.
+pub fn hardware_adapter() -> Option<String> {
+    pollster::block_on(async {
+        let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
+        desc.backends = wgpu::Backends::VULKAN;
+        let instance = wgpu::Instance::new(desc.with_env());
+        let adapters = instance.enumerate_adapters(wgpu::Backends::all()).await;
+        let wanted = std::env::var("WGPU_ADAPTER_NAME")
+            .ok()
+            .map(|name| name.to_lowercase());
+        let adapters: Vec<wgpu::Adapter> = adapters
+            .into_iter()
+            .filter(|a| {
+                let name = a.get_info().name.to_lowercase();
+                wanted.as_ref().is_none_or(|w| name.contains(w))
+            })
+            .collect();
+        let info = pick_preferred(adapters)?.get_info();
+        (info.device_type != wgpu::DeviceType::Cpu).then(|| describe(&info))
+    })
+}
+
 /// Discrete GPU first, then integrated, virtual, others, CPU last.
 fn pick_preferred(adapters: Vec<wgpu::Adapter>) -> Option<wgpu::Adapter> {
     let rank = |t: wgpu::DeviceType| match t {

@@ -23,7 +23,7 @@ pub mod shaders;
 pub mod step_engine;
 pub mod tolerance;
 
-pub use context::{ContextOptions, GpuContext};
+pub use context::{ContextOptions, GpuContext, hardware_adapter};
 pub use tolerance::Tolerance;
 
 /// Errors of the GPU layer.

@@ -202,7 +202,7 @@ pub fn run(cmd: BenchCommand) -> Result<ExitCode> {
         BenchCommand::Serve(args) if args.zenoh => {
             let rows = crate::commands::zenoh_bench::run(
                 &args.checkpoint,
-                args.server_engine.into(),
+                args.server_engine.resolve(),
                 &args.scenes,
                 args.ticks,
                 args.rate_hz,
