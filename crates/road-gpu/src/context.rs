@@ -29,8 +29,9 @@ pub struct ContextOptions {
     pub bucket_scenes: bool,
     /// Compile the kernels without wgpu's runtime checks (index clamping, loop bounding,
     /// division guards): every kernel here bounds its own indices and loops, and divides by
-    /// sizes the engine sets. Off by default: on the H100 it gained 2–5 % a step (2026-11-26,
-    /// `road bench engine --shader-checks checked unchecked`), too little yet for the risk.
+    /// sizes the engine sets. Off by default: on the H100 it gained 4–20 % a step from 8 scenes
+    /// and lost at one (2026-11-26, `road bench engine --shader-checks checked unchecked`, one
+    /// run each), not yet worth the risk.
     pub unchecked_shaders: bool,
 }
 

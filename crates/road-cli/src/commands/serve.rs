@@ -87,8 +87,8 @@ impl ServeEngineArg {
 }
 
 /// `--engine auto`'s choice given the hardware GPU found, if any: a GPU service serves on its
-/// GPU (from 16 scenes an H100 served 2.2–7.6× what 16 cores did, and a scene's tick, 3.8 ms,
-/// is well inside its 100 ms), the CPU engine everywhere else (lavapipe is slow).
+/// GPU (in lockstep from 16 scenes an H100 served 2.2–7.6× what 16 cores did, and a scene's
+/// tick, 3.8 ms, is well inside its 100 ms), the CPU engine everywhere else (lavapipe is slow).
 fn auto_engine(hardware: Option<String>) -> road_serve::ServeEngine {
     match hardware {
         Some(adapter) => {
