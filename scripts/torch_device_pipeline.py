@@ -15,7 +15,7 @@ import numpy as np
 import torch
 import torch_denoiser as td
 from torch import Tensor
-from torch_train_data import AgentBuckets, Edm, ExportedSplit, Run, step_rng, wrap_angle
+from torch_train_data import AgentBuckets, Edm, ExportedSplit, Run, step_rng
 
 
 def edm_sigma(e: Edm, u: np.ndarray) -> np.ndarray:
@@ -135,39 +135,13 @@ class DeviceData:
     def _agents(
         ds: ExportedSplit, c: td.ModelConfig, lo: int, hi: int
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Windows `lo..hi`'s agents over all steps, as `ExportedSplit.scenes`."""
+        """Windows `lo..hi`'s agents over all steps (`ExportedSplit.agent_steps`)."""
         indices_a = np.arange(lo, hi, dtype=np.int64)
-        counts = ds.agent_counts[indices_a]
-        rec = ds.window_recording[indices_a]
-        scene_of = np.repeat(np.arange(hi - lo), counts)
         agent_rows = np.arange(ds.window_agent_offsets[lo], ds.window_agent_offsets[hi])
-        tracks = ds.recording_track_offsets[rec][scene_of] + ds.window_agents[agent_rows]
-        steps = ds.steps
-        frames = ds.window_start_frame[indices_a][scene_of][:, None] + np.arange(steps)
-        rel = frames - ds.track_first_frame[tracks][:, None]
-        length = (ds.track_offsets[tracks + 1] - ds.track_offsets[tracks])[:, None]
-        valid = (rel >= 0) & (rel < length)
-        rows = np.where(valid, ds.track_offsets[tracks][:, None] + rel, 0)
-        raw = ds.track_states[rows]
-        origin = ds.window_origin_m[indices_a][scene_of][:, None, :]
-        xy = ((raw[..., :2].astype(np.float64) - origin) / ds.scale_m).astype(np.float32)
-        psi = raw[..., 2]
-        n = len(tracks)
-        heading = np.zeros((n, steps), np.float32)
-        previous = np.zeros(n, np.float32)
-        seen = np.zeros(n, bool)
-        for s in range(steps):
-            v = valid[:, s]
-            h = np.where(seen, previous + wrap_angle(psi[:, s] - previous), wrap_angle(psi[:, s]))
-            heading[:, s] = np.where(v, h, 0.0)
-            previous = np.where(v, h, previous).astype(np.float32)
-            seen |= v
-        heading *= np.float32(c.heading_scale)
-        features = np.zeros((n, td.AGENT_FEATURES), np.float32)
-        features[:, 0] = ds.track_length_m[tracks] / np.float32(5.0)
-        features[:, 1] = ds.track_width_m[tracks] / np.float32(2.5)
-        features[np.arange(n), 2 + ds.track_type[tracks]] = 1.0
-        states = np.zeros((n, steps, 3), np.float32)
+        valid, xy, heading, features = ds.agent_steps(
+            indices_a, agent_rows, ds.steps, c.heading_scale
+        )
+        states = np.zeros((*valid.shape, 3), np.float32)
         states[..., 0] = np.where(valid, xy[..., 0], 0.0)
         states[..., 1] = np.where(valid, xy[..., 1], 0.0)
         states[..., 2] = np.where(valid, heading, 0.0)

@@ -986,6 +986,25 @@ def prepare_log(path: Path, step: int, untrained: float | None) -> None:
         path.write_text(text)
 
 
+def print_progress(
+    step: int,
+    until: int,
+    losses: list[float],
+    lr: float,
+    grad_norm: float,
+    steps_per_sec: float,
+    t: TrainConfig,
+    trainer: Trainer,
+) -> None:
+    """The progress line of both pipelines' loops: the mean loss and the rate since the last."""
+    print(
+        f"step {step}/{until} loss {np.mean(losses):.4f} lr {lr:.2e} "
+        f"grad {grad_norm:.3f} {steps_per_sec:.2f} steps/s {steps_per_sec * t.batch_scenes:.1f} "
+        f"scene-samples/s val {trainer.meta.validation_loss}",
+        flush=True,
+    )
+
+
 def train(args: argparse.Namespace) -> None:
     run = load_run(args.config, args.overrides)
     t = run.train
@@ -1106,12 +1125,7 @@ def train(args: argparse.Namespace) -> None:
             now = time.monotonic()
             if due_print:
                 rate = window_steps / (now - window_t)
-                print(
-                    f"step {step}/{until} loss {np.mean(window_losses):.4f} lr {lr:.2e} "
-                    f"grad {grad_norm:.3f} {rate:.2f} steps/s {rate * t.batch_scenes:.1f} "
-                    f"scene-samples/s val {trainer.meta.validation_loss}",
-                    flush=True,
-                )
+                print_progress(step, until, window_losses, lr, grad_norm, rate, t, trainer)
                 window_t, window_steps, window_losses, last_print = now, 0, [], now
             if due_save:
                 log.flush()
@@ -1165,12 +1179,7 @@ def train(args: argparse.Namespace) -> None:
             now = time.monotonic()
             if now - last_print >= args.print_every_secs or step == until:
                 rate = window_steps / (now - window_t)
-                print(
-                    f"step {step}/{until} loss {np.mean(window_losses):.4f} lr {lr:.2e} "
-                    f"grad {grad_norm:.3f} {rate:.2f} steps/s {rate * t.batch_scenes:.1f} "
-                    f"scene-samples/s val {trainer.meta.validation_loss}",
-                    flush=True,
-                )
+                print_progress(step, until, window_losses, lr, grad_norm, rate, t, trainer)
                 window_t, window_steps, window_losses, last_print = now, 0, [], now
             if now - last_checkpoint >= checkpoint_every or step == until:
                 log.flush()

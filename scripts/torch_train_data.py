@@ -318,17 +318,47 @@ class ExportedSplit:
         indices_a = np.asarray(indices, np.int64)
         counts = self.agent_counts[indices_a]  # [B]
         rec = self.window_recording[indices_a]  # [B]
-        scene_of = np.repeat(np.arange(len(indices)), counts)  # [N] scene of each agent row
         agent_rows = np.concatenate(
             [
                 np.arange(self.window_agent_offsets[i], self.window_agent_offsets[i + 1])
                 for i in indices
             ]
         )
-        tracks = self.recording_track_offsets[rec][scene_of] + self.window_agents[agent_rows]
         # Only the steps up to the crops' ends matter: the heading unwraps from each window's
         # first step on.
-        steps = max(starts) + slots
+        valid, xy, heading, features = self.agent_steps(
+            indices_a, agent_rows, max(starts) + slots, c.heading_scale
+        )
+        out = []
+        first_row = np.concatenate([[0], np.cumsum(counts)])
+        for i, (index, start) in enumerate(zip(indices, starts)):
+            agents = slice(first_row[i], first_row[i + 1])
+            crop = slice(start, start + slots)
+            v = valid[agents, crop]
+            states = np.zeros((counts[i], slots, 3), np.float32)
+            states[..., 0] = np.where(v, xy[agents, crop, 0], 0.0)
+            states[..., 1] = np.where(v, xy[agents, crop, 1], 0.0)
+            states[..., 2] = np.where(v, heading[agents, crop], 0.0)
+            lanelets = self.window_polylines[
+                self.window_polyline_offsets[index] : self.window_polyline_offsets[index + 1]
+            ][: c.map_polylines]  # nearest first
+            first = self.map_lanelet_offsets[self.recording_map[rec[i]]]
+            centres = self.lanelet_centres[first + lanelets]  # [P, Q, 2] f64 metres
+            polylines = ((centres - self.window_origin_m[index]) / self.scale_m).astype(np.float32)
+            out.append(SceneInput(states, v.copy(), features[agents].copy(), polylines))
+        return out
+
+    def agent_steps(
+        self, indices_a: np.ndarray, agent_rows: np.ndarray, steps: int, heading_scale: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The agents of windows `indices_a` (their rows `agent_rows` of `window_agents`, window
+        by window) over each window's first `steps` steps, in model units: validity `[N, S]`,
+        positions `[N, S, 2]`, headings `[N, S]` (unwrapped step by step from each agent's
+        first valid one, then scaled) and features `[N, AGENT_FEATURES]`."""
+        counts = self.agent_counts[indices_a]  # [B]
+        rec = self.window_recording[indices_a]  # [B]
+        scene_of = np.repeat(np.arange(len(indices_a)), counts)  # [N] scene of each agent row
+        tracks = self.recording_track_offsets[rec][scene_of] + self.window_agents[agent_rows]
         frames = self.window_start_frame[indices_a][scene_of][:, None] + np.arange(steps)
         rel = frames - self.track_first_frame[tracks][:, None]  # [N, S]
         length = (self.track_offsets[tracks + 1] - self.track_offsets[tracks])[:, None]
@@ -349,29 +379,12 @@ class ExportedSplit:
             heading[:, s] = np.where(v, h, 0.0)
             previous = np.where(v, h, previous).astype(np.float32)
             seen |= v
-        heading *= np.float32(c.heading_scale)
+        heading *= np.float32(heading_scale)
         features = np.zeros((n, td.AGENT_FEATURES), np.float32)
         features[:, 0] = self.track_length_m[tracks] / np.float32(5.0)
         features[:, 1] = self.track_width_m[tracks] / np.float32(2.5)
         features[np.arange(n), 2 + self.track_type[tracks]] = 1.0
-        out = []
-        first_row = np.concatenate([[0], np.cumsum(counts)])
-        for i, (index, start) in enumerate(zip(indices, starts)):
-            agents = slice(first_row[i], first_row[i + 1])
-            crop = slice(start, start + slots)
-            v = valid[agents, crop]
-            states = np.zeros((counts[i], slots, 3), np.float32)
-            states[..., 0] = np.where(v, xy[agents, crop, 0], 0.0)
-            states[..., 1] = np.where(v, xy[agents, crop, 1], 0.0)
-            states[..., 2] = np.where(v, heading[agents, crop], 0.0)
-            lanelets = self.window_polylines[
-                self.window_polyline_offsets[index] : self.window_polyline_offsets[index + 1]
-            ][: c.map_polylines]  # nearest first
-            first = self.map_lanelet_offsets[self.recording_map[rec[i]]]
-            centres = self.lanelet_centres[first + lanelets]  # [P, Q, 2] f64 metres
-            polylines = ((centres - self.window_origin_m[index]) / self.scale_m).astype(np.float32)
-            out.append(SceneInput(states, v.copy(), features[agents].copy(), polylines))
-        return out
+        return valid, xy, heading, features
 
 
 class AgentBuckets:
