@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# One call of a lent GPU machine that does both jobs of a lend, in order (docs/benchmarks.md,
+# One call of a lent GPU machine that does both jobs of a lend, in order (docs/lent-gpu.md,
 # "A lent session in one call"): the GPU engine's suite (self-test, engine, serving), then
 # the PyTorch trainer's throughput, then training the large checkpoint until the deadline,
 # validated and saved, so that the next lend resumes it. At most 8 files of 16 MiB come back

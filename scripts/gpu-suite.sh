@@ -15,7 +15,7 @@
 # what a lend measures when the kernels changed and the front end did not, leaving time to
 # train (scripts/gpu-session.sh runs it so). The procedure for
 # a lent machine (what to move out of the tree so that it travels, the Vulkan loader, the run
-# call) is in docs/benchmarks.md, "The GPU suite: how a lent session runs it"; it ran on an H100
+# call) is in docs/lent-gpu.md, "The GPU suite"; it ran on an H100
 # on 2026-11-26 in 203 s with --no-torch, before the demo-gpu and zenoh-gpu steps were added.
 # Each step below has its own time limit and the suite goes on past a step that fails or
 # overruns (`steps.txt` says which), so whatever finished comes back.
