@@ -5,7 +5,9 @@
 //! - [`metrics`]: minSceneADE / minSceneFDE and the miss rate (math doc, "Evaluation");
 //! - [`closed_loop`]: scenes simulated tick by tick on an engine, each agent with its
 //!   [`closed_loop::Controller`] (model, replay, adversarial, constant velocity, external);
-//! - [`procedural`]: a redistributable scene built from code (the `road demo` default).
+//! - [`procedural`]: a redistributable scene built from code (the `road demo` default);
+//! - [`populate`]: vehicles put on a map that has none (placement, then the model's refinement
+//!   of their histories), and vehicles entering at its entry lanes.
 //!
 //! The planner's guards that the closed loop applies each tick live in `road-planner`.
 //!
@@ -16,6 +18,7 @@ pub mod controllers;
 pub mod infractions;
 pub mod kinematics;
 pub mod metrics;
+pub mod populate;
 pub mod procedural;
 
 /// Errors of the simulation layer.

@@ -1,0 +1,78 @@
+//! Populating a procedural map around its ego with the shipped default checkpoint: placement,
+//! then the model's refinement of the placed histories.
+
+use candle_core::Device;
+use rand::SeedableRng;
+use rand::rngs::StdRng;
+use road_cpu::FastCpuEngine;
+use road_data::WindowConfig;
+use road_sim::populate::{
+    PlacementOptions, Refinement, footprints, keep_agents, place_vehicles, refine_histories,
+    with_vehicles,
+};
+use road_sim::procedural::{ProceduralMap, procedural};
+
+#[test]
+fn the_model_refines_placed_histories_around_a_fixed_ego() {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../models/road20-wide4");
+    let loaded = road_model::checkpoint::load(&dir, &Device::Cpu).unwrap();
+    let run = &loaded.meta.run;
+    let n = run.planner.obs_slots;
+    let config = WindowConfig {
+        position_scale_m: run.model.position_scale_m,
+        polyline_points: run.model.polyline_points,
+        ..WindowConfig::default()
+    };
+    let scene = procedural(ProceduralMap::Roundabout, &config, n).unwrap();
+    let ego_only = keep_agents(&scene.window, &[scene.ego.agent]);
+    let mut rng = StdRng::seed_from_u64(5);
+    let placed = place_vehicles(
+        &scene.map,
+        &footprints(&ego_only),
+        8,
+        n,
+        &PlacementOptions::default(),
+        &mut rng,
+    );
+    assert_eq!(placed.len(), 8);
+    let window = with_vehicles(&ego_only, &placed).unwrap();
+    assert_eq!(window.agents, 9);
+    let mut fixed = vec![false; window.agents];
+    fixed[0] = true;
+    let mut engine = FastCpuEngine::new(&loaded.model).unwrap();
+    let refinement = Refinement::for_model(run.train.augmentation_ratio);
+    let refined = refine_histories(
+        &mut engine,
+        &run.model,
+        &run.planner.edm,
+        &window,
+        &fixed,
+        refinement,
+        &mut rng,
+    )
+    .unwrap();
+    // The ego as given; every placed vehicle moved, by less than the refinement's noise allows.
+    let ego_len = 3 * n;
+    assert_eq!(refined.states[..ego_len], window.states[..ego_len]);
+    let scale = run.model.position_scale_m as f32;
+    let mut moved_m = Vec::new();
+    for a in 1..window.agents {
+        for t in 0..n {
+            let (r, p) = (refined.state(a, t).unwrap(), window.state(a, t).unwrap());
+            moved_m.push(((r[0] - p[0]).hypot(r[1] - p[1]) * scale, a, t));
+        }
+    }
+    let largest = moved_m.iter().map(|m| m.0).fold(0.0f32, f32::max);
+    let mean = moved_m.iter().map(|m| m.0).sum::<f32>() / moved_m.len() as f32;
+    assert!(mean > 0.01, "the refinement moved nothing: mean {mean} m");
+    assert!(largest < 3.0, "a state moved {largest} m: {moved_m:?}");
+    // Refined vehicles still sit on the map.
+    for a in 1..window.agents {
+        let s = refined.state(a, n - 1).unwrap();
+        let p = refined.frame.to_metres([s[0], s[1]]);
+        assert!(
+            scene.map.lanelet_at(p).is_some(),
+            "vehicle {a} left the lanes: {p:?}"
+        );
+    }
+}
