@@ -239,6 +239,36 @@ pub struct CreateScene {
     /// (it costs one more readback per tick).
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub plans: bool,
+    /// Vehicles the server puts on the map around `agents` (which may then be just the ego,
+    /// or omitted): see [`Populate`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub populate: Option<Populate>,
+}
+
+/// How many model-driven vehicles the server puts on the map at creation, besides the given
+/// agents: exactly one of `vehicles` and `vehicles_per_100m`. They are placed on lane centres
+/// with room around them, their 1 s histories along their lanes, then refined by the model
+/// around the given agents (`docs/protocol.md`, "Populating a map"). [`SceneCreated::agents`]
+/// lists them (ids after the largest given id).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Populate {
+    /// This many vehicles (fewer when the map has no more room; at most the server's agent
+    /// limit with the given agents).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub vehicles: Option<u32>,
+    /// So many vehicles per 100 m of the map's lane centre lines, in (0, 10]; capped at the
+    /// server's agent limit.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub vehicles_per_100m: Option<f64>,
+    /// Whether the model refines the placed histories (default true); false: the placement
+    /// as it is (constant speed on the lane centre).
+    #[serde(default = "default_true")]
+    pub refine: bool,
+}
+
+fn default_true() -> bool {
+    true
 }
 
 impl CreateScene {
@@ -255,6 +285,7 @@ impl CreateScene {
             client: None,
             max_ticks: None,
             plans: false,
+            populate: None,
         }
     }
 }

@@ -10,18 +10,23 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use glam::DVec2;
+use rand::SeedableRng;
+use rand::rngs::StdRng;
 use road_data::geometry::{dist, resample};
 use road_data::{AgentType, LaneletMap, SceneFrame, SceneWindow, WindowConfig, wrap_angle};
 use road_model::checkpoint::LoadedModel;
 use road_protocol::{
     AgentInfo, AgentInit, AgentPlan, AgentState, CreateScene, EgoTick, ErrorCode, ErrorReply,
-    MapSource, NpcTick, Pose,
+    MapSource, NpcTick, Populate, Pose,
 };
 use road_sched::PlannerSpec;
 use road_sim::Pose as SimPose;
 use road_sim::closed_loop::{Controller, ExternalDriver, SceneTick, SimScene};
 use road_sim::geometry::OrientedBox;
 use road_sim::infractions::off_road;
+use road_sim::populate::{
+    Footprint, PlacementOptions, Refinement, VehicleCount, place_vehicles, refine_histories,
+};
 use road_sim::procedural::{ProceduralMap, STEP_SECS, procedural};
 
 use crate::config::ServeConfig;
@@ -307,18 +312,22 @@ pub fn setup(req: &CreateScene, ctx: &mut SetupContext<'_>) -> Result<SceneSetup
         },
     };
 
-    // The agents.
-    let agents: &[AgentInit] = match (&req.agents, &builtin) {
-        (Some(a), _) => a,
-        (None, Some(b)) => b,
+    // The agents: the request's; else the procedural map's own (with `populate`, only its
+    // ego, agent 0, the others placed).
+    let given: Vec<AgentInit> = match (&req.agents, &builtin) {
+        (Some(a), _) => a.clone(),
+        (None, Some(b)) if req.populate.is_some() => b[..1].to_vec(),
+        (None, Some(b)) => b.clone(),
+        (None, None) if req.populate.is_some() => Vec::new(),
         (None, None) => {
             return Err(invalid(
                 "agents",
-                "agents are required unless the map is procedural",
+                "agents are required unless the map is procedural or `populate` is given",
             ));
         }
     };
-    if agents.is_empty() {
+    let agents: &[AgentInit] = &given;
+    if agents.is_empty() && req.populate.is_none() {
         return Err(invalid("agents", "a scene needs at least one agent"));
     }
     if agents.len() > ctx.config.max_agents {
@@ -401,11 +410,42 @@ pub fn setup(req: &CreateScene, ctx: &mut SetupContext<'_>) -> Result<SceneSetup
         }
     }
 
-    let histories: Vec<Vec<Pose>> = agents
+    let mut histories: Vec<Vec<Pose>> = agents
         .iter()
         .map(|a| a.history[a.history.len() - n..].to_vec())
         .collect();
-    let window = build_window(map.as_deref(), agents, &histories, &window_config, &req.map);
+    let mut all_agents = given.clone();
+    let placed = match (&req.populate, map.as_deref()) {
+        (Some(populate), Some(map)) => {
+            let vehicles = populated(populate, map, &histories, agents, n, ctx, req.seed)?;
+            all_agents.extend(vehicles.iter().cloned());
+            histories.extend(vehicles.into_iter().map(|v| v.history));
+            all_agents.len() - agents.len()
+        }
+        _ => 0,
+    };
+    if all_agents.is_empty() {
+        return Err(invalid(
+            "populate",
+            "the map had no room for a vehicle and the request gives no agent",
+        ));
+    }
+    let agents: &[AgentInit] = &all_agents;
+    let mut window = build_window(map.as_deref(), agents, &histories, &window_config, &req.map);
+    if placed > 0 && req.populate.as_ref().is_some_and(|p| p.refine) {
+        let mut fixed = vec![true; agents.len()];
+        fixed[given.len()..].fill(false);
+        window = refined(model, &planner, &window, &fixed, req.seed).map_err(|e| {
+            ErrorReply::new(
+                ErrorCode::Internal,
+                Some("populate"),
+                format!("the model's refinement of the placed vehicles failed: {e}"),
+            )
+        })?;
+        for (a, history) in histories.iter_mut().enumerate().skip(given.len()) {
+            *history = window_history(&window, a);
+        }
+    }
     let infos = agents
         .iter()
         .zip(histories)
@@ -440,19 +480,146 @@ fn window_agents(w: &SceneWindow) -> Vec<AgentInit> {
             id: w.track_ids[a],
             length_m: f64::from(w.length_m[a]),
             width_m: f64::from(w.width_m[a]),
-            history: (0..w.steps)
-                .filter_map(|t| w.state(a, t))
-                .map(|s| {
-                    let p = w.frame.to_metres([s[0], s[1]]);
-                    Pose {
-                        x_m: p[0],
-                        y_m: p[1],
-                        heading_rad: f64::from(wrap_angle(s[2])),
-                    }
-                })
-                .collect(),
+            history: window_history(w, a),
         })
         .collect()
+}
+
+/// Agent `a`'s states in `w`, in metres and radians.
+fn window_history(w: &SceneWindow, a: usize) -> Vec<Pose> {
+    (0..w.steps)
+        .filter_map(|t| w.state(a, t))
+        .map(|s| {
+            let p = w.frame.to_metres([s[0], s[1]]);
+            Pose {
+                x_m: p[0],
+                y_m: p[1],
+                heading_rad: f64::from(wrap_angle(s[2])),
+            }
+        })
+        .collect()
+}
+
+/// Densities `populate.vehicles_per_100m` may ask for: above 10 the lanes are full anyway.
+const MAX_VEHICLES_PER_100M: f64 = 10.0;
+
+/// The vehicles `populate` asks for on `map`, placed clear of the given agents (their
+/// `histories`, n steps each), with ids after the largest given id; checked field by field.
+fn populated(
+    populate: &Populate,
+    map: &LaneletMap,
+    histories: &[Vec<Pose>],
+    given: &[AgentInit],
+    n: usize,
+    ctx: &SetupContext<'_>,
+    seed: u64,
+) -> Result<Vec<AgentInit>, ErrorReply> {
+    let room = ctx.config.max_agents.saturating_sub(given.len());
+    let count = match (populate.vehicles, populate.vehicles_per_100m) {
+        (Some(_), Some(_)) | (None, None) => {
+            return Err(invalid(
+                "populate",
+                "give exactly one of `vehicles` and `vehicles_per_100m`",
+            ));
+        }
+        (Some(v), None) => {
+            if v as usize > room {
+                return Err(invalid(
+                    "populate.vehicles",
+                    format!(
+                        "{v} vehicles and {} given agents exceed the server's {} agents a scene",
+                        given.len(),
+                        ctx.config.max_agents
+                    ),
+                ));
+            }
+            v as usize
+        }
+        (None, Some(d)) => {
+            if !(d.is_finite() && d > 0.0 && d <= MAX_VEHICLES_PER_100M) {
+                return Err(invalid(
+                    "populate.vehicles_per_100m",
+                    format!("{d} vehicles per 100 m is not in (0, {MAX_VEHICLES_PER_100M}]"),
+                ));
+            }
+            VehicleCount::PerHundredMetres(d).on(map).min(room)
+        }
+    };
+    let occupied: Vec<Footprint> = given
+        .iter()
+        .zip(histories)
+        .map(|(a, h)| {
+            let p = h.last().expect("histories have n ≥ 1 steps");
+            Footprint {
+                pose: SimPose {
+                    x_m: p.x_m,
+                    y_m: p.y_m,
+                    heading_rad: p.heading_rad,
+                },
+                length_m: a.length_m,
+                width_m: a.width_m,
+            }
+        })
+        .collect();
+    // The placement's own stream: the same request and seed place the same vehicles.
+    let mut rng = StdRng::seed_from_u64(road_rollout::stream_seed(seed, PLACEMENT_STREAM));
+    let placed = place_vehicles(
+        map,
+        &occupied,
+        count,
+        n,
+        &PlacementOptions::default(),
+        &mut rng,
+    );
+    let mut next_id = given.iter().map(|a| a.id).max().map_or(1, |m| m + 1);
+    Ok(placed
+        .into_iter()
+        .map(|v| {
+            let id = next_id;
+            next_id += 1;
+            AgentInit {
+                id,
+                length_m: v.length_m,
+                width_m: v.width_m,
+                history: v
+                    .history
+                    .iter()
+                    .map(|p| Pose {
+                        x_m: p.x_m,
+                        y_m: p.y_m,
+                        heading_rad: p.heading_rad,
+                    })
+                    .collect(),
+            }
+        })
+        .collect())
+}
+
+/// Noise streams of a scene's setup, apart from its simulation's.
+const PLACEMENT_STREAM: u64 = 0x706c_6163_65;
+const REFINEMENT_STREAM: u64 = 0x7265_6669_6e65;
+
+/// `window` with the histories of the agents not `fixed` refined by the model (on a CPU
+/// engine of its own: one scene, once; `road_sim::populate::refine_histories`).
+fn refined(
+    model: &LoadedModel,
+    planner: &PlannerSpec,
+    window: &SceneWindow,
+    fixed: &[bool],
+    seed: u64,
+) -> road_sim::Result<SceneWindow> {
+    let run = &model.meta.run;
+    let mut engine = road_cpu::FastCpuEngine::new(&model.model)?;
+    let mut rng = StdRng::seed_from_u64(road_rollout::stream_seed(seed, REFINEMENT_STREAM));
+    refine_histories(
+        &mut engine,
+        &run.model,
+        &planner.edm,
+        window,
+        fixed,
+        Refinement::for_model(run.train.augmentation_ratio),
+        &mut rng,
+    )
 }
 
 /// A window of `histories` (each the last n steps of its agent), normalised around the agents'

@@ -697,3 +697,52 @@ fn bad_input_loses_nothing_recorded() {
     assert_eq!(count("/road/npc"), 2);
     assert_eq!(count("/road/error"), 1);
 }
+
+/// `populate` asks for vehicles by count or by density, exactly one of them, within limits.
+#[test]
+fn populate_requests_out_of_range_are_refused() {
+    let c = client("populate-bad");
+    let with = |vehicles: Option<u32>, vehicles_per_100m: Option<f64>| CreateScene {
+        populate: Some(road_client::protocol::Populate {
+            vehicles,
+            vehicles_per_100m,
+            refine: false,
+        }),
+        ..agents_request(vec![common::straight_agent(1, 10.0, 2.0)])
+    };
+    for (request, field, says) in [
+        (with(None, None), "populate", "exactly one"),
+        (with(Some(2), Some(1.0)), "populate", "exactly one"),
+        (with(Some(32), None), "populate.vehicles", "32"),
+        (
+            with(None, Some(0.0)),
+            "populate.vehicles_per_100m",
+            "(0, 10]",
+        ),
+        (
+            with(None, Some(-1.0)),
+            "populate.vehicles_per_100m",
+            "(0, 10]",
+        ),
+        (
+            with(None, Some(10.5)),
+            "populate.vehicles_per_100m",
+            "(0, 10]",
+        ),
+    ] {
+        let e = create_err(&c, request);
+        assert_refused(&e, ErrorCode::InvalidField, Some(field));
+        assert!(e.message.contains(says), "{e}");
+    }
+    // A key `populate` does not have.
+    let e = create_raw(
+        &c,
+        serde_json::to_vec(&serde_json::json!({
+            "map": {"procedural": "roundabout"}, "client": "populate-bad",
+            "external": [1], "populate": {"vehicle": 3},
+        }))
+        .unwrap(),
+    );
+    assert_eq!(e.code, ErrorCode::UnknownField, "{e}");
+    assert!(e.message.contains("vehicle"), "{e}");
+}

@@ -1,0 +1,85 @@
+//! `CreateScene.populate`: a client that sends only a map and its ego gets model-driven
+//! vehicles placed around it, on a Lanelet2 map built here (one the model never saw) and on a
+//! procedural map without its scripted vehicles.
+
+mod common;
+
+use road_client::protocol::{CreateScene, MapSource, Populate};
+
+fn populate(vehicles: Option<u32>, per_100m: Option<f64>) -> Option<Populate> {
+    Some(Populate {
+        vehicles,
+        vehicles_per_100m: per_100m,
+        refine: true,
+    })
+}
+
+#[test]
+fn a_map_and_an_ego_are_enough_for_a_populated_scene() {
+    let dir = common::temp_dir("populate");
+    let server = common::start(common::config(&dir));
+    let c = common::client(&server, "populate");
+
+    // The test's one-lanelet map (111 m along +x, 4.4 m wide), the ego near its start.
+    let ego = common::straight_agent(7, 10.0, 2.2);
+    let request = CreateScene {
+        map: MapSource::Osm(common::osm(true)),
+        agents: Some(vec![ego.clone()]),
+        external: vec![7],
+        populate: populate(Some(4), None),
+        ..common::roundabout()
+    };
+    let mut scene = c.create(request).unwrap();
+    let agents = scene.created().agents.clone();
+    assert_eq!(agents.len(), 5, "{agents:?}");
+    assert_eq!(agents[0].id, 7);
+    assert!(agents[0].external && agents[1..].iter().all(|a| !a.external));
+    // Ids after the ego's; every placed vehicle on the lane, 10 steps of history, clear of the
+    // others.
+    let ids: Vec<u32> = agents[1..].iter().map(|a| a.id).collect();
+    assert_eq!(ids, vec![8, 9, 10, 11]);
+    for a in &agents[1..] {
+        assert_eq!(a.history.len(), 10);
+        let now = a.history.last().unwrap();
+        assert!(
+            (-0.5..=4.9).contains(&now.y_m) && (-1.0..=112.0).contains(&now.x_m),
+            "vehicle {} placed off the lane: {now:?}",
+            a.id
+        );
+        for b in &agents {
+            if b.id != a.id {
+                let other = b.history.last().unwrap();
+                let gap = (now.x_m - other.x_m).hypot(now.y_m - other.y_m);
+                assert!(gap > 4.0, "vehicles {} and {} {gap:.1} m apart", a.id, b.id);
+            }
+        }
+    }
+    for t in 1..=5 {
+        let npc = scene
+            .step(t, vec![common::replay(&ego.history, 7, t)])
+            .unwrap();
+        assert_eq!(npc.npcs.len(), 4);
+        common::assert_sane(&npc, 500.0);
+    }
+    scene.close().unwrap();
+
+    // A procedural map without its script: its ego (agent 1) and a density of vehicles.
+    let request = CreateScene {
+        populate: populate(None, Some(1.0)),
+        ..common::roundabout()
+    };
+    let mut scene = c.create(request).unwrap();
+    let created = scene.created().clone();
+    assert_eq!(created.agents[0].id, 1);
+    assert!(
+        created.agents.len() >= 6,
+        "1 vehicle per 100 m of the roundabout's lanes placed only {}",
+        created.agents.len() - 1
+    );
+    let history = created.agents[0].history.clone();
+    let npc = scene.step(1, vec![common::replay(&history, 1, 1)]).unwrap();
+    assert_eq!(npc.npcs.len(), created.agents.len() - 1);
+    scene.close().unwrap();
+    drop(c);
+    server.stop().unwrap();
+}
