@@ -65,6 +65,9 @@ struct SceneState {
     /// Agents that left the scene ([`RolloutDriver::retire_agent`]): no slot of theirs is
     /// valid from their retirement on, so the engines treat them as padding.
     retired: Vec<bool>,
+    /// The scene's static rows as the engine holds them (features `[A_max, 6]`, map, its
+    /// flags), kept for agents that join later ([`RolloutDriver::admit_agent`]).
+    static_rows: (Vec<f32>, Vec<f32>, Vec<f32>),
 }
 
 impl SceneState {
@@ -80,6 +83,7 @@ impl SceneState {
             plan: Vec::new(),
             plan_steps: 0,
             retired: Vec::new(),
+            static_rows: (Vec::new(), Vec::new(), Vec::new()),
         }
     }
 
@@ -109,6 +113,7 @@ impl SceneState {
             plan: Vec::new(),
             plan_steps: 0,
             retired: vec![false; h.agents],
+            static_rows: (Vec::new(), Vec::new(), Vec::new()),
         }
     }
 }
@@ -471,6 +476,7 @@ impl RolloutDriver {
         let pid = self.planner_id(planner)?;
         self.admit(i, pid)?;
         self.states[i] = SceneState::of(scene, self.a_max, self.w, steps_hint);
+        self.states[i].static_rows = self.static_rows(scene);
         self.rngs[i] = StdRng::seed_from_u64(seed);
         self.planners[i] = planner.clone();
         self.rebuild(i);
@@ -604,6 +610,94 @@ impl RolloutDriver {
             .ok_or_else(|| Error::data(format!("scene {scene} has no agent {agent} to retire")))?;
         *flag = true;
         Ok(())
+    }
+
+    /// A vehicle joins scene `scene` between its ticks: `history` its observed states
+    /// `[steps ≥ n][3]` (model units, oldest first; fewer steps than the scene's are taken as
+    /// invalid before them), `features` its static row `[6]`. It takes the place of a retired
+    /// agent when there is one (the lowest index), else a new index while the scene has fewer
+    /// agents than the batch takes. Returns its index. The scene's window is rebuilt from the
+    /// histories with fresh noise, so its next tick takes the planner's warm-up (the new
+    /// vehicle has no plan to roll on from; the others keep their histories); the engine gets
+    /// the new static row first. Errors when the scene is full or mid-tick.
+    pub fn admit_agent(
+        &mut self,
+        engine: &mut dyn StepEngine,
+        scene: usize,
+        history: &[[f32; 3]],
+        features: &[f32],
+    ) -> Result<usize> {
+        let old = self.live_id(scene)?;
+        if self.in_tick[scene] {
+            return Err(Error::data(format!(
+                "scene {scene}: an agent cannot join during a tick"
+            )));
+        }
+        if history.len() < self.n || features.len() != AGENT_FEATURES {
+            return Err(Error::data(format!(
+                "scene {scene}: a joining agent needs at least {} history steps and {AGENT_FEATURES} \
+                 features, got {} and {}",
+                self.n,
+                history.len(),
+                features.len()
+            )));
+        }
+        let a_max = self.a_max;
+        let s = &mut self.states[scene];
+        let agent = match s.retired.iter().position(|&r| r) {
+            Some(a) => a,
+            None if s.agents < a_max => {
+                // A new index: past ticks' emitted rows get zeros for it.
+                let ticks = s.emitted.len() / (3 * s.agents.max(1));
+                let mut emitted = Vec::with_capacity((s.agents + 1) * (ticks + 1) * 3);
+                for t in 0..ticks {
+                    emitted.extend_from_slice(&s.emitted[3 * t * s.agents..3 * (t + 1) * s.agents]);
+                    emitted.extend_from_slice(&[0.0; 3]);
+                }
+                s.emitted = emitted;
+                s.agents += 1;
+                s.history.push(Vec::new());
+                s.history_valid.push(Vec::new());
+                s.retired.push(false);
+                s.agents - 1
+            }
+            None => {
+                return Err(Error::data(format!(
+                    "scene {scene}: no room for another agent ({a_max} and none retired)"
+                )));
+            }
+        };
+        // The same length as the others' histories, invalid before its own.
+        let len = s
+            .history
+            .iter()
+            .enumerate()
+            .filter(|&(a, _)| a != agent)
+            .map(|(_, h)| h.len())
+            .max()
+            .unwrap_or(history.len())
+            .max(history.len());
+        let pad = len - history.len();
+        s.history[agent] = std::iter::repeat_n([0.0; 3], pad)
+            .chain(history.iter().copied())
+            .collect();
+        s.history_valid[agent] = std::iter::repeat_n(false, pad)
+            .chain(std::iter::repeat_n(true, history.len()))
+            .collect();
+        s.retired[agent] = false;
+        s.static_rows.0[agent * AGENT_FEATURES..][..AGENT_FEATURES].copy_from_slice(features);
+        let (feats, map, map_valid) = &s.static_rows;
+        engine.prepare_scene(scene, feats, map, map_valid)?;
+        // The scene starts over in the warm-up, as after a planner switch.
+        let planner = self.planners[scene].clone();
+        let pid = self.planner_id(&planner)?;
+        let stats = self.sched.retire(old)?;
+        self.nfe_before[scene] += stats.nfe;
+        self.scene_of_slot[old.index()] = usize::MAX;
+        self.admit(scene, pid)?;
+        self.needs_load[scene] = true;
+        self.rebuild(scene);
+        Ok(agent)
     }
 
     /// Scene `scene`'s plan after its last tick: the denoiser's last estimate of the window's

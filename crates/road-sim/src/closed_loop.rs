@@ -550,6 +550,104 @@ impl<'m> ClosedLoop<'m> {
         Ok(())
     }
 
+    /// A model-driven vehicle joins scene `scene` between its ticks (inflow at an entry lane;
+    /// [`crate::populate`]): `vehicle`'s history, in metres, becomes its observations. It takes
+    /// a retired agent's index when there is one, else a new one while the batch has room
+    /// ([`RolloutDriver::admit_agent`]: the scene's next tick takes the warm-up). Returns its
+    /// index.
+    pub fn add_agent(
+        &mut self,
+        engine: &mut dyn StepEngine,
+        scene: usize,
+        vehicle: &crate::populate::PlacedVehicle,
+    ) -> Result<usize> {
+        let heading_scale = self.heading_scale;
+        let s = self
+            .scenes
+            .get_mut(scene)
+            .and_then(Option::as_mut)
+            .ok_or_else(|| Error::Config(format!("no scene {scene} in the simulation")))?;
+        let mut previous: Option<f64> = None;
+        let history: Vec<[f32; 3]> = vehicle
+            .history
+            .iter()
+            .map(|p| {
+                let heading = match previous {
+                    None => f64::from(wrap_angle(p.heading_rad as f32)),
+                    Some(prev) => prev + f64::from(wrap_angle((p.heading_rad - prev) as f32)),
+                };
+                previous = Some(heading);
+                let xy = s.window.frame.to_norm([p.x_m, p.y_m]);
+                [xy[0], xy[1], (heading * heading_scale) as f32]
+            })
+            .collect();
+        let features = road_model::batch::agent_features(
+            &[vehicle.length_m as f32],
+            &[vehicle.width_m as f32],
+            &[road_data::AgentType::Car],
+        );
+        let agent = self
+            .driver
+            .admit_agent(engine, scene, &history, &features)?;
+        let pose = *vehicle.history.last().expect("a history has a step");
+        let w = &mut s.window;
+        let track_id = w.track_ids.iter().copied().max().map_or(1, |m| m + 1);
+        if agent == w.agents {
+            w.agents += 1;
+            w.states.extend(std::iter::repeat_n(0.0, 3 * w.steps));
+            w.valid.extend(std::iter::repeat_n(false, w.steps));
+            w.track_ids.push(track_id);
+            w.agent_types.push(road_data::AgentType::Car);
+            w.length_m.push(vehicle.length_m as f32);
+            w.width_m.push(vehicle.width_m as f32);
+            s.controllers.push(Controller::Model);
+            s.scripted.push(Vec::new());
+            s.poses.push(pose);
+            s.heading_unwrapped
+                .push(previous.unwrap_or(pose.heading_rad));
+            s.overrides.push(None);
+            s.initially_on_road.push(true);
+            s.retired.push(false);
+            s.last_lanelet.push(None);
+        } else {
+            // A retired agent's place: its log is not this vehicle's.
+            w.states[3 * agent * w.steps..3 * (agent + 1) * w.steps].fill(0.0);
+            w.valid[agent * w.steps..(agent + 1) * w.steps].fill(false);
+            w.track_ids[agent] = track_id;
+            w.agent_types[agent] = road_data::AgentType::Car;
+            w.length_m[agent] = vehicle.length_m as f32;
+            w.width_m[agent] = vehicle.width_m as f32;
+            s.controllers[agent] = Controller::Model;
+            s.scripted[agent] = Vec::new();
+            s.poses[agent] = pose;
+            s.heading_unwrapped[agent] = previous.unwrap_or(pose.heading_rad);
+            s.overrides[agent] = None;
+            s.initially_on_road[agent] = true;
+            s.retired[agent] = false;
+            s.last_lanelet[agent] = None;
+        }
+        Ok(agent)
+    }
+
+    /// Where the present (not retired) agents of scene `scene` are now, with their sizes:
+    /// what an entering vehicle keeps clear of.
+    pub fn footprints(&self, scene: usize) -> Result<Vec<crate::populate::Footprint>> {
+        let s = self.runtime(scene)?;
+        Ok((0..s.poses.len())
+            .filter(|&a| !s.retired[a])
+            .map(|a| crate::populate::Footprint {
+                pose: s.poses[a],
+                length_m: f64::from(s.window.length_m[a]),
+                width_m: f64::from(s.window.width_m[a]),
+            })
+            .collect())
+    }
+
+    /// Agents of scene `scene` present now (not retired).
+    pub fn present_agents(&self, scene: usize) -> Result<usize> {
+        Ok(self.runtime(scene)?.retired.iter().filter(|&&r| !r).count())
+    }
+
     /// Whether scene `scene`'s ticks report every agent's plan ([`SceneTick::plans`]): one
     /// more readback per tick, of that scene's window estimate. Off when a scene joins.
     pub fn request_plans(&mut self, scene: usize, on: bool) -> Result<()> {

@@ -383,6 +383,66 @@ pub fn footprints(window: &SceneWindow) -> Vec<Footprint> {
         .collect()
 }
 
+/// Vehicles entering a map at its entry lanes ([`entry_lanelets`]) as a Poisson process of
+/// `vehicles_per_minute` per entry: each tick an entry gets an arrival with probability
+/// rate × 0.1 s, and an arrival waits (at most one per entry) until the entry has room
+/// ([`spawn_at_entry`]).
+#[derive(Debug, Clone)]
+pub struct Inflow {
+    per_tick: f64,
+    entries: Vec<usize>,
+    waiting: Vec<bool>,
+    options: PlacementOptions,
+    rng: StdRng,
+}
+
+impl Inflow {
+    /// Inflow on `map`'s entries, its own random stream seeded by `seed`.
+    pub fn new(map: &LaneletMap, vehicles_per_minute: f64, seed: u64) -> Self {
+        use rand::SeedableRng;
+        let entries = entry_lanelets(map);
+        Self {
+            per_tick: (vehicles_per_minute * STEP_SECS / 60.0).clamp(0.0, 1.0),
+            waiting: vec![false; entries.len()],
+            entries,
+            options: PlacementOptions::default(),
+            rng: StdRng::seed_from_u64(seed),
+        }
+    }
+
+    /// The map's entry lanelets this inflow feeds.
+    pub fn entries(&self) -> &[usize] {
+        &self.entries
+    }
+
+    /// The vehicles entering this tick, clear of `occupied` and of each other, with histories
+    /// of `steps` poses.
+    pub fn arrivals(
+        &mut self,
+        map: &LaneletMap,
+        occupied: &[Footprint],
+        steps: usize,
+    ) -> Vec<PlacedVehicle> {
+        let mut others = occupied.to_vec();
+        let mut out = Vec::new();
+        for (k, &lane) in self.entries.iter().enumerate() {
+            if !self.waiting[k] && self.rng.random_bool(self.per_tick) {
+                self.waiting[k] = true;
+            }
+            if !self.waiting[k] {
+                continue;
+            }
+            if let Some(v) = spawn_at_entry(map, lane, &others, steps, &self.options, &mut self.rng)
+            {
+                self.waiting[k] = false;
+                others.push(v.footprint());
+                out.push(v);
+            }
+        }
+        out
+    }
+}
+
 /// How [`refine_histories`] denoises.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Refinement {
