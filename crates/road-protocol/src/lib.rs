@@ -677,6 +677,11 @@ mod tests {
             client: Some("ego-1".into()),
             max_ticks: None,
             plans: true,
+            populate: Some(Populate {
+                vehicles: None,
+                vehicles_per_100m: Some(1.5),
+                refine: true,
+            }),
         };
         let json = serde_json::to_vec(&create).unwrap();
         assert_eq!(parse::<CreateScene>(&json).unwrap(), create);

@@ -596,7 +596,7 @@ fn populated(
 }
 
 /// Noise streams of a scene's setup, apart from its simulation's.
-const PLACEMENT_STREAM: u64 = 0x706c_6163_65;
+const PLACEMENT_STREAM: u64 = 0x0070_6c61_6365;
 const REFINEMENT_STREAM: u64 = 0x7265_6669_6e65;
 
 /// `window` with the histories of the agents not `fixed` refined by the model (on a CPU

@@ -20,6 +20,7 @@ pub mod kinematics;
 pub mod metrics;
 pub mod populate;
 pub mod procedural;
+pub mod route;
 
 /// Errors of the simulation layer.
 #[derive(Debug, thiserror::Error)]

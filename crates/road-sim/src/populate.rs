@@ -30,7 +30,7 @@ use road_rollout::heun::heun_update;
 use road_sched::edm::EdmSchedule;
 
 use crate::geometry::OrientedBox;
-use crate::procedural::Route;
+use crate::route::Route;
 use crate::{Error, Pose, Result};
 
 /// Seconds per step of a history (the recordings' 10 Hz).
@@ -333,8 +333,8 @@ pub fn keep_agents(window: &SceneWindow, keep: &[usize]) -> SceneWindow {
 /// ids after the window's largest. Each history must have the window's steps.
 pub fn with_vehicles(window: &SceneWindow, vehicles: &[PlacedVehicle]) -> Result<SceneWindow> {
     let mut out = window.clone();
-    let mut next_id = window.track_ids.iter().copied().max().map_or(1, |m| m + 1);
-    for (i, v) in vehicles.iter().enumerate() {
+    let first_id = window.track_ids.iter().copied().max().map_or(1, |m| m + 1);
+    for (next_id, (i, v)) in (first_id..).zip(vehicles.iter().enumerate()) {
         if v.history.len() != window.steps {
             return Err(Error::Config(format!(
                 "vehicle {i}: {} history steps for a window of {}",
@@ -356,7 +356,6 @@ pub fn with_vehicles(window: &SceneWindow, vehicles: &[PlacedVehicle]) -> Result
         }
         out.agents += 1;
         out.track_ids.push(next_id);
-        next_id += 1;
         out.agent_types.push(road_data::AgentType::Car);
         out.length_m.push(v.length_m as f32);
         out.width_m.push(v.width_m as f32);

@@ -76,6 +76,11 @@ pub struct DemoArgs {
     /// ends; 0.5: it crawls), to see the model's vehicles around an ego that holds them up.
     #[arg(long, default_value_t = 1.0, requires = "in_process")]
     pub ego_speed_scale: f64,
+    /// With `--in-process`: instead of the map's scripted vehicles, this many placed on its
+    /// lanes around the ego and refined by the model (`road_sim::populate`; what
+    /// `CreateScene.populate` does for a served scene).
+    #[arg(long, requires = "in_process")]
+    pub populate: Option<usize>,
     /// The served scene's MCAP recording (Foxglove shows `/map` and `/agents`; `road render`,
     /// `road replay`).
     #[arg(long, default_value = "demo.mcap", conflicts_with = "in_process")]
@@ -112,6 +117,7 @@ pub(crate) fn simulate_procedural(
     seed: u64,
     steps: usize,
     progress: bool,
+    populate: Option<usize>,
 ) -> Result<ProceduralRun> {
     let model = &run.model;
     let n = run.planner.obs_slots;
@@ -120,14 +126,43 @@ pub(crate) fn simulate_procedural(
         polyline_points: model.polyline_points,
         ..WindowConfig::default()
     };
-    let scene = procedural_turned(map, &window_config, n, rotation_rad)?;
+    let mut scene = procedural_turned(map, &window_config, n, rotation_rad)?;
+    let mut engine = engines.engine()?;
+    if let Some(count) = populate {
+        use road_sim::populate::{
+            PlacementOptions, Refinement, footprints, keep_agents, place_vehicles,
+            refine_histories, with_vehicles,
+        };
+        let ego_only = keep_agents(&scene.window, &[scene.ego.agent]);
+        let mut rng = rand::rngs::StdRng::seed_from_u64(road_rollout::stream_seed(seed, 1));
+        let placed = place_vehicles(
+            &scene.map,
+            &footprints(&ego_only),
+            count,
+            n,
+            &PlacementOptions::default(),
+            &mut rng,
+        );
+        let window = with_vehicles(&ego_only, &placed)?;
+        let mut fixed = vec![false; window.agents];
+        fixed[0] = true;
+        scene.window = refine_histories(
+            engine.as_dyn(),
+            model,
+            &run.planner.edm,
+            &window,
+            &fixed,
+            Refinement::for_model(run.train.augmentation_ratio),
+            &mut rng,
+        )?;
+        scene.ego.agent = 0;
+    }
     let agents = scene.window.agents;
     let mut controllers = vec![Controller::Model; agents];
     controllers[scene.ego.agent] = Controller::External;
     let mut ego = scene.ego.clone();
     ego.speed_mps *= ego_speed_scale;
 
-    let mut engine = engines.engine()?;
     let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
     let started = Instant::now();
     let mut sim = ClosedLoop::new(
@@ -234,6 +269,7 @@ pub fn run(args: DemoArgs) -> Result<ExitCode> {
         args.seed,
         args.steps,
         true,
+        args.populate,
     )?;
     let agents = scene.window.agents;
 

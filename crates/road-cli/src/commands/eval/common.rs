@@ -81,6 +81,10 @@ pub struct EvalArgs {
     /// history ends, holding up the vehicles behind it and those that must pass it).
     #[arg(long, default_value_t = 1.0)]
     pub ego_speed_scale: f64,
+    /// Procedural: the map's scripted vehicles replaced by this many placed around the ego and
+    /// refined by the model (`road demo --populate`).
+    #[arg(long)]
+    pub populate: Option<usize>,
 }
 
 /// The scenes a suite evaluates.

@@ -161,6 +161,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
                         seed,
                         args.procedural_steps,
                         false,
+                        args.populate,
                     )
                     .with_context(|| {
                         format!(
