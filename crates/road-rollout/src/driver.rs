@@ -646,27 +646,32 @@ impl RolloutDriver {
         let s = &mut self.states[scene];
         let agent = match s.retired.iter().position(|&r| r) {
             Some(a) => a,
-            None if s.agents < a_max => {
-                // A new index: past ticks' emitted rows get zeros for it.
-                let ticks = s.emitted.len() / (3 * s.agents.max(1));
-                let mut emitted = Vec::with_capacity((s.agents + 1) * (ticks + 1) * 3);
-                for t in 0..ticks {
-                    emitted.extend_from_slice(&s.emitted[3 * t * s.agents..3 * (t + 1) * s.agents]);
-                    emitted.extend_from_slice(&[0.0; 3]);
-                }
-                s.emitted = emitted;
-                s.agents += 1;
-                s.history.push(Vec::new());
-                s.history_valid.push(Vec::new());
-                s.retired.push(false);
-                s.agents - 1
-            }
+            None if s.agents < a_max => s.agents,
             None => {
                 return Err(Error::data(format!(
                     "scene {scene}: no room for another agent ({a_max} and none retired)"
                 )));
             }
         };
+        // The engine first: if it refuses, the scene is as it was.
+        let mut feats = s.static_rows.0.clone();
+        feats[agent * AGENT_FEATURES..][..AGENT_FEATURES].copy_from_slice(features);
+        engine.prepare_scene(scene, &feats, &s.static_rows.1, &s.static_rows.2)?;
+        s.static_rows.0 = feats;
+        if agent == s.agents {
+            // A new index: past ticks' emitted rows get zeros for it.
+            let ticks = s.emitted.len() / (3 * s.agents.max(1));
+            let mut emitted = Vec::with_capacity((s.agents + 1) * (ticks + 1) * 3);
+            for t in 0..ticks {
+                emitted.extend_from_slice(&s.emitted[3 * t * s.agents..3 * (t + 1) * s.agents]);
+                emitted.extend_from_slice(&[0.0; 3]);
+            }
+            s.emitted = emitted;
+            s.agents += 1;
+            s.history.push(Vec::new());
+            s.history_valid.push(Vec::new());
+            s.retired.push(false);
+        }
         // The same length as the others' histories, invalid before its own.
         let len = s
             .history
@@ -685,9 +690,6 @@ impl RolloutDriver {
             .chain(std::iter::repeat_n(true, history.len()))
             .collect();
         s.retired[agent] = false;
-        s.static_rows.0[agent * AGENT_FEATURES..][..AGENT_FEATURES].copy_from_slice(features);
-        let (feats, map, map_valid) = &s.static_rows;
-        engine.prepare_scene(scene, feats, map, map_valid)?;
         // The scene starts over in the warm-up, as after a planner switch.
         let planner = self.planners[scene].clone();
         let pid = self.planner_id(&planner)?;
