@@ -243,6 +243,22 @@ pub struct CreateScene {
     /// or omitted): see [`Populate`].
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub populate: Option<Populate>,
+    /// Vehicles keep entering at the map's entry lanes (lanelets without a predecessor) while
+    /// the scene runs: see [`Inflow`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub inflow: Option<Inflow>,
+}
+
+/// Model-driven vehicles entering a scene at each of its map's entry lanes (lanelets no other
+/// lanelet leads into), as a Poisson process; an arrival waits until its entry has room, and
+/// one that finds the scene at the server's agent limit is dropped. Each enters with a 1 s
+/// history from beyond the map along the lane and a new id, announced in
+/// [`NpcTick::entered`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Inflow {
+    /// Arrivals per minute at each entry lane, in (0, 60].
+    pub vehicles_per_minute: f64,
 }
 
 /// How many model-driven vehicles the server puts on the map at creation, besides the given
@@ -286,6 +302,7 @@ impl CreateScene {
             max_ticks: None,
             plans: false,
             populate: None,
+            inflow: None,
         }
     }
 }
@@ -406,6 +423,11 @@ pub struct NpcTick {
     /// they have left the scene and are in no later tick (protocol 4).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub left: Vec<u32>,
+    /// NPCs that entered the scene before this tick (a scene created with `inflow`), as
+    /// [`SceneCreated::agents`] lists agents: id (new, never reused), size, the history it
+    /// came with; their states are in `npcs` from this tick on.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub entered: Vec<AgentInfo>,
     /// When the scene was created with `plans`: each NPC's plan, the model's estimate of its
     /// poses at the steps after this one (its window's later slots; the far ones the least
     /// certain). The NPCs' next states may differ: the model replans every tick.
@@ -681,6 +703,9 @@ mod tests {
                 vehicles: None,
                 vehicles_per_100m: Some(1.5),
                 refine: true,
+            }),
+            inflow: Some(Inflow {
+                vehicles_per_minute: 6.0,
             }),
         };
         let json = serde_json::to_vec(&create).unwrap();

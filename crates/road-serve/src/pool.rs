@@ -129,6 +129,21 @@ impl Pool {
         self.sim.poses(slot)
     }
 
+    /// A model-driven vehicle joins the scene in `slot` between its ticks; returns its agent
+    /// index (a retired agent's, or a new one: [`ClosedLoop::add_agent`]).
+    pub fn add_agent(
+        &mut self,
+        slot: usize,
+        vehicle: &road_sim::populate::PlacedVehicle,
+    ) -> Result<usize> {
+        Ok(self.sim.add_agent(self.engine.as_mut(), slot, vehicle)?)
+    }
+
+    /// Where the present agents of the scene in `slot` are, with their sizes.
+    pub fn footprints(&self, slot: usize) -> Result<Vec<road_sim::populate::Footprint>> {
+        Ok(self.sim.footprints(slot)?)
+    }
+
     /// Starts the next tick of the scene in `slot`.
     pub fn begin_tick(&mut self, slot: usize, external: &mut dyn ExternalDriver) -> Result<()> {
         Ok(self.sim.begin_tick(slot, external)?)

@@ -25,7 +25,7 @@ use road_sim::closed_loop::{Controller, ExternalDriver, SceneTick, SimScene};
 use road_sim::geometry::OrientedBox;
 use road_sim::infractions::off_road;
 use road_sim::populate::{
-    Footprint, PlacementOptions, Refinement, VehicleCount, place_vehicles, refine_histories,
+    Footprint, Inflow, PlacementOptions, Refinement, VehicleCount, place_vehicles, refine_histories,
 };
 use road_sim::procedural::{ProceduralMap, STEP_SECS, procedural};
 
@@ -142,6 +142,8 @@ pub struct SceneSetup {
     pub plans: bool,
     /// Where the scene's positions may be (checked at creation, and on every ego tick).
     pub extent: Option<Extent>,
+    /// Arrivals per minute at each entry lane, when vehicles keep entering.
+    pub inflow_per_minute: Option<f64>,
 }
 
 fn invalid(field: impl Into<String>, message: impl Into<String>) -> ErrorReply {
@@ -196,6 +198,16 @@ pub fn setup(req: &CreateScene, ctx: &mut SetupContext<'_>) -> Result<SceneSetup
         }
         Some(t) => t,
     };
+
+    if let Some(inflow) = &req.inflow {
+        let v = inflow.vehicles_per_minute;
+        if !(v.is_finite() && v > 0.0 && v <= MAX_INFLOW_PER_MINUTE) {
+            return Err(invalid(
+                "inflow.vehicles_per_minute",
+                format!("{v} vehicles a minute per entry is not in (0, {MAX_INFLOW_PER_MINUTE}]"),
+            ));
+        }
+    }
 
     // The model: checkpoint, then planner (n and W come from them).
     let checkpoint_name = req
@@ -470,6 +482,7 @@ pub fn setup(req: &CreateScene, ctx: &mut SetupContext<'_>) -> Result<SceneSetup
         plans: req.plans,
         client: client.clone(),
         extent,
+        inflow_per_minute: req.inflow.as_ref().map(|i| i.vehicles_per_minute),
     })
 }
 
@@ -499,6 +512,11 @@ fn window_history(w: &SceneWindow, a: usize) -> Vec<Pose> {
         })
         .collect()
 }
+
+/// Arrivals `inflow.vehicles_per_minute` may ask for at each entry: one a second at most (a
+/// vehicle needs its length and gap to clear the entry first anyway).
+const MAX_INFLOW_PER_MINUTE: f64 = 60.0;
+const INFLOW_STREAM: u64 = 0x0069_6e66_6c6f;
 
 /// Densities `populate.vehicles_per_100m` may ask for: above 10 the lanes are full anyway.
 const MAX_VEHICLES_PER_100M: f64 = 10.0;
@@ -766,6 +784,8 @@ pub struct TickOutput {
     /// Which agents are still in the scene (not those that left the map), by agent index.
     pub present: Vec<bool>,
     pub compute_secs: f64,
+    /// Every agent by index, when vehicles entered before this tick (for the recording).
+    pub agents: Option<Vec<AgentInfo>>,
 }
 
 /// A scene being served: its place in its pool, its agents, and where it stands in the tick
@@ -809,6 +829,14 @@ pub struct LiveScene {
     extent: Option<Extent>,
     /// Agents that left the map (driven off a lane's end): no longer in the scene's ticks.
     retired: Vec<bool>,
+    /// Vehicles entering at the map's entry lanes, when the scene was created with `inflow`.
+    inflow: Option<Inflow>,
+    /// The next id an entering vehicle gets (ids are never reused).
+    next_id: u32,
+    /// Vehicles that entered since the last published tick.
+    entered: Vec<AgentInfo>,
+    /// n: history steps an entering vehicle brings.
+    observed: usize,
 }
 
 /// A tick in the pool's batches.
@@ -887,6 +915,15 @@ impl LiveScene {
         };
         let extent = setup.extent;
         let agent_count = setup.agents.len();
+        let inflow = match (setup.inflow_per_minute, &setup.map) {
+            (Some(rate), Some(map)) => Some(Inflow::new(
+                map,
+                rate,
+                road_rollout::stream_seed(setup.seed, INFLOW_STREAM),
+            )),
+            _ => None,
+        };
+        let next_id = setup.agents.iter().map(|a| a.id).max().map_or(1, |m| m + 1);
         Ok(Self {
             id,
             client: setup.client,
@@ -917,7 +954,62 @@ impl LiveScene {
             refused_puts: 0,
             extent,
             retired: vec![false; agent_count],
+            inflow,
+            next_id,
+            entered: Vec::new(),
+            observed,
         })
+    }
+
+    /// Lets the vehicles in that arrive before the next tick (with `inflow`): each joins the
+    /// pool's scene at a retired agent's index or a new one, with a new id. An arrival that
+    /// finds the scene at its agent limit is dropped (logged).
+    fn admit_arrivals(&mut self, pool: &mut Pool) -> crate::Result<()> {
+        let (Some(inflow), Some(map)) = (self.inflow.as_mut(), self.map.as_deref()) else {
+            return Ok(());
+        };
+        let arrivals = inflow.arrivals(map, &pool.footprints(self.slot)?, self.observed);
+        for vehicle in arrivals {
+            let index = match pool.add_agent(self.slot, &vehicle) {
+                Ok(index) => index,
+                Err(e) => {
+                    tracing::debug!(scene = self.id, "an entering vehicle is dropped: {e}");
+                    continue;
+                }
+            };
+            let info = AgentInfo {
+                id: self.next_id,
+                length_m: vehicle.length_m,
+                width_m: vehicle.width_m,
+                external: false,
+                history: vehicle
+                    .history
+                    .iter()
+                    .map(|p| Pose {
+                        x_m: p.x_m,
+                        y_m: p.y_m,
+                        heading_rad: p.heading_rad,
+                    })
+                    .collect(),
+            };
+            self.next_id += 1;
+            let pose = *vehicle.history.last().expect("a history has a step");
+            if index == self.agents.len() {
+                self.agents.push(info.clone());
+                self.poses.push(pose);
+                self.initially_on_road.push(true);
+                self.retired.push(false);
+            } else {
+                self.index_of.remove(&self.agents[index].id);
+                self.agents[index] = info.clone();
+                self.poses[index] = pose;
+                self.initially_on_road[index] = true;
+                self.retired[index] = false;
+            }
+            self.index_of.insert(info.id, index);
+            self.entered.push(info);
+        }
+        Ok(())
     }
 
     /// Every agent's pose after the last tick, by agent index.
@@ -1089,6 +1181,7 @@ impl LiveScene {
         started: Instant,
         queue_secs: f64,
     ) -> crate::Result<()> {
+        self.admit_arrivals(pool)?;
         let pending = self.pending.take();
         let late = pending.is_none();
         let mut driver = TickDriver {
@@ -1184,6 +1277,7 @@ impl LiveScene {
                 .map(state)
                 .collect(),
             left: result.left.iter().map(|&i| id_of(i)).collect(),
+            entered: std::mem::take(&mut self.entered),
             collisions: result
                 .collisions
                 .iter()
@@ -1222,11 +1316,13 @@ impl LiveScene {
             compute_ms: flight.compute_secs * 1e3,
             queue_ms: flight.queue_secs * 1e3,
         };
+        let agents = (!npc.entered.is_empty()).then(|| self.agents.clone());
         Ok(TickOutput {
             npc,
             poses: result.poses.clone(),
             present: self.retired.iter().map(|gone| !gone).collect(),
             compute_secs: flight.compute_secs,
+            agents,
         })
     }
 }

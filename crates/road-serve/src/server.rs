@@ -1111,6 +1111,7 @@ impl Core {
                         plans: out.npc.plans,
                         late,
                         at,
+                        agents: out.agents,
                     },
                 );
             }

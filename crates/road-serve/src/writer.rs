@@ -73,6 +73,9 @@ pub struct PublishedTick {
     /// The model drove the client's agents this tick (drawn grey).
     pub late: bool,
     pub at: SystemTime,
+    /// The scene's agents by index, when vehicles entered before this tick (their indices
+    /// may be those of vehicles that left).
+    pub agents: Option<Vec<AgentInfo>>,
 }
 
 enum Job {
@@ -256,10 +259,14 @@ fn handle(job: Job, scenes: &mut BTreeMap<u64, WriterScene>, view: Option<&LiveV
                 plans,
                 late,
                 at,
+                agents,
             } = *tick;
             let Some(s) = scenes.get_mut(&scene) else {
                 return;
             };
+            if let Some(agents) = agents {
+                s.agents = agents;
+            }
             let nanos = unix_nanos(at);
             let boxes =
                 agents_update(&s.agents, &poses, Some(&present), &plans, late, nanos).to_string();

@@ -746,3 +746,24 @@ fn populate_requests_out_of_range_are_refused() {
     assert_eq!(e.code, ErrorCode::UnknownField, "{e}");
     assert!(e.message.contains("vehicle"), "{e}");
 }
+
+/// `inflow.vehicles_per_minute` lies in (0, 60].
+#[test]
+fn inflow_rates_out_of_range_are_refused() {
+    let c = client("inflow-bad");
+    for rate in [0.0, -3.0, 60.5, 1e300] {
+        let request = CreateScene {
+            inflow: Some(road_client::protocol::Inflow {
+                vehicles_per_minute: rate,
+            }),
+            ..common::roundabout()
+        };
+        let e = create_err(&c, request);
+        assert_refused(
+            &e,
+            ErrorCode::InvalidField,
+            Some("inflow.vehicles_per_minute"),
+        );
+        assert!(e.message.contains("(0, 60]"), "{e}");
+    }
+}

@@ -83,3 +83,50 @@ fn a_map_and_an_ego_are_enough_for_a_populated_scene() {
     drop(c);
     server.stop().unwrap();
 }
+
+/// `inflow`: vehicles enter at the merge's two entry lanes while the scene runs, each
+/// announced once in `NpcTick.entered` with a new id and then driven among the NPCs.
+#[test]
+fn vehicles_keep_entering_a_scene_with_inflow() {
+    let dir = common::temp_dir("inflow");
+    let server = common::start(common::config(&dir));
+    let c = common::client(&server, "inflow");
+    let request = CreateScene {
+        inflow: Some(road_client::protocol::Inflow {
+            vehicles_per_minute: 30.0,
+        }),
+        ..CreateScene::procedural("merge", vec![1], 4)
+    };
+    let mut scene = c.create(request).unwrap();
+    let created = scene.created().clone();
+    let mut known: Vec<u32> = created.agents.iter().map(|a| a.id).collect();
+    let history = created.agents[0].history.clone();
+    let mut entered = Vec::new();
+    for t in 1..=80 {
+        let npc = scene.step(t, vec![common::replay(&history, 1, t)]).unwrap();
+        for a in &npc.entered {
+            assert!(!known.contains(&a.id), "id {} reused", a.id);
+            assert!(!a.external && a.history.len() == 10, "{a:?}");
+            assert!(
+                npc.npcs.iter().any(|s| s.id == a.id),
+                "tick {t}: vehicle {} entered but is not among the NPCs",
+                a.id
+            );
+            known.push(a.id);
+            entered.push(a.id);
+        }
+        for s in &npc.npcs {
+            assert!(known.contains(&s.id), "tick {t}: unknown NPC {}", s.id);
+        }
+        common::assert_sane(&npc, 1000.0);
+    }
+    // Two entries at 30 a minute for 8 s: about 8 arrivals, as many as have room.
+    assert!(
+        entered.len() >= 3,
+        "{} vehicles entered: {entered:?}",
+        entered.len()
+    );
+    scene.close().unwrap();
+    drop(c);
+    server.stop().unwrap();
+}
