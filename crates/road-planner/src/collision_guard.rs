@@ -64,6 +64,8 @@ pub enum GuardAction {
     NudgedTowardsLane,
     /// Lane guard: stopped at the road's edge.
     StoppedAtRoadEdge,
+    /// Stall release: pulled away after standing still with free road ahead.
+    PulledAway,
 }
 
 /// Applies the guard to `agents` in place (their `proposed` poses); returns what it did, per

@@ -259,6 +259,11 @@ pub struct CreateScene {
 pub struct Inflow {
     /// Arrivals per minute at each entry lane, in (0, 60].
     pub vehicles_per_minute: f64,
+    /// A target count: arrivals wait while the scene holds this many agents or more (the
+    /// ego included), so that vehicles come in as others leave; at most the server's agent
+    /// limit. Omitted: the limit.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub max_vehicles: Option<u32>,
 }
 
 /// How many model-driven vehicles the server puts on the map at creation, besides the given
@@ -706,6 +711,7 @@ mod tests {
             }),
             inflow: Some(Inflow {
                 vehicles_per_minute: 6.0,
+                max_vehicles: Some(12),
             }),
         };
         let json = serde_json::to_vec(&create).unwrap();

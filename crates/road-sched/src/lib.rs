@@ -15,7 +15,7 @@ pub use plan::{
     COURSE_MIN_SPEED_MPS, CollisionGuard, JerkTracking, LaneAnticipation, LaneGuard,
     MAX_GUARD_HORIZON_STEPS, MAX_JERK_TRACKING_AHEAD, MAX_LANE_GUARD_LOOKAHEAD_M,
     MAX_PLAN_SMOOTHING_STEPS, PlannerKind, PlannerSpec, PlannerTables, Sampler, StageKind,
-    StageTable, StepPlan, TickProgram, WindowUpdate,
+    StageTable, StallRelease, StepPlan, TickProgram, WindowUpdate,
 };
 pub use scheduler::{PlannerId, SceneId, SceneSpec, SceneStats, Scheduler, TickOutcome, WorkItem};
 

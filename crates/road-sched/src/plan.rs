@@ -120,6 +120,10 @@ pub struct PlannerSpec {
     /// lane-keeping layer after the model). Absent: off.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub lane_guard: Option<LaneGuard>,
+    /// The stall release in closed loop (a deviation from the paper, for long sessions): a
+    /// model-driven vehicle that stood still with free road ahead pulls away. Absent: off.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stall_release: Option<StallRelease>,
     /// The step rule; Heun (the paper's) when absent.
     #[serde(default, skip_serializing_if = "Sampler::is_heun")]
     pub sampler: Sampler,
@@ -223,6 +227,24 @@ pub struct LaneAnticipation {
     pub max_turn_rad_per_m: f64,
 }
 
+/// The stall release's settings ([`PlannerSpec::stall_release`]): a model-driven vehicle
+/// slower than 0.3 m/s for `after_secs` with no vehicle within 15 m ahead of it (3 m either
+/// side of its axis) pulls away along its heading at `acceleration_mps2` until it drives
+/// `release_speed_mps`, or the model drives it faster, or something comes within 15 m ahead;
+/// the lane and collision guards still apply to its steps. The recordings' model stops
+/// vehicles where traffic ahead of them lies beyond its map crop; on an open road that stop
+/// never ends.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StallRelease {
+    /// Seconds stood still with free road ahead before pulling away, (0, 600].
+    pub after_secs: f64,
+    /// Acceleration of the pull-away, m/s², (0, 5].
+    pub acceleration_mps2: f64,
+    /// The speed at which the model takes over again, m/s, (0, 20].
+    pub release_speed_mps: f64,
+}
+
 /// The longest lane-guard look-ahead accepted, metres (a few lanelets of an INTERACTION map).
 pub const MAX_LANE_GUARD_LOOKAHEAD_M: f64 = 50.0;
 
@@ -243,6 +265,7 @@ impl Default for PlannerSpec {
             noise_temperature: None,
             collision_guard: None,
             lane_guard: None,
+            stall_release: None,
             sampler: Sampler::Heun,
             edm: EdmSchedule::default(),
         }
@@ -399,6 +422,20 @@ impl PlannerSpec {
                     "lane_guard.anticipation: steps must be in 1..=50 and max_turn_rad_per_m in \
                      (0, 1], got {} and {}",
                     anticipation.steps, anticipation.max_turn_rad_per_m
+                ));
+            }
+        }
+        if let Some(release) = self.stall_release {
+            let ok = release.after_secs > 0.0
+                && release.after_secs <= 600.0
+                && release.acceleration_mps2 > 0.0
+                && release.acceleration_mps2 <= 5.0
+                && release.release_speed_mps > 0.0
+                && release.release_speed_mps <= 20.0;
+            if !ok {
+                return bad(format!(
+                    "stall_release: after_secs must be in (0, 600], acceleration_mps2 in (0, 5] \
+                     and release_speed_mps in (0, 20], got {release:?}"
                 ));
             }
         }

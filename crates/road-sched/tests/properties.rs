@@ -22,6 +22,7 @@ fn spec(kind: PlannerKind, n: usize, f: usize, k: usize, x: Option<usize>) -> Pl
         noise_temperature: None,
         collision_guard: None,
         lane_guard: None,
+        stall_release: None,
         sampler: Sampler::Heun,
         edm: EdmSchedule::default(),
     }

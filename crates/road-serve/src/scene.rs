@@ -142,8 +142,9 @@ pub struct SceneSetup {
     pub plans: bool,
     /// Where the scene's positions may be (checked at creation, and on every ego tick).
     pub extent: Option<Extent>,
-    /// Arrivals per minute at each entry lane, when vehicles keep entering.
-    pub inflow_per_minute: Option<f64>,
+    /// Arrivals per minute at each entry lane and the target count, when vehicles keep
+    /// entering.
+    pub inflow: Option<(f64, Option<u32>)>,
 }
 
 fn invalid(field: impl Into<String>, message: impl Into<String>) -> ErrorReply {
@@ -206,6 +207,17 @@ pub fn setup(req: &CreateScene, ctx: &mut SetupContext<'_>) -> Result<SceneSetup
                 "inflow.vehicles_per_minute",
                 format!("{v} vehicles a minute per entry is not in (0, {MAX_INFLOW_PER_MINUTE}]"),
             ));
+        }
+        if let Some(m) = inflow.max_vehicles {
+            if m == 0 || m as usize > ctx.config.max_agents {
+                return Err(invalid(
+                    "inflow.max_vehicles",
+                    format!(
+                        "a target of {m} vehicles is not in 1..={} (the server's agents a scene)",
+                        ctx.config.max_agents
+                    ),
+                ));
+            }
         }
     }
 
@@ -482,7 +494,10 @@ pub fn setup(req: &CreateScene, ctx: &mut SetupContext<'_>) -> Result<SceneSetup
         plans: req.plans,
         client: client.clone(),
         extent,
-        inflow_per_minute: req.inflow.as_ref().map(|i| i.vehicles_per_minute),
+        inflow: req
+            .inflow
+            .as_ref()
+            .map(|i| (i.vehicles_per_minute, i.max_vehicles)),
     })
 }
 
@@ -915,12 +930,18 @@ impl LiveScene {
         };
         let extent = setup.extent;
         let agent_count = setup.agents.len();
-        let inflow = match (setup.inflow_per_minute, &setup.map) {
-            (Some(rate), Some(map)) => Some(Inflow::new(
-                map,
-                rate,
-                road_rollout::stream_seed(setup.seed, INFLOW_STREAM),
-            )),
+        let inflow = match (setup.inflow, &setup.map) {
+            (Some((rate, max_vehicles)), Some(map)) => {
+                let inflow = Inflow::new(
+                    map,
+                    rate,
+                    road_rollout::stream_seed(setup.seed, INFLOW_STREAM),
+                );
+                Some(match max_vehicles {
+                    Some(m) => inflow.with_max_vehicles(m as usize),
+                    None => inflow,
+                })
+            }
             _ => None,
         };
         let next_id = setup.agents.iter().map(|a| a.id).max().map_or(1, |m| m + 1);

@@ -747,7 +747,7 @@ fn populate_requests_out_of_range_are_refused() {
     assert!(e.message.contains("vehicle"), "{e}");
 }
 
-/// `inflow.vehicles_per_minute` lies in (0, 60].
+/// `inflow.vehicles_per_minute` lies in (0, 60], `inflow.max_vehicles` in 1..=32.
 #[test]
 fn inflow_rates_out_of_range_are_refused() {
     let c = client("inflow-bad");
@@ -755,6 +755,7 @@ fn inflow_rates_out_of_range_are_refused() {
         let request = CreateScene {
             inflow: Some(road_client::protocol::Inflow {
                 vehicles_per_minute: rate,
+                max_vehicles: None,
             }),
             ..common::roundabout()
         };
@@ -765,5 +766,17 @@ fn inflow_rates_out_of_range_are_refused() {
             Some("inflow.vehicles_per_minute"),
         );
         assert!(e.message.contains("(0, 60]"), "{e}");
+    }
+    for target in [0, 33] {
+        let request = CreateScene {
+            inflow: Some(road_client::protocol::Inflow {
+                vehicles_per_minute: 6.0,
+                max_vehicles: Some(target),
+            }),
+            ..common::roundabout()
+        };
+        let e = create_err(&c, request);
+        assert_refused(&e, ErrorCode::InvalidField, Some("inflow.max_vehicles"));
+        assert!(e.message.contains("1..=32"), "{e}");
     }
 }

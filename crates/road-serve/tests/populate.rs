@@ -94,6 +94,7 @@ fn vehicles_keep_entering_a_scene_with_inflow() {
     let request = CreateScene {
         inflow: Some(road_client::protocol::Inflow {
             vehicles_per_minute: 30.0,
+            max_vehicles: Some(12),
         }),
         ..CreateScene::procedural("merge", vec![1], 4)
     };
@@ -118,6 +119,8 @@ fn vehicles_keep_entering_a_scene_with_inflow() {
         for s in &npc.npcs {
             assert!(known.contains(&s.id), "tick {t}: unknown NPC {}", s.id);
         }
+        // The ego and at most 11 NPCs: the target of 12.
+        assert!(npc.npcs.len() <= 11, "tick {t}: {} NPCs", npc.npcs.len());
         common::assert_sane(&npc, 1000.0);
     }
     // Two entries at 30 a minute for 8 s: about 8 arrivals, as many as have room.

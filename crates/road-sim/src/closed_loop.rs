@@ -12,7 +12,7 @@ use road_data::{LaneletMap, SceneWindow, wrap_angle};
 use road_model::batch::SceneInput;
 use road_model::{ModelConfig, Result as ModelResult};
 use road_rollout::{RolloutDriver, RolloutScene, StepEngine};
-use road_sched::{CollisionGuard, LaneGuard, PlannerSpec};
+use road_sched::{CollisionGuard, LaneGuard, PlannerSpec, StallRelease};
 
 use crate::controllers::{constant_velocity, slowed_replay};
 use crate::geometry::OrientedBox;
@@ -20,6 +20,9 @@ use crate::infractions::{collisions, off_road};
 use crate::{Error, Pose, Result};
 use road_planner::collision_guard::{GuardAction, GuardAgent, guard_step};
 use road_planner::lane_guard::{LaneAction, keep_on_road, nudge_towards_lane};
+
+/// Seconds per tick (the recordings' 10 Hz).
+const STEP_SECS: f64 = 0.1;
 
 /// Who drives an agent.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
@@ -112,6 +115,8 @@ pub struct GuardCounts {
     pub nudged_towards_lane: usize,
     /// The lane guard stopped an agent at the road's edge.
     pub stopped_at_road_edge: usize,
+    /// The stall release pulled a vehicle away (agent-ticks).
+    pub pulled_away: usize,
 }
 
 impl std::ops::AddAssign for GuardCounts {
@@ -121,6 +126,7 @@ impl std::ops::AddAssign for GuardCounts {
         self.steered_to_lane += other.steered_to_lane;
         self.nudged_towards_lane += other.nudged_towards_lane;
         self.stopped_at_road_edge += other.stopped_at_road_edge;
+        self.pulled_away += other.pulled_away;
     }
 }
 
@@ -134,13 +140,14 @@ pub fn guard_actions(ticks: &[SceneTick]) -> GuardCounts {
             GuardAction::SteeredToLane => counts.steered_to_lane += 1,
             GuardAction::NudgedTowardsLane => counts.nudged_towards_lane += 1,
             GuardAction::StoppedAtRoadEdge => counts.stopped_at_road_edge += 1,
+            GuardAction::PulledAway => counts.pulled_away += 1,
         }
     }
     counts
 }
 
 /// What one tick did in one scene.
-#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
 pub struct SceneTick {
     /// Every agent's pose after the tick, metres and radians (heading wrapped to (−π, π]).
     pub poses: Vec<Pose>,
@@ -193,6 +200,11 @@ struct SceneRuntime<'m> {
     /// The lanelet each agent was last on (a map exit is the end of a lanelet without
     /// successors).
     last_lanelet: Vec<Option<usize>>,
+    /// The stall release's memory per agent: ticks stood still with free road ahead, whether
+    /// it is pulling away, its speed over the last tick (m/s).
+    stalled_ticks: Vec<u32>,
+    pulling_away: Vec<bool>,
+    speed_mps: Vec<f64>,
 }
 
 /// Simulates many scenes on one engine: in lockstep with one planner ([`ClosedLoop::new`],
@@ -205,8 +217,12 @@ pub struct ClosedLoop<'m> {
     scenes: Vec<Option<SceneRuntime<'m>>>,
     model: ModelConfig,
     heading_scale: f64,
-    /// Per scene slot, its planner's collision guard (scratch of [`Self::round`]).
-    guards: Vec<(Option<LaneGuard>, Option<CollisionGuard>)>,
+    /// Per scene slot, its planner's guards (scratch of [`Self::round`]).
+    guards: Vec<(
+        Option<LaneGuard>,
+        Option<CollisionGuard>,
+        Option<StallRelease>,
+    )>,
 }
 
 impl std::fmt::Debug for ClosedLoop<'_> {
@@ -503,7 +519,9 @@ impl<'m> ClosedLoop<'m> {
         self.guards.extend((0..self.scenes.len()).map(|i| {
             self.driver
                 .scene_planner(i)
-                .map_or((None, None), |p| (p.lane_guard, p.collision_guard))
+                .map_or((None, None, None), |p| {
+                    (p.lane_guard, p.collision_guard, p.stall_release)
+                })
         }));
         let (scenes, guards) = (&mut self.scenes, &self.guards);
         let heading_scale = self.heading_scale;
@@ -512,13 +530,14 @@ impl<'m> ClosedLoop<'m> {
                                                     plan_turns: &mut [f32]|
          -> ModelResult<()> {
             let s = scenes[i].as_mut().expect("the driver ticks live scenes");
-            let (lane_guard, collision_guard) = guards[i];
+            let (lane_guard, collision_guard, stall_release) = guards[i];
             s.apply(
                 emitted,
                 plan_turns,
                 heading_scale,
                 lane_guard,
                 collision_guard,
+                stall_release,
             );
             Ok(())
         })?;
@@ -609,6 +628,9 @@ impl<'m> ClosedLoop<'m> {
             s.initially_on_road.push(true);
             s.retired.push(false);
             s.last_lanelet.push(None);
+            s.stalled_ticks.push(0);
+            s.pulling_away.push(false);
+            s.speed_mps.push(vehicle.speed_mps);
         } else {
             // A retired agent's place: its log is not this vehicle's.
             w.states[3 * agent * w.steps..3 * (agent + 1) * w.steps].fill(0.0);
@@ -625,6 +647,9 @@ impl<'m> ClosedLoop<'m> {
             s.initially_on_road[agent] = true;
             s.retired[agent] = false;
             s.last_lanelet[agent] = None;
+            s.stalled_ticks[agent] = 0;
+            s.pulling_away[agent] = false;
+            s.speed_mps[agent] = vehicle.speed_mps;
         }
         Ok(agent)
     }
@@ -717,6 +742,15 @@ impl<'m> SceneRuntime<'m> {
             history: SceneInput::from_window(w, scene.observed_steps - n, n, model),
         };
         let agents = w.agents;
+        // Each agent's speed over its last observed step.
+        let speed_mps = (0..agents)
+            .map(
+                |a| match (pose_of(w, a, reference.saturating_sub(1)), reference) {
+                    (Some(p), 1..) => (poses[a].position_m() - p.position_m()).length() / STEP_SECS,
+                    _ => 0.0,
+                },
+            )
+            .collect();
         Ok((
             input,
             Self {
@@ -733,6 +767,9 @@ impl<'m> SceneRuntime<'m> {
                 retired: vec![false; agents],
                 left: Vec::new(),
                 last_lanelet: vec![None; agents],
+                stalled_ticks: vec![0; agents],
+                pulling_away: vec![false; agents],
+                speed_mps,
                 map,
                 steps,
             },
@@ -751,6 +788,7 @@ impl<'m> SceneRuntime<'m> {
         heading_scale: f64,
         lane_guard: Option<LaneGuard>,
         collision_guard: Option<CollisionGuard>,
+        stall_release: Option<StallRelease>,
     ) {
         for (a, o) in self.overrides.iter().enumerate() {
             if let Some(state) = o {
@@ -768,6 +806,9 @@ impl<'m> SceneRuntime<'m> {
         }
         self.guarded.clear();
         self.left.clear();
+        if let Some(release) = stall_release {
+            self.release_stalls(emitted, heading_scale, release);
+        }
         if let (Some(guard), Some(map)) = (lane_guard, self.map.clone()) {
             self.keep_on_road(emitted, plan_turns, heading_scale, guard, map.get());
         }
@@ -779,6 +820,7 @@ impl<'m> SceneRuntime<'m> {
                 .window
                 .frame
                 .to_metres([emitted[3 * a], emitted[3 * a + 1]]);
+            self.speed_mps[a] = (DVec2::from(p) - self.poses[a].position_m()).length() / STEP_SECS;
             let heading = f64::from(emitted[3 * a + 2]) / heading_scale;
             self.heading_unwrapped[a] = heading;
             self.poses[a] = Pose {
@@ -895,6 +937,65 @@ impl<'m> SceneRuntime<'m> {
 
     /// Runs the collision guard on this tick's states (model units, overrides in): poses
     /// before the tick are `self.poses` (headings unwrapped), after it `emitted`.
+    /// The stall release ([`StallRelease`]): model-driven agents that stood still with free
+    /// road ahead for its time pull away along their heading; their emitted states change.
+    fn release_stalls(&mut self, emitted: &mut [f32], heading_scale: f64, release: StallRelease) {
+        let frame = &self.window.frame;
+        let present: Vec<usize> = (0..self.controllers.len())
+            .filter(|&a| !self.retired[a])
+            .collect();
+        let after_ticks = (release.after_secs / STEP_SECS).round() as u32;
+        for &a in &present {
+            if self.controllers[a] != Controller::Model || self.overrides[a].is_some() {
+                continue;
+            }
+            let before = self.poses[a];
+            let proposed = DVec2::from(frame.to_metres([emitted[3 * a], emitted[3 * a + 1]]));
+            let model_speed = (proposed - before.position_m()).length() / STEP_SECS;
+            if !crate::free_road::road_ahead_free(a, &self.poses, &present) {
+                self.stalled_ticks[a] = 0;
+                self.pulling_away[a] = false;
+                continue;
+            }
+            if !self.pulling_away[a] {
+                let still = self.speed_mps[a] < crate::free_road::STOPPED_MAX_SPEED_MPS
+                    && model_speed < crate::free_road::STOPPED_MAX_SPEED_MPS;
+                self.stalled_ticks[a] = if still { self.stalled_ticks[a] + 1 } else { 0 };
+                if self.stalled_ticks[a] < after_ticks {
+                    continue;
+                }
+                self.pulling_away[a] = true;
+            }
+            let speed = (self.speed_mps[a] + release.acceleration_mps2 * STEP_SECS)
+                .min(release.release_speed_mps);
+            if model_speed >= speed || self.speed_mps[a] >= release.release_speed_mps {
+                // The model drives it on again.
+                self.pulling_away[a] = false;
+                self.stalled_ticks[a] = 0;
+                continue;
+            }
+            // Along its heading, turned (at most 0.1 rad a tick) towards a point 6 m ahead on
+            // the nearest lane running its way: a vehicle held at the road's edge gets back.
+            let mut heading = self.heading_unwrapped[a];
+            if let Some(map) = &self.map {
+                if let Some(target) = lane_point_ahead(map.get(), before.position_m(), heading, 6.0)
+                {
+                    let wanted = (target - before.position_m()).to_angle();
+                    let turn = f64::from(wrap_angle((wanted - heading) as f32));
+                    heading += turn.clamp(-0.1, 0.1);
+                }
+            }
+            let to = before.position_m() + DVec2::from_angle(heading) * speed * STEP_SECS;
+            let xy = frame.to_norm(to.into());
+            emitted[3 * a..3 * a + 3].copy_from_slice(&[
+                xy[0],
+                xy[1],
+                (heading * heading_scale) as f32,
+            ]);
+            self.guarded.push((a, GuardAction::PulledAway));
+        }
+    }
+
     fn guard(&mut self, emitted: &mut [f32], heading_scale: f64, guard: CollisionGuard) {
         let frame = &self.window.frame;
         // Retired agents are out of the scene: nobody brakes for them.
@@ -997,6 +1098,31 @@ pub const EXIT_LATERAL_MARGIN_M: f64 = 2.0;
 /// Whether `at` lies ahead of the end of `lane`'s centre line (past the line through its last
 /// point, square to its last segment) and within half the lane's end width plus
 /// [`EXIT_LATERAL_MARGIN_M`] of that line's axis.
+/// The point `ahead_m` along the centre line of the lane nearest `at` that runs within 90° of
+/// `heading` (radians), from the lane's point nearest `at` (straight on along its segment);
+/// `None` when no lane within 10 m runs that way.
+fn lane_point_ahead(map: &LaneletMap, at: DVec2, heading: f64, ahead_m: f64) -> Option<DVec2> {
+    let forward = DVec2::from_angle(heading);
+    let mut best: Option<(f64, DVec2)> = None;
+    for lane in &map.lanelets {
+        for seg in lane.centre_m.windows(2) {
+            let (p, q) = (DVec2::from(seg[0]), DVec2::from(seg[1]));
+            let d = q - p;
+            let len2 = d.length_squared();
+            if len2 < 1e-12 || d.dot(forward) <= 0.0 {
+                continue;
+            }
+            let t = ((at - p).dot(d) / len2).clamp(0.0, 1.0);
+            let closest = p + d * t;
+            let dist_m = (at - closest).length();
+            if dist_m <= 10.0 && best.is_none_or(|(b, _)| dist_m < b) {
+                best = Some((dist_m, closest + d.normalize() * ahead_m));
+            }
+        }
+    }
+    best.map(|(_, target)| target)
+}
+
 fn past_lane_end(lane: &road_data::map::Lanelet, at: road_data::geometry::Point) -> bool {
     let [.., before, end] = lane.centre_m.as_slice() else {
         return false;

@@ -15,12 +15,14 @@
 
 pub mod closed_loop;
 pub mod controllers;
+pub mod free_road;
 pub mod infractions;
 pub mod kinematics;
 pub mod metrics;
 pub mod populate;
 pub mod procedural;
 pub mod route;
+pub mod session;
 
 /// Errors of the simulation layer.
 #[derive(Debug, thiserror::Error)]

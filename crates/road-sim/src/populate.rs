@@ -385,7 +385,8 @@ pub fn footprints(window: &SceneWindow) -> Vec<Footprint> {
 /// Vehicles entering a map at its entry lanes ([`entry_lanelets`]) as a Poisson process of
 /// `vehicles_per_minute` per entry: each tick an entry gets an arrival with probability
 /// rate × 0.1 s, and an arrival waits (at most one per entry) until the entry has room
-/// ([`spawn_at_entry`]).
+/// ([`spawn_at_entry`]) and, with a target count ([`Inflow::with_max_vehicles`]), until the
+/// scene has fewer vehicles than that.
 #[derive(Debug, Clone)]
 pub struct Inflow {
     per_tick: f64,
@@ -393,6 +394,7 @@ pub struct Inflow {
     waiting: Vec<bool>,
     options: PlacementOptions,
     rng: StdRng,
+    max_vehicles: Option<usize>,
 }
 
 impl Inflow {
@@ -406,7 +408,15 @@ impl Inflow {
             entries,
             options: PlacementOptions::default(),
             rng: StdRng::seed_from_u64(seed),
+            max_vehicles: None,
         }
+    }
+
+    /// Arrivals wait while the scene holds `max_vehicles` or more (a target count: vehicles
+    /// come in as others leave).
+    pub fn with_max_vehicles(mut self, max_vehicles: usize) -> Self {
+        self.max_vehicles = Some(max_vehicles);
+        self
     }
 
     /// The map's entry lanelets this inflow feeds.
@@ -428,7 +438,7 @@ impl Inflow {
             if !self.waiting[k] && self.rng.random_bool(self.per_tick) {
                 self.waiting[k] = true;
             }
-            if !self.waiting[k] {
+            if !self.waiting[k] || self.max_vehicles.is_some_and(|m| others.len() >= m) {
                 continue;
             }
             if let Some(v) = spawn_at_entry(map, lane, &others, steps, &self.options, &mut self.rng)

@@ -129,33 +129,7 @@ pub(crate) fn simulate_procedural(
     let mut scene = procedural_turned(map, &window_config, n, rotation_rad)?;
     let mut engine = engines.engine()?;
     if let Some(count) = populate {
-        use road_sim::populate::{
-            PlacementOptions, Refinement, footprints, keep_agents, place_vehicles,
-            refine_histories, with_vehicles,
-        };
-        let ego_only = keep_agents(&scene.window, &[scene.ego.agent]);
-        let mut rng = rand::rngs::StdRng::seed_from_u64(road_rollout::stream_seed(seed, 1));
-        let placed = place_vehicles(
-            &scene.map,
-            &footprints(&ego_only),
-            count,
-            n,
-            &PlacementOptions::default(),
-            &mut rng,
-        );
-        let window = with_vehicles(&ego_only, &placed)?;
-        let mut fixed = vec![false; window.agents];
-        fixed[0] = true;
-        scene.window = refine_histories(
-            engine.as_dyn(),
-            model,
-            &run.planner.edm,
-            &window,
-            &fixed,
-            Refinement::for_model(run.train.augmentation_ratio),
-            &mut rng,
-        )?;
-        scene.ego.agent = 0;
+        populate_scene(engine.as_dyn(), run, &mut scene, count, seed)?;
     }
     let agents = scene.window.agents;
     let mut controllers = vec![Controller::Model; agents];
@@ -204,6 +178,47 @@ pub(crate) fn simulate_procedural(
         setup_secs,
         nfe,
     })
+}
+
+/// `scene`'s scripted vehicles replaced by `count` placed around its ego and refined by the
+/// model on `engine` (`road_sim::populate`); the ego becomes agent 0. Placement and refinement
+/// draw from `seed`'s stream 1.
+pub(crate) fn populate_scene(
+    engine: &mut dyn road_rollout::StepEngine,
+    run: &RunConfig,
+    scene: &mut ProceduralScene,
+    count: usize,
+    seed: u64,
+) -> Result<()> {
+    use road_sim::populate::{
+        PlacementOptions, Refinement, footprints, keep_agents, place_vehicles, refine_histories,
+        with_vehicles,
+    };
+    let n = run.planner.obs_slots;
+    let ego_only = keep_agents(&scene.window, &[scene.ego.agent]);
+    let mut rng = rand::rngs::StdRng::seed_from_u64(road_rollout::stream_seed(seed, 1));
+    let placed = place_vehicles(
+        &scene.map,
+        &footprints(&ego_only),
+        count,
+        n,
+        &PlacementOptions::default(),
+        &mut rng,
+    );
+    let window = with_vehicles(&ego_only, &placed)?;
+    let mut fixed = vec![false; window.agents];
+    fixed[0] = true;
+    scene.window = refine_histories(
+        engine,
+        &run.model,
+        &run.planner.edm,
+        &window,
+        &fixed,
+        Refinement::for_model(run.train.augmentation_ratio),
+        &mut rng,
+    )?;
+    scene.ego.agent = 0;
+    Ok(())
 }
 
 /// `--map`: a procedural map by name.

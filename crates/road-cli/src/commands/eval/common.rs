@@ -15,7 +15,9 @@ pub struct EvalArgs {
     /// Suite: `forecasting` (10 observed steps, 30 predicted, joint samples per scene),
     /// `reactivity` (an adversarial agent per scene, 40 simulated steps after 10 observed) or
     /// `procedural` (`road demo`'s closed loop on the procedural maps over seeds and rotations:
-    /// vehicles off road and collisions; no INTERACTION data needed).
+    /// vehicles off road and collisions; no INTERACTION data needed) or `long` (sessions of
+    /// `--minutes` on the procedural maps with inflow, every vehicle the model's: counts per
+    /// vehicle-minute).
     #[arg(long, default_value = "forecasting")]
     pub suite: String,
     /// Checkpoints to evaluate; a constant-velocity baseline is always added.
@@ -85,6 +87,12 @@ pub struct EvalArgs {
     /// refined by the model (`road demo --populate`).
     #[arg(long)]
     pub populate: Option<usize>,
+    /// Long: minutes per session.
+    #[arg(long, default_value_t = 10.0)]
+    pub minutes: f64,
+    /// Long: vehicles entering per minute at each of the map's entry lanes.
+    #[arg(long, default_value_t = 6.0)]
+    pub inflow_per_minute: f64,
 }
 
 /// The scenes a suite evaluates.

@@ -1,9 +1,11 @@
 //! `road eval`: the paper's evaluation suites on validation scenes (forecasting, reactivity)
-//! and `road demo`'s closed loop counted over procedural maps (procedural). Each suite is a
+//! and `road demo`'s closed loop counted over procedural maps (procedural, and long sessions
+//! with inflow: long). Each suite is a
 //! module of its own; what they share is in `common`.
 
 mod common;
 mod forecasting;
+mod long;
 mod procedural;
 mod reactivity;
 
@@ -18,6 +20,9 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         "forecasting" => forecasting::run(args),
         "reactivity" => reactivity::run(args),
         "procedural" => procedural::run(args),
-        other => bail!("unknown suite `{other}`; available: forecasting, reactivity, procedural"),
+        "long" => long::run(args),
+        other => {
+            bail!("unknown suite `{other}`; available: forecasting, reactivity, procedural, long")
+        }
     }
 }

@@ -1,0 +1,305 @@
+//! `road eval --suite long`: sessions of `--minutes` on the procedural maps, every vehicle the
+//! model's, vehicles retired where they drive off the map and entering at its entry lanes
+//! (`--inflow-per-minute` each, while the scene holds fewer than it started with: the start's
+//! count is the target): does traffic last? Counted per vehicle-minute
+//! (`road_sim::session`): off-road events, collisions, stops with free road ahead, ring laps,
+//! and the vehicle count against its start (issue 39's "long sessions stay sane").
+
+use std::process::ExitCode;
+use std::time::Instant;
+
+use anyhow::{Context, Result, ensure};
+use road_data::WindowConfig;
+use road_sim::closed_loop::{ClosedLoop, Controller, NoExternal, SceneMap, SimScene};
+use road_sim::metrics::{Estimate, bootstrap_ratio};
+use road_sim::populate::Inflow;
+use road_sim::procedural::{ProceduralMap, procedural};
+use road_sim::session::{LONG_STOP_SECS, SessionStats};
+use serde::Serialize;
+
+use super::common::EvalArgs;
+use crate::commands::demo::populate_scene;
+use crate::commands::engine::{EngineChoice, Engines};
+
+/// Agents a session's scene may hold (the server's limit).
+const SESSION_AGENTS: usize = 32;
+/// The vehicle count is judged against its start from this minute on (the first fills up).
+const SETTLED_AFTER_SECS: usize = 60;
+
+#[derive(Debug, Serialize)]
+struct SessionRecord {
+    map: &'static str,
+    seed: u64,
+    /// Vehicles at the start: the count the session should keep.
+    target: usize,
+    stats: SessionStats,
+    secs: f64,
+}
+
+#[derive(Debug, Serialize)]
+struct MapSummary {
+    model: String,
+    map: &'static str,
+    sessions: usize,
+    vehicle_minutes: f64,
+    off_road_per_vehicle_minute: Estimate,
+    collisions_per_vehicle_minute: Estimate,
+    long_free_stops: u64,
+    longest_free_stop_secs: f64,
+    ring_laps: u64,
+    /// Ticks stood with free road ahead, by what held the vehicle: the collision guard, the
+    /// lane guard at the road's edge, neither (`SessionStats`).
+    free_stop_ticks_collision_guard: u64,
+    free_stop_ticks_lane_guard: u64,
+    free_stop_ticks_model: u64,
+    entered: u64,
+    left: u64,
+    /// Over the 10 s samples after the first minute: fewest and most vehicles as a share of
+    /// the start, and the share of samples within ±30 % of it.
+    fewest_share: f64,
+    most_share: f64,
+    within_30_percent: f64,
+}
+
+pub fn run(args: EvalArgs) -> Result<ExitCode> {
+    ensure!(args.seeds > 0, "--seeds must be at least 1");
+    ensure!(
+        args.minutes.is_finite() && args.minutes > 0.0,
+        "--minutes must be positive, got {}",
+        args.minutes
+    );
+    ensure!(
+        args.inflow_per_minute.is_finite() && args.inflow_per_minute >= 0.0,
+        "--inflow-per-minute must be 0 or more, got {}",
+        args.inflow_per_minute
+    );
+    let maps: Vec<ProceduralMap> = if args.maps.is_empty() {
+        ProceduralMap::ALL.to_vec()
+    } else {
+        args.maps
+            .iter()
+            .map(|name| {
+                crate::commands::demo::parse_map(name).map_err(|e| anyhow::anyhow!("--maps: {e}"))
+            })
+            .collect::<Result<_>>()?
+    };
+    let ticks = (args.minutes * 600.0).round() as usize;
+    let choice: EngineChoice = args.engine.into();
+    eprintln!(
+        "long suite: maps {}, {} seeds, {} min each, inflow {} a minute per entry",
+        maps.iter().map(|m| m.name()).collect::<Vec<_>>().join(", "),
+        args.seeds,
+        args.minutes,
+        args.inflow_per_minute
+    );
+    let mut summaries = Vec::new();
+    let mut records = Vec::new();
+    for dir in &args.checkpoints {
+        let engines = Engines::load_or_embedded(dir, choice)?;
+        let run =
+            crate::commands::engine::with_planner(&engines.cpu.meta.run, args.planner.as_deref())?;
+        for &map in &maps {
+            let mut sessions = Vec::new();
+            for seed in args.seed..args.seed + args.seeds {
+                let started = Instant::now();
+                let stats = session(&engines, &run, map, seed, ticks, &args)
+                    .with_context(|| format!("{}: {} seed {seed}", run.name, map.name()))?;
+                let target = stats.0;
+                tracing::info!(
+                    model = run.name,
+                    map = map.name(),
+                    seed,
+                    secs = started.elapsed().as_secs_f64().round(),
+                    "session done"
+                );
+                sessions.push(SessionRecord {
+                    map: map.name(),
+                    seed,
+                    target,
+                    stats: stats.1,
+                    secs: started.elapsed().as_secs_f64(),
+                });
+            }
+            summaries.push(summarise(&run.name, map, &sessions, args.seed));
+            records.extend(sessions);
+        }
+    }
+    out!(
+        "long sessions on the procedural maps: {} seeds from {} × {} min, every vehicle the model's, inflow {} a minute per entry, vehicles retired at the map's ends; engine {:?}",
+        args.seeds,
+        args.seed,
+        args.minutes,
+        args.inflow_per_minute,
+        args.engine
+    );
+    out!(
+        "| model | map | sessions | vehicle-minutes | off-road events per vehicle-minute [95 % CI] | collisions per vehicle-minute [95 % CI] | stops ≥ {LONG_STOP_SECS} s with free road | longest (s) | held by: collision guard / lane guard / model (ticks) | ring laps | entered / left | vehicles after 1 min, fewest / most (× start) | samples within ±30 % |"
+    );
+    out!("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
+    for s in &summaries {
+        out!(
+            "| {} | {} | {} | {:.0} | {:.4} | {:.4} | {} | {:.0} | {} / {} / {} | {} | {} / {} | {:.2} / {:.2} | {:.2} |",
+            s.model,
+            s.map,
+            s.sessions,
+            s.vehicle_minutes,
+            s.off_road_per_vehicle_minute,
+            s.collisions_per_vehicle_minute,
+            s.long_free_stops,
+            s.longest_free_stop_secs,
+            s.free_stop_ticks_collision_guard,
+            s.free_stop_ticks_lane_guard,
+            s.free_stop_ticks_model,
+            s.ring_laps,
+            s.entered,
+            s.left,
+            s.fewest_share,
+            s.most_share,
+            s.within_30_percent
+        );
+    }
+    out!(
+        "(intervals: 95 % percentile bootstrap over sessions; off-road event: a present vehicle leaving every lanelet, leaving at a map's end is not one; collision: a pair of vehicles starting to overlap; a stop: slower than 0.3 m/s with no vehicle within 15 m ahead; a ring lap: a vehicle turning over 1¼ turns in total)"
+    );
+    if let Some(path) = &args.json {
+        let json = serde_json::json!({
+            "suite": "long", "minutes": args.minutes,
+            "inflow_per_minute": args.inflow_per_minute, "seeds": args.seeds,
+            "summaries": summaries, "sessions": records,
+        });
+        std::fs::write(path, serde_json::to_string_pretty(&json)?)
+            .with_context(|| format!("cannot write {}", path.display()))?;
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// One session: the map's scene (its script's vehicles, or `--populate` placed ones), every
+/// vehicle the model's, for `ticks`. Returns the vehicles at the start and the counts.
+fn session(
+    engines: &Engines,
+    run: &road_model::config::RunConfig,
+    map: ProceduralMap,
+    seed: u64,
+    ticks: usize,
+    args: &EvalArgs,
+) -> Result<(usize, SessionStats)> {
+    let model = &run.model;
+    let n = run.planner.obs_slots;
+    let window_config = WindowConfig {
+        position_scale_m: model.position_scale_m,
+        polyline_points: model.polyline_points,
+        ..WindowConfig::default()
+    };
+    let mut scene = procedural(map, &window_config, n)?;
+    let mut engine = engines.engine()?;
+    if let Some(count) = args.populate {
+        populate_scene(engine.as_dyn(), run, &mut scene, count, seed)?;
+    }
+    let agents = scene.window.agents;
+    ensure!(
+        agents <= SESSION_AGENTS,
+        "{agents} vehicles; a session holds at most {SESSION_AGENTS}"
+    );
+    let mut sim = ClosedLoop::pool(engine.as_dyn(), model, &run.planner, 1, SESSION_AGENTS)?;
+    let id = sim.add_scene(
+        engine.as_dyn(),
+        SimScene {
+            window: scene.window.clone(),
+            observed_steps: n,
+            controllers: vec![Controller::Model; agents],
+        },
+        &run.planner,
+        Some(SceneMap::Borrowed(&scene.map)),
+        ticks,
+        road_rollout::stream_seed(seed, 0),
+    )?;
+    sim.retire_on_exit(id, true)?;
+    // The start's count is the target: arrivals wait while the scene holds as many.
+    let mut inflow = (args.inflow_per_minute > 0.0).then(|| {
+        Inflow::new(
+            &scene.map,
+            args.inflow_per_minute,
+            road_rollout::stream_seed(seed, 2),
+        )
+        .with_max_vehicles(agents)
+    });
+    let mut stats = SessionStats::new(agents, &[]);
+    let mut out = Vec::new();
+    for _ in 0..ticks {
+        if let Some(inflow) = inflow.as_mut() {
+            let footprints = sim.footprints(id)?;
+            for vehicle in inflow.arrivals(&scene.map, &footprints, n) {
+                // A full scene drops the arrival, as a served one does.
+                if let Ok(agent) = sim.add_agent(engine.as_dyn(), id, &vehicle) {
+                    stats.entered(agent);
+                }
+            }
+        }
+        sim.tick(engine.as_dyn(), &mut NoExternal, &mut out)?;
+        stats.tick(&out[0]);
+    }
+    stats.finish();
+    Ok((agents, stats))
+}
+
+fn summarise(model: &str, map: ProceduralMap, sessions: &[SessionRecord], seed: u64) -> MapSummary {
+    let per = |count: fn(&SessionStats) -> u64| -> Vec<(f64, f64)> {
+        sessions
+            .iter()
+            .map(|s| (count(&s.stats) as f64, s.stats.vehicle_minutes()))
+            .collect()
+    };
+    let settled_from = SETTLED_AFTER_SECS / 10;
+    let shares: Vec<f64> = sessions
+        .iter()
+        .flat_map(|s| {
+            s.stats
+                .vehicles_every_10s
+                .iter()
+                .skip(settled_from)
+                .map(move |&v| v as f64 / s.target.max(1) as f64)
+        })
+        .collect();
+    let within = shares.iter().filter(|&&x| (0.7..=1.3).contains(&x)).count();
+    MapSummary {
+        model: model.to_owned(),
+        map: map.name(),
+        sessions: sessions.len(),
+        vehicle_minutes: sessions.iter().map(|s| s.stats.vehicle_minutes()).sum(),
+        off_road_per_vehicle_minute: bootstrap_ratio(&per(|s| s.off_road_events), seed),
+        collisions_per_vehicle_minute: bootstrap_ratio(&per(|s| s.collision_events), seed),
+        long_free_stops: sessions.iter().map(|s| s.stats.long_free_stops).sum(),
+        longest_free_stop_secs: sessions
+            .iter()
+            .map(|s| s.stats.longest_free_stop_secs)
+            .fold(0.0, f64::max),
+        ring_laps: sessions.iter().map(|s| s.stats.ring_laps).sum(),
+        free_stop_ticks_collision_guard: sessions
+            .iter()
+            .map(|s| s.stats.free_stop_ticks_collision_guard)
+            .sum(),
+        free_stop_ticks_lane_guard: sessions
+            .iter()
+            .map(|s| s.stats.free_stop_ticks_lane_guard)
+            .sum(),
+        free_stop_ticks_model: sessions.iter().map(|s| s.stats.free_stop_ticks_model).sum(),
+        entered: sessions.iter().map(|s| s.stats.entered).sum(),
+        left: sessions.iter().map(|s| s.stats.left).sum(),
+        // No sample after the first minute (a shorter session): nothing to judge.
+        fewest_share: if shares.is_empty() {
+            f64::NAN
+        } else {
+            shares.iter().copied().fold(f64::INFINITY, f64::min)
+        },
+        most_share: if shares.is_empty() {
+            f64::NAN
+        } else {
+            shares.iter().copied().fold(0.0, f64::max)
+        },
+        within_30_percent: if shares.is_empty() {
+            f64::NAN
+        } else {
+            within as f64 / shares.len() as f64
+        },
+    }
+}

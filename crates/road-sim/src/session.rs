@@ -1,0 +1,281 @@
+//! What a long session did, counted tick by tick ([`SessionStats`]): the figures of
+//! `road eval --suite long` (issue 39), per vehicle-minute so that sessions with more traffic
+//! compare with sessions with less.
+
+use std::collections::BTreeSet;
+
+use serde::Serialize;
+
+use crate::Pose;
+use crate::closed_loop::SceneTick;
+use crate::free_road::{STOPPED_MAX_SPEED_MPS, road_ahead_free};
+use road_planner::collision_guard::GuardAction;
+
+/// Seconds per tick (10 Hz).
+const STEP_SECS: f64 = 0.1;
+/// A stop with free road ahead counts once it lasts this long (seconds).
+pub const LONG_STOP_SECS: f64 = 10.0;
+/// A vehicle whose heading turns more than this in all (net, radians: 1¼ turns) has lapped a
+/// ring: no route through a roundabout or a crossing turns that much.
+pub const LAP_TURN_RAD: f64 = 2.5 * std::f64::consts::PI;
+
+/// The counts of one session; feed it every tick ([`Self::tick`]) and every vehicle that
+/// joins ([`Self::entered`]).
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct SessionStats {
+    pub ticks: usize,
+    /// Present model-driven vehicles summed over ticks: vehicle-minutes are this / 600.
+    pub vehicle_ticks: u64,
+    /// A present vehicle going from on the road to off it (leaving the map's end is not one).
+    pub off_road_events: u64,
+    /// A pair of present vehicles starting to overlap.
+    pub collision_events: u64,
+    /// Stops with free road ahead that lasted [`LONG_STOP_SECS`] or more, and the longest.
+    pub long_free_stops: u64,
+    pub longest_free_stop_secs: f64,
+    /// Vehicles whose heading turned more than [`LAP_TURN_RAD`] in all (net).
+    pub ring_laps: u64,
+    /// Ticks vehicles stood with free road ahead, by what held them that tick: the collision
+    /// guard (braked or stopped short: a vehicle beside or crossing, not ahead), the lane
+    /// guard at the road's edge, or neither (the model's own stop).
+    pub free_stop_ticks_collision_guard: u64,
+    pub free_stop_ticks_lane_guard: u64,
+    pub free_stop_ticks_model: u64,
+    pub entered: u64,
+    pub left: u64,
+    /// Present vehicles at every 10 s of the session (the first at tick 0).
+    pub vehicles_every_10s: Vec<usize>,
+    /// Where the long stops with free road ahead were (metres; the first 100).
+    pub long_free_stop_places: Vec<[f64; 2]>,
+    #[serde(skip)]
+    present: Vec<bool>,
+    #[serde(skip)]
+    off: Vec<bool>,
+    #[serde(skip)]
+    last: Vec<Option<Pose>>,
+    #[serde(skip)]
+    free_stop_ticks: Vec<u32>,
+    #[serde(skip)]
+    turned_rad: Vec<f64>,
+    #[serde(skip)]
+    lapped: Vec<bool>,
+    #[serde(skip)]
+    overlapping: BTreeSet<(usize, usize)>,
+    /// Agents not counted (the ego, when there is one).
+    #[serde(skip)]
+    excluded: Vec<usize>,
+}
+
+impl SessionStats {
+    /// A session whose first `agents` agents are present, `excluded` (an ego) not counted.
+    pub fn new(agents: usize, excluded: &[usize]) -> Self {
+        let mut s = Self {
+            excluded: excluded.to_vec(),
+            ..Self::default()
+        };
+        for a in 0..agents {
+            s.entered_quietly(a);
+        }
+        s
+    }
+
+    fn grow(&mut self, agent: usize) {
+        if agent >= self.present.len() {
+            let n = agent + 1;
+            self.present.resize(n, false);
+            self.off.resize(n, false);
+            self.last.resize(n, None);
+            self.free_stop_ticks.resize(n, 0);
+            self.turned_rad.resize(n, 0.0);
+            self.lapped.resize(n, false);
+        }
+    }
+
+    fn entered_quietly(&mut self, agent: usize) {
+        self.grow(agent);
+        self.present[agent] = !self.excluded.contains(&agent);
+        self.off[agent] = false;
+        self.last[agent] = None;
+        self.free_stop_ticks[agent] = 0;
+        self.turned_rad[agent] = 0.0;
+        self.lapped[agent] = false;
+        self.overlapping.retain(|&(i, j)| i != agent && j != agent);
+    }
+
+    /// A vehicle joined as agent `agent` (a new index or a retired one's).
+    pub fn entered(&mut self, agent: usize) {
+        self.entered += 1;
+        self.entered_quietly(agent);
+    }
+
+    /// Present vehicles now.
+    pub fn vehicles(&self) -> usize {
+        self.present.iter().filter(|&&p| p).count()
+    }
+
+    /// One tick of the session.
+    pub fn tick(&mut self, tick: &SceneTick) {
+        if self.ticks.is_multiple_of(100) {
+            let present = self.vehicles();
+            self.vehicles_every_10s.push(present);
+        }
+        self.ticks += 1;
+        for &a in &tick.left {
+            self.grow(a);
+            if self.present[a] {
+                self.left += 1;
+                self.flush_stop(a);
+            }
+            self.present[a] = false;
+        }
+        self.grow(tick.poses.len().saturating_sub(1));
+        let present: Vec<usize> = (0..tick.poses.len()).filter(|&a| self.present[a]).collect();
+        self.vehicle_ticks += present.len() as u64;
+        let off_now: BTreeSet<usize> = tick.off_road.iter().copied().collect();
+        for &a in &present {
+            let now = off_now.contains(&a);
+            if now && !self.off[a] {
+                self.off_road_events += 1;
+            }
+            self.off[a] = now;
+        }
+        let pairs: BTreeSet<(usize, usize)> = tick
+            .collisions
+            .iter()
+            .copied()
+            .filter(|&(i, j)| self.present[i] && self.present[j])
+            .collect();
+        self.collision_events += pairs.difference(&self.overlapping).count() as u64;
+        self.overlapping = pairs;
+        for &a in &present {
+            let pose = tick.poses[a];
+            if let Some(last) = self.last[a] {
+                let turn = f64::from(road_data::wrap_angle(
+                    (pose.heading_rad - last.heading_rad) as f32,
+                ));
+                // Net turning: weaving left and right cancels out, circling adds up.
+                self.turned_rad[a] += turn;
+                if self.turned_rad[a].abs() > LAP_TURN_RAD && !self.lapped[a] {
+                    self.lapped[a] = true;
+                    self.ring_laps += 1;
+                }
+                let speed = (pose.position_m() - last.position_m()).length() / STEP_SECS;
+                if speed < STOPPED_MAX_SPEED_MPS && road_ahead_free(a, &tick.poses, &present) {
+                    self.free_stop_ticks[a] += 1;
+                    let held = |what: &[GuardAction]| {
+                        tick.guarded
+                            .iter()
+                            .any(|(g, action)| *g == a && what.contains(action))
+                    };
+                    if held(&[GuardAction::StoppedAtRoadEdge]) {
+                        self.free_stop_ticks_lane_guard += 1;
+                    } else if held(&[GuardAction::Braked, GuardAction::StoppedShort]) {
+                        self.free_stop_ticks_collision_guard += 1;
+                    } else {
+                        self.free_stop_ticks_model += 1;
+                    }
+                } else {
+                    self.flush_stop(a);
+                }
+            }
+            self.last[a] = Some(pose);
+        }
+    }
+
+    fn flush_stop(&mut self, agent: usize) {
+        let secs = f64::from(self.free_stop_ticks[agent]) * STEP_SECS;
+        if secs >= LONG_STOP_SECS {
+            self.long_free_stops += 1;
+            if let (Some(p), true) = (self.last[agent], self.long_free_stop_places.len() < 100) {
+                self.long_free_stop_places.push([p.x_m, p.y_m]);
+            }
+        }
+        self.longest_free_stop_secs = self.longest_free_stop_secs.max(secs);
+        self.free_stop_ticks[agent] = 0;
+    }
+
+    /// Ends the session: stops still going count.
+    pub fn finish(&mut self) {
+        for a in 0..self.present.len() {
+            if self.present[a] {
+                self.flush_stop(a);
+            }
+        }
+    }
+
+    pub fn vehicle_minutes(&self) -> f64 {
+        self.vehicle_ticks as f64 * STEP_SECS / 60.0
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn pose(x: f64, y: f64, heading: f64) -> Pose {
+        Pose {
+            x_m: x,
+            y_m: y,
+            heading_rad: heading,
+        }
+    }
+
+    fn tick(poses: Vec<Pose>) -> SceneTick {
+        SceneTick {
+            poses,
+            ..SceneTick::default()
+        }
+    }
+
+    #[test]
+    fn a_vehicle_stopped_with_free_road_counts_and_one_queued_does_not() {
+        // Vehicle 0 stands alone; vehicle 1 stands 8 m behind vehicle 2, which stands too.
+        let mut stats = SessionStats::new(3, &[]);
+        for _ in 0..150 {
+            stats.tick(&tick(vec![
+                pose(0.0, 50.0, 0.0),
+                pose(0.0, 0.0, 0.0),
+                pose(8.0, 0.0, 0.0),
+            ]));
+        }
+        stats.finish();
+        // Vehicles 0 and 2 have free road (15 s each); 1 is queued.
+        assert_eq!(stats.long_free_stops, 2);
+        assert!((stats.longest_free_stop_secs - 14.9).abs() < 1e-9);
+        assert_eq!(stats.vehicle_ticks, 450);
+        assert_eq!(stats.vehicles_every_10s, vec![3, 3]);
+    }
+
+    #[test]
+    fn events_count_once_and_left_vehicles_stop_counting() {
+        let mut stats = SessionStats::new(2, &[]);
+        let mut t = tick(vec![pose(0.0, 0.0, 0.0), pose(2.0, 0.0, 0.0)]);
+        t.collisions = vec![(0, 1)];
+        t.off_road = vec![1];
+        stats.tick(&t);
+        stats.tick(&t);
+        assert_eq!((stats.collision_events, stats.off_road_events), (1, 1));
+        let mut gone = tick(vec![pose(0.0, 0.0, 0.0), pose(2.0, 0.0, 0.0)]);
+        gone.left = vec![1];
+        stats.tick(&gone);
+        assert_eq!(stats.left, 1);
+        assert_eq!(stats.vehicles(), 1);
+        stats.entered(1);
+        assert_eq!((stats.entered, stats.vehicles()), (1, 2));
+    }
+
+    #[test]
+    fn a_vehicle_that_keeps_circling_has_lapped() {
+        let mut stats = SessionStats::new(1, &[]);
+        for k in 0..200 {
+            let angle = f64::from(k) * 0.05;
+            stats.tick(&tick(vec![pose(
+                20.0 * angle.cos(),
+                20.0 * angle.sin(),
+                angle + std::f64::consts::FRAC_PI_2,
+            )]));
+        }
+        // 10 rad turned: more than 1¼ turns, once.
+        assert_eq!(stats.ring_laps, 1);
+    }
+}
