@@ -17,6 +17,7 @@ pub mod closed_loop;
 pub mod controllers;
 pub mod free_road;
 pub mod infractions;
+pub mod initialisation;
 pub mod kinematics;
 pub mod metrics;
 pub mod populate;

@@ -69,6 +69,9 @@ pub struct PlacementOptions {
     pub width_m: (f64, f64),
     /// Tries per vehicle before the map counts as full.
     pub tries: usize,
+    /// Only within this distance (metres) of this point (map frame): a scene's area on a
+    /// large map. None: the whole map.
+    pub region: Option<([f64; 2], f64)>,
 }
 
 impl Default for PlacementOptions {
@@ -79,6 +82,7 @@ impl Default for PlacementOptions {
             length_m: (4.2, 5.0),
             width_m: (1.75, 1.95),
             tries: 200,
+            region: None,
         }
     }
 }
@@ -227,10 +231,22 @@ pub fn place_vehicles(
     options: &PlacementOptions,
     rng: &mut StdRng,
 ) -> Vec<PlacedVehicle> {
+    let in_region = |p: Point| {
+        options
+            .region
+            .is_none_or(|(centre, radius_m)| dist(p, centre) <= radius_m)
+    };
+    // Lanelets outside the region weigh nothing.
     let lengths: Vec<f64> = map
         .lanelets
         .iter()
-        .map(|l| polyline_length_m(&l.centre_m))
+        .map(|l| {
+            if l.centre_m.iter().any(|&p| in_region(p)) {
+                polyline_length_m(&l.centre_m)
+            } else {
+                0.0
+            }
+        })
         .collect();
     let total: f64 = lengths.iter().sum();
     let mut placed: Vec<PlacedVehicle> = Vec::with_capacity(count);
@@ -251,7 +267,9 @@ pub fn place_vehicles(
         let at_m = lane_start_m + pick.min(lengths[lane]);
         let (length_m, width_m) = (draw(rng, options.length_m), draw(rng, options.width_m));
         let pose = route.pose_at(at_m);
-        if !has_room(pose, length_m, width_m, &others, options.min_gap_m) {
+        if !in_region([pose.x_m, pose.y_m])
+            || !has_room(pose, length_m, width_m, &others, options.min_gap_m)
+        {
             failures += 1;
             continue;
         }

@@ -17,7 +17,9 @@ pub struct EvalArgs {
     /// `procedural` (`road demo`'s closed loop on the procedural maps over seeds and rotations:
     /// vehicles off road and collisions; no INTERACTION data needed) or `long` (sessions of
     /// `--minutes` on the procedural maps with inflow, every vehicle the model's: counts per
-    /// vehicle-minute).
+    /// vehicle-minute) or `initialisation` (validation scenes repopulated around one fixed
+    /// vehicle by the heuristic placement and by the model's refinement of it, against the log:
+    /// Jensen–Shannon distances of speed, lane offset, heading offset and gap ahead).
     #[arg(long, default_value = "forecasting")]
     pub suite: String,
     /// Checkpoints to evaluate; a constant-velocity baseline is always added.

@@ -5,6 +5,7 @@
 
 mod common;
 mod forecasting;
+mod initialisation;
 mod long;
 mod procedural;
 mod reactivity;
@@ -21,8 +22,12 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         "reactivity" => reactivity::run(args),
         "procedural" => procedural::run(args),
         "long" => long::run(args),
+        "initialisation" => initialisation::run(args),
         other => {
-            bail!("unknown suite `{other}`; available: forecasting, reactivity, procedural, long")
+            bail!(
+                "unknown suite `{other}`; available: forecasting, reactivity, procedural, long, \
+             initialisation"
+            )
         }
     }
 }
