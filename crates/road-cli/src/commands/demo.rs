@@ -118,6 +118,7 @@ pub(crate) fn simulate_procedural(
     steps: usize,
     progress: bool,
     populate: Option<usize>,
+    unrefined: bool,
 ) -> Result<ProceduralRun> {
     let model = &run.model;
     let n = run.planner.obs_slots;
@@ -129,7 +130,7 @@ pub(crate) fn simulate_procedural(
     let mut scene = procedural_turned(map, &window_config, n, rotation_rad)?;
     let mut engine = engines.engine()?;
     if let Some(count) = populate {
-        populate_scene(engine.as_dyn(), run, &mut scene, count, seed)?;
+        populate_scene(engine.as_dyn(), run, &mut scene, count, seed, !unrefined)?;
     }
     let agents = scene.window.agents;
     let mut controllers = vec![Controller::Model; agents];
@@ -189,6 +190,7 @@ pub(crate) fn populate_scene(
     scene: &mut ProceduralScene,
     count: usize,
     seed: u64,
+    refine: bool,
 ) -> Result<()> {
     use road_sim::populate::{
         PlacementOptions, Refinement, footprints, keep_agents, place_vehicles, refine_histories,
@@ -206,6 +208,11 @@ pub(crate) fn populate_scene(
         &mut rng,
     );
     let window = with_vehicles(&ego_only, &placed)?;
+    scene.ego.agent = 0;
+    if !refine {
+        scene.window = window;
+        return Ok(());
+    }
     let mut fixed = vec![false; window.agents];
     fixed[0] = true;
     scene.window = refine_histories(
@@ -217,7 +224,6 @@ pub(crate) fn populate_scene(
         Refinement::for_model(run.train.augmentation_ratio),
         &mut rng,
     )?;
-    scene.ego.agent = 0;
     Ok(())
 }
 
@@ -285,6 +291,7 @@ pub fn run(args: DemoArgs) -> Result<ExitCode> {
         args.steps,
         true,
         args.populate,
+        false,
     )?;
     let agents = scene.window.agents;
 

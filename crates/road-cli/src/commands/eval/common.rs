@@ -89,6 +89,9 @@ pub struct EvalArgs {
     /// refined by the model (`road demo --populate`).
     #[arg(long)]
     pub populate: Option<usize>,
+    /// With `--populate`: the placement as it is, without the model's refinement.
+    #[arg(long, requires = "populate")]
+    pub populate_unrefined: bool,
     /// Long: minutes per session.
     #[arg(long, default_value_t = 10.0)]
     pub minutes: f64,

@@ -193,7 +193,14 @@ fn session(
     let mut scene = procedural(map, &window_config, n)?;
     let mut engine = engines.engine()?;
     if let Some(count) = args.populate {
-        populate_scene(engine.as_dyn(), run, &mut scene, count, seed)?;
+        populate_scene(
+            engine.as_dyn(),
+            run,
+            &mut scene,
+            count,
+            seed,
+            !args.populate_unrefined,
+        )?;
     }
     let agents = scene.window.agents;
     ensure!(

@@ -162,6 +162,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
                         args.procedural_steps,
                         false,
                         args.populate,
+                        args.populate_unrefined,
                     )
                     .with_context(|| {
                         format!(
