@@ -971,11 +971,11 @@ impl<'m> SceneRuntime<'m> {
             // The model drives it on again once it moves at least as fast the same way (within
             // 30°): a model step off the road would only be stopped at the edge again.
             let model_step = proposed - before.position_m();
-            let same_way = model_step.normalize_or_zero().dot(DVec2::from_angle(
-                self.heading_unwrapped[a],
-            )) >= 30f64.to_radians().cos();
-            if (model_speed >= speed && same_way)
-                || self.speed_mps[a] >= release.release_speed_mps
+            let same_way = model_step
+                .normalize_or_zero()
+                .dot(DVec2::from_angle(self.heading_unwrapped[a]))
+                >= 30f64.to_radians().cos();
+            if (model_speed >= speed && same_way) || self.speed_mps[a] >= release.release_speed_mps
             {
                 self.pulling_away[a] = false;
                 self.stalled_ticks[a] = 0;
