@@ -554,6 +554,9 @@ struct Workers {
     calls_alone: usize,
     /// How many calls the next fallback runs alone (doubling while contention persists).
     next_calls_alone: usize,
+    /// Whether contended calls fall back to the calling thread alone
+    /// ([`FastDenoiser::fall_back_when_contended`]); off: every call splits the same way.
+    fallback: bool,
 }
 
 /// Consecutive contended calls ([`Exchange::contended`]) after which the calls run on the
@@ -578,6 +581,7 @@ impl Workers {
             contended_calls: 0,
             calls_alone: 0,
             next_calls_alone: CALLS_ALONE.start,
+            fallback: false,
         }
     }
 }
@@ -631,6 +635,15 @@ impl FastDenoiser {
             threads,
             workers: Mutex::new(Workers::new(threads)),
         })
+    }
+
+    /// Whether calls whose workers keep waiting for each other (a machine busy with other
+    /// work) fall back to the calling thread alone for a while: faster there (one scene's tick
+    /// was measured 1.1–10× slower split), but a call's bits then depend on the machine's load
+    /// (one worker rounds differently from two), so a seed no longer reproduces its samples
+    /// (issue 41). Off unless asked for.
+    pub fn fall_back_when_contended(&self, on: bool) {
+        self.workers.lock().expect("workers lock").fallback = on;
     }
 
     /// The static inputs of `scenes` scenes: `features [B, A, 6]`, the map (scene-frame tokens,
@@ -712,6 +725,7 @@ impl FastDenoiser {
             contended_calls,
             calls_alone,
             next_calls_alone,
+            fallback,
         } = workers;
         own.agents.find(inputs.valid, a, w);
         let agents = &own.agents;
@@ -787,7 +801,7 @@ impl FastDenoiser {
             head[range.clone()].copy_from_slice(&output[..range.len()]);
             spare_outputs.push(output);
         }
-        if count == 1 {
+        if count == 1 || !*fallback {
             return;
         }
         if exchange.contended(started.elapsed()) {

@@ -224,7 +224,7 @@ pub struct CreateScene {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub checkpoint: Option<String>,
     /// Seeds the scene's noise: same request, seed and ego puts, the same NPCs to within about
-    /// 2 mm (a served scene is not reproducible bit for bit; `docs/protocol.md`).
+    /// 2 mm, bit for bit for a scene served alone on the CPU engine (`docs/protocol.md`).
     #[serde(default)]
     pub seed: u64,
     /// The client's id (see [`valid_client_id`]); required (the server refuses a request
