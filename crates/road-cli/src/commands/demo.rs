@@ -76,11 +76,15 @@ pub struct DemoArgs {
     /// ends; 0.5: it crawls), to see the model's vehicles around an ego that holds them up.
     #[arg(long, default_value_t = 1.0, requires = "in_process")]
     pub ego_speed_scale: f64,
-    /// With `--in-process`: instead of the map's scripted vehicles, this many placed on its
-    /// lanes around the ego and refined by the model (`road_sim::populate`; what
-    /// `CreateScene.populate` does for a served scene).
-    #[arg(long, requires = "in_process")]
+    /// Instead of the map's scripted vehicles, this many placed on its lanes around the ego
+    /// and refined by the model (`CreateScene.populate`; `road_sim::populate` in process).
+    #[arg(long)]
     pub populate: Option<usize>,
+    /// Served: vehicles keep entering at each of the map's entry lanes at this rate a minute,
+    /// up to the scene's vehicles at the start (`CreateScene.inflow`), so that a long demo keeps
+    /// its traffic as vehicles leave at the map's ends.
+    #[arg(long, conflicts_with = "in_process")]
+    pub inflow_per_minute: Option<f64>,
     /// The served scene's MCAP recording (Foxglove shows `/map` and `/agents`; `road render`,
     /// `road replay`).
     #[arg(long, default_value = "demo.mcap", conflicts_with = "in_process")]
@@ -255,6 +259,8 @@ pub fn run(args: DemoArgs) -> Result<ExitCode> {
             args.seed,
             &args.mcap,
             &args.gif,
+            args.populate,
+            args.inflow_per_minute,
         );
     }
     let figure = args

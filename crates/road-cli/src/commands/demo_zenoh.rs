@@ -23,6 +23,7 @@ use road_sim::procedural::{ProceduralMap, STEP_SECS, procedural};
 use crate::commands::render::render_gif;
 use crate::recording::Recording;
 
+#[allow(clippy::too_many_arguments)] // the demo's checkpoint, engine, scene, traffic and outputs
 pub fn run(
     checkpoint: &Path,
     engine: road_serve::ServeEngine,
@@ -31,6 +32,8 @@ pub fn run(
     seed: u64,
     mcap_out: &Path,
     gif_out: &Path,
+    populate: Option<usize>,
+    inflow_per_minute: Option<f64>,
 ) -> Result<ExitCode> {
     let name = checkpoint
         .file_name()
@@ -70,10 +73,23 @@ pub fn run(
         "demo-ego",
     )?;
     client.set_timeout(Duration::from_secs(120));
-    let mut scene = client.create(CreateScene::procedural(map.name(), vec![1], seed))?;
     // The same scripted ego as `road demo`: its route through the map at constant speed.
     let procedural_scene = procedural(map, &WindowConfig::default(), 2)?;
-    let vehicles = procedural_scene.routes.len();
+    let mut request = CreateScene::procedural(map.name(), vec![1], seed);
+    request.populate = populate.map(|n| road_client::protocol::Populate {
+        vehicles: Some(u32::try_from(n).unwrap_or(u32::MAX)),
+        vehicles_per_100m: None,
+        refine: true,
+    });
+    // Inflow keeps the scene at its vehicles at the start (the ego and the placed or scripted
+    // ones).
+    let start = populate.map_or(procedural_scene.routes.len(), |n| n + 1);
+    request.inflow = inflow_per_minute.map(|rate| road_client::protocol::Inflow {
+        vehicles_per_minute: rate,
+        max_vehicles: Some(u32::try_from(start).unwrap_or(u32::MAX)),
+    });
+    let mut scene = client.create(request)?;
+    let vehicles = scene.created().agents.len();
     let mut ego = procedural_scene.ego;
     let mut rtt_ms = Vec::with_capacity(steps);
     let mut compute_ms = Vec::with_capacity(steps);
@@ -113,6 +129,12 @@ pub fn run(
             if seen_off.insert(*a) {
                 events.push(format!("tick {t:>3} ({secs:4.1} s): agent {a} off road"));
             }
+        }
+        for a in &npc.entered {
+            events.push(format!(
+                "tick {t:>3} ({secs:4.1} s): agent {} entered the map",
+                a.id
+            ));
         }
         for a in &npc.left {
             events.push(format!(
