@@ -513,6 +513,18 @@ fn window_agents(w: &SceneWindow) -> Vec<AgentInit> {
         .collect()
 }
 
+/// Simulation poses as the protocol's.
+fn protocol_poses(poses: &[SimPose]) -> Vec<Pose> {
+    poses
+        .iter()
+        .map(|p| Pose {
+            x_m: p.x_m,
+            y_m: p.y_m,
+            heading_rad: p.heading_rad,
+        })
+        .collect()
+}
+
 /// Agent `a`'s states in `w`, in metres and radians.
 fn window_history(w: &SceneWindow, a: usize) -> Vec<Pose> {
     (0..w.steps)
@@ -614,15 +626,7 @@ fn populated(
                 id,
                 length_m: v.length_m,
                 width_m: v.width_m,
-                history: v
-                    .history
-                    .iter()
-                    .map(|p| Pose {
-                        x_m: p.x_m,
-                        y_m: p.y_m,
-                        heading_rad: p.heading_rad,
-                    })
-                    .collect(),
+                history: protocol_poses(&v.history),
             }
         })
         .collect())
@@ -1003,15 +1007,7 @@ impl LiveScene {
                 length_m: vehicle.length_m,
                 width_m: vehicle.width_m,
                 external: false,
-                history: vehicle
-                    .history
-                    .iter()
-                    .map(|p| Pose {
-                        x_m: p.x_m,
-                        y_m: p.y_m,
-                        heading_rad: p.heading_rad,
-                    })
-                    .collect(),
+                history: protocol_poses(&vehicle.history),
             };
             self.next_id += 1;
             let pose = *vehicle.history.last().expect("a history has a step");

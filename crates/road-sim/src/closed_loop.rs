@@ -1110,24 +1110,9 @@ pub const EXIT_LATERAL_MARGIN_M: f64 = 2.0;
 /// `None` when no lane within 10 m runs that way.
 fn lane_point_ahead(map: &LaneletMap, at: DVec2, heading: f64, ahead_m: f64) -> Option<DVec2> {
     let forward = DVec2::from_angle(heading);
-    let mut best: Option<(f64, DVec2)> = None;
-    for lane in &map.lanelets {
-        for seg in lane.centre_m.windows(2) {
-            let (p, q) = (DVec2::from(seg[0]), DVec2::from(seg[1]));
-            let d = q - p;
-            let len2 = d.length_squared();
-            if len2 < 1e-12 || d.dot(forward) <= 0.0 {
-                continue;
-            }
-            let t = ((at - p).dot(d) / len2).clamp(0.0, 1.0);
-            let closest = p + d * t;
-            let dist_m = (at - closest).length();
-            if dist_m <= 10.0 && best.is_none_or(|(b, _)| dist_m < b) {
-                best = Some((dist_m, closest + d.normalize() * ahead_m));
-            }
-        }
-    }
-    best.map(|(_, target)| target)
+    crate::initialisation::nearest_centre_where(map, at, |direction| direction.dot(forward) > 0.0)
+        .filter(|&(dist_m, _, _)| dist_m <= 10.0)
+        .map(|(_, closest, direction)| closest + direction * ahead_m)
 }
 
 fn past_lane_end(lane: &road_data::map::Lanelet, at: road_data::geometry::Point) -> bool {

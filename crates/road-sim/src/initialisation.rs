@@ -112,7 +112,17 @@ impl InitFeatures {
 /// The distance from `at` to the nearest lane centre line of `map`, and that line's direction
 /// there (radians); `None` for a map without lanes.
 pub fn nearest_centre(map: &LaneletMap, at: DVec2) -> Option<(f64, f64)> {
-    let mut best: Option<(f64, f64)> = None;
+    nearest_centre_where(map, at, |_| true).map(|(dist, _, direction)| (dist, direction.to_angle()))
+}
+
+/// The point nearest `at` on the centre lines of `map` whose segments `keep` (given a segment's
+/// unit direction): its distance, the point, the segment's unit direction.
+pub fn nearest_centre_where(
+    map: &LaneletMap,
+    at: DVec2,
+    keep: impl Fn(DVec2) -> bool,
+) -> Option<(f64, DVec2, DVec2)> {
+    let mut best: Option<(f64, DVec2, DVec2)> = None;
     for lane in &map.lanelets {
         for seg in lane.centre_m.windows(2) {
             let (p, q) = (DVec2::from(seg[0]), DVec2::from(seg[1]));
@@ -121,10 +131,15 @@ pub fn nearest_centre(map: &LaneletMap, at: DVec2) -> Option<(f64, f64)> {
             if len2 < 1e-12 {
                 continue;
             }
+            let direction = d / len2.sqrt();
+            if !keep(direction) {
+                continue;
+            }
             let t = ((at - p).dot(d) / len2).clamp(0.0, 1.0);
-            let dist = (at - (p + d * t)).length();
-            if best.is_none_or(|(b, _)| dist < b) {
-                best = Some((dist, d.to_angle()));
+            let closest = p + d * t;
+            let dist = (at - closest).length();
+            if best.is_none_or(|(b, _, _)| dist < b) {
+                best = Some((dist, closest, direction));
             }
         }
     }

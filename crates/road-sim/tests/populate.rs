@@ -12,18 +12,30 @@ use road_sim::populate::{
 };
 use road_sim::procedural::{ProceduralMap, procedural};
 
-#[test]
-fn the_model_refines_placed_histories_around_a_fixed_ego() {
+/// The shipped default, and `kind`'s procedural scene windowed for it.
+fn default_model_on(
+    kind: ProceduralMap,
+) -> (
+    road_model::checkpoint::LoadedModel,
+    road_sim::procedural::ProceduralScene,
+) {
     let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../models/road20-wide4");
     let loaded = road_model::checkpoint::load(&dir, &Device::Cpu).unwrap();
     let run = &loaded.meta.run;
-    let n = run.planner.obs_slots;
     let config = WindowConfig {
         position_scale_m: run.model.position_scale_m,
         polyline_points: run.model.polyline_points,
         ..WindowConfig::default()
     };
-    let scene = procedural(ProceduralMap::Roundabout, &config, n).unwrap();
+    let scene = procedural(kind, &config, run.planner.obs_slots).unwrap();
+    (loaded, scene)
+}
+
+#[test]
+fn the_model_refines_placed_histories_around_a_fixed_ego() {
+    let (loaded, scene) = default_model_on(ProceduralMap::Roundabout);
+    let run = &loaded.meta.run;
+    let n = run.planner.obs_slots;
     let ego_only = keep_agents(&scene.window, &[scene.ego.agent]);
     let mut rng = StdRng::seed_from_u64(5);
     let placed = place_vehicles(
@@ -84,16 +96,9 @@ fn inflow_keeps_a_scene_populated_as_vehicles_leave() {
     use road_sim::closed_loop::{ClosedLoop, Controller, SimScene};
     use road_sim::populate::Inflow;
 
-    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../models/road20-wide4");
-    let loaded = road_model::checkpoint::load(&dir, &Device::Cpu).unwrap();
+    let (loaded, scene) = default_model_on(ProceduralMap::Merge);
     let run = &loaded.meta.run;
     let n = run.planner.obs_slots;
-    let config = WindowConfig {
-        position_scale_m: run.model.position_scale_m,
-        polyline_points: run.model.polyline_points,
-        ..WindowConfig::default()
-    };
-    let scene = procedural(ProceduralMap::Merge, &config, n).unwrap();
     let agents = scene.window.agents;
     let mut controllers = vec![Controller::Model; agents];
     // An ego that drives on past the map's end (the scripted one stops there and holds up

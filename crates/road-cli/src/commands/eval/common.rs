@@ -7,6 +7,7 @@ use std::time::Instant;
 
 use clap::Args;
 use road_data::Dataset;
+use road_sim::procedural::ProceduralMap;
 
 use crate::commands::sample::Engine;
 
@@ -98,6 +99,19 @@ pub struct EvalArgs {
     /// Long: vehicles entering per minute at each of the map's entry lanes.
     #[arg(long, default_value_t = 6.0)]
     pub inflow_per_minute: f64,
+}
+
+/// The procedural maps of `--maps` (all of them when none is named).
+pub(crate) fn procedural_maps(args: &EvalArgs) -> anyhow::Result<Vec<ProceduralMap>> {
+    if args.maps.is_empty() {
+        return Ok(ProceduralMap::ALL.to_vec());
+    }
+    args.maps
+        .iter()
+        .map(|name| {
+            crate::commands::demo::parse_map(name).map_err(|e| anyhow::anyhow!("--maps: {e}"))
+        })
+        .collect()
 }
 
 /// The scenes a suite evaluates.

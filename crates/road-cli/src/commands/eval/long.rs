@@ -17,7 +17,7 @@ use road_sim::procedural::{ProceduralMap, procedural};
 use road_sim::session::{LONG_STOP_SECS, SessionStats};
 use serde::Serialize;
 
-use super::common::EvalArgs;
+use super::common::{EvalArgs, procedural_maps};
 use crate::commands::demo::populate_scene;
 use crate::commands::engine::{EngineChoice, Engines};
 
@@ -73,16 +73,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         "--inflow-per-minute must be 0 or more, got {}",
         args.inflow_per_minute
     );
-    let maps: Vec<ProceduralMap> = if args.maps.is_empty() {
-        ProceduralMap::ALL.to_vec()
-    } else {
-        args.maps
-            .iter()
-            .map(|name| {
-                crate::commands::demo::parse_map(name).map_err(|e| anyhow::anyhow!("--maps: {e}"))
-            })
-            .collect::<Result<_>>()?
-    };
+    let maps = procedural_maps(&args)?;
     let ticks = (args.minutes * 600.0).round() as usize;
     let choice: EngineChoice = args.engine.into();
     eprintln!(

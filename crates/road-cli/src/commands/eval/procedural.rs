@@ -15,10 +15,9 @@ use road_sim::kinematics::{
     YAW_MIN_SPEED_MPS,
 };
 use road_sim::metrics::{BOOTSTRAP_RESAMPLES, Estimate, bootstrap_ratio};
-use road_sim::procedural::ProceduralMap;
 use serde::Serialize;
 
-use super::common::{EvalArgs, progress};
+use super::common::{EvalArgs, procedural_maps, progress};
 use crate::commands::demo::{ProceduralRun, simulate_procedural};
 use crate::commands::engine::{EngineChoice, Engines};
 
@@ -114,16 +113,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
             "--rotations-deg: {r} is not a finite angle in degrees"
         );
     }
-    let maps: Vec<ProceduralMap> = if args.maps.is_empty() {
-        ProceduralMap::ALL.to_vec()
-    } else {
-        args.maps
-            .iter()
-            .map(|name| {
-                crate::commands::demo::parse_map(name).map_err(|e| anyhow::anyhow!("--maps: {e}"))
-            })
-            .collect::<Result<_>>()?
-    };
+    let maps = procedural_maps(&args)?;
     let choice: EngineChoice = args.engine.into();
     eprintln!(
         "procedural suite: maps {}, {} seeds × rotations {:?}°, {} steps, the ego at {} × its route's speed",
