@@ -292,14 +292,9 @@ def to_device(batch: dict[str, np.ndarray], device: torch.device) -> dict[str, T
 # --------------------------------------------------------------------------------------------
 
 
-def edm_error_sum(model: td.Denoiser, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
-    """The squared error summed over valid agent-slots, written on F (no cancellation of
-    D − x0 at small σ), and the number of values summed (3 per valid agent-slot).
-
-    Without a reference: `λ(σ)·|D − x0|² = |F − (x0 − c_skip·x)/c_out|²`. With a
-    constant-velocity reference (coefficients at σ·s): `λ(σ)·(c_out'/s)²·|F − (s·(x0 − r) −
-    c_skip'·y)/c_out'|²`."""
-    out = model.forward_parts(
+def forward_parts_of(model: td.Denoiser, batch: dict[str, Tensor]):
+    """The denoiser's parts (`Denoiser.forward_parts`) on a batch's inputs."""
+    return model.forward_parts(
         batch["x_noisy"],
         batch["sigma"],
         batch["valid"],
@@ -307,7 +302,16 @@ def edm_error_sum(model: td.Denoiser, batch: dict[str, Tensor]) -> tuple[Tensor,
         batch["map"],
         batch["map_valid"],
     )
-    return error_sum_of(model.config, batch, out)
+
+
+def edm_error_sum(model: td.Denoiser, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
+    """The squared error summed over valid agent-slots, written on F (no cancellation of
+    D − x0 at small σ), and the number of values summed (3 per valid agent-slot).
+
+    Without a reference: `λ(σ)·|D − x0|² = |F − (x0 − c_skip·x)/c_out|²`. With a
+    constant-velocity reference (coefficients at σ·s): `λ(σ)·(c_out'/s)²·|F − (s·(x0 − r) −
+    c_skip'·y)/c_out'|²`."""
+    return error_sum_of(model.config, batch, forward_parts_of(model, batch))
 
 
 def error_sum_of(
@@ -350,14 +354,7 @@ def mixed_batch_loss(
     if dtype is None:
         return batch_loss(model, batch)
     with torch.autocast(device_type=batch["x0"].device.type, dtype=dtype):
-        out = model.forward_parts(
-            batch["x_noisy"],
-            batch["sigma"],
-            batch["valid"],
-            batch["agent_features"],
-            batch["map"],
-            batch["map_valid"],
-        )
+        out = forward_parts_of(model, batch)
     error_sum, count = error_sum_of(model.config, batch, out)
     return error_sum / count.clamp(min=1.0)
 

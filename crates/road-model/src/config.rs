@@ -132,6 +132,16 @@ impl Default for ModelConfig {
 }
 
 impl ModelConfig {
+    /// How scenes are windowed for this model (its position scale and polyline points; the
+    /// rest as the data pipeline's default): what a closed loop on a built scene needs.
+    pub fn window_config(&self) -> road_data::WindowConfig {
+        road_data::WindowConfig {
+            position_scale_m: self.position_scale_m,
+            polyline_points: self.polyline_points,
+            ..road_data::WindowConfig::default()
+        }
+    }
+
     pub fn validate(&self) -> std::result::Result<(), String> {
         if self.hidden == 0 || self.heads == 0 || !self.hidden.is_multiple_of(self.heads) {
             return Err(format!(

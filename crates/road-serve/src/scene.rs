@@ -274,11 +274,7 @@ pub fn setup(req: &CreateScene, ctx: &mut SetupContext<'_>) -> Result<SceneSetup
     }
     let n = planner.obs_slots;
     let mc = &model.meta.run.model;
-    let window_config = WindowConfig {
-        position_scale_m: mc.position_scale_m,
-        polyline_points: mc.polyline_points,
-        ..WindowConfig::default()
-    };
+    let window_config = mc.window_config();
 
     // The map, and the procedural map's own vehicles.
     let (map, builtin): (Option<Arc<LaneletMap>>, Option<Vec<AgentInit>>) = match &req.map {
@@ -990,10 +986,10 @@ impl LiveScene {
     /// pool's scene at a retired agent's index or a new one, with a new id. An arrival that
     /// finds the scene at its agent limit is dropped (logged).
     fn admit_arrivals(&mut self, pool: &mut Pool) -> crate::Result<()> {
-        let (Some(inflow), Some(map)) = (self.inflow.as_mut(), self.map.as_deref()) else {
+        let Some(inflow) = self.inflow.as_mut() else {
             return Ok(());
         };
-        let arrivals = inflow.arrivals(map, &pool.footprints(self.slot)?, self.observed);
+        let arrivals = inflow.arrivals(&pool.footprints(self.slot)?, self.observed);
         for vehicle in arrivals {
             let index = match pool.add_agent(self.slot, &vehicle) {
                 Ok(index) => index,

@@ -234,17 +234,6 @@ impl std::fmt::Debug for ClosedLoop<'_> {
     }
 }
 
-fn pose_of(window: &SceneWindow, agent: usize, step: usize) -> Option<Pose> {
-    window.state(agent, step).map(|s| {
-        let p = window.frame.to_metres([s[0], s[1]]);
-        Pose {
-            x_m: p[0],
-            y_m: p[1],
-            heading_rad: f64::from(s[2]),
-        }
-    })
-}
-
 fn boxes(window: &SceneWindow, poses: &[Pose]) -> Vec<Option<OrientedBox>> {
     poses
         .iter()
@@ -285,7 +274,7 @@ fn start_poses(scene: &SimScene, min_observed: usize) -> Result<Vec<Pose>> {
     let reference = scene.observed_steps - 1;
     (0..w.agents)
         .map(|a| {
-            pose_of(w, a, reference).ok_or_else(|| {
+            crate::window_pose(w, a, reference).ok_or_else(|| {
                 Error::Config(format!(
                     "{}: agent {a} (track {}) is absent at the last observed step",
                     label(),
@@ -444,6 +433,17 @@ impl<'m> ClosedLoop<'m> {
         self.driver.planner()
     }
 
+    /// Scene `scene`'s runtime, borrowed from `scenes` alone (the driver stays free to use).
+    fn runtime_mut<'s>(
+        scenes: &'s mut [Option<SceneRuntime<'m>>],
+        scene: usize,
+    ) -> Result<&'s mut SceneRuntime<'m>> {
+        scenes
+            .get_mut(scene)
+            .and_then(Option::as_mut)
+            .ok_or_else(|| Error::Config(format!("no scene {scene} in the simulation")))
+    }
+
     fn runtime(&self, scene: usize) -> Result<&SceneRuntime<'m>> {
         self.scenes
             .get(scene)
@@ -462,11 +462,7 @@ impl<'m> ClosedLoop<'m> {
     pub fn begin_tick(&mut self, scene: usize, external: &mut dyn ExternalDriver) -> Result<()> {
         let tick = self.driver.scene_ticks(scene);
         let heading_scale = self.heading_scale;
-        let s = self
-            .scenes
-            .get_mut(scene)
-            .and_then(Option::as_mut)
-            .ok_or_else(|| Error::Config(format!("no scene {scene} in the simulation")))?;
+        let s = Self::runtime_mut(&mut self.scenes, scene)?;
         if tick >= s.steps {
             return Err(Error::Config(format!(
                 "scene {scene}: the simulation was built for {} steps",
@@ -581,11 +577,7 @@ impl<'m> ClosedLoop<'m> {
         vehicle: &crate::populate::PlacedVehicle,
     ) -> Result<usize> {
         let heading_scale = self.heading_scale;
-        let s = self
-            .scenes
-            .get_mut(scene)
-            .and_then(Option::as_mut)
-            .ok_or_else(|| Error::Config(format!("no scene {scene} in the simulation")))?;
+        let s = Self::runtime_mut(&mut self.scenes, scene)?;
         let mut previous: Option<f64> = None;
         let history: Vec<[f32; 3]> = vehicle
             .history
@@ -744,12 +736,15 @@ impl<'m> SceneRuntime<'m> {
         let agents = w.agents;
         // Each agent's speed over its last observed step.
         let speed_mps = (0..agents)
-            .map(
-                |a| match (pose_of(w, a, reference.saturating_sub(1)), reference) {
+            .map(|a| {
+                match (
+                    crate::window_pose(w, a, reference.saturating_sub(1)),
+                    reference,
+                ) {
                     (Some(p), 1..) => (poses[a].position_m() - p.position_m()).length() / STEP_SECS,
                     _ => 0.0,
-                },
-            )
+                }
+            })
             .collect();
         Ok((
             input,
@@ -1192,10 +1187,10 @@ fn script(
     steps: usize,
     controller: Controller,
 ) -> Vec<Pose> {
-    let last = pose_of(w, a, reference).expect("checked present at the reference step");
+    let last = crate::window_pose(w, a, reference).expect("checked present at the reference step");
     let previous = reference
         .checked_sub(1)
-        .and_then(|t| pose_of(w, a, t))
+        .and_then(|t| crate::window_pose(w, a, t))
         .unwrap_or(last);
     match controller {
         Controller::Model | Controller::External => Vec::new(),
@@ -1204,7 +1199,7 @@ fn script(
             let mut out = Vec::with_capacity(steps);
             let (mut prev, mut cur) = (previous, last);
             for t in 1..=steps {
-                let next = pose_of(w, a, reference + t).unwrap_or_else(|| {
+                let next = crate::window_pose(w, a, reference + t).unwrap_or_else(|| {
                     // The log ends (or the agent left): carry on at constant velocity.
                     constant_velocity(prev, cur, 1)[0]
                 });
@@ -1215,7 +1210,7 @@ fn script(
         }
         Controller::Adversarial => {
             let logged: Vec<Pose> = (reference..w.steps)
-                .map_while(|t| pose_of(w, a, t))
+                .map_while(|t| crate::window_pose(w, a, t))
                 .collect();
             slowed_replay(&logged, steps)
         }
@@ -1227,7 +1222,9 @@ fn script(
 pub fn pick_adversary(w: &SceneWindow, reference: usize) -> Option<usize> {
     let mut best: Option<(usize, f64)> = None;
     for a in 0..w.agents {
-        let path: Option<Vec<Pose>> = (reference..w.steps).map(|t| pose_of(w, a, t)).collect();
+        let path: Option<Vec<Pose>> = (reference..w.steps)
+            .map(|t| crate::window_pose(w, a, t))
+            .collect();
         let Some(path) = path else { continue };
         let length: f64 = path.windows(2).map(|p| p[0].distance_m(p[1])).sum();
         if length > 1.0 && best.is_none_or(|(_, l)| length > l) {

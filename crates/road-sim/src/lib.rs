@@ -45,5 +45,18 @@ pub enum Error {
 pub type Result<T, E = Error> = std::result::Result<T, E>;
 
 pub use road_planner::Pose;
+
+/// Agent `agent`'s pose at step `step` of `window` in metres and radians (as the window holds
+/// its heading); `None` where it is absent.
+pub fn window_pose(window: &road_data::SceneWindow, agent: usize, step: usize) -> Option<Pose> {
+    window.state(agent, step).map(|s| {
+        let p = window.frame.to_metres([s[0], s[1]]);
+        Pose {
+            x_m: p[0],
+            y_m: p[1],
+            heading_rad: f64::from(s[2]),
+        }
+    })
+}
 /// Oriented boxes (`road_planner::geometry`), re-exported for the simulation's users.
 pub use road_planner::geometry;

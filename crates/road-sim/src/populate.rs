@@ -305,6 +305,20 @@ pub fn spawn_at_entry(
         return None;
     }
     let (route, lane_start_m) = route_into(map, &predecessors(map), lane);
+    spawn_on(&route, lane_start_m, lane, occupied, steps, options, rng)
+}
+
+/// [`spawn_at_entry`] on lane `lane`'s route into the map (`route`, the lane starting at
+/// `lane_start_m` along it).
+fn spawn_on(
+    route: &Route,
+    lane_start_m: f64,
+    lane: usize,
+    occupied: &[Footprint],
+    steps: usize,
+    options: &PlacementOptions,
+    rng: &mut StdRng,
+) -> Option<PlacedVehicle> {
     let (length_m, width_m) = (draw(rng, options.length_m), draw(rng, options.width_m));
     // The front bumper at the lane's start.
     let at_m = lane_start_m + 0.5 * length_m;
@@ -314,7 +328,7 @@ pub fn spawn_at_entry(
     }
     let speed_mps = draw(rng, options.speed_mps);
     Some(PlacedVehicle {
-        history: history_along(&route, at_m, speed_mps, steps),
+        history: history_along(route, at_m, speed_mps, steps),
         length_m,
         width_m,
         lanelet: lane,
@@ -385,14 +399,8 @@ pub fn with_vehicles(window: &SceneWindow, vehicles: &[PlacedVehicle]) -> Result
 pub fn footprints(window: &SceneWindow) -> Vec<Footprint> {
     (0..window.agents)
         .filter_map(|a| {
-            let s = window.state(a, window.steps - 1)?;
-            let p = window.frame.to_metres([s[0], s[1]]);
             Some(Footprint {
-                pose: Pose {
-                    x_m: p[0],
-                    y_m: p[1],
-                    heading_rad: f64::from(s[2]),
-                },
+                pose: crate::window_pose(window, a, window.steps - 1)?,
                 length_m: f64::from(window.length_m[a]),
                 width_m: f64::from(window.width_m[a]),
             })
@@ -409,6 +417,8 @@ pub fn footprints(window: &SceneWindow) -> Vec<Footprint> {
 pub struct Inflow {
     per_tick: f64,
     entries: Vec<usize>,
+    /// Each entry's route into the map and where its lane starts along it (made once).
+    routes: Vec<(Route, f64)>,
     waiting: Vec<bool>,
     options: PlacementOptions,
     rng: StdRng,
@@ -420,9 +430,14 @@ impl Inflow {
     pub fn new(map: &LaneletMap, vehicles_per_minute: f64, seed: u64) -> Self {
         use rand::SeedableRng;
         let entries = entry_lanelets(map);
+        let preds = predecessors(map);
         Self {
             per_tick: (vehicles_per_minute * STEP_SECS / 60.0).clamp(0.0, 1.0),
             waiting: vec![false; entries.len()],
+            routes: entries
+                .iter()
+                .map(|&lane| route_into(map, &preds, lane))
+                .collect(),
             entries,
             options: PlacementOptions::default(),
             rng: StdRng::seed_from_u64(seed),
@@ -443,15 +458,13 @@ impl Inflow {
     }
 
     /// The vehicles entering this tick, clear of `occupied` and of each other, with histories
-    /// of `steps` poses.
-    pub fn arrivals(
-        &mut self,
-        map: &LaneletMap,
-        occupied: &[Footprint],
-        steps: usize,
-    ) -> Vec<PlacedVehicle> {
+    /// of `steps` poses (≥ 1).
+    pub fn arrivals(&mut self, occupied: &[Footprint], steps: usize) -> Vec<PlacedVehicle> {
         let mut others = occupied.to_vec();
         let mut out = Vec::new();
+        if steps == 0 {
+            return out;
+        }
         for (k, &lane) in self.entries.iter().enumerate() {
             if !self.waiting[k] && self.rng.random_bool(self.per_tick) {
                 self.waiting[k] = true;
@@ -459,8 +472,17 @@ impl Inflow {
             if !self.waiting[k] || self.max_vehicles.is_some_and(|m| others.len() >= m) {
                 continue;
             }
-            if let Some(v) = spawn_at_entry(map, lane, &others, steps, &self.options, &mut self.rng)
-            {
+            let (route, lane_start_m) = &self.routes[k];
+            let spawned = spawn_on(
+                route,
+                *lane_start_m,
+                lane,
+                &others,
+                steps,
+                &self.options,
+                &mut self.rng,
+            );
+            if let Some(v) = spawned {
                 self.waiting[k] = false;
                 others.push(v.footprint());
                 out.push(v);

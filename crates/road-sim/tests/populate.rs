@@ -5,7 +5,6 @@ use candle_core::Device;
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 use road_cpu::FastCpuEngine;
-use road_data::WindowConfig;
 use road_sim::populate::{
     PlacementOptions, Refinement, footprints, keep_agents, place_vehicles, refine_histories,
     with_vehicles,
@@ -22,12 +21,7 @@ fn default_model_on(
     let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../models/road20-wide4");
     let loaded = road_model::checkpoint::load(&dir, &Device::Cpu).unwrap();
     let run = &loaded.meta.run;
-    let config = WindowConfig {
-        position_scale_m: run.model.position_scale_m,
-        polyline_points: run.model.polyline_points,
-        ..WindowConfig::default()
-    };
-    let scene = procedural(kind, &config, run.planner.obs_slots).unwrap();
+    let scene = procedural(kind, &run.model.window_config(), run.planner.obs_slots).unwrap();
     (loaded, scene)
 }
 
@@ -130,7 +124,7 @@ fn inflow_keeps_a_scene_populated_as_vehicles_leave() {
     let mut out = Vec::new();
     for _ in 0..steps {
         let footprints = sim.footprints(id).unwrap();
-        for v in inflow.arrivals(&scene.map, &footprints, n) {
+        for v in inflow.arrivals(&footprints, n) {
             match sim.add_agent(&mut engine, id, &v) {
                 Ok(a) => {
                     entered += 1;

@@ -13,7 +13,6 @@ use std::time::Instant;
 use anyhow::{Context, Result};
 use clap::Args;
 use rand::SeedableRng;
-use road_data::WindowConfig;
 use road_model::config::RunConfig;
 use road_sim::closed_loop::{ClosedLoop, Controller, SceneTick, SimScene};
 use road_sim::geometry::OrientedBox;
@@ -126,11 +125,7 @@ pub(crate) fn simulate_procedural(
 ) -> Result<ProceduralRun> {
     let model = &run.model;
     let n = run.planner.obs_slots;
-    let window_config = WindowConfig {
-        position_scale_m: model.position_scale_m,
-        polyline_points: model.polyline_points,
-        ..WindowConfig::default()
-    };
+    let window_config = model.window_config();
     let mut scene = procedural_turned(map, &window_config, n, rotation_rad)?;
     let mut engine = engines.engine()?;
     if let Some(count) = populate {
@@ -186,7 +181,7 @@ pub(crate) fn simulate_procedural(
 }
 
 /// `scene`'s scripted vehicles replaced by `count` placed around its ego and refined by the
-/// model on `engine` (`road_sim::populate`); the ego becomes agent 0. Placement and refinement
+/// model on `engine` (`road_sim::populate`); the ego becomes agent 0 and keeps the only route. Placement and refinement
 /// draw from `seed`'s stream 1.
 pub(crate) fn populate_scene(
     engine: &mut dyn road_rollout::StepEngine,
@@ -212,6 +207,8 @@ pub(crate) fn populate_scene(
         &mut rng,
     );
     let window = with_vehicles(&ego_only, &placed)?;
+    // Only the ego keeps a scripted route: the placed vehicles have none.
+    scene.routes = vec![scene.routes[scene.ego.agent].clone()];
     scene.ego.agent = 0;
     if !refine {
         scene.window = window;

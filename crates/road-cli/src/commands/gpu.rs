@@ -118,11 +118,7 @@ fn whole_denoiser(
     let config = &loaded.meta.run.model;
     let gpu = road_gpu::engine::GpuDenoiser::from_checkpoint(ctx, dir)
         .with_context(|| format!("cannot load {} on the adapter", dir.display()))?;
-    let window = road_data::WindowConfig {
-        position_scale_m: config.position_scale_m,
-        polyline_points: config.polyline_points,
-        ..road_data::WindowConfig::default()
-    };
+    let window = config.window_config();
     let w = config.window_slots;
     let scenes = ProceduralMap::ALL
         .iter()

@@ -15,7 +15,6 @@ use anyhow::{Context, Result};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use road_data::{AgentType, SceneWindow, Split, WindowConfig};
-use road_sim::Pose;
 use road_sim::initialisation::{
     Bins, GAP_BINS, HEADING_OFFSET_BINS, InitFeatures, InitialVehicle, LANE_OFFSET_BINS,
     SPEED_BINS, js_distance,
@@ -60,16 +59,7 @@ fn vehicles_at(w: &SceneWindow, step: usize) -> Vec<(usize, InitialVehicle)> {
     (0..w.agents)
         .filter(|&a| matches!(w.agent_types[a], AgentType::Car | AgentType::Truck))
         .filter_map(|a| {
-            let pose = |t: usize| {
-                w.state(a, t).map(|s| {
-                    let p = w.frame.to_metres([s[0], s[1]]);
-                    Pose {
-                        x_m: p[0],
-                        y_m: p[1],
-                        heading_rad: f64::from(s[2]),
-                    }
-                })
-            };
+            let pose = |t: usize| road_sim::window_pose(w, a, t);
             Some((
                 a,
                 InitialVehicle {

@@ -9,7 +9,6 @@ use std::process::ExitCode;
 use std::time::Instant;
 
 use anyhow::{Context, Result, ensure};
-use road_data::WindowConfig;
 use road_sim::closed_loop::{ClosedLoop, Controller, NoExternal, SceneMap, SimScene};
 use road_sim::metrics::{Estimate, bootstrap_ratio};
 use road_sim::populate::Inflow;
@@ -176,11 +175,7 @@ fn session(
 ) -> Result<(usize, SessionStats)> {
     let model = &run.model;
     let n = run.planner.obs_slots;
-    let window_config = WindowConfig {
-        position_scale_m: model.position_scale_m,
-        polyline_points: model.polyline_points,
-        ..WindowConfig::default()
-    };
+    let window_config = model.window_config();
     let mut scene = procedural(map, &window_config, n)?;
     let mut engine = engines.engine()?;
     if let Some(count) = args.populate {
@@ -226,7 +221,7 @@ fn session(
     for _ in 0..ticks {
         if let Some(inflow) = inflow.as_mut() {
             let footprints = sim.footprints(id)?;
-            for vehicle in inflow.arrivals(&scene.map, &footprints, n) {
+            for vehicle in inflow.arrivals(&footprints, n) {
                 // A full scene drops the arrival, as a served one does.
                 if let Ok(agent) = sim.add_agent(engine.as_dyn(), id, &vehicle) {
                     stats.entered(agent);
