@@ -638,6 +638,7 @@ fn fast_engine_rollouts_with_least_jerk_tracking_match_candle() {
             max_acceleration_mps2,
             max_slip_deg: None,
             max_course_offset_deg: None,
+            min_turn_radius_m: None,
         })
     };
     let scenes = scenes(&c, 3);

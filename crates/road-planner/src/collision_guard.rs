@@ -47,6 +47,10 @@ pub struct GuardAgent {
     pub length_m: f64,
     pub width_m: f64,
     pub movable: bool,
+    /// Whether it brakes ahead of predicted collisions with other model-driven agents (the
+    /// anticipation); false for an agent that breaks a deadlock
+    /// (`CollisionGuard::release_deadlock_after_secs`): only the no-overlap rule holds it then.
+    pub anticipates_model_agents: bool,
 }
 
 /// What a guard did to one agent this tick (the collision guard's actions, and the lane
@@ -66,6 +70,8 @@ pub enum GuardAction {
     StoppedAtRoadEdge,
     /// Stall release: pulled away after standing still with free road ahead.
     PulledAway,
+    /// Deadlock release: backed off from a vehicle it was locked with, which has the way.
+    BackedOff,
 }
 
 /// Applies the guard to `agents` in place (their `proposed` poses); returns what it did, per
@@ -78,6 +84,7 @@ pub fn guard_step(
         horizon_steps,
         brake_mps2,
         yield_to_unreactive,
+        ..
     } = *settings;
     let n = agents.len();
     let box_at = |a: &GuardAgent, pose: Pose| OrientedBox {
@@ -108,6 +115,9 @@ pub fn guard_step(
                     return false;
                 }
                 let (b, step_b) = (&agents[j], step(&agents[j]));
+                if b.movable && !a.anticipates_model_agents {
+                    return false;
+                }
                 let towards = position(b.proposed) - position(a.proposed);
                 // Too far apart to meet within the horizon: no box test needed.
                 let travel = horizon_steps as f64 * (step_a.length() + step_b.length());
@@ -256,6 +266,7 @@ mod tests {
             length_m: 4.0,
             width_m: 2.0,
             movable,
+            anticipates_model_agents: true,
         }
     }
 
@@ -264,6 +275,7 @@ mod tests {
             horizon_steps,
             brake_mps2: 6.0,
             yield_to_unreactive,
+            release_deadlock_after_secs: None,
         }
     }
 
@@ -283,6 +295,7 @@ mod tests {
             length_m: 4.6,
             width_m: 1.9,
             movable: false,
+            anticipates_model_agents: true,
         };
         [model, ego]
     }

@@ -70,6 +70,7 @@ pub fn keep_on_road(
     before: Pose,
     proposed: &mut Pose,
     lookahead_m: f64,
+    keep_off_opposing_lanes: bool,
 ) -> Option<LaneAction> {
     let from = DVec2::new(before.x_m, before.y_m);
     let to = DVec2::new(proposed.x_m, proposed.y_m);
@@ -82,7 +83,7 @@ pub fn keep_on_road(
         // A standing vehicle's jitter says nothing of its way, but it may not carry it off the
         // road a few centimetres a tick either (issue 39: a vehicle held up beside the ego
         // crept onto the median): it stays where it is.
-        if on_road(map, to) {
+        if on_road(map, to) || leaves_through_an_open_end(map, from, to) {
             return None;
         }
         proposed.x_m = before.x_m;
@@ -97,7 +98,7 @@ pub fn keep_on_road(
         // On the road but on no lane that runs its way (across or against its lane): no lane
         // to steer back into, and no right to leave the road either (issue 41 saw one cross a
         // roundabout's median and drive on over the fields): it stops at the edge.
-        if on_road(map, to) {
+        if on_road(map, to) || leaves_through_an_open_end(map, from, to) {
             return None;
         }
         let stopped = stop_at_edge(from, to, direction, |p, _| on_road(map, p));
@@ -108,7 +109,10 @@ pub fn keep_on_road(
     // A slow vehicle's step is mostly position noise: its direction says nothing of its way.
     let directed = step_m >= DIRECTED_STEP_M;
     let stays_on_its_way = |p: DVec2, direction: DVec2| {
-        on_road(map, p) && !(directed && against_a_merging_lane(map, lanelet, p, direction))
+        on_road(map, p)
+            && !(directed
+                && (against_a_merging_lane(map, lanelet, p, direction)
+                    || (keep_off_opposing_lanes && onto_an_opposing_lane(map, p, direction))))
     };
     if stays_on_its_way(to, direction) {
         return None;
@@ -173,6 +177,7 @@ pub fn nudge_towards_lane(
     proposed: &mut Pose,
     lookahead_m: f64,
     anticipation: LaneAnticipation,
+    keep_off_opposing_lanes: bool,
 ) -> bool {
     let from = DVec2::new(before.x_m, before.y_m);
     let to = DVec2::new(proposed.x_m, proposed.y_m);
@@ -189,8 +194,11 @@ pub fn nudge_towards_lane(
     let Some((lanelet, along_m)) = lane_under(map, from, direction) else {
         return false;
     };
-    let stays_on_its_way =
-        |p: DVec2| on_road(map, p) && !against_a_merging_lane(map, lanelet, p, direction);
+    let stays_on_its_way = |p: DVec2| {
+        on_road(map, p)
+            && !against_a_merging_lane(map, lanelet, p, direction)
+            && !(keep_off_opposing_lanes && onto_an_opposing_lane(map, p, direction))
+    };
     if !stays_on_its_way(to) {
         return false;
     }
@@ -232,6 +240,28 @@ fn drives_off_the_map(map: &LaneletMap, lanelet: usize, p: DVec2) -> bool {
         && project_on_polyline(centre, p).0 >= polyline_length_m(centre) - END_TOLERANCE_M
 }
 
+/// Whether `to`, off the road, lies past an open end of a lanelet under `from`: the end of one
+/// without successors or the start of one without predecessors (the map's edge, whichever
+/// way the lanelet runs). A vehicle there leaves the mapped area, whatever its lane: held at
+/// the edge it would stand there for good (issue 39: a vehicle that drifted onto the opposite
+/// lane near the map's end stood at its edge for the rest of a long session).
+pub fn leaves_through_an_open_end(map: &LaneletMap, from: DVec2, to: DVec2) -> bool {
+    map.lanelets.iter().enumerate().any(|(i, l)| {
+        if l.centre_m.len() < 2 || !l.contains([from.x, from.y]) {
+            return false;
+        }
+        let along_m = project_on_polyline(&l.centre_m, to).0;
+        let open_end =
+            l.successors.is_empty() && along_m >= polyline_length_m(&l.centre_m) - END_TOLERANCE_M;
+        let open_start = along_m <= END_TOLERANCE_M
+            && !map
+                .lanelets
+                .iter()
+                .any(|other| other.successors.contains(&(i as u32)));
+        open_end || open_start
+    })
+}
+
 fn on_road(map: &LaneletMap, p: DVec2) -> bool {
     map.lanelet_at([p.x, p.y]).is_some()
 }
@@ -263,6 +293,24 @@ fn against_a_merging_lane(map: &LaneletMap, lane: usize, p: DVec2, direction: DV
     });
     on_against && lane_under(map, p, direction).is_none()
 }
+
+/// Whether `p` lies on a lanelet running against `direction` (more than
+/// [`OPPOSING_MIN_ANGLE_DEG`] off it) and on none running its way (within 90°): a step onto
+/// the opposite carriageway, as when a vehicle leaves a roundabout through the entry beside
+/// its exit on a map whose merging-lane rule ([`against_a_merging_lane`]) does not see it
+/// (issue 39). Crossing lanes, at right angles, do not count.
+fn onto_an_opposing_lane(map: &LaneletMap, p: DVec2, direction: DVec2) -> bool {
+    let opposing_cos = OPPOSING_MIN_ANGLE_DEG.to_radians().cos();
+    let on_opposing = map.lanelets.iter().any(|l| {
+        l.centre_m.len() >= 2
+            && l.contains([p.x, p.y])
+            && project_on_polyline(&l.centre_m, p).1.dot(direction) < opposing_cos
+    });
+    on_opposing && lane_under(map, p, direction).is_none()
+}
+
+/// The least angle between a step and a lanelet's way for [`onto_an_opposing_lane`], degrees.
+const OPPOSING_MIN_ANGLE_DEG: f64 = 135.0;
 
 /// The agent's lane: of the lanelets under `from`, the one whose centre line runs most nearly
 /// along `direction` (none when every one runs against it), with `from`'s arc length along it.
@@ -398,6 +446,7 @@ fn unwrap_near(angle: f64, reference: f64) -> f64 {
 mod tests {
     use super::*;
     use road_data::geometry::Aabb;
+    use std::f64::consts::{FRAC_PI_2, PI};
 
     /// A straight lanelet along +x from `x0` to `x1`, 4 m wide (y in [−2, 2]).
     fn straight(id: i64, x0: f64, x1: f64) -> Lanelet {
@@ -469,18 +518,18 @@ mod tests {
     fn a_creeping_vehicle_stays_on_the_road() {
         let before = pose(10.0, 1.98, 0.0);
         let mut creeping = pose(10.01, 2.02, 0.0);
-        let action = keep_on_road(&road(), before, &mut creeping, 6.0);
+        let action = keep_on_road(&road(), before, &mut creeping, 6.0, false);
         assert_eq!(action, Some(LaneAction::StoppedAtEdge));
         assert_eq!((creeping.x_m, creeping.y_m), (10.0, 1.98));
         let mut jitter = pose(10.01, 1.97, 0.0);
-        assert_eq!(keep_on_road(&road(), before, &mut jitter, 6.0), None);
+        assert_eq!(keep_on_road(&road(), before, &mut jitter, 6.0, false), None);
         assert_eq!(jitter, pose(10.01, 1.97, 0.0));
     }
 
     #[test]
     fn a_step_that_stays_on_road_is_left_alone() {
         let mut proposed = pose(11.0, 1.0, 0.1);
-        let action = keep_on_road(&road(), pose(10.0, 0.5, 0.0), &mut proposed, 6.0);
+        let action = keep_on_road(&road(), pose(10.0, 0.5, 0.0), &mut proposed, 6.0, false);
         assert_eq!(action, None);
         assert_eq!(proposed, pose(11.0, 1.0, 0.1));
     }
@@ -490,7 +539,7 @@ mod tests {
         let before = pose(10.0, 1.6, 0.0);
         // 1 m at 45° to the left: ends at y = 2.3, off the 4 m wide road.
         let mut proposed = pose(10.0 + 0.5f64.sqrt(), 1.6 + 0.5f64.sqrt(), 0.785);
-        let action = keep_on_road(&road(), before, &mut proposed, 6.0);
+        let action = keep_on_road(&road(), before, &mut proposed, 6.0, false);
         assert_eq!(action, Some(LaneAction::Steered));
         let step = DVec2::new(proposed.x_m - before.x_m, proposed.y_m - before.y_m);
         assert!((step.length() - 1.0).abs() < 1e-9, "speed kept: {step}");
@@ -518,7 +567,8 @@ mod tests {
             before,
             &mut proposed,
             6.0,
-            ANTICIPATION
+            ANTICIPATION,
+            false
         ));
         let step = DVec2::new(proposed.x_m - before.x_m, proposed.y_m - before.y_m);
         assert!((step.length() - 1.0).abs() < 1e-9, "speed kept: {step}");
@@ -535,7 +585,8 @@ mod tests {
             pose(10.0, 0.0, 0.0),
             &mut along,
             6.0,
-            ANTICIPATION
+            ANTICIPATION,
+            false
         ));
         assert_eq!(along, pose(11.0, 0.0, 0.0));
         // Near the end of the last lanelet (x = 40), which has no successor: out of the map.
@@ -546,7 +597,8 @@ mod tests {
             before,
             &mut leaving_the_map,
             6.0,
-            ANTICIPATION
+            ANTICIPATION,
+            false
         ));
         // Slow (position noise) and backwards steps.
         let mut slow = pose(10.1, 1.9, 0.5);
@@ -555,7 +607,8 @@ mod tests {
             pose(10.0, 1.85, 0.5),
             &mut slow,
             6.0,
-            ANTICIPATION
+            ANTICIPATION,
+            false
         ));
         let mut backwards = pose(9.0, 1.9, 0.0);
         assert!(!nudge_towards_lane(
@@ -563,7 +616,8 @@ mod tests {
             pose(10.0, 1.8, 0.0),
             &mut backwards,
             6.0,
-            ANTICIPATION
+            ANTICIPATION,
+            false
         ));
     }
 
@@ -571,7 +625,7 @@ mod tests {
     fn the_look_ahead_follows_the_successor() {
         let before = pose(18.0, 1.9, 0.0);
         let mut proposed = pose(19.0, 2.4, 0.46);
-        let action = keep_on_road(&road(), before, &mut proposed, 6.0);
+        let action = keep_on_road(&road(), before, &mut proposed, 6.0, false);
         assert_eq!(action, Some(LaneAction::Steered));
         // The target (24, 0) lies on the successor.
         let step = DVec2::new(proposed.x_m - before.x_m, proposed.y_m - before.y_m);
@@ -621,7 +675,7 @@ mod tests {
         // runs down and to the right there: about 120° against the step.
         let mut proposed = pose(13.3, 2.45, 1.26);
         assert!(map.lanelet_at([proposed.x_m, proposed.y_m]).is_some());
-        let action = keep_on_road(&map, before, &mut proposed, 6.0);
+        let action = keep_on_road(&map, before, &mut proposed, 6.0, false);
         assert_eq!(action, Some(LaneAction::Steered));
         // Towards the centre line 6 m ahead, (19, 0), at the same speed.
         let step = DVec2::new(proposed.x_m - before.x_m, proposed.y_m - before.y_m);
@@ -644,7 +698,7 @@ mod tests {
         assert!(map.lanelets[0].contains([before.x_m, before.y_m]));
         assert!(!map.lanelets[0].contains([proposed.x_m, proposed.y_m]));
         assert!(map.lanelets[2].contains([proposed.x_m, proposed.y_m]));
-        assert_eq!(keep_on_road(&map, before, &mut proposed, 6.0), None);
+        assert_eq!(keep_on_road(&map, before, &mut proposed, 6.0, false), None);
         assert_eq!(proposed, unchanged);
     }
 
@@ -658,10 +712,60 @@ mod tests {
         let mut proposed = pose(10.0 + 0.5f64.sqrt(), 1.6 + 0.5f64.sqrt(), 0.785);
         let unchanged = proposed;
         assert_eq!(
-            keep_on_road(&map, pose(10.0, 1.6, 0.0), &mut proposed, 6.0),
+            keep_on_road(&map, pose(10.0, 1.6, 0.0), &mut proposed, 6.0, false),
             None
         );
         assert_eq!(proposed, unchanged);
+    }
+
+    #[test]
+    fn a_step_onto_the_opposite_carriageway_is_steered_back_when_asked() {
+        // From near the left edge of the +x lane, 0.46 rad to the left: the step ends on the
+        // −x lane (154° against it) and on no lane running its way.
+        let map = two_way_road();
+        let before = pose(10.0, 1.8, 0.46);
+        let stepping = pose(11.0, 2.3, 0.46);
+        let mut proposed = stepping;
+        assert_eq!(keep_on_road(&map, before, &mut proposed, 6.0, false), None);
+        assert_eq!(proposed, stepping);
+        let action = keep_on_road(&map, before, &mut proposed, 6.0, true);
+        assert_eq!(action, Some(LaneAction::Steered));
+        assert!(proposed.y_m < 2.0, "kept to its side: {proposed:?}");
+        // A step that stays on its own lane is left alone either way.
+        let mut along = pose(11.0, 1.9, 0.1);
+        assert_eq!(
+            keep_on_road(&map, pose(10.0, 1.8, 0.1), &mut along, 6.0, true),
+            None
+        );
+    }
+
+    #[test]
+    fn a_vehicle_may_leave_through_the_start_of_a_lane_with_no_predecessor() {
+        // Facing −x at the start of the first lanelet (x = 0, nothing leads into it): the map's
+        // edge. Driving or creeping out is leaving the map, not leaving the road.
+        let mut driving = pose(-0.5, 0.0, PI);
+        assert_eq!(
+            keep_on_road(&road(), pose(0.5, 0.0, PI), &mut driving, 6.0, false),
+            None
+        );
+        assert_eq!(driving, pose(-0.5, 0.0, PI));
+        let mut creeping = pose(-0.02, 0.0, PI);
+        assert_eq!(
+            keep_on_road(&road(), pose(0.02, 0.0, PI), &mut creeping, 6.0, false),
+            None
+        );
+        // Over a side edge, the same step is stopped.
+        let mut sideways = pose(5.0, 2.02, FRAC_PI_2);
+        assert_eq!(
+            keep_on_road(
+                &road(),
+                pose(5.0, 1.98, FRAC_PI_2),
+                &mut sideways,
+                6.0,
+                false
+            ),
+            Some(LaneAction::StoppedAtEdge)
+        );
     }
 
     #[test]
@@ -670,14 +774,14 @@ mod tests {
         // Driving down the side road (heading −y at x = 12), drifting within it: left alone.
         let before = pose(12.0, 8.0, -std::f64::consts::FRAC_PI_2);
         let mut proposed = pose(12.3, 7.0, -1.3);
-        assert_eq!(keep_on_road(&map, before, &mut proposed, 6.0), None);
+        assert_eq!(keep_on_road(&map, before, &mut proposed, 6.0, false), None);
         assert_eq!(proposed, pose(12.3, 7.0, -1.3));
     }
 
     #[test]
     fn an_agent_already_off_road_is_left_alone() {
         let mut proposed = pose(11.0, 4.0, 0.0);
-        let action = keep_on_road(&road(), pose(10.0, 3.0, 0.0), &mut proposed, 6.0);
+        let action = keep_on_road(&road(), pose(10.0, 3.0, 0.0), &mut proposed, 6.0, false);
         assert_eq!(action, None);
         assert_eq!(proposed, pose(11.0, 4.0, 0.0));
     }
@@ -687,7 +791,7 @@ mod tests {
         // Heading −x on a lanelet that runs +x, stepping off the road's side.
         let before = pose(10.0, 1.6, std::f64::consts::PI);
         let mut proposed = pose(9.3, 2.3, std::f64::consts::PI - 0.785);
-        let action = keep_on_road(&road(), before, &mut proposed, 6.0);
+        let action = keep_on_road(&road(), before, &mut proposed, 6.0, false);
         assert_eq!(action, Some(LaneAction::StoppedAtEdge));
         assert!(road().lanelet_at([proposed.x_m, proposed.y_m]).is_some());
         assert!(
@@ -696,7 +800,10 @@ mod tests {
         );
         // On the road it is left alone.
         let mut staying = pose(9.0, 1.0, std::f64::consts::PI);
-        assert_eq!(keep_on_road(&road(), before, &mut staying, 6.0), None);
+        assert_eq!(
+            keep_on_road(&road(), before, &mut staying, 6.0, false),
+            None
+        );
         assert_eq!(staying, pose(9.0, 1.0, std::f64::consts::PI));
     }
 
@@ -705,7 +812,10 @@ mod tests {
         // The second lanelet has no successor: its end is the end of the mapped area.
         let before = pose(39.5, 0.0, 0.0);
         let mut proposed = pose(40.5, 0.3, 0.3);
-        assert_eq!(keep_on_road(&road(), before, &mut proposed, 6.0), None);
+        assert_eq!(
+            keep_on_road(&road(), before, &mut proposed, 6.0, false),
+            None
+        );
         assert_eq!(proposed, pose(40.5, 0.3, 0.3));
     }
 
@@ -715,7 +825,7 @@ mod tests {
         // towards it, the step crosses the 4 m wide road and leaves it on the other side.
         let before = pose(10.0, 1.9, 1.2);
         let mut proposed = pose(10.0 + 6.0 * 1.2f64.cos(), 1.9 + 6.0 * 1.2f64.sin(), 1.2);
-        let action = keep_on_road(&road(), before, &mut proposed, 0.5);
+        let action = keep_on_road(&road(), before, &mut proposed, 0.5, false);
         assert_eq!(action, Some(LaneAction::StoppedAtEdge));
         assert!(road().lanelet_at([proposed.x_m, proposed.y_m]).is_some());
     }
@@ -724,7 +834,7 @@ mod tests {
     fn headings_stay_unwrapped_near_the_agent_s() {
         let before = pose(10.0, 1.6, 4.0 * std::f64::consts::PI);
         let mut proposed = pose(10.7, 2.3, 4.0 * std::f64::consts::PI + 0.785);
-        keep_on_road(&road(), before, &mut proposed, 6.0);
+        keep_on_road(&road(), before, &mut proposed, 6.0, false);
         assert!((proposed.heading_rad - 4.0 * std::f64::consts::PI).abs() < 0.5);
     }
 }

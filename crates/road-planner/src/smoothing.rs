@@ -270,6 +270,34 @@ pub fn align_heading_to_course(
     }
 }
 
+/// Turns each agent's emitted heading from its newest history heading by at most its step's
+/// length over `min_radius` (position units): a car turns no tighter than its turning circle,
+/// and a standing one not at all. Agents without a valid newest history state keep the
+/// model's heading. `emitted` is `[agents, 3]`, headings in `heading_scale` units per radian
+/// (unwrapped: the history's and the emitted heading differ by the turn itself).
+pub fn limit_turn_to_radius(
+    history: &[Vec<[f32; 3]>],
+    history_valid: &[Vec<bool>],
+    emitted: &mut [f32],
+    heading_scale: f64,
+    min_radius: f64,
+) {
+    for (a, state) in emitted.chunks_exact_mut(3).enumerate() {
+        let (Some(p0), Some(true)) = (history[a].last(), history_valid[a].last()) else {
+            continue;
+        };
+        let step =
+            (f64::from(state[0]) - f64::from(p0[0])).hypot(f64::from(state[1]) - f64::from(p0[1]));
+        let max_turn_rad = step / min_radius;
+        let from_rad = f64::from(p0[2]) / heading_scale;
+        let turn_rad = f64::from(state[2]) / heading_scale - from_rad;
+        if turn_rad.abs() > max_turn_rad {
+            state[2] =
+                ((from_rad + turn_rad.clamp(-max_turn_rad, max_turn_rad)) * heading_scale) as f32;
+        }
+    }
+}
+
 /// The longest tracked path: the emitted position and `MAX_JERK_TRACKING_AHEAD` planned slots.
 const MAX_PATH: usize = MAX_JERK_TRACKING_AHEAD + 1;
 
@@ -362,6 +390,25 @@ mod tests {
     use std::f32::consts::FRAC_1_SQRT_2;
 
     use super::*;
+
+    #[test]
+    fn turns_stay_within_the_turning_circle() {
+        // Heading scale 2 units per radian, positions in metres, radius 5 m.
+        let history = vec![vec![[0.0, 0.0, 0.0]]; 3];
+        let valid = vec![vec![true]; 3];
+        let mut emitted = vec![
+            // Standing, turned 1 rad: held at 0.
+            0.0, 0.0, 2.0, //
+            // 1 m step, turned −0.5 rad: at most 0.2 rad (−0.4 units).
+            1.0, 0.0, -1.0, //
+            // 1 m step, turned 0.1 rad: within the circle, unchanged.
+            1.0, 0.0, 0.2,
+        ];
+        limit_turn_to_radius(&history, &valid, &mut emitted, 2.0, 5.0);
+        assert_eq!(emitted[2], 0.0);
+        assert!((emitted[5] + 0.4).abs() < 1e-6, "{}", emitted[5]);
+        assert_eq!(emitted[8], 0.2);
+    }
 
     #[test]
     fn headings_turn_towards_the_course_of_fast_steps_only() {
@@ -697,6 +744,7 @@ mod tests {
             max_acceleration_mps2: None,
             max_slip_deg: None,
             max_course_offset_deg: None,
+            min_turn_radius_m: None,
         };
         assert!((tracking.jerk_weight(0.1) - 100.0).abs() < 1e-9);
     }

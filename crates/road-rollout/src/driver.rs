@@ -23,7 +23,8 @@ use road_sched::{
 use road_model::batch::{AGENT_FEATURES, normal_vec};
 use road_model::{Error, Result};
 use road_planner::smoothing::{
-    align_heading_to_course, smooth_accelerations, smooth_with_plan, track_least_jerk,
+    align_heading_to_course, limit_turn_to_radius, smooth_accelerations, smooth_with_plan,
+    track_least_jerk,
 };
 
 use crate::engine::{Rollout, RolloutScene, StepEngine};
@@ -1005,6 +1006,17 @@ impl RolloutDriver {
                         scale,
                         min_step,
                         offset_deg.to_radians(),
+                    );
+                }
+                if let (Some(radius_m), Some(scale), Some(scale_m)) =
+                    (tracking.min_turn_radius_m, heading_scale, position_scale_m)
+                {
+                    limit_turn_to_radius(
+                        &s.history,
+                        &s.history_valid,
+                        &mut emitted,
+                        scale,
+                        radius_m / scale_m,
                     );
                 }
             }

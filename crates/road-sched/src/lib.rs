@@ -12,10 +12,10 @@ pub mod scheduler;
 
 pub use edm::{EdmSchedule, Preconditioning};
 pub use plan::{
-    COURSE_MIN_SPEED_MPS, CollisionGuard, JerkTracking, LaneAnticipation, LaneGuard,
-    MAX_GUARD_HORIZON_STEPS, MAX_JERK_TRACKING_AHEAD, MAX_LANE_GUARD_LOOKAHEAD_M,
-    MAX_PLAN_SMOOTHING_STEPS, PlannerKind, PlannerSpec, PlannerTables, Sampler, StageKind,
-    StageTable, StallRelease, StepPlan, TickProgram, WindowUpdate,
+    COURSE_MIN_SPEED_MPS, CollisionGuard, DEADLOCK_RELEASE_HOLD_SECS, JerkTracking,
+    LaneAnticipation, LaneGuard, MAX_GUARD_HORIZON_STEPS, MAX_JERK_TRACKING_AHEAD,
+    MAX_LANE_GUARD_LOOKAHEAD_M, MAX_PLAN_SMOOTHING_STEPS, PlannerKind, PlannerSpec, PlannerTables,
+    Sampler, StageKind, StageTable, StallRelease, StepPlan, TickProgram, WindowUpdate,
 };
 pub use scheduler::{PlannerId, SceneId, SceneSpec, SceneStats, Scheduler, TickOutcome, WorkItem};
 

@@ -160,6 +160,13 @@ pub struct JerkTracking {
     /// box then moves sideways. Absent: the model's heading stands.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub max_course_offset_deg: Option<f64>,
+    /// A vehicle turns no tighter than a circle of this radius (metres): its emitted heading
+    /// turns from its last one by at most the step's length over the radius, as a car's does,
+    /// and a standing car not at all. The model may rotate a slow vehicle's heading by any angle,
+    /// which in long sessions turned vehicles across or against their lanes where the guards
+    /// then held them. Absent: unbounded.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub min_turn_radius_m: Option<f64>,
 }
 
 /// The speed from which `JerkTracking::max_course_offset_deg` holds (m/s): the one from which
@@ -193,7 +200,18 @@ pub struct CollisionGuard {
     /// keeps it clear over the horizon. Off: only the agent closing in brakes.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub yield_to_unreactive: bool,
+    /// A model-driven agent the guard has held (braked or stopped short) for this long, seconds,
+    /// stops braking for other model-driven agents for the next
+    /// [`DEADLOCK_RELEASE_HOLD_SECS`]: only the no-overlap rule holds it then. Two vehicles that
+    /// brake for each other (each predicted to run into the other) otherwise wait for good
+    /// (issue 39's deadlocks on the intersection). Absent: never.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub release_deadlock_after_secs: Option<f64>,
 }
+
+/// How long an agent that breaks a deadlock (`CollisionGuard::release_deadlock_after_secs`)
+/// goes on without braking for other model-driven agents, seconds.
+pub const DEADLOCK_RELEASE_HOLD_SECS: f64 = 5.0;
 
 /// The lane guard's settings: a model-driven agent whose step would take it off every lanelet
 /// steers towards the point `lookahead_m` ahead on its lane's centre line, at the model's speed,
@@ -215,6 +233,13 @@ pub struct LaneGuard {
     /// it. Off unless set.
     #[serde(default)]
     pub anticipation: Option<LaneAnticipation>,
+    /// A step (of 2 m/s or more) onto a lanelet running against it, more than 135° off, and
+    /// onto none running its way is treated as leaving the road: steered back to its lane, or
+    /// stopped short. Without it the model could take a roundabout's exit through the entry
+    /// beside it and stand there, against the lane, for good (issue 39's long sessions). Off
+    /// unless set.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub keep_off_opposing_lanes: bool,
 }
 
 /// The lane guard's nudges ahead of the road's edge ([`LaneGuard::anticipation`]).
@@ -368,6 +393,13 @@ impl PlannerSpec {
                     ));
                 }
             }
+            if let Some(radius) = tracking.min_turn_radius_m {
+                if !(radius.is_finite() && radius > 0.0 && radius <= 50.0) {
+                    return bad(format!(
+                        "jerk_tracking.min_turn_radius_m must be above 0 and at most 50 metres, got {radius}"
+                    ));
+                }
+            }
             if tracking.ahead > MAX_JERK_TRACKING_AHEAD.min(self.future_slots) {
                 return bad(format!(
                     "jerk_tracking.ahead must be 0 to {} slots, got {}",
@@ -413,6 +445,13 @@ impl PlannerSpec {
                     MAX_GUARD_HORIZON_STEPS / 10,
                     guard.horizon_steps
                 ));
+            }
+            if let Some(secs) = guard.release_deadlock_after_secs {
+                if !(secs.is_finite() && secs > 0.0 && secs <= 600.0) {
+                    return bad(format!(
+                        "collision_guard.release_deadlock_after_secs must be above 0 and at most 600 seconds, got {secs}"
+                    ));
+                }
             }
         }
         if let Some(anticipation) = self.lane_guard.and_then(|g| g.anticipation) {

@@ -439,6 +439,7 @@ fn jerk_tracking_options_are_checked() {
             max_acceleration_mps2: Some(6.0),
             max_slip_deg: Some(5.0),
             max_course_offset_deg: None,
+            min_turn_radius_m: None,
         }),
         ..spec(PlannerKind::Rolling, 10, 5, 40, None)
     };
@@ -460,6 +461,7 @@ fn jerk_tracking_options_are_checked() {
             max_acceleration_mps2: Some(0.0),
             max_slip_deg: None,
             max_course_offset_deg: None,
+            min_turn_radius_m: None,
         }),
         ..spec(PlannerKind::Rolling, 10, 5, 40, None)
     };
@@ -478,6 +480,7 @@ fn jerk_tracking_options_are_checked() {
                 max_acceleration_mps2: None,
                 max_slip_deg: Some(slip),
                 max_course_offset_deg: None,
+                min_turn_radius_m: None,
             }),
             ..spec(PlannerKind::Rolling, 10, 5, 40, None)
         };
@@ -485,6 +488,52 @@ fn jerk_tracking_options_are_checked() {
         assert!(
             message.contains("jerk_tracking.max_slip_deg must be 0 to below 90 degrees"),
             "{slip}: {message}"
+        );
+    }
+}
+
+/// The turning circle and the deadlock release take physical values at their bounds and refuse
+/// the rest by name.
+#[test]
+fn turning_circle_and_deadlock_release_are_checked() {
+    let turning = |radius: f64| PlannerSpec {
+        jerk_tracking: Some(road_sched::JerkTracking {
+            jerk_cost_m: 0.01,
+            ahead: 2,
+            max_acceleration_mps2: None,
+            max_slip_deg: None,
+            max_course_offset_deg: None,
+            min_turn_radius_m: Some(radius),
+        }),
+        ..spec(PlannerKind::Rolling, 10, 5, 40, None)
+    };
+    for radius in [0.1, 4.0, 50.0] {
+        assert!(turning(radius).validate("p").is_ok(), "{radius}");
+    }
+    for radius in [0.0, -1.0, 50.1, f64::NAN, f64::INFINITY] {
+        let message = turning(radius).validate("p").unwrap_err().to_string();
+        assert!(
+            message.contains("jerk_tracking.min_turn_radius_m must be above 0 and at most 50"),
+            "{radius}: {message}"
+        );
+    }
+    let deadlock = |secs: f64| PlannerSpec {
+        collision_guard: Some(road_sched::CollisionGuard {
+            horizon_steps: 10,
+            brake_mps2: 6.0,
+            yield_to_unreactive: true,
+            release_deadlock_after_secs: Some(secs),
+        }),
+        ..spec(PlannerKind::Rolling, 10, 5, 40, None)
+    };
+    for secs in [0.1, 5.0, 600.0] {
+        assert!(deadlock(secs).validate("p").is_ok(), "{secs}");
+    }
+    for secs in [0.0, -5.0, 600.5, f64::NAN] {
+        let message = deadlock(secs).validate("p").unwrap_err().to_string();
+        assert!(
+            message.contains("collision_guard.release_deadlock_after_secs must be above 0"),
+            "{secs}: {message}"
         );
     }
 }
@@ -501,6 +550,7 @@ fn lane_guard_anticipation_outside_its_bounds_is_refused() {
                 steps,
                 max_turn_rad_per_m,
             }),
+            keep_off_opposing_lanes: false,
         }),
         ..spec(PlannerKind::Rolling, 10, 5, 40, None)
     };

@@ -117,6 +117,8 @@ pub struct GuardCounts {
     pub stopped_at_road_edge: usize,
     /// The stall release pulled a vehicle away (agent-ticks).
     pub pulled_away: usize,
+    /// The deadlock release backed a vehicle off (agent-ticks).
+    pub backed_off: usize,
 }
 
 impl std::ops::AddAssign for GuardCounts {
@@ -127,6 +129,7 @@ impl std::ops::AddAssign for GuardCounts {
         self.nudged_towards_lane += other.nudged_towards_lane;
         self.stopped_at_road_edge += other.stopped_at_road_edge;
         self.pulled_away += other.pulled_away;
+        self.backed_off += other.backed_off;
     }
 }
 
@@ -141,6 +144,7 @@ pub fn guard_actions(ticks: &[SceneTick]) -> GuardCounts {
             GuardAction::NudgedTowardsLane => counts.nudged_towards_lane += 1,
             GuardAction::StoppedAtRoadEdge => counts.stopped_at_road_edge += 1,
             GuardAction::PulledAway => counts.pulled_away += 1,
+            GuardAction::BackedOff => counts.backed_off += 1,
         }
     }
     counts
@@ -200,11 +204,29 @@ struct SceneRuntime<'m> {
     /// The lanelet each agent was last on (a map exit is the end of a lanelet without
     /// successors).
     last_lanelet: Vec<Option<usize>>,
-    /// The stall release's memory per agent: ticks stood still with free road ahead, whether
-    /// it is pulling away, its speed over the last tick (m/s).
-    stalled_ticks: Vec<u32>,
-    pulling_away: Vec<bool>,
+    /// What the stall release and the deadlock release remember of each agent.
+    held: Vec<HeldMemory>,
+    /// Each agent's speed over the last tick (m/s).
     speed_mps: Vec<f64>,
+}
+
+/// What the stall release ([`StallRelease`]) and the collision guard's deadlock release
+/// (`CollisionGuard::release_deadlock_after_secs`) remember of one agent.
+#[derive(Debug, Clone, Copy, Default)]
+struct HeldMemory {
+    /// Ticks stood still with free road ahead.
+    stalled_ticks: u32,
+    /// Whether the stall release is pulling it away.
+    pulling_away: bool,
+    /// Consecutive ticks the collision guard braked it or stopped it short.
+    guard_held_ticks: u32,
+    /// Ticks left in which it does not brake for other model-driven agents (it breaks a
+    /// deadlock).
+    breaking_deadlock_ticks: u32,
+    /// Consecutive ticks the collision guard held it (braked or stopped short), for backing off.
+    held_streak_ticks: u32,
+    /// Ticks left in which it backs off (it gives way in a deadlock).
+    backing_off_ticks: u32,
 }
 
 /// Simulates many scenes on one engine: in lockstep with one planner ([`ClosedLoop::new`],
@@ -620,8 +642,7 @@ impl<'m> ClosedLoop<'m> {
             s.initially_on_road.push(true);
             s.retired.push(false);
             s.last_lanelet.push(None);
-            s.stalled_ticks.push(0);
-            s.pulling_away.push(false);
+            s.held.push(HeldMemory::default());
             s.speed_mps.push(vehicle.speed_mps);
         } else {
             // A retired agent's place: its log is not this vehicle's.
@@ -639,8 +660,7 @@ impl<'m> ClosedLoop<'m> {
             s.initially_on_road[agent] = true;
             s.retired[agent] = false;
             s.last_lanelet[agent] = None;
-            s.stalled_ticks[agent] = 0;
-            s.pulling_away[agent] = false;
+            s.held[agent] = HeldMemory::default();
             s.speed_mps[agent] = vehicle.speed_mps;
         }
         Ok(agent)
@@ -762,8 +782,7 @@ impl<'m> SceneRuntime<'m> {
                 retired: vec![false; agents],
                 left: Vec::new(),
                 last_lanelet: vec![None; agents],
-                stalled_ticks: vec![0; agents],
-                pulling_away: vec![false; agents],
+                held: vec![HeldMemory::default(); agents],
                 speed_mps,
                 map,
                 steps,
@@ -804,6 +823,7 @@ impl<'m> SceneRuntime<'m> {
         if let Some(release) = stall_release {
             self.release_stalls(emitted, heading_scale, release);
         }
+        self.back_off(emitted, heading_scale);
         if let (Some(guard), Some(map)) = (lane_guard, self.map.clone()) {
             self.keep_on_road(emitted, plan_turns, heading_scale, guard, map.get());
         }
@@ -831,9 +851,10 @@ impl<'m> SceneRuntime<'m> {
         }
     }
 
-    /// Marks the agents (not the client's) that have just driven past the end of a lane with no
-    /// successor: off every lanelet, ahead of that lane's last centre-line point and within
-    /// [`EXIT_LATERAL_MARGIN_M`] of the lane's width sideways.
+    /// Marks the agents (not the client's) that have just driven out of the map through an
+    /// open end of the lanelet they were last on: off every lanelet, ahead of the end of a lane
+    /// with no successor (or behind the start of one with no predecessor, a vehicle that drifted
+    /// onto the opposite lane) and within [`EXIT_LATERAL_MARGIN_M`] of the lane's width sideways.
     fn retire_exits(&mut self, map: &LaneletMap) {
         for a in 0..self.poses.len() {
             if self.retired[a] || self.controllers[a] == Controller::External {
@@ -847,7 +868,13 @@ impl<'m> SceneRuntime<'m> {
             let Some(lane) = self.last_lanelet[a].map(|l| &map.lanelets[l]) else {
                 continue;
             };
-            if lane.successors.is_empty() && past_lane_end(lane, at) {
+            let last = self.last_lanelet[a].expect("set above") as u32;
+            let open_start = || !map.lanelets.iter().any(|l| l.successors.contains(&last));
+            if (lane.successors.is_empty()
+                && past_lane_end(&lane.centre_m, lane_end_width(lane, true), at))
+                || (open_start()
+                    && past_lane_end(&reversed(&lane.centre_m), lane_end_width(lane, false), at))
+            {
                 self.retired[a] = true;
                 self.left.push(a);
             }
@@ -886,7 +913,13 @@ impl<'m> SceneRuntime<'m> {
                 heading_rad: f64::from(emitted[3 * a + 2]) / heading_scale,
             };
             let model_step = DVec2::new(proposed.x_m - before.x_m, proposed.y_m - before.y_m);
-            let action = match keep_on_road(map, before, &mut proposed, guard.lookahead_m) {
+            let action = match keep_on_road(
+                map,
+                before,
+                &mut proposed,
+                guard.lookahead_m,
+                guard.keep_off_opposing_lanes,
+            ) {
                 Some(LaneAction::Steered) => GuardAction::SteeredToLane,
                 Some(LaneAction::StoppedAtEdge) => GuardAction::StoppedAtRoadEdge,
                 None => match guard.anticipation {
@@ -897,6 +930,7 @@ impl<'m> SceneRuntime<'m> {
                             &mut proposed,
                             guard.lookahead_m,
                             anticipation,
+                            guard.keep_off_opposing_lanes,
                         ) =>
                     {
                         GuardAction::NudgedTowardsLane
@@ -930,8 +964,6 @@ impl<'m> SceneRuntime<'m> {
         }
     }
 
-    /// Runs the collision guard on this tick's states (model units, overrides in): poses
-    /// before the tick are `self.poses` (headings unwrapped), after it `emitted`.
     /// The stall release ([`StallRelease`]): model-driven agents that stood still with free
     /// road ahead for its time pull away along their heading; their emitted states change.
     fn release_stalls(&mut self, emitted: &mut [f32], heading_scale: f64, release: StallRelease) {
@@ -948,18 +980,22 @@ impl<'m> SceneRuntime<'m> {
             let proposed = DVec2::from(frame.to_metres([emitted[3 * a], emitted[3 * a + 1]]));
             let model_speed = (proposed - before.position_m()).length() / STEP_SECS;
             if !crate::free_road::road_ahead_free(a, &self.poses, &present) {
-                self.stalled_ticks[a] = 0;
-                self.pulling_away[a] = false;
+                self.held[a].stalled_ticks = 0;
+                self.held[a].pulling_away = false;
                 continue;
             }
-            if !self.pulling_away[a] {
+            if !self.held[a].pulling_away {
                 let still = self.speed_mps[a] < crate::free_road::STOPPED_MAX_SPEED_MPS
                     && model_speed < crate::free_road::STOPPED_MAX_SPEED_MPS;
-                self.stalled_ticks[a] = if still { self.stalled_ticks[a] + 1 } else { 0 };
-                if self.stalled_ticks[a] < after_ticks {
+                self.held[a].stalled_ticks = if still {
+                    self.held[a].stalled_ticks + 1
+                } else {
+                    0
+                };
+                if self.held[a].stalled_ticks < after_ticks {
                     continue;
                 }
-                self.pulling_away[a] = true;
+                self.held[a].pulling_away = true;
             }
             let speed = (self.speed_mps[a] + release.acceleration_mps2 * STEP_SECS)
                 .min(release.release_speed_mps);
@@ -972,22 +1008,48 @@ impl<'m> SceneRuntime<'m> {
                 >= 30f64.to_radians().cos();
             if (model_speed >= speed && same_way) || self.speed_mps[a] >= release.release_speed_mps
             {
-                self.pulling_away[a] = false;
-                self.stalled_ticks[a] = 0;
+                self.held[a].pulling_away = false;
+                self.held[a].stalled_ticks = 0;
                 continue;
             }
-            // Along its heading, turned (at most 0.1 rad a tick) towards a point 6 m ahead on
-            // the nearest lane running its way: a vehicle held at the road's edge gets back.
-            let mut heading = self.heading_unwrapped[a];
-            if let Some(map) = &self.map {
-                if let Some(target) = lane_point_ahead(map.get(), before.position_m(), heading, 6.0)
-                {
-                    let wanted = (target - before.position_m()).to_angle();
-                    let turn = f64::from(wrap_angle((wanted - heading) as f32));
-                    heading += turn.clamp(-0.1, 0.1);
-                }
+            // Along its heading, turned towards a point 6 m ahead on its lane (the nearest lane
+            // running its way): a vehicle held at the road's edge gets back. It turns about its
+            // rear axle no tighter than `RELEASE_TURN_RADIUS_M`, as a car does: turned in place
+            // about its centre, its tail swung into a neighbour beside it and the collision
+            // guard held it there. Only where that step would leave the road (a vehicle at the
+            // edge, pointing off it; one already off drives on towards its lane) does it turn
+            // in place, by up to `RELEASE_TURN_IN_PLACE_RAD` a tick, as a car would by backing
+            // and filling.
+            let heading_before = self.heading_unwrapped[a];
+            let target = self.map.as_ref().and_then(|map| {
+                lane_point_ahead(map.get(), before.position_m(), heading_before, 6.0)
+            });
+            let turn = target.map_or(0.0, |target| {
+                let wanted = (target - before.position_m()).to_angle();
+                f64::from(wrap_angle((wanted - heading_before) as f32))
+            });
+            let rear_axle_m = REAR_AXLE_SHARE_OF_LENGTH * f64::from(self.window.length_m[a]);
+            let rear_axle = before.position_m() - DVec2::from_angle(heading_before) * rear_axle_m;
+            // Straight on at first: a tail swung out from standstill caught a neighbour beside it.
+            let max_turn = if speed < RELEASE_STRAIGHT_BELOW_MPS {
+                0.0
+            } else {
+                speed * STEP_SECS / RELEASE_TURN_RADIUS_M
+            };
+            let mut heading = heading_before + turn.clamp(-max_turn, max_turn);
+            let mut to = rear_axle
+                + DVec2::from_angle(heading_before) * speed * STEP_SECS
+                + DVec2::from_angle(heading) * rear_axle_m;
+            let leaves_road = self.map.as_ref().is_some_and(|map| {
+                let map = map.get();
+                map.lanelet_at(before.position_m().into()).is_some()
+                    && map.lanelet_at(to.into()).is_none()
+            });
+            if leaves_road {
+                heading = heading_before
+                    + turn.clamp(-RELEASE_TURN_IN_PLACE_RAD, RELEASE_TURN_IN_PLACE_RAD);
+                to = rear_axle + DVec2::from_angle(heading) * rear_axle_m;
             }
-            let to = before.position_m() + DVec2::from_angle(heading) * speed * STEP_SECS;
             let xy = frame.to_norm(to.into());
             emitted[3 * a..3 * a + 3].copy_from_slice(&[
                 xy[0],
@@ -998,6 +1060,8 @@ impl<'m> SceneRuntime<'m> {
         }
     }
 
+    /// Runs the collision guard on this tick's states (model units, overrides in): poses
+    /// before the tick are `self.poses` (headings unwrapped), after it `emitted`.
     fn guard(&mut self, emitted: &mut [f32], heading_scale: f64, guard: CollisionGuard) {
         let frame = &self.window.frame;
         // Retired agents are out of the scene: nobody brakes for them.
@@ -1022,6 +1086,7 @@ impl<'m> SceneRuntime<'m> {
                     width_m: f64::from(self.window.width_m[a]),
                     movable: self.controllers[a] == Controller::Model
                         && self.overrides[a].is_none(),
+                    anticipates_model_agents: self.held[a].breaking_deadlock_ticks == 0,
                 }
             })
             .collect();
@@ -1041,7 +1106,102 @@ impl<'m> SceneRuntime<'m> {
                 (p.heading_rad * heading_scale) as f32,
             ]);
         }
-        self.guarded.extend(collision_actions);
+        self.guarded.extend(collision_actions.iter().copied());
+        if let Some(after_secs) = guard.release_deadlock_after_secs {
+            let after_ticks = (after_secs / STEP_SECS).round() as u32;
+            let hold_ticks = (road_sched::DEADLOCK_RELEASE_HOLD_SECS / STEP_SECS).round() as u32;
+            for &a in &present {
+                let memory = &mut self.held[a];
+                if memory.breaking_deadlock_ticks > 0 {
+                    memory.breaking_deadlock_ticks -= 1;
+                    continue;
+                }
+                let held = collision_actions.iter().any(|&(b, _)| b == a);
+                memory.guard_held_ticks = if held { memory.guard_held_ticks + 1 } else { 0 };
+                if memory.guard_held_ticks >= after_ticks {
+                    memory.guard_held_ticks = 0;
+                    memory.breaking_deadlock_ticks = hold_ticks;
+                }
+            }
+            self.choose_who_backs_off(&present, &agents, &collision_actions, after_ticks);
+        }
+    }
+
+    /// The deadlock release's second step: a vehicle held by the guard for `after_ticks` and
+    /// now stopped short while it touches a vehicle of lower index that the guard holds too (each in the other's way: a
+    /// gridlock that no brake undoes) backs off for [`BACK_OFF_SECS`], then stands for
+    /// [`GIVE_WAY_SECS`] while the other goes; the lower index has the way. `agents` as the guard saw them (indexed like `present`), `actions` its actions
+    /// by agent.
+    fn choose_who_backs_off(
+        &mut self,
+        present: &[usize],
+        agents: &[GuardAgent],
+        actions: &[(usize, GuardAction)],
+        after_ticks: u32,
+    ) {
+        let held = |a: usize| actions.iter().any(|&(b, _)| b == a);
+        let box_of = |k: usize, margin_m: f64| OrientedBox {
+            pose: agents[k].proposed,
+            length_m: agents[k].length_m + 2.0 * margin_m,
+            width_m: agents[k].width_m + 2.0 * margin_m,
+        };
+        for (k, &a) in present.iter().enumerate() {
+            let stopped_short = actions.contains(&(a, GuardAction::StoppedShort));
+            let memory = &mut self.held[a];
+            memory.held_streak_ticks = if held(a) {
+                memory.held_streak_ticks + 1
+            } else {
+                0
+            };
+            if memory.backing_off_ticks > 0
+                || !stopped_short
+                || memory.held_streak_ticks < after_ticks
+            {
+                continue;
+            }
+            let gives_way = present
+                .iter()
+                .enumerate()
+                .any(|(j, &b)| b < a && held(b) && box_of(k, TOUCHING_M).overlaps(&box_of(j, 0.0)));
+            if gives_way {
+                let memory = &mut self.held[a];
+                memory.held_streak_ticks = 0;
+                memory.backing_off_ticks =
+                    ((BACK_OFF_SECS + GIVE_WAY_SECS) / STEP_SECS).round() as u32;
+            }
+        }
+    }
+
+    /// Moves the vehicles that give way in a deadlock ([`Self::choose_who_backs_off`]) back
+    /// along their heading at [`BACK_OFF_SPEED_MPS`], then holds them where they stopped; the
+    /// guards then check that step as any.
+    fn back_off(&mut self, emitted: &mut [f32], heading_scale: f64) {
+        let frame = &self.window.frame;
+        let give_way_ticks = (GIVE_WAY_SECS / STEP_SECS).round() as u32;
+        for a in 0..self.controllers.len() {
+            if self.held[a].backing_off_ticks == 0 {
+                continue;
+            }
+            self.held[a].backing_off_ticks -= 1;
+            if self.retired[a]
+                || self.controllers[a] != Controller::Model
+                || self.overrides[a].is_some()
+            {
+                continue;
+            }
+            let heading = self.heading_unwrapped[a];
+            let backing = self.held[a].backing_off_ticks >= give_way_ticks;
+            let speed_mps = if backing { BACK_OFF_SPEED_MPS } else { 0.0 };
+            let to =
+                self.poses[a].position_m() - DVec2::from_angle(heading) * speed_mps * STEP_SECS;
+            let xy = frame.to_norm(to.into());
+            emitted[3 * a..3 * a + 3].copy_from_slice(&[
+                xy[0],
+                xy[1],
+                (heading * heading_scale) as f32,
+            ]);
+            self.guarded.push((a, GuardAction::BackedOff));
+        }
     }
 
     /// A plan `[agents, steps, 3]` in model units as poses per agent (headings continue
@@ -1093,25 +1253,60 @@ impl<'m> SceneRuntime<'m> {
     }
 }
 
+/// Boxes closer than this touch, for the deadlock release (metres).
+const TOUCHING_M: f64 = 0.1;
+/// How long a vehicle that gives way in a deadlock backs off, seconds, and how fast (m/s).
+const BACK_OFF_SECS: f64 = 2.0;
+/// How long it then stands while the vehicle that has the way goes, seconds.
+const GIVE_WAY_SECS: f64 = 3.0;
+const BACK_OFF_SPEED_MPS: f64 = 0.5;
+
+/// The tightest circle a vehicle pulled away by the stall release turns on, metres.
+const RELEASE_TURN_RADIUS_M: f64 = 4.0;
+/// Below this speed a vehicle pulled away by the stall release drives straight on (m/s).
+const RELEASE_STRAIGHT_BELOW_MPS: f64 = 1.0;
+/// The most a vehicle the stall release holds at the road's edge turns in place a tick, radians.
+const RELEASE_TURN_IN_PLACE_RAD: f64 = 0.05;
+/// How far a car's rear axle lies behind its box's centre, as a share of its length (a 4.5 m
+/// car's about 1.1 m).
+const REAR_AXLE_SHARE_OF_LENGTH: f64 = 0.25;
+
 /// How far sideways of a lane's end an agent may be and still count as having left the map
 /// through it (beyond half the lane's width).
 pub const EXIT_LATERAL_MARGIN_M: f64 = 2.0;
 
-/// Whether `at` lies ahead of the end of `lane`'s centre line (past the line through its last
-/// point, square to its last segment) and within half the lane's end width plus
-/// [`EXIT_LATERAL_MARGIN_M`] of that line's axis.
-/// The point `ahead_m` along the centre line of the lane nearest `at` that runs within 90° of
-/// `heading` (radians), from the lane's point nearest `at` (straight on along its segment);
-/// `None` when no lane within 10 m runs that way.
+/// The point `ahead_m` along the centre line of a lane near `at`, from the lane's point
+/// nearest `at` (straight on along its segment), the lane chosen in this order: one that `at`
+/// lies on running within 90° of `heading` (radians); one that `at` lies on running any way
+/// (a vehicle turned against its lane turns round rather than cross a median to the lane
+/// beyond); the nearest within 10 m running within 90°; the nearest within 10 m. `None` when
+/// no lane lies within 10 m.
 fn lane_point_ahead(map: &LaneletMap, at: DVec2, heading: f64, ahead_m: f64) -> Option<DVec2> {
     let forward = DVec2::from_angle(heading);
-    crate::initialisation::nearest_centre_where(map, at, |direction| direction.dot(forward) > 0.0)
-        .filter(|&(dist_m, _, _)| dist_m <= 10.0)
+    let its_way = |direction: DVec2| direction.dot(forward) > 0.0;
+    let any_way = |_: DVec2| true;
+    let under = || map.lanelets.iter().filter(|l| l.contains(at.into()));
+    let near = |keep: &dyn Fn(DVec2) -> bool| {
+        crate::initialisation::nearest_centre_where(map, at, keep)
+            .filter(|&(dist_m, _, _)| dist_m <= 10.0)
+    };
+    crate::initialisation::nearest_centre_on(under(), at, its_way)
+        .or_else(|| crate::initialisation::nearest_centre_on(under(), at, any_way))
+        .or_else(|| near(&its_way))
+        .or_else(|| near(&any_way))
         .map(|(_, closest, direction)| closest + direction * ahead_m)
 }
 
-fn past_lane_end(lane: &road_data::map::Lanelet, at: road_data::geometry::Point) -> bool {
-    let [.., before, end] = lane.centre_m.as_slice() else {
+/// Whether `at` lies ahead of the end of the centre line `centre` (past the line through its
+/// last point, square to its last segment) and within half the lane's end width (`width_m`)
+/// plus [`EXIT_LATERAL_MARGIN_M`] of that line's axis. For a lane's start, its centre line
+/// reversed.
+fn past_lane_end(
+    centre: &[road_data::geometry::Point],
+    width_m: f64,
+    at: road_data::geometry::Point,
+) -> bool {
+    let [.., before, end] = centre else {
         return false;
     };
     let (end, before) = (DVec2::from(*end), DVec2::from(*before));
@@ -1119,11 +1314,24 @@ fn past_lane_end(lane: &road_data::map::Lanelet, at: road_data::geometry::Point)
         return false;
     };
     let offset = DVec2::from(at) - end;
-    let half_width = match (lane.left_m.last(), lane.right_m.last()) {
-        (Some(&l), Some(&r)) => 0.5 * DVec2::from(l).distance(DVec2::from(r)),
-        _ => 0.0,
+    offset.dot(along) > 0.0 && offset.perp_dot(along).abs() <= 0.5 * width_m + EXIT_LATERAL_MARGIN_M
+}
+
+/// The width of `lane` at its end (`at_end`) or its start, metres (0 without bounds).
+fn lane_end_width(lane: &road_data::map::Lanelet, at_end: bool) -> f64 {
+    let ends = if at_end {
+        (lane.left_m.last(), lane.right_m.last())
+    } else {
+        (lane.left_m.first(), lane.right_m.first())
     };
-    offset.dot(along) > 0.0 && offset.perp_dot(along).abs() <= half_width + EXIT_LATERAL_MARGIN_M
+    match ends {
+        (Some(&l), Some(&r)) => DVec2::from(l).distance(DVec2::from(r)),
+        _ => 0.0,
+    }
+}
+
+fn reversed(line: &[road_data::geometry::Point]) -> Vec<road_data::geometry::Point> {
+    line.iter().rev().copied().collect()
 }
 
 /// Simulates a scene whose every agent is scripted (replay, adversarial, constant velocity):

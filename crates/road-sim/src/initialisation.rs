@@ -122,8 +122,17 @@ pub fn nearest_centre_where(
     at: DVec2,
     keep: impl Fn(DVec2) -> bool,
 ) -> Option<(f64, DVec2, DVec2)> {
+    nearest_centre_on(&map.lanelets, at, keep)
+}
+
+/// [`nearest_centre_where`] over the centre lines of `lanes` only.
+pub fn nearest_centre_on<'a>(
+    lanes: impl IntoIterator<Item = &'a road_data::map::Lanelet>,
+    at: DVec2,
+    keep: impl Fn(DVec2) -> bool,
+) -> Option<(f64, DVec2, DVec2)> {
     let mut best: Option<(f64, DVec2, DVec2)> = None;
-    for lane in &map.lanelets {
+    for lane in lanes {
         for seg in lane.centre_m.windows(2) {
             let (p, q) = (DVec2::from(seg[0]), DVec2::from(seg[1]));
             let d = q - p;

@@ -424,6 +424,7 @@ fn the_collision_guard_keeps_model_agents_out_of_each_other() {
             horizon_steps: 10,
             brake_mps2: 6.0,
             yield_to_unreactive: false,
+            release_deadlock_after_secs: None,
         }),
         ..planner()
     };
@@ -510,6 +511,7 @@ fn the_lane_guard_keeps_model_agents_on_the_road() {
             lookahead_m: 6.0,
             turn_plan: false,
             anticipation: None,
+            keep_off_opposing_lanes: false,
         }),
         ..own_planner.clone()
     });
@@ -522,6 +524,7 @@ fn the_lane_guard_keeps_model_agents_on_the_road() {
                 steps: 3,
                 max_turn_rad_per_m: 0.1,
             }),
+            keep_off_opposing_lanes: false,
         }),
         ..own_planner.clone()
     });

@@ -14,12 +14,16 @@ use road_sim::closed_loop::{ClosedLoop, Controller, NoExternal, SceneTick, SimSc
 use road_sim::populate::keep_agents;
 use road_sim::procedural::{ProceduralMap, procedural};
 
-/// Windows held as given; a step sets every future slot to the newest observation.
+/// Windows held as given; a step sets every future slot to the newest observation, moved on
+/// along its heading by `forward` (model position units per slot; 0: standing). Model units:
+/// headings `heading_scale` per radian.
 struct StandingEngine {
     w: usize,
     n: usize,
     agents: usize,
     windows: Vec<f32>,
+    forward: f32,
+    heading_scale: f32,
 }
 
 impl StepEngine for StandingEngine {
@@ -55,8 +59,14 @@ impl StepEngine for StandingEngine {
         let (w, n) = (self.w, self.n);
         for row in self.windows.chunks_exact_mut(w * 3) {
             let newest: [f32; 3] = row[3 * (n - 1)..3 * n].try_into().unwrap();
+            let heading = newest[2] / self.heading_scale;
             for slot in n..w {
-                row[3 * slot..3 * slot + 3].copy_from_slice(&newest);
+                let k = (slot + 1 - n) as f32 * self.forward;
+                row[3 * slot..3 * slot + 3].copy_from_slice(&[
+                    newest[0] + k * heading.cos(),
+                    newest[1] + k * heading.sin(),
+                    newest[2],
+                ]);
             }
         }
         Ok(())
@@ -75,21 +85,54 @@ impl StepEngine for StandingEngine {
     }
 }
 
-/// Vehicles 1 and 2 of the merge's script standing still for 10 s, under `release`.
+/// The merge's script's vehicles `keep` standing still for 10 s, under `release`.
 fn run(release: Option<StallRelease>, keep: &[usize]) -> Vec<SceneTick> {
-    let model = ModelConfig::default();
     let planner = PlannerSpec {
         stall_release: release,
         obs_noise: Some(0.0),
         ..PlannerSpec::default()
     };
+    run_with(&planner, keep, &[], 100)
+}
+
+/// As [`run`] under `planner` for `ticks`, the kept vehicles placed first (`stands`: index
+/// among the kept, x, y (m) and heading (rad), standing there over their whole history).
+fn run_with(
+    planner: &PlannerSpec,
+    keep: &[usize],
+    stands: &[(usize, f64, f64, f64)],
+    ticks: usize,
+) -> Vec<SceneTick> {
+    run_driving(planner, keep, stands, ticks, 0.0)
+}
+
+/// As [`run_with`], the engine's plans driving every vehicle on along its heading at
+/// `speed_mps`.
+fn run_driving(
+    planner: &PlannerSpec,
+    keep: &[usize],
+    stands: &[(usize, f64, f64, f64)],
+    ticks: usize,
+    speed_mps: f64,
+) -> Vec<SceneTick> {
+    let model = ModelConfig::default();
     let scene = procedural(ProceduralMap::Merge, &WindowConfig::default(), 10).unwrap();
-    let window = keep_agents(&scene.window, keep);
+    let mut window = keep_agents(&scene.window, keep);
+    for &(a, x_m, y_m, heading_rad) in stands {
+        let xy = window.frame.to_norm([x_m, y_m]);
+        for t in 0..window.steps {
+            let i = a * window.steps + t;
+            window.states[3 * i..3 * i + 3].copy_from_slice(&[xy[0], xy[1], heading_rad as f32]);
+            window.valid[i] = true;
+        }
+    }
     let mut engine = StandingEngine {
         w: planner.window_slots(),
         n: planner.obs_slots,
         agents: 0,
         windows: Vec::new(),
+        forward: (speed_mps * 0.1 / window.frame.scale_m) as f32,
+        heading_scale: model.heading_scale as f32,
     };
     let agents = window.agents;
     let mut sim = ClosedLoop::new(
@@ -102,17 +145,17 @@ fn run(release: Option<StallRelease>, keep: &[usize]) -> Vec<SceneTick> {
             controllers: vec![Controller::Model; agents],
         }],
         vec![Some(&scene.map)],
-        100,
+        ticks,
         &mut StdRng::seed_from_u64(0),
     )
     .unwrap();
-    let mut ticks = Vec::new();
+    let mut out_ticks = Vec::new();
     let mut out = Vec::new();
-    for _ in 0..100 {
+    for _ in 0..ticks {
         sim.tick(&mut engine, &mut NoExternal, &mut out).unwrap();
-        ticks.push(out[0].clone());
+        out_ticks.push(out[0].clone());
     }
-    ticks
+    out_ticks
 }
 
 fn moved_m(ticks: &[SceneTick], agent: usize, from: usize) -> f64 {
@@ -122,11 +165,7 @@ fn moved_m(ticks: &[SceneTick], agent: usize, from: usize) -> f64 {
 
 #[test]
 fn a_vehicle_standing_with_free_road_ahead_pulls_away() {
-    let release = StallRelease {
-        after_secs: 3.0,
-        acceleration_mps2: 1.5,
-        release_speed_mps: 5.0,
-    };
+    let release = RELEASE;
     // Vehicle 0 of the script alone on the main road.
     let still = run(None, &[0]);
     assert!(moved_m(&still, 0, 1) < 0.01, "the standing engine moved it");
@@ -144,5 +183,101 @@ fn a_vehicle_standing_with_free_road_ahead_pulls_away() {
     assert!(
         last.x_m > released[1].poses[0].x_m && last.y_m.abs() < 2.0,
         "{last:?}"
+    );
+}
+
+const RELEASE: StallRelease = StallRelease {
+    after_secs: 3.0,
+    acceleration_mps2: 1.5,
+    release_speed_mps: 5.0,
+};
+
+#[test]
+fn a_vehicle_held_at_the_road_edge_pointing_off_it_turns_back_onto_its_lane() {
+    // On the main road's right edge (the road runs along +x, y within ±1.875 m), 60° off the
+    // road: every step ahead leaves it. With the lane guard, the release turns it in place
+    // towards its lane, then drives it on along the lane.
+    let planner = PlannerSpec {
+        stall_release: Some(RELEASE),
+        lane_guard: Some(road_sched::LaneGuard {
+            lookahead_m: 6.0,
+            turn_plan: false,
+            anticipation: None,
+            keep_off_opposing_lanes: false,
+        }),
+        obs_noise: Some(0.0),
+        ..PlannerSpec::default()
+    };
+    let heading = (-60f64).to_radians();
+    let ticks = run_with(&planner, &[0], &[(0, -40.0, -1.6, heading)], 150);
+    let last = ticks.last().unwrap().poses[0];
+    assert!(last.x_m > -35.0, "it drove on along the road: {last:?}");
+    assert!(last.y_m.abs() < 1.875, "on the road: {last:?}");
+    assert!(
+        last.heading_rad.abs() < 20f64.to_radians(),
+        "along the lane: {last:?}"
+    );
+    assert!(
+        ticks.iter().all(|t| t.off_road.is_empty()),
+        "never off the road"
+    );
+}
+
+#[test]
+fn two_vehicles_locked_nose_to_corner_are_undone_by_the_deadlock_release() {
+    // Both driven on at 2 m/s along their headings. Vehicle 0 heads along the main road;
+    // vehicle 1 comes at its front-left corner from ahead on the left, at −135°: once they
+    // touch, each one's step runs into the other and no brake helps. With the deadlock
+    // release, 1 (the higher index) backs off and 0 passes.
+    let guard = road_sched::CollisionGuard {
+        horizon_steps: 10,
+        brake_mps2: 6.0,
+        yield_to_unreactive: true,
+        release_deadlock_after_secs: None,
+    };
+    let planner = |release_deadlock_after_secs| PlannerSpec {
+        collision_guard: Some(road_sched::CollisionGuard {
+            release_deadlock_after_secs,
+            ..guard
+        }),
+        obs_noise: Some(0.0),
+        ..PlannerSpec::default()
+    };
+    // 1's front edge centred 0.6 m ahead and 1.3 m left of 0's front (0: 4.6 m long; 1: 4.4 m).
+    let heading_1 = (-135f64).to_radians();
+    let front_1 = (-40.0 + 2.3 + 0.6, 1.3);
+    let stands = [
+        (0, -40.0, 0.0, 0.0),
+        (
+            1,
+            front_1.0 - 2.2 * heading_1.cos(),
+            front_1.1 - 2.2 * heading_1.sin(),
+            heading_1,
+        ),
+    ];
+    let run = |release| run_driving(&planner(release), &[0, 1], &stands, 250, 2.0);
+    let moved = |ticks: &[SceneTick], a: usize| moved_m(ticks, a, 1);
+    let locked = run(None);
+    assert!(
+        moved(&locked, 0) < 2.0,
+        "without the release 0 stays locked: {:.2} m",
+        moved(&locked, 0)
+    );
+    let released = run(Some(5.0));
+    let backed_off = |a| {
+        released
+            .iter()
+            .any(|t| t.guarded.contains(&(a, GuardAction::BackedOff)))
+    };
+    assert!(backed_off(1), "1 backs off");
+    assert!(!backed_off(0), "0 has the way");
+    assert!(
+        moved(&released, 0) > 10.0,
+        "0 passes: {:.2} m",
+        moved(&released, 0)
+    );
+    assert!(
+        released.iter().all(|t| t.collisions.is_empty()),
+        "no collision"
     );
 }

@@ -99,6 +99,11 @@ pub struct EvalArgs {
     /// Long: vehicles entering per minute at each of the map's entry lanes.
     #[arg(long, default_value_t = 6.0)]
     pub inflow_per_minute: f64,
+    /// Long: write each session's ticks to this folder, one JSON line a tick
+    /// (`<map>-seed<seed>.jsonl`: the poses, guard actions, collisions, off-road agents, and
+    /// which agents entered and left).
+    #[arg(long)]
+    pub trace: Option<PathBuf>,
 }
 
 /// The procedural maps of `--maps` (all of them when none is named).

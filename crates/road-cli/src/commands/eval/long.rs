@@ -217,19 +217,45 @@ fn session(
         .with_max_vehicles(agents)
     });
     let mut stats = SessionStats::new(agents, &[]);
+    let mut trace = args
+        .trace
+        .as_deref()
+        .map(|dir| -> Result<_> {
+            std::fs::create_dir_all(dir)
+                .with_context(|| format!("--trace: cannot create {}", dir.display()))?;
+            let path = dir.join(format!("{}-seed{seed}.jsonl", map.name()));
+            let file = std::fs::File::create(&path)
+                .with_context(|| format!("--trace: cannot create {}", path.display()))?;
+            Ok((path, std::io::BufWriter::new(file)))
+        })
+        .transpose()?;
     let mut out = Vec::new();
-    for _ in 0..ticks {
+    for tick in 0..ticks {
+        let mut entered = Vec::new();
         if let Some(inflow) = inflow.as_mut() {
             let footprints = sim.footprints(id)?;
             for vehicle in inflow.arrivals(&footprints, n) {
                 // A full scene drops the arrival, as a served one does.
                 if let Ok(agent) = sim.add_agent(engine.as_dyn(), id, &vehicle) {
                     stats.entered(agent);
+                    entered.push(agent);
                 }
             }
         }
         sim.tick(engine.as_dyn(), &mut NoExternal, &mut out)?;
         stats.tick(&out[0]);
+        if let Some((path, writer)) = trace.as_mut() {
+            use std::io::Write;
+            let line = serde_json::json!({ "tick": tick, "entered": entered, "scene": &out[0] });
+            writeln!(writer, "{line}")
+                .with_context(|| format!("--trace: cannot write {}", path.display()))?;
+        }
+    }
+    if let Some((path, mut writer)) = trace {
+        use std::io::Write;
+        writer
+            .flush()
+            .with_context(|| format!("--trace: cannot write {}", path.display()))?;
     }
     stats.finish();
     Ok((agents, stats))
