@@ -279,6 +279,35 @@ impl LaneletMap {
         self.lanelets.iter().position(|l| l.contains(p))
     }
 
+    /// The lanelets that `keep` accepts, in their order, their successors and neighbours
+    /// among them (links to the others dropped): a crop of the map, whose open ends are where
+    /// the crop cuts the road.
+    pub fn crop(&self, keep: impl Fn(&Lanelet) -> bool) -> LaneletMap {
+        let mut new_index = vec![None; self.lanelets.len()];
+        let mut lanelets = Vec::new();
+        for (i, l) in self.lanelets.iter().enumerate() {
+            if keep(l) {
+                new_index[i] = Some(lanelets.len() as u32);
+                lanelets.push(l.clone());
+            }
+        }
+        let remap = |links: &[u32]| -> Vec<u32> {
+            links
+                .iter()
+                .filter_map(|&j| new_index.get(j as usize).copied().flatten())
+                .collect()
+        };
+        for l in &mut lanelets {
+            l.successors = remap(&l.successors);
+            l.neighbours = remap(&l.neighbours);
+        }
+        LaneletMap {
+            location: self.location.clone(),
+            lanelets,
+            skipped: self.skipped.clone(),
+        }
+    }
+
     /// A grid over every centre-line segment, for distance queries.
     pub fn centre_grid(&self, cell_m: f64) -> SegmentGrid {
         let segments = self
@@ -396,6 +425,24 @@ pub(crate) mod tests {
         assert_eq!(map.lanelet_at([c[0] + 1.0, c[1] + 20.0]), None);
         let grid = map.centre_grid(5.0);
         assert!(grid.nearest_distance([c[0] + 1.0, c[1] + 0.5]).unwrap() < 0.51);
+    }
+
+    #[test]
+    fn a_crop_keeps_the_links_among_its_lanelets() {
+        let map = LaneletMap::parse(&fixture_osm(), Path::new("fixture.osm"), "FIX").unwrap();
+        // Without the first lanelet: the second (its successor) has no predecessor left, the
+        // third (its neighbour) no neighbour.
+        let crop = map.crop(|l| l.id != 30000);
+        assert_eq!(
+            crop.lanelets.iter().map(|l| l.id).collect::<Vec<_>>(),
+            vec![30001, 30002]
+        );
+        assert!(crop.lanelets.iter().all(|l| l.successors.is_empty()));
+        assert!(crop.lanelets.iter().all(|l| l.neighbours.is_empty()));
+        // Without the third: the first keeps its successor, now at index 1.
+        let crop = map.crop(|l| l.id != 30002);
+        assert_eq!(crop.lanelets[0].successors, vec![1]);
+        assert!(crop.lanelets[0].neighbours.is_empty());
     }
 
     #[test]

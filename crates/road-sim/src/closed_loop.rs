@@ -1014,42 +1014,60 @@ impl<'m> SceneRuntime<'m> {
             }
             // Along its heading, turned towards a point 6 m ahead on its lane (the nearest lane
             // running its way): a vehicle held at the road's edge gets back. It turns about its
-            // rear axle no tighter than `RELEASE_TURN_RADIUS_M`, as a car does: turned in place
-            // about its centre, its tail swung into a neighbour beside it and the collision
-            // guard held it there. Only where that step would leave the road (a vehicle at the
-            // edge, pointing off it; one already off drives on towards its lane) does it turn
-            // in place, by up to `RELEASE_TURN_IN_PLACE_RAD` a tick, as a car would by backing
-            // and filling.
+            // rear axle no tighter than `RELEASE_TURN_RADIUS_M`, as a car does, and drives
+            // straight on at first (turned from standstill, its tail swung into a neighbour
+            // beside it and the collision guard held it there). Where that step would leave the
+            // road (a vehicle at the edge, pointing off it) it turns in place instead, by up to
+            // `RELEASE_TURN_IN_PLACE_RAD` a tick, as a car would by backing and filling. A
+            // vehicle off the road turns in place towards its lane until it points within 30°
+            // of it, then drives there; with no lane within 10 m it is left where it stands.
             let heading_before = self.heading_unwrapped[a];
-            let target = self.map.as_ref().and_then(|map| {
-                lane_point_ahead(map.get(), before.position_m(), heading_before, 6.0)
-            });
+            let map = self.map.as_ref().map(|m| m.get());
+            let on_road = |p: DVec2| map.is_none_or(|m| m.lanelet_at(p.into()).is_some());
+            let target =
+                map.and_then(|m| lane_point_ahead(m, before.position_m(), heading_before, 6.0));
             let turn = target.map_or(0.0, |target| {
                 let wanted = (target - before.position_m()).to_angle();
                 f64::from(wrap_angle((wanted - heading_before) as f32))
             });
-            let rear_axle_m = REAR_AXLE_SHARE_OF_LENGTH * f64::from(self.window.length_m[a]);
-            let rear_axle = before.position_m() - DVec2::from_angle(heading_before) * rear_axle_m;
-            // Straight on at first: a tail swung out from standstill caught a neighbour beside it.
-            let max_turn = if speed < RELEASE_STRAIGHT_BELOW_MPS {
-                0.0
-            } else {
-                speed * STEP_SECS / RELEASE_TURN_RADIUS_M
+            let turn_in_place = |turn: f64| {
+                (
+                    before.position_m(),
+                    heading_before
+                        + turn.clamp(-RELEASE_TURN_IN_PLACE_RAD, RELEASE_TURN_IN_PLACE_RAD),
+                )
             };
-            let mut heading = heading_before + turn.clamp(-max_turn, max_turn);
-            let mut to = rear_axle
-                + DVec2::from_angle(heading_before) * speed * STEP_SECS
-                + DVec2::from_angle(heading) * rear_axle_m;
-            let leaves_road = self.map.as_ref().is_some_and(|map| {
-                let map = map.get();
-                map.lanelet_at(before.position_m().into()).is_some()
-                    && map.lanelet_at(to.into()).is_none()
-            });
-            if leaves_road {
-                heading = heading_before
-                    + turn.clamp(-RELEASE_TURN_IN_PLACE_RAD, RELEASE_TURN_IN_PLACE_RAD);
-                to = rear_axle + DVec2::from_angle(heading) * rear_axle_m;
-            }
+            let drive = || {
+                let max_turn = if speed < RELEASE_STRAIGHT_BELOW_MPS {
+                    0.0
+                } else {
+                    speed * STEP_SECS / RELEASE_TURN_RADIUS_M
+                };
+                let heading = heading_before + turn.clamp(-max_turn, max_turn);
+                let rear_axle_m = REAR_AXLE_SHARE_OF_LENGTH * f64::from(self.window.length_m[a]);
+                let rear_axle =
+                    before.position_m() - DVec2::from_angle(heading_before) * rear_axle_m;
+                let to = rear_axle
+                    + DVec2::from_angle(heading_before) * speed * STEP_SECS
+                    + DVec2::from_angle(heading) * rear_axle_m;
+                (to, heading)
+            };
+            let (to, heading) = if on_road(before.position_m()) {
+                let (to, heading) = drive();
+                if on_road(to) {
+                    (to, heading)
+                } else {
+                    turn_in_place(turn)
+                }
+            } else if target.is_none() {
+                self.held[a].pulling_away = false;
+                self.held[a].stalled_ticks = 0;
+                continue;
+            } else if turn.abs() > 30f64.to_radians() {
+                turn_in_place(turn)
+            } else {
+                drive()
+            };
             let xy = frame.to_norm(to.into());
             emitted[3 * a..3 * a + 3].copy_from_slice(&[
                 xy[0],
@@ -1297,8 +1315,8 @@ fn lane_point_ahead(map: &LaneletMap, at: DVec2, heading: f64, ahead_m: f64) -> 
         .map(|(_, closest, direction)| closest + direction * ahead_m)
 }
 
-/// Whether `at` lies ahead of the end of the centre line `centre` (past the line through its
-/// last point, square to its last segment) and within half the lane's end width (`width_m`)
+/// Whether `at` lies ahead of the end of the centre line `centre` (past the line square to its
+/// last segment [`EXIT_BACK_SLACK_M`] before its last point) and within half the lane's end width (`width_m`)
 /// plus [`EXIT_LATERAL_MARGIN_M`] of that line's axis. For a lane's start, its centre line
 /// reversed.
 fn past_lane_end(
@@ -1314,8 +1332,14 @@ fn past_lane_end(
         return false;
     };
     let offset = DVec2::from(at) - end;
-    offset.dot(along) > 0.0 && offset.perp_dot(along).abs() <= 0.5 * width_m + EXIT_LATERAL_MARGIN_M
+    offset.dot(along) > -EXIT_BACK_SLACK_M
+        && offset.perp_dot(along).abs() <= 0.5 * width_m + EXIT_LATERAL_MARGIN_M
 }
+
+/// How far before the end of a lane's centre line an agent off every lanelet counts as past
+/// it (metres): INTERACTION's lanes end on oblique lines, and a vehicle leaving through one is
+/// off the lanelet a few ticks before its centre passes the centre line's end.
+const EXIT_BACK_SLACK_M: f64 = 2.0;
 
 /// The width of `lane` at its end (`at_end`) or its start, metres (0 without bounds).
 fn lane_end_width(lane: &road_data::map::Lanelet, at_end: bool) -> f64 {

@@ -138,7 +138,7 @@ fn run_driving(
     let mut sim = ClosedLoop::new(
         &mut engine,
         &model,
-        &planner,
+        planner,
         vec![SimScene {
             window,
             observed_steps: 10,

@@ -194,3 +194,16 @@ pub(crate) fn progress(bar: &indicatif::ProgressBar, model: &str, scenes: usize,
         "evaluating"
     );
 }
+
+/// `w` cut to its first `steps` steps.
+pub(crate) fn first_steps(w: &road_data::SceneWindow, steps: usize) -> road_data::SceneWindow {
+    let mut out = w.clone();
+    out.steps = steps;
+    out.states = (0..w.agents)
+        .flat_map(|a| w.states[3 * a * w.steps..][..3 * steps].iter().copied())
+        .collect();
+    out.valid = (0..w.agents)
+        .flat_map(|a| w.valid[a * w.steps..][..steps].iter().copied())
+        .collect();
+    out
+}

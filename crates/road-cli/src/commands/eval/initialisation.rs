@@ -26,7 +26,7 @@ use road_sim::populate::{
 };
 use serde::Serialize;
 
-use super::common::{EvalArgs, SceneSelection, select_scenes};
+use super::common::{EvalArgs, SceneSelection, first_steps, select_scenes};
 use crate::commands::engine::{EngineChoice, Engines};
 use crate::commands::load_cache;
 
@@ -71,19 +71,6 @@ fn vehicles_at(w: &SceneWindow, step: usize) -> Vec<(usize, InitialVehicle)> {
             ))
         })
         .collect()
-}
-
-/// `w` cut to its first `steps` steps.
-fn first_steps(w: &SceneWindow, steps: usize) -> SceneWindow {
-    let mut out = w.clone();
-    out.steps = steps;
-    out.states = (0..w.agents)
-        .flat_map(|a| w.states[3 * a * w.steps..][..3 * steps].iter().copied())
-        .collect();
-    out.valid = (0..w.agents)
-        .flat_map(|a| w.valid[a * w.steps..][..steps].iter().copied())
-        .collect();
-    out
 }
 
 pub fn run(args: EvalArgs) -> Result<ExitCode> {

@@ -1,14 +1,21 @@
-//! `road eval --suite long`: sessions of `--minutes` on the procedural maps, every vehicle the
-//! model's, vehicles retired where they drive off the map and entering at its entry lanes
-//! (`--inflow-per-minute` each, while the scene holds fewer than it started with: the start's
-//! count is the target): does traffic last? Counted per vehicle-minute
-//! (`road_sim::session`): off-road events, collisions, stops with free road ahead, ring laps,
-//! and the vehicle count against its start (issue 39's "long sessions stay sane").
+//! `road eval --suite long`: sessions of `--minutes` on the procedural maps and INTERACTION
+//! locations (`--maps`), every vehicle the model's, vehicles retired where they drive off the
+//! map and entering at its entry lanes (`--inflow-per-minute` each, while the scene holds fewer
+//! than it started with: the start's count is the target): does traffic last? Counted per
+//! vehicle-minute (`road_sim::session`): off-road events, collisions, stops with free road
+//! ahead, ring laps, and the vehicle count against its start (issue 39's "long sessions stay
+//! sane").
+//!
+//! An INTERACTION location's session starts from one of its validation scenes (seed k of K: the
+//! eligible scenes spread evenly, the k-th), its vehicles' logged second of history, on the
+//! crop of the location's map that the scene's window holds (the lanes the model sees): the
+//! crop's open lane ends are where vehicles leave and enter.
 
 use std::process::ExitCode;
 use std::time::Instant;
 
 use anyhow::{Context, Result, ensure};
+use road_data::{AgentType, LaneletMap, SceneWindow, Split};
 use road_sim::closed_loop::{ClosedLoop, Controller, NoExternal, SceneMap, SimScene};
 use road_sim::metrics::{Estimate, bootstrap_ratio};
 use road_sim::populate::Inflow;
@@ -16,7 +23,7 @@ use road_sim::procedural::{ProceduralMap, procedural};
 use road_sim::session::{LONG_STOP_SECS, SessionStats};
 use serde::Serialize;
 
-use super::common::{EvalArgs, procedural_maps};
+use super::common::{EvalArgs, first_steps};
 use crate::commands::demo::populate_scene;
 use crate::commands::engine::{EngineChoice, Engines};
 
@@ -27,7 +34,7 @@ const SETTLED_AFTER_SECS: usize = 60;
 
 #[derive(Debug, Serialize)]
 struct SessionRecord {
-    map: &'static str,
+    map: String,
     seed: u64,
     /// Vehicles at the start: the count the session should keep.
     target: usize,
@@ -38,7 +45,7 @@ struct SessionRecord {
 #[derive(Debug, Serialize)]
 struct MapSummary {
     model: String,
-    map: &'static str,
+    map: String,
     sessions: usize,
     vehicle_minutes: f64,
     off_road_per_vehicle_minute: Estimate,
@@ -72,12 +79,32 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         "--inflow-per-minute must be 0 or more, got {}",
         args.inflow_per_minute
     );
-    let maps = procedural_maps(&args)?;
+    let maps = long_maps(&args)?;
+    let dataset = if maps.iter().any(|m| matches!(m, LongMap::Interaction(_))) {
+        Some(crate::commands::load_cache(&args.cache, Split::Validation)?)
+    } else {
+        None
+    };
+    if let Some(ds) = &dataset {
+        for map in &maps {
+            if let LongMap::Interaction(location) = map {
+                ensure!(
+                    !location_scenes(ds, location, args.min_agents).is_empty(),
+                    "--maps: no validation scene of {location:?} has {} vehicles or more; locations: {}",
+                    args.min_agents,
+                    locations(ds).join(", ")
+                );
+            }
+        }
+    }
     let ticks = (args.minutes * 600.0).round() as usize;
     let choice: EngineChoice = args.engine.into();
     eprintln!(
         "long suite: maps {}, {} seeds, {} min each, inflow {} a minute per entry",
-        maps.iter().map(|m| m.name()).collect::<Vec<_>>().join(", "),
+        maps.iter()
+            .map(LongMap::name)
+            .collect::<Vec<_>>()
+            .join(", "),
         args.seeds,
         args.minutes,
         args.inflow_per_minute
@@ -88,11 +115,13 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         let engines = Engines::load_or_embedded(dir, choice)?;
         let run =
             crate::commands::engine::with_planner(&engines.cpu.meta.run, args.planner.as_deref())?;
-        for &map in &maps {
+        for map in &maps {
             let mut sessions = Vec::new();
             for seed in args.seed..args.seed + args.seeds {
                 let started = Instant::now();
-                let stats = session(&engines, &run, map, seed, ticks, &args)
+                let start = session_start(&engines, &run, map, dataset.as_ref(), seed, &args)
+                    .with_context(|| format!("{}: {} seed {seed}", run.name, map.name()))?;
+                let stats = session(&engines, &run, map.name(), start, seed, ticks, &args)
                     .with_context(|| format!("{}: {} seed {seed}", run.name, map.name()))?;
                 let target = stats.0;
                 tracing::info!(
@@ -103,19 +132,19 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
                     "session done"
                 );
                 sessions.push(SessionRecord {
-                    map: map.name(),
+                    map: map.name().to_owned(),
                     seed,
                     target,
                     stats: stats.1,
                     secs: started.elapsed().as_secs_f64(),
                 });
             }
-            summaries.push(summarise(&run.name, map, &sessions, args.seed));
+            summaries.push(summarise(&run.name, map.name(), &sessions, args.seed));
             records.extend(sessions);
         }
     }
     out!(
-        "long sessions on the procedural maps: {} seeds from {} × {} min, every vehicle the model's, inflow {} a minute per entry, vehicles retired at the map's ends; engine {:?}",
+        "long sessions: {} seeds from {} × {} min, every vehicle the model's, inflow {} a minute per entry, vehicles retired at the map's ends; engine {:?}",
         args.seeds,
         args.seed,
         args.minutes,
@@ -163,32 +192,143 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
-/// One session: the map's scene (its script's vehicles, or `--populate` placed ones), every
-/// vehicle the model's, for `ticks`. Returns the vehicles at the start and the counts.
+/// A long session's map: a procedural one, or an INTERACTION location.
+enum LongMap {
+    Procedural(ProceduralMap),
+    Interaction(String),
+}
+
+impl LongMap {
+    fn name(&self) -> &str {
+        match self {
+            LongMap::Procedural(map) => map.name(),
+            LongMap::Interaction(location) => location,
+        }
+    }
+}
+
+/// The maps of `--maps`: procedural names and INTERACTION locations (checked against the
+/// validation cache once it is loaded); all procedural maps when none is named.
+fn long_maps(args: &EvalArgs) -> Result<Vec<LongMap>> {
+    if args.maps.is_empty() {
+        return Ok(ProceduralMap::ALL.map(LongMap::Procedural).into());
+    }
+    Ok(args
+        .maps
+        .iter()
+        .map(|name| match ProceduralMap::from_name(name) {
+            Some(map) => LongMap::Procedural(map),
+            None => LongMap::Interaction(name.clone()),
+        })
+        .collect())
+}
+
+/// The validation cache's locations, sorted.
+fn locations(ds: &road_data::Dataset) -> Vec<String> {
+    let mut names: Vec<String> = ds.recordings.iter().map(|r| r.location.clone()).collect();
+    names.sort();
+    names.dedup();
+    names
+}
+
+/// The validation windows of `location` with at least `min_agents` agents, in order.
+fn location_scenes(ds: &road_data::Dataset, location: &str, min_agents: usize) -> Vec<usize> {
+    (0..ds.len())
+        .filter(|&i| {
+            let w = &ds.windows[i];
+            ds.recordings[w.recording as usize].location == location && w.agents.len() >= min_agents
+        })
+        .collect()
+}
+
+/// Where a session starts: the scene's window (its observed steps) and the map it runs on.
+struct SessionStart {
+    window: SceneWindow,
+    map: LaneletMap,
+}
+
+/// The start of `map`'s session for `seed`: a procedural map's scene (its script's vehicles, or
+/// `--populate` placed ones); for an INTERACTION location, one of its validation scenes (the
+/// eligible ones spread over the seeds), its cars and trucks with the logged second of
+/// history, on the crop of the location's map that the scene's window holds.
+fn session_start(
+    engines: &Engines,
+    run: &road_model::config::RunConfig,
+    map: &LongMap,
+    dataset: Option<&road_data::Dataset>,
+    seed: u64,
+    args: &EvalArgs,
+) -> Result<SessionStart> {
+    let n = run.planner.obs_slots;
+    match map {
+        LongMap::Procedural(kind) => {
+            let mut scene = procedural(*kind, &run.model.window_config(), n)?;
+            if let Some(count) = args.populate {
+                let mut engine = engines.engine()?;
+                populate_scene(
+                    engine.as_dyn(),
+                    run,
+                    &mut scene,
+                    count,
+                    seed,
+                    !args.populate_unrefined,
+                )?;
+            }
+            Ok(SessionStart {
+                window: scene.window,
+                map: scene.map,
+            })
+        }
+        LongMap::Interaction(location) => {
+            ensure!(
+                args.populate.is_none(),
+                "--populate places vehicles on the procedural maps only; {location} starts from its recordings"
+            );
+            let ds = dataset.context("the validation cache is loaded for INTERACTION maps")?;
+            let scenes = location_scenes(ds, location, args.min_agents);
+            let k = (seed - args.seed) as usize;
+            let index = scenes[k * scenes.len() / args.seeds.max(1) as usize];
+            let full = ds.window(index)?;
+            ensure!(
+                full.steps >= n,
+                "{location}: window {index} has {} steps; {} observes {n}",
+                full.steps,
+                run.name
+            );
+            let observed = first_steps(&full, n);
+            let vehicles: Vec<usize> = (0..observed.agents)
+                .filter(|&a| matches!(observed.agent_types[a], AgentType::Car | AgentType::Truck))
+                .filter(|&a| (0..n).all(|t| observed.valid[a * n + t]))
+                .collect();
+            ensure!(
+                !vehicles.is_empty(),
+                "{location}: window {index} has no vehicle observed over its first {n} steps"
+            );
+            let window = road_sim::populate::keep_agents(&observed, &vehicles);
+            let ids: std::collections::BTreeSet<i64> =
+                window.polyline_lanelet_ids.iter().copied().collect();
+            let map = ds.map_of(&ds.windows[index]).crop(|l| ids.contains(&l.id));
+            Ok(SessionStart { window, map })
+        }
+    }
+}
+
+/// One session from `start`, every vehicle the model's, for `ticks`. Returns the vehicles at
+/// the start and the counts.
 fn session(
     engines: &Engines,
     run: &road_model::config::RunConfig,
-    map: ProceduralMap,
+    map_name: &str,
+    start: SessionStart,
     seed: u64,
     ticks: usize,
     args: &EvalArgs,
 ) -> Result<(usize, SessionStats)> {
     let model = &run.model;
     let n = run.planner.obs_slots;
-    let window_config = model.window_config();
-    let mut scene = procedural(map, &window_config, n)?;
+    let SessionStart { window, map } = start;
     let mut engine = engines.engine()?;
-    if let Some(count) = args.populate {
-        populate_scene(
-            engine.as_dyn(),
-            run,
-            &mut scene,
-            count,
-            seed,
-            !args.populate_unrefined,
-        )?;
-    }
-    let agents = scene.window.agents;
+    let agents = window.agents;
     ensure!(
         agents <= SESSION_AGENTS,
         "{agents} vehicles; a session holds at most {SESSION_AGENTS}"
@@ -197,12 +337,12 @@ fn session(
     let id = sim.add_scene(
         engine.as_dyn(),
         SimScene {
-            window: scene.window.clone(),
+            window,
             observed_steps: n,
             controllers: vec![Controller::Model; agents],
         },
         &run.planner,
-        Some(SceneMap::Borrowed(&scene.map)),
+        Some(SceneMap::Borrowed(&map)),
         ticks,
         road_rollout::stream_seed(seed, 0),
     )?;
@@ -210,7 +350,7 @@ fn session(
     // The start's count is the target: arrivals wait while the scene holds as many.
     let mut inflow = (args.inflow_per_minute > 0.0).then(|| {
         Inflow::new(
-            &scene.map,
+            &map,
             args.inflow_per_minute,
             road_rollout::stream_seed(seed, 2),
         )
@@ -223,7 +363,7 @@ fn session(
         .map(|dir| -> Result<_> {
             std::fs::create_dir_all(dir)
                 .with_context(|| format!("--trace: cannot create {}", dir.display()))?;
-            let path = dir.join(format!("{}-seed{seed}.jsonl", map.name()));
+            let path = dir.join(format!("{map_name}-seed{seed}.jsonl"));
             let file = std::fs::File::create(&path)
                 .with_context(|| format!("--trace: cannot create {}", path.display()))?;
             Ok((path, std::io::BufWriter::new(file)))
@@ -261,7 +401,7 @@ fn session(
     Ok((agents, stats))
 }
 
-fn summarise(model: &str, map: ProceduralMap, sessions: &[SessionRecord], seed: u64) -> MapSummary {
+fn summarise(model: &str, map: &str, sessions: &[SessionRecord], seed: u64) -> MapSummary {
     let per = |count: fn(&SessionStats) -> u64| -> Vec<(f64, f64)> {
         sessions
             .iter()
@@ -282,7 +422,7 @@ fn summarise(model: &str, map: ProceduralMap, sessions: &[SessionRecord], seed: 
     let within = shares.iter().filter(|&&x| (0.7..=1.3).contains(&x)).count();
     MapSummary {
         model: model.to_owned(),
-        map: map.name(),
+        map: map.to_owned(),
         sessions: sessions.len(),
         vehicle_minutes: sessions.iter().map(|s| s.stats.vehicle_minutes()).sum(),
         off_road_per_vehicle_minute: bootstrap_ratio(&per(|s| s.off_road_events), seed),
