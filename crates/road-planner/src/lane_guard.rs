@@ -108,11 +108,13 @@ pub fn keep_on_road(
     };
     // A slow vehicle's step is mostly position noise: its direction says nothing of its way.
     let directed = step_m >= DIRECTED_STEP_M;
+    // On its own lanelet it is on its way (and no other lanelet need be looked at).
     let stays_on_its_way = |p: DVec2, direction: DVec2| {
-        on_road(map, p)
-            && !(directed
-                && (against_a_merging_lane(map, lanelet, p, direction)
-                    || (keep_off_opposing_lanes && onto_an_opposing_lane(map, p, direction))))
+        map.lanelets[lanelet].contains([p.x, p.y])
+            || on_road(map, p)
+                && !(directed
+                    && (against_a_merging_lane(map, lanelet, p, direction)
+                        || (keep_off_opposing_lanes && onto_an_opposing_lane(map, p, direction))))
     };
     if stays_on_its_way(to, direction) {
         return None;
@@ -195,9 +197,10 @@ pub fn nudge_towards_lane(
         return false;
     };
     let stays_on_its_way = |p: DVec2| {
-        on_road(map, p)
-            && !against_a_merging_lane(map, lanelet, p, direction)
-            && !(keep_off_opposing_lanes && onto_an_opposing_lane(map, p, direction))
+        map.lanelets[lanelet].contains([p.x, p.y])
+            || on_road(map, p)
+                && !against_a_merging_lane(map, lanelet, p, direction)
+                && !(keep_off_opposing_lanes && onto_an_opposing_lane(map, p, direction))
     };
     if !stays_on_its_way(to) {
         return false;

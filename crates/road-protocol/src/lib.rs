@@ -424,7 +424,8 @@ pub struct NpcTick {
     /// agents this step; their poses are here.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub late_external: Vec<AgentState>,
-    /// NPCs that drove off the map this tick, through the end of a lane with no successor:
+    /// NPCs that drove off the map this tick, through an open lane end (the end of a lane with
+    /// no successor, or the start of one with no predecessor):
     /// they have left the scene and are in no later tick (protocol 4).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub left: Vec<u32>,

@@ -993,6 +993,19 @@ impl RolloutDriver {
                     tracking.max_slip_deg.map(|deg| deg.to_radians().tan()),
                     &mut emitted,
                 );
+                // The turning circle first: slow steps keep it; from 2 m/s the heading then
+                // follows the course (a car's body follows its wheels) and does not slide.
+                if let (Some(radius_m), Some(scale), Some(scale_m)) =
+                    (tracking.min_turn_radius_m, heading_scale, position_scale_m)
+                {
+                    limit_turn_to_radius(
+                        &s.history,
+                        &s.history_valid,
+                        &mut emitted,
+                        scale,
+                        radius_m / scale_m,
+                    );
+                }
                 if let (Some(offset_deg), Some(scale), Some(scale_m)) = (
                     tracking.max_course_offset_deg,
                     heading_scale,
@@ -1006,17 +1019,6 @@ impl RolloutDriver {
                         scale,
                         min_step,
                         offset_deg.to_radians(),
-                    );
-                }
-                if let (Some(radius_m), Some(scale), Some(scale_m)) =
-                    (tracking.min_turn_radius_m, heading_scale, position_scale_m)
-                {
-                    limit_turn_to_radius(
-                        &s.history,
-                        &s.history_valid,
-                        &mut emitted,
-                        scale,
-                        radius_m / scale_m,
                     );
                 }
             }

@@ -169,8 +169,9 @@ pub struct SceneTick {
     /// estimate of its poses at the steps after this one (metres, radians), one list per agent.
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub plans: Vec<Vec<Pose>>,
-    /// With [`ClosedLoop::retire_on_exit`]: agents that drove off the map through the end of a
-    /// lane this tick (a lane with no successor: the map's edge). They are retired: from now on
+    /// With [`ClosedLoop::retire_on_exit`]: agents that drove off the map through an open lane
+    /// end this tick (the end of a lane with no successor, or the start of one with no
+    /// predecessor: the map's edge). They are retired: from now on
     /// their pose is held, they count in no collision or off-road check, and the model no
     /// longer simulates them. Leaving the map is not an off-road event.
     #[serde(skip_serializing_if = "Vec::is_empty")]

@@ -17,8 +17,8 @@ pub struct EvalArgs {
     /// `reactivity` (an adversarial agent per scene, 40 simulated steps after 10 observed) or
     /// `procedural` (`road demo`'s closed loop on the procedural maps over seeds and rotations:
     /// vehicles off road and collisions; no INTERACTION data needed) or `long` (sessions of
-    /// `--minutes` on the procedural maps with inflow, every vehicle the model's: counts per
-    /// vehicle-minute) or `initialisation` (validation scenes repopulated around one fixed
+    /// `--minutes` on the procedural maps and INTERACTION locations with inflow, every vehicle
+    /// the model's: counts per vehicle-minute) or `initialisation` (validation scenes repopulated around one fixed
     /// vehicle by the heuristic placement and by the model's refinement of it, against the log:
     /// Jensen–Shannon distances of speed, lane offset, heading offset and gap ahead).
     #[arg(long, default_value = "forecasting")]
@@ -76,7 +76,8 @@ pub struct EvalArgs {
     /// Procedural: each map turned counter-clockwise by each of these angles (degrees).
     #[arg(long, num_args = 1.., default_values_t = [0.0], allow_negative_numbers = true)]
     pub rotations_deg: Vec<f64>,
-    /// Procedural: the maps (`roundabout`, `intersection`, `merge`); default all.
+    /// Procedural and long: the maps (`roundabout`, `intersection`, `merge`; long also takes
+    /// INTERACTION locations, e.g. `DR_USA_Roundabout_FT`); default the three procedural ones.
     #[arg(long, num_args = 1..)]
     pub maps: Vec<String>,
     /// Procedural: simulated steps per run (`road demo`'s 60 by default).
