@@ -188,7 +188,17 @@ pub fn guard_step(
                         || !grown.overlaps(&box_at(b, b.proposed))
                 })
             };
-            if clear(agents, agents[i].proposed, 0.0) {
+            if clear(agents, agents[i].proposed, STOP_SHORT_CLEARANCE_M) {
+                continue;
+            }
+            // Closer than the clearance: a step that overlaps nobody and takes it farther from
+            // everyone that close goes on (a standing vehicle may pull away from a neighbour);
+            // any other is cut. Steps allowed merely because they overlap nobody let a
+            // standing vehicle's millimetre jitter close the gap to nothing, and rounding then
+            // made it an overlap (issue 39's long sessions counted those as collisions).
+            if agents[i].proposed == agents[i].before
+                || clear(agents, agents[i].proposed, 0.0) && !nearer_to_a_close_agent(agents, i)
+            {
                 continue;
             }
             let (before, proposed) = (agents[i].before, agents[i].proposed);
@@ -214,6 +224,29 @@ pub fn guard_step(
         }
     }
     actions
+}
+
+/// Whether agent `i`'s proposed pose is no farther (centre to centre) than its pose before the
+/// tick from another agent whose box lies within [`STOP_SHORT_CLEARANCE_M`] of that proposed
+/// pose (turning on the spot beside it counts: the turn may swing a corner into it).
+fn nearer_to_a_close_agent(agents: &[GuardAgent], i: usize) -> bool {
+    let a = &agents[i];
+    let grown = OrientedBox {
+        pose: a.proposed,
+        length_m: a.length_m + 2.0 * STOP_SHORT_CLEARANCE_M,
+        width_m: a.width_m + 2.0 * STOP_SHORT_CLEARANCE_M,
+    };
+    agents.iter().enumerate().any(|(j, b)| {
+        let other = OrientedBox {
+            pose: b.proposed,
+            length_m: b.length_m,
+            width_m: b.width_m,
+        };
+        j != i
+            && grown.overlaps(&other)
+            && (position(a.proposed) - position(b.proposed)).length()
+                <= (position(a.before) - position(b.proposed)).length()
+    })
 }
 
 /// The length of a step of `step_m` after braking at `brake_mps2` for `steps` steps (this
@@ -298,6 +331,31 @@ mod tests {
             anticipates_model_agents: true,
         };
         [model, ego]
+    }
+
+    #[test]
+    fn within_the_clearance_a_car_may_move_away_but_not_creep_closer() {
+        // A stands 5 mm behind B (4 m boxes): a 4 mm creep forward overlaps nobody, but would
+        // close the gap to nothing, where rounding makes it an overlap: it is cut. A step back
+        // is left alone.
+        let creeping = [agent(0.0, 0.004, 0.0, true), agent(4.005, 4.005, 0.0, true)];
+        let mut agents = creeping;
+        let actions = guard_step(&mut agents, &settings(0, false));
+        assert_eq!(actions, vec![(0, GuardAction::StoppedShort)]);
+        assert_eq!(agents[0].proposed.x_m, 0.0, "held where it stood");
+        let mut agents = [agent(0.0, -0.05, 0.0, true), agent(4.005, 4.005, 0.0, true)];
+        assert!(guard_step(&mut agents, &settings(0, false)).is_empty());
+        assert_eq!(agents[0].proposed.x_m, -0.05);
+        // Turning on the spot beside it is cut too: a corner may swing into it.
+        let mut turning = creeping;
+        turning[0].proposed = Pose {
+            x_m: 0.0,
+            y_m: 0.0,
+            heading_rad: 0.001,
+        };
+        let actions = guard_step(&mut turning, &settings(0, false));
+        assert_eq!(actions, vec![(0, GuardAction::StoppedShort)]);
+        assert_eq!(turning[0].proposed.heading_rad, 0.0);
     }
 
     #[test]
