@@ -956,12 +956,14 @@ impl<'m> SceneRuntime<'m> {
                 ]);
             }
             self.guarded.push((a, action));
-            let xy = frame.to_norm([proposed.x_m, proposed.y_m]);
-            emitted[3 * a..3 * a + 3].copy_from_slice(&[
-                xy[0],
-                xy[1],
-                (proposed.heading_rad * heading_scale) as f32,
-            ]);
+            set_emitted(
+                emitted,
+                a,
+                frame,
+                proposed.position_m(),
+                proposed.heading_rad,
+                heading_scale,
+            );
         }
     }
 
@@ -1069,12 +1071,7 @@ impl<'m> SceneRuntime<'m> {
             } else {
                 drive()
             };
-            let xy = frame.to_norm(to.into());
-            emitted[3 * a..3 * a + 3].copy_from_slice(&[
-                xy[0],
-                xy[1],
-                (heading * heading_scale) as f32,
-            ]);
+            set_emitted(emitted, a, frame, to, heading, heading_scale);
             self.guarded.push((a, GuardAction::PulledAway));
         }
     }
@@ -1118,12 +1115,14 @@ impl<'m> SceneRuntime<'m> {
                 continue;
             }
             let p = agents[k].proposed;
-            let xy = frame.to_norm([p.x_m, p.y_m]);
-            emitted[3 * a..3 * a + 3].copy_from_slice(&[
-                xy[0],
-                xy[1],
-                (p.heading_rad * heading_scale) as f32,
-            ]);
+            set_emitted(
+                emitted,
+                a,
+                frame,
+                p.position_m(),
+                p.heading_rad,
+                heading_scale,
+            );
         }
         self.guarded.extend(collision_actions.iter().copied());
         if let Some(after_secs) = guard.release_deadlock_after_secs {
@@ -1213,12 +1212,7 @@ impl<'m> SceneRuntime<'m> {
             let speed_mps = if backing { BACK_OFF_SPEED_MPS } else { 0.0 };
             let to =
                 self.poses[a].position_m() - DVec2::from_angle(heading) * speed_mps * STEP_SECS;
-            let xy = frame.to_norm(to.into());
-            emitted[3 * a..3 * a + 3].copy_from_slice(&[
-                xy[0],
-                xy[1],
-                (heading * heading_scale) as f32,
-            ]);
+            set_emitted(emitted, a, frame, to, heading, heading_scale);
             self.guarded.push((a, GuardAction::BackedOff));
         }
     }
@@ -1270,6 +1264,24 @@ impl<'m> SceneRuntime<'m> {
             left: self.left.clone(),
         }
     }
+}
+
+/// Agent `a`'s emitted state (model units, `[agents·3]`) set to `at` (metres) and `heading_rad`
+/// (unwrapped).
+fn set_emitted(
+    emitted: &mut [f32],
+    a: usize,
+    frame: &road_data::SceneFrame,
+    at: DVec2,
+    heading_rad: f64,
+    heading_scale: f64,
+) {
+    let xy = frame.to_norm(at.into());
+    emitted[3 * a..3 * a + 3].copy_from_slice(&[
+        xy[0],
+        xy[1],
+        (heading_rad * heading_scale) as f32,
+    ]);
 }
 
 /// Boxes closer than this touch, for the deadlock release (metres).
