@@ -1015,8 +1015,8 @@ impl<'m> SceneRuntime<'m> {
                 self.held[a].stalled_ticks = 0;
                 continue;
             }
-            // Along its heading, turned towards a point 6 m ahead on its lane (the nearest lane
-            // running its way): a vehicle held at the road's edge gets back. It turns about its
+            // Along its heading, turned towards a point 6 m ahead on its lane
+            // (`lane_point_ahead`): a vehicle held at the road's edge gets back. It turns about its
             // rear axle no tighter than `RELEASE_TURN_RADIUS_M`, as a car does, and drives
             // straight on at first (turned from standstill, its tail swung into a neighbour
             // beside it and the collision guard held it there). Where that step would leave the
@@ -1146,10 +1146,11 @@ impl<'m> SceneRuntime<'m> {
     }
 
     /// The deadlock release's second step: a vehicle held by the guard for `after_ticks` and
-    /// now stopped short while it touches a vehicle of lower index that the guard holds too (each in the other's way: a
-    /// gridlock that no brake undoes) backs off for [`BACK_OFF_SECS`], then stands for
-    /// [`GIVE_WAY_SECS`] while the other goes; the lower index has the way. `agents` as the guard saw them (indexed like `present`), `actions` its actions
-    /// by agent.
+    /// now stopped short while it touches a vehicle of lower index that the guard holds too
+    /// (each in the other's way: a gridlock that no brake undoes) backs off for
+    /// [`BACK_OFF_SECS`], then stands for [`GIVE_WAY_SECS`] while the other goes; the lower
+    /// index has the way. `agents` as the guard left them (indexed like `present`), `actions`
+    /// its actions by agent.
     fn choose_who_backs_off(
         &mut self,
         present: &[usize],

@@ -90,7 +90,8 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
             if let LongMap::Interaction(location) = map {
                 ensure!(
                     !location_scenes(ds, location, args.min_agents).is_empty(),
-                    "--maps: no validation scene of {location:?} has {} vehicles or more; locations: {}",
+                    "--maps: {location:?} is no procedural map ({}) and no validation scene of such a location has {} vehicles or more; locations: {}",
+                    ProceduralMap::names(),
                     args.min_agents,
                     locations(ds).join(", ")
                 );
