@@ -9,7 +9,6 @@ use road_cpu::{CpuEngine, FastCpuEngine};
 use road_data::{SceneWindow, Split, WindowConfig};
 use road_model::batch::SceneInput;
 use road_rollout::{RolloutScene, StepEngine, rollout_seeded, stream_seed};
-use road_sim::Pose;
 use road_sim::controllers::constant_velocity;
 use road_sim::metrics::{BOOTSTRAP_RESAMPLES, Estimate, bootstrap_ratio, scene_metrics};
 
@@ -113,16 +112,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         let samples = vec![
             (0..w.agents)
                 .map(|a| {
-                    let pose = |t: usize| {
-                        w.state(a, t).map(|s| {
-                            let p = w.frame.to_metres([s[0], s[1]]);
-                            Pose {
-                                x_m: p[0],
-                                y_m: p[1],
-                                heading_rad: f64::from(s[2]),
-                            }
-                        })
-                    };
+                    let pose = |t: usize| road_sim::window_pose(w, a, t);
                     let last = pose(reference).expect("agents are present at the reference step");
                     let previous = pose(reference - 1).unwrap_or(last);
                     constant_velocity(previous, last, steps)
