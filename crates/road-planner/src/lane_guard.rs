@@ -20,12 +20,13 @@
 //! same target ([`nudge_towards_lane`]), so that a vehicle drifting towards the edge bends back
 //! over several ticks instead of being steered 20–70° in one.
 //!
-//! The guard keeps lane followers in their lane: it leaves alone an agent that moves backwards,
-//! and one that drives off the end of a lanelet without successor (out of the mapped area, as
-//! vehicles in the log do; stopping it there would park it in the way of the traffic behind).
-//! An agent moving across or against every lanelet under it, or creeping, has no lane to be
-//! steered into: it stops at the road's edge rather than leave the road (issues 39 and 41: one
-//! crept onto a median, another crossed a roundabout's median and drove on over the fields). The guarded state is what joins the
+//! The guard keeps lane followers in their lane: it does not steer an agent that moves
+//! backwards, and leaves alone one that drives off the end of a lanelet without successor (out
+//! of the mapped area, as vehicles in the log do; stopping it there would park it in the way of
+//! the traffic behind). An agent moving backwards, across or against every lanelet under it,
+//! or creeping, has no lane to be steered into: it stops at the road's edge rather than leave
+//! the road (issues 39 and 41: one crept onto a median, another crossed a roundabout's median
+//! and drove on over the fields, a third slid sideways off the merge). The guarded state is what joins the
 //! history and the window, so the model plans on from where the vehicle really is: back in its
 //! lane. With `turn_plan` the closed loop turns the steered vehicle's plan too (the window's
 //! future slots rotated about its position before the tick by the angle its step turned,
@@ -90,21 +91,21 @@ pub fn keep_on_road(
         proposed.y_m = before.y_m;
         return Some(LaneAction::StoppedAtEdge);
     }
-    if step.dot(DVec2::from_angle(before.heading_rad)) <= 0.0 {
-        return None;
-    }
     let direction = step / step_m;
-    let Some((lanelet, along_m)) = lane_under(map, from, direction) else {
-        // On the road but on no lane that runs its way (across or against its lane): no lane
-        // to steer back into, and no right to leave the road either (issue 41 saw one cross a
-        // roundabout's median and drive on over the fields): it stops at the edge.
-        if on_road(map, to) || leaves_through_an_open_end(map, from, to) {
-            return None;
-        }
-        let stopped = stop_at_edge(from, to, direction, |p, _| on_road(map, p));
-        proposed.x_m = stopped.x;
-        proposed.y_m = stopped.y;
-        return Some(LaneAction::StoppedAtEdge);
+    // A step backwards or square to the heading is not lane following: no lane to steer it
+    // into, and no right to leave the road either (issue 41: a vehicle standing beside a
+    // stopped ego slid sideways off the merge, its steps a hair behind square).
+    let reversing = step.dot(DVec2::from_angle(before.heading_rad)) <= 0.0;
+    let lane = if reversing {
+        None
+    } else {
+        lane_under(map, from, direction)
+    };
+    let Some((lanelet, along_m)) = lane else {
+        // Also on the road but on no lane that runs its way (across or against its lane):
+        // issue 41 saw one cross a roundabout's median and drive on over the fields. It stops
+        // at the edge.
+        return stop_on_the_road(map, from, proposed, direction);
     };
     // A slow vehicle's step is mostly position noise: its direction says nothing of its way.
     let directed = step_m >= DIRECTED_STEP_M;
@@ -139,6 +140,24 @@ pub fn keep_on_road(
     // The steered step still leaves the road (a sharp bend, a narrow lanelet): stop at the edge.
     let end = DVec2::new(proposed.x_m, proposed.y_m);
     let stopped = stop_at_edge(from, end, direction, stays_on_its_way);
+    proposed.x_m = stopped.x;
+    proposed.y_m = stopped.y;
+    Some(LaneAction::StoppedAtEdge)
+}
+
+/// For an agent with no lane to steer into: `None` when its proposed step stays on the road or
+/// leaves the map through an open lane end, else the step cut short at the road's edge.
+fn stop_on_the_road(
+    map: &LaneletMap,
+    from: DVec2,
+    proposed: &mut Pose,
+    direction: DVec2,
+) -> Option<LaneAction> {
+    let to = DVec2::new(proposed.x_m, proposed.y_m);
+    if on_road(map, to) || leaves_through_an_open_end(map, from, to) {
+        return None;
+    }
+    let stopped = stop_at_edge(from, to, direction, |p, _| on_road(map, p));
     proposed.x_m = stopped.x;
     proposed.y_m = stopped.y;
     Some(LaneAction::StoppedAtEdge)
@@ -808,6 +827,44 @@ mod tests {
             None
         );
         assert_eq!(staying, pose(9.0, 1.0, std::f64::consts::PI));
+    }
+
+    /// Issue 41: a vehicle standing beside a stopped ego slid off the merge's side, its steps
+    /// (6 cm a tick) a hair behind square to its heading. Reversing is not steered, but it may
+    /// not leave the road either.
+    #[test]
+    fn a_vehicle_sliding_or_backing_off_the_side_stops_at_the_edge() {
+        let before = pose(10.0, 1.95, 0.0);
+        let mut sliding = pose(9.999, 2.01, 0.0);
+        let action = keep_on_road(&road(), before, &mut sliding, 6.0, false);
+        assert_eq!(action, Some(LaneAction::StoppedAtEdge));
+        assert!(road().lanelet_at([sliding.x_m, sliding.y_m]).is_some());
+        assert!(
+            sliding.y_m > 1.99,
+            "it went as far as the edge: {sliding:?}"
+        );
+        let mut backing = pose(9.0, 2.5, 0.3);
+        let action = keep_on_road(&road(), pose(10.0, 1.8, 0.3), &mut backing, 6.0, false);
+        assert_eq!(action, Some(LaneAction::StoppedAtEdge));
+        assert!(road().lanelet_at([backing.x_m, backing.y_m]).is_some());
+        // Backing along the road is left alone, and so is backing out of the map's start.
+        let mut along = pose(9.0, 1.0, 0.0);
+        assert_eq!(
+            keep_on_road(&road(), pose(10.0, 1.0, 0.0), &mut along, 6.0, false),
+            None
+        );
+        assert_eq!(along, pose(9.0, 1.0, 0.0));
+        let mut out_of_the_start = pose(-0.6, 0.2, 0.0);
+        assert_eq!(
+            keep_on_road(
+                &road(),
+                pose(0.3, 0.2, 0.0),
+                &mut out_of_the_start,
+                6.0,
+                false
+            ),
+            None
+        );
     }
 
     #[test]

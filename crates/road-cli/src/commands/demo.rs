@@ -152,6 +152,8 @@ pub(crate) fn simulate_procedural(
         steps,
         &mut rng,
     )?;
+    // As in a served scene, vehicles that drive off the map's lane ends leave it.
+    sim.retire_on_exit(0, true)?;
     let setup_secs = started.elapsed().as_secs_f64();
     let mut ticks: Vec<SceneTick> = Vec::with_capacity(steps);
     let mut tick_ms: Vec<f64> = Vec::with_capacity(steps);
@@ -321,6 +323,13 @@ pub fn run(args: DemoArgs) -> Result<ExitCode> {
                 ));
             }
         }
+        for &a in &tick.left {
+            events.push(format!(
+                "tick {:>3} ({secs:4.1} s): {} left the map",
+                t + 1,
+                name(a)
+            ));
+        }
         for &a in &tick.off_road {
             if seen_off.insert(a) {
                 events.push(format!(
@@ -367,7 +376,7 @@ pub fn run(args: DemoArgs) -> Result<ExitCode> {
             guards.stopped_short
         );
     }
-    if events.is_empty() {
+    if seen_pairs.is_empty() && seen_off.is_empty() {
         out!("infractions: none (no collision, nobody off road)");
     } else {
         out!(
@@ -375,6 +384,8 @@ pub fn run(args: DemoArgs) -> Result<ExitCode> {
             seen_pairs.len(),
             seen_off.len()
         );
+    }
+    if !events.is_empty() {
         for e in &events {
             out!("  {e}");
         }
@@ -406,7 +417,11 @@ pub fn run(args: DemoArgs) -> Result<ExitCode> {
         });
     }
     let last = ticks.last().expect("at least one tick");
+    // Vehicles that left the map are not drawn where they left.
+    let gone: std::collections::BTreeSet<usize> =
+        ticks.iter().flat_map(|t| t.left.iter().copied()).collect();
     let footprints: Vec<Footprint> = (0..agents)
+        .filter(|a| !gone.contains(a))
         .map(|a| Footprint {
             corners: OrientedBox {
                 pose: last.poses[a],

@@ -30,12 +30,16 @@ pub(crate) struct RunInfractions {
     pub model_pairs: BTreeSet<(usize, usize)>,
     /// Pairs of the ego (scripted, it does not yield) and a model-driven vehicle.
     pub ego_pairs: BTreeSet<(usize, usize)>,
+    /// Model-driven vehicles that drove off the map through an open lane end (retired, as in
+    /// a served scene; not an off-road event).
+    pub left: BTreeSet<usize>,
 }
 
 impl RunInfractions {
     pub fn of(ticks: &[SceneTick], ego: usize) -> Self {
         let mut found = Self::default();
         for tick in ticks {
+            found.left.extend(tick.left.iter().copied());
             found
                 .off_road
                 .extend(tick.off_road.iter().filter(|&&a| a != ego));
@@ -71,6 +75,8 @@ struct MapSummary {
     runs: usize,
     model_vehicles: usize,
     off_road_vehicles: usize,
+    /// Model-driven vehicles that left the map through an open lane end.
+    left_vehicles: usize,
     /// Share of model-driven vehicles off road, bootstrap over runs.
     off_road_rate: Estimate,
     model_collision_pairs: usize,
@@ -137,7 +143,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
             // (off-road vehicles, model-driven vehicles) of each run, for the bootstrap.
             let mut per_run = Vec::new();
             let mut by_rotation = vec![0; args.rotations_deg.len()];
-            let (mut model_pairs, mut ego_pairs, mut clean_runs) = (0, 0, 0);
+            let (mut model_pairs, mut ego_pairs, mut clean_runs, mut left) = (0, 0, 0, 0);
             let mut guards = GuardCounts::default();
             let mut steps = StepCounts::default();
             for (r, &rotation_deg) in args.rotations_deg.iter().enumerate() {
@@ -170,6 +176,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
                     );
                     model_pairs += found.model_pairs.len();
                     ego_pairs += found.ego_pairs.len();
+                    left += found.left.len();
                     clean_runs += usize::from(found.clean());
                     by_rotation[r] += found.off_road.len();
                     per_run.push((found.off_road.len() as f64, vehicles as f64));
@@ -190,6 +197,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
                 runs: per_run.len(),
                 model_vehicles: per_run.iter().map(|&(_, n)| n as usize).sum(),
                 off_road_vehicles: by_rotation.iter().sum(),
+                left_vehicles: left,
                 off_road_rate: bootstrap_ratio(&per_run, args.seed),
                 model_collision_pairs: model_pairs,
                 ego_collision_pairs: ego_pairs,
@@ -217,9 +225,9 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         args.engine
     );
     out!(
-        "| model | map | runs | model-driven vehicles off road | off-road rate [95 % CI] | off road by rotation | collisions between model-driven vehicles | collisions with the ego | clean runs | lane guard: nudged / steered / stopped at the edge | collision guard: braked / stopped short | reversing steps | sliding steps | sharp turns |"
+        "| model | map | runs | model-driven vehicles off road | off-road rate [95 % CI] | off road by rotation | left the map | collisions between model-driven vehicles | collisions with the ego | clean runs | lane guard: nudged / steered / stopped at the edge | collision guard: braked / stopped short | reversing steps | sliding steps | sharp turns |"
     );
-    out!("|---|---|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|");
+    out!("|---|---|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
     for s in &summaries {
         let by_rotation = args
             .rotations_deg
@@ -229,13 +237,14 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
             .collect::<Vec<_>>()
             .join(", ");
         out!(
-            "| {} | {} | {} | {} of {} | {:.3} | {by_rotation} | {} | {} | {} of {} | {} / {} / {} | {} / {} | {} of {} | {} of {} | {} of {} |",
+            "| {} | {} | {} | {} of {} | {:.3} | {by_rotation} | {} | {} | {} | {} of {} | {} / {} / {} | {} / {} | {} of {} | {} of {} | {} of {} |",
             s.model,
             s.map,
             s.runs,
             s.off_road_vehicles,
             s.model_vehicles,
             s.off_road_rate,
+            s.left_vehicles,
             s.model_collision_pairs,
             s.ego_collision_pairs,
             s.clean_runs,
@@ -254,7 +263,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         );
     }
     out!(
-        "(interval: 95 % percentile bootstrap over runs, {BOOTSTRAP_RESAMPLES} resamples; a clean run has no model-driven vehicle off road and no collision between two of them; guards' actions in agent-ticks over all runs; reversing steps: the model-driven vehicles' steps going backwards along their heading faster than {REVERSING_MIN_SPEED_MPS} m/s; sliding steps: their steps at ≥ {YAW_MIN_SPEED_MPS} m/s moving over {SLIDING_MIN_ANGLE_DEG}° off their heading; sharp turns: their consecutive pairs of such steps whose course turns over {SHARP_TURN_MIN_DEG}°)"
+        "(interval: 95 % percentile bootstrap over runs, {BOOTSTRAP_RESAMPLES} resamples; vehicles that drive off the map through an open lane end leave it, as in a served scene, and are not off road; a clean run has no model-driven vehicle off road and no collision between two of them; guards' actions in agent-ticks over all runs; reversing steps: the model-driven vehicles' steps going backwards along their heading faster than {REVERSING_MIN_SPEED_MPS} m/s; sliding steps: their steps at ≥ {YAW_MIN_SPEED_MPS} m/s moving over {SLIDING_MIN_ANGLE_DEG}° off their heading; sharp turns: their consecutive pairs of such steps whose course turns over {SHARP_TURN_MIN_DEG}°)"
     );
     if let Some(path) = &args.json {
         let json = serde_json::json!({
@@ -303,8 +312,11 @@ mod tests {
             tick(vec![(0, 2), (1, 3)], vec![3, 1, 0]),
             tick(vec![(1, 3)], vec![]),
         ];
+        let mut ticks = ticks.to_vec();
+        ticks[2].left = vec![2];
         let found = RunInfractions::of(&ticks, 0);
         assert_eq!(found.off_road, BTreeSet::from([1, 3]));
+        assert_eq!(found.left, BTreeSet::from([2]));
         assert_eq!(found.model_pairs, BTreeSet::from([(1, 3)]));
         assert_eq!(found.ego_pairs, BTreeSet::from([(0, 2)]));
         assert!(!found.clean());

@@ -1,0 +1,330 @@
+//! The closed loop's releases: the stall release ([`StallRelease`]) pulls away vehicles that
+//! stand with free road ahead; the collision guard's plumbing with its deadlock release
+//! (`CollisionGuard::release_deadlock_after_secs`) lets a vehicle held too long stop braking for
+//! other model-driven vehicles, and one stuck against a lower-numbered held vehicle back off.
+
+use glam::DVec2;
+use road_data::{LaneletMap, wrap_angle};
+use road_planner::collision_guard::{GuardAction, GuardAgent, guard_step};
+use road_sched::{CollisionGuard, StallRelease};
+
+use super::{Controller, STEP_SECS, SceneRuntime, set_emitted};
+use crate::Pose;
+use crate::geometry::OrientedBox;
+
+/// What the stall release ([`StallRelease`]) and the collision guard's deadlock release
+/// (`CollisionGuard::release_deadlock_after_secs`) remember of one agent.
+#[derive(Debug, Clone, Copy, Default)]
+pub(super) struct HeldMemory {
+    /// Ticks stood still with free road ahead.
+    pub(super) stalled_ticks: u32,
+    /// Whether the stall release is pulling it away.
+    pub(super) pulling_away: bool,
+    /// Consecutive ticks the collision guard braked it or stopped it short.
+    pub(super) guard_held_ticks: u32,
+    /// Ticks left in which it does not brake for other model-driven agents (it breaks a
+    /// deadlock).
+    pub(super) breaking_deadlock_ticks: u32,
+    /// Consecutive ticks the collision guard held it (braked or stopped short), for backing off.
+    pub(super) held_streak_ticks: u32,
+    /// Ticks left in which it backs off (it gives way in a deadlock).
+    pub(super) backing_off_ticks: u32,
+}
+
+impl SceneRuntime<'_> {
+    /// The stall release ([`StallRelease`]): model-driven agents that stood still with free
+    /// road ahead for its time pull away along their heading; their emitted states change.
+    pub(super) fn release_stalls(
+        &mut self,
+        emitted: &mut [f32],
+        heading_scale: f64,
+        release: StallRelease,
+    ) {
+        let frame = &self.window.frame;
+        let present: Vec<usize> = (0..self.controllers.len())
+            .filter(|&a| !self.retired[a])
+            .collect();
+        let after_ticks = (release.after_secs / STEP_SECS).round() as u32;
+        for &a in &present {
+            if self.controllers[a] != Controller::Model || self.overrides[a].is_some() {
+                continue;
+            }
+            let before = self.poses[a];
+            let proposed = DVec2::from(frame.to_metres([emitted[3 * a], emitted[3 * a + 1]]));
+            let model_speed = (proposed - before.position_m()).length() / STEP_SECS;
+            if !crate::free_road::road_ahead_free(a, &self.poses, &present) {
+                self.held[a].stalled_ticks = 0;
+                self.held[a].pulling_away = false;
+                continue;
+            }
+            if !self.held[a].pulling_away {
+                let still = self.speed_mps[a] < crate::free_road::STOPPED_MAX_SPEED_MPS
+                    && model_speed < crate::free_road::STOPPED_MAX_SPEED_MPS;
+                self.held[a].stalled_ticks = if still {
+                    self.held[a].stalled_ticks + 1
+                } else {
+                    0
+                };
+                if self.held[a].stalled_ticks < after_ticks {
+                    continue;
+                }
+                self.held[a].pulling_away = true;
+            }
+            let speed = (self.speed_mps[a] + release.acceleration_mps2 * STEP_SECS)
+                .min(release.release_speed_mps);
+            // The model drives it on again once it moves at least as fast the same way (within
+            // 30°): a model step off the road would only be stopped at the edge again.
+            let model_step = proposed - before.position_m();
+            let same_way = model_step
+                .normalize_or_zero()
+                .dot(DVec2::from_angle(self.heading_unwrapped[a]))
+                >= 30f64.to_radians().cos();
+            if (model_speed >= speed && same_way) || self.speed_mps[a] >= release.release_speed_mps
+            {
+                self.held[a].pulling_away = false;
+                self.held[a].stalled_ticks = 0;
+                continue;
+            }
+            // Along its heading, turned towards a point 6 m ahead on its lane
+            // (`lane_point_ahead`): a vehicle held at the road's edge gets back. It turns about its
+            // rear axle no tighter than `RELEASE_TURN_RADIUS_M`, as a car does, and drives
+            // straight on at first (turned from standstill, its tail swung into a neighbour
+            // beside it and the collision guard held it there). Where that step would leave the
+            // road (a vehicle at the edge, pointing off it) it turns in place instead, by up to
+            // `RELEASE_TURN_IN_PLACE_RAD` a tick, as a car would by backing and filling. A
+            // vehicle off the road turns in place towards its lane until it points within 30°
+            // of it, then drives there; with no lane within 10 m it is left where it stands.
+            let heading_before = self.heading_unwrapped[a];
+            let map = self.map.as_ref().map(|m| m.get());
+            let on_road = |p: DVec2| map.is_none_or(|m| m.lanelet_at(p.into()).is_some());
+            let target =
+                map.and_then(|m| lane_point_ahead(m, before.position_m(), heading_before, 6.0));
+            let turn = target.map_or(0.0, |target| {
+                let wanted = (target - before.position_m()).to_angle();
+                f64::from(wrap_angle((wanted - heading_before) as f32))
+            });
+            let turn_in_place = |turn: f64| {
+                (
+                    before.position_m(),
+                    heading_before
+                        + turn.clamp(-RELEASE_TURN_IN_PLACE_RAD, RELEASE_TURN_IN_PLACE_RAD),
+                )
+            };
+            let drive = || {
+                let max_turn = if speed < RELEASE_STRAIGHT_BELOW_MPS {
+                    0.0
+                } else {
+                    speed * STEP_SECS / RELEASE_TURN_RADIUS_M
+                };
+                let heading = heading_before + turn.clamp(-max_turn, max_turn);
+                let rear_axle_m = REAR_AXLE_SHARE_OF_LENGTH * f64::from(self.window.length_m[a]);
+                let rear_axle =
+                    before.position_m() - DVec2::from_angle(heading_before) * rear_axle_m;
+                let to = rear_axle
+                    + DVec2::from_angle(heading_before) * speed * STEP_SECS
+                    + DVec2::from_angle(heading) * rear_axle_m;
+                (to, heading)
+            };
+            let (to, heading) = if on_road(before.position_m()) {
+                let (to, heading) = drive();
+                if on_road(to) {
+                    (to, heading)
+                } else {
+                    turn_in_place(turn)
+                }
+            } else if target.is_none() {
+                self.held[a].pulling_away = false;
+                self.held[a].stalled_ticks = 0;
+                continue;
+            } else if turn.abs() > 30f64.to_radians() {
+                turn_in_place(turn)
+            } else {
+                drive()
+            };
+            set_emitted(emitted, a, frame, to, heading, heading_scale);
+            self.guarded.push((a, GuardAction::PulledAway));
+        }
+    }
+
+    /// Runs the collision guard on this tick's states (model units, overrides in): poses
+    /// before the tick are `self.poses` (headings unwrapped), after it `emitted`.
+    pub(super) fn guard(&mut self, emitted: &mut [f32], heading_scale: f64, guard: CollisionGuard) {
+        let frame = &self.window.frame;
+        // Retired agents are out of the scene: nobody brakes for them.
+        let present: Vec<usize> = (0..self.controllers.len())
+            .filter(|&a| !self.retired[a])
+            .collect();
+        let mut agents: Vec<GuardAgent> = present
+            .iter()
+            .map(|&a| {
+                let p = frame.to_metres([emitted[3 * a], emitted[3 * a + 1]]);
+                GuardAgent {
+                    before: Pose {
+                        heading_rad: self.heading_unwrapped[a],
+                        ..self.poses[a]
+                    },
+                    proposed: Pose {
+                        x_m: p[0],
+                        y_m: p[1],
+                        heading_rad: f64::from(emitted[3 * a + 2]) / heading_scale,
+                    },
+                    length_m: f64::from(self.window.length_m[a]),
+                    width_m: f64::from(self.window.width_m[a]),
+                    movable: self.controllers[a] == Controller::Model
+                        && self.overrides[a].is_none(),
+                    anticipates_model_agents: self.held[a].breaking_deadlock_ticks == 0,
+                }
+            })
+            .collect();
+        let collision_actions: Vec<(usize, GuardAction)> = guard_step(&mut agents, &guard)
+            .into_iter()
+            .map(|(k, action)| (present[k], action))
+            .collect();
+        for (k, &a) in present.iter().enumerate() {
+            if !collision_actions.iter().any(|&(b, _)| b == a) {
+                continue;
+            }
+            let p = agents[k].proposed;
+            set_emitted(
+                emitted,
+                a,
+                frame,
+                p.position_m(),
+                p.heading_rad,
+                heading_scale,
+            );
+        }
+        self.guarded.extend(collision_actions.iter().copied());
+        if let Some(after_secs) = guard.release_deadlock_after_secs {
+            let after_ticks = (after_secs / STEP_SECS).round() as u32;
+            let hold_ticks = (road_sched::DEADLOCK_RELEASE_HOLD_SECS / STEP_SECS).round() as u32;
+            for &a in &present {
+                let memory = &mut self.held[a];
+                if memory.breaking_deadlock_ticks > 0 {
+                    memory.breaking_deadlock_ticks -= 1;
+                    continue;
+                }
+                let held = collision_actions.iter().any(|&(b, _)| b == a);
+                memory.guard_held_ticks = if held { memory.guard_held_ticks + 1 } else { 0 };
+                if memory.guard_held_ticks >= after_ticks {
+                    memory.guard_held_ticks = 0;
+                    memory.breaking_deadlock_ticks = hold_ticks;
+                }
+            }
+            self.choose_who_backs_off(&present, &agents, &collision_actions, after_ticks);
+        }
+    }
+
+    /// The deadlock release's second step: a vehicle held by the guard for `after_ticks` and
+    /// now stopped short while it touches a vehicle of lower index that the guard holds too
+    /// (each in the other's way: a gridlock that no brake undoes) backs off for
+    /// [`BACK_OFF_SECS`], then stands for [`GIVE_WAY_SECS`] while the other goes; the lower
+    /// index has the way. `agents` as the guard left them (indexed like `present`), `actions`
+    /// its actions by agent.
+    pub(super) fn choose_who_backs_off(
+        &mut self,
+        present: &[usize],
+        agents: &[GuardAgent],
+        actions: &[(usize, GuardAction)],
+        after_ticks: u32,
+    ) {
+        let held = |a: usize| actions.iter().any(|&(b, _)| b == a);
+        let box_of = |k: usize, margin_m: f64| OrientedBox {
+            pose: agents[k].proposed,
+            length_m: agents[k].length_m + 2.0 * margin_m,
+            width_m: agents[k].width_m + 2.0 * margin_m,
+        };
+        for (k, &a) in present.iter().enumerate() {
+            let stopped_short = actions.contains(&(a, GuardAction::StoppedShort));
+            let memory = &mut self.held[a];
+            memory.held_streak_ticks = if held(a) {
+                memory.held_streak_ticks + 1
+            } else {
+                0
+            };
+            if memory.backing_off_ticks > 0
+                || !stopped_short
+                || memory.held_streak_ticks < after_ticks
+            {
+                continue;
+            }
+            let gives_way = present
+                .iter()
+                .enumerate()
+                .any(|(j, &b)| b < a && held(b) && box_of(k, TOUCHING_M).overlaps(&box_of(j, 0.0)));
+            if gives_way {
+                let memory = &mut self.held[a];
+                memory.held_streak_ticks = 0;
+                memory.backing_off_ticks =
+                    ((BACK_OFF_SECS + GIVE_WAY_SECS) / STEP_SECS).round() as u32;
+            }
+        }
+    }
+
+    /// Moves the vehicles that give way in a deadlock ([`Self::choose_who_backs_off`]) back
+    /// along their heading at [`BACK_OFF_SPEED_MPS`], then holds them where they stopped; the
+    /// guards then check that step as any.
+    pub(super) fn back_off(&mut self, emitted: &mut [f32], heading_scale: f64) {
+        let frame = &self.window.frame;
+        let give_way_ticks = (GIVE_WAY_SECS / STEP_SECS).round() as u32;
+        for a in 0..self.controllers.len() {
+            if self.held[a].backing_off_ticks == 0 {
+                continue;
+            }
+            self.held[a].backing_off_ticks -= 1;
+            if self.retired[a]
+                || self.controllers[a] != Controller::Model
+                || self.overrides[a].is_some()
+            {
+                continue;
+            }
+            let heading = self.heading_unwrapped[a];
+            let backing = self.held[a].backing_off_ticks >= give_way_ticks;
+            let speed_mps = if backing { BACK_OFF_SPEED_MPS } else { 0.0 };
+            let to =
+                self.poses[a].position_m() - DVec2::from_angle(heading) * speed_mps * STEP_SECS;
+            set_emitted(emitted, a, frame, to, heading, heading_scale);
+            self.guarded.push((a, GuardAction::BackedOff));
+        }
+    }
+}
+
+/// Boxes closer than this touch, for the deadlock release (metres).
+const TOUCHING_M: f64 = 0.1;
+/// How long a vehicle that gives way in a deadlock backs off, seconds, and how fast (m/s).
+const BACK_OFF_SECS: f64 = 2.0;
+/// How long it then stands while the vehicle that has the way goes, seconds.
+const GIVE_WAY_SECS: f64 = 3.0;
+const BACK_OFF_SPEED_MPS: f64 = 0.5;
+
+/// The tightest circle a vehicle pulled away by the stall release turns on, metres.
+const RELEASE_TURN_RADIUS_M: f64 = 4.0;
+/// Below this speed a vehicle pulled away by the stall release drives straight on (m/s).
+const RELEASE_STRAIGHT_BELOW_MPS: f64 = 1.0;
+/// The most a vehicle the stall release holds at the road's edge turns in place a tick, radians.
+const RELEASE_TURN_IN_PLACE_RAD: f64 = 0.05;
+/// How far a car's rear axle lies behind its box's centre, as a share of its length (a 4.5 m
+/// car's about 1.1 m).
+const REAR_AXLE_SHARE_OF_LENGTH: f64 = 0.25;
+
+/// The point `ahead_m` along the centre line of a lane near `at`, from the lane's point
+/// nearest `at` (straight on along its segment), the lane chosen in this order: one that `at`
+/// lies on running within 90° of `heading` (radians); one that `at` lies on running any way
+/// (a vehicle turned against its lane turns round rather than cross a median to the lane
+/// beyond); the nearest within 10 m running within 90°; the nearest within 10 m. `None` when
+/// no lane lies within 10 m.
+fn lane_point_ahead(map: &LaneletMap, at: DVec2, heading: f64, ahead_m: f64) -> Option<DVec2> {
+    let forward = DVec2::from_angle(heading);
+    let its_way = |direction: DVec2| direction.dot(forward) > 0.0;
+    let any_way = |_: DVec2| true;
+    let under = || map.lanelets.iter().filter(|l| l.contains(at.into()));
+    let near = |keep: &dyn Fn(DVec2) -> bool| {
+        crate::initialisation::nearest_centre_where(map, at, keep)
+            .filter(|&(dist_m, _, _)| dist_m <= 10.0)
+    };
+    crate::initialisation::nearest_centre_on(under(), at, its_way)
+        .or_else(|| crate::initialisation::nearest_centre_on(under(), at, any_way))
+        .or_else(|| near(&its_way))
+        .or_else(|| near(&any_way))
+        .map(|(_, closest, direction)| closest + direction * ahead_m)
+}
