@@ -226,28 +226,34 @@ pub fn guard_step(
     actions
 }
 
-/// Whether agent `i`'s proposed pose is no farther (centre to centre) than its pose before the
-/// tick from another agent whose box lies within [`STOP_SHORT_CLEARANCE_M`] of that proposed
-/// pose (turning on the spot beside it counts: the turn may swing a corner into it).
+/// Whether agent `i`'s proposed pose brings its box nearer, outline to outline, to another
+/// agent's box that lies within [`STOP_SHORT_CLEARANCE_M`] of it (the other as proposed). A step
+/// that moves the centre away may still swing a corner closer: issue 39's long sessions saw
+/// micrometre steps of that kind close a gap to nothing over minutes, and rounding then made it
+/// an overlap. A step alongside, keeping the gap, is not nearer.
 fn nearer_to_a_close_agent(agents: &[GuardAgent], i: usize) -> bool {
     let a = &agents[i];
-    let grown = OrientedBox {
-        pose: a.proposed,
-        length_m: a.length_m + 2.0 * STOP_SHORT_CLEARANCE_M,
-        width_m: a.width_m + 2.0 * STOP_SHORT_CLEARANCE_M,
+    let box_of = |g: &GuardAgent, pose: Pose| OrientedBox {
+        pose,
+        length_m: g.length_m,
+        width_m: g.width_m,
     };
+    let (after, before) = (box_of(a, a.proposed), box_of(a, a.before));
     agents.iter().enumerate().any(|(j, b)| {
-        let other = OrientedBox {
-            pose: b.proposed,
-            length_m: b.length_m,
-            width_m: b.width_m,
-        };
-        j != i
-            && grown.overlaps(&other)
-            && (position(a.proposed) - position(b.proposed)).length()
-                <= (position(a.before) - position(b.proposed)).length()
+        if j == i
+            || (position(a.proposed) - position(b.proposed)).length()
+                > reach(a) + reach(b) + STOP_SHORT_CLEARANCE_M
+        {
+            return false;
+        }
+        let other = box_of(b, b.proposed);
+        let gap_after_m = after.gap_m(&other);
+        gap_after_m < STOP_SHORT_CLEARANCE_M && gap_after_m + GAP_TOLERANCE_M < before.gap_m(&other)
     })
 }
+
+/// Gaps this close are equal: a step alongside another box keeps its gap up to rounding.
+const GAP_TOLERANCE_M: f64 = 1e-9;
 
 /// The length of a step of `step_m` after braking at `brake_mps2` for `steps` steps (this
 /// tick's is the first), never below standstill.
@@ -346,6 +352,20 @@ mod tests {
         let mut agents = [agent(0.0, -0.05, 0.0, true), agent(4.005, 4.005, 0.0, true)];
         assert!(guard_step(&mut agents, &settings(0, false)).is_empty());
         assert_eq!(agents[0].proposed.x_m, -0.05);
+        // So is a step that takes the centre away but swings a corner closer (1 mm back, turned
+        // 3 mrad: the front corner 2 mm nearer), while one alongside, keeping the gap, goes on.
+        let mut swinging = creeping;
+        swinging[0].proposed = Pose {
+            x_m: -0.001,
+            y_m: 0.0,
+            heading_rad: 0.003,
+        };
+        let actions = guard_step(&mut swinging, &settings(0, false));
+        assert_eq!(actions, vec![(0, GuardAction::StoppedShort)]);
+        let mut alongside = [agent(0.0, 0.0, 2.005, true), agent(0.0, 0.0, 0.0, true)];
+        alongside[0].proposed.x_m = 0.3;
+        assert!(guard_step(&mut alongside, &settings(0, false)).is_empty());
+        assert_eq!(alongside[0].proposed.x_m, 0.3);
         // Turning on the spot beside it is cut too: a corner may swing into it.
         let mut turning = creeping;
         turning[0].proposed = Pose {
