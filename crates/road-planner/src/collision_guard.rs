@@ -227,10 +227,7 @@ pub fn guard_step(
 }
 
 /// Whether agent `i`'s proposed pose brings its box nearer, outline to outline, to another
-/// agent's box that lies within [`STOP_SHORT_CLEARANCE_M`] of it (the other as proposed). A step
-/// that moves the centre away may still swing a corner closer: issue 39's long sessions saw
-/// micrometre steps of that kind close a gap to nothing over minutes, and rounding then made it
-/// an overlap. A step alongside, keeping the gap, is not nearer.
+/// agent's box that lies within [`STOP_SHORT_CLEARANCE_M`] of it (the other as proposed).
 fn nearer_to_a_close_agent(agents: &[GuardAgent], i: usize) -> bool {
     let a = &agents[i];
     let box_of = |g: &GuardAgent, pose: Pose| OrientedBox {
@@ -240,16 +237,29 @@ fn nearer_to_a_close_agent(agents: &[GuardAgent], i: usize) -> bool {
     };
     let (after, before) = (box_of(a, a.proposed), box_of(a, a.before));
     agents.iter().enumerate().any(|(j, b)| {
-        if j == i
-            || (position(a.proposed) - position(b.proposed)).length()
-                > reach(a) + reach(b) + STOP_SHORT_CLEARANCE_M
-        {
-            return false;
-        }
-        let other = box_of(b, b.proposed);
-        let gap_after_m = after.gap_m(&other);
-        gap_after_m < STOP_SHORT_CLEARANCE_M && gap_after_m + GAP_TOLERANCE_M < before.gap_m(&other)
+        j != i
+            && (position(a.proposed) - position(b.proposed)).length()
+                <= reach(a) + reach(b) + STOP_SHORT_CLEARANCE_M
+            && nearer_within_clearance(&before, &after, &box_of(b, b.proposed))
     })
+}
+
+/// Whether a box moved from `before` to `after` ends within [`STOP_SHORT_CLEARANCE_M`] of
+/// `other` and nearer to it, outline to outline, than it was. A move that takes the centre
+/// away may still swing a corner closer: issue 39's long sessions saw micrometre steps of that
+/// kind close a gap to nothing over minutes, and rounding then made it an overlap. A move
+/// alongside, keeping the gap, is not nearer.
+fn nearer_within_clearance(before: &OrientedBox, after: &OrientedBox, other: &OrientedBox) -> bool {
+    let gap_after_m = after.gap_m(other);
+    gap_after_m < STOP_SHORT_CLEARANCE_M && gap_after_m + GAP_TOLERANCE_M < before.gap_m(other)
+}
+
+/// Whether a box moved from `before` to `after` passes the guard's no-overlap rule against
+/// `other` standing still: no overlap, and within [`STOP_SHORT_CLEARANCE_M`] no nearer than
+/// before. For planning a move the guard will then let through (the stall release's
+/// manoeuvres).
+pub fn keeps_clear(before: &OrientedBox, after: &OrientedBox, other: &OrientedBox) -> bool {
+    !after.overlaps(other) && !nearer_within_clearance(before, after, other)
 }
 
 /// Gaps this close are equal: a step alongside another box keeps its gap up to rounding.

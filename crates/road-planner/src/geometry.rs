@@ -117,7 +117,10 @@ mod tests {
         assert_eq!(car(0.0, 0.0, 0.0).gap_m(&car(3.9, 0.0, 0.0)), 0.0);
         // Corner to corner: 4 × 2 boxes 8 m east and 4 m north of each other, the nearest
         // corners (2, 1) and (6, 3).
-        assert!(close(car(0.0, 0.0, 0.0).gap_m(&car(8.0, 4.0, 0.0)), 20f64.sqrt()));
+        assert!(close(
+            car(0.0, 0.0, 0.0).gap_m(&car(8.0, 4.0, 0.0)),
+            20f64.sqrt()
+        ));
         // A box turned 90° with its side 1 m from the other's end.
         assert!(close(
             car(0.0, 0.0, 0.0).gap_m(&car(4.0, 0.0, std::f64::consts::FRAC_PI_2)),

@@ -281,3 +281,62 @@ fn two_vehicles_locked_nose_to_corner_are_undone_by_the_deadlock_release() {
         "no collision"
     );
 }
+
+#[test]
+fn a_vehicle_wedged_at_the_road_edge_backs_and_fills_once_the_one_behind_makes_room() {
+    // Vehicle 0 on the main road's right edge, 60° off the road: every step ahead leaves it.
+    // Vehicle 1 (the script's vehicle 2, 4.8 m long) stands behind it along the road, its nose
+    // 1 cm from 0's rear-right corner: 0's turn in place would swing that corner into it, and
+    // 1 stands because 0 is ahead of it. Issue 39's long sessions saw such pairs stand for
+    // minutes. Now 1 backs off and 0 backs and fills onto its lane, without a collision.
+    let planner = PlannerSpec {
+        stall_release: Some(RELEASE),
+        lane_guard: Some(road_sched::LaneGuard {
+            lookahead_m: 6.0,
+            turn_plan: false,
+            anticipation: None,
+            keep_off_opposing_lanes: false,
+        }),
+        collision_guard: Some(road_sched::CollisionGuard {
+            horizon_steps: 10,
+            brake_mps2: 6.0,
+            yield_to_unreactive: true,
+            release_deadlock_after_secs: None,
+        }),
+        obs_noise: Some(0.0),
+        ..PlannerSpec::default()
+    };
+    let heading = (-60f64).to_radians();
+    let (x0, y0) = (-40.0, -1.87);
+    // 0's rear-right corner (4.6 × 1.9 m).
+    let (forward, left) = (
+        (heading.cos(), heading.sin()),
+        (-heading.sin(), heading.cos()),
+    );
+    let corner = (
+        x0 - 2.3 * forward.0 - 0.95 * left.0,
+        y0 - 2.3 * forward.1 - 0.95 * left.1,
+    );
+    let stands = [
+        (0, x0, y0, heading),
+        (1, corner.0 - 0.01 - 2.4, corner.1 - 0.2, 0.0),
+    ];
+    let ticks = run_with(&planner, &[0, 2], &stands, 250);
+    assert!(
+        ticks.iter().all(|t| t.collisions.is_empty()),
+        "no collision"
+    );
+    assert!(
+        ticks
+            .iter()
+            .any(|t| t.guarded.contains(&(1, GuardAction::BackedOff))),
+        "1 makes room"
+    );
+    let last = ticks.last().unwrap().poses[0];
+    assert!(last.y_m.abs() < 1.875, "on the road: {last:?}");
+    assert!(
+        last.heading_rad.abs() < 20f64.to_radians(),
+        "along the lane: {last:?}"
+    );
+    assert!(last.x_m > x0 + 3.0, "it drove on along the road: {last:?}");
+}

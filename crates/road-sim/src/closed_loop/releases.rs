@@ -5,7 +5,7 @@
 
 use glam::DVec2;
 use road_data::{LaneletMap, wrap_angle};
-use road_planner::collision_guard::{GuardAction, GuardAgent, guard_step};
+use road_planner::collision_guard::{GuardAction, GuardAgent, guard_step, keeps_clear};
 use road_sched::{CollisionGuard, StallRelease};
 
 use super::{Controller, STEP_SECS, SceneRuntime, set_emitted};
@@ -45,6 +45,7 @@ impl SceneRuntime<'_> {
             .filter(|&a| !self.retired[a])
             .collect();
         let after_ticks = (release.after_secs / STEP_SECS).round() as u32;
+        let mut make_room = Vec::new();
         for &a in &present {
             if self.controllers[a] != Controller::Model || self.overrides[a].is_some() {
                 continue;
@@ -90,10 +91,13 @@ impl SceneRuntime<'_> {
             // rear axle no tighter than `RELEASE_TURN_RADIUS_M`, as a car does, and drives
             // straight on at first (turned from standstill, its tail swung into a neighbour
             // beside it and the collision guard held it there). Where that step would leave the
-            // road (a vehicle at the edge, pointing off it) it turns in place instead, by up to
-            // `RELEASE_TURN_IN_PLACE_RAD` a tick, as a car would by backing and filling. A
-            // vehicle off the road turns in place towards its lane until it points within 30°
-            // of it, then drives there; with no lane within 10 m it is left where it stands.
+            // road (a vehicle at the edge, pointing off it) or run into a neighbour, it backs and
+            // fills at full lock (`MANOEUVRE_SPEED_MPS`), forwards or else backwards, and only
+            // where neither fits turns in place, by up to `RELEASE_TURN_IN_PLACE_RAD` a tick.
+            // Every move it makes stays on the road and passes the collision guard's rule
+            // against the others as they stand. A vehicle off the road turns in place towards
+            // its lane until it points within 30° of it, then drives there; with no lane within
+            // 10 m it is left where it stands.
             let heading_before = self.heading_unwrapped[a];
             let map = self.map.as_ref().map(|m| m.get());
             let on_road = |p: DVec2| map.is_none_or(|m| m.lanelet_at(p.into()).is_some());
@@ -110,39 +114,112 @@ impl SceneRuntime<'_> {
                         + turn.clamp(-RELEASE_TURN_IN_PLACE_RAD, RELEASE_TURN_IN_PLACE_RAD),
                 )
             };
+            // About the rear axle, `distance_m` along the heading (negative: backwards), the
+            // nose turned towards the target by at most `max_turn_rad`.
+            let rear_axle_m = REAR_AXLE_SHARE_OF_LENGTH * f64::from(self.window.length_m[a]);
+            let arc = |distance_m: f64, max_turn_rad: f64| {
+                let heading = heading_before + turn.clamp(-max_turn_rad, max_turn_rad);
+                let rear_axle =
+                    before.position_m() - DVec2::from_angle(heading_before) * rear_axle_m;
+                let to = rear_axle
+                    + DVec2::from_angle(heading_before) * distance_m
+                    + DVec2::from_angle(heading) * rear_axle_m;
+                (to, heading)
+            };
             let drive = || {
                 let max_turn = if speed < RELEASE_STRAIGHT_BELOW_MPS {
                     0.0
                 } else {
                     speed * STEP_SECS / RELEASE_TURN_RADIUS_M
                 };
-                let heading = heading_before + turn.clamp(-max_turn, max_turn);
-                let rear_axle_m = REAR_AXLE_SHARE_OF_LENGTH * f64::from(self.window.length_m[a]);
-                let rear_axle =
-                    before.position_m() - DVec2::from_angle(heading_before) * rear_axle_m;
-                let to = rear_axle
-                    + DVec2::from_angle(heading_before) * speed * STEP_SECS
-                    + DVec2::from_angle(heading) * rear_axle_m;
-                (to, heading)
+                arc(speed * STEP_SECS, max_turn)
             };
-            let (to, heading) = if on_road(before.position_m()) {
-                let (to, heading) = drive();
-                if on_road(to) {
-                    (to, heading)
-                } else {
-                    turn_in_place(turn)
+            // Backing and filling: at full lock, forwards or backwards (the nose turns towards
+            // the target either way).
+            let manoeuvre_m = MANOEUVRE_SPEED_MPS * STEP_SECS;
+            let full_lock = manoeuvre_m / RELEASE_TURN_RADIUS_M;
+            // A move the collision guard will let through against everyone standing as they are.
+            let box_at = |at: DVec2, heading: f64| OrientedBox {
+                pose: Pose::at(at, heading),
+                length_m: f64::from(self.window.length_m[a]),
+                width_m: f64::from(self.window.width_m[a]),
+            };
+            let standing = box_at(before.position_m(), heading_before);
+            // The others in the way of a move.
+            let blockers = |&(to, heading): &(DVec2, f64)| -> Vec<usize> {
+                let moved = box_at(to, heading);
+                present
+                    .iter()
+                    .copied()
+                    .filter(|&b| {
+                        let other = OrientedBox {
+                            pose: self.poses[b],
+                            length_m: f64::from(self.window.length_m[b]),
+                            width_m: f64::from(self.window.width_m[b]),
+                        };
+                        b != a && !keeps_clear(&standing, &moved, &other)
+                    })
+                    .collect()
+            };
+            let first_feasible = |moves: &[(DVec2, f64)], on_road_too: bool| {
+                moves
+                    .iter()
+                    .find(|m| (!on_road_too || on_road(m.0)) && blockers(m).is_empty())
+                    .copied()
+            };
+            let chosen = if on_road(before.position_m()) {
+                // Where the plain pull-away is blocked (off the road ahead, or a neighbour in
+                // the way: issue 39's long stops were mostly a vehicle at the kerb whose turn in
+                // place swung its tail into the nose of one behind it), it backs and fills.
+                let moves = [
+                    drive(),
+                    arc(manoeuvre_m, full_lock),
+                    arc(-manoeuvre_m, full_lock),
+                    turn_in_place(turn),
+                ];
+                let chosen = first_feasible(&moves, true);
+                if chosen.is_none() {
+                    // Wedged: those standing in the way of its moves on the road make room.
+                    for m in moves.iter().filter(|m| on_road(m.0)) {
+                        make_room.extend(blockers(m).into_iter().map(|b| (a, b)));
+                    }
                 }
+                chosen
             } else if target.is_none() {
                 self.held[a].pulling_away = false;
                 self.held[a].stalled_ticks = 0;
                 continue;
             } else if turn.abs() > 30f64.to_radians() {
-                turn_in_place(turn)
+                first_feasible(&[turn_in_place(turn)], false)
             } else {
-                drive()
+                first_feasible(&[drive()], false)
             };
+            // Nothing feasible: it stands this tick, as the guard would have held it.
+            let (to, heading) = chosen.unwrap_or((before.position_m(), heading_before));
             set_emitted(emitted, a, frame, to, heading, heading_scale);
             self.guarded.push((a, GuardAction::PulledAway));
+        }
+        self.make_room(&make_room);
+    }
+
+    /// Vehicles asked to make room by a wedged vehicle the stall release pulls away (`(asking,
+    /// asked)` pairs) back off as in a deadlock ([`Self::back_off`], this tick on), if they
+    /// are model-driven, standing, not backing off already, and not themselves pulling away
+    /// with the way (a lower index) over the one asking.
+    fn make_room(&mut self, asked: &[(usize, usize)]) {
+        let ticks = ((BACK_OFF_SECS + GIVE_WAY_SECS) / STEP_SECS).round() as u32;
+        for &(a, b) in asked {
+            let memory = self.held[b];
+            if self.controllers[b] != Controller::Model
+                || self.overrides[b].is_some()
+                || self.speed_mps[b] >= crate::free_road::STOPPED_MAX_SPEED_MPS
+                || memory.backing_off_ticks > 0
+                || (memory.pulling_away && b < a)
+            {
+                continue;
+            }
+            self.held[b].backing_off_ticks = ticks;
+            self.held[b].held_streak_ticks = 0;
         }
     }
 
@@ -261,7 +338,8 @@ impl SceneRuntime<'_> {
         }
     }
 
-    /// Moves the vehicles that give way in a deadlock ([`Self::choose_who_backs_off`]) back
+    /// Moves the vehicles that give way in a deadlock ([`Self::choose_who_backs_off`]) or make
+    /// room for a wedged one ([`Self::make_room`]) back
     /// along their heading at [`BACK_OFF_SPEED_MPS`], then holds them where they stopped; the
     /// guards then check that step as any.
     pub(super) fn back_off(&mut self, emitted: &mut [f32], heading_scale: f64) {
@@ -301,6 +379,9 @@ const BACK_OFF_SPEED_MPS: f64 = 0.5;
 const RELEASE_TURN_RADIUS_M: f64 = 4.0;
 /// Below this speed a vehicle pulled away by the stall release drives straight on (m/s).
 const RELEASE_STRAIGHT_BELOW_MPS: f64 = 1.0;
+/// How fast a vehicle the stall release pulls away backs and fills (m/s): its manoeuvres at
+/// full lock when the plain pull-away is blocked.
+const MANOEUVRE_SPEED_MPS: f64 = 1.0;
 /// The most a vehicle the stall release holds at the road's edge turns in place a tick, radians.
 const RELEASE_TURN_IN_PLACE_RAD: f64 = 0.05;
 /// How far a car's rear axle lies behind its box's centre, as a share of its length (a 4.5 m
