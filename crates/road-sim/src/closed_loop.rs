@@ -613,6 +613,10 @@ impl<'m> ClosedLoop<'m> {
             .driver
             .admit_agent(engine, scene, &history, &features)?;
         let pose = *vehicle.history.last().expect("a history has a step");
+        let lanelet = s
+            .map
+            .as_ref()
+            .and_then(|m| m.get().lanelet_at([pose.x_m, pose.y_m]));
         let w = &mut s.window;
         let track_id = w.track_ids.iter().copied().max().map_or(1, |m| m + 1);
         if agent == w.agents {
@@ -631,7 +635,7 @@ impl<'m> ClosedLoop<'m> {
             s.overrides.push(None);
             s.initially_on_road.push(true);
             s.retired.push(false);
-            s.last_lanelet.push(None);
+            s.last_lanelet.push(lanelet);
             s.held.push(HeldMemory::default());
             s.speed_mps.push(vehicle.speed_mps);
         } else {
@@ -649,7 +653,7 @@ impl<'m> ClosedLoop<'m> {
             s.overrides[agent] = None;
             s.initially_on_road[agent] = true;
             s.retired[agent] = false;
-            s.last_lanelet[agent] = None;
+            s.last_lanelet[agent] = lanelet;
             s.held[agent] = HeldMemory::default();
             s.speed_mps[agent] = vehicle.speed_mps;
         }
@@ -744,6 +748,15 @@ impl<'m> SceneRuntime<'m> {
             history: SceneInput::from_window(w, scene.observed_steps - n, n, model),
         };
         let agents = w.agents;
+        // Where each agent starts: one placed a step before a lane's open end leaves the map on
+        // its first step (a populated scene's vehicle drove on off road for good).
+        let last_lanelet = match &map {
+            Some(map) => poses
+                .iter()
+                .map(|p| map.get().lanelet_at([p.x_m, p.y_m]))
+                .collect(),
+            None => vec![None; agents],
+        };
         // Each agent's speed over its last observed step.
         let speed_mps = (0..agents)
             .map(|a| {
@@ -771,7 +784,7 @@ impl<'m> SceneRuntime<'m> {
                 retire_on_exit: false,
                 retired: vec![false; agents],
                 left: Vec::new(),
-                last_lanelet: vec![None; agents],
+                last_lanelet,
                 held: vec![HeldMemory::default(); agents],
                 speed_mps,
                 map,

@@ -624,3 +624,41 @@ fn vehicles_that_drive_off_the_map_leave_the_scene() {
         }
     }
 }
+
+/// A vehicle whose history ends a step before a lane's open end (a populated scene can place
+/// one there) leaves on its first tick: it is retired, not driven on off road.
+#[test]
+fn a_vehicle_starting_at_the_map_s_end_leaves_on_its_first_step() {
+    use road_sim::populate::keep_agents;
+    use road_sim::procedural::{ProceduralMap, procedural};
+    let model = small_model();
+    let mut scene = procedural(ProceduralMap::Merge, &WindowConfig::default(), 10).unwrap();
+    // The script's vehicle 0 alone, at 9 m/s along the main road, 0.3 m before its end (x = 90).
+    let mut window = keep_agents(&scene.window, &[0]);
+    for t in 0..window.steps {
+        let xy = window
+            .frame
+            .to_norm([89.7 - 0.9 * (window.steps - 1 - t) as f64, 0.0]);
+        let i = t;
+        window.states[3 * i..3 * i + 3].copy_from_slice(&[xy[0], xy[1], 0.0]);
+        window.valid[i] = true;
+    }
+    scene.window = window;
+    let mut engine = CpuEngine::new(&model);
+    let mut rng = StdRng::seed_from_u64(0);
+    let mut sim = closed_loop(
+        &mut engine,
+        &model,
+        &scene,
+        vec![Controller::ConstantVelocity],
+        true,
+        5,
+        &mut rng,
+    )
+    .unwrap();
+    sim.retire_on_exit(0, true).unwrap();
+    let mut out = Vec::new();
+    sim.tick(&mut engine, &mut NoExternal, &mut out).unwrap();
+    assert_eq!(out[0].left, vec![0], "{:?}", out[0].poses[0]);
+    assert!(out[0].off_road.is_empty());
+}
