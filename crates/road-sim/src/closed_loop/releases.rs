@@ -20,6 +20,9 @@ pub(super) struct HeldMemory {
     pub(super) stalled_ticks: u32,
     /// Whether the stall release is pulling it away.
     pub(super) pulling_away: bool,
+    /// The way the stall release turns it in place (+1 counter-clockwise, −1 clockwise; 0 when
+    /// it does not).
+    pub(super) spin_sign: i8,
     /// Consecutive ticks the collision guard braked it or stopped it short.
     pub(super) guard_held_ticks: u32,
     /// Ticks left in which it does not brake for other model-driven agents (it breaks a
@@ -56,6 +59,7 @@ impl SceneRuntime<'_> {
             if !crate::free_road::road_ahead_free(a, &self.poses, &present) {
                 self.held[a].stalled_ticks = 0;
                 self.held[a].pulling_away = false;
+                self.held[a].spin_sign = 0;
                 continue;
             }
             if !self.held[a].pulling_away {
@@ -84,6 +88,7 @@ impl SceneRuntime<'_> {
             {
                 self.held[a].pulling_away = false;
                 self.held[a].stalled_ticks = 0;
+                self.held[a].spin_sign = 0;
                 continue;
             }
             // Along its heading, turned towards a point 6 m ahead on its lane
@@ -107,13 +112,17 @@ impl SceneRuntime<'_> {
                 let wanted = (target - before.position_m()).to_angle();
                 f64::from(wrap_angle((wanted - heading_before) as f32))
             });
-            let turn_in_place = |turn: f64| {
-                (
-                    before.position_m(),
-                    heading_before
-                        + turn.clamp(-RELEASE_TURN_IN_PLACE_RAD, RELEASE_TURN_IN_PLACE_RAD),
-                )
+            // Once turning in place it keeps turning the same way: the lane ahead it turns
+            // towards depends on its heading, and two lanes running opposite ways had a vehicle
+            // turn back and forth between them for minutes (issue 39).
+            let spin_sign = match self.held[a].spin_sign {
+                0 => turn.signum(),
+                sign => f64::from(sign),
             };
+            let spin = (
+                before.position_m(),
+                heading_before + spin_sign * turn.abs().min(RELEASE_TURN_IN_PLACE_RAD),
+            );
             // About the rear axle, `distance_m` along the heading (negative: backwards), the
             // nose turned towards the target by at most `max_turn_rad`.
             let rear_axle_m = REAR_AXLE_SHARE_OF_LENGTH * f64::from(self.window.length_m[a]);
@@ -167,32 +176,38 @@ impl SceneRuntime<'_> {
                     .find(|m| (!on_road_too || on_road(m.0)) && blockers(m).is_empty())
                     .copied()
             };
-            let chosen = if on_road(before.position_m()) {
-                // Where the plain pull-away is blocked (off the road ahead, or a neighbour in
-                // the way: issue 39's long stops were mostly a vehicle at the kerb whose turn in
-                // place swung its tail into the nose of one behind it), it backs and fills.
-                let moves = [
+            // Where the plain pull-away is blocked (off the road ahead, or a neighbour in the
+            // way: issue 39's long stops were mostly a vehicle at the kerb whose turn in place
+            // swung its tail into the nose of one behind it), it backs and fills.
+            let (moves, on_road_too) = if on_road(before.position_m()) {
+                let moves = vec![
                     drive(),
                     arc(manoeuvre_m, full_lock),
                     arc(-manoeuvre_m, full_lock),
-                    turn_in_place(turn),
+                    spin,
                 ];
-                let chosen = first_feasible(&moves, true);
-                if chosen.is_none() {
-                    // Wedged: those standing in the way of its moves on the road make room.
-                    for m in moves.iter().filter(|m| on_road(m.0)) {
-                        make_room.extend(blockers(m).into_iter().map(|b| (a, b)));
-                    }
-                }
-                chosen
+                (moves, true)
             } else if target.is_none() {
                 self.held[a].pulling_away = false;
                 self.held[a].stalled_ticks = 0;
+                self.held[a].spin_sign = 0;
                 continue;
             } else if turn.abs() > 30f64.to_radians() {
-                first_feasible(&[turn_in_place(turn)], false)
+                (vec![spin], false)
             } else {
-                first_feasible(&[drive()], false)
+                (vec![drive()], false)
+            };
+            let chosen = first_feasible(&moves, on_road_too);
+            if chosen.is_none() {
+                // Wedged: those standing in the way of its moves make room.
+                for m in moves.iter().filter(|m| !on_road_too || on_road(m.0)) {
+                    make_room.extend(blockers(m).into_iter().map(|b| (a, b)));
+                }
+            }
+            self.held[a].spin_sign = if chosen == Some(spin) {
+                spin_sign as i8
+            } else {
+                0
             };
             // Nothing feasible: it stands this tick, as the guard would have held it.
             let (to, heading) = chosen.unwrap_or((before.position_m(), heading_before));
