@@ -147,35 +147,6 @@ impl SceneRuntime<'_> {
             // the target either way).
             let manoeuvre_m = MANOEUVRE_SPEED_MPS * STEP_SECS;
             let full_lock = manoeuvre_m / RELEASE_TURN_RADIUS_M;
-            // A move the collision guard will let through against everyone standing as they are.
-            let box_at = |at: DVec2, heading: f64| OrientedBox {
-                pose: Pose::at(at, heading),
-                length_m: f64::from(self.window.length_m[a]),
-                width_m: f64::from(self.window.width_m[a]),
-            };
-            let standing = box_at(before.position_m(), heading_before);
-            // The others in the way of a move.
-            let blockers = |&(to, heading): &(DVec2, f64)| -> Vec<usize> {
-                let moved = box_at(to, heading);
-                present
-                    .iter()
-                    .copied()
-                    .filter(|&b| {
-                        let other = OrientedBox {
-                            pose: self.poses[b],
-                            length_m: f64::from(self.window.length_m[b]),
-                            width_m: f64::from(self.window.width_m[b]),
-                        };
-                        b != a && !keeps_clear(&standing, &moved, &other)
-                    })
-                    .collect()
-            };
-            let first_feasible = |moves: &[(DVec2, f64)], on_road_too: bool| {
-                moves
-                    .iter()
-                    .find(|m| (!on_road_too || on_road(m.0)) && blockers(m).is_empty())
-                    .copied()
-            };
             // Where the plain pull-away is blocked (off the road ahead, or a neighbour in the
             // way: issue 39's long stops were mostly a vehicle at the kerb whose turn in place
             // swung its tail into the nose of one behind it), it backs and fills.
@@ -197,11 +168,18 @@ impl SceneRuntime<'_> {
             } else {
                 (vec![drive()], false)
             };
-            let chosen = first_feasible(&moves, on_road_too);
+            // The first move on the road (where asked) that the collision guard will let through
+            // against everyone standing as they are.
+            let allowed = |m: &&(DVec2, f64)| !on_road_too || on_road(m.0);
+            let chosen = moves
+                .iter()
+                .filter(allowed)
+                .find(|&&(to, heading)| self.blockers_of(a, to, heading).is_empty())
+                .copied();
             if chosen.is_none() {
                 // Wedged: those standing in the way of its moves make room.
-                for m in moves.iter().filter(|m| !on_road_too || on_road(m.0)) {
-                    make_room.extend(blockers(m).into_iter().map(|b| (a, b)));
+                for &(to, heading) in moves.iter().filter(allowed) {
+                    make_room.extend(self.blockers_of(a, to, heading).into_iter().map(|b| (a, b)));
                 }
             }
             self.held[a].spin_sign = if chosen == Some(spin) {
@@ -217,10 +195,35 @@ impl SceneRuntime<'_> {
         self.make_room(&make_room);
     }
 
-    /// Vehicles asked to make room by a wedged vehicle the stall release pulls away (`(asking,
-    /// asked)` pairs) back off as in a deadlock ([`Self::back_off`], this tick on), if they
-    /// are model-driven, standing, not backing off already, and not themselves pulling away
-    /// with the way (a lower index) over the one asking.
+    /// The present agents that agent `a`, moved to `to` and turned to `heading_rad`, would not
+    /// keep clear of by the collision guard's rule ([`keeps_clear`]), the others as they stand.
+    fn blockers_of(&self, a: usize, to: DVec2, heading_rad: f64) -> Vec<usize> {
+        let box_of = |b: usize, pose: Pose| OrientedBox {
+            pose,
+            length_m: f64::from(self.window.length_m[b]),
+            width_m: f64::from(self.window.width_m[b]),
+        };
+        let standing = box_of(
+            a,
+            Pose {
+                heading_rad: self.heading_unwrapped[a],
+                ..self.poses[a]
+            },
+        );
+        let moved = box_of(a, Pose::at(to, heading_rad));
+        (0..self.poses.len())
+            .filter(|&b| {
+                b != a
+                    && !self.retired[b]
+                    && !keeps_clear(&standing, &moved, &box_of(b, self.poses[b]))
+            })
+            .collect()
+    }
+
+    /// Vehicles asked to make room (`(asking, asked)` pairs) by a wedged vehicle the stall
+    /// release pulls away, or by one backing off into them, back off as in a deadlock
+    /// ([`Self::back_off`]), if they are model-driven, standing, not backing off already, and
+    /// not themselves pulling away with the way (a lower index) over the one asking.
     fn make_room(&mut self, asked: &[(usize, usize)]) {
         let ticks = ((BACK_OFF_SECS + GIVE_WAY_SECS) / STEP_SECS).round() as u32;
         for &(a, b) in asked {
@@ -360,6 +363,7 @@ impl SceneRuntime<'_> {
     pub(super) fn back_off(&mut self, emitted: &mut [f32], heading_scale: f64) {
         let frame = &self.window.frame;
         let give_way_ticks = (GIVE_WAY_SECS / STEP_SECS).round() as u32;
+        let mut make_room = Vec::new();
         for a in 0..self.controllers.len() {
             if self.held[a].backing_off_ticks == 0 {
                 continue;
@@ -376,9 +380,15 @@ impl SceneRuntime<'_> {
             let speed_mps = if backing { BACK_OFF_SPEED_MPS } else { 0.0 };
             let to =
                 self.poses[a].position_m() - DVec2::from_angle(heading) * speed_mps * STEP_SECS;
+            if backing {
+                // Those standing behind make room in turn (a jam of four stood for minutes: the
+                // vehicle asked to back off had another at its tail).
+                make_room.extend(self.blockers_of(a, to, heading).into_iter().map(|b| (a, b)));
+            }
             set_emitted(emitted, a, frame, to, heading, heading_scale);
             self.guarded.push((a, GuardAction::BackedOff));
         }
+        self.make_room(&make_room);
     }
 }
 
