@@ -138,8 +138,8 @@ run)
         exit 0
     fi
     # The networked path: `road demo` served by `road serve --engine gpu` in-process over
-    # loopback zenoh (60 ticks of the roundabout; round trips and engine time per tick).
-    step demo-gpu 60 "$out/demo-gpu.txt" "$bin" demo --engine gpu --mcap "$out/cache/demo.mcap" \
+    # loopback zenoh (60 ticks of the roundabout's script; round trips and engine time per tick).
+    step demo-gpu 60 "$out/demo-gpu.txt" "$bin" demo --scripted --steps 60 --engine gpu --mcap "$out/cache/demo.mcap" \
         --gif "$out/cache/demo.gif"
     # The networked server on the GPU at scale: one zenoh client thread per scene.
     step zenoh-gpu 90 "$out/zenoh-gpu.json" "$bin" bench serve --zenoh --server-engine gpu \

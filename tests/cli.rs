@@ -596,6 +596,47 @@ fn demo_runs_every_procedural_map() {
     let o = road(&["demo", "--out", "x.png"]);
     assert!(!o.status.success());
     assert!(stderr(&o).contains("--in-process"), "{}", stderr(&o));
+    // `--scripted` is the served demo's: the in-process one runs the script by default, and a
+    // scripted scene places no vehicles.
+    for args in [
+        &["demo", "--scripted", "--in-process", "--steps", "1"][..],
+        &["demo", "--scripted", "--populate", "3", "--steps", "1"][..],
+    ] {
+        let o = road(args);
+        assert!(!o.status.success(), "{args:?}");
+        assert!(stderr(&o).contains("--scripted"), "{}", stderr(&o));
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// Issue 39: `road demo` populates the roundabout by the model around the ego and keeps
+/// vehicles entering; `--scripted` runs the map's seven scripted vehicles as before.
+#[test]
+fn the_served_demo_is_populated_by_default_and_scripted_on_request() {
+    let dir = temp_dir("demo-populated");
+    let checkpoint = workspace().join("models/road20-wide4");
+    let header = |extra: &[&str]| {
+        let o = Command::new(env!("CARGO_BIN_EXE_road"))
+            .args(["demo", "--steps", "3", "--checkpoint"])
+            .arg(&checkpoint)
+            .args(extra)
+            .current_dir(&dir)
+            .env("RUST_LOG", "warn")
+            .output()
+            .expect("road runs");
+        assert!(o.status.success(), "{}", stderr(&o));
+        stdout(&o).lines().next().unwrap_or_default().to_owned()
+    };
+    let populated = header(&[]);
+    assert!(
+        populated.contains("8 vehicles") && populated.contains("7 by road20-wide4"),
+        "{populated}"
+    );
+    let scripted = header(&["--scripted"]);
+    assert!(
+        scripted.contains("7 vehicles") && scripted.contains("6 by road20-wide4"),
+        "{scripted}"
+    );
     std::fs::remove_dir_all(&dir).ok();
 }
 

@@ -30,9 +30,10 @@ pub struct DemoArgs {
     /// docs/results.md; embedded in the binary, so it runs without the folder too).
     #[arg(long, default_value = "models/road20-wide4")]
     pub checkpoint: PathBuf,
-    /// Simulated steps (10 Hz).
-    #[arg(long, default_value_t = 60)]
-    pub steps: usize,
+    /// Simulated steps (10 Hz); default 300 served (30 s: longer than the vehicles it starts
+    /// with stay on the map), 60 with `--in-process`.
+    #[arg(long)]
+    pub steps: Option<usize>,
     /// The procedural map: `roundabout`, `intersection` or `merge`.
     #[arg(long, default_value = "roundabout", value_parser = parse_map)]
     pub map: ProceduralMap,
@@ -77,13 +78,19 @@ pub struct DemoArgs {
     pub ego_speed_scale: f64,
     /// Instead of the map's scripted vehicles, this many placed on its lanes around the ego
     /// and refined by the model (`CreateScene.populate`; `road_sim::populate` in process).
+    /// Served, the default is 7 (`--scripted`: the map's script instead); in process the
+    /// script is the default.
     #[arg(long)]
     pub populate: Option<usize>,
     /// Served: vehicles keep entering at each of the map's entry lanes at this rate a minute,
     /// up to the scene's vehicles at the start (`CreateScene.inflow`), so that a long demo keeps
-    /// its traffic as vehicles leave at the map's ends.
+    /// its traffic as vehicles leave at the map's ends; default 6 unless `--scripted`.
     #[arg(long, conflicts_with = "in_process")]
     pub inflow_per_minute: Option<f64>,
+    /// Served: the map's scripted vehicles (the roundabout's six, with 1 s histories: the demo before
+    /// issue 39) instead of vehicles the model places, and no inflow unless asked.
+    #[arg(long, conflicts_with_all = ["in_process", "populate"])]
+    pub scripted: bool,
     /// The served scene's MCAP recording (Foxglove shows `/map` and `/agents`; `road render`,
     /// `road replay`).
     #[arg(long, default_value = "demo.mcap", conflicts_with = "in_process")]
@@ -240,8 +247,20 @@ pub(crate) fn parse_map(name: &str) -> std::result::Result<ProceduralMap, String
     })
 }
 
+/// The served demo's scene when no flag says otherwise: the roundabout populated by the model
+/// around the ego, vehicles entering at 6 a minute per entry, for 30 s.
+const SERVED_POPULATE: usize = 7;
+const SERVED_INFLOW_PER_MINUTE: f64 = 6.0;
+const SERVED_STEPS: usize = 300;
+const IN_PROCESS_STEPS: usize = 60;
+
 pub fn run(args: DemoArgs) -> Result<ExitCode> {
-    anyhow::ensure!(args.steps > 0, "--steps must be at least 1");
+    let steps = args.steps.unwrap_or(if args.in_process {
+        IN_PROCESS_STEPS
+    } else {
+        SERVED_STEPS
+    });
+    anyhow::ensure!(steps > 0, "--steps must be at least 1");
     if !args.in_process {
         let engine = match args.engine {
             None | Some(EngineChoice::Auto | EngineChoice::Cpu) => road_serve::ServeEngine::Cpu,
@@ -250,16 +269,24 @@ pub fn run(args: DemoArgs) -> Result<ExitCode> {
                 "--engine candle runs with --in-process only: the server serves on cpu or gpu"
             ),
         };
+        let (populate, inflow_per_minute) = if args.scripted {
+            (None, args.inflow_per_minute)
+        } else {
+            (
+                Some(args.populate.unwrap_or(SERVED_POPULATE)),
+                Some(args.inflow_per_minute.unwrap_or(SERVED_INFLOW_PER_MINUTE)),
+            )
+        };
         return crate::commands::demo_zenoh::run(
             &args.checkpoint,
             engine,
             args.map,
-            args.steps,
+            steps,
             args.seed,
             &args.mcap,
             &args.gif,
-            args.populate,
-            args.inflow_per_minute,
+            populate,
+            inflow_per_minute,
         );
     }
     let figure = args
@@ -293,7 +320,7 @@ pub fn run(args: DemoArgs) -> Result<ExitCode> {
         args.rotate_deg.to_radians(),
         args.ego_speed_scale,
         args.seed,
-        args.steps,
+        steps,
         true,
         args.populate,
         false,
@@ -349,7 +376,7 @@ pub fn run(args: DemoArgs) -> Result<ExitCode> {
         agents - 1,
         run.name,
         engines.describe(),
-        args.steps,
+        steps,
         STEP_SECS
     );
     out!(
@@ -358,7 +385,7 @@ pub fn run(args: DemoArgs) -> Result<ExitCode> {
         sorted[sorted.len() - 1],
         run.planner.steps_per_diffusion,
         setup_secs * 1e3,
-        nfe as f64 / args.steps as f64
+        nfe as f64 / steps as f64
     );
     let guards = road_sim::closed_loop::guard_actions(&ticks);
     if run.planner.lane_guard.is_some() {

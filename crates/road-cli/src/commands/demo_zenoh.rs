@@ -1,6 +1,8 @@
 //! `road demo` (the default path): the whole product in one command. A `road serve` runs in
 //! this process on loopback (TCP 127.0.0.1, scouting off), a scripted ego client (the demo's
-//! ego, which does not yield) drives a procedural map (`--map`) over zenoh, the server's
+//! ego, which does not yield) drives a procedural map (`--map`) over zenoh, the server
+//! populates the map around it and keeps vehicles entering (or, `--scripted`, runs the map's
+//! script), the server's
 //! recording of the scene is kept as `demo.mcap` (Foxglove shows `/map` and `/agents`) and
 //! drawn as `demo.gif` (`road render`). Prints every tick's round trip, server latency, engine
 //! time and infractions, then their summary.
