@@ -87,8 +87,8 @@ pub struct DemoArgs {
     /// its traffic as vehicles leave at the map's ends; default 6 unless `--scripted`.
     #[arg(long, conflicts_with = "in_process")]
     pub inflow_per_minute: Option<f64>,
-    /// Served: the map's scripted vehicles (the roundabout's six, with 1 s histories: the demo before
-    /// issue 39) instead of vehicles the model places, and no inflow unless asked.
+    /// Served: the map's scripted vehicles (the roundabout's six, with 1 s histories: the
+    /// demo before issue 39) instead of vehicles the model places, and no inflow unless asked.
     #[arg(long, conflicts_with_all = ["in_process", "populate"])]
     pub scripted: bool,
     /// The served scene's MCAP recording (Foxglove shows `/map` and `/agents`; `road render`,
