@@ -316,14 +316,20 @@ fn color(r: f64, g: f64, b: f64, a: f64) -> Value {
     json!({ "r": r, "g": g, "b": b, "a": a })
 }
 
-fn entity(id: &str, nanos: u64, cubes: Vec<Value>, lines: Vec<Value>) -> Value {
+fn entity(
+    id: &str,
+    nanos: u64,
+    cubes: Vec<Value>,
+    lines: Vec<Value>,
+    metadata: Vec<Value>,
+) -> Value {
     json!({
         "timestamp": stamp(nanos),
         "frame_id": FRAME,
         "id": id,
         "lifetime": { "sec": 0, "nsec": 0 },
         "frame_locked": false,
-        "metadata": [],
+        "metadata": metadata,
         "arrows": [],
         "cubes": cubes,
         "spheres": [],
@@ -365,7 +371,7 @@ pub fn map_update(map: &LaneletMap, nanos: u64) -> Value {
             })
         })
         .collect();
-    json!({ "deletions": [], "entities": [entity("lanes", nanos, vec![], lines)] })
+    json!({ "deletions": [], "entities": [entity("lanes", nanos, vec![], lines, vec![])] })
 }
 
 /// Removes every entity of the topic: what a viewer gets when a scene closes, so that its
@@ -376,6 +382,9 @@ pub fn clear_update(nanos: u64) -> Value {
         "entities": [],
     })
 }
+
+/// The `/agents` entity's metadata key whose value lists the boxes' agent ids, comma-separated.
+pub const AGENT_IDS_KEY: &str = "agent_ids";
 
 /// Every agent's box at one step (of the agents `present`, all when `None`), one entity
 /// (replacing the previous step's), with each planned path (`plans`, by agent id) as a thin
@@ -389,13 +398,25 @@ pub fn agents_update(
     nanos: u64,
 ) -> Value {
     const HEIGHT_M: f64 = 1.5;
-    let cubes: Vec<Value> = agents
+    let shown: Vec<(&AgentInfo, &Pose)> = agents
         .iter()
         .zip(poses)
         .enumerate()
         // An agent that left the scene (`present` false) has no box.
         .filter(|&(i, _)| present.is_none_or(|here| here[i]))
-        .map(|(_, (a, p))| {
+        .map(|(_, shown)| shown)
+        .collect();
+    // Which agent each box is, in the boxes' order: once vehicles leave and enter, the order
+    // is no longer the creation's (`road render` finds a tick's infractions by these ids).
+    let ids = shown
+        .iter()
+        .map(|(a, _)| a.id.to_string())
+        .collect::<Vec<_>>()
+        .join(",");
+    let metadata = vec![json!({ "key": AGENT_IDS_KEY, "value": ids })];
+    let cubes: Vec<Value> = shown
+        .into_iter()
+        .map(|(a, p)| {
             let q = DQuat::from_rotation_z(p.heading_rad);
             let centre = DVec3::new(p.x_m, p.y_m, 0.5 * HEIGHT_M);
             let c = match (a.external, late) {
@@ -434,7 +455,7 @@ pub fn agents_update(
             }))
         })
         .collect();
-    json!({ "deletions": [], "entities": [entity("agents", nanos, cubes, lines)] })
+    json!({ "deletions": [], "entities": [entity("agents", nanos, cubes, lines, metadata)] })
 }
 
 #[cfg(test)]
@@ -449,6 +470,25 @@ mod tests {
             external,
             history: vec![],
         }
+    }
+
+    /// Once vehicles leave, the boxes skip them: the entity names each box's agent.
+    #[test]
+    fn the_boxes_name_their_agents_in_order() {
+        let agents = [agent(1, true), agent(2, false), agent(9, false)];
+        let pose = |x_m| Pose {
+            x_m,
+            y_m: 0.0,
+            heading_rad: 0.0,
+        };
+        let poses = [pose(0.0), pose(10.0), pose(20.0)];
+        let v = agents_update(&agents, &poses, Some(&[true, false, true]), &[], false, 0);
+        let entity = &v["entities"][0];
+        assert_eq!(entity["metadata"][0]["key"], AGENT_IDS_KEY);
+        assert_eq!(entity["metadata"][0]["value"], "1,9");
+        let cubes = entity["cubes"].as_array().unwrap();
+        assert_eq!(cubes.len(), 2);
+        assert_eq!(cubes[1]["pose"]["position"]["x"], 20.0);
     }
 
     #[test]

@@ -12,6 +12,7 @@ use std::process::ExitCode;
 use anyhow::{Context, Result};
 use clap::Args;
 use plotters::style::{BLACK, RGBColor, WHITE};
+use road_serve::record::AGENT_IDS_KEY;
 use road_sim::Pose;
 use road_sim::geometry::OrientedBox;
 use serde_json::Value;
@@ -321,8 +322,10 @@ impl Scene {
                 }
             }
         }
-        // The boxes of `/agents` are in the order of the creation reply's agents; its ids and
-        // external flags tell the tick's infractions (by id) where they are.
+        // Each box's agent: the `/agents` entity names them (`AGENT_IDS_KEY`); recordings from
+        // before it did have the boxes in the order of the creation reply's agents. The
+        // creation's external flags tell the client's agents; the tick's infractions name
+        // agents by id.
         let agents: Vec<(u64, bool)> = match recording.on(topics::CREATED).next() {
             Some(m) => array(&json(m)?["agents"])
                 .iter()
@@ -336,10 +339,7 @@ impl Scene {
                 Vec::new()
             }
         };
-        let index = |id: &Value| {
-            id.as_u64()
-                .and_then(|id| agents.iter().position(|a| a.0 == id))
-        };
+        let external = |id: u64| agents.iter().any(|&(a, external)| a == id && external);
         let mut frames = Vec::new();
         let mut tick: Option<Value> = None;
         for m in &recording.messages {
@@ -354,7 +354,19 @@ impl Scene {
             let npc = tick.take().unwrap_or(Value::Null);
             let late = !array(&npc["late_external"]).is_empty();
             let mut frame = Frame::default();
+            // The boxes' agent ids, in order.
+            let mut ids: Vec<u64> = Vec::new();
             for entity in array(&json(m)?["entities"]) {
+                let named = array(&entity["metadata"])
+                    .iter()
+                    .find(|kv| kv["key"] == AGENT_IDS_KEY)
+                    .and_then(|kv| kv["value"].as_str());
+                match named {
+                    Some(list) => {
+                        ids.extend(list.split(',').filter_map(|id| id.parse::<u64>().ok()))
+                    }
+                    None => ids.extend(agents.iter().map(|a| a.0)),
+                }
                 for line in array(&entity["lines"]) {
                     frame
                         .plans
@@ -362,8 +374,8 @@ impl Scene {
                 }
                 for cube in array(&entity["cubes"]) {
                     let i = frame.boxes.len();
-                    let external = match agents.get(i) {
-                        Some(&(_, external)) => external,
+                    let external = match ids.get(i) {
+                        Some(&id) if !agents.is_empty() => external(id),
                         // The recorder's colours: external agents green.
                         _ => cube["color"]["g"].as_f64() > cube["color"]["r"].as_f64(),
                     };
@@ -385,6 +397,7 @@ impl Scene {
                 }
             }
             let n = frame.boxes.len();
+            let index = |id: &Value| id.as_u64().and_then(|id| ids.iter().position(|&b| b == id));
             for pair in array(&npc["collisions"]) {
                 if let (Some(i), Some(j)) = (index(&pair[0]), index(&pair[1])) {
                     if i < n && j < n {
@@ -414,4 +427,85 @@ fn num(v: &Value) -> f64 {
 
 fn xy(v: &Value) -> (f64, f64) {
     (num(&v["x"]), num(&v["y"]))
+}
+
+#[cfg(test)]
+mod tests {
+    use std::time::{Duration, SystemTime};
+
+    use road_serve::record::{Recorder, agents_update};
+
+    use super::*;
+
+    /// Vehicle 2 leaves after the first tick and vehicle 9 enters in its place: the boxes are
+    /// then 1, 9 and 3, and a collision of 3 and 9 is drawn on their boxes (by the creation's
+    /// order 9 had no box and the collision was not drawn).
+    #[test]
+    fn infractions_land_on_their_agents_boxes_after_vehicles_leave_and_enter() {
+        let dir = std::env::temp_dir().join(format!("road-render-ids-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let map = road_sim::procedural::procedural(
+            road_sim::procedural::ProceduralMap::Roundabout,
+            &road_data::WindowConfig::default(),
+            2,
+        )
+        .unwrap()
+        .map;
+        let agent = |id, external| road_protocol::AgentInfo {
+            id,
+            length_m: 4.5,
+            width_m: 1.8,
+            external,
+            history: vec![],
+        };
+        let created = serde_json::json!({
+            "scene": 7, "agents": [agent(1, true), agent(2, false), agent(3, false)] });
+        let t0 = SystemTime::UNIX_EPOCH + Duration::from_secs(1_700_000_000);
+        let mut rec = Recorder::start(
+            &dir,
+            7,
+            br#"{"client":"ego-7"}"#,
+            created.to_string().as_bytes(),
+            Some(&map),
+            t0,
+        )
+        .unwrap();
+        let pose = |x_m| Pose {
+            x_m,
+            y_m: 0.0,
+            heading_rad: 0.0,
+        };
+        // After tick 1 the engine's index 1 holds vehicle 9 (2's index, reused).
+        let ticks = [
+            (
+                vec![agent(1, true), agent(2, false), agent(3, false)],
+                vec![true; 3],
+                vec![],
+            ),
+            (
+                vec![agent(1, true), agent(9, false), agent(3, false)],
+                vec![true; 3],
+                vec![[3, 9]],
+            ),
+        ];
+        for (t, (agents, present, collisions)) in ticks.into_iter().enumerate() {
+            let at = t0 + Duration::from_millis(100 * (t as u64 + 1));
+            let npc = serde_json::json!({ "scene": 7, "tick": t + 1, "collisions": collisions });
+            rec.write(topics::NPC, npc.to_string().as_bytes(), at)
+                .unwrap();
+            let poses = [pose(0.0), pose(10.0), pose(20.0)];
+            let boxes = agents_update(&agents, &poses, Some(&present), &[], false, 0);
+            rec.write(topics::AGENTS, boxes.to_string().as_bytes(), at)
+                .unwrap();
+        }
+        let path = rec.finish().unwrap();
+        let scene = Scene::parse(&Recording::read(&path).unwrap()).unwrap();
+        let last = scene.frames.last().unwrap();
+        // Boxes in the engine's order: 1 (the client's), 9, 3.
+        assert_eq!(last.boxes.len(), 3);
+        assert!(matches!(last.boxes[0].driver, Driver::External));
+        assert!(matches!(last.boxes[1].driver, Driver::Model));
+        assert_eq!(last.collisions, vec![(2, 1)]);
+        std::fs::remove_dir_all(&dir).ok();
+    }
 }
