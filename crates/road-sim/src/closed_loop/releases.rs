@@ -20,9 +20,6 @@ pub(super) struct HeldMemory {
     pub(super) stalled_ticks: u32,
     /// Whether the stall release is pulling it away.
     pub(super) pulling_away: bool,
-    /// Whether the stall release is manoeuvring it (backing, filling or turning in place): the
-    /// model does not take over until the plain pull-away fits again.
-    pub(super) manoeuvring: bool,
     /// The way the stall release turns it in place (+1 counter-clockwise, −1 clockwise; 0 when
     /// it does not).
     pub(super) spin_sign: i8,
@@ -63,7 +60,6 @@ impl SceneRuntime<'_> {
                 self.held[a].stalled_ticks = 0;
                 self.held[a].pulling_away = false;
                 self.held[a].spin_sign = 0;
-                self.held[a].manoeuvring = false;
                 continue;
             }
             if !self.held[a].pulling_away {
@@ -82,22 +78,17 @@ impl SceneRuntime<'_> {
             let speed = (self.speed_mps[a] + release.acceleration_mps2 * STEP_SECS)
                 .min(release.release_speed_mps);
             // The model drives it on again once it moves at least as fast the same way (within
-            // 30°): a model step off the road would only be stopped at the edge again. Not in
-            // the middle of a manoeuvre: the model drove a vehicle that had just backed away
-            // from the kerb straight back to it, over and over (issue 39).
+            // 30°): a model step off the road would only be stopped at the edge again.
             let model_step = proposed - before.position_m();
             let same_way = model_step
                 .normalize_or_zero()
                 .dot(DVec2::from_angle(self.heading_unwrapped[a]))
                 >= 30f64.to_radians().cos();
-            if !self.held[a].manoeuvring
-                && ((model_speed >= speed && same_way)
-                    || self.speed_mps[a] >= release.release_speed_mps)
+            if (model_speed >= speed && same_way) || self.speed_mps[a] >= release.release_speed_mps
             {
                 self.held[a].pulling_away = false;
                 self.held[a].stalled_ticks = 0;
                 self.held[a].spin_sign = 0;
-                self.held[a].manoeuvring = false;
                 continue;
             }
             // Along its heading, turned towards a point 6 m ahead on its lane
@@ -171,7 +162,6 @@ impl SceneRuntime<'_> {
                 self.held[a].pulling_away = false;
                 self.held[a].stalled_ticks = 0;
                 self.held[a].spin_sign = 0;
-                self.held[a].manoeuvring = false;
                 continue;
             } else if turn.abs() > 30f64.to_radians() {
                 (vec![spin], false)
@@ -197,10 +187,6 @@ impl SceneRuntime<'_> {
             } else {
                 0
             };
-            // Backing, filling or turning in place until the plain pull-away fits again.
-            if let Some(chosen) = chosen {
-                self.held[a].manoeuvring = chosen != moves[0];
-            }
             // Nothing feasible: it stands this tick, as the guard would have held it.
             let (to, heading) = chosen.unwrap_or((before.position_m(), heading_before));
             set_emitted(emitted, a, frame, to, heading, heading_scale);
