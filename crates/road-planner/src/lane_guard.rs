@@ -26,13 +26,14 @@
 //! the traffic behind). An agent moving backwards, across or against every lanelet under it,
 //! or creeping, has no lane to be steered into: it stops at the road's edge rather than leave
 //! the road (issues 39 and 41: one crept onto a median, another crossed a roundabout's median
-//! and drove on over the fields, a third slid sideways off the merge). The guarded state is what joins the
-//! history and the window, so the model plans on from where the vehicle really is: back in its
-//! lane. With `turn_plan` the closed loop turns the steered vehicle's plan too (the window's
-//! future slots rotated about its position before the tick by the angle its step turned,
-//! headings with them: `road_rollout::turn_plan`); without it the model, its plan still
-//! pointing where it had meant to go, turns its heading back there while its positions follow the
-//! lane, and the vehicle slides sideways (`docs/experiments/2026-11-26-lane-guard-turns-plan.md`).
+//! and drove on over the fields, a third slid sideways off the merge). The guarded state is
+//! what joins the history and the window, so the model plans on from where the vehicle really
+//! is: back in its lane. With `turn_plan` the closed loop turns the steered vehicle's plan too
+//! (the window's future slots rotated about its position before the tick by the angle its step
+//! turned, headings with them: `road_rollout::turn_plan`); without it the model, its plan still
+//! pointing where it had meant to go, turns its heading back there while its positions follow
+//! the lane, and the vehicle slides sideways
+//! (`docs/experiments/2026-11-26-lane-guard-turns-plan.md`).
 
 use glam::DVec2;
 use road_data::geometry::Point;
