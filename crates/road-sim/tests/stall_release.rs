@@ -186,6 +186,14 @@ fn a_vehicle_standing_with_free_road_ahead_pulls_away() {
     );
 }
 
+/// The lane guard without nudges or plan turns: it steers, or stops at the edge.
+const LANE_GUARD: road_sched::LaneGuard = road_sched::LaneGuard {
+    lookahead_m: 6.0,
+    turn_plan: false,
+    anticipation: None,
+    keep_off_opposing_lanes: false,
+};
+
 const RELEASE: StallRelease = StallRelease {
     after_secs: 3.0,
     acceleration_mps2: 1.5,
@@ -199,12 +207,7 @@ fn a_vehicle_held_at_the_road_edge_pointing_off_it_turns_back_onto_its_lane() {
     // towards its lane, then drives it on along the lane.
     let planner = PlannerSpec {
         stall_release: Some(RELEASE),
-        lane_guard: Some(road_sched::LaneGuard {
-            lookahead_m: 6.0,
-            turn_plan: false,
-            anticipation: None,
-            keep_off_opposing_lanes: false,
-        }),
+        lane_guard: Some(LANE_GUARD),
         obs_noise: Some(0.0),
         ..PlannerSpec::default()
     };
@@ -291,12 +294,7 @@ fn a_vehicle_wedged_at_the_road_edge_backs_and_fills_once_the_one_behind_makes_r
     // minutes. Now 1 backs off and 0 backs and fills onto its lane, without a collision.
     let planner = PlannerSpec {
         stall_release: Some(RELEASE),
-        lane_guard: Some(road_sched::LaneGuard {
-            lookahead_m: 6.0,
-            turn_plan: false,
-            anticipation: None,
-            keep_off_opposing_lanes: false,
-        }),
+        lane_guard: Some(LANE_GUARD),
         collision_guard: Some(road_sched::CollisionGuard {
             horizon_steps: 10,
             brake_mps2: 6.0,
