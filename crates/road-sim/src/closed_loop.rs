@@ -939,8 +939,11 @@ impl<'m> SceneRuntime<'m> {
             // A stop at the edge lands within micrometres of it, and the model's f32 units can
             // round it over (issue 39's long sessions counted such off-road events): it stays
             // where it stood instead.
-            let stored = frame.to_metres([emitted[3 * a], emitted[3 * a + 1]]);
-            if action == GuardAction::StoppedAtRoadEdge && map.lanelet_at(stored).is_none() {
+            if action == GuardAction::StoppedAtRoadEdge
+                && map
+                    .lanelet_at(frame.to_metres([emitted[3 * a], emitted[3 * a + 1]]))
+                    .is_none()
+            {
                 set_emitted(
                     emitted,
                     a,

@@ -639,9 +639,8 @@ fn a_vehicle_starting_at_the_map_s_end_leaves_on_its_first_step() {
         let xy = window
             .frame
             .to_norm([89.7 - 0.9 * (window.steps - 1 - t) as f64, 0.0]);
-        let i = t;
-        window.states[3 * i..3 * i + 3].copy_from_slice(&[xy[0], xy[1], 0.0]);
-        window.valid[i] = true;
+        window.states[3 * t..3 * t + 3].copy_from_slice(&[xy[0], xy[1], 0.0]);
+        window.valid[t] = true;
     }
     scene.window = window;
     let mut engine = CpuEngine::new(&model);
