@@ -250,8 +250,9 @@ pub struct CreateScene {
 }
 
 /// Model-driven vehicles entering a scene at each of its map's entry lanes (lanelets no other
-/// lanelet leads into), as a Poisson process; an arrival waits until its entry has room, and
-/// one that finds the scene at the server's agent limit is dropped. Each enters with a 1 s
+/// lanelet leads into), as a Poisson process; arrivals queue beyond the map (up to 4 an entry)
+/// until their entry has room, and one that finds the scene at the server's agent limit is
+/// dropped. Each enters with a 1 s
 /// history from beyond the map along the lane and a new id, announced in
 /// [`NpcTick::entered`].
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

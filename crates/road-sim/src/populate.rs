@@ -410,16 +410,23 @@ pub fn footprints(window: &SceneWindow) -> Vec<Footprint> {
 
 /// Vehicles entering a map at its entry lanes ([`entry_lanelets`]) as a Poisson process of
 /// `vehicles_per_minute` per entry: each tick an entry gets an arrival with probability
-/// rate × 0.1 s, and an arrival waits (at most one per entry) until the entry has room
-/// ([`spawn_at_entry`]) and, with a target count ([`Inflow::with_max_vehicles`]), until the
-/// scene has fewer vehicles than that.
+/// rate × 0.1 s. Arrivals queue beyond the map (at most [`MAX_WAITING_PER_ENTRY`] an entry;
+/// more are dropped) until the entry has room ([`spawn_at_entry`]) and, with a target count
+/// ([`Inflow::with_max_vehicles`]), until the scene has fewer vehicles than that; one enters
+/// an entry a tick.
+/// The most arrivals an entry queues beyond the map ([`Inflow`]): with a target count, a
+/// vehicle that leaves is replaced at once by one that queued while the scene was full (with
+/// one waiting an entry, the merge's six fell to four for 17 s: issue 39).
+pub const MAX_WAITING_PER_ENTRY: u32 = 4;
+
 #[derive(Debug, Clone)]
 pub struct Inflow {
     per_tick: f64,
     entries: Vec<usize>,
     /// Each entry's route into the map and where its lane starts along it (made once).
     routes: Vec<(Route, f64)>,
-    waiting: Vec<bool>,
+    /// Arrivals queued at each entry.
+    waiting: Vec<u32>,
     options: PlacementOptions,
     rng: StdRng,
     max_vehicles: Option<usize>,
@@ -433,7 +440,7 @@ impl Inflow {
         let preds = predecessors(map);
         Self {
             per_tick: (vehicles_per_minute * STEP_SECS / 60.0).clamp(0.0, 1.0),
-            waiting: vec![false; entries.len()],
+            waiting: vec![0; entries.len()],
             routes: entries
                 .iter()
                 .map(|&lane| route_into(map, &preds, lane))
@@ -466,10 +473,10 @@ impl Inflow {
             return out;
         }
         for (k, &lane) in self.entries.iter().enumerate() {
-            if !self.waiting[k] && self.rng.random_bool(self.per_tick) {
-                self.waiting[k] = true;
+            if self.rng.random_bool(self.per_tick) {
+                self.waiting[k] = (self.waiting[k] + 1).min(MAX_WAITING_PER_ENTRY);
             }
-            if !self.waiting[k] || self.max_vehicles.is_some_and(|m| others.len() >= m) {
+            if self.waiting[k] == 0 || self.max_vehicles.is_some_and(|m| others.len() >= m) {
                 continue;
             }
             let (route, lane_start_m) = &self.routes[k];
@@ -483,7 +490,7 @@ impl Inflow {
                 &mut self.rng,
             );
             if let Some(v) = spawned {
-                self.waiting[k] = false;
+                self.waiting[k] -= 1;
                 others.push(v.footprint());
                 out.push(v);
             }
@@ -708,5 +715,29 @@ mod tests {
             &mut rng,
         );
         assert!(blocked.is_none());
+    }
+
+    #[test]
+    fn arrivals_queue_while_the_scene_is_full_and_refill_it_at_once() {
+        let scene = procedural(ProceduralMap::Merge, &WindowConfig::default(), 10).unwrap();
+        let mut inflow = Inflow::new(&scene.map, 6.0, 5).with_max_vehicles(3);
+        assert_eq!(inflow.entries().len(), 2, "the main road and the ramp");
+        // Full for two minutes (three vehicles far from the entries): nobody enters, and about
+        // twelve arrivals an entry queue, up to the queue's bound.
+        let far = |x_m: f64| Footprint {
+            pose: Pose::at(DVec2::new(x_m, 0.0), 0.0),
+            length_m: 4.5,
+            width_m: 1.8,
+        };
+        let full = [far(60.0), far(70.0), far(80.0)];
+        for _ in 0..1200 {
+            assert!(inflow.arrivals(&full, 10).is_empty(), "the scene is full");
+        }
+        // All three leave; each tick the entered ones have driven off (not in `occupied`).
+        // One a tick at each entry, from the queue, without waiting for new arrivals.
+        let entered: Vec<usize> = (0..4).map(|_| inflow.arrivals(&[], 10).len()).collect();
+        assert_eq!(entered, [2, 2, 2, 2], "two entries, four queued at each");
+        let after: usize = (0..4).map(|_| inflow.arrivals(&[], 10).len()).sum();
+        assert!(after <= 1, "the queues are empty: {after} entered");
     }
 }

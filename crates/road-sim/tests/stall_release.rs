@@ -149,6 +149,8 @@ fn run_driving(
         &mut StdRng::seed_from_u64(0),
     )
     .unwrap();
+    // As served scenes: vehicles leave through the map's open lane ends.
+    sim.retire_on_exit(0, true).unwrap();
     let mut out_ticks = Vec::new();
     let mut out = Vec::new();
     for _ in 0..ticks {
@@ -223,6 +225,54 @@ fn a_vehicle_held_at_the_road_edge_pointing_off_it_turns_back_onto_its_lane() {
     assert!(
         ticks.iter().all(|t| t.off_road.is_empty()),
         "never off the road"
+    );
+}
+
+#[test]
+fn a_vehicle_the_model_drives_off_the_road_edge_is_released_and_turned_back() {
+    // On the main road's right edge, 120° off the road (no lane under it runs its way), the
+    // model driving it on along its heading at 1 m/s: off the road, so the lane guard stops
+    // it at the edge every tick. It stands while the model asks to move (in issue 39's long
+    // sessions such vehicles stood 10 s and more, their release restarted by every ask), so
+    // the release turns it back, and hands it to the model once its step stays on the road.
+    let planner = PlannerSpec {
+        stall_release: Some(RELEASE),
+        lane_guard: Some(LANE_GUARD),
+        obs_noise: Some(0.0),
+        ..PlannerSpec::default()
+    };
+    let heading = (-120f64).to_radians();
+    let ticks = run_driving(&planner, &[0], &[(0, -40.0, -1.6, heading)], 150, 1.0);
+    let last = ticks.last().unwrap().poses[0];
+    assert!(last.x_m > -35.0, "it drove on along the road: {last:?}");
+    assert!(last.y_m.abs() < 1.875, "on the road: {last:?}");
+    assert!(
+        ticks.iter().all(|t| t.off_road.is_empty()),
+        "never off the road"
+    );
+}
+
+#[test]
+fn a_vehicle_stopped_at_the_map_s_end_is_released_out_of_the_map() {
+    // 2 m before the main road's open end (x = 90 m), the model standing: the release's
+    // steps cross the end and it leaves (the release refused them as off the road, and such a
+    // vehicle stood at the map's end for 38 s in issue 39's long sessions).
+    let planner = PlannerSpec {
+        stall_release: Some(RELEASE),
+        lane_guard: Some(LANE_GUARD),
+        obs_noise: Some(0.0),
+        ..PlannerSpec::default()
+    };
+    let ticks = run_with(&planner, &[0], &[(0, 88.0, 0.0, 0.0)], 100);
+    let left = ticks.iter().position(|t| t.left.contains(&0));
+    assert!(
+        left.is_some(),
+        "it left: {:?}",
+        ticks.last().unwrap().poses[0]
+    );
+    assert!(
+        ticks.iter().all(|t| t.off_road.is_empty()),
+        "leaving through the end is not off road"
     );
 }
 

@@ -6,6 +6,7 @@
 use glam::DVec2;
 use road_data::{LaneletMap, wrap_angle};
 use road_planner::collision_guard::{GuardAction, GuardAgent, guard_step, keeps_clear};
+use road_planner::lane_guard::leaves_through_an_open_end;
 use road_sched::{CollisionGuard, StallRelease};
 
 use super::{Controller, STEP_SECS, SceneRuntime, set_emitted};
@@ -62,9 +63,21 @@ impl SceneRuntime<'_> {
                 self.held[a].spin_sign = 0;
                 continue;
             }
+            let map = self.map.as_ref().map(|m| m.get());
+            let on_road = |p: DVec2| map.is_none_or(|m| m.lanelet_at(p.into()).is_some());
+            // On the road, or out of the map through an open lane end (where it is retired): a
+            // vehicle the model stopped at the map's end stood there for 38 s, every move of
+            // the release refused as off the road (issue 39).
+            let stays_or_exits = |to: DVec2| {
+                on_road(to)
+                    || map.is_some_and(|m| leaves_through_an_open_end(m, before.position_m(), to))
+            };
             if !self.held[a].pulling_away {
-                let still = self.speed_mps[a] < crate::free_road::STOPPED_MAX_SPEED_MPS
-                    && model_speed < crate::free_road::STOPPED_MAX_SPEED_MPS;
+                // Stood over the last tick, whatever the model asks: a model that drove a
+                // vehicle at the road's edge off it every few ticks, each step stopped there
+                // by the lane guard, restarted its release's count each time, and it stood for
+                // 10 s and more (issue 39).
+                let still = self.speed_mps[a] < crate::free_road::STOPPED_MAX_SPEED_MPS;
                 self.held[a].stalled_ticks = if still {
                     self.held[a].stalled_ticks + 1
                 } else {
@@ -78,13 +91,15 @@ impl SceneRuntime<'_> {
             let speed = (self.speed_mps[a] + release.acceleration_mps2 * STEP_SECS)
                 .min(release.release_speed_mps);
             // The model drives it on again once it moves at least as fast the same way (within
-            // 30°): a model step off the road would only be stopped at the edge again.
+            // 30°) and stays on the road: a model step off the road would only be stopped at
+            // the edge again.
             let model_step = proposed - before.position_m();
             let same_way = model_step
                 .normalize_or_zero()
                 .dot(DVec2::from_angle(self.heading_unwrapped[a]))
                 >= 30f64.to_radians().cos();
-            if (model_speed >= speed && same_way) || self.speed_mps[a] >= release.release_speed_mps
+            if (model_speed >= speed && same_way && stays_or_exits(proposed))
+                || self.speed_mps[a] >= release.release_speed_mps
             {
                 self.held[a].pulling_away = false;
                 self.held[a].stalled_ticks = 0;
@@ -104,8 +119,6 @@ impl SceneRuntime<'_> {
             // its lane until it points within 30° of it, then drives there; with no lane within
             // 10 m it is left where it stands.
             let heading_before = self.heading_unwrapped[a];
-            let map = self.map.as_ref().map(|m| m.get());
-            let on_road = |p: DVec2| map.is_none_or(|m| m.lanelet_at(p.into()).is_some());
             let target =
                 map.and_then(|m| lane_point_ahead(m, before.position_m(), heading_before, 6.0));
             let turn = target.map_or(0.0, |target| {
@@ -170,7 +183,7 @@ impl SceneRuntime<'_> {
             };
             // The first move on the road (where asked) that the collision guard will let through
             // against everyone standing as they are.
-            let allowed = |m: &&(DVec2, f64)| !on_road_too || on_road(m.0);
+            let allowed = |m: &&(DVec2, f64)| !on_road_too || stays_or_exits(m.0);
             let chosen = moves
                 .iter()
                 .filter(allowed)
@@ -382,8 +395,19 @@ impl SceneRuntime<'_> {
                 self.poses[a].position_m() - DVec2::from_angle(heading) * speed_mps * STEP_SECS;
             if backing {
                 // Those standing behind make room in turn (a jam of four stood for minutes: the
-                // vehicle asked to back off had another at its tail).
-                make_room.extend(self.blockers_of(a, to, heading).into_iter().map(|b| (a, b)));
+                // vehicle asked to back off had another at its tail); those in the way of the
+                // rest of its back-off, not only of this step: the collision guard brakes for
+                // what lies within its horizon, and a jam on a roundabout stood for minutes
+                // while a vehicle 0.4 m behind the one backing was never asked.
+                let rest_m = f64::from(self.held[a].backing_off_ticks + 1 - give_way_ticks)
+                    * speed_mps
+                    * STEP_SECS;
+                let end = self.poses[a].position_m() - DVec2::from_angle(heading) * rest_m;
+                make_room.extend(
+                    self.blockers_of(a, end, heading)
+                        .into_iter()
+                        .map(|b| (a, b)),
+                );
             }
             set_emitted(emitted, a, frame, to, heading, heading_scale);
             self.guarded.push((a, GuardAction::BackedOff));

@@ -102,7 +102,8 @@ pub struct EvalArgs {
     pub inflow_per_minute: f64,
     /// Long: write each session's ticks to this folder, one JSON line a tick
     /// (`<map>-seed<seed>.jsonl`: the poses, guard actions, collisions, off-road agents, and
-    /// which agents entered and left).
+    /// which agents entered, with their sizes, and left), and its map and starting vehicles'
+    /// sizes beside them (`<map>-seed<seed>.map.json`).
     #[arg(long)]
     pub trace: Option<PathBuf>,
 }

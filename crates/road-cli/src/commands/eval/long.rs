@@ -330,6 +330,9 @@ fn session(
     let SessionStart { window, map } = start;
     let mut engine = engines.engine()?;
     let agents = window.agents;
+    let size_m: Vec<[f32; 2]> = (0..agents)
+        .map(|a| [window.length_m[a], window.width_m[a]])
+        .collect();
     ensure!(
         agents <= SESSION_AGENTS,
         "{agents} vehicles; a session holds at most {SESSION_AGENTS}"
@@ -364,6 +367,12 @@ fn session(
         .map(|dir| -> Result<_> {
             std::fs::create_dir_all(dir)
                 .with_context(|| format!("--trace: cannot create {}", dir.display()))?;
+            // The session's map and its vehicles' sizes beside the ticks, so that a trace can be
+            // drawn on its own.
+            let map_path = dir.join(format!("{map_name}-seed{seed}.map.json"));
+            let sidecar = serde_json::json!({ "map": &map, "size_m": &size_m });
+            std::fs::write(&map_path, sidecar.to_string())
+                .with_context(|| format!("--trace: cannot write {}", map_path.display()))?;
             let path = dir.join(format!("{map_name}-seed{seed}.jsonl"));
             let file = std::fs::File::create(&path)
                 .with_context(|| format!("--trace: cannot create {}", path.display()))?;
@@ -373,6 +382,7 @@ fn session(
     let mut out = Vec::new();
     for tick in 0..ticks {
         let mut entered = Vec::new();
+        let mut entered_size_m = Vec::new();
         if let Some(inflow) = inflow.as_mut() {
             let footprints = sim.footprints(id)?;
             for vehicle in inflow.arrivals(&footprints, n) {
@@ -380,6 +390,7 @@ fn session(
                 if let Ok(agent) = sim.add_agent(engine.as_dyn(), id, &vehicle) {
                     stats.entered(agent);
                     entered.push(agent);
+                    entered_size_m.push([vehicle.length_m, vehicle.width_m]);
                 }
             }
         }
@@ -387,7 +398,9 @@ fn session(
         stats.tick(&out[0]);
         if let Some((path, writer)) = trace.as_mut() {
             use std::io::Write;
-            let line = serde_json::json!({ "tick": tick, "entered": entered, "scene": &out[0] });
+            let line = serde_json::json!({
+                "tick": tick, "entered": entered, "entered_size_m": entered_size_m, "scene": &out[0]
+            });
             writeln!(writer, "{line}")
                 .with_context(|| format!("--trace: cannot write {}", path.display()))?;
         }
