@@ -70,7 +70,8 @@ pub enum GuardAction {
     StoppedAtRoadEdge,
     /// Stall release: pulled away after standing still with free road ahead.
     PulledAway,
-    /// Deadlock release: backed off from a vehicle it was locked with, which has the way.
+    /// Deadlock release: backed off from a vehicle it was locked with, which has the way; or
+    /// moved off (backwards, or forwards from one behind) to make room for a wedged vehicle.
     BackedOff,
 }
 

@@ -388,3 +388,56 @@ fn a_vehicle_wedged_at_the_road_edge_backs_and_fills_once_the_one_behind_makes_r
     );
     assert!(last.x_m > x0 + 3.0, "it drove on along the road: {last:?}");
 }
+
+#[test]
+fn a_vehicle_asked_to_make_room_by_one_behind_it_moves_forwards() {
+    // As above, but vehicle 1 faces away from 0 (its tail 1 cm from 0's rear-right corner)
+    // and vehicle 2 stands 8 m ahead of it, facing it: neither has free road ahead, so only
+    // the making of room moves 1. Backing off, 1 ran into 0 (vehicles asked to back off
+    // backed into the wedged vehicle in issue 39's long sessions); it moves forwards instead,
+    // and 0 backs and fills onto its lane, without a collision.
+    let planner = PlannerSpec {
+        stall_release: Some(RELEASE),
+        lane_guard: Some(LANE_GUARD),
+        collision_guard: Some(road_sched::CollisionGuard {
+            horizon_steps: 10,
+            brake_mps2: 6.0,
+            yield_to_unreactive: true,
+            release_deadlock_after_secs: None,
+        }),
+        obs_noise: Some(0.0),
+        ..PlannerSpec::default()
+    };
+    let heading = (-60f64).to_radians();
+    let (x0, y0) = (-40.0, -1.87);
+    let (forward, left) = (
+        (heading.cos(), heading.sin()),
+        (-heading.sin(), heading.cos()),
+    );
+    let corner = (
+        x0 - 2.3 * forward.0 - 0.95 * left.0,
+        y0 - 2.3 * forward.1 - 0.95 * left.1,
+    );
+    let x1 = corner.0 - 0.01 - 2.4;
+    let stands = [
+        (0, x0, y0, heading),
+        (1, x1, corner.1 - 0.2, std::f64::consts::PI),
+        (2, x1 - 8.0, corner.1 - 0.2, 0.0),
+    ];
+    let ticks = run_with(&planner, &[0, 2, 1], &stands, 250);
+    assert!(
+        ticks.iter().all(|t| t.collisions.is_empty()),
+        "no collision"
+    );
+    assert!(
+        ticks[1..].iter().all(|t| t.poses[1].x_m <= x1 + 1e-3),
+        "1 never backs towards 0"
+    );
+    assert!(
+        ticks.iter().any(|t| t.poses[1].x_m < x1 - 0.5),
+        "1 makes room forwards"
+    );
+    let last = ticks.last().unwrap().poses[0];
+    assert!(last.y_m.abs() < 1.875, "on the road: {last:?}");
+    assert!(last.x_m > x0 + 3.0, "it drove on along the road: {last:?}");
+}

@@ -31,8 +31,11 @@ pub(super) struct HeldMemory {
     pub(super) breaking_deadlock_ticks: u32,
     /// Consecutive ticks the collision guard held it (braked or stopped short), for backing off.
     pub(super) held_streak_ticks: u32,
-    /// Ticks left in which it backs off (it gives way in a deadlock).
+    /// Ticks left in which it backs off (it gives way in a deadlock, or makes room).
     pub(super) backing_off_ticks: u32,
+    /// The way it moves off: −1 backwards, +1 forwards (it makes room for a vehicle behind
+    /// it); 0 reads as backwards.
+    pub(super) backing_off_sign: i8,
 }
 
 impl SceneRuntime<'_> {
@@ -234,9 +237,12 @@ impl SceneRuntime<'_> {
     }
 
     /// Vehicles asked to make room (`(asking, asked)` pairs) by a wedged vehicle the stall
-    /// release pulls away, or by one backing off into them, back off as in a deadlock
-    /// ([`Self::back_off`]), if they are model-driven, standing, not backing off already, and
-    /// not themselves pulling away with the way (a lower index) over the one asking.
+    /// release pulls away, or by one moving off into them, move off as in a deadlock
+    /// ([`Self::back_off`]), away from the one asking: backwards when it stands ahead of them,
+    /// forwards when behind (asked to back off, vehicles behind a wedged one backed into it,
+    /// and jams stood for minutes: issue 39). Only those model-driven, standing, not moving off
+    /// already, and not themselves pulling away with the way (a lower index) over the one
+    /// asking.
     fn make_room(&mut self, asked: &[(usize, usize)]) {
         let ticks = ((BACK_OFF_SECS + GIVE_WAY_SECS) / STEP_SECS).round() as u32;
         for &(a, b) in asked {
@@ -249,7 +255,11 @@ impl SceneRuntime<'_> {
             {
                 continue;
             }
+            let asking_ahead = (self.poses[a].position_m() - self.poses[b].position_m())
+                .dot(DVec2::from_angle(self.heading_unwrapped[b]))
+                > 0.0;
             self.held[b].backing_off_ticks = ticks;
+            self.held[b].backing_off_sign = if asking_ahead { -1 } else { 1 };
             self.held[b].held_streak_ticks = 0;
         }
     }
@@ -365,14 +375,15 @@ impl SceneRuntime<'_> {
                 memory.held_streak_ticks = 0;
                 memory.backing_off_ticks =
                     ((BACK_OFF_SECS + GIVE_WAY_SECS) / STEP_SECS).round() as u32;
+                memory.backing_off_sign = -1;
             }
         }
     }
 
     /// Moves the vehicles that give way in a deadlock ([`Self::choose_who_backs_off`]) or make
-    /// room for a wedged one ([`Self::make_room`]) back
-    /// along their heading at [`BACK_OFF_SPEED_MPS`], then holds them where they stopped; the
-    /// guards then check that step as any.
+    /// room for a wedged one ([`Self::make_room`]) off along their heading (backwards, or
+    /// forwards when the one asking stands behind) at [`BACK_OFF_SPEED_MPS`], then holds them
+    /// where they stopped; the guards then check that step as any.
     pub(super) fn back_off(&mut self, emitted: &mut [f32], heading_scale: f64) {
         let frame = &self.window.frame;
         let give_way_ticks = (GIVE_WAY_SECS / STEP_SECS).round() as u32;
@@ -391,18 +402,22 @@ impl SceneRuntime<'_> {
             let heading = self.heading_unwrapped[a];
             let backing = self.held[a].backing_off_ticks >= give_way_ticks;
             let speed_mps = if backing { BACK_OFF_SPEED_MPS } else { 0.0 };
-            let to =
-                self.poses[a].position_m() - DVec2::from_angle(heading) * speed_mps * STEP_SECS;
+            let way = if self.held[a].backing_off_sign > 0 {
+                DVec2::from_angle(heading)
+            } else {
+                -DVec2::from_angle(heading)
+            };
+            let to = self.poses[a].position_m() + way * speed_mps * STEP_SECS;
             if backing {
-                // Those standing behind make room in turn (a jam of four stood for minutes: the
-                // vehicle asked to back off had another at its tail); those in the way of the
-                // rest of its back-off, not only of this step: the collision guard brakes for
-                // what lies within its horizon, and a jam on a roundabout stood for minutes
-                // while a vehicle 0.4 m behind the one backing was never asked.
+                // Those standing in its way make room in turn (a jam of four stood for
+                // minutes: the vehicle asked to back off had another at its tail); those in the
+                // way of the rest of its move, not only of this step: the collision guard
+                // brakes for what lies within its horizon, and a jam on a roundabout stood for
+                // minutes while a vehicle 0.4 m behind the one backing was never asked.
                 let rest_m = f64::from(self.held[a].backing_off_ticks + 1 - give_way_ticks)
                     * speed_mps
                     * STEP_SECS;
-                let end = self.poses[a].position_m() - DVec2::from_angle(heading) * rest_m;
+                let end = self.poses[a].position_m() + way * rest_m;
                 make_room.extend(
                     self.blockers_of(a, end, heading)
                         .into_iter()
