@@ -37,6 +37,7 @@ fn npc(scene: u64, tick: u64) -> Vec<u8> {
         off_road: Vec::new(),
         late_external: Vec::new(),
         left: Vec::new(),
+        stuck: Vec::new(),
         entered: Vec::new(),
         plans: Vec::new(),
         latency_ms: 0.0,

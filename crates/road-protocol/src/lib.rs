@@ -425,11 +425,17 @@ pub struct NpcTick {
     /// agents this step; their poses are here.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub late_external: Vec<AgentState>,
-    /// NPCs that drove off the map this tick, through an open lane end (the end of a lane with
-    /// no successor, or the start of one with no predecessor):
-    /// they have left the scene and are in no later tick (protocol 4).
+    /// NPCs that left the scene this tick: they drove off the map through an open lane end (the
+    /// end of a lane with no successor, or the start of one with no predecessor), or the
+    /// planner's stuck removal took them out (listed in [`Self::stuck`] too); they are in no
+    /// later tick (protocol 4).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub left: Vec<u32>,
+    /// Those of [`Self::left`] taken out by the planner's stuck removal: they stood stuck in a
+    /// jam for its time, far from the client's agents (`stuck_removal` in
+    /// `configs/planners.toml`).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub stuck: Vec<u32>,
     /// NPCs that entered the scene before this tick (a scene created with `inflow`), as
     /// [`SceneCreated::agents`] lists agents: id (new, never reused), size, the history it
     /// came with; their states are in `npcs` from this tick on.

@@ -124,6 +124,11 @@ pub struct PlannerSpec {
     /// model-driven vehicle that stood still with free road ahead pulls away. Absent: off.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub stall_release: Option<StallRelease>,
+    /// The stuck removal in closed loop (a deviation from the paper, the last resort of long
+    /// sessions): a model-driven vehicle that stood stuck for its time leaves the scene.
+    /// Absent: off.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stuck_removal: Option<StuckRemoval>,
     /// The step rule; Heun (the paper's) when absent.
     #[serde(default, skip_serializing_if = "Sampler::is_heun")]
     pub sampler: Sampler,
@@ -270,6 +275,22 @@ pub struct StallRelease {
     pub release_speed_mps: f64,
 }
 
+/// The stuck removal's settings ([`PlannerSpec::stuck_removal`]), the last resort of long
+/// sessions, as SUMO's teleport of vehicles stuck in a jam: a model-driven vehicle that has
+/// stood (slower than 0.3 m/s) for `after_secs` of ticks in which the closed loop's guards or
+/// releases acted on it (a wedge or gridlock their rules did not undo), without moving in
+/// between, leaves the scene, when no client-driven agent is within `clear_of_external_m`
+/// (nobody near the ego sees a vehicle vanish). Only in scenes whose vehicles leave (served
+/// scenes, `road demo`, the long suite).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StuckRemoval {
+    /// Seconds stood stuck before leaving, (0, 600].
+    pub after_secs: f64,
+    /// No client-driven agent within this distance, metres, [0, 10 000].
+    pub clear_of_external_m: f64,
+}
+
 /// The longest lane-guard look-ahead accepted, metres (a few lanelets of an INTERACTION map).
 pub const MAX_LANE_GUARD_LOOKAHEAD_M: f64 = 50.0;
 
@@ -291,6 +312,7 @@ impl Default for PlannerSpec {
             collision_guard: None,
             lane_guard: None,
             stall_release: None,
+            stuck_removal: None,
             sampler: Sampler::Heun,
             edm: EdmSchedule::default(),
         }
@@ -475,6 +497,17 @@ impl PlannerSpec {
                 return bad(format!(
                     "stall_release: after_secs must be in (0, 600], acceleration_mps2 in (0, 5] \
                      and release_speed_mps in (0, 20], got {release:?}"
+                ));
+            }
+        }
+        if let Some(removal) = self.stuck_removal {
+            let ok = removal.after_secs > 0.0
+                && removal.after_secs <= 600.0
+                && (0.0..=10_000.0).contains(&removal.clear_of_external_m);
+            if !ok {
+                return bad(format!(
+                    "stuck_removal: after_secs must be in (0, 600] and clear_of_external_m in \
+                     [0, 10000], got {removal:?}"
                 ));
             }
         }

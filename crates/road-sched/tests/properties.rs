@@ -23,6 +23,7 @@ fn spec(kind: PlannerKind, n: usize, f: usize, k: usize, x: Option<usize>) -> Pl
         collision_guard: None,
         lane_guard: None,
         stall_release: None,
+        stuck_removal: None,
         sampler: Sampler::Heun,
         edm: EdmSchedule::default(),
     }
@@ -560,6 +561,64 @@ fn lane_guard_anticipation_outside_its_bounds_is_refused() {
         assert!(
             message.contains("lane_guard.anticipation: steps must be in 1..=50"),
             "{steps}, {turn}: {message}"
+        );
+    }
+}
+
+/// The stall release and the stuck removal take their documented ranges; anything else is
+/// refused by name.
+#[test]
+fn stall_release_and_stuck_removal_outside_their_bounds_are_refused() {
+    let release = |after_secs, acceleration_mps2, release_speed_mps| PlannerSpec {
+        stall_release: Some(road_sched::StallRelease {
+            after_secs,
+            acceleration_mps2,
+            release_speed_mps,
+        }),
+        ..spec(PlannerKind::Rolling, 10, 5, 40, None)
+    };
+    assert!(release(3.0, 1.5, 5.0).validate("p").is_ok());
+    for (secs, acc, speed) in [
+        (0.0, 1.5, 5.0),
+        (600.5, 1.5, 5.0),
+        (3.0, 0.0, 5.0),
+        (3.0, 5.5, 5.0),
+        (3.0, 1.5, 0.0),
+        (3.0, 1.5, 20.5),
+        (f64::NAN, 1.5, 5.0),
+    ] {
+        let message = release(secs, acc, speed)
+            .validate("p")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            message.contains("stall_release: after_secs must be in (0, 600]"),
+            "{secs} {acc} {speed}: {message}"
+        );
+    }
+    let removal = |after_secs, clear_of_external_m| PlannerSpec {
+        stuck_removal: Some(road_sched::StuckRemoval {
+            after_secs,
+            clear_of_external_m,
+        }),
+        ..spec(PlannerKind::Rolling, 10, 5, 40, None)
+    };
+    for (secs, clear) in [(30.0, 50.0), (0.1, 0.0), (600.0, 10_000.0)] {
+        assert!(removal(secs, clear).validate("p").is_ok(), "{secs} {clear}");
+    }
+    for (secs, clear) in [
+        (0.0, 50.0),
+        (-1.0, 50.0),
+        (600.5, 50.0),
+        (f64::NAN, 50.0),
+        (30.0, -1.0),
+        (30.0, 10_000.5),
+        (30.0, f64::NAN),
+    ] {
+        let message = removal(secs, clear).validate("p").unwrap_err().to_string();
+        assert!(
+            message.contains("stuck_removal: after_secs must be in (0, 600]"),
+            "{secs} {clear}: {message}"
         );
     }
 }

@@ -1290,6 +1290,7 @@ impl LiveScene {
                 .map(state)
                 .collect(),
             left: result.left.iter().map(|&i| id_of(i)).collect(),
+            stuck: result.stuck.iter().map(|&i| id_of(i)).collect(),
             entered: std::mem::take(&mut self.entered),
             collisions: result
                 .collisions

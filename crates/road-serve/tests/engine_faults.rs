@@ -72,6 +72,7 @@ fn a_non_finite_engine_output_fails_the_tick() {
             guarded: vec![],
             plans: vec![],
             left: Vec::new(),
+            stuck: Vec::new(),
         };
         let e = live.finish_tick(&tick).unwrap_err().to_string();
         let id = live.agents[agent].id;

@@ -12,7 +12,7 @@ use road_data::{LaneletMap, SceneWindow, wrap_angle};
 use road_model::batch::SceneInput;
 use road_model::{ModelConfig, Result as ModelResult};
 use road_rollout::{RolloutDriver, RolloutScene, StepEngine};
-use road_sched::{CollisionGuard, LaneGuard, PlannerSpec, StallRelease};
+use road_sched::{CollisionGuard, LaneGuard, PlannerSpec, StallRelease, StuckRemoval};
 
 use crate::geometry::OrientedBox;
 use crate::infractions::{collisions, off_road};
@@ -184,6 +184,10 @@ pub struct SceneTick {
     /// longer simulates them. Leaving the map is not an off-road event.
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub left: Vec<usize>,
+    /// Those of [`Self::left`] taken out of the scene by the planner's stuck removal
+    /// (`road_sched::StuckRemoval`): they stood stuck, not at the map's end.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub stuck: Vec<usize>,
 }
 
 struct SceneRuntime<'m> {
@@ -210,6 +214,8 @@ struct SceneRuntime<'m> {
     /// Agents retired so far, and those retired this tick.
     retired: Vec<bool>,
     left: Vec<usize>,
+    /// Those of `left` taken out stuck this tick.
+    stuck: Vec<usize>,
     /// The lanelet each agent was last on (a map exit is the end of a lanelet without
     /// successors).
     last_lanelet: Vec<Option<usize>>,
@@ -230,11 +236,16 @@ pub struct ClosedLoop<'m> {
     model: ModelConfig,
     heading_scale: f64,
     /// Per scene slot, its planner's guards (scratch of [`Self::round`]).
-    guards: Vec<(
-        Option<LaneGuard>,
-        Option<CollisionGuard>,
-        Option<StallRelease>,
-    )>,
+    guards: Vec<Layers>,
+}
+
+/// A planner's closed-loop layers after the model, each off when absent.
+#[derive(Debug, Clone, Copy, Default)]
+struct Layers {
+    lane_guard: Option<LaneGuard>,
+    collision_guard: Option<CollisionGuard>,
+    stall_release: Option<StallRelease>,
+    stuck_removal: Option<StuckRemoval>,
 }
 
 impl std::fmt::Debug for ClosedLoop<'_> {
@@ -527,8 +538,11 @@ impl<'m> ClosedLoop<'m> {
         self.guards.extend((0..self.scenes.len()).map(|i| {
             self.driver
                 .scene_planner(i)
-                .map_or((None, None, None), |p| {
-                    (p.lane_guard, p.collision_guard, p.stall_release)
+                .map_or(Layers::default(), |p| Layers {
+                    lane_guard: p.lane_guard,
+                    collision_guard: p.collision_guard,
+                    stall_release: p.stall_release,
+                    stuck_removal: p.stuck_removal,
                 })
         }));
         let (scenes, guards) = (&mut self.scenes, &self.guards);
@@ -538,15 +552,7 @@ impl<'m> ClosedLoop<'m> {
                                                     plan_turns: &mut [f32]|
          -> ModelResult<()> {
             let s = scenes[i].as_mut().expect("the driver ticks live scenes");
-            let (lane_guard, collision_guard, stall_release) = guards[i];
-            s.apply(
-                emitted,
-                plan_turns,
-                heading_scale,
-                lane_guard,
-                collision_guard,
-                stall_release,
-            );
+            s.apply(emitted, plan_turns, heading_scale, guards[i]);
             Ok(())
         })?;
         for i in done {
@@ -784,6 +790,7 @@ impl<'m> SceneRuntime<'m> {
                 retire_on_exit: false,
                 retired: vec![false; agents],
                 left: Vec::new(),
+                stuck: Vec::new(),
                 last_lanelet,
                 held: vec![HeldMemory::default(); agents],
                 speed_mps,
@@ -803,10 +810,14 @@ impl<'m> SceneRuntime<'m> {
         emitted: &mut [f32],
         plan_turns: &mut [f32],
         heading_scale: f64,
-        lane_guard: Option<LaneGuard>,
-        collision_guard: Option<CollisionGuard>,
-        stall_release: Option<StallRelease>,
+        layers: Layers,
     ) {
+        let Layers {
+            lane_guard,
+            collision_guard,
+            stall_release,
+            stuck_removal,
+        } = layers;
         for (a, o) in self.overrides.iter().enumerate() {
             if let Some(state) = o {
                 emitted[3 * a..3 * a + 3].copy_from_slice(state);
@@ -823,6 +834,7 @@ impl<'m> SceneRuntime<'m> {
         }
         self.guarded.clear();
         self.left.clear();
+        self.stuck.clear();
         if let Some(release) = stall_release {
             self.release_stalls(emitted, heading_scale, release);
         }
@@ -848,6 +860,9 @@ impl<'m> SceneRuntime<'m> {
             };
         }
         if self.retire_on_exit {
+            if let Some(removal) = stuck_removal {
+                self.remove_stuck(removal);
+            }
             if let Some(map) = self.map.clone() {
                 self.retire_exits(map.get());
             }
@@ -1001,6 +1016,7 @@ impl<'m> SceneRuntime<'m> {
             guarded: self.guarded.clone(),
             plans: Vec::new(),
             left: self.left.clone(),
+            stuck: self.stuck.clone(),
         }
     }
 }

@@ -43,6 +43,8 @@ pub struct SessionStats {
     pub free_stop_ticks_model: u64,
     pub entered: u64,
     pub left: u64,
+    /// Of those that left, vehicles the stuck removal took out (`road_sched::StuckRemoval`).
+    pub removed_stuck: u64,
     /// Present vehicles at every 10 s of the session (the first at tick 0).
     pub vehicles_every_10s: Vec<usize>,
     /// Where the long stops with free road ahead were (metres; the first 100).
@@ -120,6 +122,12 @@ impl SessionStats {
             self.vehicles_every_10s.push(present);
         }
         self.ticks += 1;
+        for &a in &tick.stuck {
+            self.grow(a);
+            if self.present[a] {
+                self.removed_stuck += 1;
+            }
+        }
         for &a in &tick.left {
             self.grow(a);
             if self.present[a] {
@@ -258,10 +266,18 @@ mod tests {
         let mut gone = tick(vec![pose(0.0, 0.0, 0.0), pose(2.0, 0.0, 0.0)]);
         gone.left = vec![1];
         stats.tick(&gone);
-        assert_eq!(stats.left, 1);
+        assert_eq!((stats.left, stats.removed_stuck), (1, 0));
         assert_eq!(stats.vehicles(), 1);
         stats.entered(1);
         assert_eq!((stats.entered, stats.vehicles()), (1, 2));
+        // Taken out stuck: it leaves, and counts as removed once.
+        let mut removed = tick(vec![pose(0.0, 0.0, 0.0), pose(2.0, 0.0, 0.0)]);
+        removed.left = vec![1];
+        removed.stuck = vec![1];
+        stats.tick(&removed);
+        stats.tick(&removed);
+        assert_eq!((stats.left, stats.removed_stuck), (2, 1));
+        assert_eq!(stats.vehicles(), 1);
     }
 
     #[test]

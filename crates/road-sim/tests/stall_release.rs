@@ -10,7 +10,8 @@ use road_model::{ModelConfig, Result};
 use road_planner::collision_guard::GuardAction;
 use road_rollout::{ShiftEdit, ShiftShape, StepEngine, window_emitted, window_shift};
 use road_sched::{PlannerSpec, StallRelease};
-use road_sim::closed_loop::{ClosedLoop, Controller, NoExternal, SceneTick, SimScene};
+use road_sim::Pose;
+use road_sim::closed_loop::{ClosedLoop, Controller, ExternalDriver, SceneTick, SimScene};
 use road_sim::populate::keep_agents;
 use road_sim::procedural::{ProceduralMap, procedural};
 
@@ -115,6 +116,27 @@ fn run_driving(
     ticks: usize,
     speed_mps: f64,
 ) -> Vec<SceneTick> {
+    run_scene(planner, keep, stands, ticks, speed_mps, None)
+}
+
+/// An external driver holding every external agent where it stood at the start.
+struct StandingEgo(Option<Pose>);
+
+impl ExternalDriver for StandingEgo {
+    fn pose(&mut self, _: usize, agent: usize, _: usize, world: &[Pose]) -> road_sim::Result<Pose> {
+        Ok(*self.0.get_or_insert(world[agent]))
+    }
+}
+
+/// As [`run_driving`]; `external`: the kept vehicle a client drives, standing where it starts.
+fn run_scene(
+    planner: &PlannerSpec,
+    keep: &[usize],
+    stands: &[(usize, f64, f64, f64)],
+    ticks: usize,
+    speed_mps: f64,
+    external: Option<usize>,
+) -> Vec<SceneTick> {
     let model = ModelConfig::default();
     let scene = procedural(ProceduralMap::Merge, &WindowConfig::default(), 10).unwrap();
     let mut window = keep_agents(&scene.window, keep);
@@ -142,7 +164,15 @@ fn run_driving(
         vec![SimScene {
             window,
             observed_steps: 10,
-            controllers: vec![Controller::Model; agents],
+            controllers: (0..agents)
+                .map(|a| {
+                    if Some(a) == external {
+                        Controller::External
+                    } else {
+                        Controller::Model
+                    }
+                })
+                .collect(),
         }],
         vec![Some(&scene.map)],
         ticks,
@@ -153,8 +183,9 @@ fn run_driving(
     sim.retire_on_exit(0, true).unwrap();
     let mut out_ticks = Vec::new();
     let mut out = Vec::new();
+    let mut ego = StandingEgo(None);
     for _ in 0..ticks {
-        sim.tick(&mut engine, &mut NoExternal, &mut out).unwrap();
+        sim.tick(&mut engine, &mut ego, &mut out).unwrap();
         out_ticks.push(out[0].clone());
     }
     out_ticks
@@ -440,4 +471,50 @@ fn a_vehicle_asked_to_make_room_by_one_behind_it_moves_forwards() {
     let last = ticks.last().unwrap().poses[0];
     assert!(last.y_m.abs() < 1.875, "on the road: {last:?}");
     assert!(last.x_m > x0 + 3.0, "it drove on along the road: {last:?}");
+}
+
+#[test]
+fn a_vehicle_stuck_for_the_removal_s_time_leaves_unless_the_ego_is_near() {
+    // As the turned-back vehicle above, without the release: the lane guard stops it at the
+    // edge every tick, for good. The stuck removal takes it out after 5 s of that, as having
+    // left (and stuck); with the client's ego standing 20 m away (within 50 m) it stays.
+    let planner = PlannerSpec {
+        lane_guard: Some(LANE_GUARD),
+        stuck_removal: Some(road_sched::StuckRemoval {
+            after_secs: 5.0,
+            clear_of_external_m: 50.0,
+        }),
+        obs_noise: Some(0.0),
+        ..PlannerSpec::default()
+    };
+    let heading = (-120f64).to_radians();
+    let stuck = [(0, -40.0, -1.6, heading)];
+    let ticks = run_driving(&planner, &[0], &stuck, 100, 1.0);
+    let removed: Vec<usize> = ticks
+        .iter()
+        .enumerate()
+        .filter(|(_, t)| t.stuck.contains(&0))
+        .map(|(k, _)| k)
+        .collect();
+    assert_eq!(removed.len(), 1, "removed once: {removed:?}");
+    // Stuck from its first tick: 50 ticks of the guard's stops (its first tick moved it to
+    // the edge).
+    assert!((49..=52).contains(&removed[0]), "{removed:?}");
+    assert!(ticks[removed[0]].left.contains(&0), "it left the scene");
+    assert!(ticks.iter().all(|t| t.off_road.is_empty()));
+
+    let with_ego = [stuck[0], (1, -20.0, 0.0, 0.0)];
+    let ticks = run_scene(&planner, &[0, 2], &with_ego, 100, 1.0, Some(1));
+    assert!(
+        ticks
+            .iter()
+            .all(|t| t.stuck.is_empty() && t.left.is_empty()),
+        "the ego stands near: nobody is removed"
+    );
+    let far_ego = [stuck[0], (1, 30.0, 0.0, 0.0)];
+    let ticks = run_scene(&planner, &[0, 2], &far_ego, 100, 1.0, Some(1));
+    assert!(
+        ticks.iter().any(|t| t.stuck == [0]),
+        "the ego stands 70 m away: it is removed"
+    );
 }

@@ -7,7 +7,7 @@ use glam::DVec2;
 use road_data::{LaneletMap, wrap_angle};
 use road_planner::collision_guard::{GuardAction, GuardAgent, guard_step, keeps_clear};
 use road_planner::lane_guard::leaves_through_an_open_end;
-use road_sched::{CollisionGuard, StallRelease};
+use road_sched::{CollisionGuard, StallRelease, StuckRemoval};
 
 use super::{Controller, STEP_SECS, SceneRuntime, set_emitted};
 use crate::Pose;
@@ -36,9 +36,45 @@ pub(super) struct HeldMemory {
     /// The way it moves off: −1 backwards, +1 forwards (it makes room for a vehicle behind
     /// it); 0 reads as backwards.
     pub(super) backing_off_sign: i8,
+    /// Ticks stood, since it last moved, in which a guard or release acted on it (the stuck
+    /// removal's count).
+    pub(super) stuck_ticks: u32,
 }
 
 impl SceneRuntime<'_> {
+    /// The stuck removal ([`StuckRemoval`]), after the tick's poses are set: model-driven
+    /// vehicles that stood stuck for its time, no client-driven agent near, leave the scene
+    /// (retired, in `left` and `stuck`).
+    pub(super) fn remove_stuck(&mut self, removal: StuckRemoval) {
+        let after_ticks = (removal.after_secs / STEP_SECS).round() as u32;
+        let externals: Vec<DVec2> = (0..self.controllers.len())
+            .filter(|&b| self.controllers[b] == Controller::External && !self.retired[b])
+            .map(|b| self.poses[b].position_m())
+            .collect();
+        for a in 0..self.controllers.len() {
+            if self.retired[a] || self.controllers[a] != Controller::Model {
+                continue;
+            }
+            let memory = &mut self.held[a];
+            if self.speed_mps[a] >= crate::free_road::STOPPED_MAX_SPEED_MPS {
+                memory.stuck_ticks = 0;
+                continue;
+            }
+            if self.guarded.iter().any(|&(b, _)| b == a) {
+                memory.stuck_ticks += 1;
+            }
+            let at = self.poses[a].position_m();
+            let ego_near = externals
+                .iter()
+                .any(|e| e.distance(at) <= removal.clear_of_external_m);
+            if memory.stuck_ticks >= after_ticks && !ego_near {
+                self.retired[a] = true;
+                self.left.push(a);
+                self.stuck.push(a);
+            }
+        }
+    }
+
     /// The stall release ([`StallRelease`]): model-driven agents that stood still with free
     /// road ahead for its time pull away along their heading; their emitted states change.
     pub(super) fn release_stalls(

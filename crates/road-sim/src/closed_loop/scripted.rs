@@ -55,6 +55,7 @@ pub fn simulate_scripted(
                 guarded: Vec::new(),
                 plans: Vec::new(),
                 left: Vec::new(),
+                stuck: Vec::new(),
             }
         })
         .collect())

@@ -60,6 +60,8 @@ struct MapSummary {
     free_stop_ticks_model: u64,
     entered: u64,
     left: u64,
+    /// Of those that left, vehicles the stuck removal took out (`SessionStats::removed_stuck`).
+    removed_stuck: u64,
     /// Over the 10 s samples after the first minute: fewest and most vehicles as a share of
     /// the start, and the share of samples within ±30 % of it.
     fewest_share: f64,
@@ -153,12 +155,12 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         args.engine
     );
     out!(
-        "| model | map | sessions | vehicle-minutes | off-road events per vehicle-minute [95 % CI] | collisions per vehicle-minute [95 % CI] | stops ≥ {LONG_STOP_SECS} s with free road | longest (s) | held by: collision guard / lane guard / model (ticks) | ring laps | entered / left | vehicles after 1 min, fewest / most (× start) | samples within ±30 % |"
+        "| model | map | sessions | vehicle-minutes | off-road events per vehicle-minute [95 % CI] | collisions per vehicle-minute [95 % CI] | stops ≥ {LONG_STOP_SECS} s with free road | longest (s) | held by: collision guard / lane guard / model (ticks) | ring laps | entered / left (of them removed stuck) | vehicles after 1 min, fewest / most (× start) | samples within ±30 % |"
     );
     out!("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
     for s in &summaries {
         out!(
-            "| {} | {} | {} | {:.0} | {:.4} | {:.4} | {} | {:.0} | {} / {} / {} | {} | {} / {} | {:.2} / {:.2} | {:.2} |",
+            "| {} | {} | {} | {:.0} | {:.4} | {:.4} | {} | {:.0} | {} / {} / {} | {} | {} / {} ({}) | {:.2} / {:.2} | {:.2} |",
             s.model,
             s.map,
             s.sessions,
@@ -173,6 +175,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
             s.ring_laps,
             s.entered,
             s.left,
+            s.removed_stuck,
             s.fewest_share,
             s.most_share,
             s.within_30_percent
@@ -458,6 +461,7 @@ fn summarise(model: &str, map: &str, sessions: &[SessionRecord], seed: u64) -> M
         free_stop_ticks_model: sessions.iter().map(|s| s.stats.free_stop_ticks_model).sum(),
         entered: sessions.iter().map(|s| s.stats.entered).sum(),
         left: sessions.iter().map(|s| s.stats.left).sum(),
+        removed_stuck: sessions.iter().map(|s| s.stats.removed_stuck).sum(),
         // No sample after the first minute (a shorter session): nothing to judge.
         fewest_share: if shares.is_empty() {
             f64::NAN

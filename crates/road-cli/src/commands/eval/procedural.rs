@@ -302,6 +302,7 @@ mod tests {
             guarded: Vec::new(),
             plans: Vec::new(),
             left: Vec::new(),
+            stuck: Vec::new(),
         }
     }
 
