@@ -135,8 +135,11 @@ class NpcTick:
     late_external: list[AgentState] = field(default_factory=list)
     # Each NPC's plan, when the scene was created with ``plans=True``.
     plans: list[AgentPlan] = field(default_factory=list)
-    # NPCs that drove off the map this tick (a lane's end): gone from later ticks (protocol 4).
+    # NPCs that left this tick (drove off the map at a lane's end, or were taken out stuck):
+    # gone from later ticks (protocol 4).
     left: list[int] = field(default_factory=list)
+    # Those of ``left`` the server's stuck removal took out (a jam nothing undid).
+    stuck: list[int] = field(default_factory=list)
 
 
 @dataclass

@@ -54,6 +54,8 @@ def test_log_replay_ego_for_100_ticks(server):
         assert npc.tick == t
         # An NPC that drove off the map's edge leaves once and is in no later tick.
         assert set(npc.left) <= npc_ids, (t, npc.left)
+        # Those taken out stuck are among those that left.
+        assert set(npc.stuck) <= set(npc.left), (t, npc.stuck, npc.left)
         npc_ids -= set(npc.left)
         assert {a.id for a in npc.npcs} == npc_ids
         assert not npc.late_external

@@ -277,11 +277,12 @@ pub struct StallRelease {
 
 /// The stuck removal's settings ([`PlannerSpec::stuck_removal`]), the last resort of long
 /// sessions, as SUMO's teleport of vehicles stuck in a jam: a model-driven vehicle that has
-/// stood (slower than 0.3 m/s) for `after_secs` of ticks in which the closed loop's guards or
-/// releases acted on it (a wedge or gridlock their rules did not undo), without moving in
-/// between, leaves the scene, when no client-driven agent is within `clear_of_external_m`
-/// (nobody near the ego sees a vehicle vanish). Only in scenes whose vehicles leave (served
-/// scenes, `road demo`, the long suite).
+/// stood (slower than 0.3 m/s) with free road ahead (no vehicle within 15 m ahead, 3 m either
+/// side of its axis) for `after_secs` of ticks in which the closed loop's guards or releases
+/// acted on it (a wedge or gridlock their rules did not undo), without moving in between,
+/// leaves the scene, when no client-driven agent is within `clear_of_external_m` (nobody near
+/// the ego sees a vehicle vanish). Vehicles queued behind another are never taken out. Only in
+/// scenes whose vehicles leave (served scenes, `road demo`, the long suite).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct StuckRemoval {

@@ -1,7 +1,10 @@
-//! The stall release: a model-driven vehicle that stands still with free road ahead pulls
-//! away after the planner's time, and one with a vehicle close ahead does not. The model is
-//! replaced by an engine whose every plan stands still (each future slot the newest
-//! observation), so that only the release moves anyone.
+//! The closed loop's releases and last resorts: a model-driven vehicle that stands still with
+//! free road ahead pulls away after the planner's time (one with a vehicle close ahead does
+//! not), a wedged one backs and fills while others make room, a deadlock is undone, a vehicle
+//! stuck for good leaves the scene, and a step the collision guard cuts short stays on the
+//! road. The model is replaced by an engine whose every plan stands still or drives straight
+//! on at a set speed (each future slot the newest observation, moved on along its heading), so
+//! that only the rules under test move anyone.
 
 use rand::SeedableRng;
 use rand::rngs::StdRng;
@@ -116,7 +119,15 @@ fn run_driving(
     ticks: usize,
     speed_mps: f64,
 ) -> Vec<SceneTick> {
-    run_scene(planner, keep, stands, ticks, speed_mps, None)
+    run_scene(
+        ProceduralMap::Merge,
+        planner,
+        keep,
+        stands,
+        ticks,
+        speed_mps,
+        None,
+    )
 }
 
 /// An external driver holding every external agent where it stood at the start.
@@ -128,8 +139,10 @@ impl ExternalDriver for StandingEgo {
     }
 }
 
-/// As [`run_driving`]; `external`: the kept vehicle a client drives, standing where it starts.
+/// As [`run_driving`] on `map`'s scene; `external`: the kept vehicle a client drives, standing
+/// where it starts.
 fn run_scene(
+    map: ProceduralMap,
     planner: &PlannerSpec,
     keep: &[usize],
     stands: &[(usize, f64, f64, f64)],
@@ -138,7 +151,7 @@ fn run_scene(
     external: Option<usize>,
 ) -> Vec<SceneTick> {
     let model = ModelConfig::default();
-    let scene = procedural(ProceduralMap::Merge, &WindowConfig::default(), 10).unwrap();
+    let scene = procedural(map, &WindowConfig::default(), 10).unwrap();
     let mut window = keep_agents(&scene.window, keep);
     for &(a, x_m, y_m, heading_rad) in stands {
         let xy = window.frame.to_norm([x_m, y_m]);
@@ -504,7 +517,15 @@ fn a_vehicle_stuck_for_the_removal_s_time_leaves_unless_the_ego_is_near() {
     assert!(ticks.iter().all(|t| t.off_road.is_empty()));
 
     let with_ego = [stuck[0], (1, -20.0, 0.0, 0.0)];
-    let ticks = run_scene(&planner, &[0, 2], &with_ego, 100, 1.0, Some(1));
+    let ticks = run_scene(
+        ProceduralMap::Merge,
+        &planner,
+        &[0, 2],
+        &with_ego,
+        100,
+        1.0,
+        Some(1),
+    );
     assert!(
         ticks
             .iter()
@@ -512,9 +533,60 @@ fn a_vehicle_stuck_for_the_removal_s_time_leaves_unless_the_ego_is_near() {
         "the ego stands near: nobody is removed"
     );
     let far_ego = [stuck[0], (1, 30.0, 0.0, 0.0)];
-    let ticks = run_scene(&planner, &[0, 2], &far_ego, 100, 1.0, Some(1));
+    let ticks = run_scene(
+        ProceduralMap::Merge,
+        &planner,
+        &[0, 2],
+        &far_ego,
+        100,
+        1.0,
+        Some(1),
+    );
     assert!(
         ticks.iter().any(|t| t.stuck == [0]),
         "the ego stands 70 m away: it is removed"
+    );
+}
+
+#[test]
+fn a_step_cut_short_beside_a_roundabout_s_island_stands_on_the_road() {
+    // On the procedural roundabout's ring (island radius 17.5 m), vehicle 0 drives a chord
+    // from 100° to 80° below the centre at 17.6 m: both ends on the ring, its middle 17.33 m
+    // from the centre, inside the island. The client's vehicle 1 stands just past the
+    // middle, so the collision guard cuts 0's step short there: off the road (a vehicle braked
+    // beside an island left the road in issue 39's long sessions). It stands instead.
+    let planner = PlannerSpec {
+        lane_guard: Some(LANE_GUARD),
+        collision_guard: Some(road_sched::CollisionGuard {
+            horizon_steps: 10,
+            brake_mps2: 6.0,
+            yield_to_unreactive: true,
+            release_deadlock_after_secs: None,
+        }),
+        obs_noise: Some(0.0),
+        ..PlannerSpec::default()
+    };
+    let (from, to) = ((-100f64).to_radians(), (-80f64).to_radians());
+    let (x0, y0) = (17.6 * from.cos(), 17.6 * from.sin());
+    let chord_m = 17.6 * (to.cos() - from.cos());
+    let stands = [(0, x0, y0, 0.0), (1, 4.8, y0, 0.0)];
+    let ticks = run_scene(
+        ProceduralMap::Roundabout,
+        &planner,
+        &[0, 1],
+        &stands,
+        3,
+        chord_m / 0.1,
+        Some(1),
+    );
+    for t in &ticks {
+        assert!(t.off_road.is_empty(), "off the road: {:?}", t.poses[0]);
+        assert!(t.collisions.is_empty());
+    }
+    let guarded = ticks[0].guarded.iter().any(|&(a, _)| a == 0);
+    assert!(
+        guarded,
+        "the collision guard cut the step: {:?}",
+        ticks[0].guarded
     );
 }
