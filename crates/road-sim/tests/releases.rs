@@ -386,31 +386,10 @@ fn a_vehicle_wedged_at_the_road_edge_backs_and_fills_once_the_one_behind_makes_r
     // 1 cm from 0's rear-right corner: 0's turn in place would swing that corner into it, and
     // 1 stands because 0 is ahead of it. Issue 39's long sessions saw such pairs stand for
     // minutes. Now 1 backs off and 0 backs and fills onto its lane, without a collision.
-    let planner = PlannerSpec {
-        stall_release: Some(RELEASE),
-        lane_guard: Some(LANE_GUARD),
-        collision_guard: Some(road_sched::CollisionGuard {
-            horizon_steps: 10,
-            brake_mps2: 6.0,
-            yield_to_unreactive: true,
-            release_deadlock_after_secs: None,
-        }),
-        obs_noise: Some(0.0),
-        ..PlannerSpec::default()
-    };
-    let heading = (-60f64).to_radians();
-    let (x0, y0) = (-40.0, -1.87);
-    // 0's rear-right corner (4.6 × 1.9 m).
-    let (forward, left) = (
-        (heading.cos(), heading.sin()),
-        (-heading.sin(), heading.cos()),
-    );
-    let corner = (
-        x0 - 2.3 * forward.0 - 0.95 * left.0,
-        y0 - 2.3 * forward.1 - 0.95 * left.1,
-    );
+    let (planner, wedged) = (wedge_planner(), WEDGED);
+    let corner = rear_right_corner(WEDGED);
     let stands = [
-        (0, x0, y0, heading),
+        (0, wedged.x_m, wedged.y_m, wedged.heading_rad),
         (1, corner.0 - 0.01 - 2.4, corner.1 - 0.2, 0.0),
     ];
     let ticks = run_with(&planner, &[0, 2], &stands, 250);
@@ -430,17 +409,28 @@ fn a_vehicle_wedged_at_the_road_edge_backs_and_fills_once_the_one_behind_makes_r
         last.heading_rad.abs() < 20f64.to_radians(),
         "along the lane: {last:?}"
     );
-    assert!(last.x_m > x0 + 3.0, "it drove on along the road: {last:?}");
+    assert!(
+        last.x_m > wedged.x_m + 3.0,
+        "it drove on along the road: {last:?}"
+    );
 }
 
-#[test]
-fn a_vehicle_asked_to_make_room_by_one_behind_it_moves_forwards() {
-    // As above, but vehicle 1 faces away from 0 (its tail 1 cm from 0's rear-right corner)
-    // and vehicle 2 stands 8 m ahead of it, facing it: neither has free road ahead, so only
-    // the making of room moves 1. Backing off, 1 ran into 0 (vehicles asked to back off
-    // backed into the wedged vehicle in issue 39's long sessions); it moves forwards instead,
-    // and 0 backs and fills onto its lane, without a collision.
-    let planner = PlannerSpec {
+/// The wedge tests' vehicle 0: on the main road's right edge, 60° off the road (4.6 × 1.9 m).
+const WEDGED: Pose = Pose {
+    x_m: -40.0,
+    y_m: -1.87,
+    heading_rad: -std::f64::consts::FRAC_PI_3,
+};
+
+/// The rear-right corner of a 4.6 × 1.9 m box at `pose`.
+fn rear_right_corner(pose: Pose) -> (f64, f64) {
+    let (c, s) = (pose.heading_rad.cos(), pose.heading_rad.sin());
+    (pose.x_m - 2.3 * c + 0.95 * s, pose.y_m - 2.3 * s - 0.95 * c)
+}
+
+/// The release, the lane guard and the collision guard without its deadlock release.
+fn wedge_planner() -> PlannerSpec {
+    PlannerSpec {
         stall_release: Some(RELEASE),
         lane_guard: Some(LANE_GUARD),
         collision_guard: Some(road_sched::CollisionGuard {
@@ -451,20 +441,21 @@ fn a_vehicle_asked_to_make_room_by_one_behind_it_moves_forwards() {
         }),
         obs_noise: Some(0.0),
         ..PlannerSpec::default()
-    };
-    let heading = (-60f64).to_radians();
-    let (x0, y0) = (-40.0, -1.87);
-    let (forward, left) = (
-        (heading.cos(), heading.sin()),
-        (-heading.sin(), heading.cos()),
-    );
-    let corner = (
-        x0 - 2.3 * forward.0 - 0.95 * left.0,
-        y0 - 2.3 * forward.1 - 0.95 * left.1,
-    );
+    }
+}
+
+#[test]
+fn a_vehicle_asked_to_make_room_by_one_behind_it_moves_forwards() {
+    // As above, but vehicle 1 faces away from 0 (its tail 1 cm from 0's rear-right corner)
+    // and vehicle 2 stands 8 m ahead of it, facing it: neither has free road ahead, so only
+    // the making of room moves 1. Backing off, 1 ran into 0 (vehicles asked to back off
+    // backed into the wedged vehicle in issue 39's long sessions); it moves forwards instead,
+    // and 0 backs and fills onto its lane, without a collision.
+    let (planner, wedged) = (wedge_planner(), WEDGED);
+    let corner = rear_right_corner(WEDGED);
     let x1 = corner.0 - 0.01 - 2.4;
     let stands = [
-        (0, x0, y0, heading),
+        (0, wedged.x_m, wedged.y_m, wedged.heading_rad),
         (1, x1, corner.1 - 0.2, std::f64::consts::PI),
         (2, x1 - 8.0, corner.1 - 0.2, 0.0),
     ];
@@ -483,7 +474,10 @@ fn a_vehicle_asked_to_make_room_by_one_behind_it_moves_forwards() {
     );
     let last = ticks.last().unwrap().poses[0];
     assert!(last.y_m.abs() < 1.875, "on the road: {last:?}");
-    assert!(last.x_m > x0 + 3.0, "it drove on along the road: {last:?}");
+    assert!(
+        last.x_m > wedged.x_m + 3.0,
+        "it drove on along the road: {last:?}"
+    );
 }
 
 #[test]
