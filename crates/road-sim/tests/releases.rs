@@ -240,6 +240,29 @@ const LANE_GUARD: road_sched::LaneGuard = road_sched::LaneGuard {
     keep_off_opposing_lanes: false,
 };
 
+/// The release and the lane guard.
+fn release_planner() -> PlannerSpec {
+    PlannerSpec {
+        stall_release: Some(RELEASE),
+        lane_guard: Some(LANE_GUARD),
+        obs_noise: Some(0.0),
+        ..PlannerSpec::default()
+    }
+}
+
+/// Vehicle 0, started at x = −40 m on the main road's edge, drove on along the road and never
+/// left it; its last pose.
+fn drove_on_along_the_road(ticks: &[SceneTick]) -> Pose {
+    let last = ticks.last().unwrap().poses[0];
+    assert!(last.x_m > -35.0, "it drove on along the road: {last:?}");
+    assert!(last.y_m.abs() < 1.875, "on the road: {last:?}");
+    assert!(
+        ticks.iter().all(|t| t.off_road.is_empty()),
+        "never off the road"
+    );
+    last
+}
+
 const RELEASE: StallRelease = StallRelease {
     after_secs: 3.0,
     acceleration_mps2: 1.5,
@@ -251,24 +274,13 @@ fn a_vehicle_held_at_the_road_edge_pointing_off_it_turns_back_onto_its_lane() {
     // On the main road's right edge (the road runs along +x, y within ±1.875 m), 60° off the
     // road: every step ahead leaves it. With the lane guard, the release turns it in place
     // towards its lane, then drives it on along the lane.
-    let planner = PlannerSpec {
-        stall_release: Some(RELEASE),
-        lane_guard: Some(LANE_GUARD),
-        obs_noise: Some(0.0),
-        ..PlannerSpec::default()
-    };
+    let planner = release_planner();
     let heading = (-60f64).to_radians();
     let ticks = run_with(&planner, &[0], &[(0, -40.0, -1.6, heading)], 150);
-    let last = ticks.last().unwrap().poses[0];
-    assert!(last.x_m > -35.0, "it drove on along the road: {last:?}");
-    assert!(last.y_m.abs() < 1.875, "on the road: {last:?}");
+    let last = drove_on_along_the_road(&ticks);
     assert!(
         last.heading_rad.abs() < 20f64.to_radians(),
         "along the lane: {last:?}"
-    );
-    assert!(
-        ticks.iter().all(|t| t.off_road.is_empty()),
-        "never off the road"
     );
 }
 
@@ -279,21 +291,10 @@ fn a_vehicle_the_model_drives_off_the_road_edge_is_released_and_turned_back() {
     // it at the edge every tick. It stands while the model asks to move (in issue 39's long
     // sessions such vehicles stood 10 s and more, their release restarted by every ask), so
     // the release turns it back, and hands it to the model once its step stays on the road.
-    let planner = PlannerSpec {
-        stall_release: Some(RELEASE),
-        lane_guard: Some(LANE_GUARD),
-        obs_noise: Some(0.0),
-        ..PlannerSpec::default()
-    };
+    let planner = release_planner();
     let heading = (-120f64).to_radians();
     let ticks = run_driving(&planner, &[0], &[(0, -40.0, -1.6, heading)], 150, 1.0);
-    let last = ticks.last().unwrap().poses[0];
-    assert!(last.x_m > -35.0, "it drove on along the road: {last:?}");
-    assert!(last.y_m.abs() < 1.875, "on the road: {last:?}");
-    assert!(
-        ticks.iter().all(|t| t.off_road.is_empty()),
-        "never off the road"
-    );
+    drove_on_along_the_road(&ticks);
 }
 
 #[test]
@@ -301,12 +302,7 @@ fn a_vehicle_stopped_at_the_map_s_end_is_released_out_of_the_map() {
     // 2 m before the main road's open end (x = 90 m), the model standing: the release's
     // steps cross the end and it leaves (the release refused them as off the road, and such a
     // vehicle stood at the map's end for 38 s in issue 39's long sessions).
-    let planner = PlannerSpec {
-        stall_release: Some(RELEASE),
-        lane_guard: Some(LANE_GUARD),
-        obs_noise: Some(0.0),
-        ..PlannerSpec::default()
-    };
+    let planner = release_planner();
     let ticks = run_with(&planner, &[0], &[(0, 88.0, 0.0, 0.0)], 100);
     let left = ticks.iter().position(|t| t.left.contains(&0));
     assert!(
