@@ -1,7 +1,7 @@
 // Elementwise steps of the denoiser: the output preconditioning.
 
 struct Params {
-    count: u32,      // elements of the main operand
+    count: u32,      // tokens
     slots: u32,      // W
     per_slot: u32,   // elements per (scene, slot) row of x: 3 for states
     agents: u32,     // A
@@ -28,50 +28,39 @@ fn flat_index(gid: vec3<u32>, groups: vec3<u32>) -> u32 {
     return gid.x + gid.y * groups.x * 64u;
 }
 
-// D = c_skip · x + c_out · F · valid. a = x [B, A, W, 3], b = F [B, A, W, 3], c = σ [B, W],
-// e = valid [B, A, W]. With an agent frame, F's (x, y) is first rotated from the anchor's
-// heading back to the scene frame (model.rs `AnchorFrame::rotate_to_scene`). With a
-// constant-velocity reference r (the anchor moved by the last observed step per slot) and
-// scale s: D = r + (c_skip(σs) · s(x − r) + c_out(σs) · F · valid) / s; an agent without an
-// anchor keeps r = 0, s = 1.
+// D(x; σ) of every token: `precondition_token` (common/precondition.wgsl, prepended) over
+// a = x [B, A, W, 3], b = F [B, A, W, 3], c = σ [B, W], e = valid [B, A, W]; one invocation per
+// token (`count` tokens).
 @compute @workgroup_size(64)
 fn precondition_output(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
-    let i = flat_index(gid, groups);
-    if (i >= params.count) {
+    let token = flat_index(gid, groups); // (b, a, w)
+    if (token >= params.count) {
         return;
     }
-    let token = i / 3u; // (b, a, w)
     let w = token % params.slots;
     let scene = token / (params.slots * params.agents);
-    var s = c[scene * params.slots + w];
-    let sd = params.sigma_data;
-    var f = b[i];
-    let component = i % 3u;
-    var reference = 0.0;
-    var scale = 1.0;
-    if (params.anchor_slot != NO_FRAME) {
+    var t: PreconditionToken;
+    t.x = vec3<f32>(a[token * 3u], a[token * 3u + 1u], a[token * 3u + 2u]);
+    t.f = vec3<f32>(b[token * 3u], b[token * 3u + 1u], b[token * 3u + 2u]);
+    t.sigma = c[scene * params.slots + w];
+    t.valid = e[token];
+    t.frame = params.anchor_slot != NO_FRAME;
+    t.anchor = vec3<f32>(0.0);
+    t.anchor_valid = 0.0;
+    t.previous = vec3<f32>(0.0);
+    t.previous_valid = 0.0;
+    t.slots_from_anchor = 0.0;
+    if (t.frame) {
         let anchor = (token / params.slots) * params.slots + params.anchor_slot;
-        let anchor_valid = e[anchor];
-        let heading_rad = a[anchor * 3u + 2u] * anchor_valid / params.heading_scale;
-        let cs = cos(heading_rad);
-        let sn = sin(heading_rad);
-        if (component < 2u) {
-            let f0 = b[token * 3u];
-            let f1 = b[token * 3u + 1u];
-            f = select(sn * f0 + cs * f1, cs * f0 - sn * f1, component == 0u);
-        }
-        if (params.residual_scale > 0.0 && anchor_valid > 0.0) {
-            scale = params.residual_scale;
-            reference = a[anchor * 3u + component];
-            if (component < 2u) {
-                let previous = anchor - 1u;
-                let step = (a[anchor * 3u + component] - a[previous * 3u + component]) * e[previous];
-                reference += (f32(w) - f32(params.anchor_slot)) * step;
-            }
-        }
+        let previous = anchor - 1u;
+        t.anchor = vec3<f32>(a[anchor * 3u], a[anchor * 3u + 1u], a[anchor * 3u + 2u]);
+        t.anchor_valid = e[anchor];
+        t.previous = vec3<f32>(a[previous * 3u], a[previous * 3u + 1u], a[previous * 3u + 2u]);
+        t.previous_valid = e[previous];
+        t.slots_from_anchor = f32(w) - f32(params.anchor_slot);
     }
-    s = s * scale;
-    let denom = s * s + sd * sd;
-    let y = (a[i] - reference) * scale;
-    out[i] = reference + (sd * sd / denom * y + s * sd * inverseSqrt(denom) * f * e[token]) / scale;
+    let d = precondition_token(t, params.sigma_data, params.heading_scale, params.residual_scale);
+    out[token * 3u] = d.x;
+    out[token * 3u + 1u] = d.y;
+    out[token * 3u + 2u] = d.z;
 }

@@ -33,6 +33,11 @@ pub struct ContextOptions {
     /// and lost at one (2026-11-26, `road bench engine --shader-checks checked unchecked`, one
     /// run each), not yet worth the risk.
     pub unchecked_shaders: bool,
+    /// Run what a block does between two attentions as one `residual_chain` dispatch (output
+    /// projection, MLP, the next layer behind its norm, the head's preconditioning) instead of
+    /// layer by layer: on by default (issue 40: fewer dispatches and bytes moved; the layers
+    /// stay as the variant to time against, and for hidden widths past the chain's tile).
+    pub residual_chains: bool,
 }
 
 impl Default for ContextOptions {
@@ -45,6 +50,7 @@ impl Default for ContextOptions {
             map_encoder_chunk_bytes: 64 << 20,
             unchecked_shaders: false,
             bucket_scenes: true,
+            residual_chains: true,
         }
     }
 }
@@ -62,6 +68,7 @@ pub struct GpuContext {
     map_encoder_chunk_bytes: u64,
     unchecked_shaders: bool,
     bucket_scenes: bool,
+    residual_chains: bool,
 }
 
 /// Advice printed when no adapter exists.
@@ -120,6 +127,7 @@ impl GpuContext {
             map_encoder_chunk_bytes: options.map_encoder_chunk_bytes,
             unchecked_shaders: options.unchecked_shaders,
             bucket_scenes: options.bucket_scenes,
+            residual_chains: options.residual_chains,
         })
     }
 
@@ -167,6 +175,20 @@ impl GpuContext {
     /// See [`ContextOptions::bucket_scenes`].
     pub fn bucket_scenes(&self) -> bool {
         self.bucket_scenes
+    }
+
+    /// See [`ContextOptions::residual_chains`].
+    pub fn residual_chains(&self) -> bool {
+        self.residual_chains
+    }
+
+    /// `"chains"` or `"layers"`: how the blocks' layers between attentions run.
+    pub fn fusion_setting(&self) -> &'static str {
+        if self.residual_chains {
+            "chains"
+        } else {
+            "layers"
+        }
     }
 
     /// See [`ContextOptions::unchecked_shaders`].

@@ -22,6 +22,7 @@ use crate::kernels::agent_pairs::PairAttentionParams;
 use crate::kernels::attention::{AttentionParams, MAX_HEAD_DIM, TokenLayout};
 use crate::kernels::linear::{Linear, LinearKernel, LinearParams};
 use crate::kernels::polyline::{PolylineEncoder, PolylineKernel, PolylineParams};
+use crate::kernels::residual_chain::{ChainParams, ResidualChain, transpose};
 use crate::kernels::{Dispatch, Pipeline, read_back, record_all, rows_of, storage_buffer, upload};
 use crate::shaders::Shader;
 use crate::{Error, GpuContext, Result};
@@ -70,6 +71,63 @@ struct ElementwiseParams {
     /// `AgentFrame::residual_scale`, 0 without a constant-velocity reference.
     residual_scale: f32,
     _pad: [u32; 4],
+}
+
+/// The packed map k, v projections of every block: `[blocks · 2 · D, D]`, block by block.
+const MAP_KV_ALL: &str = "packed.map_kv_all";
+
+/// A residual chain's copy of a layer: its weight transposed (`[in, out]`), its bias.
+const CHAIN_WEIGHT: &str = "chain_weight";
+const CHAIN_BIAS: &str = "chain_bias";
+
+/// The layers the residual chains run, in the order they run them (the weights buffer's
+/// order): per block time attention's q, k, v and output, the agents', the map's q and output,
+/// the MLP; then the head.
+fn chain_order(blocks: usize) -> Vec<String> {
+    let mut layers = Vec::new();
+    for i in 0..blocks {
+        for layer in [
+            "time.qkv",
+            "time.o",
+            "agents.qkv",
+            "agents.o",
+            "map.q",
+            "map.o",
+            "mlp_in",
+            "mlp_out",
+        ] {
+            layers.push(format!("blocks.{i}.{layer}"));
+        }
+    }
+    layers.push("head".to_string());
+    layers
+}
+
+/// Whether a model's blocks run as residual chains on `ctx`: when asked
+/// (`ContextOptions::residual_chains`) and its rows fit the chain's tile.
+fn runs_chains(ctx: &GpuContext, c: &ModelConfig) -> bool {
+    ctx.residual_chains() && c.hidden <= crate::kernels::residual_chain::MAX_HIDDEN as usize
+}
+
+/// The layers of one residual chain (`residual_chain.wgsl`), by checkpoint name.
+#[derive(Debug, Clone, Copy)]
+struct ChainLayers<'a> {
+    /// The attention's output projection.
+    output: &'a str,
+    /// The MLP's two layers.
+    mlp: Option<(&'a str, &'a str)>,
+    /// The next layer (behind its folded norm), its outputs and outputs per part.
+    next: Option<(&'a str, usize, usize)>,
+}
+
+/// What the head's residual chain preconditions with: the evaluation's `x [B, A, W, 3]`,
+/// `σ [B, W]` and `valid [B, A, W]`.
+#[derive(Debug, Clone, Copy)]
+struct Precondition<'a> {
+    x: &'a wgpu::Buffer,
+    sigma: &'a wgpu::Buffer,
+    valid: &'a wgpu::Buffer,
+    agents: usize,
 }
 
 /// What a linear layer fuses with its neighbours (`linear.wgsl`), each a dispatch saved.
@@ -132,6 +190,7 @@ pub(crate) struct Pipelines {
     pub(crate) multistep_correct: Pipeline,
     pick_agent_maps: Pipeline,
     pair_attention: Pipeline,
+    residual_chain: ResidualChain,
 }
 
 impl Pipelines {
@@ -150,6 +209,7 @@ impl Pipelines {
             multistep_correct: Pipeline::new(ctx, Shader::Heun, "multistep_correct"),
             pick_agent_maps: Pipeline::new(ctx, Shader::AgentMap, "pick_agent_maps"),
             pair_attention: Pipeline::new(ctx, Shader::AgentPairs, "pair_attention"),
+            residual_chain: ResidualChain::new(ctx),
         }
     }
 }
@@ -362,16 +422,54 @@ impl GpuDenoiser {
             }
         }
 
+        // The map's k, v of every block as one layer too (`map_kv_all`): their keys do not
+        // depend on the block, so one dispatch per evaluation projects them all.
+        for kind in ["weight", "bias"] {
+            let mut values = Vec::new();
+            for i in 0..config.blocks {
+                for part in ["k", "v"] {
+                    values.extend_from_slice(get(&format!("blocks.{i}.map.{part}.{kind}"))?);
+                }
+            }
+            packed.push((format!("{MAP_KV_ALL}.{kind}"), values));
+        }
+
         let align = u64::from(ctx.device.limits().min_storage_buffer_offset_alignment).max(4);
         let mut blob: Vec<u8> = Vec::new();
         let mut slices = HashMap::new();
-        let mut names: Vec<&String> = tensors.keys().filter(|n| !stacked.contains(*n)).collect();
-        names.sort();
-        for (name, values) in names
-            .into_iter()
+        let mut laid: Vec<(String, &Vec<f32>)> = tensors
+            .keys()
+            .filter(|n| !stacked.contains(*n))
             .map(|n| (n.clone(), folded.get(n).unwrap_or(&tensors[n])))
             .chain(packed.iter().map(|(n, v)| (n.clone(), v)))
-        {
+            .collect();
+        laid.sort_by(|a, b| a.0.cmp(&b.0));
+        // The residual chains' layers, transposed, in the order the chains run them: each
+        // chain binds the one short range that holds its layers (`weight_range`).
+        let chain_tensors = if runs_chains(ctx, config) {
+            let by_name: HashMap<&str, &Vec<f32>> =
+                laid.iter().map(|(n, v)| (n.as_str(), *v)).collect();
+            let mut chain_tensors = Vec::new();
+            for layer in chain_order(config.blocks) {
+                let [w, b] = [format!("{layer}.weight"), format!("{layer}.bias")].map(|name| {
+                    by_name
+                        .get(name.as_str())
+                        .copied()
+                        .ok_or_else(|| Error::Checkpoint(format!("missing tensor `{name}`")))
+                });
+                let (w, b) = (w?, b?);
+                chain_tensors.push((format!("{layer}.{CHAIN_WEIGHT}"), transpose(w, b.len())));
+                chain_tensors.push((format!("{layer}.{CHAIN_BIAS}"), b.clone()));
+            }
+            chain_tensors
+        } else {
+            Vec::new()
+        };
+        let laid = chain_tensors
+            .iter()
+            .map(|(n, v)| (n.clone(), v))
+            .chain(laid);
+        for (name, values) in laid {
             let offset = (blob.len() as u64).div_ceil(align) * align;
             blob.resize(offset as usize, 0);
             blob.extend_from_slice(bytemuck::cast_slice(values));
@@ -384,6 +482,12 @@ impl GpuDenoiser {
             );
         }
         let weights = upload(ctx, "weights", &blob, wgpu::BufferUsages::STORAGE);
+        if ctx.residual_chains() && !runs_chains(ctx, config) {
+            tracing::info!(
+                hidden = d,
+                "hidden width past the residual chain's tile: layers run one by one"
+            );
+        }
         Ok(Self {
             config: config.clone(),
             weights,
@@ -402,6 +506,135 @@ impl GpuDenoiser {
             offset: s.offset,
             size: std::num::NonZeroU64::new(s.size),
         }))
+    }
+
+    /// Whether this denoiser's blocks run as residual chains on `ctx`.
+    fn chains(&self, ctx: &GpuContext) -> bool {
+        runs_chains(ctx, &self.config)
+    }
+
+    /// The one range of the weights buffer holding the chain copies of `layers` (weights
+    /// transposed, biases), and each tensor's offset into it in floats.
+    fn weight_range(
+        &self,
+        layers: &[&str],
+    ) -> Result<(wgpu::BindingResource<'_>, HashMap<String, u32>)> {
+        let mut found = Vec::new();
+        for layer in layers {
+            for kind in [CHAIN_WEIGHT, CHAIN_BIAS] {
+                let name = format!("{layer}.{kind}");
+                let slice = *self
+                    .slices
+                    .get(&name)
+                    .ok_or_else(|| Error::Checkpoint(format!("missing tensor `{name}`")))?;
+                found.push((name, slice));
+            }
+        }
+        let start = found.iter().map(|(_, s)| s.offset).min().unwrap_or(0);
+        let end = found
+            .iter()
+            .map(|(_, s)| s.offset + s.size)
+            .max()
+            .unwrap_or(4);
+        let offsets = found
+            .into_iter()
+            .map(|(name, s)| (name, ((s.offset - start) / 4) as u32))
+            .collect();
+        let range = wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+            buffer: &self.weights,
+            offset: start,
+            size: std::num::NonZeroU64::new(end - start),
+        });
+        Ok((range, offsets))
+    }
+
+    /// One residual chain over `rows` tokens: `h += att · W_oᵀ + b_o`, the MLP, and the next
+    /// layer into `y` (its parts `part_stride` floats apart); with `precondition`, the next
+    /// layer is the head and `y` receives `D(x; σ)` of the batch.
+    #[allow(clippy::too_many_arguments)]
+    fn chain(
+        &self,
+        ctx: &GpuContext,
+        ops: &mut Vec<Dispatch>,
+        layers: ChainLayers<'_>,
+        (att, h, y): (&wgpu::Buffer, &wgpu::Buffer, wgpu::BindingResource<'_>),
+        rows: usize,
+        part_stride: usize,
+        precondition: Option<Precondition<'_>>,
+    ) -> Result<()> {
+        let c = &self.config;
+        let mut names = vec![layers.output];
+        names.extend(layers.mlp.iter().flat_map(|(a, b)| [*a, *b]));
+        names.extend(layers.next.iter().map(|n| n.0));
+        let (range, at) = self.weight_range(&names)?;
+        let offset = |layer: &str, kind: &str| {
+            let kind = if kind == "weight" {
+                CHAIN_WEIGHT
+            } else {
+                CHAIN_BIAS
+            };
+            at[&format!("{layer}.{kind}")]
+        };
+        let mut p = ChainParams {
+            rows: rows as u32,
+            d: c.hidden as u32,
+            eps: LN_EPS,
+            o_w: offset(layers.output, "weight"),
+            o_b: offset(layers.output, "bias"),
+            anchor_slot: NO_FRAME,
+            ..ChainParams::default()
+        };
+        if let Some((first, second)) = layers.mlp {
+            p.m = (c.hidden * c.mlp_ratio) as u32;
+            (p.w1, p.b1) = (offset(first, "weight"), offset(first, "bias"));
+            (p.w2, p.b2) = (offset(second, "weight"), offset(second, "bias"));
+        }
+        if let Some((next, outputs, part)) = layers.next {
+            (p.next_w, p.next_b) = (offset(next, "weight"), offset(next, "bias"));
+            p.next_out = outputs as u32;
+            p.part = part as u32;
+            p.part_stride = part_stride as u32;
+        }
+        // Unread without preconditioning: one float of `att` each keeps the layout.
+        let unread = || rows_of(att, 0, 1, 1);
+        let (x, sigma, valid) = match precondition {
+            Some(pre) => {
+                p.precondition = 1;
+                p.slots = c.window_slots as u32;
+                p.agents = pre.agents as u32;
+                p.sigma_data = c.edm.sigma_data as f32;
+                p.anchor_slot = c
+                    .agent_frame
+                    .as_ref()
+                    .map_or(NO_FRAME, |f| f.anchor_slot as u32);
+                p.heading_scale = c.heading_scale as f32;
+                p.residual_scale = residual_scale(c);
+                (
+                    pre.x.as_entire_binding(),
+                    pre.sigma.as_entire_binding(),
+                    pre.valid.as_entire_binding(),
+                )
+            }
+            None => (unread(), unread(), unread()),
+        };
+        p.check()?;
+        let params = Self::params(ctx, &p);
+        let resources = [
+            range,
+            att.as_entire_binding(),
+            h.as_entire_binding(),
+            y,
+            x,
+            sigma,
+            valid,
+        ];
+        ops.push(self.pipelines.residual_chain.pipeline.prepare_resources(
+            ctx,
+            &params,
+            &resources,
+            p.threads(),
+        ));
+        Ok(())
     }
 
     pub(crate) fn params<T: Pod>(ctx: &GpuContext, p: &T) -> wgpu::Buffer {
@@ -655,6 +888,7 @@ impl GpuDenoiser {
             key_part,
             f,
             agent_maps,
+            map_kv_all,
         } = scratch;
         let (token_part, key_part) = (*token_part, *key_part);
 
@@ -752,6 +986,50 @@ impl GpuDenoiser {
             kv_layout: time,
             mask_layout: time,
         };
+        let chains = self.chains(ctx);
+        // The map's keys: each agent's own polylines, or the scene's.
+        let (keys, key_rows) = match (agent_maps, map.picked) {
+            (Some(maps), Some(k)) => (&maps.encoder.tokens, b * a * k),
+            _ => (&map.data, b * map.polylines),
+        };
+        if *map_kv_all {
+            // Every block's map k, v in one layer: part 2i is block i's k, 2i + 1 its v.
+            self.linear(
+                ctx,
+                ops,
+                MAP_KV_ALL,
+                keys,
+                mkv.as_entire_binding(),
+                (key_rows, d, 2 * c.blocks * d),
+                Fused {
+                    part: d,
+                    ..Fused::default()
+                },
+            )?;
+        }
+        let qkv_of = |i: usize, part: &str| {
+            (
+                format!("blocks.{i}.{part}.qkv"),
+                Fused {
+                    norm: true,
+                    part: d,
+                    ..Fused::default()
+                },
+            )
+        };
+        if chains {
+            // The first q, k, v; each chain writes the next attention's after it.
+            let (layer, fused) = qkv_of(0, "time");
+            self.linear(
+                ctx,
+                ops,
+                &layer,
+                h,
+                qkv.as_entire_binding(),
+                (tokens, d, 3 * d),
+                fused,
+            )?;
+        }
         for i in 0..c.blocks {
             let blk = format!("blocks.{i}");
             for (part, attn) in [
@@ -777,20 +1055,19 @@ impl GpuDenoiser {
                     },
                 ),
             ] {
-                // The layer norm and q, k, v: one layer of 3·D outputs into qkv's parts.
-                self.linear(
-                    ctx,
-                    ops,
-                    &format!("{blk}.{part}.qkv"),
-                    h,
-                    qkv.as_entire_binding(),
-                    (tokens, d, 3 * d),
-                    Fused {
-                        norm: true,
-                        part: d,
-                        ..Fused::default()
-                    },
-                )?;
+                if !chains {
+                    // The layer norm and q, k, v: one layer of 3·D outputs into qkv's parts.
+                    let (layer, fused) = qkv_of(i, part);
+                    self.linear(
+                        ctx,
+                        ops,
+                        &layer,
+                        h,
+                        qkv.as_entire_binding(),
+                        (tokens, d, 3 * d),
+                        fused,
+                    )?;
+                }
                 let [q, k, v] = [0, 1, 2].map(|j| part_of(qkv, j, token_part, tokens * d));
                 if part == "agents" && c.agent_pairs.is_some() {
                     // Agent pairs: their features from this `x`, in the pair kernel.
@@ -828,47 +1105,68 @@ impl GpuDenoiser {
                         attn.threads(),
                     ));
                 }
-                // The output projection adds into the residual stream.
-                self.linear(
-                    ctx,
-                    ops,
-                    &format!("{blk}.{part}.o"),
-                    att,
-                    h.as_entire_binding(),
-                    (tokens, d, d),
-                    Fused::residual(),
-                )?;
+                let output = format!("{blk}.{part}.o");
+                if chains {
+                    // The output projection, then the next layer: the agents' q, k, v after
+                    // time attention, the map's q after agent attention.
+                    let (next, next_layer) = if part == "time" {
+                        (qkv_of(i, "agents").0, (3 * d, d))
+                    } else {
+                        (format!("{blk}.map.q"), (d, d))
+                    };
+                    let layers = ChainLayers {
+                        output: &output,
+                        mlp: None,
+                        next: Some((&next, next_layer.0, next_layer.1)),
+                    };
+                    let y = qkv.as_entire_binding();
+                    self.chain(ctx, ops, layers, (att, h, y), tokens, token_part, None)?;
+                } else {
+                    // The output projection adds into the residual stream.
+                    self.linear(
+                        ctx,
+                        ops,
+                        &output,
+                        att,
+                        h.as_entire_binding(),
+                        (tokens, d, d),
+                        Fused::residual(),
+                    )?;
+                }
             }
             // Map cross-attention: queries [B, A·W, D], keys [B, P, D]; with agent maps each
             // agent's W queries [B·A, W, D] to its own keys [B·A, K, D].
-            self.linear(
-                ctx,
-                ops,
-                &format!("{blk}.map.q"),
-                h,
-                part_of(qkv, 0, token_part, tokens * d),
-                (tokens, d, d),
-                Fused {
-                    norm: true,
-                    ..Fused::default()
-                },
-            )?;
-            let (keys, key_rows) = match (agent_maps, map.picked) {
-                (Some(maps), Some(k)) => (&maps.encoder.tokens, b * a * k),
-                _ => (&map.data, b * map.polylines),
+            if !chains {
+                self.linear(
+                    ctx,
+                    ops,
+                    &format!("{blk}.map.q"),
+                    h,
+                    part_of(qkv, 0, token_part, tokens * d),
+                    (tokens, d, d),
+                    Fused {
+                        norm: true,
+                        ..Fused::default()
+                    },
+                )?;
+            }
+            let kv_part = if *map_kv_all {
+                2 * i
+            } else {
+                self.linear(
+                    ctx,
+                    ops,
+                    &format!("{blk}.map.kv"),
+                    keys,
+                    mkv.as_entire_binding(),
+                    (key_rows, d, 2 * d),
+                    Fused {
+                        part: d,
+                        ..Fused::default()
+                    },
+                )?;
+                0
             };
-            self.linear(
-                ctx,
-                ops,
-                &format!("{blk}.map.kv"),
-                keys,
-                mkv.as_entire_binding(),
-                (key_rows, d, 2 * d),
-                Fused {
-                    part: d,
-                    ..Fused::default()
-                },
-            )?;
             let (attn, key_valid) = match (agent_maps, map.picked) {
                 (Some(maps), Some(k)) => {
                     let k = k as u32;
@@ -900,8 +1198,8 @@ impl GpuDenoiser {
             let params = Self::params(ctx, &attn);
             let resources = [
                 part_of(qkv, 0, token_part, tokens * d),
-                part_of(mkv, 0, key_part, key_rows * d),
-                part_of(mkv, 1, key_part, key_rows * d),
+                part_of(mkv, kv_part, key_part, key_rows * d),
+                part_of(mkv, kv_part + 1, key_part, key_rows * d),
                 key_valid.as_entire_binding(),
                 att.as_entire_binding(),
             ];
@@ -911,10 +1209,48 @@ impl GpuDenoiser {
                 &resources,
                 attn.threads(),
             ));
+            let (map_o, mlp_in, mlp_out) = (
+                format!("{blk}.map.o"),
+                format!("{blk}.mlp_in"),
+                format!("{blk}.mlp_out"),
+            );
+            if chains {
+                // The map's output projection and the MLP, then the next block's q, k, v, or
+                // after the last block the head and the output preconditioning.
+                let last = i + 1 == c.blocks;
+                let next = if last {
+                    "head".to_string()
+                } else {
+                    qkv_of(i + 1, "time").0
+                };
+                let layers = ChainLayers {
+                    output: &map_o,
+                    mlp: Some((&mlp_in, &mlp_out)),
+                    next: Some(if last {
+                        (&next, 3, 3)
+                    } else {
+                        (&next, 3 * d, d)
+                    }),
+                };
+                if last {
+                    let precondition = Precondition {
+                        x,
+                        sigma,
+                        valid: &batch.valid,
+                        agents: a,
+                    };
+                    let y = out.as_entire_binding();
+                    self.chain(ctx, ops, layers, (att, h, y), tokens, 0, Some(precondition))?;
+                } else {
+                    let y = qkv.as_entire_binding();
+                    self.chain(ctx, ops, layers, (att, h, y), tokens, token_part, None)?;
+                }
+                continue;
+            }
             self.linear(
                 ctx,
                 ops,
-                &format!("{blk}.map.o"),
+                &map_o,
                 att,
                 h.as_entire_binding(),
                 (tokens, d, d),
@@ -925,7 +1261,7 @@ impl GpuDenoiser {
             self.linear(
                 ctx,
                 ops,
-                &format!("{blk}.mlp_in"),
+                &mlp_in,
                 h,
                 hidden.as_entire_binding(),
                 (tokens, d, m),
@@ -938,12 +1274,15 @@ impl GpuDenoiser {
             self.linear(
                 ctx,
                 ops,
-                &format!("{blk}.mlp_out"),
+                &mlp_out,
                 hidden,
                 h.as_entire_binding(),
                 (tokens, m, d),
                 Fused::residual(),
             )?;
+        }
+        if chains {
+            return Ok(());
         }
         self.linear(
             ctx,
@@ -958,7 +1297,7 @@ impl GpuDenoiser {
             },
         )?;
         let p = ElementwiseParams {
-            count: (tokens * 3) as u32,
+            count: tokens as u32,
             slots: w32,
             per_slot: 3,
             agents: a32,
@@ -1025,11 +1364,14 @@ pub(crate) struct Scratch {
     token_part: usize,
     att: wgpu::Buffer,    // [T, D]
     hidden: wgpu::Buffer, // [T, M]
-    /// `[2, key_part]`: the map's k, v `[key rows, D]`.
+    /// `[2, key_part]`: the map's k, v `[key rows, D]`; with `map_kv_all`, `[2 · blocks,
+    /// key_part]`: every block's.
     mkv: wgpu::Buffer,
     key_part: usize,
     f: wgpu::Buffer, // [T, 3]
     agent_maps: Option<AgentMapScratch>,
+    /// Every block's map k, v are projected at once (when they fit one binding).
+    map_kv_all: bool,
 }
 
 /// The polyline encoder's output for `polylines` polylines of `points` points. It runs
@@ -1122,16 +1464,25 @@ impl Scratch {
             }
         };
         let (token_part, key_part) = (part_floats(ctx, tokens * d), part_floats(ctx, key_rows * d));
+        let map_kv_all = (2 * c.blocks * key_part * 4) as u64 <= max_bytes;
+        let kv_parts = if map_kv_all { 2 * c.blocks } else { 2 };
+        // Residual chains keep the MLP's hidden layer and the head's F on chip.
+        let (hidden, f) = if runs_chains(ctx, c) {
+            (1, 1)
+        } else {
+            (tokens * d * c.mlp_ratio, tokens * 3)
+        };
         Ok(Self {
             h: buf("h", tokens * d),
             qkv: buf("qkv", 3 * token_part),
             token_part,
             att: buf("attention", tokens * d),
-            hidden: buf("mlp", tokens * d * c.mlp_ratio),
-            mkv: buf("map kv", 2 * key_part),
+            hidden: buf("mlp", hidden),
+            mkv: buf("map kv", kv_parts * key_part),
             key_part,
-            f: buf("F", tokens * 3),
+            f: buf("F", f),
             agent_maps,
+            map_kv_all,
         })
     }
 }

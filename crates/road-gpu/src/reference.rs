@@ -266,3 +266,105 @@ pub fn pair_attention(
     }
     out
 }
+
+/// A linear layer's weights `[out, in]` and bias `[out]`.
+pub type Layer<'a> = (&'a [f32], &'a [f32]);
+
+/// The residual chain of `residual_chain.wgsl` over `rows` rows of width `d`:
+/// `h₁ = h + att · W_oᵀ + b_o`; with `mlp` (`W_1 [M, D]`, `b_1`, `W_2 [D, M]`, `b_2`),
+/// `h₂ = h₁ + relu(n(h₁) · W_1ᵀ + b_1) · W_2ᵀ + b_2`; with `next` (`[out, D]`, `[out]`), its
+/// outputs `n(h₂) · Wᵀ + b` `[rows, out]`. `n` standardises rows (the layer norm with γ, β
+/// already folded into the layer after it). Returns `(h₂, next's outputs)`.
+#[allow(clippy::too_many_arguments)]
+pub fn residual_chain(
+    att: &[f32],
+    h: &[f32],
+    rows: usize,
+    d: usize,
+    output: Layer<'_>,
+    mlp: Option<(Layer<'_>, Layer<'_>)>,
+    next: Option<Layer<'_>>,
+    eps: f32,
+) -> (Vec<f32>, Vec<f32>) {
+    let (ones, zeros) = (vec![1.0; d], vec![0.0; d]);
+    let standardise = Some((&ones[..], &zeros[..], eps));
+    let mut h = linear_fused(att, output.0, output.1, rows, d, d, false, None, Some(h));
+    if let Some(((w1, b1), (w2, b2))) = mlp {
+        let m = b1.len();
+        let hidden = linear_fused(&h, w1, b1, rows, d, m, true, standardise, None);
+        h = linear_fused(&hidden, w2, b2, rows, m, d, false, None, Some(&h));
+    }
+    let next = next.map_or_else(Vec::new, |(w, b)| {
+        linear_fused(&h, w, b, rows, d, b.len(), false, standardise, None)
+    });
+    (h, next)
+}
+
+/// The shape and constants of the output preconditioning ([`precondition_output`]).
+#[derive(Debug, Clone, Copy)]
+pub struct PreconditionShape {
+    pub slots: usize,
+    pub agents: usize,
+    /// The agent frame's anchor slot (≥ 1); `None` without an agent frame.
+    pub anchor_slot: Option<usize>,
+    pub sigma_data: f64,
+    /// State units per radian of heading.
+    pub heading_scale: f64,
+    /// The constant-velocity reference's scale; 0 without one.
+    pub residual_scale: f64,
+}
+
+/// `D(x; σ)` from the network's output `f` (`docs/checkpoint.md`'s last step, as
+/// `common/precondition.wgsl`): `x`, `f` `[B, A, W, 3]`, `σ [B, W]`, `valid [B, A, W]`.
+pub fn precondition_output(
+    x: &[f32],
+    f: &[f32],
+    sigma: &[f32],
+    valid: &[f32],
+    shape: PreconditionShape,
+) -> Vec<f32> {
+    let PreconditionShape {
+        slots,
+        agents,
+        anchor_slot,
+        sigma_data: sd,
+        heading_scale,
+        residual_scale,
+    } = shape;
+    let v = |i: usize| f64::from(valid[i]);
+    let state = |token: usize| [0, 1, 2].map(|c| f64::from(x[token * 3 + c]));
+    let mut out = vec![0.0f32; x.len()];
+    for token in 0..valid.len() {
+        let (w, scene) = (token % slots, token / (slots * agents));
+        let mut f_token = [0, 1, 2].map(|c| f64::from(f[token * 3 + c]));
+        let (mut reference, mut scale) = ([0.0; 3], 1.0);
+        if let Some(anchor_slot) = anchor_slot {
+            let anchor = token / slots * slots + anchor_slot;
+            let (a, p) = (state(anchor), state(anchor - 1));
+            let heading_rad = a[2] * v(anchor) / heading_scale;
+            let (sn, cs) = heading_rad.sin_cos();
+            f_token = [
+                cs * f_token[0] - sn * f_token[1],
+                sn * f_token[0] + cs * f_token[1],
+                f_token[2],
+            ];
+            if residual_scale > 0.0 && v(anchor) > 0.0 {
+                scale = residual_scale;
+                let slots_from_anchor = w as f64 - anchor_slot as f64;
+                for c in 0..2 {
+                    reference[c] = a[c] + slots_from_anchor * (a[c] - p[c]) * v(anchor - 1);
+                }
+                reference[2] = a[2];
+            }
+        }
+        let s = f64::from(sigma[scene * slots + w]) * scale;
+        let denom = s * s + sd * sd;
+        let xs = state(token);
+        for c in 0..3 {
+            let y = (xs[c] - reference[c]) * scale;
+            let d = sd * sd / denom * y + s * sd / denom.sqrt() * f_token[c] * v(token);
+            out[token * 3 + c] = (reference[c] + d / scale) as f32;
+        }
+    }
+    out
+}

@@ -8,6 +8,9 @@ use crate::kernels::agent_pairs::{PairAttention, PairAttentionParams};
 use crate::kernels::attention::{Attention, AttentionParams, TokenLayout};
 use crate::kernels::linear::{Linear, LinearKernel, LinearParams, fold_layer_norm};
 use crate::kernels::polyline::{PolylineEncoder, PolylineKernel, PolylineParams};
+use crate::kernels::residual_chain::{
+    ChainInputs, ChainParams, NO_FRAME, ResidualChain, transpose,
+};
 use crate::tolerance::Mismatch;
 use crate::{GpuContext, Result, Tolerance, reference};
 
@@ -119,6 +122,81 @@ pub fn kernel_checks(ctx: &GpuContext) -> Result<Vec<KernelCheck>> {
             outcome: loose.check(&got, &want),
         });
     }
+
+    // The residual chain as the engine runs it after a block's map attention: the output
+    // projection, the MLP (2·D) and the next block's q, k, v in 3 parts.
+    let (d, m) = (d_in, 2 * d_in);
+    let tensors: Vec<Vec<f32>> = [d * d, d, m * d, m, d * m, d, 3 * d * d, 3 * d]
+        .iter()
+        .map(|&n| rng.uniform(n, 0.3))
+        .collect();
+    let mut weights = Vec::new();
+    // Weights transposed ([out, in] → [in, out]) as the engine uploads a chain's; biases not.
+    let outputs = [d, 1, m, 1, d, 1, 3 * d, 1];
+    let offsets: Vec<u32> = tensors
+        .iter()
+        .zip(outputs)
+        .map(|(t, out)| {
+            let at = weights.len() as u32;
+            weights.extend(transpose(t, out));
+            at
+        })
+        .collect();
+    let p = ChainParams {
+        rows: rows as u32,
+        d: d as u32,
+        m: m as u32,
+        eps: 1e-5,
+        o_w: offsets[0],
+        o_b: offsets[1],
+        w1: offsets[2],
+        b1: offsets[3],
+        w2: offsets[4],
+        b2: offsets[5],
+        next_w: offsets[6],
+        next_b: offsets[7],
+        next_out: (3 * d) as u32,
+        part: d as u32,
+        part_stride: (rows * d) as u32,
+        anchor_slot: NO_FRAME,
+        ..ChainParams::default()
+    };
+    let (att, h) = (rng.uniform(rows * d, 1.0), rng.uniform(rows * d, 1.0));
+    let inputs = ChainInputs {
+        weights: &weights,
+        att: &att,
+        h: &h,
+        y: &vec![0.0; 3 * rows * d],
+        x: &[0.0],
+        sigma: &[0.0],
+        valid: &[0.0],
+    };
+    let (h_got, y_got) = ResidualChain::new(ctx).run(ctx, p, &inputs)?;
+    let (h_want, next_want) = reference::residual_chain(
+        &att,
+        &h,
+        rows,
+        d,
+        (&tensors[0], &tensors[1]),
+        Some(((&tensors[2], &tensors[3]), (&tensors[4], &tensors[5]))),
+        Some((&tensors[6], &tensors[7])),
+        1e-5,
+    );
+    // y's parts are q, k, v [rows, D] each, in that order: [rows, 3D] rearranged.
+    let y_want: Vec<f32> = (0..3 * rows * d)
+        .map(|i| {
+            let (part, row, column) = (i / (rows * d), i % (rows * d) / d, i % d);
+            next_want[row * 3 * d + part * d + column]
+        })
+        .collect();
+    let got: Vec<f32> = h_got.into_iter().chain(y_got).collect();
+    let want: Vec<f32> = h_want.into_iter().chain(y_want).collect();
+    checks.push(KernelCheck {
+        name: "residual_chain (output, MLP, next q/k/v)",
+        values: got.len(),
+        tolerance: loose,
+        outcome: loose.check(&got, &want),
+    });
 
     // The polyline encoder over 3 scenes' 32 polylines of 20 points.
     let (n, q) = (3 * 32, 20);

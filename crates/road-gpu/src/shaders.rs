@@ -1,5 +1,6 @@
 //! Every WGSL file under `shaders/`, embedded. One file per kernel family; naga validates them
-//! all in a test (no GPU needed).
+//! all in a test (no GPU needed). Helpers under `shaders/common/` are prepended to the families
+//! that use them ([`Shader::includes`]): WGSL has no includes of its own.
 
 /// A kernel family and its source file.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -24,10 +25,15 @@ pub enum Shader {
     AgentMap,
     /// Agent attention with pair features (relative pose of every pair of agents).
     AgentPairs,
+    /// The residual chain: output projection, MLP and the next layer in one kernel.
+    ResidualChain,
 }
 
+/// `shaders/common/precondition.wgsl`: the output preconditioning of one token.
+const PRECONDITION: &str = include_str!("../../../shaders/common/precondition.wgsl");
+
 impl Shader {
-    pub const ALL: [Shader; 10] = [
+    pub const ALL: [Shader; 11] = [
         Shader::Edm,
         Shader::Linear,
         Shader::Polyline,
@@ -38,6 +44,7 @@ impl Shader {
         Shader::Window,
         Shader::AgentMap,
         Shader::AgentPairs,
+        Shader::ResidualChain,
     ];
 
     /// File name under `shaders/`.
@@ -53,6 +60,7 @@ impl Shader {
             Shader::Window => "window.wgsl",
             Shader::AgentMap => "agent_map.wgsl",
             Shader::AgentPairs => "agent_pairs.wgsl",
+            Shader::ResidualChain => "residual_chain.wgsl",
         }
     }
 
@@ -63,11 +71,27 @@ impl Shader {
             Shader::Polyline => include_str!("../../../shaders/polyline.wgsl"),
             Shader::Attention => include_str!("../../../shaders/attention.wgsl"),
             Shader::Embed => include_str!("../../../shaders/embed.wgsl"),
-            Shader::Elementwise => include_str!("../../../shaders/elementwise.wgsl"),
+            Shader::Elementwise => concat!(
+                include_str!("../../../shaders/common/precondition.wgsl"),
+                include_str!("../../../shaders/elementwise.wgsl")
+            ),
             Shader::Heun => include_str!("../../../shaders/heun.wgsl"),
             Shader::Window => include_str!("../../../shaders/window.wgsl"),
             Shader::AgentMap => include_str!("../../../shaders/agent_map.wgsl"),
             Shader::AgentPairs => include_str!("../../../shaders/agent_pairs.wgsl"),
+            Shader::ResidualChain => concat!(
+                include_str!("../../../shaders/common/precondition.wgsl"),
+                include_str!("../../../shaders/residual_chain.wgsl")
+            ),
+        }
+    }
+
+    /// The helpers of `shaders/common/` prepended to this family's file, in order: its
+    /// [`Self::source`] is theirs followed by the file's.
+    pub fn includes(self) -> &'static [&'static str] {
+        match self {
+            Shader::Elementwise | Shader::ResidualChain => &[PRECONDITION],
+            _ => &[],
         }
     }
 

@@ -257,6 +257,20 @@ fn whole_denoiser_matches_candle_with_every_linear_kernel() {
     }
 }
 
+/// The blocks layer by layer (`ContextOptions::residual_chains` off), the variant the chains
+/// are timed against, with the default checkpoint's features.
+#[test]
+fn whole_denoiser_matches_candle_layer_by_layer() {
+    let ctx = GpuContext::new(&ContextOptions {
+        validation: true,
+        residual_chains: false,
+        ..ContextOptions::default()
+    })
+    .unwrap_or_else(|e| panic!("GPU tests need an adapter: {e}"));
+    assert_eq!(ctx.fusion_setting(), "layers");
+    whole_denoiser_matches_candle_on(&ctx, &agent_pairs_config(), "denoiser-layers");
+}
+
 fn agent_pairs_config() -> ModelConfig {
     ModelConfig {
         agent_pairs: Some(road_model::AgentPairs {

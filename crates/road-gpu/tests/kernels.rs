@@ -626,3 +626,250 @@ fn the_selftest_kernel_checks_pass() {
         }
     }
 }
+
+/// Tensors laid one after another in one weights vector, as the engine's weights buffer holds
+/// them: each tensor's offset in floats.
+struct PackedWeights {
+    values: Vec<f32>,
+}
+
+impl PackedWeights {
+    fn push(&mut self, tensor: Vec<f32>) -> u32 {
+        // Odd gaps between tensors: offsets need no alignment inside the bound range.
+        self.values.push(9.0);
+        let at = self.values.len() as u32;
+        self.values.extend(tensor);
+        at
+    }
+}
+
+/// The residual chain (`residual_chain.wgsl`) against [`road_gpu::reference::residual_chain`]:
+/// rows around its 8-row tile (one, a partial tile, several), hidden widths from 1 to its 256,
+/// MLP widths across several 64-unit chunks and not a multiple of 64, no MLP, no next layer, the
+/// next layer split into parts with gaps that must keep their values, and the head with the
+/// output preconditioning against [`road_gpu::reference::precondition_output`] with and without
+/// an agent frame and a constant-velocity reference.
+#[test]
+fn residual_chain_matches_the_cpu_reference() {
+    use road_gpu::kernels::residual_chain::{
+        ChainInputs, ChainParams, NO_FRAME, ResidualChain, transpose,
+    };
+    use road_gpu::reference::{PreconditionShape, precondition_output, residual_chain};
+    let ctx = context();
+    let kernel = ResidualChain::new(&ctx);
+    let mut rng = rand::rngs::StdRng::seed_from_u64(17);
+    // (rows, D, M, next outputs, outputs per part)
+    for (rows, d, m, next_out, part) in [
+        (1, 96, 192, 288, 96),
+        (7, 96, 0, 96, 96),
+        (9, 16, 32, 48, 16),
+        (37, 33, 70, 0, 1),
+        (130, 96, 192, 288, 96),
+        (17, 256, 512, 256, 256),
+        (8, 1, 3, 2, 1),
+        (24, 64, 130, 3, 3),
+    ] {
+        let mut weights = PackedWeights { values: Vec::new() };
+        let o_w_host = random(&mut rng, d * d, 0.3);
+        let o_b_host = random(&mut rng, d, 0.3);
+        let (w1_host, b1_host, w2_host, b2_host) = (
+            random(&mut rng, m * d, 0.3),
+            random(&mut rng, m, 0.3),
+            random(&mut rng, d * m, 0.3),
+            random(&mut rng, d, 0.3),
+        );
+        let (next_w_host, next_b_host) = (
+            random(&mut rng, next_out * d, 0.3),
+            random(&mut rng, next_out, 0.3),
+        );
+        let mut p = ChainParams {
+            rows: rows as u32,
+            d: d as u32,
+            m: m as u32,
+            eps: 1e-5,
+            next_out: next_out as u32,
+            part: part as u32,
+            // Parts 5 floats apart beyond their rows · part.
+            part_stride: (rows * part + 5) as u32,
+            anchor_slot: NO_FRAME,
+            ..ChainParams::default()
+        };
+        // Weights transposed, as the engine uploads a chain's.
+        p.o_w = weights.push(transpose(&o_w_host, d));
+        p.o_b = weights.push(o_b_host.clone());
+        p.w1 = weights.push(transpose(&w1_host, m));
+        p.b1 = weights.push(b1_host.clone());
+        p.w2 = weights.push(transpose(&w2_host, d));
+        p.b2 = weights.push(b2_host.clone());
+        p.next_w = weights.push(transpose(&next_w_host, next_out));
+        p.next_b = weights.push(next_b_host.clone());
+        let att = random(&mut rng, rows * d, 1.0);
+        let h: Vec<f32> = random(&mut rng, rows * d, 1.0)
+            .iter()
+            .map(|v| v + 0.5)
+            .collect();
+        let y0 = random(&mut rng, p.y_len(), 1.0);
+        let inputs = ChainInputs {
+            weights: &weights.values,
+            att: &att,
+            h: &h,
+            y: &y0,
+            x: &[0.0],
+            sigma: &[0.0],
+            valid: &[0.0],
+        };
+        let (h_got, y_got) = kernel.run(&ctx, p, &inputs).unwrap();
+        let mlp = (m > 0).then_some(((&w1_host[..], &b1_host[..]), (&w2_host[..], &b2_host[..])));
+        let next = (next_out > 0).then_some((&next_w_host[..], &next_b_host[..]));
+        let (h_want, next_want) =
+            residual_chain(&att, &h, rows, d, (&o_w_host, &o_b_host), mlp, next, 1e-5);
+        let shape = format!("{rows} rows, D {d}, M {m}, next {next_out} in parts of {part}");
+        // Sums of up to D + M products of O(1) terms in another order.
+        let tol = Tolerance {
+            rel: 1e-4,
+            abs: 2e-5,
+        };
+        if let Err(e) = tol.check(&h_got, &h_want) {
+            panic!("{shape}: h: {e}");
+        }
+        let part_stride = p.part_stride as usize;
+        let at = |r: usize, o: usize| (o / part) * part_stride + r * part + o % part;
+        let next_got: Vec<f32> = (0..rows * next_out)
+            .map(|i| y_got[at(i / next_out, i % next_out)])
+            .collect();
+        if let Err(e) = tol.check(&next_got, &next_want) {
+            panic!("{shape}: next layer: {e}");
+        }
+        let parts = next_out.div_ceil(part);
+        for j in 0..parts.saturating_sub(1) {
+            let gap = j * part_stride + rows * part..(j + 1) * part_stride;
+            assert_eq!(
+                y_got[gap.clone()],
+                y0[gap],
+                "{shape}: the gap after part {j}"
+            );
+        }
+    }
+
+    // The head and the output preconditioning: 2 scenes × 3 agents × 5 slots, anchor slot 2.
+    let (scenes, agents, slots, d, m) = (2, 3, 5, 24, 48);
+    let rows = scenes * agents * slots;
+    for (frame, residual_scale) in [(false, 0.0), (true, 0.0), (true, 4.0)] {
+        let mut weights = PackedWeights { values: Vec::new() };
+        let hosts: Vec<Vec<f32>> = [d * d, d, m * d, m, d * m, d, 3 * d, 3]
+            .iter()
+            .map(|&n| random(&mut rng, n, 0.3))
+            .collect();
+        // Weights transposed ([out, in] → [in, out]), biases as they are.
+        let outputs = [d, 1, m, 1, d, 1, 3, 1];
+        let offsets: Vec<u32> = hosts
+            .iter()
+            .zip(outputs)
+            .map(|(t, out)| weights.push(transpose(t, out)))
+            .collect();
+        let shape = PreconditionShape {
+            slots,
+            agents,
+            anchor_slot: frame.then_some(2),
+            sigma_data: 0.5,
+            heading_scale: 2.0,
+            residual_scale,
+        };
+        let p = ChainParams {
+            rows: rows as u32,
+            d: d as u32,
+            m: m as u32,
+            eps: 1e-5,
+            o_w: offsets[0],
+            o_b: offsets[1],
+            w1: offsets[2],
+            b1: offsets[3],
+            w2: offsets[4],
+            b2: offsets[5],
+            next_w: offsets[6],
+            next_b: offsets[7],
+            next_out: 3,
+            part: 3,
+            part_stride: (rows * 3) as u32,
+            precondition: 1,
+            slots: slots as u32,
+            agents: agents as u32,
+            anchor_slot: if frame { 2 } else { NO_FRAME },
+            sigma_data: 0.5,
+            heading_scale: 2.0,
+            residual_scale: residual_scale as f32,
+            ..ChainParams::default()
+        };
+        let att = random(&mut rng, rows * d, 1.0);
+        let h = random(&mut rng, rows * d, 1.0);
+        let x = random(&mut rng, rows * 3, 3.0);
+        // σ across the schedule, one slot clean; some tokens (an anchor among them) invalid.
+        let sigma: Vec<f32> = (0..scenes * slots)
+            .map(|i| {
+                if i == 3 {
+                    0.0
+                } else {
+                    rng.random_range(0.01..20.0)
+                }
+            })
+            .collect();
+        let valid: Vec<f32> = (0..rows)
+            .map(|i| if i % 7 == 3 || i == 7 { 0.0 } else { 1.0 })
+            .collect();
+        let inputs = ChainInputs {
+            weights: &weights.values,
+            att: &att,
+            h: &h,
+            y: &vec![0.0; rows * 3],
+            x: &x,
+            sigma: &sigma,
+            valid: &valid,
+        };
+        let (h_got, d_got) = kernel.run(&ctx, p, &inputs).unwrap();
+        let (h_want, f) = residual_chain(
+            &att,
+            &h,
+            rows,
+            d,
+            (&hosts[0], &hosts[1]),
+            Some(((&hosts[2], &hosts[3]), (&hosts[4], &hosts[5]))),
+            Some((&hosts[6], &hosts[7])),
+            1e-5,
+        );
+        let d_want = precondition_output(&x, &f, &sigma, &valid, shape);
+        let tol = Tolerance {
+            rel: 1e-4,
+            abs: 2e-5,
+        };
+        let case = format!("head, frame {frame}, residual scale {residual_scale}");
+        if let Err(e) = tol.check(&h_got, &h_want) {
+            panic!("{case}: h: {e}");
+        }
+        if let Err(e) = tol.check(&d_got, &d_want) {
+            panic!("{case}: D(x; σ): {e}");
+        }
+    }
+}
+
+/// A chain's shapes outside its tile are refused with the reason, not run.
+#[test]
+fn residual_chain_refuses_widths_past_its_tile() {
+    use road_gpu::kernels::residual_chain::{ChainParams, MAX_HIDDEN};
+    let too_wide = ChainParams {
+        rows: 8,
+        d: MAX_HIDDEN + 1,
+        ..ChainParams::default()
+    };
+    let err = too_wide.check().unwrap_err().to_string();
+    assert!(err.contains("257"), "{err}");
+    let head_of_two = ChainParams {
+        rows: 8,
+        d: 16,
+        next_out: 2,
+        part: 2,
+        precondition: 1,
+        ..ChainParams::default()
+    };
+    let err = head_of_two.check().unwrap_err().to_string();
+    assert!(err.contains("3 outputs"), "{err}");
+}

@@ -19,8 +19,14 @@ const AGENTS: usize = 4;
 const POLYLINES: usize = 6;
 
 fn context() -> GpuContext {
+    context_with_chains(true)
+}
+
+/// As [`context`], the blocks run as residual chains or (`false`) layer by layer.
+fn context_with_chains(residual_chains: bool) -> GpuContext {
     GpuContext::new(&ContextOptions {
         validation: true,
+        residual_chains,
         ..ContextOptions::default()
     })
     .unwrap_or_else(|e| panic!("GPU tests need an adapter: {e}"))
@@ -121,10 +127,11 @@ fn bytes(dispatches: &[Dispatch]) -> u64 {
 
 /// Dispatch and byte counts: positive, the same for two steps of the same batch, half for a
 /// step without its second evaluation, and equal to the sum of the plan's dispatches' bindings,
-/// which for the head and the Euler update are checked by hand.
+/// which for the head and the Euler update are checked by hand (layer by layer, where the head
+/// is a dispatch of its own).
 #[test]
 fn dispatches_and_bytes_are_the_bindings_of_the_recorded_dispatches() {
-    let ctx = context();
+    let ctx = context_with_chains(false);
     let config = config();
     let gpu = denoiser(&ctx, &config);
     let s = scenes(&config, [AGENTS; SCENES], [POLYLINES; SCENES]);
@@ -233,4 +240,62 @@ fn computed_over_useful_counts_the_padding() {
     let one = ratio(agents, polylines, &[0, 2]);
     let want = f(AGENTS, POLYLINES) / f(2, 3);
     assert!((one - want).abs() < 1e-9 * want, "{one} against {want}");
+}
+
+/// Residual chains: per evaluation the embedding, the agent maps' pick and encoder, every
+/// block's map k, v at once, the first q, k, v, then per block its three attentions and three
+/// chains, and the sampler's update; layer by layer 11 per block (the map k, v of every block
+/// still at once), the head, the preconditioning. Fewer bytes too: the MLP's hidden layer and the head's F stay on chip. The
+/// last chain (the head's) writes the residual stream and D(x; σ), nothing else.
+#[test]
+fn residual_chains_cut_the_dispatches_and_bytes_of_an_evaluation() {
+    let config = config();
+    let s = scenes(&config, [AGENTS; SCENES], [POLYLINES; SCENES]);
+    let (sigma_cur, sigma_next) = sigma_rows(&config, &[]);
+    let mut per_setting = Vec::new();
+    for chains in [true, false] {
+        let ctx = context_with_chains(chains);
+        let gpu = denoiser(&ctx, &config);
+        let mut engine = engine_on(&ctx, &gpu, &s);
+        engine.step(&sigma_cur, &sigma_next, true).unwrap();
+        per_setting.push(engine.take_work());
+    }
+    let (chains, layers) = (per_setting[0], per_setting[1]);
+    let blocks = config.blocks as f64;
+    assert_eq!(chains.dispatches_per_evaluation(), 5.0 + 6.0 * blocks + 1.0);
+    assert_eq!(
+        layers.dispatches_per_evaluation(),
+        4.0 + 11.0 * blocks + 3.0
+    );
+    assert!(
+        chains.bytes_per_evaluation() < layers.bytes_per_evaluation(),
+        "chains {} B, layers {} B",
+        chains.bytes_per_evaluation(),
+        layers.bytes_per_evaluation()
+    );
+    assert_eq!(chains.computed_flops, layers.computed_flops);
+
+    let ctx = context();
+    let gpu = denoiser(&ctx, &config);
+    let inputs = DenoiseInputs {
+        scenes: SCENES,
+        agents: AGENTS,
+        x: &s.x,
+        sigma: &sigma_cur,
+        valid: &s.valid,
+        agent_features: &s.features,
+    };
+    let batch = gpu.upload_batch(&ctx, &inputs).unwrap();
+    let map = gpu
+        .encode_map(&ctx, SCENES, POLYLINES, &s.map, &s.map_valid)
+        .unwrap();
+    let plan = gpu.heun_plan(&ctx, &batch, &map).unwrap();
+    let euler = plan.euler_dispatches();
+    let head = &euler[euler.len() - 2];
+    assert_eq!(head.label(), "residual_chain");
+    let tokens = (SCENES * AGENTS * config.window_slots) as u64;
+    assert_eq!(
+        head.bytes_written(),
+        4 * (tokens * config.hidden as u64 + tokens * 3)
+    );
 }

@@ -44,11 +44,20 @@ fn every_shader_file_validates() {
     );
     for path in &files {
         let source = std::fs::read_to_string(path).unwrap();
-        // Helpers under shaders/common/ are included by kernel files, not compiled alone.
+        // Helpers under shaders/common/ are prepended to kernel files (`Shader::includes`):
+        // validated with them.
         if path.parent().is_some_and(|p| p.ends_with("common")) {
             continue;
         }
-        validate(&path.display().to_string(), &source);
+        let name = path.file_name().unwrap().to_string_lossy();
+        let includes = Shader::ALL
+            .iter()
+            .find(|s| s.file_name() == name)
+            .map_or(&[][..], |s| s.includes());
+        validate(
+            &path.display().to_string(),
+            &format!("{}{source}", includes.concat()),
+        );
     }
 }
 
@@ -66,7 +75,11 @@ fn every_kernel_file_is_embedded() {
             shader.unwrap_or_else(|| panic!("{name} is not listed in road_gpu::shaders::Shader"));
         assert_eq!(
             shader.source(),
-            std::fs::read_to_string(path).unwrap(),
+            format!(
+                "{}{}",
+                shader.includes().concat(),
+                std::fs::read_to_string(path).unwrap()
+            ),
             "{name} embedded copy differs"
         );
     }

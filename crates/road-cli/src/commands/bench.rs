@@ -120,6 +120,11 @@ pub struct EngineBenchArgs {
     /// (`on`, the default) or as one batch padded to the most agents (`off`), each a GPU row.
     #[arg(long, num_args = 1.., default_values = ["on"], value_parser = ["on", "off"])]
     pub bucketing: Vec<String>,
+    /// How a block's layers between attentions run, each a GPU row: `chains` (one
+    /// `residual_chain` dispatch each: output projection, MLP, the next layer; the default) or
+    /// `layers` (a dispatch per layer, `ContextOptions::residual_chains` off).
+    #[arg(long, num_args = 1.., default_values = ["chains"], value_parser = ["chains", "layers"])]
+    pub fusion: Vec<String>,
     /// How the kernels are compiled, each a GPU row per linear kernel: `checked` (wgpu's
     /// runtime checks, the default) or `unchecked` (`ContextOptions::unchecked_shaders`).
     #[arg(long, num_args = 1.., default_values = ["checked"], value_parser = ["checked", "unchecked"])]
@@ -148,6 +153,9 @@ fn gpu_setting(row: &serde_json::Value) -> String {
     }
     if row["bucketing"].as_str() == Some("off") {
         setting += ", one batch";
+    }
+    if row["fusion"].as_str() == Some("layers") {
+        setting += ", layer by layer";
     }
     setting
 }
@@ -407,35 +415,30 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
     use road_model::batch::SceneInput;
     use road_rollout::StepEngine;
     let validation = load_cache(&args.cache, Split::Validation)?;
-    // One context per shader-check, polyline and linear kernel setting compared.
+    // One context per fusion, bucketing, shader-check, polyline and linear kernel setting
+    // compared.
     let mut settings = Vec::new();
-    for bucketing in &args.bucketing {
-        for checks in &args.shader_checks {
-            for &polyline_kernel in &args.polyline_kernels {
-                for &linear_kernel in &args.linear_kernels {
-                    settings.push((
-                        bucketing == "on",
-                        checks == "unchecked",
-                        polyline_kernel,
-                        linear_kernel,
-                    ));
+    for fusion in &args.fusion {
+        for bucketing in &args.bucketing {
+            for checks in &args.shader_checks {
+                for &polyline_kernel in &args.polyline_kernels {
+                    for &linear_kernel in &args.linear_kernels {
+                        settings.push(road_gpu::ContextOptions {
+                            linear_kernel,
+                            polyline_kernel,
+                            unchecked_shaders: checks == "unchecked",
+                            bucket_scenes: bucketing == "on",
+                            residual_chains: fusion == "chains",
+                            ..road_gpu::ContextOptions::default()
+                        });
+                    }
                 }
             }
         }
     }
     let contexts: Vec<road_gpu::GpuContext> = settings
-        .into_iter()
-        .map(
-            |(bucket_scenes, unchecked_shaders, polyline_kernel, linear_kernel)| {
-                road_gpu::GpuContext::new(&road_gpu::ContextOptions {
-                    linear_kernel,
-                    polyline_kernel,
-                    unchecked_shaders,
-                    bucket_scenes,
-                    ..road_gpu::ContextOptions::default()
-                })
-            },
-        )
+        .iter()
+        .map(road_gpu::GpuContext::new)
         .collect::<Result<_, _>>()?;
     let ctx = &contexts[0];
     let mut rows = Vec::new();
@@ -522,6 +525,7 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
                     "shader_checks": ctx.shader_checks_setting(),
                     "polyline_kernel": ctx.polyline_kernel_setting(),
                     "bucketing": if ctx.bucket_scenes() { "on" } else { "off" },
+                    "fusion": ctx.fusion_setting(),
                     "flops_per_scene_step": flops,
                     "cpu_ms_per_step": cpu_secs.map(|s| s * 1e3),
                     "cpu_scene_steps_per_sec": cpu_secs.map(|s| b as f64 / s),

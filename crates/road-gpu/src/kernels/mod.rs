@@ -8,6 +8,7 @@ pub mod attention;
 pub mod edm;
 pub mod linear;
 pub mod polyline;
+pub mod residual_chain;
 pub mod window;
 
 use wgpu::util::DeviceExt;

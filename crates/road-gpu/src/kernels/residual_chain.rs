@@ -1,0 +1,194 @@
+//! `shaders/residual_chain.wgsl`: what a block does between two attentions, in one dispatch
+//! whose rows stay in workgroup memory: the attention's output projection added into the
+//! residual stream, optionally the MLP (its hidden layer 64 units at a time, never in memory),
+//! and optionally the next layer behind its layer norm (the next attention's q/k/v, the map's
+//! q, or the head with the output preconditioning). The engine runs it where the layer-by-layer
+//! path ran four to six dispatches (`ContextOptions::residual_chains`).
+
+use bytemuck::{Pod, Zeroable};
+
+use super::{Pipeline, read_back, storage_buffer, upload};
+use crate::shaders::Shader;
+use crate::{Error, GpuContext, Result};
+
+/// Rows (tokens) of one workgroup (the shader's `ROWS`).
+pub const ROWS: u32 = 8;
+/// Widest hidden width D the workgroup's row tile holds (the shader's `MAX_D`).
+pub const MAX_HIDDEN: u32 = 256;
+/// Invocations of one workgroup.
+const LANES: u32 = 64;
+/// `anchor_slot` without an agent frame.
+pub const NO_FRAME: u32 = u32::MAX;
+
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Default, Pod, Zeroable)]
+pub struct ChainParams {
+    pub rows: u32,
+    /// The hidden width D.
+    pub d: u32,
+    /// The MLP's hidden width; 0 without an MLP.
+    pub m: u32,
+    pub eps: f32,
+    /// Offsets into the bound weights (floats) of `W_oᵀ [D, D]`, `b_o [D]`. Every weight is
+    /// transposed (`[in, out]`, [`transpose`]), so that neighbouring invocations load
+    /// neighbouring weights.
+    pub o_w: u32,
+    pub o_b: u32,
+    /// `W_1ᵀ [D, M]`, `b_1 [M]`, `W_2ᵀ [M, D]`, `b_2 [D]`.
+    pub w1: u32,
+    pub b1: u32,
+    pub w2: u32,
+    pub b2: u32,
+    /// The next layer, behind the layer norm (γ, β folded in): `Wᵀ [D, next_out]`, `b`.
+    pub next_w: u32,
+    pub next_b: u32,
+    /// Outputs of the next layer; 0 without one.
+    pub next_out: u32,
+    /// Outputs per part of `y`, and floats from one part to the next (as `LinearParams`).
+    pub part: u32,
+    pub part_stride: u32,
+    /// 1: the next layer is the head (3 outputs) and `y` receives `D(x; σ)`.
+    pub precondition: u32,
+    pub slots: u32,
+    pub agents: u32,
+    pub anchor_slot: u32,
+    pub sigma_data: f32,
+    pub heading_scale: f32,
+    pub residual_scale: f32,
+    pub _pad: [u32; 2],
+}
+
+impl ChainParams {
+    /// Invocations of one dispatch.
+    pub fn threads(&self) -> u32 {
+        self.rows.div_ceil(ROWS) * LANES
+    }
+
+    /// The shapes the kernel takes: a clear error for the rest.
+    pub fn check(&self) -> Result<()> {
+        if self.d == 0 || self.d > MAX_HIDDEN {
+            return Err(Error::Input(format!(
+                "the residual chain holds hidden widths 1..={MAX_HIDDEN}, not {}",
+                self.d
+            )));
+        }
+        if self.next_out > 0 && self.part == 0 {
+            return Err(Error::Input("a next layer needs outputs per part".into()));
+        }
+        if self.precondition == 1 && self.next_out != 3 {
+            return Err(Error::Input(format!(
+                "the preconditioned head has 3 outputs, not {}",
+                self.next_out
+            )));
+        }
+        Ok(())
+    }
+
+    /// Floats of `y` the next layer writes: every part, the last `rows · part` long.
+    pub fn y_len(&self) -> usize {
+        if self.next_out == 0 {
+            return 0;
+        }
+        let parts = self.next_out.div_ceil(self.part) as usize;
+        (parts - 1) * self.part_stride as usize + (self.rows * self.part) as usize
+    }
+}
+
+/// `w [out, in]` (a checkpoint's layout) as `[in, out]`, the chain's.
+pub fn transpose(w: &[f32], out_dim: usize) -> Vec<f32> {
+    let in_dim = w.len() / out_dim.max(1);
+    assert_eq!(w.len(), out_dim * in_dim, "w is [out, in]");
+    (0..in_dim * out_dim)
+        .map(|i| w[(i % out_dim) * in_dim + i / out_dim])
+        .collect()
+}
+
+/// Host inputs of one run of the chain ([`ResidualChain::run`]): the tests' and the
+/// self-test's form.
+#[derive(Debug, Clone, Copy)]
+pub struct ChainInputs<'a> {
+    /// Every weight (transposed) and bias at the offsets `ChainParams` names.
+    pub weights: &'a [f32],
+    /// `[rows, D]`.
+    pub att: &'a [f32],
+    /// `[rows, D]`: the residual stream before.
+    pub h: &'a [f32],
+    /// `y`'s contents before (`ChainParams::y_len`, or `[rows, 3]` when preconditioning).
+    pub y: &'a [f32],
+    /// Preconditioning: `x [rows, 3]`, `σ [B, W]`, `valid [rows]`.
+    pub x: &'a [f32],
+    pub sigma: &'a [f32],
+    pub valid: &'a [f32],
+}
+
+/// The `residual_chain` kernel, compiled once.
+#[derive(Debug)]
+pub struct ResidualChain {
+    pub pipeline: Pipeline,
+}
+
+impl ResidualChain {
+    pub fn new(ctx: &GpuContext) -> Self {
+        Self {
+            pipeline: Pipeline::new(ctx, Shader::ResidualChain, "residual_chain"),
+        }
+    }
+
+    /// One dispatch on host data: `(h after, y after)`.
+    pub fn run(
+        &self,
+        ctx: &GpuContext,
+        p: ChainParams,
+        inputs: &ChainInputs<'_>,
+    ) -> Result<(Vec<f32>, Vec<f32>)> {
+        p.check()?;
+        let read = |label: &str, data: &[f32]| {
+            upload(
+                ctx,
+                label,
+                bytemuck::cast_slice(data),
+                wgpu::BufferUsages::STORAGE,
+            )
+        };
+        let read_write = |label: &str, data: &[f32]| {
+            let buffer = storage_buffer(ctx, label, (data.len().max(1) * 4) as u64);
+            ctx.queue
+                .write_buffer(&buffer, 0, bytemuck::cast_slice(data));
+            buffer
+        };
+        let params = upload(
+            ctx,
+            "params",
+            bytemuck::bytes_of(&p),
+            wgpu::BufferUsages::UNIFORM,
+        );
+        let (weights, att) = (read("weights", inputs.weights), read("att", inputs.att));
+        let (h, y) = (read_write("h", inputs.h), read_write("y", inputs.y));
+        let (x, sigma, valid) = (
+            read("x", inputs.x),
+            read("sigma", inputs.sigma),
+            read("valid", inputs.valid),
+        );
+        let mut encoder = ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("residual chain"),
+            });
+        self.pipeline.encode(
+            ctx,
+            &mut encoder,
+            &params,
+            &[&weights, &att, &h, &y, &x, &sigma, &valid],
+            p.threads(),
+        );
+        ctx.queue.submit([encoder.finish()]);
+        let floats = |bytes: Vec<u8>| bytemuck::cast_slice::<u8, f32>(&bytes).to_vec();
+        let h_after = floats(read_back(ctx, &h, (inputs.h.len() * 4) as u64)?);
+        let y_after = if inputs.y.is_empty() {
+            Vec::new()
+        } else {
+            floats(read_back(ctx, &y, (inputs.y.len() * 4) as u64)?)
+        };
+        Ok((h_after, y_after))
+    }
+}
