@@ -10,10 +10,10 @@
 // Every weight lives in one bound range of the weights buffer, at offsets in floats, transposed
 // ([in, out]: the engine transposes them on upload) so that neighbouring invocations load
 // neighbouring weights. A workgroup of 64 holds ROWS rows of a layer's input in workgroup
-// memory; invocation i owns output columns i, i + 64, ... of every row, so each weight it loads
-// serves ROWS products, its sums stay in registers, and it adds them into h itself (no other
-// invocation touches those elements). The next layer's input is read back from h, standardised
-// once per row. The MLP runs its hidden layer 64 units at a time (tiny-cuda-nn's pattern).
+// memory; each invocation computes blocks of 4 rows × 4 columns of the layer's outputs (16 sums
+// in registers, 5 loads per 16 products) and adds them into h itself (no other invocation
+// touches those elements). The next layer's input is read back from h, standardised
+// once per row. The MLP runs its hidden layer UNITS units at a time (tiny-cuda-nn's pattern).
 
 struct Params {
     rows: u32,        // tokens
@@ -45,6 +45,7 @@ struct Params {
 const ROWS: u32 = 8u;
 const MAX_D: u32 = 256u;
 const LANES: u32 = 64u;
+const UNITS: u32 = 128u; // MLP hidden units a chunk
 const NO_FRAME: u32 = 0xffffffffu;
 const NO_BIAS: u32 = 0xffffffffu;
 
@@ -58,7 +59,7 @@ const NO_BIAS: u32 = 0xffffffffu;
 @group(0) @binding(7) var<storage, read> valid: array<f32>;    // precondition: [rows]
 
 var<workgroup> tile: array<f32, 2048>;          // [ROWS, MAX_D]: att, then the rows of h, standardised
-var<workgroup> hidden_units: array<f32, 512>;   // [ROWS, LANES]: 64 MLP units, or F [ROWS, 3]
+var<workgroup> hidden_units: array<f32, 1024>;  // [ROWS, UNITS]: a chunk of MLP units, or F [ROWS, 3]
 var<workgroup> tile_stats: array<vec2<f32>, 8>; // [ROWS]: (mean, 1/σ) of each row of the tile
 
 // The tile's live rows from h (the rest zero), standardised in place: n(h) as the layer norm's
@@ -104,23 +105,71 @@ fn load_standardised(lid: u32, first: u32, live: u32) {
     workgroupBarrier();
 }
 
-// Σ_k tile[r, k] · W[o, k] (+ b[o] unless `b` is NO_BIAS) of every row r, for one output o of
-// `outputs` (Wᵀ at `w`, [D, outputs]). The 8 sums stay in registers.
-fn tile_products(w: u32, b: u32, o: u32, outputs: u32) -> array<f32, 8> {
-    var acc: array<f32, 8>;
+// A register block of a layer's outputs: 4 rows × 4 consecutive columns. Task t of a layer of
+// `outputs` columns takes column group t % groups and row group t / groups, so that
+// neighbouring invocations load neighbouring weights and share the tile's rows.
+struct Block {
+    row: u32,    // first of its 4 rows in the tile
+    column: u32, // first of its 4 columns
+}
+
+fn block_of(task: u32, outputs: u32) -> Block {
+    let groups = (outputs + 3u) / 4u;
+    return Block((task / groups) * 4u, (task % groups) * 4u);
+}
+
+// Tasks of a layer of `outputs` columns over the tile's ROWS rows.
+fn tasks_of(outputs: u32) -> u32 {
+    return (ROWS / 4u) * ((outputs + 3u) / 4u);
+}
+
+// 4 weights of row `k` of Wᵀ (rows `stride` floats apart) from column `column`; columns from
+// `limit` on read the last one (their sums are never stored).
+fn weights4(w: u32, k: u32, column: u32, stride: u32, limit: u32) -> vec4<f32> {
+    let base = w + k * stride;
+    let last = limit - 1u;
+    return vec4<f32>(
+        weights[base + min(column, last)],
+        weights[base + min(column + 1u, last)],
+        weights[base + min(column + 2u, last)],
+        weights[base + min(column + 3u, last)],
+    );
+}
+
+// Σ_k tile[r, k] · Wᵀ[k, c] + b[c] of the block's rows r and columns c below `limit` (Wᵀ at
+// `w`, [D, ·] with rows `stride` floats apart; b at `b`): 16 sums in registers, 5 loads per 16
+// products.
+fn tile_block(w: u32, b: u32, blk: Block, stride: u32, limit: u32) -> array<vec4<f32>, 4> {
+    var acc: array<vec4<f32>, 4>;
+    let row0 = blk.row * MAX_D;
     for (var k = 0u; k < params.d; k++) {
-        let wk = weights[w + k * outputs + o];
-        for (var r = 0u; r < ROWS; r++) {
-            acc[r] += tile[r * MAX_D + k] * wk;
-        }
+        let wk = weights4(w, k, blk.column, stride, limit);
+        acc[0] += tile[row0 + k] * wk;
+        acc[1] += tile[row0 + MAX_D + k] * wk;
+        acc[2] += tile[row0 + 2u * MAX_D + k] * wk;
+        acc[3] += tile[row0 + 3u * MAX_D + k] * wk;
     }
-    if (b != NO_BIAS) {
-        let bias = weights[b + o];
-        for (var r = 0u; r < ROWS; r++) {
-            acc[r] += bias;
-        }
+    let bias = weights4(b, 0u, blk.column, stride, limit);
+    for (var r = 0u; r < 4u; r++) {
+        acc[r] += bias;
     }
     return acc;
+}
+
+// Adds a block's sums into h (rows `first + blk.row + r` below `live`, columns below D).
+fn add_into_h(blk: Block, sums: array<vec4<f32>, 4>, first: u32, live: u32) {
+    let d = params.d;
+    for (var r = 0u; r < 4u; r++) {
+        let row = blk.row + r;
+        if (row < live) {
+            for (var j = 0u; j < 4u; j++) {
+                let column = blk.column + j;
+                if (column < d) {
+                    h[(first + row) * d + column] += sums[r][j];
+                }
+            }
+        }
+    }
 }
 
 @compute @workgroup_size(64)
@@ -141,7 +190,7 @@ fn residual_chain(
     }
 
     // The output projection: the attention's rows into the tile, then each invocation adds its
-    // columns of every row into h (no other invocation touches them).
+    // blocks of every row into h (no other invocation touches them).
     for (var i = lid; i < ROWS * d; i += LANES) {
         let r = i / d;
         let k = i % d;
@@ -152,46 +201,47 @@ fn residual_chain(
         tile[r * MAX_D + k] = value;
     }
     workgroupBarrier();
-    for (var o = lid; o < d; o += LANES) {
-        let sums = tile_products(params.o_w, params.o_b, o, d);
-        for (var r = 0u; r < live; r++) {
-            h[(first + r) * d + o] += sums[r];
-        }
+    for (var t = lid; t < tasks_of(d); t += LANES) {
+        let blk = block_of(t, d);
+        add_into_h(blk, tile_block(params.o_w, params.o_b, blk, d, d), first, live);
     }
 
-    // The MLP, 64 hidden units at a time, each chunk's products added into h.
+    // The MLP, UNITS hidden units at a time, each chunk's products added into h.
     if (params.m > 0u) {
         load_standardised(lid, first, live);
-        for (var c0 = 0u; c0 < params.m; c0 += LANES) {
-            let c = c0 + lid;
-            if (c < params.m) {
-                let units = tile_products(params.w1, params.b1, c, params.m);
-                for (var r = 0u; r < ROWS; r++) {
-                    hidden_units[r * LANES + lid] = max(units[r], 0.0);
-                }
-            } else {
-                for (var r = 0u; r < ROWS; r++) {
-                    hidden_units[r * LANES + lid] = 0.0;
+        for (var c0 = 0u; c0 < params.m; c0 += UNITS) {
+            let chunk = min(UNITS, params.m - c0);
+            // The chunk's units: a layer of `chunk` outputs whose weights start at column c0.
+            for (var t = lid; t < tasks_of(chunk); t += LANES) {
+                let blk = block_of(t, chunk);
+                let units = tile_block(params.w1 + c0, params.b1 + c0, blk, params.m, chunk);
+                for (var r = 0u; r < 4u; r++) {
+                    for (var j = 0u; j < 4u; j++) {
+                        if (blk.column + j < chunk) {
+                            hidden_units[(blk.row + r) * UNITS + blk.column + j] = max(units[r][j], 0.0);
+                        }
+                    }
                 }
             }
             workgroupBarrier();
-            let chunk = min(LANES, params.m - c0);
-            for (var o = lid; o < d; o += LANES) {
-                var acc: array<f32, 8>;
-                let w_chunk = params.w2 + c0 * d + o;
+            for (var t = lid; t < tasks_of(d); t += LANES) {
+                let blk = block_of(t, d);
+                var acc: array<vec4<f32>, 4>;
+                let row0 = blk.row * UNITS;
                 for (var u = 0u; u < chunk; u++) {
-                    let wu = weights[w_chunk + u * d];
-                    for (var r = 0u; r < ROWS; r++) {
-                        acc[r] += hidden_units[r * LANES + u] * wu;
+                    let wu = weights4(params.w2, c0 + u, blk.column, d, d);
+                    acc[0] += hidden_units[row0 + u] * wu;
+                    acc[1] += hidden_units[row0 + UNITS + u] * wu;
+                    acc[2] += hidden_units[row0 + 2u * UNITS + u] * wu;
+                    acc[3] += hidden_units[row0 + 3u * UNITS + u] * wu;
+                }
+                if (c0 == 0u) {
+                    let bias = weights4(params.b2, 0u, blk.column, d, d);
+                    for (var r = 0u; r < 4u; r++) {
+                        acc[r] += bias;
                     }
                 }
-                var bias = 0.0;
-                if (c0 == 0u) {
-                    bias = weights[params.b2 + o];
-                }
-                for (var r = 0u; r < live; r++) {
-                    h[(first + r) * d + o] += acc[r] + bias;
-                }
+                add_into_h(blk, acc, first, live);
             }
             workgroupBarrier();
         }
@@ -244,12 +294,21 @@ fn residual_chain(
         }
         return;
     }
-    // The next layer, into its parts (stepped per output as `linear.wgsl`'s `store4`).
-    for (var o = lid; o < params.next_out; o += LANES) {
-        let values = tile_products(params.next_w, params.next_b, o, params.next_out);
-        let base = (o / params.part) * params.part_stride + o % params.part;
-        for (var r = 0u; r < live; r++) {
-            y[base + (first + r) * params.part] = values[r];
+    // The next layer, into its parts (as `linear.wgsl`'s `store4`).
+    for (var t = lid; t < tasks_of(params.next_out); t += LANES) {
+        let blk = block_of(t, params.next_out);
+        let values = tile_block(params.next_w, params.next_b, blk, params.next_out, params.next_out);
+        for (var j = 0u; j < 4u; j++) {
+            let o = blk.column + j;
+            if (o < params.next_out) {
+                let base = (o / params.part) * params.part_stride + o % params.part;
+                for (var r = 0u; r < 4u; r++) {
+                    let row = blk.row + r;
+                    if (row < live) {
+                        y[base + (first + row) * params.part] = values[r][j];
+                    }
+                }
+            }
         }
     }
 }
