@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The GPU suite of issue 15 in one call, for a machine lent for minutes: adapter, kernel and
-# whole-denoiser self-test, engine throughput over batch sizes, serving throughput. The lent
+# whole-denoiser self-test, the autotuner's table, engine throughput over batch sizes, serving
+# throughput. The lent
 # machine has no Rust toolchain and no package registry: prepare here, carry `dist/`.
 #
 #   bash scripts/gpu-suite.sh prepare     # here: dist/road.gz (stripped release binary) and
@@ -98,22 +99,28 @@ run)
     # unless they agree.
     # (Into machine.txt too: a lent machine returns at most 8 files.)
     "$bin" gpu selftest --checkpoints models/road20-wide4 models/road20 | tee -a "$out/machine.txt"
-    # Engine throughput: the WGSL engine beside the candle CPU reference, same batches.
+    # The autotuner's table for this adapter (into machine.txt too), cached where every later
+    # step's `road serve` and `road demo` read it (they would tune on their own otherwise).
     mkdir -p "$out/cache"
+    export ROAD_GPU_TUNE_CACHE="$out/cache/gpu-tune.json"
+    step tune 60 "$out/tune.txt" "$bin" gpu tune --checkpoints models/road20-wide4 models/road20
+    cat "$out/tune.txt" >> "$out/machine.txt" && rm -f "$out/tune.txt"
+    # Engine throughput: the WGSL engine beside the candle CPU reference, same batches.
     cp dist/validation.roadds "$out/cache/validation.roadds" 2>/dev/null \
         || cp .road-cache/validation.roadds "$out/cache/validation.roadds"
     # The candle reference takes minutes per step at thousands of scenes: timed up to 8 only
     # (the first lent run, 2026-11-26, measured it to 64: docs/experiments/2026-11-26-gpu-h100/).
     # road20 stands for every D = 64 checkpoint (the same shapes), road20-wide4 is the default.
-    # The kernels chosen per layer (auto) beside each linear variant alone, each with the
-    # polyline encoder chosen (blocked) and per polyline (rowwise or tiled with per-polyline is
-    # the engine before 2026-11-26's blocked kernels); then the default's steps profiled kernel
-    # by kernel at two batches, compiled with and without wgpu's runtime checks (a step of its
-    # own: a step cut off at its limit returns nothing).
+    # The blocks as residual chains (the default since 2026-11-27: 24 dispatches an evaluation)
+    # and layer by layer (40), each with the kernels chosen per layer (auto) beside each linear
+    # variant alone (the chains run linear layers only for the first q/k/v and the map's k/v;
+    # the per-polyline encoder was measured against the blocked one on 2026-11-26); then the
+    # default's steps profiled kernel by kernel at two batches, compiled with and without wgpu's
+    # runtime checks (a step of its own: a step cut off at its limit returns nothing).
     step engine 150 "$out/engine.json" "$bin" bench engine \
         --checkpoints models/road20-wide4 models/road20 --batches "${batches[@]}" \
-        --cpu-max-batch 8 --linear-kernels auto rowwise tiled blocked \
-        --polyline-kernels auto per-polyline --cache "$out/cache" --json
+        --cpu-max-batch 8 --fusion chains layers --linear-kernels auto rowwise tiled blocked \
+        --cache "$out/cache" --json
     profile_batches=(512 4096)
     $quick && profile_batches=(8)
     # Scenes bucketed by agent count (the default since 2026-11-26) against one batch padded to
@@ -121,10 +128,10 @@ run)
     step engine-buckets 60 "$out/engine-buckets.json" "$bin" bench engine \
         --checkpoints models/road20-wide4 models/road20 --batches "${batches[@]}" \
         --cpu-max-batch 0 --bucketing on off --cache "$out/cache" --json
-    step engine-profile 90 "$out/engine-profile.json" "$bin" bench engine \
+    step engine-profile 120 "$out/engine-profile.json" "$bin" bench engine \
         --checkpoints models/road20-wide4 --batches "${profile_batches[@]}" --cpu-max-batch 0 \
-        --linear-kernels auto --shader-checks checked unchecked --profile --cache "$out/cache" \
-        --json
+        --linear-kernels auto --fusion chains layers --shader-checks checked unchecked --profile \
+        --cache "$out/cache" --json
     # Serving: scenes ticking through the scheduler, each engine in the same run (the GPU's
     # alone with --engine-only: the CPU column does not change with the kernels).
     serve_engines=(cpu gpu)

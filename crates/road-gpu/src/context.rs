@@ -167,6 +167,11 @@ impl GpuContext {
         self.polyline_kernel.map_or("auto", PolylineKernel::entry)
     }
 
+    /// The linear kernel the options named; `None`: chosen per layer.
+    pub fn named_linear_kernel(&self) -> Option<LinearKernel> {
+        self.linear_kernel
+    }
+
     /// The linear kernel the options named, or `"auto"` (chosen per layer).
     pub fn linear_kernel_setting(&self) -> &'static str {
         self.linear_kernel.map_or("auto", LinearKernel::entry)

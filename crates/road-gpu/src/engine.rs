@@ -3,13 +3,17 @@
 //! at an aligned offset); map tokens are computed once per scene set, or, with agent maps, each
 //! agent's own every evaluation (`agent_map.wgsl` picks them from the anchors).
 //!
-//! The forward pass is the one of `docs/checkpoint.md`, kernel by kernel:
-//! `linear` (embed_agent) → `embed_tokens` → per block and attention: `linear` q/k/v (the
-//! layer norm in its prologue, one layer of 3·D outputs), `attention` (time, agents, map
-//! layouts; `pair_attention` for agents with agent pairs), `linear` o (the residual add in its
-//! epilogue); MLP: `linear` in (norm, ReLU), `linear` out (residual) → `linear` head (`ln_out`
-//! in its prologue) → `precondition_output`. The sampler steps around it are in
-//! `sampler_step`.
+//! The forward pass is the one of `docs/checkpoint.md`, kernel by kernel: `embed_tokens`
+//! (the agents' `embed_agent` ran once on upload) → with agent maps `pick_agent_maps` and the
+//! polyline encoder → `linear` map k/v of every block at once → `linear` q/k/v of block 0 (the
+//! layer norm in its prologue, one layer of 3·D outputs) → per block: `attention` (time),
+//! `residual_chain` (the time output projection into the residual stream, the agents' q/k/v),
+//! `attention` or `pair_attention` (agents), `residual_chain` (output, the map's q), `attention`
+//! (map), `residual_chain` (output, the MLP, the next block's q/k/v or the head with
+//! `precondition_output`'s math): 24 dispatches an evaluation of road20-wide4 with its sampler
+//! update. With `ContextOptions::residual_chains` off (or D past the chain's tile) each layer
+//! is a `linear` of its own (norm, ReLU and residual add fused in) and the head's output goes
+//! through `precondition_output`. The sampler steps around it are in `sampler_step`.
 
 use std::collections::HashMap;
 use std::path::Path;
@@ -103,10 +107,17 @@ fn chain_order(blocks: usize) -> Vec<String> {
     layers
 }
 
-/// Whether a model's blocks run as residual chains on `ctx`: when asked
-/// (`ContextOptions::residual_chains`) and its rows fit the chain's tile.
-fn runs_chains(ctx: &GpuContext, c: &ModelConfig) -> bool {
-    ctx.residual_chains() && c.hidden <= crate::kernels::residual_chain::MAX_HIDDEN as usize
+/// Whether a model's rows fit the residual chain's tile.
+fn fits_chain(c: &ModelConfig) -> bool {
+    c.hidden <= crate::kernels::residual_chain::MAX_HIDDEN as usize
+}
+
+/// How one evaluation runs: its blocks as residual chains or layer by layer, and its linear
+/// layers' kernel (`None`: chosen per layer by size).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct EvalSettings {
+    pub residual_chains: bool,
+    pub linear_kernel: Option<LinearKernel>,
 }
 
 /// The layers of one residual chain (`residual_chain.wgsl`), by checkpoint name.
@@ -268,6 +279,8 @@ pub struct GpuDenoiser {
     weights: wgpu::Buffer,
     slices: HashMap<String, Slice>,
     pub(crate) pipelines: Pipelines,
+    /// The adapter's tuned choices for this model (`crate::tune`), if attached.
+    tuning: Option<crate::tune::TuneTable>,
 }
 
 impl GpuDenoiser {
@@ -446,7 +459,7 @@ impl GpuDenoiser {
         laid.sort_by(|a, b| a.0.cmp(&b.0));
         // The residual chains' layers, transposed, in the order the chains run them: each
         // chain binds the one short range that holds its layers (`weight_range`).
-        let chain_tensors = if runs_chains(ctx, config) {
+        let chain_tensors = if fits_chain(config) {
             let by_name: HashMap<&str, &Vec<f32>> =
                 laid.iter().map(|(n, v)| (n.as_str(), *v)).collect();
             let mut chain_tensors = Vec::new();
@@ -482,7 +495,7 @@ impl GpuDenoiser {
             );
         }
         let weights = upload(ctx, "weights", &blob, wgpu::BufferUsages::STORAGE);
-        if ctx.residual_chains() && !runs_chains(ctx, config) {
+        if ctx.residual_chains() && !fits_chain(config) {
             tracing::info!(
                 hidden = d,
                 "hidden width past the residual chain's tile: layers run one by one"
@@ -493,6 +506,7 @@ impl GpuDenoiser {
             weights,
             slices,
             pipelines: Pipelines::new(ctx),
+            tuning: None,
         })
     }
 
@@ -508,9 +522,30 @@ impl GpuDenoiser {
         }))
     }
 
-    /// Whether this denoiser's blocks run as residual chains on `ctx`.
-    fn chains(&self, ctx: &GpuContext) -> bool {
-        runs_chains(ctx, &self.config)
+    /// How an evaluation of `tokens` tokens runs on `ctx`: as the adapter's tuning chose for
+    /// that size ([`Self::set_tuning`]), else as the context's options say; layer by layer
+    /// wherever the model's rows do not fit the chain.
+    pub fn settings_for(&self, ctx: &GpuContext, tokens: usize) -> EvalSettings {
+        let mut settings = match &self.tuning {
+            Some(table) => table.settings_for(tokens),
+            None => EvalSettings {
+                residual_chains: ctx.residual_chains(),
+                linear_kernel: ctx.named_linear_kernel(),
+            },
+        };
+        settings.residual_chains &= fits_chain(&self.config);
+        settings
+    }
+
+    /// Runs every evaluation as `tuning` chose for its size (`crate::tune`), or (`None`) as the
+    /// context's options say.
+    pub fn set_tuning(&mut self, tuning: Option<crate::tune::TuneTable>) {
+        self.tuning = tuning;
+    }
+
+    /// The tuning this denoiser runs by, if any.
+    pub fn tuning(&self) -> Option<&crate::tune::TuneTable> {
+        self.tuning.as_ref()
     }
 
     /// The one range of the weights buffer holding the chain copies of `layers` (weights
@@ -637,6 +672,20 @@ impl GpuDenoiser {
         Ok(())
     }
 
+    /// Scratch activations for an evaluation of `scenes × agents` on `map`, as
+    /// [`Self::settings_for`] runs it.
+    pub(crate) fn scratch(
+        &self,
+        ctx: &GpuContext,
+        scenes: usize,
+        agents: usize,
+        map: &MapTokens,
+    ) -> Result<Scratch> {
+        let tokens = scenes * agents * self.config.window_slots;
+        let chains = self.settings_for(ctx, tokens).residual_chains;
+        Scratch::new(ctx, &self.config, (scenes, agents), map, chains)
+    }
+
     pub(crate) fn params<T: Pod>(ctx: &GpuContext, p: &T) -> wgpu::Buffer {
         upload(
             ctx,
@@ -647,12 +696,14 @@ impl GpuDenoiser {
     }
 
     /// One linear layer `layer` (its `.weight`, `.bias`) of `(rows, in, out)`, fused as `fused`
-    /// says: `x [rows, in]` → `y` (`[rows, out]`, or its parts).
+    /// says: `x [rows, in]` → `y` (`[rows, out]`, or its parts), by `kernel` (`None`: chosen by
+    /// the layer's size, [`LinearKernel::choose`]).
     #[allow(clippy::too_many_arguments)]
     fn linear(
         &self,
         ctx: &GpuContext,
         ops: &mut Vec<Dispatch>,
+        kernel: Option<LinearKernel>,
         layer: &str,
         x: &wgpu::Buffer,
         y: wgpu::BindingResource<'_>,
@@ -676,7 +727,7 @@ impl GpuDenoiser {
             self.w(&format!("{layer}.bias"))?,
             y,
         ];
-        let linear = match ctx.linear_kernel_for(&p) {
+        let linear = match LinearKernel::choose(kernel, ctx.is_software(), &p) {
             LinearKernel::Rowwise => &self.pipelines.linear_rowwise,
             LinearKernel::Tiled => &self.pipelines.linear_tiled,
             LinearKernel::Blocked => &self.pipelines.linear_blocked,
@@ -842,6 +893,7 @@ impl GpuDenoiser {
         self.linear(
             ctx,
             &mut ops,
+            ctx.named_linear_kernel(),
             "embed_agent",
             &features,
             agent_embedding.as_entire_binding(),
@@ -986,7 +1038,8 @@ impl GpuDenoiser {
             kv_layout: time,
             mask_layout: time,
         };
-        let chains = self.chains(ctx);
+        let settings = self.settings_for(ctx, tokens);
+        let chains = settings.residual_chains;
         // The map's keys: each agent's own polylines, or the scene's.
         let (keys, key_rows) = match (agent_maps, map.picked) {
             (Some(maps), Some(k)) => (&maps.encoder.tokens, b * a * k),
@@ -997,6 +1050,7 @@ impl GpuDenoiser {
             self.linear(
                 ctx,
                 ops,
+                settings.linear_kernel,
                 MAP_KV_ALL,
                 keys,
                 mkv.as_entire_binding(),
@@ -1023,6 +1077,7 @@ impl GpuDenoiser {
             self.linear(
                 ctx,
                 ops,
+                settings.linear_kernel,
                 &layer,
                 h,
                 qkv.as_entire_binding(),
@@ -1061,6 +1116,7 @@ impl GpuDenoiser {
                     self.linear(
                         ctx,
                         ops,
+                        settings.linear_kernel,
                         &layer,
                         h,
                         qkv.as_entire_binding(),
@@ -1126,6 +1182,7 @@ impl GpuDenoiser {
                     self.linear(
                         ctx,
                         ops,
+                        settings.linear_kernel,
                         &output,
                         att,
                         h.as_entire_binding(),
@@ -1140,6 +1197,7 @@ impl GpuDenoiser {
                 self.linear(
                     ctx,
                     ops,
+                    settings.linear_kernel,
                     &format!("{blk}.map.q"),
                     h,
                     part_of(qkv, 0, token_part, tokens * d),
@@ -1156,6 +1214,7 @@ impl GpuDenoiser {
                 self.linear(
                     ctx,
                     ops,
+                    settings.linear_kernel,
                     &format!("{blk}.map.kv"),
                     keys,
                     mkv.as_entire_binding(),
@@ -1250,6 +1309,7 @@ impl GpuDenoiser {
             self.linear(
                 ctx,
                 ops,
+                settings.linear_kernel,
                 &map_o,
                 att,
                 h.as_entire_binding(),
@@ -1261,6 +1321,7 @@ impl GpuDenoiser {
             self.linear(
                 ctx,
                 ops,
+                settings.linear_kernel,
                 &mlp_in,
                 h,
                 hidden.as_entire_binding(),
@@ -1274,6 +1335,7 @@ impl GpuDenoiser {
             self.linear(
                 ctx,
                 ops,
+                settings.linear_kernel,
                 &mlp_out,
                 hidden,
                 h.as_entire_binding(),
@@ -1287,6 +1349,7 @@ impl GpuDenoiser {
         self.linear(
             ctx,
             ops,
+            settings.linear_kernel,
             "head",
             h,
             f.as_entire_binding(),
@@ -1330,7 +1393,7 @@ impl GpuDenoiser {
         let batch = self.upload_batch(ctx, inputs)?;
         let len = (inputs.x.len() * 4) as u64;
         let out = storage_buffer(ctx, "denoised", len);
-        let scratch = Scratch::new(ctx, &self.config, batch.scenes, batch.agents, map)?;
+        let scratch = self.scratch(ctx, batch.scenes, batch.agents, map)?;
         let mut ops = Vec::new();
         self.prepare_denoise(
             ctx,
@@ -1415,12 +1478,14 @@ struct AgentMapScratch {
 }
 
 impl Scratch {
-    pub(crate) fn new(
+    /// Activations of `scenes × agents` on `map`; `chains`: the blocks run as residual chains
+    /// (no MLP hidden layer or head output in memory).
+    fn new(
         ctx: &GpuContext,
         c: &ModelConfig,
-        scenes: usize,
-        agents: usize,
+        (scenes, agents): (usize, usize),
         map: &MapTokens,
+        chains: bool,
     ) -> Result<Self> {
         let tokens = scenes * agents * c.window_slots;
         let d = c.hidden;
@@ -1467,7 +1532,7 @@ impl Scratch {
         let map_kv_all = (2 * c.blocks * key_part * 4) as u64 <= max_bytes;
         let kv_parts = if map_kv_all { 2 * c.blocks } else { 2 };
         // Residual chains keep the MLP's hidden layer and the head's F on chip.
-        let (hidden, f) = if runs_chains(ctx, c) {
+        let (hidden, f) = if chains {
             (1, 1)
         } else {
             (tokens * d * c.mlp_ratio, tokens * 3)

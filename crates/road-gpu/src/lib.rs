@@ -9,7 +9,9 @@
 //! - [`proxies`]: dispatches, binding bytes and padding per evaluation (no GPU needed);
 //! - [`reference`]: the kernels' CPU references (plain f64 loops);
 //! - [`selftest`]: every kernel family against its reference on the adapter at hand;
-//! - [`tolerance`]: the relative + absolute tolerance every parity test uses.
+//! - [`tolerance`]: the relative + absolute tolerance every parity test uses;
+//! - [`tune`]: the autotuner: each way to run an evaluation timed per batch size, cached per
+//!   adapter.
 
 pub mod context;
 pub mod engine;
@@ -22,6 +24,7 @@ pub mod selftest;
 pub mod shaders;
 pub mod step_engine;
 pub mod tolerance;
+pub mod tune;
 
 pub use context::{ContextOptions, GpuContext, hardware_adapter};
 pub use tolerance::Tolerance;

@@ -7,7 +7,7 @@
 
 use bytemuck::{Pod, Zeroable};
 
-use crate::engine::{DeviceBatch, GpuDenoiser, MapTokens, Scratch};
+use crate::engine::{DeviceBatch, GpuDenoiser, MapTokens};
 use crate::kernels::{Dispatch, Traffic, read_back, storage_buffer};
 use crate::{Error, GpuContext, Result};
 
@@ -40,7 +40,7 @@ impl GpuDenoiser {
             storage_buffer(ctx, "D2", len),
             storage_buffer(ctx, "x_e", len),
         );
-        let scratch = Scratch::new(ctx, &self.config, b, a, map)?;
+        let scratch = self.scratch(ctx, b, a, map)?;
         let p = HeunParams {
             count: count as u32,
             slots: w as u32,

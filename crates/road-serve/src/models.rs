@@ -112,10 +112,13 @@ impl Checkpoints {
             return Ok(Some((ctx, m)));
         }
         let loaded = self.get(name)?;
-        let model = match self.folder(name) {
+        let mut model = match self.folder(name) {
             Some(path) => GpuDenoiser::from_checkpoint(ctx, &path)?,
             None => GpuDenoiser::from_memory(ctx, loaded, embedded::WEIGHTS)?,
         };
+        // The adapter's tuned kernel choices: cached, or timed once on a hardware adapter.
+        let attached = road_gpu::tune::attach(ctx, &mut model);
+        tracing::info!(checkpoint = name, ?attached, "GPU kernels' tuning");
         // Leaked for the reason `get` leaks the model: pools borrow it for the server's life.
         let model: &'static GpuDenoiser = Box::leak(Box::new(model));
         self.uploaded.insert(name.to_owned(), model);

@@ -36,6 +36,14 @@ impl From<crate::commands::sample::Engine> for EngineChoice {
     }
 }
 
+/// `model` with the adapter's tuning (`road_gpu::tune::attach`: cached, or timed once on a
+/// hardware adapter).
+fn tuned(ctx: &GpuContext, mut model: GpuDenoiser) -> GpuDenoiser {
+    let attached = road_gpu::tune::attach(ctx, &mut model);
+    tracing::debug!(?attached, "GPU kernels' tuning");
+    model
+}
+
 /// A checkpoint loaded for the CPU engines and, when the GPU engine was chosen, uploaded to
 /// the adapter.
 pub struct Engines {
@@ -103,12 +111,12 @@ impl Engines {
             EngineChoice::Cpu | EngineChoice::Candle => None,
             EngineChoice::Gpu => {
                 let ctx = GpuContext::new(&ContextOptions::default())?;
-                let model = upload(&ctx, &cpu)?;
+                let model = tuned(&ctx, upload(&ctx, &cpu)?);
                 Some((ctx, model))
             }
             EngineChoice::Auto => match GpuContext::new(&ContextOptions::default()) {
                 Ok(ctx) if !ctx.is_software() => {
-                    let model = upload(&ctx, &cpu)?;
+                    let model = tuned(&ctx, upload(&ctx, &cpu)?);
                     Some((ctx, model))
                 }
                 Ok(ctx) => {

@@ -21,6 +21,38 @@ pub enum GpuCommand {
         #[arg(long, num_args = 1.., default_values = ["models/road20-wide4", "models/road20"])]
         checkpoints: Vec<PathBuf>,
     },
+    /// Time one denoiser evaluation of each checkpoint under every way the engine can run it
+    /// (residual chains or layer by layer; linear kernels chosen per layer or one variant
+    /// everywhere) at several batch sizes on this adapter, print the table, and cache the
+    /// fastest per size for `road serve` and `road demo` (they tune a hardware adapter they
+    /// have no table for by themselves, once).
+    Tune(TuneArgs),
+}
+
+#[derive(Debug, clap::Args)]
+pub struct TuneArgs {
+    /// Checkpoints to tune.
+    #[arg(long, num_args = 1.., default_values = ["models/road20-wide4"])]
+    checkpoints: Vec<PathBuf>,
+    /// Scenes per timed batch (default: 1 8 64 512 2048 on a GPU, 1 8 on a software adapter).
+    #[arg(long, num_args = 1..)]
+    batches: Vec<usize>,
+    /// Agents per timed scene.
+    #[arg(long, default_value_t = road_gpu::tune::TUNE_AGENTS)]
+    agents: usize,
+    /// Timed evaluations per candidate and batch (after one untimed).
+    #[arg(long, default_value_t = 3)]
+    reps: usize,
+    /// The cache file (default: $ROAD_GPU_TUNE_CACHE, else road/gpu-tune.json in the user's
+    /// cache folder).
+    #[arg(long)]
+    cache: Option<PathBuf>,
+    /// Time and print, but leave the cache as it is.
+    #[arg(long)]
+    no_save: bool,
+    /// The tables as JSON on standard output instead of text.
+    #[arg(long)]
+    json: bool,
 }
 
 pub fn run(cmd: GpuCommand) -> Result<ExitCode> {
@@ -87,7 +119,75 @@ pub fn run(cmd: GpuCommand) -> Result<ExitCode> {
                 ExitCode::FAILURE
             })
         }
+        GpuCommand::Tune(args) => tune(&ctx, &args),
     }
+}
+
+/// `road gpu tune`.
+fn tune(ctx: &GpuContext, args: &TuneArgs) -> Result<ExitCode> {
+    use road_gpu::tune::{HARDWARE_BATCHES, SOFTWARE_BATCHES, TuneCache};
+    if args.agents == 0 || args.batches.contains(&0) {
+        anyhow::bail!("--agents and --batches take counts of at least 1");
+    }
+    let batches = match (args.batches.is_empty(), ctx.is_software()) {
+        (false, _) => args.batches.clone(),
+        (true, false) => HARDWARE_BATCHES.to_vec(),
+        (true, true) => SOFTWARE_BATCHES.to_vec(),
+    };
+    let cache_path = args
+        .cache
+        .clone()
+        .or_else(road_gpu::tune::cache_path)
+        .context("no cache folder: pass --cache")?;
+    let mut cache = if args.no_save {
+        TuneCache::default()
+    } else {
+        TuneCache::load(&cache_path)?
+    };
+    let mut tables = Vec::new();
+    for dir in &args.checkpoints {
+        let mut gpu = road_gpu::engine::GpuDenoiser::from_checkpoint(ctx, dir)
+            .with_context(|| format!("cannot load {} on the adapter", dir.display()))?;
+        let table = road_gpu::tune::tune(ctx, &mut gpu, &batches, args.agents, args.reps)
+            .with_context(|| format!("cannot tune {}", dir.display()))?;
+        if !args.json {
+            out!("{} on {}", dir.display(), ctx.describe());
+            out!("| scenes | tokens | way | ms an evaluation | |");
+            out!("|---:|---:|---|---:|---|");
+            for batch in &table.batches {
+                for t in &batch.timings {
+                    let ms = match (t.ms_per_evaluation, &t.error) {
+                        (Some(ms), _) => format!("{ms:.3}"),
+                        (None, Some(e)) => format!("failed: {e}"),
+                        (None, None) => "—".into(),
+                    };
+                    let mark = if t.candidate == batch.chosen {
+                        "chosen"
+                    } else {
+                        ""
+                    };
+                    out!(
+                        "| {} | {} | {} | {ms} | {mark} |",
+                        batch.scenes,
+                        batch.tokens,
+                        t.candidate.describe()
+                    );
+                }
+            }
+        }
+        cache.insert(table.clone());
+        tables.push(table);
+    }
+    if args.json {
+        out!("{}", serde_json::to_string_pretty(&tables)?);
+    }
+    if !args.no_save {
+        cache.save(&cache_path)?;
+        if !args.json {
+            out!("cached in {}", cache_path.display());
+        }
+    }
+    Ok(ExitCode::SUCCESS)
 }
 
 /// The whole denoiser's tolerance: kernels chained through three blocks.
