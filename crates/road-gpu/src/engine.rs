@@ -29,6 +29,7 @@ use crate::kernels::polyline::{PolylineEncoder, PolylineKernel, PolylineParams};
 use crate::kernels::residual_chain::{ChainParams, ResidualChain, transpose};
 use crate::kernels::{Dispatch, Pipeline, read_back, record_all, rows_of, storage_buffer, upload};
 use crate::shaders::Shader;
+pub use crate::tuning::EvalSettings;
 use crate::{Error, GpuContext, Result};
 
 const LN_EPS: f32 = 1e-5;
@@ -110,14 +111,6 @@ fn chain_order(blocks: usize) -> Vec<String> {
 /// Whether a model's rows fit the residual chain's tile.
 fn fits_chain(c: &ModelConfig) -> bool {
     c.hidden <= crate::kernels::residual_chain::MAX_HIDDEN as usize
-}
-
-/// How one evaluation runs: its blocks as residual chains or layer by layer, and its linear
-/// layers' kernel (`None`: chosen per layer by size).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct EvalSettings {
-    pub residual_chains: bool,
-    pub linear_kernel: Option<LinearKernel>,
 }
 
 /// The layers of one residual chain (`residual_chain.wgsl`), by checkpoint name.
@@ -279,8 +272,8 @@ pub struct GpuDenoiser {
     weights: wgpu::Buffer,
     slices: HashMap<String, Slice>,
     pub(crate) pipelines: Pipelines,
-    /// The adapter's tuned choices for this model (`crate::tune`), if attached.
-    tuning: Option<crate::tune::TuneTable>,
+    /// The adapter's tuned choices for this model (`crate::tuning`), if attached.
+    tuning: Option<crate::tuning::TuneTable>,
 }
 
 impl GpuDenoiser {
@@ -537,14 +530,14 @@ impl GpuDenoiser {
         settings
     }
 
-    /// Runs every evaluation as `tuning` chose for its size (`crate::tune`), or (`None`) as the
+    /// Runs every evaluation as `tuning` chose for its size (`crate::tuning`), or (`None`) as the
     /// context's options say.
-    pub fn set_tuning(&mut self, tuning: Option<crate::tune::TuneTable>) {
+    pub fn set_tuning(&mut self, tuning: Option<crate::tuning::TuneTable>) {
         self.tuning = tuning;
     }
 
     /// The tuning this denoiser runs by, if any.
-    pub fn tuning(&self) -> Option<&crate::tune::TuneTable> {
+    pub fn tuning(&self) -> Option<&crate::tuning::TuneTable> {
         self.tuning.as_ref()
     }
 

@@ -11,7 +11,8 @@
 //! - [`selftest`]: every kernel family against its reference on the adapter at hand;
 //! - [`tolerance`]: the relative + absolute tolerance every parity test uses;
 //! - [`tune`]: the autotuner: each way to run an evaluation timed per batch size, cached per
-//!   adapter.
+//!   adapter;
+//! - [`tuning`]: its tables and cache file, by which the engine runs an evaluation.
 
 pub mod context;
 pub mod engine;
@@ -25,6 +26,7 @@ pub mod shaders;
 pub mod step_engine;
 pub mod tolerance;
 pub mod tune;
+pub mod tuning;
 
 pub use context::{ContextOptions, GpuContext, hardware_adapter};
 pub use tolerance::Tolerance;

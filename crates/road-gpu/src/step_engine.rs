@@ -199,7 +199,7 @@ impl GpuStepEngine<'_> {
         sigma_next: &[f32],
         rule: StepRule<'_>,
     ) -> road_model::Result<()> {
-        if self.batch.is_none() || self.plan.is_none() || self.map.is_none() {
+        if self.batch.is_none() || self.map.is_none() {
             return Err(road_model::Error::Engine(
                 "step before prepare and load".into(),
             ));
@@ -243,12 +243,26 @@ impl GpuStepEngine<'_> {
             }
             return Ok(());
         }
-        let (Some(batch), Some(plan), Some(map)) = (&self.batch, &mut self.plan, &self.map) else {
-            unreachable!("checked above");
-        };
         // The whole batch in place when most of it moves and most of its agent rows are live;
         // else the moving scenes' live rows in a compact sub-batch.
         if active.len() * 2 > b && a_c * 4 > a * 3 {
+            // Its plan is made on the first such step: a server's pool of hundreds of scenes
+            // that steps a few at a time never holds the whole batch's activations (they may
+            // exceed what a software adapter binds).
+            if self.plan.is_none() {
+                let (Some(batch), Some(map)) = (&self.batch, &self.map) else {
+                    unreachable!("checked above");
+                };
+                let plan = self
+                    .model
+                    .heun_plan(self.ctx, batch, map)
+                    .map_err(engine_err)?;
+                self.plan = Some(plan);
+            }
+            let (Some(batch), Some(plan), Some(map)) = (&self.batch, &mut self.plan, &self.map)
+            else {
+                unreachable!("checked and made above");
+            };
             // σ rows are per scene: [B, W]; idle scenes hold still. The moved scenes'
             // estimates are kept in the same submission (idle rows were evaluated, not moved).
             let denoised = self.denoised.as_ref();
@@ -670,10 +684,9 @@ impl road_rollout::StepEngine for GpuStepEngine<'_> {
             }
             return Ok(());
         }
-        let map = self
-            .map
-            .as_ref()
-            .ok_or_else(|| road_model::Error::Engine("load before prepare".into()))?;
+        if self.map.is_none() {
+            return Err(road_model::Error::Engine("load before prepare".into()));
+        }
         // σ is written per step into the plan's buffers; the batch's own σ is never read.
         let sigma = vec![1.0f32; self.scenes * self.model.config.window_slots];
         let inputs = DenoiseInputs {
@@ -688,11 +701,8 @@ impl road_rollout::StepEngine for GpuStepEngine<'_> {
             .model
             .upload_batch(self.ctx, &inputs)
             .map_err(engine_err)?;
-        self.plan = Some(
-            self.model
-                .heun_plan(self.ctx, &batch, map)
-                .map_err(engine_err)?,
-        );
+        // The whole batch's plan waits for a step that runs the batch in place (`step_rule`).
+        self.plan = None;
         self.window = Some(crate::kernels::window::WindowOps::new(
             self.ctx,
             &batch.x,

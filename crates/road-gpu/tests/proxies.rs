@@ -299,3 +299,47 @@ fn residual_chains_cut_the_dispatches_and_bytes_of_an_evaluation() {
         4 * (tokens * config.hidden as u64 + tokens * 3)
     );
 }
+
+/// A server's pool holds hundreds of padded scenes and steps a few at a time: the whole batch's
+/// activations are made only for a step that runs it in place, so a pool larger than the
+/// adapter binds still steps its few moving scenes (a software adapter binds 128 MiB: a
+/// `road serve --engine gpu` pool of 256 scenes × 32 agents failed at load before). A step of
+/// the whole pool then says why it cannot run, where it cannot.
+#[test]
+fn a_pool_larger_than_the_adapter_binds_steps_its_few_moving_scenes() {
+    let ctx = context();
+    let config = config();
+    let gpu = denoiser(&ctx, &config);
+    let (w, q, d) = (config.window_slots, config.polyline_points, config.hidden);
+    // q, k, v of the whole pool: past the adapter's largest binding.
+    let max_binding = ctx.device.limits().max_storage_buffer_binding_size as usize;
+    let (agents, polylines) = (32, 2);
+    let scenes = (max_binding / (3 * agents * w * d * 4) + 1).min(4096);
+    let tokens = scenes * agents * w;
+    let mut engine = GpuStepEngine::new(&ctx, &gpu);
+    let features = vec![0.1f32; scenes * agents * 6];
+    let map: Vec<f32> = (0..scenes * polylines * q * 2)
+        .map(|i| (i % 17) as f32 * 0.1)
+        .collect();
+    let map_valid = vec![1.0f32; scenes * polylines];
+    engine
+        .prepare(scenes, agents, &features, polylines, &map, &map_valid)
+        .unwrap();
+    let x: Vec<f32> = (0..tokens * 3).map(|i| ((i % 23) as f32) * 0.05).collect();
+    // Full scenes: a step of them all runs the pool in place.
+    let valid = vec![1.0f32; tokens];
+    engine.load(&x, &valid).unwrap();
+    let sigma_cur = vec![2.0f32; scenes * w];
+    let mut sigma_next = sigma_cur.clone();
+    sigma_next[..w].fill(1.5);
+    engine.step(&sigma_cur, &sigma_next, true).unwrap();
+    assert_eq!(engine.take_work().evaluations, 2);
+    if 3 * tokens * d * 4 > max_binding {
+        let every = vec![1.5f32; scenes * w];
+        let err = engine
+            .step(&sigma_cur, &every, true)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("use smaller batches"), "{err}");
+    }
+}
