@@ -26,11 +26,18 @@ use crate::kernels::agent_pairs::PairAttentionParams;
 use crate::kernels::attention::{AttentionParams, MAX_HEAD_DIM, TokenLayout};
 use crate::kernels::linear::{Linear, LinearKernel, LinearParams};
 use crate::kernels::polyline::{PolylineEncoder, PolylineKernel, PolylineParams};
-use crate::kernels::residual_chain::{ChainParams, ResidualChain, transpose};
+use crate::kernels::residual_chain::{ChainParams, ResidualChain};
 use crate::kernels::{Dispatch, Pipeline, read_back, record_all, rows_of, storage_buffer, upload};
 use crate::shaders::Shader;
 pub use crate::tuning::EvalSettings;
+
+mod scratch;
+mod weights;
+
 use crate::{Error, GpuContext, Result};
+pub(crate) use scratch::Scratch;
+use scratch::{PolylineScratch, part_floats};
+use weights::{CHAIN_BIAS, CHAIN_WEIGHT, MAP_KV_ALL, Slice};
 
 const LN_EPS: f32 = 1e-5;
 
@@ -76,36 +83,6 @@ struct ElementwiseParams {
     /// `AgentFrame::residual_scale`, 0 without a constant-velocity reference.
     residual_scale: f32,
     _pad: [u32; 4],
-}
-
-/// The packed map k, v projections of every block: `[blocks · 2 · D, D]`, block by block.
-const MAP_KV_ALL: &str = "packed.map_kv_all";
-
-/// A residual chain's copy of a layer: its weight transposed (`[in, out]`), its bias.
-const CHAIN_WEIGHT: &str = "chain_weight";
-const CHAIN_BIAS: &str = "chain_bias";
-
-/// The layers the residual chains run, in the order they run them (the weights buffer's
-/// order): per block time attention's q, k, v and output, the agents', the map's q and output,
-/// the MLP; then the head.
-fn chain_order(blocks: usize) -> Vec<String> {
-    let mut layers = Vec::new();
-    for i in 0..blocks {
-        for layer in [
-            "time.qkv",
-            "time.o",
-            "agents.qkv",
-            "agents.o",
-            "map.q",
-            "map.o",
-            "mlp_in",
-            "mlp_out",
-        ] {
-            layers.push(format!("blocks.{i}.{layer}"));
-        }
-    }
-    layers.push("head".to_string());
-    layers
 }
 
 /// Whether a model's rows fit the residual chain's tile.
@@ -155,13 +132,6 @@ impl Fused {
             ..Self::default()
         }
     }
-}
-
-/// Floats of one part of a split buffer holding `floats`: rounded up so that every part starts
-/// at the adapter's storage offset alignment (parts are bound as separate tensors).
-fn part_floats(ctx: &GpuContext, floats: usize) -> usize {
-    let align = (ctx.device.limits().min_storage_buffer_offset_alignment as usize / 4).max(1);
-    floats.div_ceil(align) * align
 }
 
 /// Part `index` (`len` floats) of a buffer split into parts `stride` floats apart.
@@ -216,13 +186,6 @@ impl Pipelines {
             residual_chain: ResidualChain::new(ctx),
         }
     }
-}
-
-/// A tensor's place in the weights buffer (bytes).
-#[derive(Debug, Clone, Copy)]
-struct Slice {
-    offset: u64,
-    size: u64,
 }
 
 /// The map of a set of scenes, on the GPU: scene-frame tokens, or (agent maps) the polylines
@@ -339,155 +302,7 @@ impl GpuDenoiser {
                 d / config.heads
             )));
         }
-        let get = |name: &str| -> Result<&Vec<f32>> {
-            tensors
-                .get(name)
-                .ok_or_else(|| Error::Checkpoint(format!("missing tensor `{name}`")))
-        };
-        // Packed small tensors the embedding kernels read from one binding.
-        let mut packed: Vec<(String, Vec<f32>)> = Vec::new();
-        let mut embed_parts = vec![
-            get("embed_state.weight")?,
-            get("embed_state.bias")?,
-            get("embed_noise.weight")?,
-            get("embed_noise.bias")?,
-            get("slot_embedding")?,
-        ];
-        if config.agent_frame.is_some() {
-            embed_parts.extend([get("embed_relative.weight")?, get("embed_relative.bias")?]);
-        }
-        let embed: Vec<f32> = embed_parts.into_iter().flatten().copied().collect();
-        packed.push(("packed.embed".into(), embed));
-        let map_points: Vec<f32> = [
-            get("map_point.weight")?,
-            get("map_point.bias")?,
-            get("map_point_embedding")?,
-        ]
-        .into_iter()
-        .flatten()
-        .copied()
-        .collect();
-        packed.push(("packed.map_points".into(), map_points));
-        // Projections that read the same input run as one layer (`Fused::part`): q, k, v of
-        // each self-attention, k, v of each map attention, weights [parts·D, D] and biases
-        // stacked. Their own tensors are then not uploaded.
-        let mut stacked = std::collections::HashSet::new();
-        // Layer norms before a linear layer are folded into its weights (the kernel's `norm`
-        // prologue only standardises the rows): the folded layers replace theirs, and the
-        // norms' own tensors are not uploaded.
-        let mut normed: Vec<(String, &str)> = vec![("ln_out".into(), "head")];
-        for i in 0..config.blocks {
-            for (norm, layer) in [
-                ("ln_time", "time.q"),
-                ("ln_time", "time.k"),
-                ("ln_time", "time.v"),
-                ("ln_agents", "agents.q"),
-                ("ln_agents", "agents.k"),
-                ("ln_agents", "agents.v"),
-                ("ln_map", "map.q"),
-                ("ln_mlp", "mlp_in"),
-            ] {
-                normed.push((format!("blocks.{i}.{norm}"), layer));
-            }
-        }
-        let mut folded: HashMap<String, Vec<f32>> = HashMap::new();
-        for (norm, layer) in &normed {
-            // `head` is global, the rest per block (`blocks.{i}.ln_time` → `blocks.{i}.time.q`).
-            let layer = match norm.rsplit_once('.') {
-                Some((block, _)) => format!("{block}.{layer}"),
-                None => layer.to_string(),
-            };
-            let (w, b) = crate::kernels::linear::fold_layer_norm(
-                get(&format!("{layer}.weight"))?,
-                get(&format!("{layer}.bias"))?,
-                get(&format!("{norm}.weight"))?,
-                get(&format!("{norm}.bias"))?,
-            );
-            folded.insert(format!("{layer}.weight"), w);
-            folded.insert(format!("{layer}.bias"), b);
-            stacked.insert(format!("{norm}.weight"));
-            stacked.insert(format!("{norm}.bias"));
-        }
-        let get =
-            |name: &str| -> Result<&Vec<f32>> { folded.get(name).map_or_else(|| get(name), Ok) };
-        for i in 0..config.blocks {
-            for (group, name, parts) in [
-                ("time", "qkv", &["q", "k", "v"][..]),
-                ("agents", "qkv", &["q", "k", "v"][..]),
-                ("map", "kv", &["k", "v"][..]),
-            ] {
-                for kind in ["weight", "bias"] {
-                    let mut values = Vec::new();
-                    for part in parts {
-                        let tensor = format!("blocks.{i}.{group}.{part}.{kind}");
-                        values.extend_from_slice(get(&tensor)?);
-                        stacked.insert(tensor);
-                    }
-                    packed.push((format!("blocks.{i}.{group}.{name}.{kind}"), values));
-                }
-            }
-        }
-
-        // The map's k, v of every block as one layer too (`map_kv_all`): their keys do not
-        // depend on the block, so one dispatch per evaluation projects them all.
-        for kind in ["weight", "bias"] {
-            let mut values = Vec::new();
-            for i in 0..config.blocks {
-                for part in ["k", "v"] {
-                    values.extend_from_slice(get(&format!("blocks.{i}.map.{part}.{kind}"))?);
-                }
-            }
-            packed.push((format!("{MAP_KV_ALL}.{kind}"), values));
-        }
-
-        let align = u64::from(ctx.device.limits().min_storage_buffer_offset_alignment).max(4);
-        let mut blob: Vec<u8> = Vec::new();
-        let mut slices = HashMap::new();
-        let mut laid: Vec<(String, &Vec<f32>)> = tensors
-            .keys()
-            .filter(|n| !stacked.contains(*n))
-            .map(|n| (n.clone(), folded.get(n).unwrap_or(&tensors[n])))
-            .chain(packed.iter().map(|(n, v)| (n.clone(), v)))
-            .collect();
-        laid.sort_by(|a, b| a.0.cmp(&b.0));
-        // The residual chains' layers, transposed, in the order the chains run them: each
-        // chain binds the one short range that holds its layers (`weight_range`).
-        let chain_tensors = if fits_chain(config) {
-            let by_name: HashMap<&str, &Vec<f32>> =
-                laid.iter().map(|(n, v)| (n.as_str(), *v)).collect();
-            let mut chain_tensors = Vec::new();
-            for layer in chain_order(config.blocks) {
-                let [w, b] = [format!("{layer}.weight"), format!("{layer}.bias")].map(|name| {
-                    by_name
-                        .get(name.as_str())
-                        .copied()
-                        .ok_or_else(|| Error::Checkpoint(format!("missing tensor `{name}`")))
-                });
-                let (w, b) = (w?, b?);
-                chain_tensors.push((format!("{layer}.{CHAIN_WEIGHT}"), transpose(w, b.len())));
-                chain_tensors.push((format!("{layer}.{CHAIN_BIAS}"), b.clone()));
-            }
-            chain_tensors
-        } else {
-            Vec::new()
-        };
-        let laid = chain_tensors
-            .iter()
-            .map(|(n, v)| (n.clone(), v))
-            .chain(laid);
-        for (name, values) in laid {
-            let offset = (blob.len() as u64).div_ceil(align) * align;
-            blob.resize(offset as usize, 0);
-            blob.extend_from_slice(bytemuck::cast_slice(values));
-            slices.insert(
-                name,
-                Slice {
-                    offset,
-                    size: (values.len() * 4) as u64,
-                },
-            );
-        }
-        let weights = upload(ctx, "weights", &blob, wgpu::BufferUsages::STORAGE);
+        let (weights, slices) = weights::lay_out(ctx, config, tensors)?;
         if ctx.residual_chains() && !fits_chain(config) {
             tracing::info!(
                 hidden = d,
@@ -1407,140 +1222,5 @@ impl GpuDenoiser {
         ctx.queue.submit([enc.finish()]);
         let bytes = read_back(ctx, &out, len)?;
         Ok(bytemuck::cast_slice::<u8, f32>(&bytes).to_vec())
-    }
-}
-
-/// Scratch activations of one forward pass.
-#[derive(Debug)]
-pub(crate) struct Scratch {
-    h: wgpu::Buffer, // [T, D]: the residual stream
-    /// `[3, token_part]`: q, k, v `[T, D]` each, from one fused projection.
-    qkv: wgpu::Buffer,
-    /// Floats from one part of `qkv` to the next: `T · D` rounded up to the offset alignment.
-    token_part: usize,
-    att: wgpu::Buffer,    // [T, D]
-    hidden: wgpu::Buffer, // [T, M]
-    /// `[2, key_part]`: the map's k, v `[key rows, D]`; with `map_kv_all`, `[2 · blocks,
-    /// key_part]`: every block's.
-    mkv: wgpu::Buffer,
-    key_part: usize,
-    f: wgpu::Buffer, // [T, 3]
-    agent_maps: Option<AgentMapScratch>,
-    /// Every block's map k, v are projected at once (when they fit one binding).
-    map_kv_all: bool,
-}
-
-/// The polyline encoder's output for `polylines` polylines of `points` points. It runs
-/// `chunk` polylines a dispatch, so that the points of agent maps of large batches (B·A·K
-/// polylines) fit one buffer binding.
-#[derive(Debug)]
-struct PolylineScratch {
-    polylines: usize,
-    points: usize,
-    chunk: usize,
-    tokens: wgpu::Buffer, // [n, D]
-}
-
-impl PolylineScratch {
-    fn new(ctx: &GpuContext, polylines: usize, points: usize, d: usize) -> Self {
-        // Chunks of a multiple of 64 polylines: their offsets into the [n, Q, 2] points and the
-        // [n, D] tokens are then multiples of 256 bytes, the storage offset alignment.
-        let limits = ctx.device.limits();
-        let max_bytes = ctx
-            .map_encoder_chunk_bytes()
-            .min(limits.max_storage_buffer_binding_size)
-            .min(limits.max_buffer_size);
-        let per_polyline_bytes = (points * 2 * 4).max(1) as u64;
-        let chunk = ((max_bytes / per_polyline_bytes) as usize / 64 * 64).max(64);
-        let chunk = chunk.min(polylines).max(1);
-        Self {
-            polylines,
-            points,
-            chunk,
-            tokens: storage_buffer(ctx, "map.tokens", (polylines * d * 4) as u64),
-        }
-    }
-}
-
-/// Every agent's own map of one evaluation: its picked polylines and their tokens.
-#[derive(Debug)]
-struct AgentMapScratch {
-    points: wgpu::Buffer, // [B·A, K, Q, 2]
-    valid: wgpu::Buffer,  // [B·A, K]
-    encoder: PolylineScratch,
-}
-
-impl Scratch {
-    /// Activations of `scenes × agents` on `map`; `chains`: the blocks run as residual chains
-    /// (no MLP hidden layer or head output in memory).
-    fn new(
-        ctx: &GpuContext,
-        c: &ModelConfig,
-        (scenes, agents): (usize, usize),
-        map: &MapTokens,
-        chains: bool,
-    ) -> Result<Self> {
-        let tokens = scenes * agents * c.window_slots;
-        let d = c.hidden;
-        // The largest activation must fit one buffer binding (the point encoder's per-point
-        // activations are chunked to fit): a clear error instead of wgpu's validation panic.
-        let (key_rows_needed, point_floats) = match map.picked {
-            Some(k) => (
-                scenes * agents * k,
-                scenes * agents * k * c.polyline_points * 2,
-            ),
-            None => (scenes * map.polylines, 0),
-        };
-        let largest_bytes = 4
-            * (tokens * d * c.mlp_ratio)
-                .max(3 * part_floats(ctx, tokens * d))
-                .max(2 * part_floats(ctx, key_rows_needed * d))
-                .max(point_floats) as u64;
-        let limits = ctx.device.limits();
-        let max_bytes = limits
-            .max_buffer_size
-            .min(limits.max_storage_buffer_binding_size);
-        if largest_bytes > max_bytes {
-            return Err(Error::Input(format!(
-                "a batch of {scenes} scenes × {agents} agents needs a {:.0} MiB activation buffer; \
-                 this adapter binds at most {:.0} MiB: use smaller batches",
-                largest_bytes as f64 / 1048576.0,
-                max_bytes as f64 / 1048576.0
-            )));
-        }
-        let buf = |label: &str, floats: usize| storage_buffer(ctx, label, (floats * 4) as u64);
-        let (key_rows, agent_maps) = match map.picked {
-            None => (scenes * map.polylines, None),
-            Some(k) => {
-                let (rows, q) = (scenes * agents * k, c.polyline_points);
-                let maps = AgentMapScratch {
-                    points: buf("agent map points", rows * q * 2),
-                    valid: buf("agent map valid", rows),
-                    encoder: PolylineScratch::new(ctx, rows, q, d),
-                };
-                (rows, Some(maps))
-            }
-        };
-        let (token_part, key_part) = (part_floats(ctx, tokens * d), part_floats(ctx, key_rows * d));
-        let map_kv_all = (2 * c.blocks * key_part * 4) as u64 <= max_bytes;
-        let kv_parts = if map_kv_all { 2 * c.blocks } else { 2 };
-        // Residual chains keep the MLP's hidden layer and the head's F on chip.
-        let (hidden, f) = if chains {
-            (1, 1)
-        } else {
-            (tokens * d * c.mlp_ratio, tokens * 3)
-        };
-        Ok(Self {
-            h: buf("h", tokens * d),
-            qkv: buf("qkv", 3 * token_part),
-            token_part,
-            att: buf("attention", tokens * d),
-            hidden: buf("mlp", hidden),
-            mkv: buf("map kv", kv_parts * key_part),
-            key_part,
-            f: buf("F", f),
-            agent_maps,
-            map_kv_all,
-        })
     }
 }
