@@ -52,7 +52,9 @@ fn precondition_output(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(n
     t.slots_from_anchor = 0.0;
     if (t.frame) {
         let anchor = (token / params.slots) * params.slots + params.anchor_slot;
-        let previous = anchor - 1u;
+        // Read only with a constant-velocity reference, whose anchor slot is ≥ 1; slot 0
+        // reads itself rather than past the buffer.
+        let previous = select(anchor, anchor - 1u, params.anchor_slot > 0u);
         t.anchor = vec3<f32>(a[anchor * 3u], a[anchor * 3u + 1u], a[anchor * 3u + 2u]);
         t.anchor_valid = e[anchor];
         t.previous = vec3<f32>(a[previous * 3u], a[previous * 3u + 1u], a[previous * 3u + 2u]);

@@ -280,7 +280,9 @@ fn residual_chain(
             t.slots_from_anchor = 0.0;
             if (t.frame) {
                 let anchor = (token / params.slots) * params.slots + params.anchor_slot;
-                let previous = anchor - 1u;
+                // Read only with a constant-velocity reference, whose anchor slot is ≥ 1; slot 0
+                // reads itself rather than past the buffer.
+                let previous = select(anchor, anchor - 1u, params.anchor_slot > 0u);
                 t.anchor = vec3<f32>(x[anchor * 3u], x[anchor * 3u + 1u], x[anchor * 3u + 2u]);
                 t.anchor_valid = valid[anchor];
                 t.previous = vec3<f32>(x[previous * 3u], x[previous * 3u + 1u], x[previous * 3u + 2u]);
