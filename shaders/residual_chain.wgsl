@@ -265,30 +265,8 @@ fn residual_chain(
         workgroupBarrier();
         if (lid < live) {
             let token = first + lid;
-            let w = token % params.slots;
-            let scene = token / (params.slots * params.agents);
-            var t: PreconditionToken;
-            t.x = vec3<f32>(x[token * 3u], x[token * 3u + 1u], x[token * 3u + 2u]);
-            t.f = vec3<f32>(hidden_units[lid * 3u], hidden_units[lid * 3u + 1u], hidden_units[lid * 3u + 2u]);
-            t.sigma = sigma[scene * params.slots + w];
-            t.valid = valid[token];
-            t.frame = params.anchor_slot != NO_FRAME;
-            t.anchor = vec3<f32>(0.0);
-            t.anchor_valid = 0.0;
-            t.previous = vec3<f32>(0.0);
-            t.previous_valid = 0.0;
-            t.slots_from_anchor = 0.0;
-            if (t.frame) {
-                let anchor = (token / params.slots) * params.slots + params.anchor_slot;
-                // Read only with a constant-velocity reference, whose anchor slot is ≥ 1; slot 0
-                // reads itself rather than past the buffer.
-                let previous = select(anchor, anchor - 1u, params.anchor_slot > 0u);
-                t.anchor = vec3<f32>(x[anchor * 3u], x[anchor * 3u + 1u], x[anchor * 3u + 2u]);
-                t.anchor_valid = valid[anchor];
-                t.previous = vec3<f32>(x[previous * 3u], x[previous * 3u + 1u], x[previous * 3u + 2u]);
-                t.previous_valid = valid[previous];
-                t.slots_from_anchor = f32(w) - f32(params.anchor_slot);
-            }
+            let f = vec3<f32>(hidden_units[lid * 3u], hidden_units[lid * 3u + 1u], hidden_units[lid * 3u + 2u]);
+            let t = gather_token(token, f);
             let out = precondition_token(t, params.sigma_data, params.heading_scale, params.residual_scale);
             y[token * 3u] = out.x;
             y[token * 3u + 1u] = out.y;

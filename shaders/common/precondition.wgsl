@@ -1,7 +1,8 @@
 // The denoiser's output preconditioning of one token (docs/checkpoint.md, last step), shared by
 // `elementwise.wgsl`'s `precondition_output` and `residual_chain.wgsl`'s head: the engine
-// prepends this file to both (`road_gpu::shaders`). It reads no binding: the kernels gather
-// its inputs.
+// prepends this file to both (`road_gpu::shaders`). `precondition_token` reads no binding;
+// `gather_token` reads the including kernel's `x [B, A, W, 3]`, `sigma [B, W]`, `valid
+// [B, A, W]` and its params' `slots`, `agents`, `anchor_slot` and `NO_FRAME`.
 
 // D = c_skip · x + c_out · F · valid, with σ the token's slot's. With an agent frame (`frame`),
 // F's (x, y) is first rotated from the anchor's heading back to the scene frame (model.rs
@@ -41,4 +42,33 @@ fn precondition_token(t: PreconditionToken, sigma_data: f32, heading_scale: f32,
     let denom = s * s + sd * sd;
     let y = (t.x - reference) * scale;
     return reference + (sd * sd / denom * y + s * sd * inverseSqrt(denom) * f * t.valid) / scale;
+}
+
+// Token `token`'s inputs, with F the network's output for it.
+fn gather_token(token: u32, f: vec3<f32>) -> PreconditionToken {
+    let w = token % params.slots;
+    let scene = token / (params.slots * params.agents);
+    var t: PreconditionToken;
+    t.x = vec3<f32>(x[token * 3u], x[token * 3u + 1u], x[token * 3u + 2u]);
+    t.f = f;
+    t.sigma = sigma[scene * params.slots + w];
+    t.valid = valid[token];
+    t.frame = params.anchor_slot != NO_FRAME;
+    t.anchor = vec3<f32>(0.0);
+    t.anchor_valid = 0.0;
+    t.previous = vec3<f32>(0.0);
+    t.previous_valid = 0.0;
+    t.slots_from_anchor = 0.0;
+    if (t.frame) {
+        let anchor = (token / params.slots) * params.slots + params.anchor_slot;
+        // Read only with a constant-velocity reference, whose anchor slot is ≥ 1; slot 0 reads
+        // itself rather than past the buffer.
+        let previous = select(anchor, anchor - 1u, params.anchor_slot > 0u);
+        t.anchor = vec3<f32>(x[anchor * 3u], x[anchor * 3u + 1u], x[anchor * 3u + 2u]);
+        t.anchor_valid = valid[anchor];
+        t.previous = vec3<f32>(x[previous * 3u], x[previous * 3u + 1u], x[previous * 3u + 2u]);
+        t.previous_valid = valid[previous];
+        t.slots_from_anchor = f32(w) - f32(params.anchor_slot);
+    }
+    return t;
 }

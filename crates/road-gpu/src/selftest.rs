@@ -24,8 +24,9 @@ pub struct KernelCheck {
     pub outcome: std::result::Result<(), Mismatch>,
 }
 
-/// A small seeded generator (xorshift64*), so that the checks need no RNG crate.
-struct Inputs(u64);
+/// A small seeded generator (xorshift64*), so that the checks (and the tuner's inputs) need no
+/// RNG crate.
+pub(crate) struct Inputs(pub(crate) u64);
 
 impl Inputs {
     fn next(&mut self) -> f32 {
@@ -37,7 +38,7 @@ impl Inputs {
     }
 
     /// `n` values uniform in `[-scale, scale)`.
-    fn uniform(&mut self, n: usize, scale: f32) -> Vec<f32> {
+    pub(crate) fn uniform(&mut self, n: usize, scale: f32) -> Vec<f32> {
         (0..n).map(|_| (2.0 * self.next() - 1.0) * scale).collect()
     }
 

@@ -13,6 +13,7 @@ use road_model::ModelConfig;
 
 use crate::engine::{DenoiseInputs, GpuDenoiser};
 use crate::kernels::{record_all, storage_buffer};
+use crate::selftest::Inputs;
 pub use crate::tuning::{
     Candidate, EvalSettings, LinearChoice, Timing, TuneCache, TuneTable, TunedBatch, adapter_key,
     candidates, kernels_key, model_key,
@@ -25,23 +26,6 @@ pub const HARDWARE_BATCHES: [usize; 5] = [1, 8, 64, 512, 2048];
 pub const SOFTWARE_BATCHES: [usize; 2] = [1, 8];
 /// Agents per timed scene: the padded count of a busy INTERACTION window.
 pub const TUNE_AGENTS: usize = 16;
-
-/// A small seeded generator (xorshift64*) for the timed inputs.
-struct Inputs(u64);
-
-impl Inputs {
-    fn next(&mut self) -> f32 {
-        self.0 ^= self.0 >> 12;
-        self.0 ^= self.0 << 25;
-        self.0 ^= self.0 >> 27;
-        let bits = self.0.wrapping_mul(0x2545_F491_4F6C_DD1D) >> 40;
-        bits as f32 / (1u64 << 24) as f32
-    }
-
-    fn uniform(&mut self, n: usize, low: f32, high: f32) -> Vec<f32> {
-        (0..n).map(|_| low + (high - low) * self.next()).collect()
-    }
-}
 
 /// Times every candidate of [`candidates`] for `gpu`'s model at each of `batches` scenes of
 /// `agents` agents (every slot and polyline valid: the kernels' work does not depend on the
@@ -73,11 +57,16 @@ fn time_candidates(
     let mut tuned = Vec::new();
     for &scenes in batches {
         let tokens = scenes * agents * w;
-        let x = rng.uniform(tokens * 3, -1.0, 1.0);
-        let sigma = rng.uniform(scenes * w, 0.05, 5.0);
+        let x = rng.uniform(tokens * 3, 1.0);
+        // σ across the schedule's busy range, [0.05, 5.05).
+        let sigma: Vec<f32> = rng
+            .uniform(scenes * w, 2.5)
+            .into_iter()
+            .map(|s| s + 2.55)
+            .collect();
         let valid = vec![1.0; tokens];
-        let features = rng.uniform(scenes * agents * 6, -1.0, 1.0);
-        let map = rng.uniform(scenes * p * q * 2, -1.0, 1.0);
+        let features = rng.uniform(scenes * agents * 6, 1.0);
+        let map = rng.uniform(scenes * p * q * 2, 1.0);
         let map_valid = vec![1.0; scenes * p];
         let inputs = DenoiseInputs {
             scenes,

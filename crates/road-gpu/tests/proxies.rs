@@ -3,8 +3,6 @@
 //! counted as dispatches are recorded, equal to the sum of their bindings, stable from step to
 //! step, and padding counted as computed but not useful.
 
-use std::collections::HashMap;
-
 use road_gpu::engine::{DenoiseInputs, GpuDenoiser};
 use road_gpu::kernels::Dispatch;
 use road_gpu::proxies::{Work, flops_per_evaluation};
@@ -12,6 +10,9 @@ use road_gpu::step_engine::GpuStepEngine;
 use road_gpu::{ContextOptions, GpuContext};
 use road_model::ModelConfig;
 use road_rollout::StepEngine;
+
+mod common;
+use common::{config, denoiser};
 
 /// Scenes, agents and polylines of the padded test batch.
 const SCENES: usize = 3;
@@ -30,43 +31,6 @@ fn context_with_chains(residual_chains: bool) -> GpuContext {
         ..ContextOptions::default()
     })
     .unwrap_or_else(|e| panic!("GPU tests need an adapter: {e}"))
-}
-
-/// road20-wide4's features (agent frame, agent maps, agent pairs) at a small size.
-fn config() -> ModelConfig {
-    ModelConfig {
-        hidden: 32,
-        heads: 2,
-        blocks: 2,
-        agent_frame: Some(road_model::AgentFrame {
-            anchor_slot: 9,
-            relative_scale: 1.0,
-            residual_scale: Some(40.0),
-        }),
-        agent_map: Some(road_model::AgentMap { polylines: 4 }),
-        agent_pairs: Some(road_model::AgentPairs {
-            direction_scale_m: 10.0,
-            near_scale_m: 5.0,
-            far_scale_m: 20.0,
-        }),
-        ..ModelConfig::default()
-    }
-}
-
-fn denoiser(ctx: &GpuContext, config: &ModelConfig) -> GpuDenoiser {
-    let (varmap, _) =
-        road_model::model::init_seeded(config, &candle_core::Device::Cpu, 42).unwrap();
-    let tensors: HashMap<String, Vec<f32>> = varmap
-        .data()
-        .lock()
-        .unwrap()
-        .iter()
-        .map(|(name, var)| {
-            let values = var.as_tensor().flatten_all().unwrap().to_vec1().unwrap();
-            (name.clone(), values)
-        })
-        .collect();
-    GpuDenoiser::new(ctx, config, &tensors).unwrap()
 }
 
 /// A padded batch, host side: `agents[i]` valid agents and `polylines[i]` valid polylines of

@@ -2,13 +2,15 @@
 //! and the fastest chosen; the cache file round-trips, is keyed by adapter, kernels and model,
 //! and names itself when it does not parse; a denoiser runs each evaluation as its table chose.
 
-use std::collections::HashMap;
 use std::path::PathBuf;
 
-use road_gpu::engine::{DenoiseInputs, GpuDenoiser};
+use road_gpu::engine::DenoiseInputs;
 use road_gpu::tune::{self, Attached, Candidate, LinearChoice, TuneCache, TuneTable};
 use road_gpu::{ContextOptions, GpuContext, Tolerance};
 use road_model::ModelConfig;
+
+mod common;
+use common::denoiser;
 
 fn context() -> GpuContext {
     GpuContext::new(&ContextOptions {
@@ -18,42 +20,12 @@ fn context() -> GpuContext {
     .unwrap_or_else(|e| panic!("GPU tests need an adapter: {e}"))
 }
 
-/// road20-wide4's features at a small size.
+/// road20-wide4's features at a small size, with a small map.
 fn config() -> ModelConfig {
     ModelConfig {
-        hidden: 32,
-        heads: 2,
-        blocks: 2,
-        agent_frame: Some(road_model::AgentFrame {
-            anchor_slot: 9,
-            relative_scale: 1.0,
-            residual_scale: Some(40.0),
-        }),
-        agent_map: Some(road_model::AgentMap { polylines: 4 }),
-        agent_pairs: Some(road_model::AgentPairs {
-            direction_scale_m: 10.0,
-            near_scale_m: 5.0,
-            far_scale_m: 20.0,
-        }),
         map_polylines: 6,
-        ..ModelConfig::default()
+        ..common::config()
     }
-}
-
-fn denoiser(ctx: &GpuContext, config: &ModelConfig) -> GpuDenoiser {
-    let (varmap, _) =
-        road_model::model::init_seeded(config, &candle_core::Device::Cpu, 42).unwrap();
-    let tensors: HashMap<String, Vec<f32>> = varmap
-        .data()
-        .lock()
-        .unwrap()
-        .iter()
-        .map(|(name, var)| {
-            let values = var.as_tensor().flatten_all().unwrap().to_vec1().unwrap();
-            (name.clone(), values)
-        })
-        .collect();
-    GpuDenoiser::new(ctx, config, &tensors).unwrap()
 }
 
 /// A fresh folder under the system's temporary one.
