@@ -183,11 +183,15 @@ impl Compact {
 impl GpuStepEngine<'_> {
     /// Times one evaluation and Euler update of the loaded batch kernel by kernel (see
     /// [`crate::profile`]); the windows move as in `repeats` Euler steps at the last step's σ.
-    pub fn profile_step(&self, repeats: usize) -> Result<crate::profile::StepProfile> {
-        let plan = self
-            .plan
-            .as_ref()
-            .ok_or_else(|| Error::Input("profile before a step made the batch's plan".into()))?;
+    /// The whole batch's plan is made here if no step ran the batch in place yet.
+    pub fn profile_step(&mut self, repeats: usize) -> Result<crate::profile::StepProfile> {
+        if self.plan.is_none() {
+            let (Some(batch), Some(map)) = (&self.batch, &self.map) else {
+                return Err(Error::Input("profile before prepare and load".into()));
+            };
+            self.plan = Some(self.model.heun_plan(self.ctx, batch, map)?);
+        }
+        let plan = self.plan.as_ref().expect("made above");
         crate::profile::profile(self.ctx, plan.euler_dispatches(), repeats)
     }
 

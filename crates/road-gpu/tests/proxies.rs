@@ -307,3 +307,22 @@ fn a_pool_larger_than_the_adapter_binds_steps_its_few_moving_scenes() {
         assert!(err.contains("use smaller batches"), "{err}");
     }
 }
+
+/// The profile of a batch whose steps all ran in compact sub-batches (the whole batch's plan
+/// not made by a step): made for the profile.
+#[test]
+fn a_batch_stepped_only_in_compact_sub_batches_is_profiled() {
+    let ctx = context();
+    let config = config();
+    let gpu = denoiser(&ctx, &config);
+    let s = scenes(&config, [AGENTS; SCENES], [POLYLINES; SCENES]);
+    let (sigma_cur, sigma_next) = sigma_rows(&config, &[1, 2]);
+    let mut engine = engine_on(&ctx, &gpu, &s);
+    engine.step(&sigma_cur, &sigma_next, false).unwrap();
+    let profile = engine.profile_step(1).unwrap();
+    assert!(
+        profile.kernels.iter().any(|k| k.kernel == "residual_chain"),
+        "{:?}",
+        profile.kernels.iter().map(|k| k.kernel).collect::<Vec<_>>()
+    );
+}
