@@ -145,7 +145,7 @@ def parse_run(table: dict[str, Any], origin: str) -> Run:
             f"obs_slots + future_slots ({obs + future})"
         )
     train_table = dict(table.get("train", {}))
-    for key in ("kink_augmentation", "history_noise_m"):
+    for key in ("kink_augmentation", "history_noise_m", "initialisation_task_prob"):
         if key in train_table:
             raise ConfigError(
                 f"train.{key} in {origin}: not in the PyTorch path (road train only)"

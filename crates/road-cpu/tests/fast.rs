@@ -65,11 +65,13 @@ fn config(frame: Frame) -> ModelConfig {
                 anchor_slot: 9,
                 relative_scale: 2.0,
                 residual_scale: None,
+                max_anchor_sigma: None,
             }),
             Frame::Residual | Frame::AgentMap | Frame::AgentPairs => Some(AgentFrame {
                 anchor_slot: 9,
                 relative_scale: 1.0,
                 residual_scale: Some(40.0),
+                max_anchor_sigma: None,
             }),
         },
         agent_map: matches!(frame, Frame::AgentMap | Frame::AgentPairs)

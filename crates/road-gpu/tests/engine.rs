@@ -175,6 +175,7 @@ fn whole_denoiser_with_an_agent_frame_matches_candle() {
             anchor_slot: 9,
             relative_scale: 2.0,
             residual_scale: None,
+            max_anchor_sigma: None,
         }),
         ..test_config()
     };
@@ -190,6 +191,7 @@ fn whole_denoiser_with_a_constant_velocity_reference_matches_candle() {
             anchor_slot: 9,
             relative_scale: 1.0,
             residual_scale: Some(40.0),
+            max_anchor_sigma: None,
         }),
         ..test_config()
     };
@@ -288,6 +290,7 @@ fn agent_map_config() -> ModelConfig {
             anchor_slot: 9,
             relative_scale: 1.0,
             residual_scale: Some(40.0),
+            max_anchor_sigma: None,
         }),
         agent_map: Some(road_model::AgentMap { polylines: 8 }),
         ..test_config()

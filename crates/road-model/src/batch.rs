@@ -185,7 +185,8 @@ pub struct Batch {
     pub x0: Tensor,
     /// `[B, A, W, 3]` noised states.
     pub x_noisy: Tensor,
-    /// `[B, W]` noise level of every slot.
+    /// `[B, W]` noise level of every slot, or `[B, A, W]` of every agent's slot (a batch with
+    /// an initialisation task).
     pub sigma: Tensor,
     /// `[B, A, W]` 1 = valid, 0 = padding or absent.
     pub valid: Tensor,
@@ -213,7 +214,9 @@ impl Batch {
     }
 }
 
-/// Pads scenes to the batch's largest agent and polyline counts. `sigma` is `[B][W]`, `noise`
+/// Pads scenes to the batch's largest agent and polyline counts. `sigma` is `[B][W]` (every
+/// agent's slots alike) or, scene by scene, `[A_b·W]` (per agent); the batch's σ is `[B, W]`
+/// when every scene's is per slot, else `[B, A, W]` (padding rows at 1). `noise` is
 /// `[B][A_b·W·3]` standard normal (or `None` for clean inputs).
 pub fn collate(
     scenes: &[SceneInput],
@@ -232,12 +235,35 @@ pub fn collate(
     let mut feats = vec![0.0f32; b * a * AGENT_FEATURES];
     let mut map = vec![0.0f32; b * p * q * 2];
     let mut map_valid = vec![0.0f32; b * p];
-    let mut sig = vec![0.0f32; b * w];
+    let per_agent = sigma.iter().any(|row| row.len() != w);
+    let mut sig = vec![1.0f32; if per_agent { b * a * w } else { b * w }];
     for (i, s) in scenes.iter().enumerate() {
         assert_eq!(s.slots, w, "scenes of one batch share the window length");
-        sig[i * w..(i + 1) * w].copy_from_slice(&sigma[i]);
+        let rows = &sigma[i];
+        assert!(
+            rows.len() == w || rows.len() == s.agents * w,
+            "σ of {} values for a scene of {} agents × {w} slots",
+            rows.len(),
+            s.agents
+        );
+        // Agent `agent`'s σ per slot.
+        let row = |agent: usize| {
+            if rows.len() == w {
+                &rows[..]
+            } else {
+                &rows[agent * w..(agent + 1) * w]
+            }
+        };
+        if per_agent {
+            for agent in 0..s.agents {
+                let dst = (i * a + agent) * w;
+                sig[dst..dst + w].copy_from_slice(row(agent));
+            }
+        } else {
+            sig[i * w..(i + 1) * w].copy_from_slice(rows);
+        }
         for agent in 0..s.agents {
-            for (slot, &slot_sigma) in sigma[i].iter().enumerate() {
+            for (slot, &slot_sigma) in row(agent).iter().enumerate() {
                 let src = agent * w + slot;
                 let dst = (i * a + agent) * w + slot;
                 valid[dst] = f32::from(u8::from(s.valid[src]));
@@ -263,7 +289,11 @@ pub fn collate(
     Ok(Batch {
         x0: Tensor::from_vec(x0, (b, a, w, 3), device)?,
         x_noisy: Tensor::from_vec(xn, (b, a, w, 3), device)?,
-        sigma: Tensor::from_vec(sig, (b, w), device)?,
+        sigma: if per_agent {
+            Tensor::from_vec(sig, (b, a, w), device)?
+        } else {
+            Tensor::from_vec(sig, (b, w), device)?
+        },
         valid: Tensor::from_vec(valid, (b, a, w), device)?,
         agent_features: Tensor::from_vec(feats, (b, a, AGENT_FEATURES), device)?,
         map: Tensor::from_vec(map, (b, p, q, 2), device)?,
@@ -335,6 +365,49 @@ pub fn task_sigma_of(
             s as f32
         })
         .collect()
+}
+
+/// The initialisation task's σ per agent and slot (`[A·W]`; `TrainConfig::
+/// initialisation_task_prob`): of the agents present at `anchor_slot` (flags
+/// `valid [A·W]`), each is kept with probability q ~ U(0, ½), at least one of them drawn
+/// (none kept when only one is present); a kept agent's observed slots sit at σ(u_ca),
+/// u_ca ~ U(0, r) (at least σ_min), every other slot of the scene, of kept agents' futures
+/// and of drawn agents' whole windows, at one σ(u), u ~ U(0, 1).
+pub fn initialisation_sigma(
+    rng: &mut impl Rng,
+    config: &ModelConfig,
+    obs_slots: usize,
+    anchor_slot: usize,
+    valid: &[bool],
+    aug_ratio: f64,
+) -> Vec<f32> {
+    let w = config.window_slots;
+    let agents = valid.len() / w;
+    let edm = &config.edm;
+    let u: f64 = rng.random_range(0.0..1.0);
+    let sigma_drawn = edm.sigma(u).max(edm.sigma_min) as f32;
+    let u_ca: f64 = if aug_ratio > 0.0 {
+        rng.random_range(0.0..aug_ratio)
+    } else {
+        0.0
+    };
+    let sigma_obs = edm.sigma(u_ca).max(edm.sigma_min) as f32;
+    let present: Vec<usize> = (0..agents)
+        .filter(|&agent| valid[agent * w + anchor_slot])
+        .collect();
+    let q: f64 = rng.random_range(0.0..0.5);
+    let mut kept = vec![false; agents];
+    for &agent in &present {
+        kept[agent] = rng.random_bool(q);
+    }
+    if !present.is_empty() && present.iter().all(|&agent| kept[agent]) {
+        kept[present[rng.random_range(0..present.len())]] = false;
+    }
+    let mut sigma = vec![sigma_drawn; agents * w];
+    for agent in (0..agents).filter(|&agent| kept[agent]) {
+        sigma[agent * w..agent * w + obs_slots.min(w)].fill(sigma_obs);
+    }
+    sigma
 }
 
 #[cfg(test)]

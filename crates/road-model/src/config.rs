@@ -101,6 +101,16 @@ pub struct AgentFrame {
     /// sits near `sigma_data`. Absent = no reference (the frame's features only).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub residual_scale: Option<f64>,
+    /// An agent whose anchor slot is noisier than this (σ, scene units) has no anchor yet: it
+    /// keeps the scene frame, the map nearest the scene centre and no reference, as an agent
+    /// not valid there. What a model that generates whole agents from noise needs
+    /// (`TrainConfig::initialisation_task_prob`): a pose drawn at σ = 80 is no frame. Only the
+    /// candle model reads it, with σ per agent (`[B, A, W]`); the fast CPU and WGSL engines
+    /// take σ per slot and keep every frame, which is the same where the anchor slot is
+    /// observed below it (the rolling planners' observations sit at σ(r) ≈ 0.02). Absent: every
+    /// valid anchor counts.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub max_anchor_sigma: Option<f64>,
 }
 
 impl AgentFrame {
@@ -272,6 +282,18 @@ pub struct TrainConfig {
     /// (`docs/experiments/2026-11-26-baselines-d96.md`). Training batches only. Absent: none.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub history_noise_m: Option<f64>,
+    /// Probability of the initialisation task (issue 39): a scene's agents drawn whole from
+    /// noise around the ones it keeps. Each agent present at the anchor slot is kept with a
+    /// probability q ~ U(0, ½) drawn per scene (at least one is drawn); the kept ones'
+    /// observed slots sit at the conditioning augmentation's σ, every other slot of the scene
+    /// at one σ = σ(u), u ~ U(0, 1): what `road_sim::populate::initialise_histories` asks of
+    /// the model. Needs `model.agent_frame.max_anchor_sigma`. 0: never.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub initialisation_task_prob: f64,
+}
+
+fn is_zero(value: &f64) -> bool {
+    *value == 0.0
 }
 
 /// Kink augmentation: with probability `prob` per agent, the agent's observed slots before its
@@ -311,6 +333,7 @@ impl Default for TrainConfig {
             init_from: None,
             kink_augmentation: None,
             history_noise_m: None,
+            initialisation_task_prob: 0.0,
         }
     }
 }
@@ -387,6 +410,30 @@ impl RunConfig {
         if t.workers == 0 {
             return Err("train: workers ≥ 1".into());
         }
+        if !(0.0..=1.0).contains(&t.initialisation_task_prob) {
+            return Err(format!(
+                "train.initialisation_task_prob lies in [0, 1], got {}",
+                t.initialisation_task_prob
+            ));
+        }
+        let bound = self
+            .model
+            .agent_frame
+            .as_ref()
+            .and_then(|f| f.max_anchor_sigma);
+        if t.initialisation_task_prob > 0.0 && self.model.agent_frame.is_some() && bound.is_none() {
+            return Err(
+                "train.initialisation_task_prob > 0 needs model.agent_frame.max_anchor_sigma (a pose drawn from noise is no frame)"
+                    .into(),
+            );
+        }
+        if let Some(bound) = bound
+            && !(bound > 0.0 && bound.is_finite())
+        {
+            return Err(format!(
+                "model.agent_frame.max_anchor_sigma must be a finite σ > 0, got {bound}"
+            ));
+        }
         if let Some(noise_m) = t.history_noise_m
             && !(noise_m >= 0.0 && noise_m.is_finite())
         {
@@ -453,6 +500,7 @@ mod tests {
             anchor_slot: 9,
             relative_scale: 1.0,
             residual_scale: None,
+            max_anchor_sigma: None,
         });
         assert_eq!(model.validate(), Ok(()));
         model.agent_pairs = Some(AgentPairs {
@@ -521,6 +569,7 @@ mod tests {
             anchor_slot: 9,
             relative_scale: 1.0,
             residual_scale: Some(40.0),
+            max_anchor_sigma: None,
         });
         assert_eq!(model.validate(), Ok(()));
         model.agent_map = Some(AgentMap { polylines: 33 });

@@ -248,6 +248,44 @@ impl Block {
     }
 }
 
+/// σ per slot `[B, W]` as `[B, 1, W, 1]`, or σ per agent and slot `[B, A, W]` as
+/// `[B, A, W, 1]`: the shapes that broadcast against `[B, A, W, ·]` tokens.
+fn sigma_per_token(sigma: &Tensor) -> Result<Tensor> {
+    Ok(match *sigma.dims() {
+        [b, w] => sigma.reshape((b, 1, w, 1))?,
+        [b, a, w] => sigma.reshape((b, a, w, 1))?,
+        _ => {
+            return Err(crate::Error::data(format!(
+                "σ of shape {:?}: [B, W] or [B, A, W]",
+                sigma.dims()
+            )));
+        }
+    })
+}
+
+/// `valid [B, A, W]` with the anchor slot cleared where that slot's σ (`sigma` `[B, W]` or
+/// `[B, A, W]`) exceeds `max_sigma`: the flags every anchor computation reads
+/// (`AgentFrame::max_anchor_sigma`).
+fn anchor_flags(valid: &Tensor, sigma: &Tensor, slot: usize, max_sigma: f64) -> Result<Tensor> {
+    let (b, a, w) = valid.dims3()?;
+    let at_anchor = sigma_per_token(sigma)?.narrow(2, slot, 1)?; // [B, 1|A, 1, 1]
+    let trusted = at_anchor
+        .le(max_sigma)?
+        .to_dtype(valid.dtype())?
+        .reshape((b, at_anchor.dim(1)?, 1))?
+        .broadcast_as((b, a, 1))?;
+    let anchor = (valid.narrow(2, slot, 1)? * trusted)?;
+    let mut parts = Vec::with_capacity(3);
+    if slot > 0 {
+        parts.push(valid.narrow(2, 0, slot)?);
+    }
+    parts.push(anchor);
+    if slot + 1 < w {
+        parts.push(valid.narrow(2, slot + 1, w - slot - 1)?);
+    }
+    Ok(Tensor::cat(&parts, 2)?)
+}
+
 /// The additive attention bias of validity flags: 0 where valid, [`MASKED`] where not.
 fn key_bias(flags: &Tensor) -> Result<Tensor> {
     Ok(((flags - 1.0)? * -MASKED)?)
@@ -456,9 +494,9 @@ impl Denoiser {
         Ok(Tensor::from_vec(features, (b * w, a, a, f), x.device())?)
     }
 
-    /// `D(x; σ)`: `x_noisy [B, A, W, 3]`, `sigma [B, W]` (> 0), `valid [B, A, W]`,
-    /// `agent_features [B, A, 6]`, `map_tokens` of [`Self::encode_map`], `map_valid [B, P]` →
-    /// `[B, A, W, 3]`.
+    /// `D(x; σ)`: `x_noisy [B, A, W, 3]`, `sigma [B, W]` or per agent `[B, A, W]` (> 0),
+    /// `valid [B, A, W]`, `agent_features [B, A, 6]`, `map_tokens` of [`Self::encode_map`],
+    /// `map_valid [B, P]` → `[B, A, W, 3]`.
     #[allow(clippy::too_many_arguments)]
     pub fn denoise(
         &self,
@@ -492,12 +530,12 @@ impl Denoiser {
         }
     }
 
-    /// EDM coefficients as `[B, 1, W, 1]` tensors: (c_skip, c_out, c_in, c_noise).
+    /// EDM coefficients of `sigma [B, W]` (or `[B, A, W]`) as `[B, 1, W, 1]` (`[B, A, W, 1]`)
+    /// tensors: (c_skip, c_out, c_in, c_noise).
     pub fn preconditioning(&self, sigma: &Tensor) -> Result<(Tensor, Tensor, Tensor, Tensor)> {
-        let (b, w) = sigma.dims2()?;
-        let shape = (b, 1, w, 1);
-        let (c_skip, c_out, c_in) = self.skip_out_in(&sigma.reshape(shape)?)?;
-        let c_noise = (sigma.log()? * 0.25)?.reshape(shape)?;
+        let sigma = sigma_per_token(sigma)?;
+        let (c_skip, c_out, c_in) = self.skip_out_in(&sigma)?;
+        let c_noise = (sigma.log()? * 0.25)?;
         Ok((c_skip, c_out, c_in, c_noise))
     }
 
@@ -540,11 +578,19 @@ impl Denoiser {
             .broadcast_add(&agent)?
             .broadcast_add(&slots)?;
         let mut residual = None;
+        // The flags anchors are read with: `valid`, less the anchors still too noisy.
+        let anchor_valid = match &self.config.agent_frame {
+            Some(spec) => match spec.max_anchor_sigma {
+                Some(max_sigma) => anchor_flags(valid, sigma, spec.anchor_slot, max_sigma)?,
+                None => valid.clone(),
+            },
+            None => valid.clone(),
+        };
         let frame = match (&self.config.agent_frame, &self.embed_relative) {
             (Some(spec), Some(embed)) => {
                 let frame = AnchorFrame::new(
                     x_noisy,
-                    valid,
+                    &anchor_valid,
                     spec.anchor_slot,
                     self.config.heading_scale,
                     spec.residual_scale.is_some(),
@@ -580,7 +626,7 @@ impl Denoiser {
             }
             (MapTokens::PerAgent(points), Some(spec), Some(frame)) => self.agent_map_keys(
                 x_noisy,
-                valid,
+                &anchor_valid,
                 frame.anchor_slot,
                 points,
                 map_valid,
@@ -595,7 +641,9 @@ impl Denoiser {
             }
         };
         let pair_features = match (&self.config.agent_pairs, &frame) {
-            (Some(pairs), Some(frame)) => Some(self.pair_features(x_noisy, valid, pairs, frame)?),
+            (Some(pairs), Some(frame)) => {
+                Some(self.pair_features(x_noisy, &anchor_valid, pairs, frame)?)
+            }
             _ => None,
         };
         for block in &self.blocks {
@@ -710,7 +758,7 @@ impl AnchorFrame {
             .contiguous()?)
     }
 
-    /// The constant-velocity reference of `x [B, A, W, 3]` at noise `sigma [B, W]`.
+    /// The constant-velocity reference of `x [B, A, W, 3]` at noise `sigma [B, W]` or `[B, A, W]`.
     fn residual(
         &self,
         x: &Tensor,
@@ -718,7 +766,7 @@ impl AnchorFrame {
         residual_scale: f64,
         model: &Denoiser,
     ) -> Result<Residual> {
-        let (b, _, w, _) = x.dims4()?;
+        let (_, _, w, _) = x.dims4()?;
         let step = self
             .step
             .as_ref()
@@ -730,7 +778,7 @@ impl AnchorFrame {
         let reference = self.anchor.broadcast_add(&step.broadcast_mul(&offsets)?)?;
         let scale = ((&self.anchor_valid * (residual_scale - 1.0))? + 1.0)?;
         let y = (x - &reference)?.broadcast_mul(&scale)?;
-        let sigma_y = sigma.reshape((b, 1, w, 1))?.broadcast_mul(&scale)?; // [B, A, W, 1]
+        let sigma_y = sigma_per_token(sigma)?.broadcast_mul(&scale)?; // [B, A, W, 1]
         let (c_skip, c_out, c_in) = model.skip_out_in(&sigma_y)?;
         Ok(Residual {
             reference,
@@ -797,9 +845,8 @@ pub fn edm_error_sum(
             let x0 = (&batch.x0 - &r.reference)?.broadcast_mul(&r.scale)?;
             let target = (x0 - r.y.broadcast_mul(&r.c_skip)?)?.broadcast_div(&r.c_out)?;
             let sd = model.config.edm.sigma_data;
-            let (b, w) = batch.sigma.dims2()?;
-            let s2 = batch.sigma.sqr()?.reshape((b, 1, w, 1))?;
-            let lambda = ((&s2 + sd * sd)? / (s2 * (sd * sd))?)?; // [B, 1, W, 1]
+            let s2 = sigma_per_token(&batch.sigma)?.sqr()?;
+            let lambda = ((&s2 + sd * sd)? / (s2 * (sd * sd))?)?; // [B, 1|A, W, 1]
             let weight = r
                 .c_out
                 .broadcast_div(&r.scale)?

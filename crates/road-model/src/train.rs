@@ -18,7 +18,7 @@ use candle_nn::{VarBuilder, VarMap};
 use rand::{Rng, SeedableRng, rngs::StdRng};
 use road_data::Dataset;
 
-use crate::batch::{Batch, SceneInput, collate, normal_vec, task_sigma};
+use crate::batch::{Batch, SceneInput, collate, initialisation_sigma, normal_vec, task_sigma};
 use crate::checkpoint::{self, CheckpointMeta, DataIdentity, TRAIN_STATE_FILE, WEIGHTS_FILE};
 use crate::config::RunConfig;
 use crate::model::{self, Denoiser, Mode};
@@ -104,7 +104,7 @@ impl AgentBuckets {
 #[derive(Debug, Clone)]
 pub struct SceneDraw {
     pub inputs: Vec<SceneInput>,
-    /// `[scenes][W]` task noise levels.
+    /// `[scenes][W]` task noise levels, or `[scenes][A_s·W]` per agent (initialisation tasks).
     pub sigma: Vec<Vec<f32>>,
     /// `[scenes][A_s·W·3]` standard normal noise.
     pub noise: Vec<Vec<f32>>,
@@ -205,16 +205,33 @@ pub fn sample_scenes(
                 .collect();
             input.perturb_history(n, &noise);
         }
-        draw.sigma.push(task_sigma(
-            rng,
-            &run.model,
-            run.planner.obs_slots,
-            run.task_kind(),
-            run.train.warmup_task_prob,
-            run.train.augmentation_ratio,
-        ));
+        let initialisation = run.train.initialisation_task_prob > 0.0
+            && rng.random_bool(run.train.initialisation_task_prob);
+        let sigma = (!initialisation).then(|| {
+            task_sigma(
+                rng,
+                &run.model,
+                run.planner.obs_slots,
+                run.task_kind(),
+                run.train.warmup_task_prob,
+                run.train.augmentation_ratio,
+            )
+        });
         let mut eps = normal_vec(rng, input.agents * w * 3);
         input.drop_absent_agents(&mut eps);
+        // Per agent, so drawn after absent agents are dropped.
+        let sigma = match sigma {
+            Some(sigma) => sigma,
+            None => initialisation_sigma(
+                rng,
+                &run.model,
+                run.planner.obs_slots,
+                run.planner.obs_slots.saturating_sub(1),
+                &input.valid,
+                run.train.augmentation_ratio,
+            ),
+        };
+        draw.sigma.push(sigma);
         draw.noise.push(eps);
         draw.inputs.push(input);
     }

@@ -116,11 +116,13 @@ fn the_loss_is_the_weighted_error_of_the_denoiser_for_every_parameterisation() {
             anchor_slot: 9,
             relative_scale: 2.0,
             residual_scale: None,
+            max_anchor_sigma: None,
         }),
         Some(road_model::AgentFrame {
             anchor_slot: 9,
             relative_scale: 1.0,
             residual_scale: Some(40.0),
+            max_anchor_sigma: None,
         }),
     ];
     let ds = dataset(Split::Train);
@@ -194,6 +196,7 @@ fn agent_map_run_config() -> RunConfig {
         anchor_slot: 9,
         relative_scale: 1.0,
         residual_scale: Some(40.0),
+        max_anchor_sigma: None,
     });
     run.model.agent_map = Some(road_model::AgentMap { polylines: 1 });
     run
@@ -343,6 +346,7 @@ fn a_run_that_gains_agent_pairs_starts_as_the_checkpoint_it_comes_from() {
         anchor_slot: 9,
         relative_scale: 1.0,
         residual_scale: Some(40.0),
+        max_anchor_sigma: None,
     });
     let ds = dataset(Split::Train);
     let dir = temp_dir("init-from-pairs");
@@ -587,4 +591,129 @@ fn sharded_gradients_equal_the_whole_batch_gradients() {
             }
         }
     }
+}
+
+/// [`agent_map_run_config`] with agent pairs and the initialisation task on every draw.
+fn initialisation_run_config() -> RunConfig {
+    let mut run = agent_map_run_config();
+    run.model.agent_pairs = Some(road_model::AgentPairs {
+        direction_scale_m: 10.0,
+        near_scale_m: 5.0,
+        far_scale_m: 20.0,
+    });
+    if let Some(frame) = run.model.agent_frame.as_mut() {
+        frame.max_anchor_sigma = Some(0.1);
+    }
+    run.train.initialisation_task_prob = 1.0;
+    run.validate().unwrap();
+    run
+}
+
+/// σ per agent whose rows are all alike is σ per slot, to the bit, in the denoiser and the loss.
+#[test]
+fn sigma_per_agent_with_equal_rows_is_sigma_per_slot() {
+    let run = initialisation_run_config();
+    let ds = dataset(Split::Train);
+    let (_, model) = model::init_seeded(&run.model, &Device::Cpu, 6).unwrap();
+    let w = run.model.window_slots;
+    let window = ds.window(2).unwrap();
+    let scene = SceneInput::from_window(&window, 10, w, &run.model);
+    let per_slot: Vec<f32> = (0..w).map(|slot| 0.01 + 0.3 * slot as f32).collect();
+    let per_agent: Vec<f32> = per_slot.repeat(scene.agents);
+    let mut rng = StdRng::seed_from_u64(7);
+    let noise = vec![normal_vec(&mut rng, scene.agents * w * 3)];
+    let scenes = [scene];
+    let a = collate(&scenes, &[per_slot], Some(&noise), &Device::Cpu).unwrap();
+    let b = collate(&scenes, &[per_agent], Some(&noise), &Device::Cpu).unwrap();
+    assert_eq!(a.sigma.dims(), &[1, w]);
+    assert_eq!(b.sigma.dims(), &[1, scenes[0].agents, w]);
+    assert_eq!(denoise_flat(&model, &a), denoise_flat(&model, &b));
+    let loss = |batch| {
+        let map = model.encode_map(&a.map, Mode::Infer).unwrap();
+        edm_loss(&model, batch, &map, Mode::Infer)
+            .unwrap()
+            .to_scalar::<f32>()
+            .unwrap()
+    };
+    assert_eq!(loss(&a), loss(&b));
+}
+
+/// `max_anchor_sigma` changes nothing while every anchor is observed below it, and drops the
+/// frame of an agent whose anchor slot is noisier (its output then differs from the same
+/// weights' without the bound).
+#[test]
+fn an_anchor_noisier_than_the_bound_is_no_frame() {
+    let run = initialisation_run_config();
+    let mut unbounded = run.model.clone();
+    if let Some(frame) = unbounded.agent_frame.as_mut() {
+        frame.max_anchor_sigma = None;
+    }
+    let ds = dataset(Split::Train);
+    let (_, bounded_model) = model::init_seeded(&run.model, &Device::Cpu, 8).unwrap();
+    let (_, unbounded_model) = model::init_seeded(&unbounded, &Device::Cpu, 8).unwrap();
+    let w = run.model.window_slots;
+    let window = ds.window(2).unwrap();
+    let scene = SceneInput::from_window(&window, 10, w, &run.model);
+    let agents = scene.agents;
+    let mut rng = StdRng::seed_from_u64(9);
+    let noise = vec![normal_vec(&mut rng, agents * w * 3)];
+    // Agent 0 drawn at σ (its anchor too), the others observed.
+    let rows = |drawn: f32| -> Vec<f32> {
+        (0..agents * w)
+            .map(|k| if k < w || k % w >= 10 { drawn } else { 0.002 })
+            .collect()
+    };
+    let batch = |drawn| collate(&[scene.clone()], &[rows(drawn)], Some(&noise), &Device::Cpu);
+    let below = batch(0.05).unwrap();
+    assert_eq!(
+        denoise_flat(&bounded_model, &below),
+        denoise_flat(&unbounded_model, &below)
+    );
+    let above = batch(0.5).unwrap();
+    let (with_bound, without) = (
+        denoise_flat(&bounded_model, &above),
+        denoise_flat(&unbounded_model, &above),
+    );
+    let agent0_moved = with_bound[..w * 3]
+        .iter()
+        .zip(&without[..w * 3])
+        .any(|(a, b)| a != b);
+    assert!(agent0_moved, "agent 0's frame was kept above the bound");
+}
+
+/// The initialisation task keeps some agents' observations and draws every other slot at one σ.
+#[test]
+fn the_initialisation_task_draws_whole_agents_around_kept_ones() {
+    let run = initialisation_run_config();
+    let ds = dataset(Split::Train);
+    let w = run.model.window_slots;
+    let mut rng = StdRng::seed_from_u64(10);
+    let mut kept_any = false;
+    for _ in 0..40 {
+        let draw = sample_scenes(&run, &ds, 2, None, &mut rng).unwrap();
+        for (input, sigma) in draw.inputs.iter().zip(&draw.sigma) {
+            assert_eq!(sigma.len(), input.agents * w);
+            let drawn = sigma[input.agents * w - 1];
+            let mut drawn_agents = 0;
+            for agent in 0..input.agents {
+                let row = &sigma[agent * w..(agent + 1) * w];
+                assert!(row[10..].iter().all(|&s| s == drawn), "{row:?}");
+                if row[..10].iter().all(|&s| s == drawn) {
+                    drawn_agents += 1;
+                } else {
+                    kept_any = true;
+                    let most = run.model.edm.sigma(run.train.augmentation_ratio) as f32;
+                    assert!(
+                        row[..10].iter().all(|&s| s == row[0] && s <= most),
+                        "{row:?}"
+                    );
+                }
+            }
+            assert!(drawn_agents >= 1);
+        }
+        let batch = draw.collate(0..draw.len(), &Device::Cpu).unwrap();
+        assert_eq!(batch.sigma.dims().len(), 3);
+    }
+    assert!(kept_any, "no agent kept in 80 scenes");
+    one_training_step_lowers_the_loss(run);
 }

@@ -6,6 +6,8 @@
 //!   a place on its centre line with room around it) and its observed history (constant speed
 //!   along the lane, back through the lane's predecessors). This is also the heuristic
 //!   baseline of `road eval --suite initialisation`.
+//! - [`initialise_histories`]: a denoiser trained with the initialisation task draws the new
+//!   vehicles' histories whole (from noise, or around a placement from a σ of the caller's).
 //! - [`refine_histories`]: the denoiser moves those histories towards what it learnt of real
 //!   traffic, jointly over every vehicle and conditioned on the map and on the agents the caller
 //!   fixes (the ego): each new vehicle's observed slots start at the noise level of the model's
@@ -17,6 +19,10 @@
 //!   road20-wide4), while the lane and place come from the placement.
 //!
 //! All positions are metres in the map frame; headings radians.
+
+mod initialise;
+
+pub use initialise::{Initialisation, initialise_histories};
 
 use glam::DVec2;
 use rand::Rng;

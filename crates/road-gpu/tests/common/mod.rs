@@ -17,6 +17,7 @@ pub fn config() -> ModelConfig {
             anchor_slot: 9,
             relative_scale: 1.0,
             residual_scale: Some(40.0),
+            max_anchor_sigma: None,
         }),
         agent_map: Some(road_model::AgentMap { polylines: 4 }),
         agent_pairs: Some(road_model::AgentPairs {

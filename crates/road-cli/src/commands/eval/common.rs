@@ -18,9 +18,10 @@ pub struct EvalArgs {
     /// `procedural` (`road demo`'s closed loop on the procedural maps over seeds and rotations:
     /// vehicles off road and collisions; no INTERACTION data needed) or `long` (sessions of
     /// `--minutes` on the procedural maps and INTERACTION locations with inflow, every vehicle
-    /// the model's: counts per vehicle-minute) or `initialisation` (validation scenes repopulated around one fixed
-    /// vehicle by the heuristic placement and by the model's refinement of it, against the log:
-    /// Jensen–Shannon distances of speed, lane offset, heading offset and gap ahead).
+    /// the model's: counts per vehicle-minute) or `initialisation` (validation scenes
+    /// repopulated around one fixed vehicle by the heuristic placement, by the model's
+    /// refinement of it and, with `--initialiser`, drawn by a model trained to, against the
+    /// log: Jensen–Shannon distances of speed, lane offset, heading offset and gap ahead).
     #[arg(long, default_value = "forecasting")]
     pub suite: String,
     /// Checkpoints to evaluate; a constant-velocity baseline is always added.
@@ -94,6 +95,17 @@ pub struct EvalArgs {
     /// With `--populate`: the placement as it is, without the model's refinement.
     #[arg(long, requires = "populate")]
     pub populate_unrefined: bool,
+    /// Initialisation: also draw the scene's vehicles with this checkpoint (one trained with the
+    /// initialisation task, e.g. `models/road20-init`), from each of `--initialiser-sigmas`.
+    #[arg(long)]
+    pub initialiser: Option<PathBuf>,
+    /// Initialisation: the σ (scene units, 40 m each) the initialiser's vehicles start at:
+    /// σ_max (80) draws them from noise alone, a lower σ around the heuristic's placement.
+    #[arg(long, num_args = 1.., default_values_t = [80.0, 0.25])]
+    pub initialiser_sigmas: Vec<f64>,
+    /// Initialisation: Heun steps of the initialiser from its σ down to σ_min.
+    #[arg(long, default_value_t = 32)]
+    pub initialiser_steps: usize,
     /// Long: minutes per session.
     #[arg(long, default_value_t = 10.0)]
     pub minutes: f64,

@@ -3,10 +3,12 @@
 //! (its 1 s history), the others are removed and as many are placed on the scene's lanes
 //! (within the log's vehicles' reach of the scene's centre) by the heuristic
 //! (`road_sim::populate::place_vehicles`), then refined by the model from the same placement
-//! (`refine_histories`). The vehicles' speed, lane offset, heading against the lane and gap
-//! to the vehicle ahead compare with the log's by Jensen–Shannon distance; overlapping and
-//! off-road shares beside. Intervals: bootstrap over scenes; refined against heuristic paired
-//! on the same scenes and placements.
+//! (`refine_histories`) and, with `--initialiser`, drawn by a checkpoint trained with the
+//! initialisation task (`initialise_histories`) from each `--initialiser-sigmas` (σ_max: from
+//! noise alone; lower: around the same placement). The vehicles' speed, lane offset, heading
+//! against the lane and gap to the vehicle ahead compare with the log's by Jensen–Shannon
+//! distance; overlapping and off-road shares beside. Intervals: bootstrap over scenes; every
+//! model row against the heuristic paired on the same scenes and placements.
 
 use std::process::ExitCode;
 use std::time::Instant;
@@ -21,8 +23,8 @@ use road_sim::initialisation::{
 };
 use road_sim::metrics::{BOOTSTRAP_RESAMPLES, Estimate};
 use road_sim::populate::{
-    PlacementOptions, Refinement, footprints, keep_agents, place_vehicles, refine_histories,
-    with_vehicles,
+    Initialisation, PlacementOptions, Refinement, footprints, initialise_histories, keep_agents,
+    place_vehicles, refine_histories, with_vehicles,
 };
 use serde::Serialize;
 
@@ -30,17 +32,25 @@ use super::common::{EvalArgs, SceneSelection, first_steps, select_scenes};
 use crate::commands::engine::{EngineChoice, Engines};
 use crate::commands::load_cache;
 
-/// One scene's vehicles by source: the log, the heuristic's placement, the model's refinement.
+/// One scene's vehicles by source: the log, the heuristic's placement, the model's refinement,
+/// then the initialiser's draws (one per σ), in `sources`' order.
 struct SceneVehicles {
     /// The dataset's window index.
     window: usize,
-    log: Vec<InitialVehicle>,
-    placed: Vec<InitialVehicle>,
-    refined: Vec<InitialVehicle>,
+    by_source: Vec<Vec<InitialVehicle>>,
 }
 
-/// Which of a scene's vehicle sets.
-type Pick = fn(&SceneVehicles) -> &[InitialVehicle];
+/// The source index of the log, and of the heuristic placement the model rows compare with.
+const LOG: usize = 0;
+const HEURISTIC: usize = 1;
+
+/// A model row's JS distances minus the heuristic's, paired on the same scenes.
+#[derive(Debug, Serialize)]
+struct PairedRow {
+    source: String,
+    /// Speed, lane offset, heading offset, gap ahead.
+    minus_heuristic: Vec<Estimate>,
+}
 
 #[derive(Debug, Serialize)]
 struct Row {
@@ -104,6 +114,41 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         args.min_agents,
         run.name
     );
+    let initialiser = match &args.initialiser {
+        Some(dir) => {
+            let loaded = road_model::checkpoint::load(dir, &candle_core::Device::Cpu)
+                .with_context(|| format!("--initialiser {}", dir.display()))?;
+            for &sigma in &args.initialiser_sigmas {
+                let edm = &loaded.meta.run.planner.edm;
+                anyhow::ensure!(
+                    sigma > edm.sigma_min && sigma <= edm.sigma_max,
+                    "--initialiser-sigmas: {sigma} is not in (σ_min, σ_max] = ({}, {}]",
+                    edm.sigma_min,
+                    edm.sigma_max
+                );
+            }
+            Some(loaded)
+        }
+        None => None,
+    };
+    let mut sources: Vec<String> = vec![
+        "log".into(),
+        "heuristic placement".into(),
+        "placement refined by the model".into(),
+    ];
+    if let Some(init) = &initialiser {
+        for &sigma in &args.initialiser_sigmas {
+            sources.push(if sigma >= init.meta.run.planner.edm.sigma_max {
+                format!("drawn by {} from noise", init.meta.run.name)
+            } else {
+                format!(
+                    "placement redrawn by {} from σ = {sigma} ({:.0} m)",
+                    init.meta.run.name,
+                    sigma * init.meta.run.model.position_scale_m
+                )
+            });
+        }
+    }
     let started = Instant::now();
     let mut engine = engines.engine()?;
     let mut per_scene = Vec::with_capacity(scenes.len());
@@ -154,21 +199,40 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
                 .map(|(_, v)| v)
                 .collect::<Vec<_>>()
         };
+        let mut by_source = vec![
+            log.iter().map(|&(_, v)| v).collect(),
+            all(&placed_window),
+            all(&refined_window),
+        ];
+        if let Some(init) = &initialiser {
+            for &sigma in &args.initialiser_sigmas {
+                let drawn = initialise_histories(
+                    &init.model,
+                    &init.meta.run.planner.edm,
+                    &placed_window,
+                    &fixed,
+                    Initialisation {
+                        sigma_start: sigma,
+                        steps: args.initialiser_steps,
+                    },
+                    &mut rng,
+                )?;
+                by_source.push(all(&drawn));
+            }
+        }
         per_scene.push(SceneVehicles {
             window: i,
-            log: log.iter().map(|&(_, v)| v).collect(),
-            placed: all(&placed_window),
-            refined: all(&refined_window),
+            by_source,
         });
     }
     let secs = started.elapsed().as_secs_f64();
     // Features pooled over a set of scenes (indices into `per_scene`); the first vehicle of
     // each (the fixed one) is left out of the per-vehicle features.
-    let pooled = |which: &[usize], pick: Pick| {
+    let pooled = |which: &[usize], source: usize| {
         let mut f = InitFeatures::default();
         for &k in which {
             let s = &per_scene[k];
-            let vehicles = pick(s);
+            let vehicles = &s.by_source[source];
             let mut counted = vec![true; vehicles.len()];
             counted[0] = false;
             f.add_scene(ds.map_of(&ds.windows[s.window]), vehicles, &counted);
@@ -176,15 +240,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         f
     };
     let all: Vec<usize> = (0..per_scene.len()).collect();
-    let sources: [(&str, Pick); 3] = [
-        ("log", |s| &s.log),
-        ("heuristic placement", |s| &s.placed),
-        ("placement refined by the model", |s| &s.refined),
-    ];
-    let features: Vec<InitFeatures> = sources
-        .iter()
-        .map(|(_, pick)| pooled(&all, *pick))
-        .collect();
+    let features: Vec<InitFeatures> = (0..sources.len()).map(|s| pooled(&all, s)).collect();
     let js_all = |f: &InitFeatures, log: &InitFeatures| -> [f64; 4] {
         [
             js_distance(&f.speed_mps, &log.speed_mps, SPEED_BINS),
@@ -199,20 +255,14 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
     };
     // Bootstrap over scenes: every source resampled on the same scenes.
     let mut rng = StdRng::seed_from_u64(args.seed);
-    let mut draws: Vec<[[f64; 4]; 3]> = Vec::with_capacity(BOOTSTRAP_RESAMPLES);
+    // [resample][source][feature]
+    let mut draws: Vec<Vec<[f64; 4]>> = Vec::with_capacity(BOOTSTRAP_RESAMPLES);
     for _ in 0..BOOTSTRAP_RESAMPLES {
         let sample: Vec<usize> = (0..all.len())
             .map(|_| rng.random_range(0..all.len()))
             .collect();
-        let f: Vec<InitFeatures> = sources
-            .iter()
-            .map(|(_, pick)| pooled(&sample, *pick))
-            .collect();
-        draws.push([
-            js_all(&f[0], &f[0]),
-            js_all(&f[1], &f[0]),
-            js_all(&f[2], &f[0]),
-        ]);
+        let f: Vec<InitFeatures> = (0..sources.len()).map(|s| pooled(&sample, s)).collect();
+        draws.push(f.iter().map(|source| js_all(source, &f[LOG])).collect());
     }
     let estimate = |value: f64, mut xs: Vec<f64>| {
         xs.retain(|x| x.is_finite());
@@ -228,11 +278,11 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         }
     };
     let mut rows = Vec::new();
-    for (s, (name, _)) in sources.iter().enumerate().skip(1) {
-        let point = js_all(&features[s], &features[0]);
+    for (s, name) in sources.iter().enumerate().skip(1) {
+        let point = js_all(&features[s], &features[LOG]);
         let column = |k: usize| estimate(point[k], draws.iter().map(|d| d[s][k]).collect());
         rows.push(Row {
-            source: (*name).to_owned(),
+            source: name.clone(),
             js_speed: column(0),
             js_lane_offset: column(1),
             js_heading_offset: column(2),
@@ -242,19 +292,22 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
             off_road_share: features[s].off_road_share(),
         });
     }
-    let point_diff: Vec<f64> = {
-        let (h, r) = (
-            js_all(&features[1], &features[0]),
-            js_all(&features[2], &features[0]),
-        );
-        (0..4).map(|k| r[k] - h[k]).collect()
-    };
-    let paired: Vec<Estimate> = (0..4)
-        .map(|k| {
-            estimate(
-                point_diff[k],
-                draws.iter().map(|d| d[2][k] - d[1][k]).collect(),
-            )
+    // Every model row minus the heuristic, paired on the same resampled scenes.
+    let heuristic = js_all(&features[HEURISTIC], &features[LOG]);
+    let paired: Vec<PairedRow> = (HEURISTIC + 1..sources.len())
+        .map(|s| {
+            let point = js_all(&features[s], &features[LOG]);
+            PairedRow {
+                source: sources[s].clone(),
+                minus_heuristic: (0..4)
+                    .map(|k| {
+                        estimate(
+                            point[k] - heuristic[k],
+                            draws.iter().map(|d| d[s][k] - d[HEURISTIC][k]).collect(),
+                        )
+                    })
+                    .collect(),
+            }
         })
         .collect();
     out!(
@@ -289,13 +342,17 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
             r.off_road_share
         );
     }
-    out!(
-        "| refined − heuristic (paired) | {:.3} | {:.3} | {:.3} | {:.3} | | | |",
-        paired[0],
-        paired[1],
-        paired[2],
-        paired[3]
-    );
+    for p in &paired {
+        let d = &p.minus_heuristic;
+        out!(
+            "| {} − heuristic (paired) | {:.3} | {:.3} | {:.3} | {:.3} | | | |",
+            p.source,
+            d[0],
+            d[1],
+            d[2],
+            d[3]
+        );
+    }
     out!(
         "(Jensen–Shannon distance to the log's distribution, base 2, 0 = the same; bins: speed {}, lane offset {}, heading offset {}, gap {}; [95 % CI]: {BOOTSTRAP_RESAMPLES} bootstrap resamples of the scenes)",
         describe(SPEED_BINS, "m/s"),
@@ -309,7 +366,9 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
             "checkpoint": run.name, "log": {"vehicles": features[0].vehicles,
             "overlapping_share": features[0].overlapping_share(),
             "off_road_share": features[0].off_road_share()},
-            "rows": rows, "refined_minus_heuristic": paired,
+            "initialiser": initialiser.as_ref().map(|i| &i.meta.run.name),
+            "initialiser_steps": args.initialiser_steps,
+            "rows": rows, "minus_heuristic": paired,
         });
         std::fs::write(path, serde_json::to_string_pretty(&json)?)
             .with_context(|| format!("cannot write {}", path.display()))?;

@@ -1,0 +1,320 @@
+//! The learned initialiser: new vehicles' whole observed histories drawn by a denoiser trained
+//! with the initialisation task (`TrainConfig::initialisation_task_prob`), jointly, around the
+//! agents the caller fixes and on the map. Unlike [`super::refine_histories`], which only
+//! nudges placed histories within the conditioning augmentation's noise, the drawn agents here
+//! start at any σ up to σ_max: from pure noise (where they are, how fast, which way: all the
+//! model's), or, from a lower σ, around a placement (SDEdit: the placement's lane and place
+//! roughly kept, the rest the model's). σ is per agent and slot: the fixed agents' observed
+//! slots stay at σ_min, as the task trained them, while everything else descends together.
+
+use candle_core::{Device, Tensor};
+use rand::rngs::StdRng;
+use road_data::SceneWindow;
+use road_model::Denoiser;
+use road_model::batch::{SceneInput, normal_vec};
+use road_model::model::Mode;
+use road_sched::edm::EdmSchedule;
+
+use crate::{Error, Result};
+
+/// How [`initialise_histories`] samples.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Initialisation {
+    /// σ (scene units) the drawn agents start at: the schedule's σ_max draws them from noise
+    /// alone; a lower σ starts around their placed histories (extrapolated at constant
+    /// velocity over the future slots).
+    pub sigma_start: f64,
+    /// Heun steps from `sigma_start` down to σ_min (ρ-spaced, as the EDM sampler's).
+    pub steps: usize,
+}
+
+impl Initialisation {
+    /// From pure noise in 32 steps.
+    pub fn from_noise(edm: &EdmSchedule) -> Self {
+        Self {
+            sigma_start: edm.sigma_max,
+            steps: 32,
+        }
+    }
+}
+
+/// `window` with its agents not `fixed` drawn anew by `model` (see the module's
+/// documentation): their observed steps (all of the window's, fewer than the model's slots)
+/// come from the model, their sizes and types stay. `edm` is the schedule to sample on (the
+/// checkpoint's). The fixed agents' states are as given.
+pub fn initialise_histories(
+    model: &Denoiser,
+    edm: &EdmSchedule,
+    window: &SceneWindow,
+    fixed: &[bool],
+    init: Initialisation,
+    rng: &mut StdRng,
+) -> Result<SceneWindow> {
+    let config = &model.config;
+    let (a, n, w) = (window.agents, window.steps, config.window_slots);
+    if config
+        .agent_frame
+        .as_ref()
+        .is_some_and(|f| f.max_anchor_sigma.is_none())
+    {
+        return Err(Error::Config(
+            "this checkpoint was not trained to draw whole agents (its agent_frame has no max_anchor_sigma; use one trained with train.initialisation_task_prob, e.g. models/road20-init)".into(),
+        ));
+    }
+    if fixed.len() != a {
+        return Err(Error::Config(format!(
+            "{} fixed flags for {a} agents",
+            fixed.len()
+        )));
+    }
+    if n == 0 || n >= w {
+        return Err(Error::Config(format!(
+            "{n} history steps; the model's window has {w} slots"
+        )));
+    }
+    if !(init.sigma_start > edm.sigma_min && init.sigma_start <= edm.sigma_max) || init.steps == 0 {
+        return Err(Error::Config(format!(
+            "initialisation from σ = {} in {} steps: σ lies in (σ_min, σ_max] = ({}, {}], steps ≥ 1",
+            init.sigma_start, init.steps, edm.sigma_min, edm.sigma_max
+        )));
+    }
+    if a == 0 || fixed.iter().all(|&f| f) {
+        return Ok(window.clone());
+    }
+    Ok(draw(model, edm, window, fixed, init, rng)?)
+}
+
+/// [`initialise_histories`] past its checks.
+fn draw(
+    model: &Denoiser,
+    edm: &EdmSchedule,
+    window: &SceneWindow,
+    fixed: &[bool],
+    init: Initialisation,
+    rng: &mut StdRng,
+) -> road_model::Result<SceneWindow> {
+    let config = &model.config;
+    let (a, n, w) = (window.agents, window.steps, config.window_slots);
+    let device = Device::Cpu;
+    let input = SceneInput::from_window(window, 0, n, config);
+    let polylines = input.polylines.max(1);
+    let mut map = vec![0.0f32; polylines * input.points * 2];
+    map[..input.map.len()].copy_from_slice(&input.map);
+    let mut map_valid = vec![0.0f32; polylines];
+    map_valid[..input.polylines].fill(1.0);
+    let map = Tensor::from_vec(map, (1, polylines, input.points, 2), &device)?;
+    let map_valid = Tensor::from_vec(map_valid, (1, polylines), &device)?;
+    let map_tokens = model.encode_map(&map, Mode::Infer)?;
+    let features = Tensor::from_vec(
+        input.agent_features.clone(),
+        (1, a, input.agent_features.len() / a),
+        &device,
+    )?;
+    let valid = Tensor::ones((1, a, w), candle_core::DType::F32, &device)?;
+
+    // Start: the given histories, extrapolated at their last step over the future slots, plus
+    // σ_start noise wherever a slot is drawn.
+    let sigma_min = edm.sigma_min as f32;
+    let start = init.sigma_start as f32;
+    let observed = |agent: usize, slot: usize| fixed[agent] && slot < n;
+    let noise = normal_vec(rng, a * w * 3);
+    let mut x = vec![0.0f32; a * w * 3];
+    for agent in 0..a {
+        let state = |slot: usize| &input.states[3 * (agent * n + slot)..][..3];
+        let last = state(n - 1);
+        let step: Vec<f32> = if n >= 2 {
+            (0..3).map(|d| last[d] - state(n - 2)[d]).collect()
+        } else {
+            vec![0.0; 3]
+        };
+        for slot in 0..w {
+            let k = 3 * (agent * w + slot);
+            for d in 0..3 {
+                let base = if slot < n {
+                    state(slot)[d]
+                } else {
+                    last[d] + step[d] * (slot + 1 - n) as f32
+                };
+                x[k + d] = if observed(agent, slot) {
+                    base
+                } else {
+                    base + start * noise[k + d]
+                };
+            }
+        }
+    }
+    // ρ-spaced levels from σ_start to σ_min.
+    let rho = edm.rho;
+    let (hi, lo) = (
+        init.sigma_start.powf(1.0 / rho),
+        edm.sigma_min.powf(1.0 / rho),
+    );
+    let levels: Vec<f32> = (0..=init.steps)
+        .map(|i| (hi + (lo - hi) * i as f64 / init.steps as f64).powf(rho) as f32)
+        .collect();
+    let sigma_of = |level: f32| -> Vec<f32> {
+        (0..a * w)
+            .map(|k| {
+                if observed(k / w, k % w) {
+                    sigma_min
+                } else {
+                    level.max(sigma_min)
+                }
+            })
+            .collect()
+    };
+    let denoise = |x: &[f32], sigma: &[f32]| -> road_model::Result<Vec<f32>> {
+        let xt = Tensor::from_vec(x.to_vec(), (1, a, w, 3), &device)?;
+        let st = Tensor::from_vec(sigma.to_vec(), (1, a, w), &device)?;
+        let out = model.denoise(
+            &xt,
+            &st,
+            &valid,
+            &features,
+            &map_tokens,
+            &map_valid,
+            Mode::Infer,
+        )?;
+        Ok(out.flatten_all()?.to_vec1::<f32>()?)
+    };
+    // Heun (EDM's second-order step) per token: a token whose σ does not change stays.
+    for pair in levels.windows(2) {
+        let (cur, next) = (sigma_of(pair[0]), sigma_of(pair[1]));
+        let d_cur = denoise(&x, &cur)?;
+        let slope = |x: &[f32], d: &[f32], sigma: &[f32], k: usize| (x[k] - d[k]) / sigma[k / 3];
+        let euler: Vec<f32> = (0..x.len())
+            .map(|k| x[k] + (next[k / 3] - cur[k / 3]) * slope(&x, &d_cur, &cur, k))
+            .collect();
+        let d_next = denoise(&euler, &next)?;
+        for k in 0..x.len() {
+            let dt = next[k / 3] - cur[k / 3];
+            if dt != 0.0 {
+                x[k] += dt * 0.5 * (slope(&x, &d_cur, &cur, k) + slope(&euler, &d_next, &next, k));
+            }
+        }
+    }
+    let mut out = window.clone();
+    let heading_scale = config.heading_scale as f32;
+    for agent in (0..a).filter(|&agent| !fixed[agent]) {
+        for slot in 0..n {
+            let k = 3 * (agent * w + slot);
+            let state = [x[k], x[k + 1], x[k + 2] / heading_scale];
+            if state.iter().any(|v| !v.is_finite()) {
+                return Err(road_model::Error::data(format!(
+                    "initialisation: agent {agent} step {slot} is not finite ({state:?})"
+                )));
+            }
+            let o = 3 * (agent * n + slot);
+            out.states[o..o + 3].copy_from_slice(&state);
+            out.valid[agent * n + slot] = true;
+        }
+    }
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use rand::SeedableRng;
+    use road_data::WindowConfig;
+    use road_model::{AgentFrame, AgentMap, ModelConfig};
+
+    use super::*;
+    use crate::populate::{
+        PlacementOptions, footprints, keep_agents, place_vehicles, with_vehicles,
+    };
+    use crate::procedural::{ProceduralMap, procedural};
+
+    /// A small untrained model with an agent frame, agent maps and the anchor bound.
+    fn model(max_anchor_sigma: Option<f64>) -> Denoiser {
+        let config = ModelConfig {
+            hidden: 16,
+            heads: 2,
+            blocks: 1,
+            agent_frame: Some(AgentFrame {
+                anchor_slot: 9,
+                relative_scale: 1.0,
+                residual_scale: Some(40.0),
+                max_anchor_sigma,
+            }),
+            agent_map: Some(AgentMap { polylines: 4 }),
+            ..ModelConfig::default()
+        };
+        road_model::model::init_seeded(&config, &Device::Cpu, 3)
+            .unwrap()
+            .1
+    }
+
+    /// The roundabout's ego and four placed vehicles, the ego fixed.
+    fn scene() -> (SceneWindow, Vec<bool>) {
+        let scene = procedural(ProceduralMap::Roundabout, &WindowConfig::default(), 10).unwrap();
+        let ego = keep_agents(&scene.window, &[scene.ego.agent]);
+        let mut rng = StdRng::seed_from_u64(4);
+        let placed = place_vehicles(
+            &scene.map,
+            &footprints(&ego),
+            4,
+            10,
+            &PlacementOptions::default(),
+            &mut rng,
+        );
+        let window = with_vehicles(&ego, &placed).unwrap();
+        let mut fixed = vec![false; window.agents];
+        fixed[0] = true;
+        (window, fixed)
+    }
+
+    #[test]
+    fn drawn_agents_change_and_fixed_ones_stay() {
+        let (window, fixed) = scene();
+        let edm = EdmSchedule::default();
+        let mut rng = StdRng::seed_from_u64(5);
+        for sigma_start in [edm.sigma_max, 0.25] {
+            let init = Initialisation {
+                sigma_start,
+                steps: 4,
+            };
+            let out =
+                initialise_histories(&model(Some(0.1)), &edm, &window, &fixed, init, &mut rng)
+                    .unwrap();
+            assert_eq!(out.agents, window.agents);
+            assert_eq!(out.states[..30], window.states[..30], "the ego moved");
+            assert!(out.states.iter().all(|v| v.is_finite()));
+            assert!(
+                out.states[30..] != window.states[30..],
+                "nothing drawn from σ = {sigma_start}"
+            );
+            assert_eq!(out.length_m, window.length_m);
+        }
+    }
+
+    #[test]
+    fn a_model_not_trained_to_draw_agents_or_a_bad_start_is_refused() {
+        let (window, fixed) = scene();
+        let edm = EdmSchedule::default();
+        let mut rng = StdRng::seed_from_u64(5);
+        let init = Initialisation::from_noise(&edm);
+        let err = initialise_histories(&model(None), &edm, &window, &fixed, init, &mut rng)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("max_anchor_sigma"), "{err}");
+        for (sigma_start, steps) in [(0.0, 4), (100.0, 4), (f64::NAN, 4), (1.0, 0)] {
+            let init = Initialisation { sigma_start, steps };
+            let err =
+                initialise_histories(&model(Some(0.1)), &edm, &window, &fixed, init, &mut rng)
+                    .unwrap_err()
+                    .to_string();
+            assert!(err.contains("initialisation from σ"), "{err}");
+        }
+        let err = initialise_histories(
+            &model(Some(0.1)),
+            &edm,
+            &window,
+            &fixed[..2],
+            init,
+            &mut rng,
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(err.contains("fixed flags"), "{err}");
+    }
+}
