@@ -287,6 +287,13 @@ pub struct Populate {
     /// as it is (constant speed on the lane centre).
     #[serde(default = "default_true")]
     pub refine: bool,
+    /// A checkpoint trained to draw whole vehicles (`road20-init`, embedded in the server)
+    /// draws the placed vehicles anew around the given agents, from the placement under about
+    /// 10 m of noise (`docs/protocol.md`, "Populating a map"); a vehicle
+    /// it draws off the lanes or onto another keeps its refined placement. Omitted: the
+    /// placement refined by the scene's checkpoint (or as it is, with `refine: false`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub initialiser: Option<String>,
 }
 
 fn default_true() -> bool {
@@ -716,6 +723,7 @@ mod tests {
                 vehicles: None,
                 vehicles_per_100m: Some(1.5),
                 refine: true,
+                initialiser: Some("road20-init".into()),
             }),
             inflow: Some(Inflow {
                 vehicles_per_minute: 6.0,

@@ -15,14 +15,30 @@ use crate::{Error, Result};
 /// The planners file of the repository, embedded.
 const PLANNERS_TOML: &str = include_str!("../../../configs/planners.toml");
 
-/// The default checkpoint, embedded in the binary so that `road serve` and `road demo` run
-/// wherever the binary is (a `models/` folder found at run time still wins for the same
-/// name). Its name must be [`crate::config::DEFAULT_CHECKPOINT`] (a test checks).
+/// The default checkpoint and the initialiser (`CreateScene.populate.initialiser`), embedded
+/// in the binary so that `road serve` and `road demo` run wherever the binary is (a `models/`
+/// folder found at run time still wins for the same name). The default's name must be
+/// [`crate::config::DEFAULT_CHECKPOINT`] (a test checks).
 pub mod embedded {
     pub const CONFIG_TOML: &str = include_str!("../../../models/road20-wide4/config.toml");
     pub const WEIGHTS: &[u8] = include_bytes!("../../../models/road20-wide4/weights.safetensors");
     /// The name requests and flags use for it.
     pub const NAME: &str = crate::config::DEFAULT_CHECKPOINT;
+    /// The initialiser: trained to draw whole vehicles around given ones.
+    pub const INITIALISER_NAME: &str = "road20-init";
+    pub const INITIALISER_CONFIG_TOML: &str =
+        include_str!("../../../models/road20-init/config.toml");
+    pub const INITIALISER_WEIGHTS: &[u8] =
+        include_bytes!("../../../models/road20-init/weights.safetensors");
+
+    /// The embedded checkpoint `name`: its config's text and its weights.
+    pub fn get(name: &str) -> Option<(&'static str, &'static [u8])> {
+        match name {
+            NAME => Some((CONFIG_TOML, WEIGHTS)),
+            INITIALISER_NAME => Some((INITIALISER_CONFIG_TOML, INITIALISER_WEIGHTS)),
+            _ => None,
+        }
+    }
 }
 
 /// The models folder: `explicit` (a flag or `ROAD_MODELS`) if given (an error names it when it
@@ -156,12 +172,13 @@ impl Checkpoints {
         let model = match self.folder(name) {
             Some(path) => checkpoint::load(&path, &candle_core::Device::Cpu)
                 .map_err(|source| Error::Checkpoint { path, source })?,
-            None if name == embedded::NAME => {
+            None if embedded::get(name).is_some() => {
                 let origin = PathBuf::from(format!("<embedded {name}>"));
+                let (config_toml, weights) = embedded::get(name).expect("checked");
                 checkpoint::load_from_memory(
                     &origin,
-                    embedded::CONFIG_TOML,
-                    embedded::WEIGHTS,
+                    config_toml,
+                    weights,
                     &candle_core::Device::Cpu,
                 )
                 .map_err(|source| Error::Checkpoint {
@@ -185,7 +202,7 @@ impl Checkpoints {
 
     /// Whether `name` is a checkpoint folder or the embedded default (without loading it).
     pub fn exists(&self, name: &str) -> bool {
-        Self::valid_name(name) && (self.folder(name).is_some() || name == embedded::NAME)
+        Self::valid_name(name) && (self.folder(name).is_some() || embedded::get(name).is_some())
     }
 }
 

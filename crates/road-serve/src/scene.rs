@@ -25,7 +25,8 @@ use road_sim::closed_loop::{Controller, ExternalDriver, SceneTick, SimScene};
 use road_sim::geometry::OrientedBox;
 use road_sim::infractions::off_road;
 use road_sim::populate::{
-    Footprint, Inflow, PlacementOptions, Refinement, VehicleCount, place_vehicles, refine_histories,
+    Footprint, Inflow, Initialisation, PlacementOptions, Refinement, VehicleCount,
+    initialise_histories, place_vehicles, refine_histories, sound_or,
 };
 use road_sim::procedural::{ProceduralMap, STEP_SECS, procedural};
 
@@ -435,6 +436,11 @@ pub fn setup(req: &CreateScene, ctx: &mut SetupContext<'_>) -> Result<SceneSetup
         .map(|a| a.history[a.history.len() - n..].to_vec())
         .collect();
     let mut all_agents = given.clone();
+    // The initialiser, checked before anything is placed.
+    let initialiser = match req.populate.as_ref().and_then(|p| p.initialiser.as_ref()) {
+        Some(name) => Some(initialiser(name, req, ctx, &model.meta.run.model, n)?),
+        None => None,
+    };
     let placed = match (&req.populate, map.as_deref()) {
         (Some(populate), Some(map)) => {
             let vehicles = populated(populate, map, &histories, agents, n, ctx, req.seed)?;
@@ -462,6 +468,21 @@ pub fn setup(req: &CreateScene, ctx: &mut SetupContext<'_>) -> Result<SceneSetup
                 format!("the model's refinement of the placed vehicles failed: {e}"),
             )
         })?;
+        if let (Some(init), Some(map)) = (initialiser, map.as_deref()) {
+            let kept;
+            (window, kept) = drawn(init, map, &window, &fixed, req.seed).map_err(|e| {
+                ErrorReply::new(
+                    ErrorCode::Internal,
+                    Some("populate.initialiser"),
+                    format!("the initialiser's draw of the placed vehicles failed: {e}"),
+                )
+            })?;
+            tracing::info!(
+                drawn = kept.iter().filter(|&&k| k).count(),
+                placed,
+                "populate: vehicles the initialiser drew (the others keep their refined placement)"
+            );
+        }
         for (a, history) in histories.iter_mut().enumerate().skip(given.len()) {
             *history = window_history(&window, a);
         }
@@ -631,6 +652,110 @@ fn populated(
 /// Noise streams of a scene's setup, apart from its simulation's.
 const PLACEMENT_STREAM: u64 = 0x0070_6c61_6365;
 const REFINEMENT_STREAM: u64 = 0x7265_6669_6e65;
+const INITIALISER_STREAM: u64 = 0x0064_7261_7773;
+
+/// The noise (σ, scene units of 40 m) the initialiser starts placed vehicles at: about 10 m,
+/// so that a vehicle may move to another place and lane near its placement
+/// (`road eval --suite initialisation --initialiser`, docs/results.md).
+const INITIALISER_SIGMA: f64 = 0.25;
+/// Its Heun steps down to σ_min.
+const INITIALISER_STEPS: usize = 32;
+
+/// The checkpoint `populate.initialiser` names, loaded and checked: trained to draw whole
+/// vehicles, observing the scene's `n` steps on windows cut as the scene's checkpoint
+/// (`scene_model`) cuts them; `refine: false` excludes it.
+fn initialiser(
+    name: &str,
+    req: &CreateScene,
+    ctx: &mut SetupContext<'_>,
+    scene_model: &road_model::ModelConfig,
+    n: usize,
+) -> Result<&'static LoadedModel, ErrorReply> {
+    let field = "populate.initialiser";
+    if req.populate.as_ref().is_some_and(|p| !p.refine) {
+        return Err(invalid(
+            field,
+            "`refine: false` keeps the placement as it is and an initialiser draws it anew: give one of them",
+        ));
+    }
+    if !ctx.checkpoints.exists(name) {
+        return Err(refuse(
+            ErrorCode::BadModel,
+            field,
+            format!(
+                "unknown checkpoint {name:?} (no such folder with a config.toml in {})",
+                ctx.checkpoints.describe()
+            ),
+        ));
+    }
+    let model = ctx.checkpoints.get(name).map_err(|e| {
+        refuse(
+            ErrorCode::BadModel,
+            field,
+            format!("checkpoint {name:?} does not load: {e}"),
+        )
+    })?;
+    let run = &model.meta.run;
+    if run
+        .model
+        .agent_frame
+        .as_ref()
+        .is_none_or(|f| f.max_anchor_sigma.is_none())
+    {
+        return Err(refuse(
+            ErrorCode::BadModel,
+            field,
+            format!(
+                "checkpoint {name:?} was not trained to draw whole vehicles (no model.agent_frame.max_anchor_sigma); road20-init was"
+            ),
+        ));
+    }
+    if run.model.window_config() != scene_model.window_config() {
+        return Err(refuse(
+            ErrorCode::BadModel,
+            field,
+            format!(
+                "checkpoint {name:?} cuts scene windows otherwise than the scene's checkpoint (position scale, polyline points)"
+            ),
+        ));
+    }
+    if run.planner.obs_slots != n {
+        return Err(refuse(
+            ErrorCode::BadModel,
+            field,
+            format!(
+                "checkpoint {name:?} observes {} steps; the scene's planner {n}",
+                run.planner.obs_slots
+            ),
+        ));
+    }
+    Ok(model)
+}
+
+/// `window` with its agents not `fixed` drawn anew by the initialiser `model` from their
+/// placement, each one that lands off the lanes or on another keeping its place in `window`
+/// (`road_sim::populate::{initialise_histories, sound_or}`); which kept the draw.
+fn drawn(
+    model: &LoadedModel,
+    map: &LaneletMap,
+    window: &SceneWindow,
+    fixed: &[bool],
+    seed: u64,
+) -> road_sim::Result<(SceneWindow, Vec<bool>)> {
+    let mut rng = StdRng::seed_from_u64(road_rollout::stream_seed(seed, INITIALISER_STREAM));
+    let drawn = initialise_histories(
+        &model.model,
+        &model.meta.run.planner.edm,
+        window,
+        fixed,
+        Initialisation {
+            sigma_start: INITIALISER_SIGMA,
+            steps: INITIALISER_STEPS,
+        },
+        &mut rng,
+    )?;
+    sound_or(map, &drawn, window, fixed)
+}
 
 /// `window` with the histories of the agents not `fixed` refined by the model (on a CPU
 /// engine of its own: one scene, once; `road_sim::populate::refine_histories`).

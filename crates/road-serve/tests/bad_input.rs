@@ -707,6 +707,7 @@ fn populate_requests_out_of_range_are_refused() {
             vehicles,
             vehicles_per_100m,
             refine: false,
+            initialiser: None,
         }),
         ..agents_request(vec![common::straight_agent(1, 10.0, 2.0)])
     };
@@ -732,6 +733,37 @@ fn populate_requests_out_of_range_are_refused() {
     ] {
         let e = create_err(&c, request);
         assert_refused(&e, ErrorCode::InvalidField, Some(field));
+        assert!(e.message.contains(says), "{e}");
+    }
+    // An initialiser that is no checkpoint, one not trained to draw vehicles, or one beside
+    // `refine: false`.
+    for (initialiser, refine, code, says) in [
+        (
+            "no-such-model",
+            true,
+            ErrorCode::BadModel,
+            "unknown checkpoint",
+        ),
+        (
+            "road20-wide4",
+            true,
+            ErrorCode::BadModel,
+            "not trained to draw",
+        ),
+        (
+            "road20-init",
+            false,
+            ErrorCode::InvalidField,
+            "refine: false",
+        ),
+    ] {
+        let mut request = with(Some(2), None);
+        if let Some(p) = request.populate.as_mut() {
+            p.initialiser = Some(initialiser.into());
+            p.refine = refine;
+        }
+        let e = create_err(&c, request);
+        assert_refused(&e, code, Some("populate.initialiser"));
         assert!(e.message.contains(says), "{e}");
     }
     // A key `populate` does not have.

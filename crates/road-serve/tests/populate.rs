@@ -11,6 +11,7 @@ fn populate(vehicles: Option<u32>, per_100m: Option<f64>) -> Option<Populate> {
         vehicles,
         vehicles_per_100m: per_100m,
         refine: true,
+        initialiser: None,
     })
 }
 
@@ -80,6 +81,74 @@ fn a_map_and_an_ego_are_enough_for_a_populated_scene() {
     let npc = scene.step(1, vec![common::replay(&history, 1, 1)]).unwrap();
     assert_eq!(npc.npcs.len(), created.agents.len() - 1);
     scene.close().unwrap();
+    drop(c);
+    server.stop().unwrap();
+}
+
+/// `populate.initialiser`: the embedded road20-init draws the placed vehicles anew around the
+/// ego on the test's map (one it never saw); every vehicle starts on the lane, clear of the
+/// others, and the scene runs.
+#[test]
+fn the_initialiser_draws_the_placed_vehicles_around_the_ego() {
+    let dir = common::temp_dir("populate-initialiser");
+    let server = common::start(common::config(&dir));
+    let c = common::client(&server, "populate-initialiser");
+    let ego = common::straight_agent(7, 10.0, 2.2);
+    let request = CreateScene {
+        map: MapSource::Osm(common::osm(true)),
+        agents: Some(vec![ego.clone()]),
+        external: vec![7],
+        populate: Some(Populate {
+            initialiser: Some("road20-init".into()),
+            ..populate(Some(4), None).unwrap()
+        }),
+        ..common::roundabout()
+    };
+    let mut scene = c.create(request.clone()).unwrap();
+    let agents = scene.created().agents.clone();
+    assert_eq!(agents.len(), 5, "{agents:?}");
+    assert_eq!(agents[0].history, ego.history[ego.history.len() - 10..]);
+    for a in &agents[1..] {
+        let now = a.history.last().unwrap();
+        assert!(
+            (-0.5..=4.9).contains(&now.y_m) && (-1.0..=112.0).contains(&now.x_m),
+            "vehicle {} drawn off the lane: {now:?}",
+            a.id
+        );
+        for b in &agents {
+            if b.id != a.id {
+                let other = b.history.last().unwrap();
+                let gap = (now.x_m - other.x_m).hypot(now.y_m - other.y_m);
+                assert!(gap > 2.0, "vehicles {} and {} {gap:.1} m apart", a.id, b.id);
+            }
+        }
+    }
+    for t in 1..=5 {
+        let npc = scene
+            .step(t, vec![common::replay(&ego.history, 7, t)])
+            .unwrap();
+        assert_eq!(npc.npcs.len(), 4);
+        common::assert_sane(&npc, 500.0);
+    }
+    scene.close().unwrap();
+    // The same request and seed draw the same vehicles; without the initialiser they are the
+    // refined placement, which the draw moved (not every vehicle fell back to it).
+    let mut again = c.create(request.clone()).unwrap();
+    assert_eq!(again.created().agents, agents);
+    again.close().unwrap();
+    let refined_only = CreateScene {
+        populate: populate(Some(4), None),
+        ..request
+    };
+    let mut refined = c.create(refined_only).unwrap();
+    let placed = refined.created().agents.clone();
+    refined.close().unwrap();
+    let redrawn = agents[1..]
+        .iter()
+        .zip(&placed[1..])
+        .filter(|(a, b)| a.history != b.history)
+        .count();
+    assert!(redrawn >= 1, "every drawn vehicle fell back to its placement");
     drop(c);
     server.stop().unwrap();
 }

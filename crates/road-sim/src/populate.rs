@@ -22,7 +22,7 @@
 
 mod initialise;
 
-pub use initialise::{Initialisation, initialise_histories};
+pub use initialise::{Initialisation, initialise_histories, sound_or};
 
 use glam::DVec2;
 use rand::Rng;

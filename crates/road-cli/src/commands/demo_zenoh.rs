@@ -82,6 +82,7 @@ pub fn run(
         vehicles: Some(u32::try_from(n).unwrap_or(u32::MAX)),
         vehicles_per_100m: None,
         refine: true,
+        initialiser: None,
     });
     // Inflow keeps the scene at its vehicles at the start (the ego and the placed or scripted
     // ones).

@@ -9,12 +9,13 @@
 
 use candle_core::{Device, Tensor};
 use rand::rngs::StdRng;
-use road_data::SceneWindow;
+use road_data::{LaneletMap, SceneWindow};
 use road_model::Denoiser;
 use road_model::batch::{SceneInput, normal_vec};
 use road_model::model::Mode;
 use road_sched::edm::EdmSchedule;
 
+use super::Footprint;
 use crate::{Error, Result};
 
 /// How [`initialise_histories`] samples.
@@ -193,6 +194,9 @@ fn draw(
             }
         }
     }
+    // The last level's denoised estimate: x itself still carries σ_min's noise (8 cm at
+    // σ_min = 0.002 of 40 m), which a history's 0.1 s steps read as ±1 m/s.
+    let x = denoise(&x, &sigma_of(edm.sigma_min as f32))?;
     let mut out = window.clone();
     let heading_scale = config.heading_scale as f32;
     for agent in (0..a).filter(|&agent| !fixed[agent]) {
@@ -210,6 +214,71 @@ fn draw(
         }
     }
     Ok(out)
+}
+
+/// `drawn` (a window of [`initialise_histories`]) with every drawn vehicle that ends off the
+/// lanes of `map`, or overlapping an agent decided before it or the fallback of one after it,
+/// replaced by its history in `fallback` (the same agents, mutually clear: the refined
+/// placement), in agent order; the fixed agents as in `drawn`. Returns the window and which agents kept the model's draw: what a served
+/// scene starts from, so that a draw that missed the road never becomes an NPC off it.
+pub fn sound_or(
+    map: &LaneletMap,
+    drawn: &SceneWindow,
+    fallback: &SceneWindow,
+    fixed: &[bool],
+) -> Result<(SceneWindow, Vec<bool>)> {
+    let (a, n) = (drawn.agents, drawn.steps);
+    if fallback.agents != a || fallback.steps != n || fixed.len() != a {
+        return Err(Error::Config(format!(
+            "drawn window {a} × {n}, fallback {} × {}, {} fixed flags",
+            fallback.agents,
+            fallback.steps,
+            fixed.len()
+        )));
+    }
+    let last = |w: &SceneWindow, agent: usize| crate::window_pose(w, agent, n - 1);
+    let footprint = |w: &SceneWindow, agent: usize| {
+        last(w, agent).map(|pose| Footprint {
+            pose,
+            length_m: f64::from(w.length_m[agent]),
+            width_m: f64::from(w.width_m[agent]),
+        })
+    };
+    let mut out = drawn.clone();
+    let mut kept = vec![false; a];
+    let mut occupied: Vec<Footprint> = (0..a)
+        .filter(|&agent| fixed[agent])
+        .filter_map(|agent| footprint(drawn, agent))
+        .collect();
+    for agent in (0..a).filter(|&agent| !fixed[agent]) {
+        // Clear of the agents decided, and of the fallbacks of those still to decide (any of
+        // them may fall back), so that the result is clear whatever they become.
+        let mut others = occupied.clone();
+        others.extend(
+            (agent + 1..a)
+                .filter(|&later| !fixed[later])
+                .filter_map(|later| footprint(fallback, later)),
+        );
+        let sound = footprint(drawn, agent).filter(|f| {
+            map.lanelet_at([f.pose.x_m, f.pose.y_m]).is_some()
+                && super::has_room(f.pose, f.length_m, f.width_m, &others, 0.0)
+        });
+        let chosen = match sound {
+            Some(f) => {
+                kept[agent] = true;
+                Some(f)
+            }
+            None => {
+                let k = 3 * agent * n;
+                out.states[k..k + 3 * n].copy_from_slice(&fallback.states[k..k + 3 * n]);
+                out.valid[agent * n..(agent + 1) * n]
+                    .copy_from_slice(&fallback.valid[agent * n..(agent + 1) * n]);
+                footprint(fallback, agent)
+            }
+        };
+        occupied.extend(chosen);
+    }
+    Ok((out, kept))
 }
 
 #[cfg(test)]
@@ -316,5 +385,38 @@ mod tests {
         .unwrap_err()
         .to_string();
         assert!(err.contains("fixed flags"), "{err}");
+    }
+
+    #[test]
+    fn draws_off_the_lanes_or_onto_another_fall_back() {
+        let scene = procedural(ProceduralMap::Roundabout, &WindowConfig::default(), 10).unwrap();
+        let (placed, fixed) = self::scene();
+        let mut drawn = placed.clone();
+        let n = placed.steps;
+        // Vehicle 1 drawn 500 m away (off the map), vehicle 2 onto the ego, vehicle 3 moved
+        // 0.1 m along: only vehicle 3 keeps its draw.
+        let shift = |w: &mut SceneWindow, agent: usize, to: Option<[f32; 2]>, by: [f32; 2]| {
+            for t in 0..n {
+                let k = 3 * (agent * n + t);
+                let (x, y) = match to {
+                    Some(p) => (p[0], p[1]),
+                    None => (w.states[k] + by[0], w.states[k + 1] + by[1]),
+                };
+                w.states[k] = x;
+                w.states[k + 1] = y;
+            }
+        };
+        let ego_now = [placed.states[3 * (n - 1)], placed.states[3 * (n - 1) + 1]];
+        shift(&mut drawn, 1, None, [500.0 / 40.0, 0.0]);
+        shift(&mut drawn, 2, Some(ego_now), [0.0, 0.0]);
+        shift(&mut drawn, 3, None, [0.1 / 40.0, 0.0]);
+        let (out, kept) = sound_or(&scene.map, &drawn, &placed, &fixed).unwrap();
+        assert_eq!(kept, vec![false, false, false, true, true]);
+        let rows =
+            |w: &SceneWindow, agent: usize| w.states[3 * agent * n..3 * (agent + 1) * n].to_vec();
+        assert_eq!(rows(&out, 1), rows(&placed, 1));
+        assert_eq!(rows(&out, 2), rows(&placed, 2));
+        assert_eq!(rows(&out, 3), rows(&drawn, 3));
+        assert!(sound_or(&scene.map, &drawn, &placed, &fixed[..2]).is_err());
     }
 }
