@@ -637,6 +637,11 @@ fn the_served_demo_is_populated_by_default_and_scripted_on_request() {
         scripted.contains("7 vehicles") && scripted.contains("6 by road20-wide4"),
         "{scripted}"
     );
+    let drawn = header(&["--initialiser", "road20-init"]);
+    assert!(
+        drawn.contains("8 vehicles") && drawn.contains("7 by road20-wide4, drawn by road20-init"),
+        "{drawn}"
+    );
     std::fs::remove_dir_all(&dir).ok();
 }
 

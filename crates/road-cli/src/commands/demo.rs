@@ -87,6 +87,10 @@ pub struct DemoArgs {
     /// its traffic as vehicles leave at the map's ends; default 6 unless `--scripted`.
     #[arg(long, conflicts_with = "in_process")]
     pub inflow_per_minute: Option<f64>,
+    /// Served: the populated vehicles drawn anew by this initialiser checkpoint (e.g.
+    /// `road20-init`, embedded) around the ego (`CreateScene.populate.initialiser`).
+    #[arg(long, conflicts_with_all = ["in_process", "scripted"])]
+    pub initialiser: Option<String>,
     /// Served: the map's scripted vehicles (the roundabout's six, with 1 s histories: the
     /// demo before issue 39) instead of vehicles the model places, and no inflow unless asked.
     #[arg(long, conflicts_with_all = ["in_process", "populate"])]
@@ -286,6 +290,7 @@ pub fn run(args: DemoArgs) -> Result<ExitCode> {
             &args.mcap,
             &args.gif,
             populate,
+            args.initialiser.clone(),
             inflow_per_minute,
         );
     }

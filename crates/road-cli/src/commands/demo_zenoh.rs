@@ -35,6 +35,7 @@ pub fn run(
     mcap_out: &Path,
     gif_out: &Path,
     populate: Option<usize>,
+    initialiser: Option<String>,
     inflow_per_minute: Option<f64>,
 ) -> Result<ExitCode> {
     let name = checkpoint
@@ -82,7 +83,7 @@ pub fn run(
         vehicles: Some(u32::try_from(n).unwrap_or(u32::MAX)),
         vehicles_per_100m: None,
         refine: true,
-        initialiser: None,
+        initialiser: initialiser.clone(),
     });
     // Inflow keeps the scene at its vehicles at the start (the ego and the placed or scripted
     // ones).
@@ -99,8 +100,9 @@ pub fn run(
     let mut events = Vec::new();
     let (mut seen_pairs, mut seen_off) = (BTreeSet::new(), BTreeSet::new());
     let mut late = 0;
+    let drawn_by = initialiser.map_or_else(String::new, |i| format!(", drawn by {i}"));
     out!(
-        "road demo over zenoh: procedural {}, {vehicles} vehicles (ego 1 scripted by the client, {} by {name}), {steps} ticks of {STEP_SECS:.1} s on loopback",
+        "road demo over zenoh: procedural {}, {vehicles} vehicles (ego 1 scripted by the client, {} by {name}{drawn_by}), {steps} ticks of {STEP_SECS:.1} s on loopback",
         map.name(),
         vehicles - 1
     );

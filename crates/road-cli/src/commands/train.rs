@@ -114,7 +114,7 @@ validation: {val_windows} windows.\n\n\
 | batch | {batch} scenes |\n\
 | wall time | {wall:.0} s ({hours:.2} h) |\n\
 | hardware (the last session's) | {hardware}; {workers} |\n\
-| conditioning augmentation | r = {r}, warm-up task probability β = {beta} |\n\
+| conditioning augmentation | r = {r}, warm-up task probability β = {beta}{initialisation} |\n\
 | validation denoising loss (EMA weights) | {val} |\n\
 | same, {start} | {untrained} |\n\n\
 The loss is EDM's weighted denoising loss, averaged over valid agent-slots of fixed validation batches \
@@ -154,6 +154,16 @@ trainings): it is not this model's alone; `train_log.csv` gives samples/s for ea
         hardware = meta.hardware,
         r = r.train.augmentation_ratio,
         beta = r.train.warmup_task_prob,
+        initialisation = if r.train.initialisation_task_prob > 0.0 {
+            format!(
+                ", initialisation task probability {} (whole agents drawn from noise around kept \
+                 ones; `road_sim::populate::initialise_histories` samples with it; its validation \
+                 loss mixes that task in, so it does not compare with other runs')",
+                r.train.initialisation_task_prob
+            )
+        } else {
+            String::new()
+        },
         val = loss(meta.validation_loss),
         untrained = loss(meta.untrained_validation_loss),
         start = match &r.train.init_from {

@@ -24,7 +24,7 @@ use road_sim::initialisation::{
 use road_sim::metrics::{BOOTSTRAP_RESAMPLES, Estimate};
 use road_sim::populate::{
     Initialisation, PlacementOptions, Refinement, footprints, initialise_histories, keep_agents,
-    place_vehicles, refine_histories, with_vehicles,
+    place_vehicles, refine_histories, sound_or, with_vehicles,
 };
 use serde::Serialize;
 
@@ -138,7 +138,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
     ];
     if let Some(init) = &initialiser {
         for &sigma in &args.initialiser_sigmas {
-            sources.push(if sigma >= init.meta.run.planner.edm.sigma_max {
+            let drawn = if sigma >= init.meta.run.planner.edm.sigma_max {
                 format!("drawn by {} from noise", init.meta.run.name)
             } else {
                 format!(
@@ -146,7 +146,10 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
                     init.meta.run.name,
                     sigma * init.meta.run.model.position_scale_m
                 )
-            });
+            };
+            // Then what a served scene starts from (`populate.initialiser`).
+            let served = format!("{drawn}, draws off the lanes or onto another refined placement");
+            sources.extend([drawn, served]);
         }
     }
     let started = Instant::now();
@@ -217,7 +220,9 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
                     },
                     &mut rng,
                 )?;
+                let (sound, _) = sound_or(map, &drawn, &refined_window, &fixed)?;
                 by_source.push(all(&drawn));
+                by_source.push(all(&sound));
             }
         }
         per_scene.push(SceneVehicles {
