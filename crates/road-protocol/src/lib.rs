@@ -288,10 +288,13 @@ pub struct Populate {
     #[serde(default = "default_true")]
     pub refine: bool,
     /// A checkpoint trained to draw whole vehicles (`road20-init`, embedded in the server)
-    /// draws the placed vehicles anew around the given agents, from the placement under about
-    /// 10 m of noise (`docs/protocol.md`, "Populating a map"); a vehicle
-    /// it draws off the lanes or onto another keeps its refined placement. Omitted: the
-    /// placement refined by the scene's checkpoint (or as it is, with `refine: false`).
+    /// draws the placed vehicles anew around the given agents, from their placement under
+    /// about 4 m of noise (`docs/protocol.md`, "Populating a map"); a vehicle it draws
+    /// off the lanes or onto another keeps its refined placement. `"none"`: the
+    /// placement refined by the scene's checkpoint only. Omitted: the server's default
+    /// initialiser (`road serve --initialiser`, road20-init) where it fits the scene's
+    /// checkpoint (the same observed steps and window cut), else none; with `refine: false`
+    /// none (the placement as it is).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub initialiser: Option<String>,
 }

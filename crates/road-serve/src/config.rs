@@ -11,6 +11,9 @@ pub use road_client::ZenohArgs;
 /// agent pairs and the constant-velocity residual at width 96: the best of the shipped ones
 /// (`docs/results.md`).
 pub const DEFAULT_CHECKPOINT: &str = "road20-wide4";
+/// The initialiser `CreateScene.populate` uses when the request names none: trained to draw
+/// whole vehicles around given ones (issue 39), embedded in the binary.
+pub const DEFAULT_INITIALISER: &str = "road20-init";
 
 /// What a server allows and where it records. `Default` is what `road serve` runs with.
 #[derive(Debug, Clone)]
@@ -44,6 +47,10 @@ pub struct ServeConfig {
     /// request without `checkpoint` gets.
     pub models_dir: Option<PathBuf>,
     pub default_checkpoint: String,
+    /// The initialiser of `populate` requests that name none (`populate.initialiser`), used
+    /// where it fits the scene's checkpoint; `None`: their placement refined by the scene's
+    /// checkpoint only.
+    pub default_initialiser: Option<String>,
     /// Map files the server was started with, by the name a request uses (`map.file`).
     pub map_files: Vec<(String, PathBuf)>,
     /// Where the live view (a Foxglove WebSocket server, [`crate::live`]) listens; `None`: no
@@ -82,6 +89,7 @@ impl ServeConfig {
             flush_interval: Duration::from_secs(1),
             models_dir,
             default_checkpoint: DEFAULT_CHECKPOINT.into(),
+            default_initialiser: Some(DEFAULT_INITIALISER.into()),
             map_files: Vec::new(),
             foxglove_listen: None,
             engine: ServeEngine::Cpu,

@@ -135,6 +135,12 @@ impl Server {
             planner = %default.meta.run.name,
             "default checkpoint loaded"
         );
+        // The default initialiser too: one that does not load or cannot draw is refused now.
+        if let Some(name) = &config.default_initialiser {
+            let init = checkpoints.get(name)?;
+            crate::scene::check_initialiser(init)
+                .map_err(|why| Error::Config(format!("the default initialiser {name:?}: {why}")))?;
+        }
         let mut map_files = BTreeMap::new();
         for (name, path) in &config.map_files {
             let map = LaneletMap::load(path, name)?;

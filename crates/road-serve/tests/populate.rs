@@ -85,9 +85,9 @@ fn a_map_and_an_ego_are_enough_for_a_populated_scene() {
     server.stop().unwrap();
 }
 
-/// `populate.initialiser`: the embedded road20-init draws the placed vehicles anew around the
-/// ego on the test's map (one it never saw); every vehicle starts on the lane, clear of the
-/// others, and the scene runs.
+/// `populate.initialiser`: the embedded road20-init (the server's default) draws the placed
+/// vehicles anew around the ego on the test's map (one it never saw); every vehicle starts on
+/// the lane, clear of the others, and the scene runs; `"none"` keeps the refined placement.
 #[test]
 fn the_initialiser_draws_the_placed_vehicles_around_the_ego() {
     let dir = common::temp_dir("populate-initialiser");
@@ -137,8 +137,11 @@ fn the_initialiser_draws_the_placed_vehicles_around_the_ego() {
     assert_eq!(again.created().agents, agents);
     again.close().unwrap();
     let refined_only = CreateScene {
-        populate: populate(Some(4), None),
-        ..request
+        populate: Some(Populate {
+            initialiser: Some("none".into()),
+            ..populate(Some(4), None).unwrap()
+        }),
+        ..request.clone()
     };
     let mut refined = c.create(refined_only).unwrap();
     let placed = refined.created().agents.clone();
@@ -148,7 +151,18 @@ fn the_initialiser_draws_the_placed_vehicles_around_the_ego() {
         .zip(&placed[1..])
         .filter(|(a, b)| a.history != b.history)
         .count();
-    assert!(redrawn >= 1, "every drawn vehicle fell back to its placement");
+    assert!(
+        redrawn >= 1,
+        "every drawn vehicle fell back to its placement"
+    );
+    // The server's default initialiser is road20-init: a request that names none gets the same.
+    let by_default = CreateScene {
+        populate: populate(Some(4), None),
+        ..request
+    };
+    let mut default = c.create(by_default).unwrap();
+    assert_eq!(default.created().agents, agents);
+    default.close().unwrap();
     drop(c);
     server.stop().unwrap();
 }
@@ -201,4 +215,25 @@ fn vehicles_keep_entering_a_scene_with_inflow() {
     scene.close().unwrap();
     drop(c);
     server.stop().unwrap();
+}
+
+/// A server whose default initialiser cannot draw vehicles refuses to start, naming it.
+#[test]
+fn a_default_initialiser_that_cannot_draw_is_refused_at_start() {
+    let dir = common::temp_dir("populate-bad-initialiser");
+    let mut config = common::config(&dir);
+    config.default_initialiser = Some("road20-wide4".into());
+    let endpoint = format!("tcp/127.0.0.1:{}", common::free_port());
+    let zenoh = road_client::ZenohArgs::loopback(Some(&endpoint), None)
+        .to_config()
+        .unwrap();
+    let e = road_serve::Server::new(config, zenoh)
+        .start()
+        .err()
+        .expect("the server refused to start")
+        .to_string();
+    assert!(
+        e.contains("default initialiser \"road20-wide4\"") && e.contains("not trained"),
+        "{e}"
+    );
 }

@@ -28,6 +28,11 @@ pub struct ServeArgs {
     /// The checkpoint of requests that name none.
     #[arg(long, default_value = road_serve::config::DEFAULT_CHECKPOINT)]
     pub checkpoint: String,
+    /// The initialiser of `populate` requests that name none (`populate.initialiser`): a
+    /// checkpoint trained to draw whole vehicles; `none`: placed vehicles are only refined by
+    /// the scene's checkpoint.
+    #[arg(long, default_value = road_serve::config::DEFAULT_INITIALISER)]
+    pub initialiser: String,
     /// Where scenes are recorded (`scene-<id>.mcap`).
     #[arg(long, default_value = "recordings")]
     pub record: PathBuf,
@@ -108,6 +113,7 @@ pub fn run(args: ServeArgs) -> Result<ExitCode> {
     let prefix = args.prefix.trim_matches('/').to_owned();
     config.prefix = args.prefix;
     config.default_checkpoint = args.checkpoint;
+    config.default_initialiser = (args.initialiser != "none").then_some(args.initialiser);
     config.record_dir = (!args.no_record).then_some(args.record);
     config.capacity = args.capacity;
     config.late_ego_deadline = Duration::from_millis(args.late_ego_ms);
