@@ -87,8 +87,9 @@ pub struct DemoArgs {
     /// its traffic as vehicles leave at the map's ends; default 6 unless `--scripted`.
     #[arg(long, conflicts_with = "in_process")]
     pub inflow_per_minute: Option<f64>,
-    /// Served: the populated vehicles drawn anew by this initialiser checkpoint (e.g.
-    /// `road20-init`, embedded) around the ego (`CreateScene.populate.initialiser`).
+    /// Served: the initialiser that draws the populated vehicles anew around the ego
+    /// (`CreateScene.populate.initialiser`; default the server's, road20-init; `none`: the
+    /// placement refined by the checkpoint only).
     #[arg(long, conflicts_with_all = ["in_process", "scripted"])]
     pub initialiser: Option<String>,
     /// Served: the map's scripted vehicles (the roundabout's six, with 1 s histories: the

@@ -7,8 +7,10 @@
 //! initialisation task (`initialise_histories`) from each `--initialiser-sigmas` (σ_max: from
 //! noise alone; lower: around the same placement). The vehicles' speed, lane offset, heading
 //! against the lane and gap to the vehicle ahead compare with the log's by Jensen–Shannon
-//! distance; overlapping and off-road shares beside. Intervals: bootstrap over scenes; every
-//! model row against the heuristic paired on the same scenes and placements.
+//! distance; overlapping and off-road shares beside; for each σ also what a served scene
+//! starts from (`sound_or`: a draw off the lanes or onto another agent keeps the refined
+//! placement). Intervals: bootstrap over scenes; the refinement against the heuristic and
+//! every initialiser row against the refinement, paired on the same scenes and placements.
 
 use std::process::ExitCode;
 use std::time::Instant;
@@ -40,16 +42,18 @@ struct SceneVehicles {
     by_source: Vec<Vec<InitialVehicle>>,
 }
 
-/// The source index of the log, and of the heuristic placement the model rows compare with.
+/// The source indices of the log, the heuristic placement and its refinement.
 const LOG: usize = 0;
 const HEURISTIC: usize = 1;
+const REFINED: usize = 2;
 
-/// A model row's JS distances minus the heuristic's, paired on the same scenes.
+/// A model row's JS distances minus another's, paired on the same scenes.
 #[derive(Debug, Serialize)]
 struct PairedRow {
     source: String,
+    minus: String,
     /// Speed, lane offset, heading offset, gap ahead.
-    minus_heuristic: Vec<Estimate>,
+    difference: Vec<Estimate>,
 }
 
 #[derive(Debug, Serialize)]
@@ -297,18 +301,23 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
             off_road_share: features[s].off_road_share(),
         });
     }
-    // Every model row minus the heuristic, paired on the same resampled scenes.
-    let heuristic = js_all(&features[HEURISTIC], &features[LOG]);
-    let paired: Vec<PairedRow> = (HEURISTIC + 1..sources.len())
+    // The refinement minus the heuristic and every initialiser row minus the refinement (the
+    // default before it), paired on the same resampled scenes.
+    let paired: Vec<PairedRow> = (REFINED..sources.len())
         .map(|s| {
-            let point = js_all(&features[s], &features[LOG]);
+            let base = if s == REFINED { HEURISTIC } else { REFINED };
+            let (point, reference) = (
+                js_all(&features[s], &features[LOG]),
+                js_all(&features[base], &features[LOG]),
+            );
             PairedRow {
                 source: sources[s].clone(),
-                minus_heuristic: (0..4)
+                minus: sources[base].clone(),
+                difference: (0..4)
                     .map(|k| {
                         estimate(
-                            point[k] - heuristic[k],
-                            draws.iter().map(|d| d[s][k] - d[HEURISTIC][k]).collect(),
+                            point[k] - reference[k],
+                            draws.iter().map(|d| d[s][k] - d[base][k]).collect(),
                         )
                     })
                     .collect(),
@@ -348,10 +357,11 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         );
     }
     for p in &paired {
-        let d = &p.minus_heuristic;
+        let d = &p.difference;
         out!(
-            "| {} − heuristic (paired) | {:.3} | {:.3} | {:.3} | {:.3} | | | |",
+            "| {} − {} (paired) | {:.3} | {:.3} | {:.3} | {:.3} | | | |",
             p.source,
+            p.minus,
             d[0],
             d[1],
             d[2],
@@ -373,7 +383,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
             "off_road_share": features[0].off_road_share()},
             "initialiser": initialiser.as_ref().map(|i| &i.meta.run.name),
             "initialiser_steps": args.initialiser_steps,
-            "rows": rows, "minus_heuristic": paired,
+            "rows": rows, "paired": paired,
         });
         std::fs::write(path, serde_json::to_string_pretty(&json)?)
             .with_context(|| format!("cannot write {}", path.display()))?;
