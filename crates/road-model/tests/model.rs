@@ -663,7 +663,14 @@ fn an_anchor_noisier_than_the_bound_is_no_frame() {
             .map(|k| if k < w || k % w >= 10 { drawn } else { 0.002 })
             .collect()
     };
-    let batch = |drawn| collate(&[scene.clone()], &[rows(drawn)], Some(&noise), &Device::Cpu);
+    let batch = |drawn| {
+        collate(
+            std::slice::from_ref(&scene),
+            &[rows(drawn)],
+            Some(&noise),
+            &Device::Cpu,
+        )
+    };
     let below = batch(0.05).unwrap();
     assert_eq!(
         denoise_flat(&bounded_model, &below),
