@@ -656,8 +656,8 @@ const PLACEMENT_STREAM: u64 = 0x0070_6c61_6365;
 const REFINEMENT_STREAM: u64 = 0x7265_6669_6e65;
 const INITIALISER_STREAM: u64 = 0x0064_7261_7773;
 
-/// The noise (σ, scene units of 40 m) the initialiser starts the refined placement at: about
-/// 4 m, the anchor bound of road20-init. Of 0.05, 0.1 and 0.25 it came closest to the
+/// The noise (σ, scene units of 40 m) the initialiser starts the placement at: about 4 m, the
+/// anchor bound of road20-init. Of 0.05, 0.1 and 0.25 it came closest to the
 /// recordings with the fallback (`road eval --suite initialisation --initialiser`,
 /// docs/results.md "Populating a map").
 const INITIALISER_SIGMA: f64 = 0.1;
@@ -685,9 +685,13 @@ fn initialiser(
             if !populate.refine {
                 return Ok(None);
             }
-            // Checked at the server's start; only its fit to this scene is left.
-            let Ok(model) = ctx.checkpoints.get(&name) else {
-                return Ok(None);
+            // Loaded and checked at the server's start; only its fit to this scene is left.
+            let model = match ctx.checkpoints.get(&name) {
+                Ok(model) => model,
+                Err(e) => {
+                    tracing::warn!(initialiser = %name, %e, "populate: placement refined only");
+                    return Ok(None);
+                }
             };
             return Ok(match fits(model, scene_model, n) {
                 Ok(()) => Some(model),
