@@ -25,8 +25,8 @@ use road_sim::closed_loop::{Controller, ExternalDriver, SceneTick, SimScene};
 use road_sim::geometry::OrientedBox;
 use road_sim::infractions::off_road;
 use road_sim::populate::{
-    Footprint, Inflow, Initialisation, PlacementOptions, Refinement, VehicleCount,
-    initialise_histories, place_vehicles, refine_histories, sound_or,
+    Footprint, Inflow, PlacementOptions, Refinement, VehicleCount, place_vehicles,
+    redraw_placement, refine_histories,
 };
 use road_sim::procedural::{ProceduralMap, STEP_SECS, procedural};
 
@@ -656,14 +656,6 @@ const PLACEMENT_STREAM: u64 = 0x0070_6c61_6365;
 const REFINEMENT_STREAM: u64 = 0x7265_6669_6e65;
 const INITIALISER_STREAM: u64 = 0x0064_7261_7773;
 
-/// The noise (σ, scene units of 40 m) the initialiser starts the placement at: about 4 m, the
-/// anchor bound of road20-init. Of 0.05, 0.1 and 0.25 it came closest to the
-/// recordings with the fallback (`road eval --suite initialisation --initialiser`,
-/// docs/results.md "Populating a map").
-const INITIALISER_SIGMA: f64 = 0.1;
-/// Its Heun steps down to σ_min.
-const INITIALISER_STEPS: usize = 32;
-
 /// The initialiser of a `populate` request: the checkpoint `populate.initialiser` names,
 /// loaded and checked (trained to draw whole vehicles, observing the scene's `n` steps on
 /// windows cut as the scene's checkpoint (`scene_model`) cuts them; `refine: false` excludes
@@ -778,10 +770,9 @@ fn fits(
     Ok(())
 }
 
-/// `placement` with its agents not `fixed` drawn anew by the initialiser `model`, each one
-/// that lands off the lanes or on another taking its history in `refined` instead
-/// (`road_sim::populate::{initialise_histories, sound_or}`; what `road eval --suite
-/// initialisation --initialiser` measures); which kept the draw.
+/// `placement` redrawn by the initialiser `model` as a served scene starts
+/// (`road_sim::populate::redraw_placement`; what `road eval --suite initialisation
+/// --initialiser` measures), with its own noise stream; which agents kept the draw.
 fn drawn(
     model: &LoadedModel,
     map: &LaneletMap,
@@ -791,18 +782,15 @@ fn drawn(
     seed: u64,
 ) -> road_sim::Result<(SceneWindow, Vec<bool>)> {
     let mut rng = StdRng::seed_from_u64(road_rollout::stream_seed(seed, INITIALISER_STREAM));
-    let drawn = initialise_histories(
+    redraw_placement(
         &model.model,
         &model.meta.run.planner.edm,
+        map,
         placement,
+        refined,
         fixed,
-        Initialisation {
-            sigma_start: INITIALISER_SIGMA,
-            steps: INITIALISER_STEPS,
-        },
         &mut rng,
-    )?;
-    sound_or(map, &drawn, refined, fixed)
+    )
 }
 
 /// `window` with the histories of the agents not `fixed` refined by the model (on a CPU

@@ -22,7 +22,9 @@
 
 mod initialise;
 
-pub use initialise::{Initialisation, initialise_histories, sound_or};
+pub use initialise::{
+    Initialisation, REDRAW_SIGMA, REDRAW_STEPS, initialise_histories, redraw_placement, sound_or,
+};
 
 use glam::DVec2;
 use rand::Rng;

@@ -13,6 +13,7 @@ use std::time::Instant;
 use anyhow::{Context, Result};
 use clap::Args;
 use rand::SeedableRng;
+use road_model::checkpoint::LoadedModel;
 use road_model::config::RunConfig;
 use road_sim::closed_loop::{ClosedLoop, Controller, SceneTick, SimScene};
 use road_sim::geometry::OrientedBox;
@@ -134,6 +135,7 @@ pub(crate) fn simulate_procedural(
     progress: bool,
     populate: Option<usize>,
     unrefined: bool,
+    initialiser: Option<&LoadedModel>,
 ) -> Result<ProceduralRun> {
     let model = &run.model;
     let n = run.planner.obs_slots;
@@ -141,7 +143,15 @@ pub(crate) fn simulate_procedural(
     let mut scene = procedural_turned(map, &window_config, n, rotation_rad)?;
     let mut engine = engines.engine()?;
     if let Some(count) = populate {
-        populate_scene(engine.as_dyn(), run, &mut scene, count, seed, !unrefined)?;
+        populate_scene(
+            engine.as_dyn(),
+            run,
+            &mut scene,
+            count,
+            seed,
+            !unrefined,
+            initialiser,
+        )?;
     }
     let agents = scene.window.agents;
     let mut controllers = vec![Controller::Model; agents];
@@ -195,8 +205,9 @@ pub(crate) fn simulate_procedural(
 }
 
 /// `scene`'s scripted vehicles replaced by `count` placed around its ego and refined by the
-/// model on `engine` (`road_sim::populate`); the ego becomes agent 0 and keeps the only route. Placement and refinement
-/// draw from `seed`'s stream 1.
+/// model on `engine` (`road_sim::populate`), then, with an `initialiser`, redrawn by it as a
+/// served scene's are (`redraw_placement`); the ego becomes agent 0 and keeps the only route.
+/// Placement, refinement and redraw draw from `seed`'s stream 1.
 pub(crate) fn populate_scene(
     engine: &mut dyn road_rollout::StepEngine,
     run: &RunConfig,
@@ -204,6 +215,7 @@ pub(crate) fn populate_scene(
     count: usize,
     seed: u64,
     refine: bool,
+    initialiser: Option<&LoadedModel>,
 ) -> Result<()> {
     use road_sim::populate::{
         PlacementOptions, Refinement, footprints, keep_agents, place_vehicles, refine_histories,
@@ -239,6 +251,17 @@ pub(crate) fn populate_scene(
         Refinement::for_model(run.train.augmentation_ratio),
         &mut rng,
     )?;
+    if let Some(init) = initialiser {
+        (scene.window, _) = road_sim::populate::redraw_placement(
+            &init.model,
+            &init.meta.run.planner.edm,
+            &scene.map,
+            &window,
+            &scene.window,
+            &fixed,
+            &mut rng,
+        )?;
+    }
     Ok(())
 }
 
@@ -330,6 +353,7 @@ pub fn run(args: DemoArgs) -> Result<ExitCode> {
         true,
         args.populate,
         false,
+        None,
     )?;
     let agents = scene.window.agents;
 

@@ -216,6 +216,34 @@ fn draw(
     Ok(out)
 }
 
+/// The σ (scene units) a served scene's placement is redrawn from: about 4 m, road20-init's
+/// anchor bound; of 0.05, 0.1 and 0.25 it came closest to the recordings with the fallback
+/// (`road eval --suite initialisation --initialiser`, docs/results.md "Populating a map").
+pub const REDRAW_SIGMA: f64 = 0.1;
+/// Heun steps of the redraw down to σ_min.
+pub const REDRAW_STEPS: usize = 32;
+
+/// What a served scene starts from (`CreateScene.populate`): `placement`'s agents not `fixed`
+/// drawn by the initialiser `model` from [`REDRAW_SIGMA`] (on its schedule `edm`), each draw
+/// that lands off `map`'s lanes or on another agent taking its history in `refined` (the same
+/// placement refined: [`sound_or`]); which agents kept the draw.
+pub fn redraw_placement(
+    model: &Denoiser,
+    edm: &EdmSchedule,
+    map: &LaneletMap,
+    placement: &SceneWindow,
+    refined: &SceneWindow,
+    fixed: &[bool],
+    rng: &mut StdRng,
+) -> Result<(SceneWindow, Vec<bool>)> {
+    let init = Initialisation {
+        sigma_start: REDRAW_SIGMA,
+        steps: REDRAW_STEPS,
+    };
+    let drawn = initialise_histories(model, edm, placement, fixed, init, rng)?;
+    sound_or(map, &drawn, refined, fixed)
+}
+
 /// `drawn` (a window of [`initialise_histories`]) with every drawn vehicle that ends off the
 /// lanes of `map`, or overlapping an agent decided before it or the fallback of one after it,
 /// replaced by its history in `fallback` (the same agents, mutually clear: the refined

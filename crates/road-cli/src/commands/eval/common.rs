@@ -97,6 +97,8 @@ pub struct EvalArgs {
     pub populate_unrefined: bool,
     /// Initialisation: also draw the scene's vehicles with this checkpoint (one trained with the
     /// initialisation task, e.g. `models/road20-init`), from each of `--initialiser-sigmas`.
+    /// Procedural and long, with `--populate`: the placed vehicles redrawn by it as a served
+    /// scene's are (from σ = 0.1, draws off the lanes or onto another keeping the refinement).
     #[arg(long)]
     pub initialiser: Option<PathBuf>,
     /// Initialisation: the σ (scene units, 40 m each) the initialiser's vehicles start at:
@@ -118,6 +120,29 @@ pub struct EvalArgs {
     /// sizes beside them (`<map>-seed<seed>.map.json`).
     #[arg(long)]
     pub trace: Option<PathBuf>,
+}
+
+/// The checkpoint of `--initialiser`, loaded and checked: trained to draw whole vehicles.
+pub(crate) fn load_initialiser(
+    args: &EvalArgs,
+) -> anyhow::Result<Option<road_model::checkpoint::LoadedModel>> {
+    let Some(dir) = &args.initialiser else {
+        return Ok(None);
+    };
+    let loaded = road_model::checkpoint::load(dir, &candle_core::Device::Cpu)
+        .map_err(|e| anyhow::anyhow!("--initialiser {}: {e}", dir.display()))?;
+    anyhow::ensure!(
+        loaded
+            .meta
+            .run
+            .model
+            .agent_frame
+            .as_ref()
+            .is_some_and(|f| f.max_anchor_sigma.is_some()),
+        "--initialiser {}: not trained to draw whole vehicles (no model.agent_frame.max_anchor_sigma)",
+        dir.display()
+    );
+    Ok(Some(loaded))
 }
 
 /// The procedural maps of `--maps` (all of them when none is named).

@@ -30,7 +30,7 @@ use road_sim::populate::{
 };
 use serde::Serialize;
 
-use super::common::{EvalArgs, SceneSelection, first_steps, select_scenes};
+use super::common::{EvalArgs, SceneSelection, first_steps, load_initialiser, select_scenes};
 use crate::commands::engine::{EngineChoice, Engines};
 use crate::commands::load_cache;
 
@@ -118,10 +118,8 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         args.min_agents,
         run.name
     );
-    let initialiser = match &args.initialiser {
-        Some(dir) => {
-            let loaded = road_model::checkpoint::load(dir, &candle_core::Device::Cpu)
-                .with_context(|| format!("--initialiser {}", dir.display()))?;
+    let initialiser = match load_initialiser(&args)? {
+        Some(loaded) => {
             for &sigma in &args.initialiser_sigmas {
                 let edm = &loaded.meta.run.planner.edm;
                 anyhow::ensure!(

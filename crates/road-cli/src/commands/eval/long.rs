@@ -112,6 +112,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         args.minutes,
         args.inflow_per_minute
     );
+    let initialiser = super::common::load_initialiser(&args)?;
     let mut summaries = Vec::new();
     let mut records = Vec::new();
     for dir in &args.checkpoints {
@@ -122,8 +123,16 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
             let mut sessions = Vec::new();
             for seed in args.seed..args.seed + args.seeds {
                 let started = Instant::now();
-                let start = session_start(&engines, &run, map, dataset.as_ref(), seed, &args)
-                    .with_context(|| format!("{}: {} seed {seed}", run.name, map.name()))?;
+                let start = session_start(
+                    &engines,
+                    &run,
+                    map,
+                    dataset.as_ref(),
+                    seed,
+                    &args,
+                    initialiser.as_ref(),
+                )
+                .with_context(|| format!("{}: {} seed {seed}", run.name, map.name()))?;
                 let stats = session(&engines, &run, map.name(), start, seed, ticks, &args)
                     .with_context(|| format!("{}: {} seed {seed}", run.name, map.name()))?;
                 let target = stats.0;
@@ -262,6 +271,7 @@ fn session_start(
     dataset: Option<&road_data::Dataset>,
     seed: u64,
     args: &EvalArgs,
+    initialiser: Option<&road_model::checkpoint::LoadedModel>,
 ) -> Result<SessionStart> {
     let n = run.planner.obs_slots;
     match map {
@@ -276,6 +286,7 @@ fn session_start(
                     count,
                     seed,
                     !args.populate_unrefined,
+                    initialiser,
                 )?;
             }
             Ok(SessionStart {

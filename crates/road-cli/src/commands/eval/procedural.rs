@@ -129,6 +129,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         args.procedural_steps,
         args.ego_speed_scale
     );
+    let initialiser = super::common::load_initialiser(&args)?;
     let mut summaries = Vec::new();
     let mut records = Vec::new();
     for dir in &args.checkpoints {
@@ -159,6 +160,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
                         false,
                         args.populate,
                         args.populate_unrefined,
+                        initialiser.as_ref(),
                     )
                     .with_context(|| {
                         format!(
