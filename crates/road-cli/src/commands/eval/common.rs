@@ -99,7 +99,7 @@ pub struct EvalArgs {
     /// initialisation task, e.g. `models/road20-init`), from each of `--initialiser-sigmas`.
     /// Procedural and long, with `--populate`: the placed vehicles redrawn by it as a served
     /// scene's are (from σ = 0.1, draws off the lanes or onto another keeping the refinement).
-    #[arg(long)]
+    #[arg(long, conflicts_with = "populate_unrefined")]
     pub initialiser: Option<PathBuf>,
     /// Initialisation: the σ (scene units, 40 m each) the initialiser's vehicles start at:
     /// σ_max (80) draws them from noise alone, a lower σ around the heuristic's placement.
