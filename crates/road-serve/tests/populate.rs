@@ -4,7 +4,7 @@
 
 mod common;
 
-use road_client::protocol::{CreateScene, MapSource, Populate};
+use road_client::protocol::{AgentInfo, AgentInit, CreateScene, MapSource, Populate};
 
 fn populate(vehicles: Option<u32>, per_100m: Option<f64>) -> Option<Populate> {
     Some(Populate {
@@ -13,6 +13,40 @@ fn populate(vehicles: Option<u32>, per_100m: Option<f64>) -> Option<Populate> {
         refine: true,
         initialiser: None,
     })
+}
+
+/// Every vehicle after the ego (the first agent) on the test map's lane at its last pose, and
+/// more than `min_gap_m` from every other agent (centre to centre).
+fn assert_on_the_lane_and_apart(agents: &[AgentInfo], min_gap_m: f64) {
+    for a in &agents[1..] {
+        let now = a.history.last().unwrap();
+        assert!(
+            (-0.5..=4.9).contains(&now.y_m) && (-1.0..=112.0).contains(&now.x_m),
+            "vehicle {} starts off the lane: {now:?}",
+            a.id
+        );
+        for b in agents.iter().filter(|b| b.id != a.id) {
+            let other = b.history.last().unwrap();
+            let gap = (now.x_m - other.x_m).hypot(now.y_m - other.y_m);
+            assert!(
+                gap > min_gap_m,
+                "vehicles {} and {} {gap:.1} m apart",
+                a.id,
+                b.id
+            );
+        }
+    }
+}
+
+/// Five ticks of the ego (id 7) replaying its history: four sane NPCs each.
+fn run_five_ticks(scene: &mut road_client::Scene, ego: &AgentInit) {
+    for t in 1..=5 {
+        let npc = scene
+            .step(t, vec![common::replay(&ego.history, 7, t)])
+            .unwrap();
+        assert_eq!(npc.npcs.len(), 4);
+        common::assert_sane(&npc, 500.0);
+    }
 }
 
 #[test]
@@ -39,29 +73,9 @@ fn a_map_and_an_ego_are_enough_for_a_populated_scene() {
     // others.
     let ids: Vec<u32> = agents[1..].iter().map(|a| a.id).collect();
     assert_eq!(ids, vec![8, 9, 10, 11]);
-    for a in &agents[1..] {
-        assert_eq!(a.history.len(), 10);
-        let now = a.history.last().unwrap();
-        assert!(
-            (-0.5..=4.9).contains(&now.y_m) && (-1.0..=112.0).contains(&now.x_m),
-            "vehicle {} placed off the lane: {now:?}",
-            a.id
-        );
-        for b in &agents {
-            if b.id != a.id {
-                let other = b.history.last().unwrap();
-                let gap = (now.x_m - other.x_m).hypot(now.y_m - other.y_m);
-                assert!(gap > 4.0, "vehicles {} and {} {gap:.1} m apart", a.id, b.id);
-            }
-        }
-    }
-    for t in 1..=5 {
-        let npc = scene
-            .step(t, vec![common::replay(&ego.history, 7, t)])
-            .unwrap();
-        assert_eq!(npc.npcs.len(), 4);
-        common::assert_sane(&npc, 500.0);
-    }
+    assert!(agents[1..].iter().all(|a| a.history.len() == 10));
+    assert_on_the_lane_and_apart(&agents, 4.0);
+    run_five_ticks(&mut scene, &ego);
     scene.close().unwrap();
 
     // A procedural map without its script: its ego (agent 1) and a density of vehicles.
@@ -108,28 +122,8 @@ fn the_initialiser_draws_the_placed_vehicles_around_the_ego() {
     let agents = scene.created().agents.clone();
     assert_eq!(agents.len(), 5, "{agents:?}");
     assert_eq!(agents[0].history, ego.history[ego.history.len() - 10..]);
-    for a in &agents[1..] {
-        let now = a.history.last().unwrap();
-        assert!(
-            (-0.5..=4.9).contains(&now.y_m) && (-1.0..=112.0).contains(&now.x_m),
-            "vehicle {} drawn off the lane: {now:?}",
-            a.id
-        );
-        for b in &agents {
-            if b.id != a.id {
-                let other = b.history.last().unwrap();
-                let gap = (now.x_m - other.x_m).hypot(now.y_m - other.y_m);
-                assert!(gap > 2.0, "vehicles {} and {} {gap:.1} m apart", a.id, b.id);
-            }
-        }
-    }
-    for t in 1..=5 {
-        let npc = scene
-            .step(t, vec![common::replay(&ego.history, 7, t)])
-            .unwrap();
-        assert_eq!(npc.npcs.len(), 4);
-        common::assert_sane(&npc, 500.0);
-    }
+    assert_on_the_lane_and_apart(&agents, 2.0);
+    run_five_ticks(&mut scene, &ego);
     scene.close().unwrap();
     // The same request and seed draw the same vehicles; without the initialiser they are the
     // refined placement, which the draw moved (not every vehicle fell back to it).

@@ -542,17 +542,7 @@ pub fn refine_histories(
     rng: &mut StdRng,
 ) -> Result<SceneWindow> {
     let (a, n, w) = (window.agents, window.steps, engine.window_slots());
-    if fixed.len() != a {
-        return Err(Error::Config(format!(
-            "{} fixed flags for {a} agents",
-            fixed.len()
-        )));
-    }
-    if n == 0 || n >= w {
-        return Err(Error::Config(format!(
-            "{n} history steps; the model's window has {w} slots"
-        )));
-    }
+    check_histories(window, fixed, w)?;
     if !(0.0..=1.0).contains(&refinement.u_start) || refinement.steps == 0 {
         return Err(Error::Config(format!(
             "refinement from u = {} in {} steps: u lies in [0, 1], steps ≥ 1",
@@ -560,11 +550,7 @@ pub fn refine_histories(
         )));
     }
     let input = SceneInput::from_window(window, 0, n, model);
-    let polylines = input.polylines.max(1);
-    let mut map = vec![0.0f32; polylines * input.points * 2];
-    map[..input.map.len()].copy_from_slice(&input.map);
-    let mut map_valid = vec![0.0f32; polylines];
-    map_valid[..input.polylines].fill(1.0);
+    let (polylines, map, map_valid) = padded_map(&input);
     engine.prepare(1, a, &input.agent_features, polylines, &map, &map_valid)?;
 
     // Window [A, W, 3]: history slots, then pure-noise future slots the model sees as such.
@@ -626,19 +612,62 @@ pub fn refine_histories(
             }
         }
     }
+    with_drawn_histories(window, fixed, &x, w, model.heading_scale, "refinement")
+}
+
+/// Checks a window of observed histories and its `fixed` flags against a model's `slots`.
+fn check_histories(window: &SceneWindow, fixed: &[bool], slots: usize) -> Result<()> {
+    let (a, n) = (window.agents, window.steps);
+    if fixed.len() != a {
+        return Err(Error::Config(format!(
+            "{} fixed flags for {a} agents",
+            fixed.len()
+        )));
+    }
+    if n == 0 || n >= slots {
+        return Err(Error::Config(format!(
+            "{n} history steps; the model's window has {slots} slots"
+        )));
+    }
+    Ok(())
+}
+
+/// One scene's map as a model takes it: (polylines, at least one; `[P, Q, 2]` points, padded;
+/// `[P]` flags).
+fn padded_map(input: &SceneInput) -> (usize, Vec<f32>, Vec<f32>) {
+    let polylines = input.polylines.max(1);
+    let mut map = vec![0.0f32; polylines * input.points * 2];
+    map[..input.map.len()].copy_from_slice(&input.map);
+    let mut map_valid = vec![0.0f32; polylines];
+    map_valid[..input.polylines].fill(1.0);
+    (polylines, map, map_valid)
+}
+
+/// `window` with the observed steps of its agents not `fixed` taken from sampled states
+/// `x [A, slots, 3]` (model units: headings times `heading_scale`); `what` names the sampler in
+/// the error a non-finite state gives.
+fn with_drawn_histories(
+    window: &SceneWindow,
+    fixed: &[bool],
+    x: &[f32],
+    slots: usize,
+    heading_scale: f64,
+    what: &str,
+) -> Result<SceneWindow> {
+    let n = window.steps;
     let mut out = window.clone();
-    let heading_scale = model.heading_scale as f32;
-    for agent in (0..a).filter(|&agent| !fixed[agent]) {
+    for agent in (0..window.agents).filter(|&agent| !fixed[agent]) {
         for slot in 0..n {
-            let k = 3 * (agent * w + slot);
-            let state = [x[k], x[k + 1], x[k + 2] / heading_scale];
+            let k = 3 * (agent * slots + slot);
+            let state = [x[k], x[k + 1], x[k + 2] / heading_scale as f32];
             if state.iter().any(|v| !v.is_finite()) {
                 return Err(Error::Config(format!(
-                    "refinement: agent {agent} step {slot} is not finite ({state:?})"
+                    "{what}: agent {agent} step {slot} is not finite ({state:?})"
                 )));
             }
             let o = 3 * (agent * n + slot);
             out.states[o..o + 3].copy_from_slice(&state);
+            out.valid[agent * n + slot] = true;
         }
     }
     Ok(out)

@@ -78,7 +78,8 @@ pub struct DemoArgs {
     #[arg(long, default_value_t = 1.0, requires = "in_process")]
     pub ego_speed_scale: f64,
     /// Instead of the map's scripted vehicles, this many placed on its lanes around the ego
-    /// and refined by the model (`CreateScene.populate`; `road_sim::populate` in process).
+    /// and refined by the model, served also redrawn by the initialiser
+    /// (`CreateScene.populate`; `road_sim::populate` in process).
     /// Served, the default is 7 (`--scripted`: the map's script instead); in process the
     /// script is the default.
     #[arg(long)]

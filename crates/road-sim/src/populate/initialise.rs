@@ -15,7 +15,7 @@ use road_model::batch::{SceneInput, normal_vec};
 use road_model::model::Mode;
 use road_sched::edm::EdmSchedule;
 
-use super::Footprint;
+use super::{Footprint, check_histories, padded_map, with_drawn_histories};
 use crate::{Error, Result};
 
 /// How [`initialise_histories`] samples.
@@ -62,17 +62,7 @@ pub fn initialise_histories(
             "this checkpoint was not trained to draw whole agents (its agent_frame has no max_anchor_sigma; use one trained with train.initialisation_task_prob, e.g. models/road20-init)".into(),
         ));
     }
-    if fixed.len() != a {
-        return Err(Error::Config(format!(
-            "{} fixed flags for {a} agents",
-            fixed.len()
-        )));
-    }
-    if n == 0 || n >= w {
-        return Err(Error::Config(format!(
-            "{n} history steps; the model's window has {w} slots"
-        )));
-    }
+    check_histories(window, fixed, w)?;
     if !(init.sigma_start > edm.sigma_min && init.sigma_start <= edm.sigma_max) || init.steps == 0 {
         return Err(Error::Config(format!(
             "initialisation from σ = {} in {} steps: σ lies in (σ_min, σ_max] = ({}, {}], steps ≥ 1",
@@ -82,27 +72,24 @@ pub fn initialise_histories(
     if a == 0 || fixed.iter().all(|&f| f) {
         return Ok(window.clone());
     }
-    Ok(draw(model, edm, window, fixed, init, rng)?)
+    let input = SceneInput::from_window(window, 0, n, config);
+    let x = sample(model, edm, &input, fixed, init, rng)?;
+    with_drawn_histories(window, fixed, &x, w, config.heading_scale, "initialisation")
 }
 
-/// [`initialise_histories`] past its checks.
-fn draw(
+/// The sampler of [`initialise_histories`] past its checks: the scene's drawn states
+/// `[A, W, 3]` (model units).
+fn sample(
     model: &Denoiser,
     edm: &EdmSchedule,
-    window: &SceneWindow,
+    input: &SceneInput,
     fixed: &[bool],
     init: Initialisation,
     rng: &mut StdRng,
-) -> road_model::Result<SceneWindow> {
-    let config = &model.config;
-    let (a, n, w) = (window.agents, window.steps, config.window_slots);
+) -> road_model::Result<Vec<f32>> {
+    let (a, n, w) = (input.agents, input.slots, model.config.window_slots);
     let device = Device::Cpu;
-    let input = SceneInput::from_window(window, 0, n, config);
-    let polylines = input.polylines.max(1);
-    let mut map = vec![0.0f32; polylines * input.points * 2];
-    map[..input.map.len()].copy_from_slice(&input.map);
-    let mut map_valid = vec![0.0f32; polylines];
-    map_valid[..input.polylines].fill(1.0);
+    let (polylines, map, map_valid) = padded_map(input);
     let map = Tensor::from_vec(map, (1, polylines, input.points, 2), &device)?;
     let map_valid = Tensor::from_vec(map_valid, (1, polylines), &device)?;
     let map_tokens = model.encode_map(&map, Mode::Infer)?;
@@ -196,24 +183,7 @@ fn draw(
     }
     // The last level's denoised estimate: x itself still carries σ_min's noise (8 cm at
     // σ_min = 0.002 of 40 m), which a history's 0.1 s steps read as ±1 m/s.
-    let x = denoise(&x, &sigma_of(edm.sigma_min as f32))?;
-    let mut out = window.clone();
-    let heading_scale = config.heading_scale as f32;
-    for agent in (0..a).filter(|&agent| !fixed[agent]) {
-        for slot in 0..n {
-            let k = 3 * (agent * w + slot);
-            let state = [x[k], x[k + 1], x[k + 2] / heading_scale];
-            if state.iter().any(|v| !v.is_finite()) {
-                return Err(road_model::Error::data(format!(
-                    "initialisation: agent {agent} step {slot} is not finite ({state:?})"
-                )));
-            }
-            let o = 3 * (agent * n + slot);
-            out.states[o..o + 3].copy_from_slice(&state);
-            out.valid[agent * n + slot] = true;
-        }
-    }
-    Ok(out)
+    denoise(&x, &sigma_of(edm.sigma_min as f32))
 }
 
 /// The σ (scene units) a served scene's placement is redrawn from: about 4 m, road20-init's
