@@ -517,4 +517,54 @@ mod tests {
         guard_step(&mut agents, &settings(10, false));
         assert_eq!(agents[0].proposed.x_m, 0.0);
     }
+    #[test]
+    fn a_car_pinned_at_the_clearance_on_both_sides_slides_out_along_them() {
+        // Issue 39's intersection gridlock (long suite, intersection, seed 1, tick 705): a car
+        // crossing the box with one car beside it and another's nose at its flank, both 1 cm
+        // off (the clearance the guard leaves). Driving on slides it along both outlines; the
+        // gaps stay 1 cm up to rounding, and it stood 20 s while each step was cut to nothing.
+        let car = |x_m, y_m, heading_rad, length_m, width_m| GuardAgent {
+            before: Pose {
+                x_m,
+                y_m,
+                heading_rad,
+            },
+            proposed: Pose {
+                x_m,
+                y_m,
+                heading_rad,
+            },
+            length_m,
+            width_m,
+            movable: true,
+            anticipates_model_agents: true,
+        };
+        let pinned = car(
+            2.2632816667943962,
+            -0.5434322348499299,
+            0.04600119590759277,
+            4.453240312284435,
+            1.855033189760026,
+        );
+        let nose_at_its_flank = car(
+            0.06290706352291187,
+            -4.009605645265579,
+            1.8930561542510986,
+            4.5,
+            1.899999976158142,
+        );
+        let beside = car(
+            2.0822565491586693,
+            2.044001222524643,
+            -2.776254892349243,
+            4.800000190734863,
+            1.899999976158142,
+        );
+        let mut agents = [nose_at_its_flank, beside, pinned];
+        let step = DVec2::from_angle(pinned.before.heading_rad) * 0.02;
+        agents[2].proposed = shifted(pinned.before, step);
+        let actions = guard_step(&mut agents, &settings(0, false));
+        assert!(actions.is_empty(), "{actions:?}");
+        assert_eq!(agents[2].proposed, shifted(pinned.before, step));
+    }
 }

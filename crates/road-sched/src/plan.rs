@@ -260,10 +260,13 @@ pub struct LaneAnticipation {
 /// The stall release's settings ([`PlannerSpec::stall_release`]): a model-driven vehicle
 /// slower than 0.3 m/s for `after_secs` with no vehicle within 15 m ahead of it (3 m either
 /// side of its axis) pulls away along its heading at `acceleration_mps2` until it drives
-/// `release_speed_mps`, or the model drives it faster, or something comes within 15 m ahead;
-/// the lane and collision guards still apply to its steps. The recordings' model stops
-/// vehicles where traffic ahead of them lies beyond its map crop; on an open road that stop
-/// never ends.
+/// `release_speed_mps`, or the model drives it faster (on a step that keeps clear of everyone),
+/// or something comes within 15 m ahead; the lane and collision guards still apply to its
+/// steps. The recordings' model stops vehicles where traffic ahead of them lies beyond its map
+/// crop; on an open road that stop never ends. A gridlock (standing vehicles each in the path
+/// of the one before, round to the first: `road_sim::free_road::BlockedPaths`) has no free
+/// road: after `after_secs` its lowest-numbered vehicle is pulled away all the same, not
+/// braking ahead of the others, and those standing in its path make room.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct StallRelease {
@@ -278,8 +281,9 @@ pub struct StallRelease {
 /// The stuck removal's settings ([`PlannerSpec::stuck_removal`]), the last resort of long
 /// sessions, as SUMO's teleport of vehicles stuck in a jam: a model-driven vehicle that has
 /// stood (slower than 0.3 m/s) with free road ahead (no vehicle within 15 m ahead, 3 m either
-/// side of its axis) for `after_secs` of ticks in which the closed loop's guards or releases
-/// acted on it (a wedge or gridlock their rules did not undo), without moving in between,
+/// side of its axis) or in a gridlock (see [`StallRelease`]) for `after_secs` of ticks in
+/// which the closed loop's guards or releases acted on it (a wedge or gridlock their rules did
+/// not undo), without moving in between,
 /// leaves the scene, when no client-driven agent is within `clear_of_external_m` (nobody near
 /// the ego sees a vehicle vanish). Vehicles queued behind another are never taken out. Only in
 /// scenes whose vehicles leave (served scenes, `road demo`, the long suite).

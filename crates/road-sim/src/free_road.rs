@@ -1,9 +1,12 @@
 //! Whether a vehicle stands with free road ahead: what the stall release
-//! (`road_sched::StallRelease`) and the long sessions' counts (`crate::session`) both ask.
+//! (`road_sched::StallRelease`) and the long sessions' counts (`crate::session`) both ask. The
+//! release asks the centre rule ([`road_ahead_free`]); the counts ask what stands in the
+//! vehicle's own path ([`BlockedPaths`]), which also finds gridlocks.
 
 use glam::DVec2;
 
 use crate::Pose;
+use crate::geometry::OrientedBox;
 
 /// Slower than this, a vehicle is stopped (m/s).
 pub const STOPPED_MAX_SPEED_MPS: f64 = 0.3;
@@ -11,6 +14,9 @@ pub const STOPPED_MAX_SPEED_MPS: f64 = 0.3;
 /// distance ahead of it (metres), within [`FREE_ROAD_HALF_WIDTH_M`] of its axis.
 pub const FREE_ROAD_AHEAD_M: f64 = 15.0;
 pub const FREE_ROAD_HALF_WIDTH_M: f64 = 3.0;
+/// A vehicle's path: its own width and this much on each side (metres), from its centre to
+/// [`FREE_ROAD_AHEAD_M`] ahead of it.
+pub const PATH_MARGIN_M: f64 = 0.3;
 
 /// Whether no other present vehicle's centre lies ahead of `agent` within
 /// [`FREE_ROAD_AHEAD_M`] and [`FREE_ROAD_HALF_WIDTH_M`] of its axis.
@@ -23,4 +29,176 @@ pub fn road_ahead_free(agent: usize, poses: &[Pose], present: &[usize]) -> bool 
         let across = d.perp_dot(forward).abs();
         !(along > 0.0 && along <= FREE_ROAD_AHEAD_M && across <= FREE_ROAD_HALF_WIDTH_M)
     })
+}
+
+/// For one tick, what stands in each present vehicle's way, by footprint: a vehicle turned
+/// across another's path has its centre beside that path and its tail in it, and the centre
+/// rule alone ([`road_ahead_free`]) called the one behind it free (8 of issue 39's 9 long
+/// stops "with free road ahead" in the 2026-11-27 sessions stood behind such a tail).
+#[derive(Debug, Clone)]
+pub struct BlockedPaths {
+    /// Per agent (indexed like the poses; empty for absent ones): the present vehicles whose
+    /// box lies in its path ([`PATH_MARGIN_M`]).
+    in_path: Vec<Vec<usize>>,
+    /// Per agent: whether another present vehicle's centre lies ahead by the centre rule.
+    centre_ahead: Vec<bool>,
+}
+
+impl BlockedPaths {
+    /// `size_m[a]` is agent `a`'s `[length, width]` (metres); `present` the agents in the scene.
+    pub fn new(poses: &[Pose], size_m: &[[f64; 2]], present: &[usize]) -> Self {
+        let box_of = |a: usize, pose: Pose, grow_width_m: f64, length_m: f64| OrientedBox {
+            pose,
+            length_m,
+            width_m: size_m[a][1] + 2.0 * grow_width_m,
+        };
+        let mut in_path = vec![Vec::new(); poses.len()];
+        let mut centre_ahead = vec![false; poses.len()];
+        for &a in present {
+            let me = poses[a];
+            let forward = DVec2::from_angle(me.heading_rad);
+            // From the centre to FREE_ROAD_AHEAD_M ahead: a box centred half way.
+            let path = box_of(
+                a,
+                Pose::at(
+                    me.position_m() + forward * (FREE_ROAD_AHEAD_M / 2.0),
+                    me.heading_rad,
+                ),
+                PATH_MARGIN_M,
+                FREE_ROAD_AHEAD_M,
+            );
+            let reach_m = FREE_ROAD_AHEAD_M + size_m[a][1] + PATH_MARGIN_M;
+            in_path[a] = present
+                .iter()
+                .copied()
+                .filter(|&b| {
+                    b != a
+                        && poses[b].position_m().distance(me.position_m())
+                            <= reach_m + 0.5 * size_m[b][0].hypot(size_m[b][1])
+                        && path.overlaps(&box_of(b, poses[b], 0.0, size_m[b][0]))
+                })
+                .collect();
+            centre_ahead[a] = !road_ahead_free(a, poses, present);
+        }
+        Self {
+            in_path,
+            centre_ahead,
+        }
+    }
+
+    /// No vehicle's box in its path and no vehicle's centre ahead by the centre rule.
+    pub fn road_ahead_free(&self, agent: usize) -> bool {
+        self.in_path[agent].is_empty() && !self.centre_ahead[agent]
+    }
+
+    /// The vehicles whose box lies in its path.
+    pub fn in_path(&self, agent: usize) -> &[usize] {
+        &self.in_path[agent]
+    }
+
+    /// Whether `agent` stands in a gridlock: it is on a cycle of standing vehicles, each with
+    /// the next in its path (`standing[b]` for every agent). No brake undoes one, and its
+    /// vehicles' roads are never free: counted with the stops with free road ahead, a
+    /// deadlock cannot hide. A vehicle queued behind a gridlock is not on the cycle.
+    pub fn in_gridlock(&self, agent: usize, standing: &[bool]) -> bool {
+        standing[agent] && self.reached_from(agent, standing)[agent]
+    }
+
+    /// The vehicles of `agent`'s gridlock ([`Self::in_gridlock`]), itself included, in index
+    /// order: every standing vehicle on a cycle through it. Empty when it is in none.
+    pub fn gridlock(&self, agent: usize, standing: &[bool]) -> Vec<usize> {
+        let from_agent = self.reached_from(agent, standing);
+        if !standing[agent] || !from_agent[agent] {
+            return Vec::new();
+        }
+        (0..self.in_path.len())
+            .filter(|&b| {
+                standing[b]
+                    && from_agent[b]
+                    && (b == agent || self.reached_from(b, standing)[agent])
+            })
+            .collect()
+    }
+
+    /// Per agent: whether a chain of paths from `agent` reaches it, every vehicle on the way
+    /// (the last one aside) standing.
+    fn reached_from(&self, agent: usize, standing: &[bool]) -> Vec<bool> {
+        let mut reached = vec![false; self.in_path.len()];
+        let mut stack: Vec<usize> = self.in_path[agent].clone();
+        while let Some(b) = stack.pop() {
+            if reached[b] {
+                continue;
+            }
+            reached[b] = true;
+            if standing[b] && b != agent {
+                stack.extend(self.in_path[b].iter().copied());
+            }
+        }
+        reached
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn pose(x_m: f64, y_m: f64, heading_deg: f64) -> Pose {
+        Pose {
+            x_m,
+            y_m,
+            heading_rad: heading_deg.to_radians(),
+        }
+    }
+
+    const CAR: [f64; 2] = [4.5, 1.8];
+
+    #[test]
+    fn a_tail_turned_across_the_path_blocks_it_and_a_car_beside_the_lane_does_not() {
+        // Car 0 east at the origin; car 1 turned away to the south, its centre 3.3 m right of
+        // car 0's axis and 3 m ahead, its tail in car 0's path; car 2 in the next lane, 3.5 m
+        // to the left.
+        let poses = [
+            pose(0.0, 0.0, 0.0),
+            pose(3.0, -3.3, -90.0),
+            pose(2.0, 3.5, 0.0),
+        ];
+        let present = [0, 1, 2];
+        assert!(
+            road_ahead_free(0, &poses, &present),
+            "the centre rule misses it"
+        );
+        let paths = BlockedPaths::new(&poses, &[CAR; 3], &present);
+        assert_eq!(paths.in_path(0), &[1]);
+        assert!(!paths.road_ahead_free(0));
+        assert!(paths.road_ahead_free(2));
+        // Alone, car 0's road is free again.
+        let alone = BlockedPaths::new(&poses, &[CAR; 3], &[0, 2]);
+        assert!(alone.road_ahead_free(0));
+    }
+
+    #[test]
+    fn standing_cars_each_in_the_next_one_s_path_are_a_gridlock_and_a_queue_behind_is_not() {
+        // Cars 0–3 round a 10 m square, each pointing at the next one's flank (the four arms
+        // of a crossing blocked box); car 4 queued 8 m behind car 0.
+        let poses = [
+            pose(0.0, 0.0, 0.0),
+            pose(6.0, 0.0, 90.0),
+            pose(6.0, 6.0, 180.0),
+            pose(0.0, 6.0, 270.0),
+            pose(-8.0, 0.0, 0.0),
+        ];
+        let present = [0, 1, 2, 3, 4];
+        let paths = BlockedPaths::new(&poses, &[CAR; 5], &present);
+        let standing = [true; 5];
+        for a in 0..4 {
+            assert!(paths.in_gridlock(a, &standing), "car {a}");
+        }
+        assert!(!paths.in_gridlock(4, &standing), "queued behind it");
+        assert_eq!(paths.gridlock(2, &standing), vec![0, 1, 2, 3]);
+        assert!(paths.gridlock(4, &standing).is_empty());
+        // One of them moving: no gridlock.
+        let mut one_moving = standing;
+        one_moving[2] = false;
+        assert!((0..4).all(|a| !paths.in_gridlock(a, &one_moving)));
+    }
 }

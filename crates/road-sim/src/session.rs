@@ -8,7 +8,7 @@ use serde::Serialize;
 
 use crate::Pose;
 use crate::closed_loop::SceneTick;
-use crate::free_road::{STOPPED_MAX_SPEED_MPS, road_ahead_free};
+use crate::free_road::{BlockedPaths, STOPPED_MAX_SPEED_MPS};
 use road_planner::collision_guard::GuardAction;
 
 /// Seconds per tick (10 Hz).
@@ -31,10 +31,16 @@ pub struct SessionStats {
     /// A pair of present vehicles starting to overlap.
     pub collision_events: u64,
     /// Stops with free road ahead that lasted [`LONG_STOP_SECS`] or more, and the longest.
+    /// Free road: no vehicle's box in the vehicle's path and no centre ahead by the centre
+    /// rule ([`crate::free_road::BlockedPaths`]); a vehicle in a gridlock (on a cycle of
+    /// standing vehicles, each in the path of the one before) counts as stopped with free
+    /// road too: nothing ahead of it will ever move.
     pub long_free_stops: u64,
     pub longest_free_stop_secs: f64,
     /// Vehicles whose heading turned more than [`LAP_TURN_RAD`] in all (net).
     pub ring_laps: u64,
+    /// Of the long stops, those in a gridlock for one tick or more.
+    pub long_gridlock_stops: u64,
     /// Ticks vehicles stood with free road ahead, by what held them that tick: the collision
     /// guard (braked or stopped short: a vehicle beside or crossing, not ahead), the lane
     /// guard at the road's edge, or neither (the model's own stop).
@@ -58,6 +64,11 @@ pub struct SessionStats {
     #[serde(skip)]
     free_stop_ticks: Vec<u32>,
     #[serde(skip)]
+    gridlocked: Vec<bool>,
+    /// Each agent's `[length, width]` (metres).
+    #[serde(skip)]
+    size_m: Vec<[f64; 2]>,
+    #[serde(skip)]
     turned_rad: Vec<f64>,
     #[serde(skip)]
     lapped: Vec<bool>,
@@ -69,14 +80,15 @@ pub struct SessionStats {
 }
 
 impl SessionStats {
-    /// A session whose first `agents` agents are present, `excluded` (an ego) not counted.
-    pub fn new(agents: usize, excluded: &[usize]) -> Self {
+    /// A session whose agents of sizes `size_m` (`[length, width]`, metres) are present,
+    /// `excluded` (an ego) not counted.
+    pub fn new(size_m: &[[f64; 2]], excluded: &[usize]) -> Self {
         let mut s = Self {
             excluded: excluded.to_vec(),
             ..Self::default()
         };
-        for a in 0..agents {
-            s.entered_quietly(a);
+        for (a, &size) in size_m.iter().enumerate() {
+            s.entered_quietly(a, size);
         }
         s
     }
@@ -88,13 +100,17 @@ impl SessionStats {
             self.off.resize(n, false);
             self.last.resize(n, None);
             self.free_stop_ticks.resize(n, 0);
+            self.gridlocked.resize(n, false);
+            self.size_m.resize(n, [0.0; 2]);
             self.turned_rad.resize(n, 0.0);
             self.lapped.resize(n, false);
         }
     }
 
-    fn entered_quietly(&mut self, agent: usize) {
+    fn entered_quietly(&mut self, agent: usize, size_m: [f64; 2]) {
         self.grow(agent);
+        self.size_m[agent] = size_m;
+        self.gridlocked[agent] = false;
         self.present[agent] = !self.excluded.contains(&agent);
         self.off[agent] = false;
         self.last[agent] = None;
@@ -104,10 +120,11 @@ impl SessionStats {
         self.overlapping.retain(|&(i, j)| i != agent && j != agent);
     }
 
-    /// A vehicle joined as agent `agent` (a new index or a retired one's).
-    pub fn entered(&mut self, agent: usize) {
+    /// A vehicle of `size_m` (`[length, width]`, metres) joined as agent `agent` (a new index
+    /// or a retired one's).
+    pub fn entered(&mut self, agent: usize, size_m: [f64; 2]) {
         self.entered += 1;
-        self.entered_quietly(agent);
+        self.entered_quietly(agent, size_m);
     }
 
     /// Present vehicles now.
@@ -155,6 +172,16 @@ impl SessionStats {
             .collect();
         self.collision_events += pairs.difference(&self.overlapping).count() as u64;
         self.overlapping = pairs;
+        let standing: Vec<bool> = (0..tick.poses.len())
+            .map(|a| {
+                self.present[a]
+                    && self.last[a].is_some_and(|last| {
+                        (tick.poses[a].position_m() - last.position_m()).length() / STEP_SECS
+                            < STOPPED_MAX_SPEED_MPS
+                    })
+            })
+            .collect();
+        let paths = BlockedPaths::new(&tick.poses, &self.size_m, &present);
         for &a in &present {
             let pose = tick.poses[a];
             if let Some(last) = self.last[a] {
@@ -167,9 +194,10 @@ impl SessionStats {
                     self.lapped[a] = true;
                     self.ring_laps += 1;
                 }
-                let speed = (pose.position_m() - last.position_m()).length() / STEP_SECS;
-                if speed < STOPPED_MAX_SPEED_MPS && road_ahead_free(a, &tick.poses, &present) {
+                let gridlocked = paths.in_gridlock(a, &standing);
+                if standing[a] && (paths.road_ahead_free(a) || gridlocked) {
                     self.free_stop_ticks[a] += 1;
+                    self.gridlocked[a] |= gridlocked;
                     let held = |what: &[GuardAction]| {
                         tick.guarded
                             .iter()
@@ -194,12 +222,14 @@ impl SessionStats {
         let secs = f64::from(self.free_stop_ticks[agent]) * STEP_SECS;
         if secs >= LONG_STOP_SECS {
             self.long_free_stops += 1;
+            self.long_gridlock_stops += u64::from(self.gridlocked[agent]);
             if let (Some(p), true) = (self.last[agent], self.long_free_stop_places.len() < 100) {
                 self.long_free_stop_places.push([p.x_m, p.y_m]);
             }
         }
         self.longest_free_stop_secs = self.longest_free_stop_secs.max(secs);
         self.free_stop_ticks[agent] = 0;
+        self.gridlocked[agent] = false;
     }
 
     /// Ends the session: stops still going count.
@@ -218,6 +248,8 @@ impl SessionStats {
 
 #[cfg(test)]
 mod tests {
+    use std::f64::consts::{FRAC_PI_2, PI};
+
     use super::*;
 
     fn pose(x: f64, y: f64, heading: f64) -> Pose {
@@ -227,6 +259,8 @@ mod tests {
             heading_rad: heading,
         }
     }
+
+    const CAR: [f64; 2] = [4.5, 1.8];
 
     fn tick(poses: Vec<Pose>) -> SceneTick {
         SceneTick {
@@ -238,7 +272,7 @@ mod tests {
     #[test]
     fn a_vehicle_stopped_with_free_road_counts_and_one_queued_does_not() {
         // Vehicle 0 stands alone; vehicle 1 stands 8 m behind vehicle 2, which stands too.
-        let mut stats = SessionStats::new(3, &[]);
+        let mut stats = SessionStats::new(&[CAR; 3], &[]);
         for _ in 0..150 {
             stats.tick(&tick(vec![
                 pose(0.0, 50.0, 0.0),
@@ -255,8 +289,35 @@ mod tests {
     }
 
     #[test]
+    fn a_vehicle_behind_a_tail_across_its_path_is_queued_and_a_gridlock_counts() {
+        // Vehicle 0 stands behind vehicle 1's tail (1 turned away across 0's path, its
+        // centre 3.3 m off 0's axis): queued. Vehicle 1 has free road: it counts.
+        let behind_a_tail = vec![pose(0.0, 0.0, 0.0), pose(3.0, -3.3, -FRAC_PI_2)];
+        let mut stats = SessionStats::new(&[CAR; 2], &[]);
+        for _ in 0..150 {
+            stats.tick(&tick(behind_a_tail.clone()));
+        }
+        stats.finish();
+        assert_eq!((stats.long_free_stops, stats.long_gridlock_stops), (1, 0));
+        // Four vehicles round a 6 m square, each nose at the next one's flank, stand 15 s:
+        // none has free road, all four are in a gridlock and count.
+        let square = vec![
+            pose(0.0, 0.0, 0.0),
+            pose(6.0, 0.0, FRAC_PI_2),
+            pose(6.0, 6.0, PI),
+            pose(0.0, 6.0, -FRAC_PI_2),
+        ];
+        let mut stats = SessionStats::new(&[CAR; 4], &[]);
+        for _ in 0..150 {
+            stats.tick(&tick(square.clone()));
+        }
+        stats.finish();
+        assert_eq!((stats.long_free_stops, stats.long_gridlock_stops), (4, 4));
+    }
+
+    #[test]
     fn events_count_once_and_left_vehicles_stop_counting() {
-        let mut stats = SessionStats::new(2, &[]);
+        let mut stats = SessionStats::new(&[CAR; 2], &[]);
         let mut t = tick(vec![pose(0.0, 0.0, 0.0), pose(2.0, 0.0, 0.0)]);
         t.collisions = vec![(0, 1)];
         t.off_road = vec![1];
@@ -268,7 +329,7 @@ mod tests {
         stats.tick(&gone);
         assert_eq!((stats.left, stats.removed_stuck), (1, 0));
         assert_eq!(stats.vehicles(), 1);
-        stats.entered(1);
+        stats.entered(1, CAR);
         assert_eq!((stats.entered, stats.vehicles()), (1, 2));
         // Taken out stuck: it leaves, and counts as removed once.
         let mut removed = tick(vec![pose(0.0, 0.0, 0.0), pose(2.0, 0.0, 0.0)]);
@@ -282,7 +343,7 @@ mod tests {
 
     #[test]
     fn a_vehicle_that_keeps_circling_has_lapped() {
-        let mut stats = SessionStats::new(1, &[]);
+        let mut stats = SessionStats::new(&[CAR], &[]);
         for k in 0..200 {
             let angle = f64::from(k) * 0.05;
             stats.tick(&tick(vec![pose(

@@ -6,6 +6,8 @@
 //! on at a set speed (each future slot the newest observation, moved on along its heading), so
 //! that only the rules under test move anyone.
 
+use std::f64::consts::PI;
+
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 use road_data::WindowConfig;
@@ -441,6 +443,40 @@ fn wedge_planner() -> PlannerSpec {
 }
 
 #[test]
+fn two_vehicles_standing_nose_to_nose_are_undone_by_the_gridlock_release() {
+    // Vehicle 0 (4.6 m) along the main road, vehicle 1 (4.8 m) facing it, 0.6 m between their
+    // noses, both standing (the engine plans standstill): each is in the other's path, so
+    // neither has free road ahead and the stall release alone never moves them (issue 39's
+    // long sessions had such pairs stand for minutes). In a gridlock the lower index has the
+    // way: 0 is pulled away, 1 makes room backwards, without a collision.
+    let stands = [(0, -40.0, 0.0, 0.0), (1, -40.0 + 2.3 + 0.6 + 2.4, 0.0, PI)];
+    let without_release = PlannerSpec {
+        stall_release: None,
+        ..wedge_planner()
+    };
+    let still = run_with(&without_release, &[0, 2], &stands, 150);
+    assert!(moved_m(&still, 0, 1) < 0.01 && moved_m(&still, 1, 1) < 0.01);
+    let ticks = run_with(&wedge_planner(), &[0, 2], &stands, 250);
+    assert!(
+        ticks.iter().all(|t| t.collisions.is_empty()),
+        "no collision"
+    );
+    let first = |a, action| ticks.iter().position(|t| t.guarded.contains(&(a, action)));
+    // On the 30th tick it stood (it stood over its whole history: tick 0 is the first).
+    assert_eq!(first(0, GuardAction::PulledAway), Some(29), "0 has the way");
+    assert!(first(1, GuardAction::BackedOff).is_some(), "1 makes room");
+    assert_eq!(first(1, GuardAction::PulledAway), None);
+    let last = ticks.last().unwrap();
+    assert!(last.poses[0].x_m > -38.0, "0 drove on: {:?}", last.poses[0]);
+    assert!(
+        last.poses[1].x_m > stands[1].1 + 1.0,
+        "1 backed away: {:?}",
+        last.poses[1]
+    );
+    assert!(ticks.iter().all(|t| t.off_road.is_empty()));
+}
+
+#[test]
 fn a_vehicle_asked_to_make_room_by_one_behind_it_moves_forwards() {
     // As above, but vehicle 1 faces away from 0 (its tail 1 cm from 0's rear-right corner)
     // and vehicle 2 stands 8 m ahead of it, facing it: neither has free road ahead, so only
@@ -460,8 +496,13 @@ fn a_vehicle_asked_to_make_room_by_one_behind_it_moves_forwards() {
         ticks.iter().all(|t| t.collisions.is_empty()),
         "no collision"
     );
+    // (Once 0 has driven on, 1, turned against its lane and out of its gridlock with 2, may
+    // turn round and follow.)
     assert!(
-        ticks[1..].iter().all(|t| t.poses[1].x_m <= x1 + 1e-3),
+        ticks[1..]
+            .iter()
+            .filter(|t| t.poses[0].x_m < wedged.x_m + 3.0)
+            .all(|t| t.poses[1].x_m <= x1 + 1e-3),
         "1 never backs towards 0"
     );
     assert!(

@@ -11,6 +11,7 @@ use road_sched::{CollisionGuard, StallRelease, StuckRemoval};
 
 use super::{Controller, STEP_SECS, SceneRuntime, set_emitted};
 use crate::Pose;
+use crate::free_road::BlockedPaths;
 use crate::geometry::OrientedBox;
 
 /// What the stall release ([`StallRelease`]) and the collision guard's deadlock release
@@ -21,6 +22,8 @@ pub(super) struct HeldMemory {
     pub(super) stalled_ticks: u32,
     /// Whether the stall release is pulling it away.
     pub(super) pulling_away: bool,
+    /// Whether that pull-away has the way out of a gridlock (it goes on with vehicles ahead).
+    pub(super) pulling_out_of_gridlock: bool,
     /// The way the stall release turns it in place (+1 counter-clockwise, −1 clockwise; 0 when
     /// it does not).
     pub(super) spin_sign: i8,
@@ -53,6 +56,7 @@ impl SceneRuntime<'_> {
         let present: Vec<usize> = (0..self.controllers.len())
             .filter(|&b| !self.retired[b])
             .collect();
+        let (paths, standing) = self.blocked_paths(&present);
         let externals: Vec<DVec2> = present
             .iter()
             .filter(|&&b| self.controllers[b] == Controller::External)
@@ -67,7 +71,8 @@ impl SceneRuntime<'_> {
                 continue;
             }
             if self.guarded.iter().any(|&(b, _)| b == a)
-                && crate::free_road::road_ahead_free(a, &self.poses, &present)
+                && (crate::free_road::road_ahead_free(a, &self.poses, &present)
+                    || paths.in_gridlock(a, &standing))
             {
                 self.held[a].stuck_ticks += 1;
             }
@@ -97,6 +102,7 @@ impl SceneRuntime<'_> {
             .filter(|&a| !self.retired[a])
             .collect();
         let after_ticks = (release.after_secs / STEP_SECS).round() as u32;
+        let (paths, standing) = self.blocked_paths(&present);
         let mut make_room = Vec::new();
         for &a in &present {
             if self.controllers[a] != Controller::Model || self.overrides[a].is_some() {
@@ -105,9 +111,18 @@ impl SceneRuntime<'_> {
             let before = self.poses[a];
             let proposed = DVec2::from(frame.to_metres([emitted[3 * a], emitted[3 * a + 1]]));
             let model_speed = (proposed - before.position_m()).length() / STEP_SECS;
-            if !crate::free_road::road_ahead_free(a, &self.poses, &present) {
+            // A gridlock (standing vehicles each in the path of the one before, round to the
+            // first: two nose to nose, four round a crossing) has no free road anywhere, and
+            // stood for minutes in issue 39's long sessions: its lowest-numbered vehicle has
+            // the way and is pulled away as from a stall, those in its way asked to make room.
+            let has_way_out_of_gridlock = self.held[a].pulling_out_of_gridlock
+                || paths.gridlock(a, &standing).first() == Some(&a);
+            if !crate::free_road::road_ahead_free(a, &self.poses, &present)
+                && !has_way_out_of_gridlock
+            {
                 self.held[a].stalled_ticks = 0;
                 self.held[a].pulling_away = false;
+                self.held[a].pulling_out_of_gridlock = false;
                 self.held[a].spin_sign = 0;
                 continue;
             }
@@ -135,21 +150,41 @@ impl SceneRuntime<'_> {
                     continue;
                 }
                 self.held[a].pulling_away = true;
+                self.held[a].pulling_out_of_gridlock = has_way_out_of_gridlock;
+            }
+            if self.held[a].pulling_out_of_gridlock {
+                // Those standing in its path make room (moving away from it), whether or not
+                // its next step is blocked yet: the collision guard brakes it short of them.
+                make_room.extend(
+                    paths
+                        .in_path(a)
+                        .iter()
+                        .filter(|&&b| standing[b])
+                        .map(|&b| (a, b)),
+                );
             }
             let speed = (self.speed_mps[a] + release.acceleration_mps2 * STEP_SECS)
                 .min(release.release_speed_mps);
             // The model drives it on again once it moves at least as fast the same way (within
-            // 30°) and stays on the road: a model step off the road would only be stopped at
-            // the edge again.
+            // 30°), stays on the road and keeps clear of everyone as they stand: a model step
+            // off the road would only be stopped at the edge again, and one into a neighbour
+            // cut short by the collision guard (a vehicle pinned 1 cm from two others in an
+            // intersection took the model's step back every 3 s, each cut to nothing, and stood
+            // 20 s: issue 39).
             let model_step = proposed - before.position_m();
             let same_way = model_step
                 .normalize_or_zero()
                 .dot(DVec2::from_angle(self.heading_unwrapped[a]))
                 >= 30f64.to_radians().cos();
-            if (model_speed >= speed && same_way && stays_or_exits(proposed))
+            let model_heading = f64::from(emitted[3 * a + 2]) / heading_scale;
+            if (model_speed >= speed
+                && same_way
+                && stays_or_exits(proposed)
+                && self.blockers_of(a, proposed, model_heading).is_empty())
                 || self.speed_mps[a] >= release.release_speed_mps
             {
                 self.held[a].pulling_away = false;
+                self.held[a].pulling_out_of_gridlock = false;
                 self.held[a].stalled_ticks = 0;
                 self.held[a].spin_sign = 0;
                 continue;
@@ -221,6 +256,7 @@ impl SceneRuntime<'_> {
                 (moves, true)
             } else if target.is_none() {
                 self.held[a].pulling_away = false;
+                self.held[a].pulling_out_of_gridlock = false;
                 self.held[a].stalled_ticks = 0;
                 self.held[a].spin_sign = 0;
                 continue;
@@ -254,6 +290,23 @@ impl SceneRuntime<'_> {
             self.guarded.push((a, GuardAction::PulledAway));
         }
         self.make_room(&make_room);
+    }
+
+    /// What stands in each present vehicle's path as the tick starts ([`BlockedPaths`]), and
+    /// which agents stand.
+    fn blocked_paths(&self, present: &[usize]) -> (BlockedPaths, Vec<bool>) {
+        let size_m: Vec<[f64; 2]> = (0..self.poses.len())
+            .map(|a| {
+                [
+                    f64::from(self.window.length_m[a]),
+                    f64::from(self.window.width_m[a]),
+                ]
+            })
+            .collect();
+        let standing = (0..self.poses.len())
+            .map(|a| self.speed_mps[a] < crate::free_road::STOPPED_MAX_SPEED_MPS)
+            .collect();
+        (BlockedPaths::new(&self.poses, &size_m, present), standing)
     }
 
     /// The present agents that agent `a`, moved to `to` and turned to `heading_rad`, would not
@@ -335,7 +388,11 @@ impl SceneRuntime<'_> {
                     width_m: f64::from(self.window.width_m[a]),
                     movable: self.controllers[a] == Controller::Model
                         && self.overrides[a].is_none(),
-                    anticipates_model_agents: self.held[a].breaking_deadlock_ticks == 0,
+                    // One pulled out of a gridlock follows those making room for it without
+                    // braking ahead of them (braked, it stood a metre short while they waited
+                    // for it); the no-overlap rule still holds it.
+                    anticipates_model_agents: self.held[a].breaking_deadlock_ticks == 0
+                        && !self.held[a].pulling_out_of_gridlock,
                 }
             })
             .collect();

@@ -50,7 +50,10 @@ struct MapSummary {
     vehicle_minutes: f64,
     off_road_per_vehicle_minute: Estimate,
     collisions_per_vehicle_minute: Estimate,
+    /// Stops of `LONG_STOP_SECS` or more with free road ahead or in a gridlock, and of those
+    /// in a gridlock (`SessionStats`).
     long_free_stops: u64,
+    long_gridlock_stops: u64,
     longest_free_stop_secs: f64,
     ring_laps: u64,
     /// Ticks stood with free road ahead, by what held the vehicle: the collision guard, the
@@ -164,12 +167,12 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         args.engine
     );
     out!(
-        "| model | map | sessions | vehicle-minutes | off-road events per vehicle-minute [95 % CI] | collisions per vehicle-minute [95 % CI] | stops ≥ {LONG_STOP_SECS} s with free road | longest (s) | held by: collision guard / lane guard / model (ticks) | ring laps | entered / left (of them removed stuck) | vehicles after 1 min, fewest / most (× start) | samples within ±30 % |"
+        "| model | map | sessions | vehicle-minutes | off-road events per vehicle-minute [95 % CI] | collisions per vehicle-minute [95 % CI] | stops ≥ {LONG_STOP_SECS} s with free road (in a gridlock) | longest (s) | held by: collision guard / lane guard / model (ticks) | ring laps | entered / left (of them removed stuck) | vehicles after 1 min, fewest / most (× start) | samples within ±30 % |"
     );
     out!("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
     for s in &summaries {
         out!(
-            "| {} | {} | {} | {:.0} | {:.4} | {:.4} | {} | {:.0} | {} / {} / {} | {} | {} / {} ({}) | {:.2} / {:.2} | {:.2} |",
+            "| {} | {} | {} | {:.0} | {:.4} | {:.4} | {} ({}) | {:.0} | {} / {} / {} | {} | {} / {} ({}) | {:.2} / {:.2} | {:.2} |",
             s.model,
             s.map,
             s.sessions,
@@ -177,6 +180,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
             s.off_road_per_vehicle_minute,
             s.collisions_per_vehicle_minute,
             s.long_free_stops,
+            s.long_gridlock_stops,
             s.longest_free_stop_secs,
             s.free_stop_ticks_collision_guard,
             s.free_stop_ticks_lane_guard,
@@ -191,7 +195,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         );
     }
     out!(
-        "(intervals: 95 % percentile bootstrap over sessions; off-road event: a present vehicle leaving every lanelet, leaving at a map's end is not one; collision: a pair of vehicles starting to overlap; a stop: slower than 0.3 m/s with no vehicle within 15 m ahead; a ring lap: a vehicle turning over 1¼ turns in total)"
+        "(intervals: 95 % percentile bootstrap over sessions; off-road event: a present vehicle leaving every lanelet, leaving at a map's end is not one; collision: a pair of vehicles starting to overlap; a stop with free road: slower than 0.3 m/s, no vehicle's box in its path (its width and 0.3 m each side, 15 m ahead of its centre) and no vehicle's centre within 15 m ahead and 3 m of its axis, or in a gridlock (on a cycle of standing vehicles, each in the path of the one before); a ring lap: a vehicle turning over 1¼ turns in total)"
     );
     if let Some(path) = &args.json {
         let json = serde_json::json!({
@@ -374,7 +378,11 @@ fn session(
         )
         .with_max_vehicles(agents)
     });
-    let mut stats = SessionStats::new(agents, &[]);
+    let size_f64 = |[length_m, width_m]: [f32; 2]| [f64::from(length_m), f64::from(width_m)];
+    let mut stats = SessionStats::new(
+        &size_m.iter().copied().map(size_f64).collect::<Vec<_>>(),
+        &[],
+    );
     let mut trace = args
         .trace
         .as_deref()
@@ -402,7 +410,7 @@ fn session(
             for vehicle in inflow.arrivals(&footprints, n) {
                 // A full scene drops the arrival, as a served one does.
                 if let Ok(agent) = sim.add_agent(engine.as_dyn(), id, &vehicle) {
-                    stats.entered(agent);
+                    stats.entered(agent, [vehicle.length_m, vehicle.width_m]);
                     entered.push(agent);
                     entered_size_m.push([vehicle.length_m, vehicle.width_m]);
                 }
@@ -456,6 +464,7 @@ fn summarise(model: &str, map: &str, sessions: &[SessionRecord], seed: u64) -> M
         off_road_per_vehicle_minute: bootstrap_ratio(&per(|s| s.off_road_events), seed),
         collisions_per_vehicle_minute: bootstrap_ratio(&per(|s| s.collision_events), seed),
         long_free_stops: sessions.iter().map(|s| s.stats.long_free_stops).sum(),
+        long_gridlock_stops: sessions.iter().map(|s| s.stats.long_gridlock_stops).sum(),
         longest_free_stop_secs: sessions
             .iter()
             .map(|s| s.stats.longest_free_stop_secs)
