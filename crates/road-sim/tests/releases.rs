@@ -477,6 +477,32 @@ fn two_vehicles_standing_nose_to_nose_are_undone_by_the_gridlock_release() {
 }
 
 #[test]
+fn a_model_vehicle_nose_to_nose_with_an_ego_is_not_pulled_towards_it() {
+    // As above, one of the two an ego its client holds still: whichever index it has, the model
+    // vehicle stands rather than creep at it.
+    let stands = [(0, -40.0, 0.0, 0.0), (1, -40.0 + 2.3 + 0.6 + 2.4, 0.0, PI)];
+    for ego in [0, 1] {
+        let ticks = run_scene(
+            ProceduralMap::Merge,
+            &wedge_planner(),
+            &[0, 2],
+            &stands,
+            150,
+            0.0,
+            Some(ego),
+        );
+        let model = 1 - ego;
+        assert!(
+            ticks
+                .iter()
+                .all(|t| !t.guarded.contains(&(model, GuardAction::PulledAway))),
+            "ego {ego}"
+        );
+        assert!(moved_m(&ticks, model, 1) < 0.01, "ego {ego}");
+    }
+}
+
+#[test]
 fn a_vehicle_asked_to_make_room_by_one_behind_it_moves_forwards() {
     // As above, but vehicle 1 faces away from 0 (its tail 1 cm from 0's rear-right corner)
     // and vehicle 2 stands 8 m ahead of it, facing it: neither has free road ahead, so only

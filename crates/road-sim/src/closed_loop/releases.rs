@@ -115,8 +115,15 @@ impl SceneRuntime<'_> {
             // first: two nose to nose, four round a crossing) has no free road anywhere, and
             // stood for minutes in issue 39's long sessions: its lowest-numbered vehicle has
             // the way and is pulled away as from a stall, those in its way asked to make room.
+            // Where that is an agent the model does not drive (an ego, a scripted vehicle), or
+            // has one in its path, the gridlock is left to that agent's driver: no model
+            // vehicle is pulled towards a client's.
             let has_way_out_of_gridlock = self.held[a].pulling_out_of_gridlock
-                || paths.gridlock(a, &standing).first() == Some(&a);
+                || (paths.gridlock(a, &standing).first() == Some(&a)
+                    && paths
+                        .in_path(a)
+                        .iter()
+                        .all(|&b| self.controllers[b] == Controller::Model));
             if !crate::free_road::road_ahead_free(a, &self.poses, &present)
                 && !has_way_out_of_gridlock
             {
