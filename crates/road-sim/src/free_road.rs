@@ -1,7 +1,7 @@
 //! Whether a vehicle stands with free road ahead: what the stall release
 //! (`road_sched::StallRelease`) and the long sessions' counts (`crate::session`) both ask. The
-//! release asks the centre rule ([`road_ahead_free`]); the counts ask what stands in the
-//! vehicle's own path ([`BlockedPaths`]), which also finds gridlocks.
+//! release asks the centre rule ([`road_ahead_free`]), and [`BlockedPaths`] for gridlocks; the
+//! counts ask what stands in the vehicle's own path ([`BlockedPaths`]), gridlocks included.
 
 use glam::DVec2;
 
@@ -178,7 +178,7 @@ mod tests {
 
     #[test]
     fn standing_cars_each_in_the_next_one_s_path_are_a_gridlock_and_a_queue_behind_is_not() {
-        // Cars 0–3 round a 10 m square, each pointing at the next one's flank (the four arms
+        // Cars 0–3 round a 6 m square, each pointing at the next one's flank (the four arms
         // of a crossing blocked box); car 4 queued 8 m behind car 0.
         let poses = [
             pose(0.0, 0.0, 0.0),

@@ -21,14 +21,15 @@ use road_sim::populate::keep_agents;
 use road_sim::procedural::{ProceduralMap, procedural};
 
 /// Windows held as given; a step sets every future slot to the newest observation, moved on
-/// along its heading by `forward` (model position units per slot; 0: standing). Model units:
-/// headings `heading_scale` per radian.
+/// along its heading by `forward` (model position units per slot; 0: standing), turning by
+/// `turn_rad` a slot. Model units: headings `heading_scale` per radian.
 struct StandingEngine {
     w: usize,
     n: usize,
     agents: usize,
     windows: Vec<f32>,
     forward: f32,
+    turn_rad: f32,
     heading_scale: f32,
 }
 
@@ -66,13 +67,21 @@ impl StepEngine for StandingEngine {
         for row in self.windows.chunks_exact_mut(w * 3) {
             let newest: [f32; 3] = row[3 * (n - 1)..3 * n].try_into().unwrap();
             let heading = newest[2] / self.heading_scale;
+            let (mut x, mut y) = (newest[0], newest[1]);
             for slot in n..w {
-                let k = (slot + 1 - n) as f32 * self.forward;
-                row[3 * slot..3 * slot + 3].copy_from_slice(&[
-                    newest[0] + k * heading.cos(),
-                    newest[1] + k * heading.sin(),
-                    newest[2],
-                ]);
+                if self.turn_rad == 0.0 {
+                    let k = (slot + 1 - n) as f32 * self.forward;
+                    row[3 * slot..3 * slot + 3].copy_from_slice(&[
+                        newest[0] + k * heading.cos(),
+                        newest[1] + k * heading.sin(),
+                        newest[2],
+                    ]);
+                    continue;
+                }
+                let turned = heading + (slot + 1 - n) as f32 * self.turn_rad;
+                x += self.forward * turned.cos();
+                y += self.forward * turned.sin();
+                row[3 * slot..3 * slot + 3].copy_from_slice(&[x, y, turned * self.heading_scale]);
             }
         }
         Ok(())
@@ -152,6 +161,21 @@ fn run_scene(
     speed_mps: f64,
     external: Option<usize>,
 ) -> Vec<SceneTick> {
+    run_turning(map, planner, keep, stands, ticks, speed_mps, 0.0, external)
+}
+
+/// As [`run_scene`], the plans turning by `turn_rad` a slot (positive: left).
+#[allow(clippy::too_many_arguments)]
+fn run_turning(
+    map: ProceduralMap,
+    planner: &PlannerSpec,
+    keep: &[usize],
+    stands: &[(usize, f64, f64, f64)],
+    ticks: usize,
+    speed_mps: f64,
+    turn_rad: f64,
+    external: Option<usize>,
+) -> Vec<SceneTick> {
     let model = ModelConfig::default();
     let scene = procedural(map, &WindowConfig::default(), 10).unwrap();
     let mut window = keep_agents(&scene.window, keep);
@@ -169,6 +193,7 @@ fn run_scene(
         agents: 0,
         windows: Vec::new(),
         forward: (speed_mps * 0.1 / window.frame.scale_m) as f32,
+        turn_rad: turn_rad as f32,
         heading_scale: model.heading_scale as f32,
     };
     let agents = window.agents;
@@ -500,6 +525,41 @@ fn a_model_vehicle_nose_to_nose_with_an_ego_is_not_pulled_towards_it() {
         );
         assert!(moved_m(&ticks, model, 1) < 0.01, "ego {ego}");
     }
+}
+
+#[test]
+fn a_pulled_away_vehicle_is_handed_back_only_to_a_model_step_that_keeps_clear() {
+    // Vehicle 0 stands with a client's car (1, held still) beside its left flank, 1 cm off,
+    // level with it; the model plans 3 m/s turning left, into 1. The stall release pulls it
+    // straight on, sliding along 1. Handed back to the model's step at once (faster, the same
+    // way, on the road), the collision guard cut that step to nothing and it stood, every 3 s
+    // again (a vehicle pinned in an intersection stood 20 s so in issue 39's long sessions).
+    let stands = [
+        (0, -40.0, -0.955, 0.0),
+        (1, -40.01, -0.955 + 1.9 + 0.01, 0.0),
+    ];
+    let ticks = run_turning(
+        ProceduralMap::Merge,
+        &wedge_planner(),
+        &[0, 2],
+        &stands,
+        100,
+        3.0,
+        0.02,
+        Some(1),
+    );
+    assert!(
+        ticks.iter().all(|t| t.collisions.is_empty()),
+        "no collision"
+    );
+    assert!(
+        ticks[..40]
+            .iter()
+            .any(|t| t.guarded.contains(&(0, GuardAction::PulledAway))),
+        "pulled away"
+    );
+    let moved = moved_m(&ticks, 0, 1);
+    assert!(moved > 3.0, "it slid out along 1: {moved:.2} m");
 }
 
 #[test]
