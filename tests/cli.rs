@@ -609,6 +609,86 @@ fn demo_runs_every_procedural_map() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// Issue 39: `road demo --in-process --populate` redraws the placed vehicles with the
+/// initialiser as a served scene does (road20-init, embedded, unless `--initialiser` names
+/// another or `none`); bad initialisers are refused by name.
+#[test]
+fn the_in_process_demo_redraws_populated_vehicles_with_the_initialiser() {
+    let dir = temp_dir("demo-initialiser");
+    let first_tick = |extra: &[&str], name: &str| {
+        let json = dir.join(format!("{name}.json"));
+        let mut args = vec![
+            "demo",
+            "--in-process",
+            "--populate",
+            "4",
+            "--steps",
+            "2",
+            "--engine",
+            "cpu",
+            "--json",
+            json.to_str().unwrap(),
+        ];
+        let png = dir.join(format!("{name}.png"));
+        args.extend(["--out", png.to_str().unwrap()]);
+        args.extend(extra);
+        let o = road(&args);
+        assert!(o.status.success(), "{name}: {}", stderr(&o));
+        let run: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+        run["ticks"][0]["poses"].clone()
+    };
+    let redrawn = first_tick(&[], "default");
+    let named = first_tick(&["--initialiser", "road20-init"], "named");
+    let refined = first_tick(&["--initialiser", "none"], "none");
+    assert_eq!(redrawn, named, "the default is road20-init");
+    assert_ne!(redrawn, refined, "at least one vehicle redrawn");
+    for (args, says) in [
+        (
+            &[
+                "demo",
+                "--in-process",
+                "--steps",
+                "1",
+                "--initialiser",
+                "none",
+            ][..],
+            "needs --populate",
+        ),
+        (
+            &[
+                "demo",
+                "--in-process",
+                "--populate",
+                "2",
+                "--steps",
+                "1",
+                "--initialiser",
+                "atlantis",
+            ][..],
+            "--initialiser \"atlantis\": no checkpoint folder",
+        ),
+        (
+            &[
+                "demo",
+                "--in-process",
+                "--populate",
+                "2",
+                "--steps",
+                "1",
+                "--initialiser",
+                "models/road20-wide4",
+            ][..],
+            "not trained to draw whole vehicles",
+        ),
+    ] {
+        let o = road(args);
+        assert!(!o.status.success(), "{args:?}");
+        assert!(stderr(&o).contains(says), "{args:?}: {}", stderr(&o));
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}
+
 /// Issue 39: `road demo` populates the roundabout by the model around the ego and keeps
 /// vehicles entering; `--scripted` runs the map's seven scripted vehicles as before.
 #[test]

@@ -730,7 +730,7 @@ fn initialiser(
 }
 
 /// Whether `model` was trained to draw whole vehicles; why not.
-pub(crate) fn check_initialiser(model: &LoadedModel) -> Result<(), String> {
+pub fn check_initialiser(model: &LoadedModel) -> Result<(), String> {
     let trained = model
         .meta
         .run
@@ -749,7 +749,7 @@ pub(crate) fn check_initialiser(model: &LoadedModel) -> Result<(), String> {
 }
 
 /// Whether the initialiser `model` fits a scene of `scene_model` observing `n` steps; why not.
-fn fits(
+pub fn fits(
     model: &LoadedModel,
     scene_model: &road_model::ModelConfig,
     n: usize,

@@ -77,9 +77,9 @@ pub struct DemoArgs {
     /// ends; 0.5: it crawls), to see the model's vehicles around an ego that holds them up.
     #[arg(long, default_value_t = 1.0, requires = "in_process")]
     pub ego_speed_scale: f64,
-    /// Instead of the map's scripted vehicles, this many placed on its lanes around the ego
-    /// and refined by the model, served also redrawn by the initialiser
-    /// (`CreateScene.populate`; `road_sim::populate` in process).
+    /// Instead of the map's scripted vehicles, this many placed on its lanes around the ego,
+    /// refined by the model and redrawn by the initialiser (`--initialiser`;
+    /// `CreateScene.populate`; `road_sim::populate` in process).
     /// Served, the default is 7 (`--scripted`: the map's script instead); in process the
     /// script is the default.
     #[arg(long)]
@@ -89,10 +89,12 @@ pub struct DemoArgs {
     /// its traffic as vehicles leave at the map's ends; default 6 unless `--scripted`.
     #[arg(long, conflicts_with = "in_process")]
     pub inflow_per_minute: Option<f64>,
-    /// Served: the initialiser that draws the populated vehicles anew around the ego
-    /// (`CreateScene.populate.initialiser`; default the server's, road20-init; `none`: the
-    /// placement refined by the checkpoint only).
-    #[arg(long, conflicts_with_all = ["in_process", "scripted"])]
+    /// The initialiser that draws the populated vehicles anew around the ego, as a served
+    /// scene's are (`CreateScene.populate.initialiser`; default road20-init, the server's;
+    /// `none`: the placement refined by the checkpoint only). Served: a checkpoint name. In
+    /// process, with `--populate`: a checkpoint folder, or the embedded road20-init by name;
+    /// the default is skipped, with a warning, where it does not fit `--checkpoint`.
+    #[arg(long, conflicts_with = "scripted")]
     pub initialiser: Option<String>,
     /// Served: the map's scripted vehicles (the roundabout's six, with 1 s histories: the
     /// demo before issue 39) instead of vehicles the model places, and no inflow unless asked.
@@ -266,6 +268,50 @@ pub(crate) fn populate_scene(
     Ok(())
 }
 
+/// The in-process demo's initialiser (`--initialiser`): with `--populate`, a checkpoint folder
+/// or the embedded one by name, road20-init unless named; `none` for the refinement alone.
+/// One named that cannot draw, or does not fit the checkpoint `run`, is an error; the default
+/// that does not fit is skipped with a warning, as `road serve` skips it.
+fn in_process_initialiser(args: &DemoArgs, run: &RunConfig) -> Result<Option<LoadedModel>> {
+    if args.populate.is_none() {
+        anyhow::ensure!(
+            args.initialiser.is_none(),
+            "--initialiser redraws populated vehicles: with --in-process it needs --populate N"
+        );
+        return Ok(None);
+    }
+    let name = args
+        .initialiser
+        .as_deref()
+        .unwrap_or(road_serve::config::DEFAULT_INITIALISER);
+    if name == "none" {
+        return Ok(None);
+    }
+    let device = candle_core::Device::Cpu;
+    let folder = std::path::Path::new(name);
+    let loaded = if folder.is_dir() {
+        road_model::checkpoint::load(folder, &device)
+            .map_err(|e| anyhow::anyhow!("--initialiser {name}: {e}"))?
+    } else if let Some((config_toml, weights)) = road_serve::models::embedded::get(name) {
+        let origin = PathBuf::from(format!("<embedded {name}>"));
+        road_model::checkpoint::load_from_memory(&origin, config_toml, weights, &device)
+            .map_err(|e| anyhow::anyhow!("--initialiser {name}: {e}"))?
+    } else {
+        anyhow::bail!(
+            "--initialiser {name:?}: no checkpoint folder of that name and no embedded checkpoint ({}); `none` refines only",
+            road_serve::config::DEFAULT_INITIALISER
+        );
+    };
+    road_serve::scene::check_initialiser(&loaded)
+        .map_err(|why| anyhow::anyhow!("--initialiser {name}: {why}"))?;
+    if let Err(why) = road_serve::scene::fits(&loaded, &run.model, run.planner.obs_slots) {
+        anyhow::ensure!(args.initialiser.is_none(), "--initialiser {name}: {why}");
+        tracing::warn!(initialiser = name, %why, "the default initialiser is skipped: the placement is refined only");
+        return Ok(None);
+    }
+    Ok(Some(loaded))
+}
+
 /// `--map`: a procedural map by name.
 pub(crate) fn parse_map(name: &str) -> std::result::Result<ProceduralMap, String> {
     ProceduralMap::from_name(name).ok_or_else(|| {
@@ -337,6 +383,7 @@ pub fn run(args: DemoArgs) -> Result<ExitCode> {
         "--rotate-deg must be a finite angle in degrees, got {}",
         args.rotate_deg
     );
+    let initialiser = in_process_initialiser(&args, run)?;
     let ProceduralRun {
         scene,
         ticks,
@@ -354,7 +401,7 @@ pub fn run(args: DemoArgs) -> Result<ExitCode> {
         true,
         args.populate,
         false,
-        None,
+        initialiser.as_ref(),
     )?;
     let agents = scene.window.agents;
 
