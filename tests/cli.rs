@@ -643,46 +643,40 @@ fn the_in_process_demo_redraws_populated_vehicles_with_the_initialiser() {
     let refined = first_tick(&["--initialiser", "none"], "none");
     assert_eq!(redrawn, named, "the default is road20-init");
     assert_ne!(redrawn, refined, "at least one vehicle redrawn");
+    let populated = |initialiser: &'static str| {
+        vec![
+            "demo",
+            "--in-process",
+            "--populate",
+            "2",
+            "--steps",
+            "1",
+            "--initialiser",
+            initialiser,
+        ]
+    };
     for (args, says) in [
         (
-            &[
+            vec![
                 "demo",
                 "--in-process",
                 "--steps",
                 "1",
                 "--initialiser",
                 "none",
-            ][..],
+            ],
             "needs --populate",
         ),
         (
-            &[
-                "demo",
-                "--in-process",
-                "--populate",
-                "2",
-                "--steps",
-                "1",
-                "--initialiser",
-                "atlantis",
-            ][..],
+            populated("atlantis"),
             "--initialiser \"atlantis\": no checkpoint folder",
         ),
         (
-            &[
-                "demo",
-                "--in-process",
-                "--populate",
-                "2",
-                "--steps",
-                "1",
-                "--initialiser",
-                "models/road20-wide4",
-            ][..],
+            populated("models/road20-wide4"),
             "not trained to draw whole vehicles",
         ),
     ] {
-        let o = road(args);
+        let o = road(&args);
         assert!(!o.status.success(), "{args:?}");
         assert!(stderr(&o).contains(says), "{args:?}: {}", stderr(&o));
     }
