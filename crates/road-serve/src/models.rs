@@ -39,6 +39,25 @@ pub mod embedded {
             _ => None,
         }
     }
+
+    /// The embedded checkpoint `name`, loaded on the CPU (as `<embedded NAME>`); `None` when
+    /// none is embedded by that name.
+    pub fn load(name: &str) -> Option<crate::Result<super::LoadedModel>> {
+        let (config_toml, weights) = get(name)?;
+        let origin = std::path::PathBuf::from(format!("<embedded {name}>"));
+        Some(
+            super::checkpoint::load_from_memory(
+                &origin,
+                config_toml,
+                weights,
+                &candle_core::Device::Cpu,
+            )
+            .map_err(|source| crate::Error::Checkpoint {
+                path: origin,
+                source,
+            }),
+        )
+    }
 }
 
 /// The models folder: `explicit` (a flag or `ROAD_MODELS`) if given (an error names it when it
@@ -172,26 +191,15 @@ impl Checkpoints {
         let model = match self.folder(name) {
             Some(path) => checkpoint::load(&path, &candle_core::Device::Cpu)
                 .map_err(|source| Error::Checkpoint { path, source })?,
-            None if embedded::get(name).is_some() => {
-                let origin = PathBuf::from(format!("<embedded {name}>"));
-                let (config_toml, weights) = embedded::get(name).expect("checked");
-                checkpoint::load_from_memory(
-                    &origin,
-                    config_toml,
-                    weights,
-                    &candle_core::Device::Cpu,
-                )
-                .map_err(|source| Error::Checkpoint {
-                    path: origin,
-                    source,
-                })?
-            }
-            None => {
-                return Err(Error::Config(format!(
-                    "no checkpoint {name:?}: {}",
-                    self.describe()
-                )));
-            }
+            None => match embedded::load(name) {
+                Some(loaded) => loaded?,
+                None => {
+                    return Err(Error::Config(format!(
+                        "no checkpoint {name:?}: {}",
+                        self.describe()
+                    )));
+                }
+            },
         };
         // Leaked on purpose: engines borrow the model for as long as scenes run on it, and a
         // checkpoint is loaded once per name for the server's life.

@@ -1,7 +1,7 @@
 //! Whether a vehicle stands with free road ahead: what the stall release
 //! (`road_sched::StallRelease`) and the long sessions' counts (`crate::session`) both ask. The
-//! release asks the centre rule ([`road_ahead_free`]), and [`BlockedPaths`] for gridlocks; the
-//! counts ask what stands in the vehicle's own path ([`BlockedPaths`]), gridlocks included.
+//! release asks [`BlockedPaths`] for the centre rule ([`road_ahead_free`]) and for gridlocks;
+//! the counts ask it what stands in the vehicle's own path, gridlocks included.
 
 use glam::DVec2;
 
@@ -91,6 +91,11 @@ impl BlockedPaths {
         self.in_path[agent].is_empty() && !self.centre_ahead[agent]
     }
 
+    /// No vehicle's centre ahead by the centre rule alone ([`road_ahead_free`]).
+    pub fn centre_rule_free(&self, agent: usize) -> bool {
+        !self.centre_ahead[agent]
+    }
+
     /// The vehicles whose box lies in its path.
     pub fn in_path(&self, agent: usize) -> &[usize] {
         &self.in_path[agent]
@@ -107,8 +112,11 @@ impl BlockedPaths {
     /// The vehicles of `agent`'s gridlock ([`Self::in_gridlock`]), itself included, in index
     /// order: every standing vehicle on a cycle through it. Empty when it is in none.
     pub fn gridlock(&self, agent: usize, standing: &[bool]) -> Vec<usize> {
+        if !standing[agent] {
+            return Vec::new();
+        }
         let from_agent = self.reached_from(agent, standing);
-        if !standing[agent] || !from_agent[agent] {
+        if !from_agent[agent] {
             return Vec::new();
         }
         (0..self.in_path.len())

@@ -287,15 +287,12 @@ fn in_process_initialiser(args: &DemoArgs, run: &RunConfig) -> Result<Option<Loa
     if name == "none" {
         return Ok(None);
     }
-    let device = candle_core::Device::Cpu;
     let folder = std::path::Path::new(name);
     let loaded = if folder.is_dir() {
-        road_model::checkpoint::load(folder, &device)
+        road_model::checkpoint::load(folder, &candle_core::Device::Cpu)
             .map_err(|e| anyhow::anyhow!("--initialiser {name}: {e}"))?
-    } else if let Some((config_toml, weights)) = road_serve::models::embedded::get(name) {
-        let origin = PathBuf::from(format!("<embedded {name}>"));
-        road_model::checkpoint::load_from_memory(&origin, config_toml, weights, &device)
-            .map_err(|e| anyhow::anyhow!("--initialiser {name}: {e}"))?
+    } else if let Some(loaded) = road_serve::models::embedded::load(name) {
+        loaded.map_err(|e| anyhow::anyhow!("--initialiser {name}: {e}"))?
     } else {
         anyhow::bail!(
             "--initialiser {name:?}: no checkpoint folder of that name and no embedded checkpoint ({}); `none` refines only",

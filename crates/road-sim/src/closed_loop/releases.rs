@@ -71,8 +71,7 @@ impl SceneRuntime<'_> {
                 continue;
             }
             if self.guarded.iter().any(|&(b, _)| b == a)
-                && (crate::free_road::road_ahead_free(a, &self.poses, &present)
-                    || paths.in_gridlock(a, &standing))
+                && (paths.centre_rule_free(a) || paths.in_gridlock(a, &standing))
             {
                 self.held[a].stuck_ticks += 1;
             }
@@ -124,9 +123,7 @@ impl SceneRuntime<'_> {
                         .in_path(a)
                         .iter()
                         .all(|&b| self.controllers[b] == Controller::Model));
-            if !crate::free_road::road_ahead_free(a, &self.poses, &present)
-                && !has_way_out_of_gridlock
-            {
+            if !paths.centre_rule_free(a) && !has_way_out_of_gridlock {
                 self.held[a].stalled_ticks = 0;
                 self.held[a].pulling_away = false;
                 self.held[a].pulling_out_of_gridlock = false;

@@ -131,17 +131,8 @@ pub(crate) fn load_initialiser(
     };
     let loaded = road_model::checkpoint::load(dir, &candle_core::Device::Cpu)
         .map_err(|e| anyhow::anyhow!("--initialiser {}: {e}", dir.display()))?;
-    anyhow::ensure!(
-        loaded
-            .meta
-            .run
-            .model
-            .agent_frame
-            .as_ref()
-            .is_some_and(|f| f.max_anchor_sigma.is_some()),
-        "--initialiser {}: not trained to draw whole vehicles (no model.agent_frame.max_anchor_sigma)",
-        dir.display()
-    );
+    road_serve::scene::check_initialiser(&loaded)
+        .map_err(|why| anyhow::anyhow!("--initialiser {}: {why}", dir.display()))?;
     Ok(Some(loaded))
 }
 
