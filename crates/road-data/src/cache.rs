@@ -16,8 +16,9 @@ use crate::sources::{SourceSet, Split};
 use crate::{Error, Result};
 
 pub const MAGIC: &[u8; 8] = b"ROADDSET";
-/// Bump on any change to the payload's types.
-pub const FORMAT_VERSION: u32 = 1;
+/// Bump on any change to the payload's types, or to what the parser makes of the same files
+/// (2: lanelets driven the way their bounds' sides say, `crate::map`).
+pub const FORMAT_VERSION: u32 = 2;
 const HEADER_BYTES: usize = 8 + 4 + 8 + 4;
 
 /// `DIR/train.roadds` or `DIR/validation.roadds`.

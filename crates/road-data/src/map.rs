@@ -226,17 +226,8 @@ impl LaneletMap {
                     })
             };
             let (left_way, right_way) = (member("left")?, member("right")?);
-            let left = way_points(left_way, id)?;
-            let mut right = way_points(right_way, id)?;
-            // Lanelet2 lets a bound be stored against the driving direction (the left bound
-            // defines it): turn the right bound round when its ends pair up crosswise.
-            let straight =
-                dist(left[0], right[0]) + dist(left[left.len() - 1], right[right.len() - 1]);
-            let crossed =
-                dist(left[0], right[right.len() - 1]) + dist(left[left.len() - 1], right[0]);
-            if crossed < straight {
-                right.reverse();
-            }
+            let (left, right) =
+                orient_bounds(way_points(left_way, id)?, way_points(right_way, id)?);
             let longest = polyline_length(&left).max(polyline_length(&right));
             let count = ((longest / CENTRE_SPACING_M).ceil() as usize + 1)
                 .max(left.len())
@@ -325,6 +316,39 @@ impl LaneletMap {
             .map(|l| resample(&l.centre_m, points))
             .collect()
     }
+}
+
+/// A lanelet's bounds in its driving direction. Lanelet2 stores a bound as the way it is
+/// (a way shared by two lanelets runs against one of them) and reads the direction from the
+/// bounds' sides, as its loader's `geometry::align` does: the left bound lies left of the
+/// driving direction. First the right bound is turned to run along the left one (their ends
+/// pair up), then both are turned when the left one lies on the right. Taking the left way's
+/// own direction instead, as this parser once did, drove 12 of DR_USA_Intersection_MA's 66
+/// lanelets and 6 of DR_USA_Roundabout_FT's 48 the wrong way (issue 39's inflow then started
+/// vehicles head-on into the traffic).
+fn orient_bounds(mut left: Vec<Point>, mut right: Vec<Point>) -> (Vec<Point>, Vec<Point>) {
+    let straight = dist(left[0], right[0]) + dist(left[left.len() - 1], right[right.len() - 1]);
+    let crossed = dist(left[0], right[right.len() - 1]) + dist(left[left.len() - 1], right[0]);
+    if crossed < straight {
+        right.reverse();
+    }
+    // Σ over the resampled pairs of (direction × (left − right)): positive when the left
+    // bound lies on the left.
+    let count = left.len().max(right.len()).max(2);
+    let (l, r) = (resample(&left, count), resample(&right, count));
+    let side: f64 = (0..count - 1)
+        .map(|i| {
+            let mid = |k: usize| DVec2::from(l[k]).midpoint(DVec2::from(r[k]));
+            let direction = mid(i + 1) - mid(i);
+            let across = DVec2::from(l[i]) - DVec2::from(r[i]);
+            direction.perp_dot(across)
+        })
+        .sum();
+    if side < 0.0 {
+        left.reverse();
+        right.reverse();
+    }
+    (left, right)
 }
 
 fn link_topology(lanelets: &mut [Lanelet]) {
@@ -425,6 +449,39 @@ pub(crate) mod tests {
         assert_eq!(map.lanelet_at([c[0] + 1.0, c[1] + 20.0]), None);
         let grid = map.centre_grid(5.0);
         assert!(grid.nearest_distance([c[0] + 1.0, c[1] + 0.5]).unwrap() < 0.51);
+    }
+
+    #[test]
+    fn the_driving_direction_follows_the_bounds_sides() {
+        // Both ways run east, the left one along the south row: a lanelet whose left bound lies
+        // south of it drives west (Lanelet2's `align`), whichever way its ways were drawn.
+        let d = 0.000_036;
+        let mut osm = String::from("<?xml version=\"1.0\"?>\n<osm version=\"0.6\">\n");
+        for (id, lat, lon) in [
+            (1, 0.0, 0.0),
+            (2, 0.0, 3.0 * d),
+            (3, d, 0.0),
+            (4, d, 3.0 * d),
+        ] {
+            osm += &format!("  <node id=\"{id}\" lat=\"{lat}\" lon=\"{lon}\" />\n");
+        }
+        osm += "  <way id=\"10\"><nd ref=\"1\"/><nd ref=\"2\"/></way>\n";
+        osm += "  <way id=\"11\"><nd ref=\"4\"/><nd ref=\"3\"/></way>\n";
+        osm += "  <relation id=\"20\"><member type=\"way\" ref=\"10\" role=\"left\"/><member type=\"way\" ref=\"11\" role=\"right\"/><tag k=\"type\" v=\"lanelet\"/></relation>\n</osm>\n";
+        let map = LaneletMap::parse(&osm, Path::new("sides.osm"), "SIDES").unwrap();
+        let lanelet = &map.lanelets[0];
+        let (first, last) = (
+            lanelet.centre_m[0],
+            lanelet.centre_m[lanelet.centre_m.len() - 1],
+        );
+        assert!(
+            last[0] < first[0] - 10.0,
+            "drives west: {first:?} → {last:?}"
+        );
+        // Both bounds run west too, the left one still the south row.
+        assert!(lanelet.left_m[0][0] > lanelet.left_m[1][0]);
+        assert!(lanelet.right_m[0][0] > lanelet.right_m[1][0]);
+        assert!(lanelet.left_m[0][1] < lanelet.right_m[0][1]);
     }
 
     #[test]

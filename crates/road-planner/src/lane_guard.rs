@@ -321,8 +321,9 @@ fn against_a_merging_lane(map: &LaneletMap, lane: usize, p: DVec2, direction: DV
 /// [`OPPOSING_MIN_ANGLE_DEG`] off it) and on none running its way (within 90°): a step onto
 /// the opposite carriageway, as when a vehicle leaves a roundabout through the entry beside
 /// its exit on a map whose merging-lane rule ([`against_a_merging_lane`]) does not see it
-/// (issue 39). Crossing lanes, at right angles, do not count.
-fn onto_an_opposing_lane(map: &LaneletMap, p: DVec2, direction: DVec2) -> bool {
+/// (issue 39). Crossing lanes, at right angles, do not count. The long sessions' wrong-way
+/// count asks it of every moving vehicle's course (`road_sim::session`).
+pub fn onto_an_opposing_lane(map: &LaneletMap, p: DVec2, direction: DVec2) -> bool {
     let opposing_cos = OPPOSING_MIN_ANGLE_DEG.to_radians().cos();
     let on_opposing = map.lanelets.iter().any(|l| {
         l.centre_m.len() >= 2

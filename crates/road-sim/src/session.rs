@@ -9,7 +9,9 @@ use serde::Serialize;
 use crate::Pose;
 use crate::closed_loop::SceneTick;
 use crate::free_road::{BlockedPaths, STOPPED_MAX_SPEED_MPS};
+use road_data::LaneletMap;
 use road_planner::collision_guard::GuardAction;
+use road_planner::lane_guard::onto_an_opposing_lane;
 
 /// Seconds per tick (10 Hz).
 const STEP_SECS: f64 = 0.1;
@@ -18,6 +20,8 @@ pub const LONG_STOP_SECS: f64 = 10.0;
 /// A vehicle whose heading turns more than this in all (net, radians: 1¼ turns) has lapped a
 /// ring: no route through a roundabout or a crossing turns that much.
 pub const LAP_TURN_RAD: f64 = 2.5 * std::f64::consts::PI;
+/// From this speed a vehicle's course over a tick says which way it drives (m/s).
+pub const MOVING_MIN_SPEED_MPS: f64 = 1.0;
 
 /// The counts of one session; feed it every tick ([`Self::tick`]) and every vehicle that
 /// joins ([`Self::entered`]).
@@ -39,6 +43,12 @@ pub struct SessionStats {
     pub longest_free_stop_secs: f64,
     /// Vehicles whose heading turned more than [`LAP_TURN_RAD`] in all (net).
     pub ring_laps: u64,
+    /// Ticks vehicles moved ([`MOVING_MIN_SPEED_MPS`] or faster), and of them those driven
+    /// forwards against the lanes under them (a lanelet running more than 135° off the course
+    /// and none within 90° of it: `road_planner::lane_guard::onto_an_opposing_lane`): the
+    /// wrong way. Backing up a lane is not counted.
+    pub moving_ticks: u64,
+    pub wrong_way_ticks: u64,
     /// Of the long stops, those in a gridlock for one tick or more.
     pub long_gridlock_stops: u64,
     /// Ticks vehicles stood with free road ahead, by what held them that tick: the collision
@@ -132,8 +142,8 @@ impl SessionStats {
         self.present.iter().filter(|&&p| p).count()
     }
 
-    /// One tick of the session.
-    pub fn tick(&mut self, tick: &SceneTick) {
+    /// One tick of the session on `map` (none: no wrong-way count).
+    pub fn tick(&mut self, tick: &SceneTick, map: Option<&LaneletMap>) {
         if self.ticks.is_multiple_of(100) {
             let present = self.vehicles();
             self.vehicles_every_10s.push(present);
@@ -185,6 +195,19 @@ impl SessionStats {
         for &a in &present {
             let pose = tick.poses[a];
             if let Some(last) = self.last[a] {
+                let step_m = pose.position_m() - last.position_m();
+                if step_m.length() / STEP_SECS >= MOVING_MIN_SPEED_MPS {
+                    self.moving_ticks += 1;
+                    // Forwards only: backing off to make room (the releases) is no wrong way.
+                    let forwards = step_m.dot(glam::DVec2::from_angle(pose.heading_rad)) > 0.0;
+                    if forwards
+                        && map.is_some_and(|m| {
+                            onto_an_opposing_lane(m, pose.position_m(), step_m.normalize())
+                        })
+                    {
+                        self.wrong_way_ticks += 1;
+                    }
+                }
                 let turn = f64::from(road_data::wrap_angle(
                     (pose.heading_rad - last.heading_rad) as f32,
                 ));
@@ -241,6 +264,15 @@ impl SessionStats {
         }
     }
 
+    /// The share of moving ticks driven against the lanes (0 when none moved).
+    pub fn wrong_way_share(&self) -> f64 {
+        if self.moving_ticks == 0 {
+            0.0
+        } else {
+            self.wrong_way_ticks as f64 / self.moving_ticks as f64
+        }
+    }
+
     pub fn vehicle_minutes(&self) -> f64 {
         self.vehicle_ticks as f64 * STEP_SECS / 60.0
     }
@@ -274,11 +306,14 @@ mod tests {
         // Vehicle 0 stands alone; vehicle 1 stands 8 m behind vehicle 2, which stands too.
         let mut stats = SessionStats::new(&[CAR; 3], &[]);
         for _ in 0..150 {
-            stats.tick(&tick(vec![
-                pose(0.0, 50.0, 0.0),
-                pose(0.0, 0.0, 0.0),
-                pose(8.0, 0.0, 0.0),
-            ]));
+            stats.tick(
+                &tick(vec![
+                    pose(0.0, 50.0, 0.0),
+                    pose(0.0, 0.0, 0.0),
+                    pose(8.0, 0.0, 0.0),
+                ]),
+                None,
+            );
         }
         stats.finish();
         // Vehicles 0 and 2 have free road (15 s each); 1 is queued.
@@ -295,7 +330,7 @@ mod tests {
         let behind_a_tail = vec![pose(0.0, 0.0, 0.0), pose(3.0, -3.3, -FRAC_PI_2)];
         let mut stats = SessionStats::new(&[CAR; 2], &[]);
         for _ in 0..150 {
-            stats.tick(&tick(behind_a_tail.clone()));
+            stats.tick(&tick(behind_a_tail.clone()), None);
         }
         stats.finish();
         assert_eq!((stats.long_free_stops, stats.long_gridlock_stops), (1, 0));
@@ -309,7 +344,7 @@ mod tests {
         ];
         let mut stats = SessionStats::new(&[CAR; 4], &[]);
         for _ in 0..150 {
-            stats.tick(&tick(square.clone()));
+            stats.tick(&tick(square.clone()), None);
         }
         stats.finish();
         assert_eq!((stats.long_free_stops, stats.long_gridlock_stops), (4, 4));
@@ -321,12 +356,12 @@ mod tests {
         let mut t = tick(vec![pose(0.0, 0.0, 0.0), pose(2.0, 0.0, 0.0)]);
         t.collisions = vec![(0, 1)];
         t.off_road = vec![1];
-        stats.tick(&t);
-        stats.tick(&t);
+        stats.tick(&t, None);
+        stats.tick(&t, None);
         assert_eq!((stats.collision_events, stats.off_road_events), (1, 1));
         let mut gone = tick(vec![pose(0.0, 0.0, 0.0), pose(2.0, 0.0, 0.0)]);
         gone.left = vec![1];
-        stats.tick(&gone);
+        stats.tick(&gone, None);
         assert_eq!((stats.left, stats.removed_stuck), (1, 0));
         assert_eq!(stats.vehicles(), 1);
         stats.entered(1, CAR);
@@ -335,8 +370,8 @@ mod tests {
         let mut removed = tick(vec![pose(0.0, 0.0, 0.0), pose(2.0, 0.0, 0.0)]);
         removed.left = vec![1];
         removed.stuck = vec![1];
-        stats.tick(&removed);
-        stats.tick(&removed);
+        stats.tick(&removed, None);
+        stats.tick(&removed, None);
         assert_eq!((stats.left, stats.removed_stuck), (2, 1));
         assert_eq!(stats.vehicles(), 1);
     }
@@ -346,13 +381,56 @@ mod tests {
         let mut stats = SessionStats::new(&[CAR], &[]);
         for k in 0..200 {
             let angle = f64::from(k) * 0.05;
-            stats.tick(&tick(vec![pose(
-                20.0 * angle.cos(),
-                20.0 * angle.sin(),
-                angle + std::f64::consts::FRAC_PI_2,
-            )]));
+            stats.tick(
+                &tick(vec![pose(
+                    20.0 * angle.cos(),
+                    20.0 * angle.sin(),
+                    angle + std::f64::consts::FRAC_PI_2,
+                )]),
+                None,
+            );
         }
         // 10 rad turned: more than 1¼ turns, once.
         assert_eq!(stats.ring_laps, 1);
+    }
+
+    #[test]
+    fn a_vehicle_moving_against_its_lane_counts_as_wrong_way() {
+        // One eastbound lanelet, 100 m × 4 m; vehicle 0 drives east, vehicle 1 west on it,
+        // vehicle 2 backs west facing east.
+        let left: Vec<road_data::geometry::Point> = vec![[0.0, 2.0], [100.0, 2.0]];
+        let right: Vec<road_data::geometry::Point> = vec![[0.0, -2.0], [100.0, -2.0]];
+        let map = LaneletMap {
+            location: "straight".into(),
+            lanelets: vec![road_data::map::Lanelet {
+                id: 1,
+                subtype: Some("road".into()),
+                left_way: 2,
+                right_way: 3,
+                bounds: road_data::geometry::Aabb::of(&[left.clone(), right.clone()].concat()),
+                centre_m: vec![[0.0, 0.0], [50.0, 0.0], [100.0, 0.0]],
+                left_m: left,
+                right_m: right,
+                successors: Vec::new(),
+                neighbours: Vec::new(),
+            }],
+            skipped: Default::default(),
+        };
+        let mut stats = SessionStats::new(&[CAR; 3], &[]);
+        for k in 0..10 {
+            let x = 1.0 * f64::from(k); // 10 m/s
+            stats.tick(
+                &tick(vec![
+                    pose(20.0 + x, 0.0, 0.0),
+                    pose(80.0 - x, 0.0, PI),
+                    pose(50.0 - x, 0.0, 0.0),
+                ]),
+                Some(&map),
+            );
+        }
+        // 9 moving ticks each (the first has no course yet), vehicle 1's against the lane.
+        assert_eq!(stats.moving_ticks, 27);
+        assert_eq!(stats.wrong_way_ticks, 9);
+        assert!((stats.wrong_way_share() - 1.0 / 3.0).abs() < 1e-12);
     }
 }

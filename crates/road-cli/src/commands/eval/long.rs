@@ -56,6 +56,9 @@ struct MapSummary {
     long_gridlock_stops: u64,
     longest_free_stop_secs: f64,
     ring_laps: u64,
+    /// Of the ticks vehicles moved, the share driven forwards against the lanes under them
+    /// (`SessionStats::wrong_way_ticks`), percent.
+    wrong_way_percent: Estimate,
     /// Ticks stood with free road ahead, by what held the vehicle: the collision guard, the
     /// lane guard at the road's edge, neither (`SessionStats`).
     free_stop_ticks_collision_guard: u64,
@@ -167,12 +170,12 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         args.engine
     );
     out!(
-        "| model | map | sessions | vehicle-minutes | off-road events per vehicle-minute [95 % CI] | collisions per vehicle-minute [95 % CI] | stops ≥ {LONG_STOP_SECS} s with free road (in a gridlock) | longest (s) | held by: collision guard / lane guard / model (ticks) | ring laps | entered / left (of them removed stuck) | vehicles after 1 min, fewest / most (× start) | samples within ±30 % |"
+        "| model | map | sessions | vehicle-minutes | off-road events per vehicle-minute [95 % CI] | collisions per vehicle-minute [95 % CI] | stops ≥ {LONG_STOP_SECS} s with free road (in a gridlock) | longest (s) | held by: collision guard / lane guard / model (ticks) | ring laps | wrong way (% of moving time) [95 % CI] | entered / left (of them removed stuck) | vehicles after 1 min, fewest / most (× start) | samples within ±30 % |"
     );
-    out!("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
+    out!("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
     for s in &summaries {
         out!(
-            "| {} | {} | {} | {:.0} | {:.4} | {:.4} | {} ({}) | {:.0} | {} / {} / {} | {} | {} / {} ({}) | {:.2} / {:.2} | {:.2} |",
+            "| {} | {} | {} | {:.0} | {:.4} | {:.4} | {} ({}) | {:.0} | {} / {} / {} | {} | {:.2} | {} / {} ({}) | {:.2} / {:.2} | {:.2} |",
             s.model,
             s.map,
             s.sessions,
@@ -186,6 +189,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
             s.free_stop_ticks_lane_guard,
             s.free_stop_ticks_model,
             s.ring_laps,
+            s.wrong_way_percent,
             s.entered,
             s.left,
             s.removed_stuck,
@@ -195,7 +199,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         );
     }
     out!(
-        "(intervals: 95 % percentile bootstrap over sessions; off-road event: a present vehicle leaving every lanelet, leaving at a map's end is not one; collision: a pair of vehicles starting to overlap; a stop with free road: slower than 0.3 m/s, no vehicle's box in its path (its width and 0.3 m each side, 15 m ahead of its centre) and no vehicle's centre within 15 m ahead and 3 m of its axis, or in a gridlock (on a cycle of standing vehicles, each in the path of the one before); a ring lap: a vehicle turning over 1¼ turns in total)"
+        "(intervals: 95 % percentile bootstrap over sessions; off-road event: a present vehicle leaving every lanelet, leaving at a map's end is not one; collision: a pair of vehicles starting to overlap; a stop with free road: slower than 0.3 m/s, no vehicle's box in its path (its width and 0.3 m each side, 15 m ahead of its centre) and no vehicle's centre within 15 m ahead and 3 m of its axis, or in a gridlock (on a cycle of standing vehicles, each in the path of the one before); a ring lap: a vehicle turning over 1¼ turns in total; wrong way: a tick moving forwards (≥ 1 m/s) whose course runs more than 135° off a lanelet under the vehicle and within 90° of none)"
     );
     if let Some(path) = &args.json {
         let json = serde_json::json!({
@@ -417,7 +421,7 @@ fn session(
             }
         }
         sim.tick(engine.as_dyn(), &mut NoExternal, &mut out)?;
-        stats.tick(&out[0]);
+        stats.tick(&out[0], Some(&map));
         if let Some((path, writer)) = trace.as_mut() {
             use std::io::Write;
             let line = serde_json::json!({
@@ -470,6 +474,18 @@ fn summarise(model: &str, map: &str, sessions: &[SessionRecord], seed: u64) -> M
             .map(|s| s.stats.longest_free_stop_secs)
             .fold(0.0, f64::max),
         ring_laps: sessions.iter().map(|s| s.stats.ring_laps).sum(),
+        wrong_way_percent: bootstrap_ratio(
+            &sessions
+                .iter()
+                .map(|s| {
+                    (
+                        100.0 * s.stats.wrong_way_ticks as f64,
+                        s.stats.moving_ticks as f64,
+                    )
+                })
+                .collect::<Vec<_>>(),
+            seed,
+        ),
         free_stop_ticks_collision_guard: sessions
             .iter()
             .map(|s| s.stats.free_stop_ticks_collision_guard)
