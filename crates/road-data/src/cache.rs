@@ -17,8 +17,9 @@ use crate::{Error, Result};
 
 pub const MAGIC: &[u8; 8] = b"ROADDSET";
 /// Bump on any change to the payload's types, or to what the parser makes of the same files
-/// (2: lanelets driven the way their bounds' sides say, `crate::map`).
-pub const FORMAT_VERSION: u32 = 2;
+/// (2: lanelets driven the way their bounds' sides say, `crate::map`; 3: maps carry their
+/// priority rules, `crate::rules`).
+pub const FORMAT_VERSION: u32 = 3;
 const HEADER_BYTES: usize = 8 + 4 + 8 + 4;
 
 /// `DIR/train.roadds` or `DIR/validation.roadds`.

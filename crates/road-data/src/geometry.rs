@@ -113,6 +113,14 @@ impl Aabb {
         p[0] >= self.min[0] && p[0] <= self.max[0] && p[1] >= self.min[1] && p[1] <= self.max[1]
     }
 
+    /// Whether the two boxes share a point.
+    pub fn overlaps(&self, other: &Aabb) -> bool {
+        self.min[0] <= other.max[0]
+            && other.min[0] <= self.max[0]
+            && self.min[1] <= other.max[1]
+            && other.min[1] <= self.max[1]
+    }
+
     /// Distance from `p` to the box (0 inside).
     pub fn distance(&self, p: Point) -> f64 {
         let p = DVec2::from(p);

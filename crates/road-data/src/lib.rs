@@ -2,6 +2,7 @@
 //!
 //! - [`tracks`]: track CSV files (plain or gzip) → [`Recording`]s;
 //! - [`map`]: Lanelet2 `.osm` → [`LaneletMap`] (UTM zone 31 minus the projection of (0, 0));
+//! - [`rules`]: a map's priority rules (right of way, all-way stops) by lanelet;
 //! - [`sources`]: the data folder's layout and the official validation split;
 //! - [`dataset`]: scene windows (`[agents, steps, (x, y, heading)]` in a normalised scene frame);
 //! - [`cache`]: one versioned, checksummed binary file per split;
@@ -20,7 +21,7 @@ use std::path::{Path, PathBuf};
 pub use dataset::{
     BuildReport, Dataset, SceneFrame, SceneWindow, WindowConfig, WindowRef, wrap_angle,
 };
-pub use map::LaneletMap;
+pub use map::{LaneletMap, rules};
 pub use sources::{SourceSet, Split};
 pub use tracks::{AgentType, Recording, Track};
 

@@ -12,6 +12,9 @@ use crate::geometry::{
 };
 use crate::{Error, Result};
 
+pub mod rules;
+use rules::{PriorityRule, RuleKind};
+
 /// UTM zone of every INTERACTION map (its lat/lon sit around (0, 0)).
 pub const UTM_ZONE: u8 = 31;
 
@@ -87,6 +90,9 @@ pub struct LaneletMap {
     pub location: String,
     pub lanelets: Vec<Lanelet>,
     pub skipped: MapSkips,
+    /// Its priority rules (`right_of_way` and `all_way_stop` regulatory elements).
+    #[serde(default)]
+    pub priority_rules: Vec<PriorityRule>,
 }
 
 impl LaneletMap {
@@ -197,6 +203,7 @@ impl LaneletMap {
 
         let mut lanelets = Vec::new();
         let mut skipped = MapSkips::default();
+        let mut rules = Vec::new();
         for r in relations {
             let id = id_attr(r, "relation")?;
             let tag = |k: &str| {
@@ -207,6 +214,30 @@ impl LaneletMap {
             };
             if tag("type").as_deref() != Some("lanelet") {
                 skipped.non_lanelet_relations += 1;
+                let kind = match tag("subtype").as_deref() {
+                    Some("right_of_way") => Some(RuleKind::Yield),
+                    Some("all_way_stop") => Some(RuleKind::AllWayStop),
+                    _ => None,
+                };
+                if let (Some("regulatory_element"), Some(kind)) = (tag("type").as_deref(), kind) {
+                    let members = |role: &str| -> Vec<String> {
+                        r.children()
+                            .filter(|c| {
+                                c.has_tag_name("member")
+                                    && c.attribute("role") == Some(role)
+                                    && c.attribute("type") == Some("relation")
+                            })
+                            .map(|c| c.attribute("ref").unwrap_or_default().to_owned())
+                            .collect()
+                    };
+                    rules.push((
+                        id,
+                        line_of(r),
+                        kind,
+                        members("yield"),
+                        members("right_of_way"),
+                    ));
+                }
                 continue;
             }
             let member = |role: &str| -> Result<i64> {
@@ -258,10 +289,53 @@ impl LaneletMap {
         }
         lanelets.sort_by_key(|l| l.id);
         link_topology(&mut lanelets);
+        let mut priority_rules = Vec::new();
+        for (id, line, kind, yielding, priority) in rules {
+            let index = |role: &str, raw: &str| -> Result<u32> {
+                raw.parse::<i64>()
+                    .ok()
+                    .and_then(|r| lanelets.binary_search_by_key(&r, |l| l.id).ok())
+                    .map(|i| i as u32)
+                    .ok_or_else(|| {
+                        map_err(
+                            format!("regulatory element {id} (line {line})"),
+                            format!("its `{role}` member `{raw}` is not a lanelet of the map"),
+                        )
+                    })
+            };
+            let yield_lanelets = yielding
+                .iter()
+                .map(|r| index("yield", r))
+                .collect::<Result<Vec<_>>>()?;
+            let priority_lanelets = priority
+                .iter()
+                .map(|r| index("right_of_way", r))
+                .collect::<Result<Vec<_>>>()?;
+            if yield_lanelets.is_empty() {
+                return Err(map_err(
+                    format!("regulatory element {id} (line {line})"),
+                    "a right of way or all-way stop without a `yield` lanelet".into(),
+                ));
+            }
+            if kind == RuleKind::Yield && priority_lanelets.is_empty() {
+                return Err(map_err(
+                    format!("regulatory element {id} (line {line})"),
+                    "a right of way without a `right_of_way` lanelet".into(),
+                ));
+            }
+            priority_rules.push(PriorityRule::new(
+                &lanelets,
+                id,
+                kind,
+                yield_lanelets,
+                priority_lanelets,
+            ));
+        }
         Ok(Self {
             location: location.to_owned(),
             lanelets,
             skipped,
+            priority_rules,
         })
     }
 
@@ -292,10 +366,29 @@ impl LaneletMap {
             l.successors = remap(&l.successors);
             l.neighbours = remap(&l.neighbours);
         }
+        // A rule stays while one of its yield lanelets does.
+        let priority_rules = self
+            .priority_rules
+            .iter()
+            .filter_map(|g| {
+                let yield_lanelets = remap(&g.yield_lanelets);
+                (!yield_lanelets.is_empty()).then(|| PriorityRule {
+                    yield_lanelets,
+                    priority_lanelets: remap(&g.priority_lanelets),
+                    junction: g
+                        .junction
+                        .iter()
+                        .filter_map(|(l, c)| new_index[*l as usize].map(|l| (l, remap(c))))
+                        .collect(),
+                    ..g.clone()
+                })
+            })
+            .collect();
         LaneletMap {
             location: self.location.clone(),
             lanelets,
             skipped: self.skipped.clone(),
+            priority_rules,
         }
     }
 
@@ -482,6 +575,66 @@ pub(crate) mod tests {
         assert!(lanelet.left_m[0][0] > lanelet.left_m[1][0]);
         assert!(lanelet.right_m[0][0] > lanelet.right_m[1][0]);
         assert!(lanelet.left_m[0][1] < lanelet.right_m[0][1]);
+    }
+
+    #[test]
+    fn right_of_way_and_all_way_stop_elements_are_read_by_lanelet() {
+        // 30002 (the top row) gives way to 30000 (the middle row); an all-way stop on 30000.
+        let osm = fixture_osm().replace(
+            "  <relation id=\"50000\"><tag k=\"type\" v=\"regulatory_element\"/></relation>\n",
+            "  <relation id=\"50000\"><member type=\"relation\" ref=\"30000\" role=\"right_of_way\"/><member type=\"relation\" ref=\"30002\" role=\"yield\"/><member type=\"way\" ref=\"3\" role=\"ref_line\"/><tag k=\"type\" v=\"regulatory_element\"/><tag k=\"subtype\" v=\"right_of_way\"/></relation>\n  <relation id=\"50001\"><member type=\"relation\" ref=\"30000\" role=\"yield\"/><tag k=\"type\" v=\"regulatory_element\"/><tag k=\"subtype\" v=\"all_way_stop\"/></relation>\n  <relation id=\"50002\"><tag k=\"type\" v=\"regulatory_element\"/><tag k=\"subtype\" v=\"speed_limit\"/></relation>\n",
+        );
+        let map = LaneletMap::parse(&osm, Path::new("rules.osm"), "FIX").unwrap();
+        assert_eq!(map.skipped.non_lanelet_relations, 3);
+        assert_eq!(
+            map.priority_rules.len(),
+            2,
+            "the speed limit is no priority rule"
+        );
+        let (yields, stop) = (&map.priority_rules[0], &map.priority_rules[1]);
+        assert_eq!(yields.kind, RuleKind::Yield);
+        assert_eq!(
+            (
+                yields.yield_lanelets.clone(),
+                yields.priority_lanelets.clone()
+            ),
+            (vec![2], vec![0])
+        );
+        assert!(yields.junction.is_empty(), "30002 leads nowhere");
+        assert_eq!(stop.kind, RuleKind::AllWayStop);
+        assert!(stop.yields_on(0) && !stop.yields_on(1));
+        // The lanelet after 30000 is the all-way stop's junction, alone: no conflicts.
+        assert_eq!(stop.junction, vec![(1, vec![])]);
+        // A crop keeps the rules whose yield lanelets it keeps, re-indexed.
+        let crop = map.crop(|l| l.id != 30001);
+        assert_eq!(crop.priority_rules.len(), 2);
+        assert!(crop.priority_rules[1].junction.is_empty());
+        let crop = map.crop(|l| l.id != 30002);
+        assert_eq!(
+            crop.priority_rules.len(),
+            1,
+            "the right of way lost its yield lanelet"
+        );
+
+        // A member that is no lanelet is named.
+        let bad = osm.replace("ref=\"30002\" role=\"yield\"", "ref=\"777\" role=\"yield\"");
+        let err = LaneletMap::parse(&bad, Path::new("rules.osm"), "FIX")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("regulatory element 50000")
+                && err.contains("`yield` member `777`")
+                && err.contains("rules.osm"),
+            "{err}"
+        );
+        let bad = osm.replace(
+            "ref=\"30000\" role=\"right_of_way\"",
+            "ref=\"30001\" role=\"refers\"",
+        );
+        let err = LaneletMap::parse(&bad, Path::new("rules.osm"), "FIX")
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("without a `right_of_way` lanelet"), "{err}");
     }
 
     #[test]

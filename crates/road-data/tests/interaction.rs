@@ -142,3 +142,38 @@ fn real_windows_are_well_formed_and_round_trip_through_the_cache() {
     );
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// Every map's priority rules are read: each right of way names lanelets that give way and
+/// lanelets that have it, and each yield lanelet's traffic leaves it into a junction.
+#[test]
+fn every_map_s_priority_rules_are_read() {
+    use road_data::LaneletMap;
+    use road_data::rules::RuleKind;
+    let mut seen = Vec::new();
+    for entry in std::fs::read_dir(data_dir().join("maps")).unwrap() {
+        let path = entry.unwrap().path();
+        let location = path.file_stem().unwrap().to_string_lossy().into_owned();
+        let map = LaneletMap::load(&path, &location).unwrap();
+        for rule in &map.priority_rules {
+            let junction: usize = rule.junction.len();
+            let conflicts: usize = rule.junction.iter().map(|(_, c)| c.len()).sum();
+            eprintln!(
+                "{location} {} {:?}: yield {:?}, priority {:?}, junction {junction} lanelets, {conflicts} conflicts",
+                rule.id, rule.kind, rule.yield_lanelets, rule.priority_lanelets
+            );
+            assert!(!rule.yield_lanelets.is_empty());
+            assert_eq!(
+                rule.kind == RuleKind::Yield,
+                !rule.priority_lanelets.is_empty(),
+                "{location} {}",
+                rule.id
+            );
+        }
+        seen.push((location, map.priority_rules.len()));
+    }
+    seen.sort();
+    let count = |name: &str| seen.iter().find(|(l, _)| l == name).map(|(_, n)| *n);
+    assert_eq!(count("DR_USA_Roundabout_FT"), Some(7), "{seen:?}");
+    assert_eq!(count("DR_USA_Intersection_MA"), Some(2), "{seen:?}");
+    assert_eq!(count("DR_CHN_Merging_ZS"), Some(0), "{seen:?}");
+}

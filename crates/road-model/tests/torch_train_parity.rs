@@ -117,6 +117,7 @@ fn synthetic_dataset() -> Dataset {
             location: format!("SYNTH_{r}"),
             lanelets,
             skipped: MapSkips::default(),
+            priority_rules: Vec::new(),
         });
         let first_frame = 100 * r + 1;
         let tracks = (0..8u32)

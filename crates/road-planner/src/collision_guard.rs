@@ -73,6 +73,8 @@ pub enum GuardAction {
     /// Deadlock release: backed off from a vehicle it was locked with, which has the way; or
     /// moved off (backwards, or forwards from one behind) to make room for a wedged vehicle.
     BackedOff,
+    /// Give-way rule: held short of its stop line, its way not clear.
+    GaveWay,
 }
 
 /// Applies the guard to `agents` in place (their `proposed` poses); returns what it did, per

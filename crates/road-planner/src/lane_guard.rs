@@ -499,6 +499,7 @@ mod tests {
             location: "test".into(),
             lanelets: vec![first, straight(2, 20.0, 40.0)],
             skipped: Default::default(),
+            priority_rules: Vec::new(),
         }
     }
 

@@ -12,7 +12,7 @@ pub mod scheduler;
 
 pub use edm::{EdmSchedule, Preconditioning};
 pub use plan::{
-    COURSE_MIN_SPEED_MPS, CollisionGuard, DEADLOCK_RELEASE_HOLD_SECS, JerkTracking,
+    COURSE_MIN_SPEED_MPS, CollisionGuard, DEADLOCK_RELEASE_HOLD_SECS, GiveWay, JerkTracking,
     LaneAnticipation, LaneGuard, MAX_GUARD_HORIZON_STEPS, MAX_JERK_TRACKING_AHEAD,
     MAX_LANE_GUARD_LOOKAHEAD_M, MAX_PLAN_SMOOTHING_STEPS, PlannerKind, PlannerSpec, PlannerTables,
     Sampler, StageKind, StageTable, StallRelease, StepPlan, StuckRemoval, TickProgram,

@@ -129,6 +129,10 @@ pub struct PlannerSpec {
     /// Absent: off.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub stuck_removal: Option<StuckRemoval>,
+    /// The give-way rule in closed loop (a deviation from the paper, for long sessions): model
+    /// vehicles heed the map's right-of-way and all-way-stop elements. Absent: off.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub give_way: Option<GiveWay>,
     /// The step rule; Heun (the paper's) when absent.
     #[serde(default, skip_serializing_if = "Sampler::is_heun")]
     pub sampler: Sampler,
@@ -296,6 +300,31 @@ pub struct StuckRemoval {
     pub clear_of_external_m: f64,
 }
 
+/// The give-way rule's settings ([`PlannerSpec::give_way`]): a model-driven vehicle on a
+/// lanelet that a map's regulatory element makes give way (`road_data::rules`) stops before
+/// the lanelet's end (its stop line), braking at no more than `brake_mps2` (one that cannot
+/// stop by the line goes on), unless the way is clear:
+/// - at a right of way, no vehicle on a priority lanelet or the lanelets leading into one is
+///   due at that lanelet's end within `gap_secs`, and no vehicle stands just beyond the line;
+/// - at an all-way stop, it stood at the line for `stop_secs`, everyone who stood at the
+///   element's lines before it and would cross its way has gone, and nobody is in the junction
+///   in its way (vehicles from its own lane ahead of it aside).
+///
+/// Once it goes it keeps going until it leaves the lanelet. A vehicle waiting so is no stall
+/// for the stall release and never stuck for the stuck removal.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct GiveWay {
+    /// How far before its stop line a vehicle heeds it, metres, (0, 100].
+    pub approach_m: f64,
+    /// A priority vehicle due at its lanelet's end within this many seconds has the way, (0, 30].
+    pub gap_secs: f64,
+    /// The most deceleration to stop at the line, m/s², (0, 10].
+    pub brake_mps2: f64,
+    /// Seconds stood at an all-way stop's line before going, [0, 30].
+    pub stop_secs: f64,
+}
+
 /// The longest lane-guard look-ahead accepted, metres (a few lanelets of an INTERACTION map).
 pub const MAX_LANE_GUARD_LOOKAHEAD_M: f64 = 50.0;
 
@@ -318,6 +347,7 @@ impl Default for PlannerSpec {
             lane_guard: None,
             stall_release: None,
             stuck_removal: None,
+            give_way: None,
             sampler: Sampler::Heun,
             edm: EdmSchedule::default(),
         }
@@ -502,6 +532,21 @@ impl PlannerSpec {
                 return bad(format!(
                     "stall_release: after_secs must be in (0, 600], acceleration_mps2 in (0, 5] \
                      and release_speed_mps in (0, 20], got {release:?}"
+                ));
+            }
+        }
+        if let Some(rule) = self.give_way {
+            let ok = rule.approach_m > 0.0
+                && rule.approach_m <= 100.0
+                && rule.gap_secs > 0.0
+                && rule.gap_secs <= 30.0
+                && rule.brake_mps2 > 0.0
+                && rule.brake_mps2 <= 10.0
+                && (0.0..=30.0).contains(&rule.stop_secs);
+            if !ok {
+                return bad(format!(
+                    "give_way: approach_m must be in (0, 100], gap_secs in (0, 30], brake_mps2 \
+                     in (0, 10] and stop_secs in [0, 30], got {rule:?}"
                 ));
             }
         }

@@ -24,6 +24,7 @@ fn spec(kind: PlannerKind, n: usize, f: usize, k: usize, x: Option<usize>) -> Pl
         lane_guard: None,
         stall_release: None,
         stuck_removal: None,
+        give_way: None,
         sampler: Sampler::Heun,
         edm: EdmSchedule::default(),
     }
@@ -619,6 +620,48 @@ fn stall_release_and_stuck_removal_outside_their_bounds_are_refused() {
         assert!(
             message.contains("stuck_removal: after_secs must be in (0, 600]"),
             "{secs} {clear}: {message}"
+        );
+    }
+}
+
+/// The give-way rule takes its documented ranges; anything else is refused by name.
+#[test]
+fn give_way_outside_its_bounds_is_refused() {
+    let rule = |approach_m, gap_secs, brake_mps2, stop_secs| PlannerSpec {
+        give_way: Some(road_sched::GiveWay {
+            approach_m,
+            gap_secs,
+            brake_mps2,
+            stop_secs,
+        }),
+        ..spec(PlannerKind::Rolling, 10, 5, 40, None)
+    };
+    for ok in [
+        (30.0, 3.0, 3.0, 1.0),
+        (100.0, 30.0, 10.0, 0.0),
+        (0.1, 0.1, 0.1, 30.0),
+    ] {
+        assert!(rule(ok.0, ok.1, ok.2, ok.3).validate("p").is_ok(), "{ok:?}");
+    }
+    for bad in [
+        (0.0, 3.0, 3.0, 1.0),
+        (100.5, 3.0, 3.0, 1.0),
+        (f64::NAN, 3.0, 3.0, 1.0),
+        (30.0, 0.0, 3.0, 1.0),
+        (30.0, 30.5, 3.0, 1.0),
+        (30.0, 3.0, 0.0, 1.0),
+        (30.0, 3.0, 10.5, 1.0),
+        (30.0, 3.0, 3.0, -0.1),
+        (30.0, 3.0, 3.0, 30.5),
+        (30.0, 3.0, 3.0, f64::NAN),
+    ] {
+        let message = rule(bad.0, bad.1, bad.2, bad.3)
+            .validate("p")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            message.contains("give_way: approach_m must be in (0, 100]"),
+            "{bad:?}: {message}"
         );
     }
 }

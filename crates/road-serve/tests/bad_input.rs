@@ -193,6 +193,22 @@ fn an_osm_that_does_not_parse_is_refused() {
 }
 
 #[test]
+fn a_priority_rule_naming_no_lanelet_is_refused() {
+    let c = client("bad-rule");
+    let mut r = agents_request(vec![common::straight_agent(1, 10.0, 2.0)]);
+    r.map = MapSource::Osm(common::osm(true).replace(
+        "</osm>",
+        "  <relation id=\"200\"><member type=\"relation\" ref=\"999\" role=\"yield\"/><tag k=\"type\" v=\"regulatory_element\"/><tag k=\"subtype\" v=\"all_way_stop\"/></relation>\n</osm>",
+    ));
+    let e = create_err(&c, r);
+    assert_refused(&e, ErrorCode::BadMap, Some("map.osm"));
+    assert!(
+        e.message.contains("regulatory element 200") && e.message.contains("`999`"),
+        "{e}"
+    );
+}
+
+#[test]
 fn a_map_with_no_lanelets_is_refused() {
     let c = client("no-lanelets");
     let mut r = agents_request(vec![common::straight_agent(1, 10.0, 2.0)]);

@@ -12,7 +12,7 @@ use road_data::{LaneletMap, SceneWindow, wrap_angle};
 use road_model::batch::SceneInput;
 use road_model::{ModelConfig, Result as ModelResult};
 use road_rollout::{RolloutDriver, RolloutScene, StepEngine};
-use road_sched::{CollisionGuard, LaneGuard, PlannerSpec, StallRelease, StuckRemoval};
+use road_sched::{CollisionGuard, GiveWay, LaneGuard, PlannerSpec, StallRelease, StuckRemoval};
 
 use crate::geometry::OrientedBox;
 use crate::infractions::{collisions, off_road};
@@ -21,6 +21,7 @@ use road_planner::collision_guard::GuardAction;
 use road_planner::lane_guard::{LaneAction, keep_on_road, nudge_towards_lane};
 
 mod exits;
+mod give_way;
 mod releases;
 mod scripted;
 
@@ -127,6 +128,8 @@ pub struct GuardCounts {
     pub pulled_away: usize,
     /// The deadlock release backed a vehicle off (agent-ticks).
     pub backed_off: usize,
+    /// The give-way rule held a vehicle short of its stop line (agent-ticks).
+    pub gave_way: usize,
 }
 
 impl std::ops::AddAssign for GuardCounts {
@@ -138,6 +141,7 @@ impl std::ops::AddAssign for GuardCounts {
         self.stopped_at_road_edge += other.stopped_at_road_edge;
         self.pulled_away += other.pulled_away;
         self.backed_off += other.backed_off;
+        self.gave_way += other.gave_way;
     }
 }
 
@@ -153,6 +157,7 @@ pub fn guard_actions(ticks: &[SceneTick]) -> GuardCounts {
             GuardAction::StoppedAtRoadEdge => counts.stopped_at_road_edge += 1,
             GuardAction::PulledAway => counts.pulled_away += 1,
             GuardAction::BackedOff => counts.backed_off += 1,
+            GuardAction::GaveWay => counts.gave_way += 1,
         }
     }
     counts
@@ -246,6 +251,7 @@ struct Layers {
     collision_guard: Option<CollisionGuard>,
     stall_release: Option<StallRelease>,
     stuck_removal: Option<StuckRemoval>,
+    give_way: Option<GiveWay>,
 }
 
 impl std::fmt::Debug for ClosedLoop<'_> {
@@ -543,6 +549,7 @@ impl<'m> ClosedLoop<'m> {
                     collision_guard: p.collision_guard,
                     stall_release: p.stall_release,
                     stuck_removal: p.stuck_removal,
+                    give_way: p.give_way,
                 })
         }));
         let (scenes, guards) = (&mut self.scenes, &self.guards);
@@ -817,6 +824,7 @@ impl<'m> SceneRuntime<'m> {
             collision_guard,
             stall_release,
             stuck_removal,
+            give_way,
         } = layers;
         for (a, o) in self.overrides.iter().enumerate() {
             if let Some(state) = o {
@@ -841,6 +849,9 @@ impl<'m> SceneRuntime<'m> {
         self.back_off(emitted, heading_scale);
         if let (Some(guard), Some(map)) = (lane_guard, self.map.clone()) {
             self.keep_on_road(emitted, plan_turns, heading_scale, guard, map.get());
+        }
+        if let (Some(rule), Some(map)) = (give_way, self.map.clone()) {
+            self.give_way(emitted, heading_scale, rule, map.get());
         }
         if let Some(guard) = collision_guard {
             self.guard(emitted, heading_scale, guard);

@@ -9,6 +9,7 @@ use std::f64::consts::FRAC_PI_2;
 use glam::{DMat2, DVec2};
 use road_data::geometry::{Aabb, Point, dist, hypot_length, resample};
 use road_data::map::{Lanelet, MapSkips};
+use road_data::rules::{PriorityRule, RuleKind};
 use road_data::{AgentType, LaneletMap, SceneFrame, SceneWindow, WindowConfig};
 
 use crate::closed_loop::ExternalDriver;
@@ -322,11 +323,26 @@ fn roundabout_map() -> Layout {
             .successors
             .push(exit[(k + 1) % 4] as u32);
     }
+    let lanelets = with_shared_bounds(lanelets);
+    // Entering traffic gives way to the ring's, as at the INTERACTION roundabouts (their
+    // `right_of_way` elements): each entry yields to the arc that runs past it.
+    let priority_rules = (0..4)
+        .map(|k| {
+            PriorityRule::new(
+                &lanelets,
+                5000 + k as i64,
+                RuleKind::Yield,
+                vec![entry[k] as u32],
+                vec![ring[(2 * k + 7) % 8] as u32],
+            )
+        })
+        .collect();
     Layout {
         map: LaneletMap {
             location: "procedural_roundabout".into(),
-            lanelets: with_shared_bounds(lanelets),
+            lanelets,
             skipped: MapSkips::default(),
+            priority_rules,
         },
         inbound,
         entry,
@@ -609,10 +625,23 @@ fn intersection_scene() -> (LaneletMap, Vec<Route>, Vec<Vehicle>) {
             },
         )
         .collect();
+    let lanelets = with_shared_bounds(lanelets);
+    // An all-way stop, as DR_USA_Intersection_MA's: every inbound lane stops at the box.
+    let stop = PriorityRule::new(
+        &lanelets,
+        5000,
+        RuleKind::AllWayStop,
+        inbound
+            .iter()
+            .map(|lanes| *lanes.last().expect("lanes have lanelets") as u32)
+            .collect(),
+        Vec::new(),
+    );
     let map = LaneletMap {
         location: "procedural_intersection".into(),
-        lanelets: with_shared_bounds(lanelets),
+        lanelets,
         skipped: MapSkips::default(),
+        priority_rules: vec![stop],
     };
     (map, routes, vehicles)
 }
@@ -679,10 +708,13 @@ fn merge_scene() -> (LaneletMap, Vec<Route>, Vec<Vehicle>) {
             width_m,
         })
         .collect();
+    // No priority rule: the ramp runs into the main road alongside it (a zip merge), where no
+    // line to give way at lies clear of the main road's traffic.
     let map = LaneletMap {
         location: "procedural_merge".into(),
         lanelets: with_shared_bounds(lanelets),
         skipped: MapSkips::default(),
+        priority_rules: Vec::new(),
     };
     (map, routes, vehicles)
 }

@@ -2,103 +2,19 @@
 //! free road ahead pulls away after the planner's time (one with a vehicle close ahead does
 //! not), a wedged one backs and fills while others make room, a deadlock is undone, a vehicle
 //! stuck for good leaves the scene, and a step the collision guard cuts short stays on the
-//! road. The model is replaced by an engine whose every plan stands still or drives straight
-//! on at a set speed (each future slot the newest observation, moved on along its heading), so
-//! that only the rules under test move anyone.
+//! road. The model is replaced by `common`'s engine, whose plans stand still or drive straight
+//! on, so that only the rules under test move anyone.
 
 use std::f64::consts::PI;
 
-use rand::SeedableRng;
-use rand::rngs::StdRng;
-use road_data::WindowConfig;
-use road_model::{ModelConfig, Result};
 use road_planner::collision_guard::GuardAction;
-use road_rollout::{ShiftEdit, ShiftShape, StepEngine, window_emitted, window_shift};
 use road_sched::{PlannerSpec, StallRelease};
 use road_sim::Pose;
-use road_sim::closed_loop::{ClosedLoop, Controller, ExternalDriver, SceneTick, SimScene};
-use road_sim::populate::keep_agents;
-use road_sim::procedural::{ProceduralMap, procedural};
+use road_sim::closed_loop::SceneTick;
+use road_sim::procedural::ProceduralMap;
 
-/// Windows held as given; a step sets every future slot to the newest observation, moved on
-/// along its heading by `forward` (model position units per slot; 0: standing), turning by
-/// `turn_rad` a slot. Model units: headings `heading_scale` per radian.
-struct StandingEngine {
-    w: usize,
-    n: usize,
-    agents: usize,
-    windows: Vec<f32>,
-    forward: f32,
-    turn_rad: f32,
-    heading_scale: f32,
-}
-
-impl StepEngine for StandingEngine {
-    fn window_slots(&self) -> usize {
-        self.w
-    }
-    fn prepare(
-        &mut self,
-        b: usize,
-        a: usize,
-        _: &[f32],
-        _: usize,
-        _: &[f32],
-        _: &[f32],
-    ) -> Result<()> {
-        self.agents = a;
-        self.windows = vec![0.0; b * a * self.w * 3];
-        Ok(())
-    }
-    fn prepare_scene(&mut self, _: usize, _: &[f32], _: &[f32], _: &[f32]) -> Result<()> {
-        Ok(())
-    }
-    fn load(&mut self, windows: &[f32], _: &[f32]) -> Result<()> {
-        self.windows = windows.to_vec();
-        Ok(())
-    }
-    fn load_scene(&mut self, scene: usize, window: &[f32], _: &[f32]) -> Result<()> {
-        let len = self.agents * self.w * 3;
-        self.windows[scene * len..(scene + 1) * len].copy_from_slice(window);
-        Ok(())
-    }
-    fn step(&mut self, _: &[f32], _: &[f32], _: bool) -> Result<()> {
-        let (w, n) = (self.w, self.n);
-        for row in self.windows.chunks_exact_mut(w * 3) {
-            let newest: [f32; 3] = row[3 * (n - 1)..3 * n].try_into().unwrap();
-            let heading = newest[2] / self.heading_scale;
-            let (mut x, mut y) = (newest[0], newest[1]);
-            for slot in n..w {
-                if self.turn_rad == 0.0 {
-                    let k = (slot + 1 - n) as f32 * self.forward;
-                    row[3 * slot..3 * slot + 3].copy_from_slice(&[
-                        newest[0] + k * heading.cos(),
-                        newest[1] + k * heading.sin(),
-                        newest[2],
-                    ]);
-                    continue;
-                }
-                let turned = heading + (slot + 1 - n) as f32 * self.turn_rad;
-                x += self.forward * turned.cos();
-                y += self.forward * turned.sin();
-                row[3 * slot..3 * slot + 3].copy_from_slice(&[x, y, turned * self.heading_scale]);
-            }
-        }
-        Ok(())
-    }
-    fn read_emitted(&mut self, slots: &[Option<usize>], out: &mut [f32]) -> Result<()> {
-        window_emitted(&self.windows, self.agents, self.w, slots, out);
-        Ok(())
-    }
-    fn shift(&mut self, edits: &[ShiftEdit<'_>], shape: ShiftShape) -> Result<()> {
-        let len = self.agents * self.w * 3;
-        for edit in edits {
-            let window = &mut self.windows[edit.scene * len..(edit.scene + 1) * len];
-            window_shift(window, self.w, edit, shape);
-        }
-        Ok(())
-    }
-}
+mod common;
+use common::{moved_m, run_turning};
 
 /// The merge's script's vehicles `keep` standing still for 10 s, under `release`.
 fn run(release: Option<StallRelease>, keep: &[usize]) -> Vec<SceneTick> {
@@ -141,15 +57,6 @@ fn run_driving(
     )
 }
 
-/// An external driver holding every external agent where it stood at the start.
-struct StandingEgo(Option<Pose>);
-
-impl ExternalDriver for StandingEgo {
-    fn pose(&mut self, _: usize, agent: usize, _: usize, world: &[Pose]) -> road_sim::Result<Pose> {
-        Ok(*self.0.get_or_insert(world[agent]))
-    }
-}
-
 /// As [`run_driving`] on `map`'s scene; `external`: the kept vehicle a client drives, standing
 /// where it starts.
 fn run_scene(
@@ -162,78 +69,6 @@ fn run_scene(
     external: Option<usize>,
 ) -> Vec<SceneTick> {
     run_turning(map, planner, keep, stands, ticks, speed_mps, 0.0, external)
-}
-
-/// As [`run_scene`], the plans turning by `turn_rad` a slot (positive: left).
-#[allow(clippy::too_many_arguments)]
-fn run_turning(
-    map: ProceduralMap,
-    planner: &PlannerSpec,
-    keep: &[usize],
-    stands: &[(usize, f64, f64, f64)],
-    ticks: usize,
-    speed_mps: f64,
-    turn_rad: f64,
-    external: Option<usize>,
-) -> Vec<SceneTick> {
-    let model = ModelConfig::default();
-    let scene = procedural(map, &WindowConfig::default(), 10).unwrap();
-    let mut window = keep_agents(&scene.window, keep);
-    for &(a, x_m, y_m, heading_rad) in stands {
-        let xy = window.frame.to_norm([x_m, y_m]);
-        for t in 0..window.steps {
-            let i = a * window.steps + t;
-            window.states[3 * i..3 * i + 3].copy_from_slice(&[xy[0], xy[1], heading_rad as f32]);
-            window.valid[i] = true;
-        }
-    }
-    let mut engine = StandingEngine {
-        w: planner.window_slots(),
-        n: planner.obs_slots,
-        agents: 0,
-        windows: Vec::new(),
-        forward: (speed_mps * 0.1 / window.frame.scale_m) as f32,
-        turn_rad: turn_rad as f32,
-        heading_scale: model.heading_scale as f32,
-    };
-    let agents = window.agents;
-    let mut sim = ClosedLoop::new(
-        &mut engine,
-        &model,
-        planner,
-        vec![SimScene {
-            window,
-            observed_steps: 10,
-            controllers: (0..agents)
-                .map(|a| {
-                    if Some(a) == external {
-                        Controller::External
-                    } else {
-                        Controller::Model
-                    }
-                })
-                .collect(),
-        }],
-        vec![Some(&scene.map)],
-        ticks,
-        &mut StdRng::seed_from_u64(0),
-    )
-    .unwrap();
-    // As served scenes: vehicles leave through the map's open lane ends.
-    sim.retire_on_exit(0, true).unwrap();
-    let mut out_ticks = Vec::new();
-    let mut out = Vec::new();
-    let mut ego = StandingEgo(None);
-    for _ in 0..ticks {
-        sim.tick(&mut engine, &mut ego, &mut out).unwrap();
-        out_ticks.push(out[0].clone());
-    }
-    out_ticks
-}
-
-fn moved_m(ticks: &[SceneTick], agent: usize, from: usize) -> f64 {
-    let (a, b) = (ticks[from].poses[agent], ticks.last().unwrap().poses[agent]);
-    (b.x_m - a.x_m).hypot(b.y_m - a.y_m)
 }
 
 #[test]

@@ -42,6 +42,16 @@ pub(super) struct HeldMemory {
     /// Ticks stood, since it last moved, in which a guard or release acted on it (the stuck
     /// removal's count).
     pub(super) stuck_ticks: u32,
+    /// Whether the give-way rule held it at its stop line in the last tick.
+    pub(super) giving_way: bool,
+    /// Whether the give-way rule held it short of its stop line, at any distance, in the last
+    /// tick (braking for it: it can stop there).
+    pub(super) braking_for_line: bool,
+    /// Ticks stood at an all-way stop's line (its place in the order of arrival).
+    pub(super) waiting_ticks: u32,
+    /// The rule and yield lanelet the give-way rule let it go from, until it has left the
+    /// junction.
+    pub(super) gone_from: Option<(u32, u32)>,
 }
 
 impl SceneRuntime<'_> {
@@ -71,6 +81,7 @@ impl SceneRuntime<'_> {
                 continue;
             }
             if self.guarded.iter().any(|&(b, _)| b == a)
+                && !self.held[a].giving_way
                 && (paths.centre_rule_free(a) || paths.in_gridlock(a, &standing))
             {
                 self.held[a].stuck_ticks += 1;
@@ -123,7 +134,9 @@ impl SceneRuntime<'_> {
                         .in_path(a)
                         .iter()
                         .all(|&b| self.controllers[b] == Controller::Model));
-            if !paths.centre_rule_free(a) && !has_way_out_of_gridlock {
+            // Waiting at a stop line for its way (the give-way rule) is no stall; a gridlock
+            // it has the way out of is undone all the same.
+            if (!paths.centre_rule_free(a) || self.held[a].giving_way) && !has_way_out_of_gridlock {
                 self.held[a].stalled_ticks = 0;
                 self.held[a].pulling_away = false;
                 self.held[a].pulling_out_of_gridlock = false;
