@@ -870,6 +870,7 @@ impl<'m> SceneRuntime<'m> {
                 heading_rad: f64::from(wrap_angle(heading as f32)),
             };
         }
+        self.track_still();
         if self.retire_on_exit {
             if let Some(removal) = stuck_removal {
                 self.remove_stuck(removal);

@@ -22,6 +22,10 @@ pub const LONG_STOP_SECS: f64 = 10.0;
 pub const LAP_TURN_RAD: f64 = 2.5 * std::f64::consts::PI;
 /// From this speed a vehicle's course over a tick says which way it drives (m/s).
 pub const MOVING_MIN_SPEED_MPS: f64 = 1.0;
+/// A vehicle stands when it is slower than `STOPPED_MAX_SPEED_MPS` over its last tick, or on
+/// average over this many ticks (2 s): one the releases rock back and forth in place moves
+/// every tick and stood for 101 s uncounted (issue 39).
+pub const STANDING_WINDOW_TICKS: usize = 20;
 
 /// The counts of one session; feed it every tick ([`Self::tick`]) and every vehicle that
 /// joins ([`Self::entered`]).
@@ -71,6 +75,9 @@ pub struct SessionStats {
     off: Vec<bool>,
     #[serde(skip)]
     last: Vec<Option<Pose>>,
+    /// Each agent's positions over the last [`STANDING_WINDOW_TICKS`] ticks, oldest first.
+    #[serde(skip)]
+    recent: Vec<std::collections::VecDeque<glam::DVec2>>,
     #[serde(skip)]
     free_stop_ticks: Vec<u32>,
     #[serde(skip)]
@@ -109,6 +116,7 @@ impl SessionStats {
             self.present.resize(n, false);
             self.off.resize(n, false);
             self.last.resize(n, None);
+            self.recent.resize(n, Default::default());
             self.free_stop_ticks.resize(n, 0);
             self.gridlocked.resize(n, false);
             self.size_m.resize(n, [0.0; 2]);
@@ -124,6 +132,7 @@ impl SessionStats {
         self.present[agent] = !self.excluded.contains(&agent);
         self.off[agent] = false;
         self.last[agent] = None;
+        self.recent[agent].clear();
         self.free_stop_ticks[agent] = 0;
         self.turned_rad[agent] = 0.0;
         self.lapped[agent] = false;
@@ -182,13 +191,24 @@ impl SessionStats {
             .collect();
         self.collision_events += pairs.difference(&self.overlapping).count() as u64;
         self.overlapping = pairs;
+        for &a in &present {
+            let recent = &mut self.recent[a];
+            if recent.len() == STANDING_WINDOW_TICKS + 1 {
+                recent.pop_front();
+            }
+            recent.push_back(tick.poses[a].position_m());
+        }
         let standing: Vec<bool> = (0..tick.poses.len())
             .map(|a| {
+                let slow = |ticks: usize, from: glam::DVec2| {
+                    (tick.poses[a].position_m() - from).length() / (ticks as f64 * STEP_SECS)
+                        < STOPPED_MAX_SPEED_MPS
+                };
+                let recent = &self.recent[a];
                 self.present[a]
-                    && self.last[a].is_some_and(|last| {
-                        (tick.poses[a].position_m() - last.position_m()).length() / STEP_SECS
-                            < STOPPED_MAX_SPEED_MPS
-                    })
+                    && (self.last[a].is_some_and(|last| slow(1, last.position_m()))
+                        || (recent.len() == STANDING_WINDOW_TICKS + 1
+                            && slow(STANDING_WINDOW_TICKS, recent[0])))
             })
             .collect();
         let paths = BlockedPaths::new(&tick.poses, &self.size_m, &present);
@@ -324,6 +344,30 @@ mod tests {
     }
 
     #[test]
+    fn a_vehicle_rocking_in_place_stands_and_one_creeping_on_does_not() {
+        // Vehicle 0 moves 0.1 m forwards and back in turn (1 m/s every tick) for 15 s, alone:
+        // on average it stands. Vehicle 1, far off, creeps on at 0.5 m/s: it drives.
+        let mut stats = SessionStats::new(&[CAR; 2], &[]);
+        for k in 0..150 {
+            stats.tick(
+                &tick(vec![
+                    pose(0.1 * f64::from(k % 2), 0.0, 0.0),
+                    pose(0.05 * f64::from(k), 100.0, 0.0),
+                ]),
+                None,
+            );
+        }
+        stats.finish();
+        assert_eq!(stats.long_free_stops, 1);
+        // From the window's first full 2 s on.
+        assert!(
+            (stats.longest_free_stop_secs - 13.0).abs() < 1e-9,
+            "{}",
+            stats.longest_free_stop_secs
+        );
+    }
+
+    #[test]
     fn a_vehicle_behind_a_tail_across_its_path_is_queued_and_a_gridlock_counts() {
         // Vehicle 0 stands behind vehicle 1's tail (1 turned away across 0's path, its
         // centre 3.3 m off 0's axis): queued. Vehicle 1 has free road: it counts.
@@ -415,6 +459,7 @@ mod tests {
                 neighbours: Vec::new(),
             }],
             skipped: Default::default(),
+            priority_rules: Vec::new(),
         };
         let mut stats = SessionStats::new(&[CAR; 3], &[]);
         for k in 0..10 {

@@ -14,7 +14,7 @@ use road_sim::closed_loop::SceneTick;
 use road_sim::procedural::ProceduralMap;
 
 mod common;
-use common::{moved_m, run_turning};
+use common::{moved_m, run_rocking, run_turning};
 
 /// The merge's script's vehicles `keep` standing still for 10 s, under `release`.
 fn run(release: Option<StallRelease>, keep: &[usize]) -> Vec<SceneTick> {
@@ -91,6 +91,28 @@ fn a_vehicle_standing_with_free_road_ahead_pulls_away() {
     assert!(
         last.x_m > released[1].poses[0].x_m && last.y_m.abs() < 2.0,
         "{last:?}"
+    );
+}
+
+#[test]
+fn a_vehicle_the_model_rocks_in_place_is_released() {
+    // Vehicle 0 alone on the main road, the model rocking it 0.1 m forwards and back every
+    // tick (1 m/s each tick, going nowhere): it stands, so the release pulls it away after its
+    // 3 s (counted by the tick's speed alone, it never stood and stayed for good).
+    let rocked = run_rocking(&release_planner(), &[0], &[(0, -40.0, 0.0, 0.0)], 120, 1.0);
+    let first = rocked
+        .iter()
+        .position(|t| t.guarded.contains(&(0, GuardAction::PulledAway)))
+        .expect("released");
+    // 2 s to stand on place, then the release's 3 s.
+    assert!(
+        (45..=55).contains(&first),
+        "the first pull-away at tick {first}"
+    );
+    assert!(
+        moved_m(&rocked, 0, 1) > 3.0,
+        "moved {:.2} m",
+        moved_m(&rocked, 0, 1)
     );
 }
 

@@ -42,6 +42,10 @@ pub(super) struct HeldMemory {
     /// Ticks stood, since it last moved, in which a guard or release acted on it (the stuck
     /// removal's count).
     pub(super) stuck_ticks: u32,
+    /// Where it has stayed within [`STILL_RADIUS_M`] of, and for how many ticks: a vehicle
+    /// rocked back and forth in place moves every tick yet stands.
+    pub(super) still_at_m: DVec2,
+    pub(super) still_ticks: u32,
     /// Whether the give-way rule held it at its stop line in the last tick.
     pub(super) giving_way: bool,
     /// Whether the give-way rule held it short of its stop line, at any distance, in the last
@@ -54,7 +58,35 @@ pub(super) struct HeldMemory {
     pub(super) gone_from: Option<(u32, u32)>,
 }
 
+/// A vehicle that stays within this of one place (metres) for [`STILL_TICKS`] stands,
+/// however it moves in between: `road_sim::session`'s count found vehicles the releases rocked
+/// back and forth in place for up to 451 s, every tick faster than
+/// `free_road::STOPPED_MAX_SPEED_MPS` and so never stuck, never in a gridlock (issue 39).
+pub(super) const STILL_RADIUS_M: f64 = 0.6;
+/// Ticks (2 s) within [`STILL_RADIUS_M`] of one place that make a vehicle stand.
+pub(super) const STILL_TICKS: u32 = 20;
+
 impl SceneRuntime<'_> {
+    /// Whether agent `a` stands: slower than `STOPPED_MAX_SPEED_MPS` over the last tick, or
+    /// within [`STILL_RADIUS_M`] of one place for [`STILL_TICKS`].
+    pub(super) fn stands(&self, a: usize) -> bool {
+        self.speed_mps[a] < crate::free_road::STOPPED_MAX_SPEED_MPS
+            || self.held[a].still_ticks >= STILL_TICKS
+    }
+
+    /// Follows where each agent stays ([`HeldMemory::still_at_m`]), after the tick's poses.
+    pub(super) fn track_still(&mut self) {
+        for (memory, pose) in self.held.iter_mut().zip(&self.poses) {
+            let at = pose.position_m();
+            if at.distance(memory.still_at_m) <= STILL_RADIUS_M {
+                memory.still_ticks += 1;
+            } else {
+                memory.still_at_m = at;
+                memory.still_ticks = 0;
+            }
+        }
+    }
+
     /// The stuck removal ([`StuckRemoval`]), after the tick's poses are set: model-driven
     /// vehicles that stood stuck for its time, no client-driven agent near, leave the scene
     /// (retired, in `left` and `stuck`). Stuck: standing with free road ahead
@@ -76,7 +108,7 @@ impl SceneRuntime<'_> {
             if self.controllers[a] != Controller::Model {
                 continue;
             }
-            if self.speed_mps[a] >= crate::free_road::STOPPED_MAX_SPEED_MPS {
+            if !self.stands(a) {
                 self.held[a].stuck_ticks = 0;
                 continue;
             }
@@ -157,7 +189,7 @@ impl SceneRuntime<'_> {
                 // vehicle at the road's edge off it every few ticks, each step stopped there
                 // by the lane guard, restarted its release's count each time, and it stood for
                 // 10 s and more (issue 39).
-                let still = self.speed_mps[a] < crate::free_road::STOPPED_MAX_SPEED_MPS;
+                let still = self.stands(a);
                 self.held[a].stalled_ticks = if still {
                     self.held[a].stalled_ticks + 1
                 } else {
@@ -320,9 +352,7 @@ impl SceneRuntime<'_> {
                 ]
             })
             .collect();
-        let standing = (0..self.poses.len())
-            .map(|a| self.speed_mps[a] < crate::free_road::STOPPED_MAX_SPEED_MPS)
-            .collect();
+        let standing = (0..self.poses.len()).map(|a| self.stands(a)).collect();
         (BlockedPaths::new(&self.poses, &size_m, present), standing)
     }
 

@@ -18,7 +18,9 @@ use road_sim::procedural::{ProceduralMap, procedural};
 
 /// Windows held as given; a step sets every future slot to the newest observation, moved on
 /// along its heading by `forward` (model position units per slot; 0: standing), turning by
-/// `turn_rad` a slot. Model units: headings `heading_scale` per radian.
+/// `turn_rad` a slot; with `rocking`, the first future slot goes back where the last step went
+/// forwards and forwards where it went back (a model rocking every vehicle in place). Model
+/// units: headings `heading_scale` per radian.
 pub struct StandingEngine {
     w: usize,
     n: usize,
@@ -26,6 +28,7 @@ pub struct StandingEngine {
     windows: Vec<f32>,
     forward: f32,
     turn_rad: f32,
+    rocking: bool,
     heading_scale: f32,
 }
 
@@ -64,9 +67,17 @@ impl StepEngine for StandingEngine {
             let newest: [f32; 3] = row[3 * (n - 1)..3 * n].try_into().unwrap();
             let heading = newest[2] / self.heading_scale;
             let (mut x, mut y) = (newest[0], newest[1]);
+            let went_forwards = (newest[0] - row[3 * (n - 2)]) * heading.cos()
+                + (newest[1] - row[3 * (n - 2) + 1]) * heading.sin()
+                > 0.0;
+            let forward = if self.rocking && went_forwards {
+                -self.forward
+            } else {
+                self.forward
+            };
             for slot in n..w {
                 if self.turn_rad == 0.0 {
-                    let k = (slot + 1 - n) as f32 * self.forward;
+                    let k = (slot + 1 - n) as f32 * forward;
                     row[3 * slot..3 * slot + 3].copy_from_slice(&[
                         newest[0] + k * heading.cos(),
                         newest[1] + k * heading.sin(),
@@ -120,9 +131,46 @@ pub fn run_turning(
     turn_rad: f64,
     external: Option<usize>,
 ) -> Vec<SceneTick> {
+    let motion = Motion {
+        speed_mps,
+        turn_rad,
+        rocking: false,
+    };
+    run_on(map, None, planner, keep, stands, ticks, motion, external)
+}
+
+/// As [`run_turning`] on the merge (no turns, no client), every vehicle rocked in place by the
+/// engine at `speed_mps`.
+pub fn run_rocking(
+    planner: &PlannerSpec,
+    keep: &[usize],
+    stands: &[(usize, f64, f64, f64)],
+    ticks: usize,
+    speed_mps: f64,
+) -> Vec<SceneTick> {
+    let motion = Motion {
+        speed_mps,
+        turn_rad: 0.0,
+        rocking: true,
+    };
     run_on(
-        map, None, planner, keep, stands, ticks, speed_mps, turn_rad, external,
+        ProceduralMap::Merge,
+        None,
+        planner,
+        keep,
+        stands,
+        ticks,
+        motion,
+        None,
     )
+}
+
+/// How the engine's plans move every vehicle.
+#[derive(Clone, Copy)]
+struct Motion {
+    speed_mps: f64,
+    turn_rad: f64,
+    rocking: bool,
 }
 
 /// As [`run_turning`] (no turns, no client) with the vehicles on `lanes` instead of the
@@ -135,6 +183,11 @@ pub fn run_on_lanes(
     speed_mps: f64,
 ) -> Vec<SceneTick> {
     let keep: Vec<usize> = (0..stands.len()).collect();
+    let motion = Motion {
+        speed_mps,
+        turn_rad: 0.0,
+        rocking: false,
+    };
     run_on(
         ProceduralMap::Merge,
         Some(lanes),
@@ -142,8 +195,7 @@ pub fn run_on_lanes(
         &keep,
         stands,
         ticks,
-        speed_mps,
-        0.0,
+        motion,
         None,
     )
 }
@@ -156,10 +208,14 @@ fn run_on(
     keep: &[usize],
     stands: &[(usize, f64, f64, f64)],
     ticks: usize,
-    speed_mps: f64,
-    turn_rad: f64,
+    motion: Motion,
     external: Option<usize>,
 ) -> Vec<SceneTick> {
+    let Motion {
+        speed_mps,
+        turn_rad,
+        rocking,
+    } = motion;
     let model = ModelConfig::default();
     let scene = procedural(map, &WindowConfig::default(), 10).unwrap();
     let mut window = keep_agents(&scene.window, keep);
@@ -178,6 +234,7 @@ fn run_on(
         windows: Vec::new(),
         forward: (speed_mps * 0.1 / window.frame.scale_m) as f32,
         turn_rad: turn_rad as f32,
+        rocking,
         heading_scale: model.heading_scale as f32,
     };
     let agents = window.agents;

@@ -199,7 +199,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         );
     }
     out!(
-        "(intervals: 95 % percentile bootstrap over sessions; off-road event: a present vehicle leaving every lanelet, leaving at a map's end is not one; collision: a pair of vehicles starting to overlap; a stop with free road: slower than 0.3 m/s, no vehicle's box in its path (its width and 0.3 m each side, 15 m ahead of its centre) and no vehicle's centre within 15 m ahead and 3 m of its axis, or in a gridlock (on a cycle of standing vehicles, each in the path of the one before); a ring lap: a vehicle turning over 1¼ turns in total; wrong way: a tick moving forwards (≥ 1 m/s) whose course runs more than 135° off a lanelet under the vehicle and within 90° of none)"
+        "(intervals: 95 % percentile bootstrap over sessions; off-road event: a present vehicle leaving every lanelet, leaving at a map's end is not one; collision: a pair of vehicles starting to overlap; a stop with free road: slower than 0.3 m/s over the last tick or on average over the last 2 s, no vehicle's box in its path (its width and 0.3 m each side, 15 m ahead of its centre) and no vehicle's centre within 15 m ahead and 3 m of its axis, or in a gridlock (on a cycle of standing vehicles, each in the path of the one before); a ring lap: a vehicle turning over 1¼ turns in total; wrong way: a tick moving forwards (≥ 1 m/s) whose course runs more than 135° off a lanelet under the vehicle and within 90° of none)"
     );
     if let Some(path) = &args.json {
         let json = serde_json::json!({
