@@ -564,3 +564,59 @@ fn a_step_cut_short_beside_a_roundabout_s_island_stands_on_the_road() {
         ticks[0].guarded
     );
 }
+
+/// Times a vehicle's moves along its heading change between forwards and backwards (moves
+/// under 1 cm count as neither).
+fn reversals(ticks: &[SceneTick], agent: usize) -> usize {
+    let mut last = 0.0f64;
+    let mut count = 0;
+    for pair in ticks.windows(2) {
+        let (a, b) = (pair[0].poses[agent], pair[1].poses[agent]);
+        let along = (b.x_m - a.x_m) * a.heading_rad.cos() + (b.y_m - a.y_m) * a.heading_rad.sin();
+        if along.abs() < 0.01 {
+            continue;
+        }
+        if last != 0.0 && along.signum() != last {
+            count += 1;
+        }
+        last = along.signum();
+    }
+    count
+}
+
+#[test]
+fn a_vehicle_turned_across_a_curving_lane_at_its_edge_backs_and_fills_onto_it() {
+    // On the procedural roundabout's ring (radius 20 m, 5 m wide, counter-clockwise) at its
+    // top, by the island's edge, turned 95° left of the ring's way: its nose points at the
+    // island, and the ring's segments ahead of it curve to within 90° of its heading while
+    // those beside it do not. The lane point the release turned it towards switched with its
+    // heading, and such a vehicle on DR_USA_Roundabout_FT rocked 10 cm back and forth,
+    // turning 1.4° one way and back, for 90 s (issue 39). Now it keeps turning one way and
+    // backs on for a while before filling, as in a three-point turn, until it drives on
+    // along the ring.
+    let planner = release_planner();
+    let heading = (180f64 + 95.0).to_radians();
+    let ticks = run_scene(
+        ProceduralMap::Roundabout,
+        &planner,
+        &[0],
+        &[(0, 0.0, 18.6, heading)],
+        200,
+        0.0,
+        None,
+    );
+    assert!(
+        ticks.iter().all(|t| t.off_road.is_empty()),
+        "never off the road"
+    );
+    let last = ticks.last().unwrap().poses[0];
+    let ring_way = last.y_m.atan2(last.x_m) + PI / 2.0;
+    let off_way = road_data::wrap_angle((last.heading_rad - ring_way) as f32).abs();
+    assert!(
+        off_way < 20f32.to_radians(),
+        "along the ring: {last:?}, {:.0}° off its way",
+        off_way.to_degrees()
+    );
+    let reversals = reversals(&ticks, 0);
+    assert!(reversals <= 6, "{reversals} reversals");
+}

@@ -24,9 +24,12 @@ pub(super) struct HeldMemory {
     pub(super) pulling_away: bool,
     /// Whether that pull-away has the way out of a gridlock (it goes on with vehicles ahead).
     pub(super) pulling_out_of_gridlock: bool,
-    /// The way the stall release turns it in place (+1 counter-clockwise, −1 clockwise; 0 when
-    /// it does not).
-    pub(super) spin_sign: i8,
+    /// The way the stall release turns it (+1 counter-clockwise, −1 clockwise; 0 before it
+    /// has turned), kept while it manoeuvres in place ([`held_turn`]).
+    pub(super) turn_sign: i8,
+    /// How far the stall release has backed it in its current run of backward moves, metres (0
+    /// when its last move was not one): it backs on for [`BACK_AND_FILL_M`] before filling.
+    pub(super) backed_m: f64,
     /// Consecutive ticks the collision guard braked it or stopped it short.
     pub(super) guard_held_ticks: u32,
     /// Ticks left in which it does not brake for other model-driven agents (it breaks a
@@ -56,6 +59,17 @@ pub(super) struct HeldMemory {
     /// The rule and yield lanelet the give-way rule let it go from, until it has left the
     /// junction.
     pub(super) gone_from: Option<(u32, u32)>,
+}
+
+impl HeldMemory {
+    /// It is no longer pulled away: the stall release starts over.
+    fn end_pull_away(&mut self) {
+        self.stalled_ticks = 0;
+        self.pulling_away = false;
+        self.pulling_out_of_gridlock = false;
+        self.turn_sign = 0;
+        self.backed_m = 0.0;
+    }
 }
 
 /// A vehicle that stays within this of one place (metres) for [`STILL_TICKS`] stands,
@@ -169,10 +183,7 @@ impl SceneRuntime<'_> {
             // Waiting at a stop line for its way (the give-way rule) is no stall; a gridlock
             // it has the way out of is undone all the same.
             if (!paths.centre_rule_free(a) || self.held[a].giving_way) && !has_way_out_of_gridlock {
-                self.held[a].stalled_ticks = 0;
-                self.held[a].pulling_away = false;
-                self.held[a].pulling_out_of_gridlock = false;
-                self.held[a].spin_sign = 0;
+                self.held[a].end_pull_away();
                 continue;
             }
             let map = self.map.as_ref().map(|m| m.get());
@@ -232,10 +243,7 @@ impl SceneRuntime<'_> {
                 && self.blockers_of(a, proposed, model_heading).is_empty())
                 || self.speed_mps[a] >= release.release_speed_mps
             {
-                self.held[a].pulling_away = false;
-                self.held[a].pulling_out_of_gridlock = false;
-                self.held[a].stalled_ticks = 0;
-                self.held[a].spin_sign = 0;
+                self.held[a].end_pull_away();
                 continue;
             }
             // Along its heading, turned towards a point 6 m ahead on its lane
@@ -253,20 +261,19 @@ impl SceneRuntime<'_> {
             let heading_before = self.heading_unwrapped[a];
             let target =
                 map.and_then(|m| lane_point_ahead(m, before.position_m(), heading_before, 6.0));
-            let turn = target.map_or(0.0, |target| {
+            let raw_turn = target.map_or(0.0, |target| {
                 let wanted = (target - before.position_m()).to_angle();
                 f64::from(wrap_angle((wanted - heading_before) as f32))
             });
-            // Once turning in place it keeps turning the same way: the lane ahead it turns
-            // towards depends on its heading, and two lanes running opposite ways had a vehicle
-            // turn back and forth between them for minutes (issue 39).
-            let spin_sign = match self.held[a].spin_sign {
-                0 => turn.signum(),
-                sign => f64::from(sign),
-            };
+            // Manoeuvring in place it keeps turning the same way: the lane point it turns
+            // towards depends on its heading (two lanes running opposite ways, or one curving lane's
+            // segments each on either side of 90° off it), and vehicles turned back and forth
+            // between two such points for minutes (issue 39).
+            let (turn, turn_sign) = held_turn(raw_turn, self.held[a].turn_sign);
+            self.held[a].turn_sign = turn_sign;
             let spin = (
                 before.position_m(),
-                heading_before + spin_sign * turn.abs().min(RELEASE_TURN_IN_PLACE_RAD),
+                heading_before + turn.clamp(-RELEASE_TURN_IN_PLACE_RAD, RELEASE_TURN_IN_PLACE_RAD),
             );
             // About the rear axle, `distance_m` along the heading (negative: backwards), the
             // nose turned towards the target by at most `max_turn_rad`.
@@ -295,24 +302,27 @@ impl SceneRuntime<'_> {
             // Where the plain pull-away is blocked (off the road ahead, or a neighbour in the
             // way: issue 39's long stops were mostly a vehicle at the kerb whose turn in place
             // swung its tail into the nose of one behind it), it backs and fills.
+            let (forward, backward) = (arc(manoeuvre_m, full_lock), arc(-manoeuvre_m, full_lock));
+            let driving = drive();
             let (moves, on_road_too) = if on_road(before.position_m()) {
-                let moves = vec![
-                    drive(),
-                    arc(manoeuvre_m, full_lock),
-                    arc(-manoeuvre_m, full_lock),
-                    spin,
-                ];
+                // Once backing it backs on for `BACK_AND_FILL_M` where it can, as a driver in
+                // a three-point turn does: choosing forwards first every tick, a vehicle at the
+                // road's edge went 10 cm back and 10 cm forth each tick for minutes (issue 39).
+                let backed_m = self.held[a].backed_m;
+                let backing_on = backed_m > 0.0 && backed_m < BACK_AND_FILL_M;
+                let moves = if backing_on {
+                    vec![backward, driving, forward, spin]
+                } else {
+                    vec![driving, forward, backward, spin]
+                };
                 (moves, true)
             } else if target.is_none() {
-                self.held[a].pulling_away = false;
-                self.held[a].pulling_out_of_gridlock = false;
-                self.held[a].stalled_ticks = 0;
-                self.held[a].spin_sign = 0;
+                self.held[a].end_pull_away();
                 continue;
             } else if turn.abs() > 30f64.to_radians() {
                 (vec![spin], false)
             } else {
-                (vec![drive()], false)
+                (vec![driving], false)
             };
             // The first move on the road (where asked) that the collision guard will let through
             // against everyone standing as they are.
@@ -328,10 +338,15 @@ impl SceneRuntime<'_> {
                     make_room.extend(self.blockers_of(a, to, heading).into_iter().map(|b| (a, b)));
                 }
             }
-            self.held[a].spin_sign = if chosen == Some(spin) {
-                spin_sign as i8
+            // Driving on, it turns as its lane does (it keeps its way only manoeuvring in
+            // place, where its heading alone moves the lane point).
+            if chosen == Some(driving) {
+                self.held[a].turn_sign = 0;
+            }
+            self.held[a].backed_m = if chosen == Some(backward) {
+                self.held[a].backed_m + manoeuvre_m
             } else {
-                0
+                0.0
             };
             // Nothing feasible: it stands this tick, as the guard would have held it.
             let (to, heading) = chosen.unwrap_or((before.position_m(), heading_before));
@@ -614,6 +629,28 @@ const RELEASE_TURN_IN_PLACE_RAD: f64 = 0.05;
 /// How far a car's rear axle lies behind its box's centre, as a share of its length (a 4.5 m
 /// car's about 1.1 m).
 const REAR_AXLE_SHARE_OF_LENGTH: f64 = 0.25;
+/// How far a vehicle the stall release backs and fills backs on in one go, metres: 15 ticks
+/// at `MANOEUVRE_SPEED_MPS`, turning 21° at full lock.
+const BACK_AND_FILL_M: f64 = 1.5;
+/// A turn of the stall release's smaller than this (radians) is no way to keep: the vehicle
+/// points nearly where it wants to, and may turn either way to line up.
+const KEEP_TURN_FROM_RAD: f64 = 0.2;
+
+/// The turn the stall release makes towards its lane point (radians, positive
+/// counter-clockwise), and the way it keeps from now on, given the turn towards this tick's
+/// point (`raw_turn`) and the way it kept so far (`kept_sign`: ±1, or 0 before it turned). A
+/// turn the other way than the kept one, unless small ([`KEEP_TURN_FROM_RAD`]), is made the
+/// kept way by as much.
+fn held_turn(raw_turn: f64, kept_sign: i8) -> (f64, i8) {
+    match kept_sign {
+        0 if raw_turn.abs() < KEEP_TURN_FROM_RAD => (raw_turn, 0),
+        0 => (raw_turn, raw_turn.signum() as i8),
+        sign if raw_turn.abs() < KEEP_TURN_FROM_RAD || raw_turn.signum() as i8 == sign => {
+            (raw_turn, sign)
+        }
+        sign => (f64::from(sign) * raw_turn.abs(), sign),
+    }
+}
 
 /// The point `ahead_m` along the centre line of a lane near `at`, from the lane's point
 /// nearest `at` (straight on along its segment), the lane chosen in this order: one that `at`
@@ -635,4 +672,23 @@ fn lane_point_ahead(map: &LaneletMap, at: DVec2, heading: f64, ahead_m: f64) -> 
         .or_else(|| near(&its_way))
         .or_else(|| near(&any_way))
         .map(|(_, closest, direction)| closest + direction * ahead_m)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{KEEP_TURN_FROM_RAD, held_turn};
+
+    #[test]
+    fn a_turn_the_other_way_is_kept_the_first_way_unless_small() {
+        let big = 2.0 * KEEP_TURN_FROM_RAD;
+        let small = 0.5 * KEEP_TURN_FROM_RAD;
+        // Nothing kept yet: a small turn keeps no way, a big one keeps its own.
+        assert_eq!(held_turn(small, 0), (small, 0));
+        assert_eq!(held_turn(-big, 0), (-big, -1));
+        // Kept clockwise: a big counter-clockwise turn (the lane point jumped) turns clockwise
+        // by as much; a small one (lining up) is made as asked; the kept way stays.
+        assert_eq!(held_turn(big, -1), (-big, -1));
+        assert_eq!(held_turn(small, -1), (small, -1));
+        assert_eq!(held_turn(-big, -1), (-big, -1));
+    }
 }
