@@ -269,8 +269,9 @@ pub struct LaneAnticipation {
 /// steps. The recordings' model stops vehicles where traffic ahead of them lies beyond its map
 /// crop; on an open road that stop never ends. A gridlock (standing vehicles each in the path
 /// of the one before, round to the first: `road_sim::free_road::BlockedPaths`) has no free
-/// road: after `after_secs` its lowest-numbered vehicle is pulled away all the same, not
-/// braking ahead of the others, and those standing in its path make room.
+/// road: after `gridlock_after_secs` (`after_secs` when unset) its lowest-numbered vehicle is
+/// pulled away all the same, not braking ahead of the others, and those standing in its path
+/// make room.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct StallRelease {
@@ -280,6 +281,10 @@ pub struct StallRelease {
     pub acceleration_mps2: f64,
     /// The speed at which the model takes over again, m/s, (0, 20].
     pub release_speed_mps: f64,
+    /// Seconds a gridlock's vehicle with the way out stands before it is pulled away, (0, 600];
+    /// unset: `after_secs`. No brake undoes a gridlock, so there is nothing to wait for.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub gridlock_after_secs: Option<f64>,
 }
 
 /// The stuck removal's settings ([`PlannerSpec::stuck_removal`]), the last resort of long
@@ -527,11 +532,15 @@ impl PlannerSpec {
                 && release.acceleration_mps2 > 0.0
                 && release.acceleration_mps2 <= 5.0
                 && release.release_speed_mps > 0.0
-                && release.release_speed_mps <= 20.0;
+                && release.release_speed_mps <= 20.0
+                && release
+                    .gridlock_after_secs
+                    .is_none_or(|secs| secs > 0.0 && secs <= 600.0);
             if !ok {
                 return bad(format!(
-                    "stall_release: after_secs must be in (0, 600], acceleration_mps2 in (0, 5] \
-                     and release_speed_mps in (0, 20], got {release:?}"
+                    "stall_release: after_secs must be in (0, 600], acceleration_mps2 in (0, 5], \
+                     release_speed_mps in (0, 20] and gridlock_after_secs, when set, in (0, 600], \
+                     got {release:?}"
                 ));
             }
         }

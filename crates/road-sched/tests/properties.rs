@@ -570,15 +570,35 @@ fn lane_guard_anticipation_outside_its_bounds_is_refused() {
 /// refused by name.
 #[test]
 fn stall_release_and_stuck_removal_outside_their_bounds_are_refused() {
+    let gridlock = |gridlock_after_secs| PlannerSpec {
+        stall_release: Some(road_sched::StallRelease {
+            after_secs: 3.0,
+            acceleration_mps2: 1.5,
+            release_speed_mps: 5.0,
+            gridlock_after_secs,
+        }),
+        ..spec(PlannerKind::Rolling, 10, 5, 40, None)
+    };
     let release = |after_secs, acceleration_mps2, release_speed_mps| PlannerSpec {
         stall_release: Some(road_sched::StallRelease {
             after_secs,
             acceleration_mps2,
             release_speed_mps,
+            gridlock_after_secs: None,
         }),
         ..spec(PlannerKind::Rolling, 10, 5, 40, None)
     };
     assert!(release(3.0, 1.5, 5.0).validate("p").is_ok());
+    for secs in [None, Some(1.0), Some(600.0)] {
+        assert!(gridlock(secs).validate("p").is_ok(), "{secs:?}");
+    }
+    for secs in [Some(0.0), Some(-1.0), Some(600.5), Some(f64::NAN)] {
+        let message = gridlock(secs).validate("p").unwrap_err().to_string();
+        assert!(
+            message.contains("gridlock_after_secs, when set, in (0, 600]"),
+            "{secs:?}: {message}"
+        );
+    }
     for (secs, acc, speed) in [
         (0.0, 1.5, 5.0),
         (600.5, 1.5, 5.0),

@@ -151,6 +151,7 @@ const RELEASE: StallRelease = StallRelease {
     after_secs: 3.0,
     acceleration_mps2: 1.5,
     release_speed_mps: 5.0,
+    gridlock_after_secs: None,
 };
 
 #[test]

@@ -206,7 +206,11 @@ impl SceneRuntime<'_> {
                 } else {
                     0
                 };
-                if self.held[a].stalled_ticks < after_ticks {
+                let wait_ticks = match release.gridlock_after_secs {
+                    Some(secs) if has_way_out_of_gridlock => (secs / STEP_SECS).round() as u32,
+                    _ => after_ticks,
+                };
+                if self.held[a].stalled_ticks < wait_ticks {
                     continue;
                 }
                 self.held[a].pulling_away = true;
