@@ -1344,6 +1344,7 @@ fn render_draws_a_frame_per_tick_and_names_bad_files() {
         stderr(&o)
     );
     std::fs::remove_dir_all(&dir).ok();
+    std::fs::remove_dir_all(&planned_dir).ok();
 }
 
 /// `road replay` publishes a recording's NPC ticks again on the live keys under `--prefix`,

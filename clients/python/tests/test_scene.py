@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 import subprocess
 import tempfile
 from pathlib import Path
@@ -39,6 +40,7 @@ def server():
         except subprocess.TimeoutExpired:
             proc.kill()
         log.close()
+        shutil.rmtree(record, ignore_errors=True)
 
 
 def test_log_replay_ego_for_100_ticks(server):

@@ -176,10 +176,16 @@ mod tests {
         }
     }
 
+    /// `name` in a folder of its own (tests run in parallel), which [`remove_temp`] removes.
     fn temp(name: &str) -> PathBuf {
-        let dir = std::env::temp_dir().join(format!("road-cache-test-{}", std::process::id()));
+        let dir =
+            std::env::temp_dir().join(format!("road-cache-test-{name}-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         dir.join(name)
+    }
+
+    fn remove_temp(path: &Path) {
+        let _ = std::fs::remove_dir_all(path.parent().unwrap());
     }
 
     #[test]
@@ -193,6 +199,7 @@ mod tests {
             postcard::to_stdvec(&ds).unwrap()
         );
         assert_eq!(back.window(0).unwrap(), ds.window(0).unwrap());
+        remove_temp(&path);
     }
 
     #[test]
@@ -249,5 +256,6 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(err.contains("train split"), "{err}");
+        remove_temp(&path);
     }
 }

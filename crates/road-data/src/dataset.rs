@@ -622,5 +622,6 @@ mod tests {
             err.contains("window_step") && err.contains("c.toml"),
             "{err}"
         );
+        let _ = std::fs::remove_dir_all(&dir);
     }
 }

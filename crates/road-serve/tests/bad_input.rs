@@ -17,14 +17,17 @@ use zenoh::Wait;
 /// One server for the file; payloads over 64 KiB are refused; the late-ego deadline is off
 /// so that slow debug ticks never turn late.
 fn server() -> &'static ServerHandle {
-    static SERVER: OnceLock<ServerHandle> = OnceLock::new();
-    SERVER.get_or_init(|| {
-        let dir = common::temp_dir("bad-input");
-        let mut config = common::config(&dir);
-        config.max_payload_bytes = 64 << 10;
-        config.late_ego_deadline = Duration::ZERO;
-        common::start(config)
-    })
+    // Its recordings' folder lives as long (a static is never dropped: the folder stays).
+    static SERVER: OnceLock<(common::TempFolder, ServerHandle)> = OnceLock::new();
+    &SERVER
+        .get_or_init(|| {
+            let dir = common::temp_dir("bad-input");
+            let mut config = common::config(&dir);
+            config.max_payload_bytes = 64 << 10;
+            config.late_ego_deadline = Duration::ZERO;
+            (dir, common::start(config))
+        })
+        .1
 }
 
 fn client(id: &str) -> Client {

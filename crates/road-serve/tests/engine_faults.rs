@@ -15,7 +15,8 @@ use road_sim::closed_loop::SceneTick;
 
 #[test]
 fn a_non_finite_engine_output_fails_the_tick() {
-    let config = common::config(&common::temp_dir("engine-faults"));
+    let dir = common::temp_dir("engine-faults");
+    let config = common::config(&dir);
     let mut checkpoints = Checkpoints::new(config.models_dir.clone());
     let planners = planners().unwrap();
     let request: CreateScene = CreateScene {

@@ -165,8 +165,9 @@ impl Viewer {
     }
 }
 
-/// A server with the live view on loopback port 0.
-fn start_server(name: &str) -> (road_serve::ServerHandle, SocketAddr) {
+/// A server with the live view on loopback port 0, and its recordings' folder (bind it as long
+/// as the server runs).
+fn start_server(name: &str) -> (common::TempFolder, road_serve::ServerHandle, SocketAddr) {
     let dir = common::temp_dir(name);
     let mut config = common::config(&dir);
     config.late_ego_deadline = Duration::ZERO; // a slow debug build must not turn ticks late
@@ -174,7 +175,7 @@ fn start_server(name: &str) -> (road_serve::ServerHandle, SocketAddr) {
     let server = common::start(config);
     let addr = server.foxglove_addr().expect("the live view runs");
     assert_ne!(addr.port(), 0, "the bound port is read back");
-    (server, addr)
+    (dir, server, addr)
 }
 
 /// The boxes of an agents update.
@@ -185,7 +186,7 @@ fn cubes(update: &Value) -> &Vec<Value> {
 
 #[test]
 fn a_foxglove_client_watches_a_scene_tick_live() {
-    let (server, addr) = start_server("live");
+    let (_recordings, server, addr) = start_server("live");
     let mut viewer = Viewer::connect(addr);
     let before = viewer.handshake_ops();
     assert!(before.is_empty(), "no scene yet: {before:?}");
@@ -240,7 +241,7 @@ fn a_foxglove_client_watches_a_scene_tick_live() {
 
 #[test]
 fn a_malformed_op_gets_a_status_and_the_scene_ticks_on() {
-    let (server, addr) = start_server("live-bad-op");
+    let (_recordings, server, addr) = start_server("live-bad-op");
     let mut viewer = Viewer::connect(addr);
     viewer.handshake_ops();
     let client = common::client(&server, "bad-op-ego");
@@ -303,7 +304,7 @@ fn a_malformed_op_gets_a_status_and_the_scene_ticks_on() {
 
 #[test]
 fn closing_a_scene_clears_and_unadvertises_its_channels() {
-    let (server, addr) = start_server("live-close");
+    let (_recordings, server, addr) = start_server("live-close");
     let client = common::client(&server, "close-ego");
     let mut scene = client.create(common::roundabout()).unwrap();
     let history = scene.created().agents[0].history.clone();

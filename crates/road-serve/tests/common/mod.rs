@@ -15,12 +15,37 @@ pub fn models_dir() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../models")
 }
 
-/// A fresh temp folder for recordings.
-pub fn temp_dir(name: &str) -> PathBuf {
+/// A fresh temp folder for recordings, removed when dropped unless the test is failing (its
+/// recordings are then kept to look at).
+pub fn temp_dir(name: &str) -> TempFolder {
     let dir = std::env::temp_dir().join(format!("road-serve-{name}-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
-    dir
+    TempFolder(dir)
+}
+
+/// A folder [`temp_dir`] made; bind it for as long as the server writes there.
+pub struct TempFolder(PathBuf);
+
+impl std::ops::Deref for TempFolder {
+    type Target = std::path::Path;
+    fn deref(&self) -> &std::path::Path {
+        &self.0
+    }
+}
+
+impl AsRef<std::path::Path> for TempFolder {
+    fn as_ref(&self) -> &std::path::Path {
+        &self.0
+    }
+}
+
+impl Drop for TempFolder {
+    fn drop(&mut self) {
+        if !std::thread::panicking() {
+            let _ = std::fs::remove_dir_all(&self.0);
+        }
+    }
 }
 
 /// A config for tests: recordings under `dir`.
