@@ -270,9 +270,9 @@ impl SceneRuntime<'_> {
                 f64::from(wrap_angle((wanted - heading_before) as f32))
             });
             // Manoeuvring in place it keeps turning the same way: the lane point it turns
-            // towards depends on its heading (two lanes running opposite ways, or one curving lane's
-            // segments each on either side of 90° off it), and vehicles turned back and forth
-            // between two such points for minutes (issue 39).
+            // towards depends on its heading (two lanes running opposite ways, or one curving
+            // lane's segments each on either side of 90° off it), and vehicles turned back and
+            // forth between two such points for minutes (issue 39).
             let (turn, turn_sign) = held_turn(raw_turn, self.held[a].turn_sign);
             self.held[a].turn_sign = turn_sign;
             let spin = (
