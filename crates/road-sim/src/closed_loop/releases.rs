@@ -615,11 +615,13 @@ impl SceneRuntime<'_> {
 
 /// Boxes closer than this touch, for the deadlock release (metres).
 const TOUCHING_M: f64 = 0.1;
-/// How long a vehicle that gives way in a deadlock backs off, seconds, and how fast (m/s).
+/// How long a vehicle that gives way in a deadlock (or makes room) backs off, seconds, and how
+/// fast (m/s): 2 m. At 0.5 m/s its 1 m was too little room, and jams in junction boxes stood
+/// on (issue 39's long sessions: stops of 10 s or more 127 at 0.5 m/s, 64 at 1 m/s).
 const BACK_OFF_SECS: f64 = 2.0;
 /// How long it then stands while the vehicle that has the way goes, seconds.
 const GIVE_WAY_SECS: f64 = 3.0;
-const BACK_OFF_SPEED_MPS: f64 = 0.5;
+const BACK_OFF_SPEED_MPS: f64 = 1.0;
 
 /// The tightest circle a vehicle pulled away by the stall release turns on, metres.
 const RELEASE_TURN_RADIUS_M: f64 = 4.0;
