@@ -93,6 +93,12 @@ pub fn keep_on_road(
         return Some(LaneAction::StoppedAtEdge);
     }
     let direction = step / step_m;
+    // Out of the map through an open lane end, whichever way it faces: it leaves (and is
+    // retired). Held at the edge, a vehicle facing into the map that was asked to back off
+    // out of its end stood there for 334 s, those it was to make room for behind it (issue 39).
+    if !on_road(map, to) && leaves_through_an_open_end(map, from, to) {
+        return None;
+    }
     // A step backwards or square to the heading is not lane following: no lane to steer it
     // into, and no right to leave the road either (issue 41: a vehicle standing beside a
     // stopped ego slid sideways off the merge, its steps a hair behind square).
@@ -788,6 +794,30 @@ mod tests {
                 &mut sideways,
                 6.0,
                 false
+            ),
+            Some(LaneAction::StoppedAtEdge)
+        );
+    }
+
+    #[test]
+    fn a_vehicle_backing_out_through_the_map_s_end_leaves_and_backing_over_a_side_does_not() {
+        // Facing into the map (−x) at the end of the last lanelet (x = 40, no successor),
+        // backing off +x out of it: it leaves the map (and is retired), as one driving out does.
+        let mut backing_out = pose(40.1, -1.0, PI);
+        assert_eq!(
+            keep_on_road(&road(), pose(39.95, -1.0, PI), &mut backing_out, 6.0, true),
+            None
+        );
+        assert_eq!(backing_out, pose(40.1, -1.0, PI));
+        // Backing over the road's side there is still stopped at the edge.
+        let mut backing_sideways = pose(35.0, -2.1, FRAC_PI_2);
+        assert_eq!(
+            keep_on_road(
+                &road(),
+                pose(35.0, -1.9, FRAC_PI_2),
+                &mut backing_sideways,
+                6.0,
+                true
             ),
             Some(LaneAction::StoppedAtEdge)
         );

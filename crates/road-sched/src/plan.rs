@@ -264,8 +264,8 @@ pub struct LaneAnticipation {
 /// The stall release's settings ([`PlannerSpec::stall_release`]): a model-driven vehicle
 /// slower than 0.3 m/s for `after_secs` with no vehicle within 15 m ahead of it (3 m either
 /// side of its axis) pulls away along its heading at `acceleration_mps2` until it drives
-/// `release_speed_mps`, or the model drives it faster (on a step that keeps clear of everyone),
-/// or something comes within 15 m ahead; the lane and collision guards still apply to its
+/// `release_speed_mps`, or the model drives it faster (on a step that keeps clear of everyone;
+/// faster than `hand_back_speed_mps` too, when set), or something comes within 15 m ahead; the lane and collision guards still apply to its
 /// steps. The recordings' model stops vehicles where traffic ahead of them lies beyond its map
 /// crop; on an open road that stop never ends. A gridlock (standing vehicles each in the path
 /// of the one before, round to the first: `road_sim::free_road::BlockedPaths`) has no free
@@ -285,6 +285,12 @@ pub struct StallRelease {
     /// unset: `after_secs`. No brake undoes a gridlock, so there is nothing to wait for.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub gridlock_after_secs: Option<f64>,
+    /// The least speed the model must ask for to take a pulled-away vehicle back, m/s, (0,
+    /// `release_speed_mps`]; unset: the speed the release has reached. Handed back at the
+    /// first step the model asked to crawl on, a vehicle the model kept stopping on free road
+    /// went 1.5 m every 5 s, and its queue behind it (issue 39).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub hand_back_speed_mps: Option<f64>,
 }
 
 /// The stuck removal's settings ([`PlannerSpec::stuck_removal`]), the last resort of long
@@ -292,9 +298,10 @@ pub struct StallRelease {
 /// stood (slower than 0.3 m/s) with free road ahead (no vehicle within 15 m ahead, 3 m either
 /// side of its axis) or in a gridlock (see [`StallRelease`]) for `after_secs` of ticks in
 /// which the closed loop's guards or releases acted on it (a wedge or gridlock their rules did
-/// not undo), without moving in between,
-/// leaves the scene, when no client-driven agent is within `clear_of_external_m` (nobody near
-/// the ego sees a vehicle vanish). Vehicles queued behind another are never taken out. Only in
+/// not undo), or wherever it stood in ticks a release's own move (a pull-away, a back-off to
+/// make room) left it standing, without moving in between, leaves the scene, when no
+/// client-driven agent is within `clear_of_external_m` (nobody near the ego sees a vehicle
+/// vanish). Vehicles the model keeps queued behind another are never taken out. Only in
 /// scenes whose vehicles leave (served scenes, `road demo`, the long suite).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -535,12 +542,16 @@ impl PlannerSpec {
                 && release.release_speed_mps <= 20.0
                 && release
                     .gridlock_after_secs
-                    .is_none_or(|secs| secs > 0.0 && secs <= 600.0);
+                    .is_none_or(|secs| secs > 0.0 && secs <= 600.0)
+                && release
+                    .hand_back_speed_mps
+                    .is_none_or(|mps| mps > 0.0 && mps <= release.release_speed_mps);
             if !ok {
                 return bad(format!(
                     "stall_release: after_secs must be in (0, 600], acceleration_mps2 in (0, 5], \
-                     release_speed_mps in (0, 20] and gridlock_after_secs, when set, in (0, 600], \
-                     got {release:?}"
+                     release_speed_mps in (0, 20], gridlock_after_secs, when set, in (0, 600] \
+                     and hand_back_speed_mps, when set, in (0, release_speed_mps], got \
+                     {release:?}"
                 ));
             }
         }

@@ -576,6 +576,7 @@ fn stall_release_and_stuck_removal_outside_their_bounds_are_refused() {
             acceleration_mps2: 1.5,
             release_speed_mps: 5.0,
             gridlock_after_secs,
+            hand_back_speed_mps: None,
         }),
         ..spec(PlannerKind::Rolling, 10, 5, 40, None)
     };
@@ -585,9 +586,30 @@ fn stall_release_and_stuck_removal_outside_their_bounds_are_refused() {
             acceleration_mps2,
             release_speed_mps,
             gridlock_after_secs: None,
+            hand_back_speed_mps: None,
         }),
         ..spec(PlannerKind::Rolling, 10, 5, 40, None)
     };
+    let hand_back = |hand_back_speed_mps| PlannerSpec {
+        stall_release: Some(road_sched::StallRelease {
+            after_secs: 3.0,
+            acceleration_mps2: 1.5,
+            release_speed_mps: 5.0,
+            gridlock_after_secs: None,
+            hand_back_speed_mps,
+        }),
+        ..spec(PlannerKind::Rolling, 10, 5, 40, None)
+    };
+    for mps in [None, Some(0.5), Some(5.0)] {
+        assert!(hand_back(mps).validate("p").is_ok(), "{mps:?}");
+    }
+    for mps in [Some(0.0), Some(-1.0), Some(5.5), Some(f64::NAN)] {
+        let message = hand_back(mps).validate("p").unwrap_err().to_string();
+        assert!(
+            message.contains("hand_back_speed_mps, when set, in (0, release_speed_mps]"),
+            "{mps:?}: {message}"
+        );
+    }
     assert!(release(3.0, 1.5, 5.0).validate("p").is_ok());
     for secs in [None, Some(1.0), Some(600.0)] {
         assert!(gridlock(secs).validate("p").is_ok(), "{secs:?}");

@@ -846,7 +846,7 @@ impl<'m> SceneRuntime<'m> {
         if let Some(release) = stall_release {
             self.release_stalls(emitted, heading_scale, release);
         }
-        self.back_off(emitted, heading_scale);
+        self.back_off(emitted, heading_scale, stall_release.is_some());
         if let (Some(guard), Some(map)) = (lane_guard, self.map.clone()) {
             self.keep_on_road(emitted, plan_turns, heading_scale, guard, map.get());
         }

@@ -69,6 +69,12 @@ pub struct SessionStats {
     pub vehicles_every_10s: Vec<usize>,
     /// Where the long stops with free road ahead were (metres; the first 100).
     pub long_free_stop_places: Vec<[f64; 2]>,
+    /// Stands of [`LONG_STOP_SECS`] or more whatever was ahead (queued behind another vehicle
+    /// too: the free-road count cannot see a queue behind a jam), the longest, and the
+    /// vehicle-ticks spent in them.
+    pub long_stands: u64,
+    pub longest_stand_secs: f64,
+    pub long_stand_ticks: u64,
     #[serde(skip)]
     present: Vec<bool>,
     #[serde(skip)]
@@ -80,6 +86,9 @@ pub struct SessionStats {
     recent: Vec<std::collections::VecDeque<glam::DVec2>>,
     #[serde(skip)]
     free_stop_ticks: Vec<u32>,
+    /// Consecutive ticks each agent has stood, whatever was ahead.
+    #[serde(skip)]
+    stand_ticks: Vec<u32>,
     #[serde(skip)]
     gridlocked: Vec<bool>,
     /// Each agent's `[length, width]` (metres).
@@ -118,6 +127,7 @@ impl SessionStats {
             self.last.resize(n, None);
             self.recent.resize(n, Default::default());
             self.free_stop_ticks.resize(n, 0);
+            self.stand_ticks.resize(n, 0);
             self.gridlocked.resize(n, false);
             self.size_m.resize(n, [0.0; 2]);
             self.turned_rad.resize(n, 0.0);
@@ -134,6 +144,7 @@ impl SessionStats {
         self.last[agent] = None;
         self.recent[agent].clear();
         self.free_stop_ticks[agent] = 0;
+        self.stand_ticks[agent] = 0;
         self.turned_rad[agent] = 0.0;
         self.lapped[agent] = false;
         self.overlapping.retain(|&(i, j)| i != agent && j != agent);
@@ -169,6 +180,7 @@ impl SessionStats {
             if self.present[a] {
                 self.left += 1;
                 self.flush_stop(a);
+                self.flush_stand(a);
             }
             self.present[a] = false;
         }
@@ -214,6 +226,11 @@ impl SessionStats {
         let paths = BlockedPaths::new(&tick.poses, &self.size_m, &present);
         for &a in &present {
             let pose = tick.poses[a];
+            if standing[a] {
+                self.stand_ticks[a] += 1;
+            } else {
+                self.flush_stand(a);
+            }
             if let Some(last) = self.last[a] {
                 let step_m = pose.position_m() - last.position_m();
                 if step_m.length() / STEP_SECS >= MOVING_MIN_SPEED_MPS {
@@ -275,12 +292,34 @@ impl SessionStats {
         self.gridlocked[agent] = false;
     }
 
+    fn flush_stand(&mut self, agent: usize) {
+        let ticks = self.stand_ticks[agent];
+        let secs = f64::from(ticks) * STEP_SECS;
+        if secs >= LONG_STOP_SECS {
+            self.long_stands += 1;
+            self.long_stand_ticks += u64::from(ticks);
+        }
+        self.longest_stand_secs = self.longest_stand_secs.max(secs);
+        self.stand_ticks[agent] = 0;
+    }
+
     /// Ends the session: stops still going count.
     pub fn finish(&mut self) {
         for a in 0..self.present.len() {
             if self.present[a] {
                 self.flush_stop(a);
+                self.flush_stand(a);
             }
+        }
+    }
+
+    /// The share of vehicle time spent in stands of [`LONG_STOP_SECS`] or more (0 with no
+    /// vehicle time).
+    pub fn long_stand_share(&self) -> f64 {
+        if self.vehicle_ticks == 0 {
+            0.0
+        } else {
+            self.long_stand_ticks as f64 / self.vehicle_ticks as f64
         }
     }
 
@@ -339,6 +378,11 @@ mod tests {
         // Vehicles 0 and 2 have free road (15 s each); 1 is queued.
         assert_eq!(stats.long_free_stops, 2);
         assert!((stats.longest_free_stop_secs - 14.9).abs() < 1e-9);
+        // Every one of the three stood, the queued one too.
+        assert_eq!(stats.long_stands, 3);
+        assert!((stats.longest_stand_secs - 14.9).abs() < 1e-9);
+        assert_eq!(stats.long_stand_ticks, 3 * 149);
+        assert!((stats.long_stand_share() - 447.0 / 450.0).abs() < 1e-12);
         assert_eq!(stats.vehicle_ticks, 450);
         assert_eq!(stats.vehicles_every_10s, vec![3, 3]);
     }

@@ -152,6 +152,7 @@ const RELEASE: StallRelease = StallRelease {
     acceleration_mps2: 1.5,
     release_speed_mps: 5.0,
     gridlock_after_secs: None,
+    hand_back_speed_mps: None,
 };
 
 #[test]
@@ -453,6 +454,46 @@ fn a_vehicle_asked_to_make_room_by_one_behind_it_moves_forwards() {
         ticks.iter().any(|t| t.poses[1].x_m < x1 - 0.5),
         "1 makes room forwards"
     );
+    let last = ticks.last().unwrap().poses[0];
+    assert!(last.y_m.abs() < 1.875, "on the road: {last:?}");
+    assert!(
+        last.x_m > wedged.x_m + 3.0,
+        "it drove on along the road: {last:?}"
+    );
+}
+
+#[test]
+fn a_vehicle_asked_to_make_room_by_one_behind_it_with_free_road_ahead_drives_on() {
+    // As above without vehicle 2: 1 has free road ahead. Asked to make room by 0 behind it,
+    // it is pulled away at once (creeping 2 m forwards and standing 3 s, a vehicle led its
+    // queue round a ring at 0.4 m/s in issue 39's long sessions), never backed off, and well
+    // before its own stall (3 s) would have released it. Both drive on.
+    let (planner, wedged) = (wedge_planner(), WEDGED);
+    let corner = rear_right_corner(WEDGED);
+    let x1 = corner.0 - 0.01 - 2.4;
+    let stands = [
+        (0, wedged.x_m, wedged.y_m, wedged.heading_rad),
+        (1, x1, corner.1 - 0.2, std::f64::consts::PI),
+    ];
+    let ticks = run_with(&planner, &[0, 2], &stands, 250);
+    assert!(
+        ticks.iter().all(|t| t.collisions.is_empty()),
+        "no collision"
+    );
+    let first_pull = ticks
+        .iter()
+        .position(|t| t.guarded.contains(&(1, GuardAction::PulledAway)))
+        .expect("1 is pulled away");
+    assert!(first_pull < 30, "pulled away at tick {first_pull}");
+    assert!(
+        ticks
+            .iter()
+            .all(|t| !t.guarded.contains(&(1, GuardAction::BackedOff))),
+        "1 never backs off"
+    );
+    // (Against its lane, the release turns it round onto the lane.)
+    let moved = moved_m(&ticks, 1, 1);
+    assert!(moved > 5.0, "1 drove on: {moved:.2} m");
     let last = ticks.last().unwrap().poses[0];
     assert!(last.y_m.abs() < 1.875, "on the road: {last:?}");
     assert!(

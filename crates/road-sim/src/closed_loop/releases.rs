@@ -104,8 +104,9 @@ impl SceneRuntime<'_> {
     /// The stuck removal ([`StuckRemoval`]), after the tick's poses are set: model-driven
     /// vehicles that stood stuck for its time, no client-driven agent near, leave the scene
     /// (retired, in `left` and `stuck`). Stuck: standing with free road ahead
-    /// ([`crate::free_road`]) while a guard or release acts on it; vehicles queued behind
-    /// another never count (counting every standing tick a guard acted on, a first version
+    /// ([`crate::free_road`]) or in a gridlock while a guard or release acts on it, or standing
+    /// whatever is ahead while a release moves it (pulled away or backing off); vehicles the
+    /// model keeps queued behind another never count (counting every standing tick a guard acted on, a first version
     /// took 108 vehicles out of queues in 1 847 vehicle-minutes).
     pub(super) fn remove_stuck(&mut self, removal: StuckRemoval) {
         let after_ticks = (removal.after_secs / STEP_SECS).round() as u32;
@@ -126,9 +127,17 @@ impl SceneRuntime<'_> {
                 self.held[a].stuck_ticks = 0;
                 continue;
             }
+            // A release's own move that left it standing (pulled away or backing off, wedged
+            // where it stands) counts whatever is ahead: a vehicle asked to back off against
+            // the road's edge, another at its nose, stood 229 s in MA's box (issue 39).
+            let released_in_vain = self.guarded.iter().any(|&(b, action)| {
+                b == a && matches!(action, GuardAction::PulledAway | GuardAction::BackedOff)
+            });
             if self.guarded.iter().any(|&(b, _)| b == a)
                 && !self.held[a].giving_way
-                && (paths.centre_rule_free(a) || paths.in_gridlock(a, &standing))
+                && (paths.centre_rule_free(a)
+                    || paths.in_gridlock(a, &standing)
+                    || released_in_vain)
             {
                 self.held[a].stuck_ticks += 1;
             }
@@ -241,7 +250,7 @@ impl SceneRuntime<'_> {
                 .dot(DVec2::from_angle(self.heading_unwrapped[a]))
                 >= 30f64.to_radians().cos();
             let model_heading = f64::from(emitted[3 * a + 2]) / heading_scale;
-            if (model_speed >= speed
+            if (model_speed >= hand_back_speed_mps(speed, &release)
                 && same_way
                 && stays_or_exits(proposed)
                 && self.blockers_of(a, proposed, model_heading).is_empty())
@@ -357,7 +366,7 @@ impl SceneRuntime<'_> {
             set_emitted(emitted, a, frame, to, heading, heading_scale);
             self.guarded.push((a, GuardAction::PulledAway));
         }
-        self.make_room(&make_room);
+        self.make_room(&make_room, true);
     }
 
     /// What stands in each present vehicle's path as the tick starts ([`BlockedPaths`]), and
@@ -406,9 +415,19 @@ impl SceneRuntime<'_> {
     /// forwards when behind (asked to back off, vehicles behind a wedged one backed into it,
     /// and jams stood for minutes: issue 39). Only those model-driven, standing, not moving off
     /// already, and not themselves pulling away with the way (a lower index) over the one
-    /// asking.
-    fn make_room(&mut self, asked: &[(usize, usize)]) {
+    /// asking. With the stall release on (`can_pull_away`), one asked from behind that has
+    /// free road ahead is pulled away instead: making room forwards 2 m, then standing 3 s, a
+    /// vehicle the model kept stopped on a roundabout's ring led its queue round at 0.4 m/s
+    /// for minutes (issue 39).
+    fn make_room(&mut self, asked: &[(usize, usize)], can_pull_away: bool) {
+        if asked.is_empty() {
+            return;
+        }
         let ticks = ((BACK_OFF_SECS + GIVE_WAY_SECS) / STEP_SECS).round() as u32;
+        let present: Vec<usize> = (0..self.controllers.len())
+            .filter(|&b| !self.retired[b])
+            .collect();
+        let (paths, _) = self.blocked_paths(&present);
         for &(a, b) in asked {
             let memory = self.held[b];
             if self.controllers[b] != Controller::Model
@@ -422,6 +441,10 @@ impl SceneRuntime<'_> {
             let asking_ahead = (self.poses[a].position_m() - self.poses[b].position_m())
                 .dot(DVec2::from_angle(self.heading_unwrapped[b]))
                 > 0.0;
+            if can_pull_away && !asking_ahead && paths.centre_rule_free(b) && !memory.giving_way {
+                self.held[b].pulling_away = true;
+                continue;
+            }
             self.held[b].backing_off_ticks = ticks;
             self.held[b].backing_off_sign = if asking_ahead { -1 } else { 1 };
             self.held[b].held_streak_ticks = 0;
@@ -566,7 +589,12 @@ impl SceneRuntime<'_> {
     /// room for a wedged one ([`Self::make_room`]) off along their heading (backwards, or
     /// forwards when the one asking stands behind) at [`BACK_OFF_SPEED_MPS`], then holds them
     /// where they stopped; the guards then check that step as any.
-    pub(super) fn back_off(&mut self, emitted: &mut [f32], heading_scale: f64) {
+    pub(super) fn back_off(
+        &mut self,
+        emitted: &mut [f32],
+        heading_scale: f64,
+        can_pull_away: bool,
+    ) {
         let frame = &self.window.frame;
         let give_way_ticks = (GIVE_WAY_SECS / STEP_SECS).round() as u32;
         let mut make_room = Vec::new();
@@ -609,7 +637,7 @@ impl SceneRuntime<'_> {
             set_emitted(emitted, a, frame, to, heading, heading_scale);
             self.guarded.push((a, GuardAction::BackedOff));
         }
-        self.make_room(&make_room);
+        self.make_room(&make_room, can_pull_away);
     }
 }
 
@@ -641,6 +669,14 @@ const BACK_AND_FILL_M: f64 = 1.5;
 /// A turn of the stall release's smaller than this (radians) is no way to keep: the vehicle
 /// points nearly where it wants to, and may turn either way to line up.
 const KEEP_TURN_FROM_RAD: f64 = 0.2;
+
+/// The least speed (m/s) the model must ask for to take back a vehicle the release now drives
+/// at `release_speed_now_mps`: that speed, or `hand_back_speed_mps` when higher. Handed back at
+/// the first step the model asked to crawl on, a vehicle the model kept stopping on free road
+/// went 1.5 m every 5 s, its queue behind it (issue 39).
+fn hand_back_speed_mps(release_speed_now_mps: f64, release: &StallRelease) -> f64 {
+    release_speed_now_mps.max(release.hand_back_speed_mps.unwrap_or(0.0))
+}
 
 /// The turn the stall release makes towards its lane point (radians, positive
 /// counter-clockwise), and the way it keeps from now on, given the turn towards this tick's
@@ -682,7 +718,27 @@ fn lane_point_ahead(map: &LaneletMap, at: DVec2, heading: f64, ahead_m: f64) -> 
 
 #[cfg(test)]
 mod tests {
-    use super::{KEEP_TURN_FROM_RAD, held_turn};
+    use super::{KEEP_TURN_FROM_RAD, StallRelease, hand_back_speed_mps, held_turn};
+
+    #[test]
+    fn the_model_takes_a_vehicle_back_from_the_hand_back_speed_on_when_one_is_set() {
+        let release = StallRelease {
+            after_secs: 3.0,
+            acceleration_mps2: 1.5,
+            release_speed_mps: 5.0,
+            gridlock_after_secs: None,
+            hand_back_speed_mps: None,
+        };
+        // Unset: as fast as the release drives it now.
+        assert_eq!(hand_back_speed_mps(0.15, &release), 0.15);
+        let set = StallRelease {
+            hand_back_speed_mps: Some(5.0),
+            ..release
+        };
+        // Set: a crawl asked at 1 m/s no longer takes it back; 5 m/s does.
+        assert_eq!(hand_back_speed_mps(0.15, &set), 5.0);
+        assert_eq!(hand_back_speed_mps(5.0, &set), 5.0);
+    }
 
     #[test]
     fn a_turn_the_other_way_is_kept_the_first_way_unless_small() {

@@ -55,6 +55,11 @@ struct MapSummary {
     long_free_stops: u64,
     long_gridlock_stops: u64,
     longest_free_stop_secs: f64,
+    /// Stands of `LONG_STOP_SECS` or more whatever was ahead (queues behind a jam too), the
+    /// longest, and the share of vehicle time spent in them, percent (`SessionStats`).
+    long_stands: u64,
+    longest_stand_secs: f64,
+    long_stand_percent: Estimate,
     ring_laps: u64,
     /// Of the ticks vehicles moved, the share driven forwards against the lanes under them
     /// (`SessionStats::wrong_way_ticks`), percent.
@@ -170,12 +175,12 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         args.engine
     );
     out!(
-        "| model | map | sessions | vehicle-minutes | off-road events per vehicle-minute [95 % CI] | collisions per vehicle-minute [95 % CI] | stops ≥ {LONG_STOP_SECS} s with free road (in a gridlock) | longest (s) | held by: collision guard / lane guard / model (ticks) | ring laps | wrong way (% of moving time) [95 % CI] | entered / left (of them removed stuck) | vehicles after 1 min, fewest / most (× start) | samples within ±30 % |"
+        "| model | map | sessions | vehicle-minutes | off-road events per vehicle-minute [95 % CI] | collisions per vehicle-minute [95 % CI] | stops ≥ {LONG_STOP_SECS} s with free road (in a gridlock) | longest (s) | stands ≥ {LONG_STOP_SECS} s, queued too (longest s) | time in them (% of vehicle time) [95 % CI] | held by: collision guard / lane guard / model (ticks) | ring laps | wrong way (% of moving time) [95 % CI] | entered / left (of them removed stuck) | vehicles after 1 min, fewest / most (× start) | samples within ±30 % |"
     );
-    out!("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
+    out!("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
     for s in &summaries {
         out!(
-            "| {} | {} | {} | {:.0} | {:.4} | {:.4} | {} ({}) | {:.0} | {} / {} / {} | {} | {:.2} | {} / {} ({}) | {:.2} / {:.2} | {:.2} |",
+            "| {} | {} | {} | {:.0} | {:.4} | {:.4} | {} ({}) | {:.0} | {} ({:.0}) | {:.2} | {} / {} / {} | {} | {:.2} | {} / {} ({}) | {:.2} / {:.2} | {:.2} |",
             s.model,
             s.map,
             s.sessions,
@@ -185,6 +190,9 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
             s.long_free_stops,
             s.long_gridlock_stops,
             s.longest_free_stop_secs,
+            s.long_stands,
+            s.longest_stand_secs,
+            s.long_stand_percent,
             s.free_stop_ticks_collision_guard,
             s.free_stop_ticks_lane_guard,
             s.free_stop_ticks_model,
@@ -199,7 +207,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         );
     }
     out!(
-        "(intervals: 95 % percentile bootstrap over sessions; off-road event: a present vehicle leaving every lanelet, leaving at a map's end is not one; collision: a pair of vehicles starting to overlap; a stop with free road: slower than 0.3 m/s over the last tick or on average over the last 2 s, no vehicle's box in its path (its width and 0.3 m each side, 15 m ahead of its centre) and no vehicle's centre within 15 m ahead and 3 m of its axis, or in a gridlock (on a cycle of standing vehicles, each in the path of the one before); a ring lap: a vehicle turning over 1¼ turns in total; wrong way: a tick moving forwards (≥ 1 m/s) whose course runs more than 135° off a lanelet under the vehicle and within 90° of none)"
+        "(intervals: 95 % percentile bootstrap over sessions; off-road event: a present vehicle leaving every lanelet, leaving at a map's end is not one; collision: a pair of vehicles starting to overlap; a stop with free road: slower than 0.3 m/s over the last tick or on average over the last 2 s, no vehicle's box in its path (its width and 0.3 m each side, 15 m ahead of its centre) and no vehicle's centre within 15 m ahead and 3 m of its axis, or in a gridlock (on a cycle of standing vehicles, each in the path of the one before); a stand: standing so, whatever is ahead; a ring lap: a vehicle turning over 1¼ turns in total; wrong way: a tick moving forwards (≥ 1 m/s) whose course runs more than 135° off a lanelet under the vehicle and within 90° of none)"
     );
     if let Some(path) = &args.json {
         let json = serde_json::json!({
@@ -473,6 +481,23 @@ fn summarise(model: &str, map: &str, sessions: &[SessionRecord], seed: u64) -> M
             .iter()
             .map(|s| s.stats.longest_free_stop_secs)
             .fold(0.0, f64::max),
+        long_stands: sessions.iter().map(|s| s.stats.long_stands).sum(),
+        longest_stand_secs: sessions
+            .iter()
+            .map(|s| s.stats.longest_stand_secs)
+            .fold(0.0, f64::max),
+        long_stand_percent: bootstrap_ratio(
+            &sessions
+                .iter()
+                .map(|s| {
+                    (
+                        100.0 * s.stats.long_stand_ticks as f64,
+                        s.stats.vehicle_ticks as f64,
+                    )
+                })
+                .collect::<Vec<_>>(),
+            seed,
+        ),
         ring_laps: sessions.iter().map(|s| s.stats.ring_laps).sum(),
         wrong_way_percent: bootstrap_ratio(
             &sessions
