@@ -106,8 +106,8 @@ impl SceneRuntime<'_> {
     /// (retired, in `left` and `stuck`). Stuck: standing with free road ahead
     /// ([`crate::free_road`]) or in a gridlock while a guard or release acts on it, or standing
     /// whatever is ahead while a release moves it (pulled away or backing off); vehicles the
-    /// model keeps queued behind another never count (counting every standing tick a guard acted on, a first version
-    /// took 108 vehicles out of queues in 1 847 vehicle-minutes).
+    /// model keeps queued behind another never count (counting every standing tick a guard
+    /// acted on, a first version took 108 vehicles out of queues in 1 847 vehicle-minutes).
     pub(super) fn remove_stuck(&mut self, removal: StuckRemoval) {
         let after_ticks = (removal.after_secs / STEP_SECS).round() as u32;
         let present: Vec<usize> = (0..self.controllers.len())

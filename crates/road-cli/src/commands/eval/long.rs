@@ -175,7 +175,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
         args.engine
     );
     out!(
-        "| model | map | sessions | vehicle-minutes | off-road events per vehicle-minute [95 % CI] | collisions per vehicle-minute [95 % CI] | stops ≥ {LONG_STOP_SECS} s with free road (in a gridlock) | longest (s) | stands ≥ {LONG_STOP_SECS} s, queued too (longest s) | time in them (% of vehicle time) [95 % CI] | held by: collision guard / lane guard / model (ticks) | ring laps | wrong way (% of moving time) [95 % CI] | entered / left (of them removed stuck) | vehicles after 1 min, fewest / most (× start) | samples within ±30 % |"
+        "| model | map | sessions | vehicle-minutes | off-road events per vehicle-minute [95 % CI] | collisions per vehicle-minute [95 % CI] | stops ≥ {LONG_STOP_SECS} s with free road (in a gridlock) | longest (s) | stands ≥ {LONG_STOP_SECS} s, queues too (longest s) | time in them (% of vehicle time) [95 % CI] | held by: collision guard / lane guard / model (ticks) | ring laps | wrong way (% of moving time) [95 % CI] | entered / left (of them removed stuck) | vehicles after 1 min, fewest / most (× start) | samples within ±30 % |"
     );
     out!("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
     for s in &summaries {
