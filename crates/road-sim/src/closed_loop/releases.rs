@@ -413,9 +413,10 @@ impl SceneRuntime<'_> {
     /// release pulls away, or by one moving off into them, move off as in a deadlock
     /// ([`Self::back_off`]), away from the one asking: backwards when it stands ahead of them,
     /// forwards when behind (asked to back off, vehicles behind a wedged one backed into it,
-    /// and jams stood for minutes: issue 39). Only those model-driven, standing, not moving off
-    /// already, and not themselves pulling away with the way (a lower index) over the one
-    /// asking. With the stall release on (`can_pull_away`), one asked from behind that has
+    /// and jams stood for minutes: issue 39). Only those model-driven, standing, and not moving
+    /// off or pulling away already: asked to back off while the release pulled it away, a
+    /// vehicle at a kerb had both every tick for 29 s, and the long sessions' free-road stops
+    /// were 29 against 15 (issue 39). With the stall release on (`can_pull_away`), one asked from behind that has
     /// free road ahead is pulled away instead: making room forwards 2 m, then standing 3 s, a
     /// vehicle the model kept stopped on a roundabout's ring led its queue round at 0.4 m/s
     /// for minutes (issue 39).
@@ -434,7 +435,7 @@ impl SceneRuntime<'_> {
                 || self.overrides[b].is_some()
                 || self.speed_mps[b] >= crate::free_road::STOPPED_MAX_SPEED_MPS
                 || memory.backing_off_ticks > 0
-                || (memory.pulling_away && b < a)
+                || memory.pulling_away
             {
                 continue;
             }
