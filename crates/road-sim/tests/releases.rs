@@ -203,6 +203,30 @@ fn a_vehicle_stopped_at_the_map_s_end_is_released_out_of_the_map() {
 }
 
 #[test]
+fn a_vehicle_the_model_crawls_towards_the_map_s_end_is_released_out_of_it() {
+    // 8 m before the main road's open end (x = 90 m), the model driving it on at 0.5 m/s:
+    // faster than a stand, so only the crawl at the open end counts towards the release (the
+    // model crawled vehicles over the merge's last 10 m for 10–15 s in issue 39's long
+    // sessions). Released after its 3 s, it leaves well before the 16 s the crawl would take.
+    let planner = release_planner();
+    let ticks = run_driving(&planner, &[0], &[(0, 82.0, 0.0, 0.0)], 100, 0.5);
+    let first = ticks
+        .iter()
+        .position(|t| t.guarded.contains(&(0, GuardAction::PulledAway)));
+    assert!(first.is_some_and(|k| k <= 35), "pulled away at {first:?}");
+    let left = ticks.iter().position(|t| t.left.contains(&0));
+    assert!(
+        left.is_some_and(|k| k < 100),
+        "it left at {left:?}: {:?}",
+        ticks.last().unwrap().poses[0]
+    );
+    assert!(
+        ticks.iter().all(|t| t.off_road.is_empty()),
+        "leaving through the end is not off road"
+    );
+}
+
+#[test]
 fn two_vehicles_locked_nose_to_corner_are_undone_by_the_deadlock_release() {
     // Both driven on at 2 m/s along their headings. Vehicle 0 heads along the main road;
     // vehicle 1 comes at its front-left corner from ahead on the left, at −135°: once they

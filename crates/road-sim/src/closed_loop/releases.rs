@@ -209,7 +209,16 @@ impl SceneRuntime<'_> {
                 // vehicle at the road's edge off it every few ticks, each step stopped there
                 // by the lane guard, restarted its release's count each time, and it stood for
                 // 10 s and more (issue 39).
-                let still = self.stands(a);
+                // Crawling at the map's open end counts too: the model sees no lane past it
+                // and crawled vehicles over the merge's last 10 m for 10–15 s, mostly faster
+                // than a stand (issue 39).
+                let ahead = before.position_m()
+                    + DVec2::from_angle(self.heading_unwrapped[a]) * OPEN_END_AHEAD_M;
+                let crawling_at_open_end = self.speed_mps[a] < CRAWL_MAX_SPEED_MPS
+                    && map.is_some_and(|m| {
+                        !on_road(ahead) && leaves_through_an_open_end(m, before.position_m(), ahead)
+                    });
+                let still = self.stands(a) || crawling_at_open_end;
                 self.held[a].stalled_ticks = if still {
                     self.held[a].stalled_ticks + 1
                 } else {
@@ -641,6 +650,11 @@ impl SceneRuntime<'_> {
         self.make_room(&make_room, can_pull_away);
     }
 }
+
+/// How far ahead of a vehicle the map's open end counts as near (metres), and the speed below
+/// which a vehicle near it crawls (m/s), for the stall release.
+const OPEN_END_AHEAD_M: f64 = 10.0;
+const CRAWL_MAX_SPEED_MPS: f64 = 1.0;
 
 /// Boxes closer than this touch, for the deadlock release (metres).
 const TOUCHING_M: f64 = 0.1;
