@@ -445,6 +445,25 @@ fn a_pulled_away_vehicle_is_handed_back_only_to_a_model_step_that_keeps_clear() 
     assert!(moved > 3.0, "it slid out along 1: {moved:.2} m");
 }
 
+/// The wedged vehicle 0 with vehicle 1 facing away from it, its tail 1 cm from 0's rear-right
+/// corner, and (`with_one_facing_it`) vehicle 2 standing 8 m ahead of 1, facing it; 250 ticks
+/// under the wedge planner. Returns the ticks and 1's starting x (m).
+fn run_wedged_with_one_facing_away(with_one_facing_it: bool) -> (Vec<SceneTick>, f64) {
+    let corner = rear_right_corner(WEDGED);
+    let x1 = corner.0 - 0.01 - 2.4;
+    let mut stands = vec![
+        (0, WEDGED.x_m, WEDGED.y_m, WEDGED.heading_rad),
+        (1, x1, corner.1 - 0.2, PI),
+    ];
+    let keep: &[usize] = if with_one_facing_it {
+        stands.push((2, x1 - 8.0, corner.1 - 0.2, 0.0));
+        &[0, 2, 1]
+    } else {
+        &[0, 2]
+    };
+    (run_with(&wedge_planner(), keep, &stands, 250), x1)
+}
+
 #[test]
 fn a_vehicle_asked_to_make_room_by_one_behind_it_moves_forwards() {
     // As above, but vehicle 1 faces away from 0 (its tail 1 cm from 0's rear-right corner)
@@ -452,15 +471,8 @@ fn a_vehicle_asked_to_make_room_by_one_behind_it_moves_forwards() {
     // the making of room moves 1. Backing off, 1 ran into 0 (vehicles asked to back off
     // backed into the wedged vehicle in issue 39's long sessions); it moves forwards instead,
     // and 0 backs and fills onto its lane, without a collision.
-    let (planner, wedged) = (wedge_planner(), WEDGED);
-    let corner = rear_right_corner(WEDGED);
-    let x1 = corner.0 - 0.01 - 2.4;
-    let stands = [
-        (0, wedged.x_m, wedged.y_m, wedged.heading_rad),
-        (1, x1, corner.1 - 0.2, std::f64::consts::PI),
-        (2, x1 - 8.0, corner.1 - 0.2, 0.0),
-    ];
-    let ticks = run_with(&planner, &[0, 2, 1], &stands, 250);
+    let wedged = WEDGED;
+    let (ticks, x1) = run_wedged_with_one_facing_away(true);
     assert!(
         ticks.iter().all(|t| t.collisions.is_empty()),
         "no collision"
@@ -492,14 +504,8 @@ fn a_vehicle_asked_to_make_room_by_one_behind_it_with_free_road_ahead_drives_on(
     // it is pulled away at once (creeping 2 m forwards and standing 3 s, a vehicle led its
     // queue round a ring at 0.4 m/s in issue 39's long sessions), never backed off, and well
     // before its own stall (3 s) would have released it. Both drive on.
-    let (planner, wedged) = (wedge_planner(), WEDGED);
-    let corner = rear_right_corner(WEDGED);
-    let x1 = corner.0 - 0.01 - 2.4;
-    let stands = [
-        (0, wedged.x_m, wedged.y_m, wedged.heading_rad),
-        (1, x1, corner.1 - 0.2, std::f64::consts::PI),
-    ];
-    let ticks = run_with(&planner, &[0, 2], &stands, 250);
+    let wedged = WEDGED;
+    let (ticks, _) = run_wedged_with_one_facing_away(false);
     assert!(
         ticks.iter().all(|t| t.collisions.is_empty()),
         "no collision"

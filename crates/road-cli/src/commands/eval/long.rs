@@ -486,31 +486,13 @@ fn summarise(model: &str, map: &str, sessions: &[SessionRecord], seed: u64) -> M
             .iter()
             .map(|s| s.stats.longest_stand_secs)
             .fold(0.0, f64::max),
-        long_stand_percent: bootstrap_ratio(
-            &sessions
-                .iter()
-                .map(|s| {
-                    (
-                        100.0 * s.stats.long_stand_ticks as f64,
-                        s.stats.vehicle_ticks as f64,
-                    )
-                })
-                .collect::<Vec<_>>(),
-            seed,
-        ),
+        long_stand_percent: percent_over_sessions(sessions, seed, |s| {
+            (s.long_stand_ticks, s.vehicle_ticks)
+        }),
         ring_laps: sessions.iter().map(|s| s.stats.ring_laps).sum(),
-        wrong_way_percent: bootstrap_ratio(
-            &sessions
-                .iter()
-                .map(|s| {
-                    (
-                        100.0 * s.stats.wrong_way_ticks as f64,
-                        s.stats.moving_ticks as f64,
-                    )
-                })
-                .collect::<Vec<_>>(),
-            seed,
-        ),
+        wrong_way_percent: percent_over_sessions(sessions, seed, |s| {
+            (s.wrong_way_ticks, s.moving_ticks)
+        }),
         free_stop_ticks_collision_guard: sessions
             .iter()
             .map(|s| s.stats.free_stop_ticks_collision_guard)
@@ -540,4 +522,21 @@ fn summarise(model: &str, map: &str, sessions: &[SessionRecord], seed: u64) -> M
             within as f64 / shares.len() as f64
         },
     }
+}
+
+/// The share `part / whole` of `count` (ticks) over the sessions, percent, with its bootstrap
+/// interval over sessions.
+fn percent_over_sessions(
+    sessions: &[SessionRecord],
+    seed: u64,
+    count: fn(&SessionStats) -> (u64, u64),
+) -> Estimate {
+    let per_session: Vec<(f64, f64)> = sessions
+        .iter()
+        .map(|s| {
+            let (part, whole) = count(&s.stats);
+            (100.0 * part as f64, whole as f64)
+        })
+        .collect();
+    bootstrap_ratio(&per_session, seed)
 }
