@@ -14,7 +14,7 @@ use road_sim::closed_loop::SceneTick;
 use road_sim::procedural::ProceduralMap;
 
 mod common;
-use common::{moved_m, run_rocking, run_turning};
+use common::{moved_m, run_rocking, run_stuttering, run_turning};
 
 /// The merge's script's vehicles `keep` standing still for 10 s, under `release`.
 fn run(release: Option<StallRelease>, keep: &[usize]) -> Vec<SceneTick> {
@@ -113,6 +113,37 @@ fn a_vehicle_the_model_rocks_in_place_is_released() {
         moved_m(&rocked, 0, 1) > 3.0,
         "moved {:.2} m",
         moved_m(&rocked, 0, 1)
+    );
+}
+
+#[test]
+fn a_vehicle_the_model_crawls_on_in_fits_is_released() {
+    // Vehicle 0 alone on the main road, the model driving it 0.05 m and then 0.005 m a tick
+    // (0.5 m/s and 0.05 m/s: 0.275 m/s on average, as the long suite counts a stand). Counted
+    // by the tick's speed or by staying on one place, it stood for 1–2 ticks at a time and the
+    // release never came; on average it stands from its 2nd second, and the release's 3 s
+    // follow.
+    // Handed back only at 5 m/s: at the model's first faster step it would crawl on.
+    let planner = PlannerSpec {
+        stall_release: Some(StallRelease {
+            hand_back_speed_mps: Some(5.0),
+            ..RELEASE
+        }),
+        ..release_planner()
+    };
+    let crawled = run_stuttering(&planner, &[0], &[(0, -40.0, 0.0, 0.0)], 120, 0.5);
+    let first = crawled
+        .iter()
+        .position(|t| t.guarded.contains(&(0, GuardAction::PulledAway)))
+        .expect("released");
+    assert!(
+        (45..=55).contains(&first),
+        "the first pull-away at tick {first}"
+    );
+    assert!(
+        moved_m(&crawled, 0, 1) > 5.0,
+        "moved {:.2} m",
+        moved_m(&crawled, 0, 1)
     );
 }
 

@@ -13,6 +13,7 @@ use super::{Controller, STEP_SECS, SceneRuntime, set_emitted};
 use crate::Pose;
 use crate::free_road::BlockedPaths;
 use crate::geometry::OrientedBox;
+use crate::session::STANDING_WINDOW_TICKS;
 
 /// What the stall release ([`StallRelease`]) and the collision guard's deadlock release
 /// (`CollisionGuard::release_deadlock_after_secs`) remember of one agent.
@@ -49,6 +50,14 @@ pub(super) struct HeldMemory {
     /// rocked back and forth in place moves every tick yet stands.
     pub(super) still_at_m: DVec2,
     pub(super) still_ticks: u32,
+    /// Where it was at each of its last [`STANDING_WINDOW_TICKS`] + 1 ticks (a ring, oldest
+    /// at `recent_next` once full), for the long suite's notion of standing on average.
+    pub(super) recent_m: [DVec2; STANDING_WINDOW_TICKS + 1],
+    /// Its heading (radians, unwrapped) at the same ticks as `recent_m`.
+    pub(super) recent_heading_rad: [f64; STANDING_WINDOW_TICKS + 1],
+    /// How many of `recent_m` are filled, and where the next goes.
+    pub(super) recent_len: usize,
+    pub(super) recent_next: usize,
     /// Whether the give-way rule held it at its stop line in the last tick.
     pub(super) giving_way: bool,
     /// Whether the give-way rule held it short of its stop line, at any distance, in the last
@@ -62,6 +71,25 @@ pub(super) struct HeldMemory {
 }
 
 impl HeldMemory {
+    /// Records where it is after a tick, and its heading (unwrapped) in [`Self::recent_m`].
+    fn record(&mut self, at: DVec2, heading_rad: f64) {
+        let window = self.recent_m.len();
+        self.recent_m[self.recent_next] = at;
+        self.recent_heading_rad[self.recent_next] = heading_rad;
+        self.recent_next = (self.recent_next + 1) % window;
+        self.recent_len = (self.recent_len + 1).min(window);
+    }
+
+    /// How far it turned (radians) over its last `ticks` recorded (at most
+    /// [`STANDING_WINDOW_TICKS`]; over fewer while fewer are known).
+    fn turned_over_rad(&self, ticks: usize) -> f64 {
+        let window = self.recent_heading_rad.len();
+        let back = ticks.min(window - 1).min(self.recent_len.saturating_sub(1));
+        let newest = (self.recent_next + window - 1) % window;
+        let then = (newest + window - back) % window;
+        self.recent_heading_rad[newest] - self.recent_heading_rad[then]
+    }
+
     /// It is no longer pulled away: the stall release starts over.
     fn end_pull_away(&mut self) {
         self.stalled_ticks = 0;
@@ -81,17 +109,35 @@ pub(super) const STILL_RADIUS_M: f64 = 0.6;
 pub(super) const STILL_TICKS: u32 = 20;
 
 impl SceneRuntime<'_> {
-    /// Whether agent `a` stands: slower than `STOPPED_MAX_SPEED_MPS` over the last tick, or
-    /// within [`STILL_RADIUS_M`] of one place for [`STILL_TICKS`].
+    /// Whether agent `a` stands: slower than `STOPPED_MAX_SPEED_MPS` over the last tick, or on
+    /// average over the last [`STANDING_WINDOW_TICKS`] (as the long suite counts a stand), or
+    /// within [`STILL_RADIUS_M`] of one place for [`STILL_TICKS`]. Without the average, a
+    /// vehicle the model crawled on at about 0.3 m/s, some ticks faster, never stood for the
+    /// stall release's 3 s, and stood 10 s by the suite's count (issue 39).
     pub(super) fn stands(&self, a: usize) -> bool {
+        let memory = &self.held[a];
+        let slow_on_average = memory.recent_len == memory.recent_m.len() && {
+            let oldest = memory.recent_m[memory.recent_next];
+            let now = self.poses[a].position_m();
+            now.distance(oldest) / (STANDING_WINDOW_TICKS as f64 * STEP_SECS)
+                < crate::free_road::STOPPED_MAX_SPEED_MPS
+        };
         self.speed_mps[a] < crate::free_road::STOPPED_MAX_SPEED_MPS
-            || self.held[a].still_ticks >= STILL_TICKS
+            || slow_on_average
+            || memory.still_ticks >= STILL_TICKS
     }
 
-    /// Follows where each agent stays ([`HeldMemory::still_at_m`]), after the tick's poses.
+    /// Follows where each agent stays ([`HeldMemory::still_at_m`]) and where it was
+    /// ([`HeldMemory::recent_m`]), after the tick's poses.
     pub(super) fn track_still(&mut self) {
-        for (memory, pose) in self.held.iter_mut().zip(&self.poses) {
+        for ((memory, pose), &heading_rad) in self
+            .held
+            .iter_mut()
+            .zip(&self.poses)
+            .zip(&self.heading_unwrapped)
+        {
             let at = pose.position_m();
+            memory.record(at, heading_rad);
             if at.distance(memory.still_at_m) <= STILL_RADIUS_M {
                 memory.still_ticks += 1;
             } else {
@@ -233,6 +279,12 @@ impl SceneRuntime<'_> {
                 }
                 self.held[a].pulling_away = true;
                 self.held[a].pulling_out_of_gridlock = has_way_out_of_gridlock;
+            } else if has_way_out_of_gridlock {
+                // Pulled away from a stall, then closed in by a gridlock (a vehicle stopped
+                // across its nose, each in the other's path), it has the way out as any: it
+                // braked for that vehicle every tick, crept 0.5 m in 14 s in MA's box, and
+                // nobody was asked to make room (issue 39).
+                self.held[a].pulling_out_of_gridlock = true;
             }
             if self.held[a].pulling_out_of_gridlock {
                 // Those standing in its path make room (moving away from it), whether or not
@@ -259,17 +311,26 @@ impl SceneRuntime<'_> {
                 .dot(DVec2::from_angle(self.heading_unwrapped[a]))
                 >= 30f64.to_radians().cos();
             let model_heading = f64::from(emitted[3 * a + 2]) / heading_scale;
-            if (model_speed >= hand_back_speed_mps(speed, &release)
-                && same_way
-                && stays_or_exits(proposed)
-                && self.blockers_of(a, proposed, model_heading).is_empty())
-                || self.speed_mps[a] >= release.release_speed_mps
+            // Only with its heading steady over the model's observed second: handed back in
+            // the middle of the release's turn, the model carried the turn on, round into a
+            // loop across FT's wide lanelet, and left the vehicle at the road's edge against
+            // its lane, where jams formed round it (issue 39).
+            let steady = self.held[a].turned_over_rad(HAND_BACK_STEADY_TICKS).abs()
+                <= HAND_BACK_MAX_TURN_RAD;
+            if steady
+                && ((model_speed >= hand_back_speed_mps(speed, &release)
+                    && same_way
+                    && stays_or_exits(proposed)
+                    && self
+                        .blockers_of(a, proposed, model_heading, heading_scale)
+                        .is_empty())
+                    || self.speed_mps[a] >= release.release_speed_mps)
             {
                 self.held[a].end_pull_away();
                 continue;
             }
-            // Along its heading, turned towards a point 6 m ahead on its lane
-            // (`lane_point_ahead`): a vehicle held at the road's edge gets back. It turns about its
+            // Along its heading, turned towards a point up to 6 m ahead on its lane
+            // (`release_target`): a vehicle held at the road's edge gets back. It turns about its
             // rear axle no tighter than `RELEASE_TURN_RADIUS_M`, as a car does, and drives
             // straight on at first (turned from standstill, its tail swung into a neighbour
             // beside it and the collision guard held it there). Where that step would leave the
@@ -281,8 +342,7 @@ impl SceneRuntime<'_> {
             // its lane until it points within 30° of it, then drives there; with no lane within
             // 10 m it is left where it stands.
             let heading_before = self.heading_unwrapped[a];
-            let target =
-                map.and_then(|m| lane_point_ahead(m, before.position_m(), heading_before, 6.0));
+            let target = map.and_then(|m| release_target(m, before.position_m(), heading_before));
             let raw_turn = target.map_or(0.0, |target| {
                 let wanted = (target - before.position_m()).to_angle();
                 f64::from(wrap_angle((wanted - heading_before) as f32))
@@ -349,15 +409,25 @@ impl SceneRuntime<'_> {
             // The first move on the road (where asked) that the collision guard will let through
             // against everyone standing as they are.
             let allowed = |m: &&(DVec2, f64)| !on_road_too || stays_or_exits(m.0);
+            // A turn in place by nothing is no move: taken as one, a vehicle whose every other
+            // move was blocked asked nobody to make room (issue 39).
+            let moves_it = |m: &&(DVec2, f64)| {
+                m.0.distance(before.position_m()) > 1e-6 || (m.1 - heading_before).abs() > 1e-6
+            };
             let chosen = moves
                 .iter()
                 .filter(allowed)
-                .find(|&&(to, heading)| self.blockers_of(a, to, heading).is_empty())
+                .filter(moves_it)
+                .find(|&&(to, heading)| self.blockers_of(a, to, heading, heading_scale).is_empty())
                 .copied();
             if chosen.is_none() {
                 // Wedged: those standing in the way of its moves make room.
-                for &(to, heading) in moves.iter().filter(allowed) {
-                    make_room.extend(self.blockers_of(a, to, heading).into_iter().map(|b| (a, b)));
+                for &(to, heading) in moves.iter().filter(allowed).filter(moves_it) {
+                    make_room.extend(
+                        self.blockers_of(a, to, heading, heading_scale)
+                            .into_iter()
+                            .map(|b| (a, b)),
+                    );
                 }
             }
             // Driving on, it turns as its lane does (it keeps its way only manoeuvring in
@@ -395,7 +465,14 @@ impl SceneRuntime<'_> {
 
     /// The present agents that agent `a`, moved to `to` and turned to `heading_rad`, would not
     /// keep clear of by the collision guard's rule ([`keeps_clear`]), the others as they stand.
-    fn blockers_of(&self, a: usize, to: DVec2, heading_rad: f64) -> Vec<usize> {
+    /// The move is tested as emitted (model units, `f32`), as the guard will read it: a move
+    /// alongside a neighbour 1 cm away kept its gap in `f64` and closed it by micrometres once
+    /// emitted, the guard stopped every such step short, and a vehicle pulled away stood 31 s
+    /// (issue 39).
+    fn blockers_of(&self, a: usize, to: DVec2, heading_rad: f64, heading_scale: f64) -> Vec<usize> {
+        let frame = &self.window.frame;
+        let to = DVec2::from(frame.to_metres(frame.to_norm(to.into())));
+        let heading_rad = f64::from((heading_rad * heading_scale) as f32) / heading_scale;
         let box_of = |b: usize, pose: Pose| OrientedBox {
             pose,
             length_m: f64::from(self.window.length_m[b]),
@@ -639,7 +716,7 @@ impl SceneRuntime<'_> {
                     * STEP_SECS;
                 let end = self.poses[a].position_m() + way * rest_m;
                 make_room.extend(
-                    self.blockers_of(a, end, heading)
+                    self.blockers_of(a, end, heading, heading_scale)
                         .into_iter()
                         .map(|b| (a, b)),
                 );
@@ -650,6 +727,12 @@ impl SceneRuntime<'_> {
         self.make_room(&make_room, can_pull_away);
     }
 }
+
+/// The stall release hands a vehicle back to the model only once it turned no more than
+/// `HAND_BACK_MAX_TURN_RAD` over its last `HAND_BACK_STEADY_TICKS` (the model's observed
+/// second).
+const HAND_BACK_STEADY_TICKS: usize = 10;
+const HAND_BACK_MAX_TURN_RAD: f64 = 0.4;
 
 /// How far ahead of a vehicle the map's open end counts as near (metres), and the speed below
 /// which a vehicle near it crawls (m/s), for the stall release.
@@ -709,6 +792,36 @@ fn held_turn(raw_turn: f64, kept_sign: i8) -> (f64, i8) {
     }
 }
 
+/// How far ahead along its lane (metres) the stall release's point lies, nearest last: the
+/// first whose straight line from the vehicle stays on the road ([`release_target`]).
+const RELEASE_TARGET_AHEAD_M: [f64; 3] = [6.0, 4.0, 2.0];
+/// The spacing (metres) at which [`release_target`] tests a straight line for the road.
+const ROAD_LINE_STEP_M: f64 = 0.25;
+
+/// The point the stall release turns a vehicle at `at` towards ([`lane_point_ahead`]): the
+/// farthest of [`RELEASE_TARGET_AHEAD_M`] whose straight line from `at` stays on the road, or
+/// the farthest where none does (a vehicle off the road). Aiming 6 m ahead alone, a vehicle at
+/// FT's kerb turned to point straight at its point, across a corner of the road's edge: every
+/// step forward left the road, and it stood 30 s (issue 39).
+fn release_target(map: &LaneletMap, at: DVec2, heading: f64) -> Option<DVec2> {
+    let on_road_line = |to: DVec2| {
+        let samples = (at.distance(to) / ROAD_LINE_STEP_M).ceil().max(1.0) as usize;
+        (1..=samples).all(|i| {
+            let p = at.lerp(to, i as f64 / samples as f64);
+            map.lanelet_at(p.into()).is_some()
+        })
+    };
+    let mut farthest = None;
+    for ahead_m in RELEASE_TARGET_AHEAD_M {
+        let point = lane_point_ahead(map, at, heading, ahead_m)?;
+        if on_road_line(point) {
+            return Some(point);
+        }
+        farthest.get_or_insert(point);
+    }
+    farthest
+}
+
 /// The point `ahead_m` along the centre line of a lane near `at`, from the lane's point
 /// nearest `at` (straight on along its segment), the lane chosen in this order: one that `at`
 /// lies on running within 90° of `heading` (radians); one that `at` lies on running any way
@@ -733,7 +846,92 @@ fn lane_point_ahead(map: &LaneletMap, at: DVec2, heading: f64, ahead_m: f64) -> 
 
 #[cfg(test)]
 mod tests {
-    use super::{KEEP_TURN_FROM_RAD, StallRelease, hand_back_speed_mps, held_turn};
+    use std::path::Path;
+
+    use glam::DVec2;
+    use road_data::LaneletMap;
+
+    use super::{
+        HeldMemory, KEEP_TURN_FROM_RAD, StallRelease, hand_back_speed_mps, held_turn,
+        lane_point_ahead, release_target,
+    };
+
+    #[test]
+    fn a_vehicle_s_turn_is_read_over_its_last_ticks() {
+        let mut memory = HeldMemory::default();
+        // Nothing known yet, then one tick: no turn.
+        assert_eq!(memory.turned_over_rad(10), 0.0);
+        // 0.1 rad a tick for 30 ticks (the ring holds 21): over the last 10, 1 rad.
+        for k in 0..30 {
+            memory.record(DVec2::new(f64::from(k), 0.0), 0.1 * f64::from(k));
+        }
+        assert!((memory.turned_over_rad(10) - 1.0).abs() < 1e-9);
+        // Over more ticks than the ring holds, over the ring's 20.
+        assert!((memory.turned_over_rad(50) - 2.0).abs() < 1e-9);
+        // Fewer known than asked: over those known.
+        let mut young = HeldMemory::default();
+        for k in 0..4 {
+            young.record(DVec2::ZERO, 0.1 * f64::from(k));
+        }
+        assert!((young.turned_over_rad(10) - 0.3).abs() < 1e-9);
+    }
+
+    /// A 4 m wide road east along y = 0 up to x = 0, then bending 60° left: two lanelets of a
+    /// Lanelet2 map.
+    fn bending_road() -> LaneletMap {
+        // Near (0, 0) a degree of latitude is 110 574 m, of longitude 111 320 m.
+        let node = |id: u32, x: f64, y: f64| {
+            format!(
+                "<node id=\"{id}\" lat=\"{}\" lon=\"{}\"/>\n",
+                y / 110_574.0,
+                x / 111_320.0
+            )
+        };
+        let (far_x, far_y) = (
+            30.0 * 60f64.to_radians().cos(),
+            30.0 * 60f64.to_radians().sin(),
+        );
+        let mut osm = String::from("<?xml version=\"1.0\"?>\n<osm version=\"0.6\">\n");
+        for (id, x, y) in [
+            (1, -30.0, 2.0),
+            (2, 0.0, 2.0),
+            (3, -30.0, -2.0),
+            (4, 0.0, -2.0),
+            (5, far_x, 2.0 + far_y),
+            (6, far_x, -2.0 + far_y),
+        ] {
+            osm += &node(id, x, y);
+        }
+        for (id, a, b) in [(10, 1, 2), (11, 3, 4), (12, 2, 5), (13, 4, 6)] {
+            osm += &format!("<way id=\"{id}\"><nd ref=\"{a}\"/><nd ref=\"{b}\"/></way>\n");
+        }
+        for (id, left, right) in [(20, 10, 11), (21, 12, 13)] {
+            osm += &format!(
+                "<relation id=\"{id}\"><member type=\"way\" ref=\"{left}\" role=\"left\"/><member type=\"way\" ref=\"{right}\" role=\"right\"/><tag k=\"type\" v=\"lanelet\"/></relation>\n"
+            );
+        }
+        osm += "</osm>\n";
+        LaneletMap::parse(&osm, Path::new("bend.osm"), "bend").unwrap()
+    }
+
+    #[test]
+    fn the_release_aims_at_a_lane_point_it_reaches_in_a_straight_line() {
+        // At the inner edge just before the bend: 6 m (and 4 m) on along the first lanelet
+        // lie off the road past the bend, and the line to them crosses the inner corner; 2 m
+        // on, (0.5, 0), lies on the bend's lanelet, the line to it on the road.
+        let map = bending_road();
+        let at = DVec2::new(-1.5, 1.7);
+        let six = lane_point_ahead(&map, at, 0.0, 6.0).unwrap();
+        assert!(
+            map.lanelet_at(six.into()).is_none(),
+            "6 m on lies off the road: {six}"
+        );
+        let target = release_target(&map, at, 0.0).unwrap();
+        assert!(
+            target.distance(DVec2::new(0.5, 0.0)) < 0.05,
+            "aimed at {target}"
+        );
+    }
 
     #[test]
     fn the_model_takes_a_vehicle_back_from_the_hand_back_speed_on_when_one_is_set() {

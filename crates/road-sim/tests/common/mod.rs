@@ -19,8 +19,10 @@ use road_sim::procedural::{ProceduralMap, procedural};
 /// Windows held as given; a step sets every future slot to the newest observation, moved on
 /// along its heading by `forward` (model position units per slot; 0: standing), turning by
 /// `turn_rad` a slot; with `rocking`, the first future slot goes back where the last step went
-/// forwards and forwards where it went back (a model rocking every vehicle in place). Model
-/// units: headings `heading_scale` per radian.
+/// forwards and forwards where it went back (a model rocking every vehicle in place); with
+/// `stuttering`, a step after one of over half `forward` is a tenth of it (a model crawling
+/// every vehicle on, some ticks faster than others). Model units: headings `heading_scale` per
+/// radian.
 pub struct StandingEngine {
     w: usize,
     n: usize,
@@ -29,6 +31,7 @@ pub struct StandingEngine {
     forward: f32,
     turn_rad: f32,
     rocking: bool,
+    stuttering: bool,
     heading_scale: f32,
 }
 
@@ -70,8 +73,11 @@ impl StepEngine for StandingEngine {
             let went_forwards = (newest[0] - row[3 * (n - 2)]) * heading.cos()
                 + (newest[1] - row[3 * (n - 2) + 1]) * heading.sin()
                 > 0.0;
+            let last_step = (newest[0] - row[3 * (n - 2)]).hypot(newest[1] - row[3 * (n - 2) + 1]);
             let forward = if self.rocking && went_forwards {
                 -self.forward
+            } else if self.stuttering && last_step > 0.5 * self.forward {
+                0.1 * self.forward
             } else {
                 self.forward
             };
@@ -135,6 +141,7 @@ pub fn run_turning(
         speed_mps,
         turn_rad,
         rocking: false,
+        stuttering: false,
     };
     run_on(map, None, planner, keep, stands, ticks, motion, external)
 }
@@ -152,6 +159,34 @@ pub fn run_rocking(
         speed_mps,
         turn_rad: 0.0,
         rocking: true,
+        stuttering: false,
+    };
+    run_on(
+        ProceduralMap::Merge,
+        None,
+        planner,
+        keep,
+        stands,
+        ticks,
+        motion,
+        None,
+    )
+}
+
+/// As [`run_turning`] on the merge (no turns, no client), every vehicle crawled on by the
+/// engine, one step at `speed_mps` and the next at a tenth of it.
+pub fn run_stuttering(
+    planner: &PlannerSpec,
+    keep: &[usize],
+    stands: &[(usize, f64, f64, f64)],
+    ticks: usize,
+    speed_mps: f64,
+) -> Vec<SceneTick> {
+    let motion = Motion {
+        speed_mps,
+        turn_rad: 0.0,
+        rocking: false,
+        stuttering: true,
     };
     run_on(
         ProceduralMap::Merge,
@@ -171,6 +206,7 @@ struct Motion {
     speed_mps: f64,
     turn_rad: f64,
     rocking: bool,
+    stuttering: bool,
 }
 
 /// As [`run_turning`] (no turns, no client) with the vehicles on `lanes` instead of the
@@ -187,6 +223,7 @@ pub fn run_on_lanes(
         speed_mps,
         turn_rad: 0.0,
         rocking: false,
+        stuttering: false,
     };
     run_on(
         ProceduralMap::Merge,
@@ -215,6 +252,7 @@ fn run_on(
         speed_mps,
         turn_rad,
         rocking,
+        stuttering,
     } = motion;
     let model = ModelConfig::default();
     let scene = procedural(map, &WindowConfig::default(), 10).unwrap();
@@ -235,6 +273,7 @@ fn run_on(
         forward: (speed_mps * 0.1 / window.frame.scale_m) as f32,
         turn_rad: turn_rad as f32,
         rocking,
+        stuttering,
         heading_scale: model.heading_scale as f32,
     };
     let agents = window.agents;
