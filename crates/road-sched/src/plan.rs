@@ -262,12 +262,14 @@ pub struct LaneAnticipation {
 }
 
 /// The stall release's settings ([`PlannerSpec::stall_release`]): a model-driven vehicle
-/// slower than 0.3 m/s (or than 1 m/s with the map's open end within 10 m ahead) for
-/// `after_secs` with no vehicle within 15 m ahead of it (3 m either side of its axis) pulls
-/// away along its heading at `acceleration_mps2` until it drives `release_speed_mps`, or the
-/// model drives it faster (on a step that keeps clear of everyone; faster than
-/// `hand_back_speed_mps` too, when set), or something comes within 15 m ahead; the lane and
-/// collision guards still apply to its steps. The recordings' model stops vehicles where
+/// slower than 0.3 m/s over its last tick or on average over 2 s (or than 1 m/s with the map's
+/// open end within 10 m ahead) for `after_secs` with no vehicle within 15 m ahead of it (3 m
+/// either side of its axis) pulls away along its heading at `acceleration_mps2` until it
+/// drives `release_speed_mps`, or the model drives it faster (on a step that keeps clear of
+/// everyone; faster than `hand_back_speed_mps` too, when set), or something comes within 15 m
+/// ahead; it is handed back only once its heading turned no more than 23° over the last second
+/// (the model carries on a turn it sees); the lane and collision guards still apply to its
+/// steps. The recordings' model stops vehicles where
 /// traffic ahead of them lies beyond its map crop; on an open road that stop never ends. A
 /// gridlock (standing vehicles each in the path of the one before, round to the first:
 /// `road_sim::free_road::BlockedPaths`) has no free road: after `gridlock_after_secs`
