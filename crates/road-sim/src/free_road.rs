@@ -21,13 +21,23 @@ pub const PATH_MARGIN_M: f64 = 0.3;
 /// Whether no other present vehicle's centre lies ahead of `agent` within
 /// [`FREE_ROAD_AHEAD_M`] and [`FREE_ROAD_HALF_WIDTH_M`] of its axis.
 pub fn road_ahead_free(agent: usize, poses: &[Pose], present: &[usize]) -> bool {
+    centres_ahead(agent, poses, present).next().is_none()
+}
+
+/// The other present vehicles whose centre lies ahead of `agent` by the centre rule
+/// ([`road_ahead_free`]).
+fn centres_ahead<'a>(
+    agent: usize,
+    poses: &'a [Pose],
+    present: &'a [usize],
+) -> impl Iterator<Item = usize> + 'a {
     let me = poses[agent];
     let forward = DVec2::from_angle(me.heading_rad);
-    present.iter().filter(|&&b| b != agent).all(|&b| {
+    present.iter().copied().filter(move |&b| {
         let d = poses[b].position_m() - me.position_m();
         let along = d.dot(forward);
         let across = d.perp_dot(forward).abs();
-        !(along > 0.0 && along <= FREE_ROAD_AHEAD_M && across <= FREE_ROAD_HALF_WIDTH_M)
+        b != agent && along > 0.0 && along <= FREE_ROAD_AHEAD_M && across <= FREE_ROAD_HALF_WIDTH_M
     })
 }
 
@@ -40,8 +50,8 @@ pub struct BlockedPaths {
     /// Per agent (indexed like the poses; empty for absent ones): the present vehicles whose
     /// box lies in its path ([`PATH_MARGIN_M`]).
     in_path: Vec<Vec<usize>>,
-    /// Per agent: whether another present vehicle's centre lies ahead by the centre rule.
-    centre_ahead: Vec<bool>,
+    /// Per agent: the present vehicles whose centre lies ahead of it by the centre rule.
+    centre_ahead: Vec<Vec<usize>>,
 }
 
 impl BlockedPaths {
@@ -53,7 +63,7 @@ impl BlockedPaths {
             width_m: size_m[a][1] + 2.0 * grow_width_m,
         };
         let mut in_path = vec![Vec::new(); poses.len()];
-        let mut centre_ahead = vec![false; poses.len()];
+        let mut centre_ahead = vec![Vec::new(); poses.len()];
         for &a in present {
             let me = poses[a];
             let forward = DVec2::from_angle(me.heading_rad);
@@ -78,7 +88,7 @@ impl BlockedPaths {
                         && path.overlaps(&box_of(b, poses[b], 0.0, size_m[b][0]))
                 })
                 .collect();
-            centre_ahead[a] = !road_ahead_free(a, poses, present);
+            centre_ahead[a] = centres_ahead(a, poses, present).collect();
         }
         Self {
             in_path,
@@ -88,12 +98,25 @@ impl BlockedPaths {
 
     /// No vehicle's box in its path and no vehicle's centre ahead by the centre rule.
     pub fn road_ahead_free(&self, agent: usize) -> bool {
-        self.in_path[agent].is_empty() && !self.centre_ahead[agent]
+        self.in_path[agent].is_empty() && self.centre_ahead[agent].is_empty()
     }
 
     /// No vehicle's centre ahead by the centre rule alone ([`road_ahead_free`]).
     pub fn centre_rule_free(&self, agent: usize) -> bool {
-        !self.centre_ahead[agent]
+        self.centre_ahead[agent].is_empty()
+    }
+
+    /// Free by the centre rule, or held only by vehicles that wait for it: no vehicle's box in
+    /// its path, and every vehicle whose centre lies ahead of it by the centre rule stands
+    /// with it in that vehicle's own path (`standing[b]` for every agent). Neither moves
+    /// first otherwise: a vehicle against its lane at MA's kerb stood 33 s beside one it
+    /// blocked, whose centre lay 0.4 m ahead of it and 2.7 m to the side (issue 39).
+    pub fn free_but_for_those_waiting(&self, agent: usize, standing: &[bool]) -> bool {
+        self.centre_rule_free(agent)
+            || (self.in_path[agent].is_empty()
+                && self.centre_ahead[agent]
+                    .iter()
+                    .all(|&b| standing[b] && self.in_path[b].contains(&agent)))
     }
 
     /// The vehicles whose box lies in its path.
@@ -182,6 +205,38 @@ mod tests {
         // Alone, car 0's road is free again.
         let alone = BlockedPaths::new(&poses, &[CAR; 3], &[0, 2]);
         assert!(alone.road_ahead_free(0));
+    }
+
+    #[test]
+    fn a_car_held_only_by_one_waiting_for_it_is_free_but_for_those_waiting() {
+        // Car 0 north; car 1 against its lane at the kerb 2.7 m to its left, pointing back
+        // (−118°) across car 0's path, its centre 1.6 m ahead of car 0's: car 1's box lies in
+        // car 0's path, while car 0's centre lies 0.4 m ahead of car 1 and 2.7 m to the side
+        // (the centre rule) with its box clear of car 1's path.
+        let poses = [pose(1020.6, 1030.8, 89.0), pose(1018.4, 1032.4, -118.0)];
+        let present = [0, 1];
+        let paths = BlockedPaths::new(&poses, &[CAR; 2], &present);
+        assert_eq!(paths.in_path(0), &[1]);
+        assert!(paths.in_path(1).is_empty());
+        assert!(
+            !paths.centre_rule_free(1),
+            "car 0's centre is ahead of car 1"
+        );
+        let standing = [true; 2];
+        assert!(!paths.in_gridlock(0, &standing), "no cycle of paths");
+        assert!(paths.free_but_for_those_waiting(1, &standing));
+        assert!(
+            !paths.free_but_for_those_waiting(0, &standing),
+            "car 1's centre ahead, its box in the path"
+        );
+        // Car 0 driving on: car 1 waits for it.
+        assert!(!paths.free_but_for_those_waiting(1, &[false, true]));
+        // A car whose centre is ahead of car 1 (6 m on, 2.6 m to the side, the same way), its
+        // box beside car 1's path and car 1 not in its own, holds it.
+        let beside = [poses[0], poses[1], pose(1017.89, 1025.88, -118.0)];
+        let paths = BlockedPaths::new(&beside, &[CAR; 3], &[0, 1, 2]);
+        assert!(paths.in_path(1).is_empty() && paths.in_path(2).is_empty());
+        assert!(!paths.free_but_for_those_waiting(1, &[true; 3]));
     }
 
     #[test]

@@ -236,8 +236,11 @@ impl SceneRuntime<'_> {
                         .iter()
                         .all(|&b| self.controllers[b] == Controller::Model));
             // Waiting at a stop line for its way (the give-way rule) is no stall; a gridlock
-            // it has the way out of is undone all the same.
-            if (!paths.centre_rule_free(a) || self.held[a].giving_way) && !has_way_out_of_gridlock {
+            // it has the way out of is undone all the same, and so is a stand beside a vehicle
+            // that waits for it ([`BlockedPaths::free_but_for_those_waiting`]).
+            if (!paths.free_but_for_those_waiting(a, &standing) || self.held[a].giving_way)
+                && !has_way_out_of_gridlock
+            {
                 self.held[a].end_pull_away();
                 continue;
             }
