@@ -1,7 +1,8 @@
 //! Whether a vehicle stands with free road ahead: what the stall release
 //! (`road_sched::StallRelease`) and the long sessions' counts (`crate::session`) both ask. The
-//! release asks [`BlockedPaths`] for the centre rule ([`road_ahead_free`]) and for gridlocks;
-//! the counts ask it what stands in the vehicle's own path, gridlocks included.
+//! release asks [`BlockedPaths`] for the centre rule ([`road_ahead_free`]), relaxed where only
+//! vehicles waiting for it hold it, and for gridlocks; the counts ask it what stands in the
+//! vehicle's own path, gridlocks included.
 
 use glam::DVec2;
 
