@@ -27,6 +27,19 @@ pub const MOVING_MIN_SPEED_MPS: f64 = 1.0;
 /// every tick and stood for 101 s uncounted (issue 39).
 pub const STANDING_WINDOW_TICKS: usize = 20;
 
+/// One long stop with free road ahead ([`SessionStats::long_free_stop_ends`]).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct LongStopEnd {
+    /// The vehicle's agent slot (slots are reused: a trace's `entered` says by whom).
+    pub agent: usize,
+    /// The tick in which the stop ended, or the session's last (0-based).
+    pub tick: usize,
+    /// How long it stood, seconds.
+    pub secs: f64,
+    /// Whether it stood in a gridlock at some time in the stop.
+    pub in_gridlock: bool,
+}
+
 /// The counts of one session; feed it every tick ([`Self::tick`]) and every vehicle that
 /// joins ([`Self::entered`]).
 #[derive(Debug, Clone, Default, Serialize)]
@@ -69,6 +82,9 @@ pub struct SessionStats {
     pub vehicles_every_10s: Vec<usize>,
     /// Where the long stops with free road ahead were (metres; the first 100).
     pub long_free_stop_places: Vec<[f64; 2]>,
+    /// Which vehicle each of those stops was, and when it ended (the first 100, in the order of
+    /// `long_free_stop_places`): to find it in a trace (`road eval --suite long --trace`).
+    pub long_free_stop_ends: Vec<LongStopEnd>,
     /// Stands of [`LONG_STOP_SECS`] or more whatever was ahead (queued behind another vehicle
     /// too: the free-road count cannot see a queue behind a jam), the longest, and the
     /// vehicle-ticks spent in them.
@@ -285,6 +301,13 @@ impl SessionStats {
             self.long_gridlock_stops += u64::from(self.gridlocked[agent]);
             if let (Some(p), true) = (self.last[agent], self.long_free_stop_places.len() < 100) {
                 self.long_free_stop_places.push([p.x_m, p.y_m]);
+                self.long_free_stop_ends.push(LongStopEnd {
+                    agent,
+                    // The tick under way (0-based, as a trace numbers them): the stop ended in it.
+                    tick: self.ticks.saturating_sub(1),
+                    secs,
+                    in_gridlock: self.gridlocked[agent],
+                });
             }
         }
         self.longest_free_stop_secs = self.longest_free_stop_secs.max(secs);
@@ -377,6 +400,17 @@ mod tests {
         stats.finish();
         // Vehicles 0 and 2 have free road (15 s each); 1 is queued.
         assert_eq!(stats.long_free_stops, 2);
+        let ends: Vec<(usize, usize)> = stats
+            .long_free_stop_ends
+            .iter()
+            .map(|e| (e.agent, e.tick))
+            .collect();
+        assert_eq!(
+            ends,
+            vec![(0, 149), (2, 149)],
+            "ended with the session's last tick"
+        );
+        assert!(stats.long_free_stop_ends.iter().all(|e| !e.in_gridlock));
         assert!((stats.longest_free_stop_secs - 14.9).abs() < 1e-9);
         // Every one of the three stood, the queued one too.
         assert_eq!(stats.long_stands, 3);
@@ -436,6 +470,7 @@ mod tests {
         }
         stats.finish();
         assert_eq!((stats.long_free_stops, stats.long_gridlock_stops), (4, 4));
+        assert!(stats.long_free_stop_ends.iter().all(|e| e.in_gridlock));
     }
 
     #[test]
