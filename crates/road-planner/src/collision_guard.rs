@@ -271,7 +271,7 @@ fn nearer_within_clearance(before: &OrientedBox, after: &OrientedBox, other: &Or
 
 /// Whether a box moved from `before` to `after` passes the guard's no-overlap rule against
 /// `other` standing still: no overlap, and within [`STOP_SHORT_CLEARANCE_M`] no nearer than
-/// before. For planning a move the guard will then let through (the stall release's
+/// before (up to rounding, [`nearer_within_clearance`]). For planning a move the guard will then let through (the stall release's
 /// manoeuvres).
 pub fn keeps_clear(before: &OrientedBox, after: &OrientedBox, other: &OrientedBox) -> bool {
     !after.overlaps(other) && !nearer_within_clearance(before, after, other)

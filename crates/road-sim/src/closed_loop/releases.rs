@@ -249,12 +249,11 @@ impl SceneRuntime<'_> {
             // A gridlock (standing vehicles each in the path of the one before, round to the
             // first: two nose to nose, four round a crossing) has no free road anywhere, and
             // stood for minutes in issue 39's long sessions: its lowest-numbered vehicle has
-            // the way and is pulled away as from a stall, those in its way asked to make room.
+            // the way (until it stands on with it, `way_out_of_gridlock`) and is pulled away
+            // as from a stall, those in its way asked to make room.
             // Where that is an agent the model does not drive (an ego, a scripted vehicle), or
             // has one in its path, the gridlock is left to that agent's driver: no model
             // vehicle is pulled towards a client's.
-            // One that stood for `WAY_PASSES_AFTER_SECS` with the way passes it on to the next
-            // (`way_out_of_gridlock`).
             self.held[a].passes_way_ticks = self.held[a].passes_way_ticks.saturating_sub(1);
             let gridlock = paths.gridlock(a, &standing);
             let has_way_out_of_gridlock = self.held[a].pulling_out_of_gridlock
