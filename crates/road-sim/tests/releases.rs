@@ -721,3 +721,41 @@ fn a_vehicle_turned_across_a_curving_lane_at_its_edge_backs_and_fills_onto_it() 
     let reversals = reversals(&ticks, 0);
     assert!(reversals <= 6, "{reversals} reversals");
 }
+
+#[test]
+fn a_vehicle_with_a_gridlock_s_way_whose_every_turn_meets_the_nose_at_it_backs_straight_out() {
+    // Issue 39's MA box (seed 1): two vehicles side by side converging, vehicle 0 (4.6 m,
+    // heading 8° left of the road) with its front-left corner 1 cm from vehicle 1's right side
+    // (4.8 m, heading 8° right), each in the other's path: a gridlock, 0 with the way. Every
+    // turn 0 weighs (towards its lane, to the left) swings its nose nearer 1; it backs
+    // straight out at once, and both drive on. Without the straight moves 0 stood 6 s more
+    // while 1 crept along its nose, and was still 0.6 m behind its start 7 s in.
+    let start = Pose {
+        x_m: -40.0,
+        y_m: -0.93,
+        heading_rad: 8f64.to_radians(),
+    };
+    let stands = [
+        (0, start.x_m, start.y_m, start.heading_rad),
+        (1, -38.7113, 1.4207, (-8f64).to_radians()),
+    ];
+    let ticks = run_with(&wedge_planner(), &[0, 2], &stands, 120);
+    assert!(
+        ticks.iter().all(|t| t.collisions.is_empty()),
+        "no collision"
+    );
+    let pulled_at = ticks
+        .iter()
+        .position(|t| t.guarded.contains(&(0, GuardAction::PulledAway)))
+        .expect("0 has the way");
+    let backed = &ticks[pulled_at + 10].poses[0];
+    assert!(
+        backed.x_m < start.x_m - 0.5,
+        "backed out within a second: {backed:?}"
+    );
+    let last = &ticks.last().unwrap().poses;
+    assert!(
+        last[0].x_m > start.x_m + 10.0 && last[1].x_m > last[0].x_m,
+        "both drove on, 1 ahead: {last:?}"
+    );
+}

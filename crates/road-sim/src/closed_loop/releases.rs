@@ -423,6 +423,13 @@ impl SceneRuntime<'_> {
             // swung its tail into the nose of one behind it), it backs and fills.
             let (forward, backward) = (arc(manoeuvre_m, full_lock), arc(-manoeuvre_m, full_lock));
             let driving = drive();
+            // Straight on, then straight back, where every turn swings its nose into the
+            // vehicle at it: in MA's box a vehicle pulled away stood 30 s, its nose 1 cm from
+            // another's side and 1.2 m free behind it (issue 39). Straight on first: a vehicle
+            // sliding out along a neighbour's corner while it turned towards its lane backed
+            // away instead, and the neighbour's centre came level (`tests/releases.rs`).
+            let straight_on = arc(speed * STEP_SECS, 0.0);
+            let straight_back = arc(-manoeuvre_m, 0.0);
             let (moves, on_road_too) = if on_road(before.position_m()) {
                 // Once backing it backs on for `BACK_AND_FILL_M` where it can, as a driver in
                 // a three-point turn does: choosing forwards first every tick, a vehicle at the
@@ -430,9 +437,9 @@ impl SceneRuntime<'_> {
                 let backed_m = self.held[a].backed_m;
                 let backing_on = backed_m > 0.0 && backed_m < BACK_AND_FILL_M;
                 let moves = if backing_on {
-                    vec![backward, driving, forward, spin]
+                    vec![backward, straight_back, driving, forward, straight_on, spin]
                 } else {
-                    vec![driving, forward, backward, spin]
+                    vec![driving, forward, backward, straight_on, straight_back, spin]
                 };
                 (moves, true)
             } else if target.is_none() {
@@ -472,7 +479,7 @@ impl SceneRuntime<'_> {
             if chosen == Some(driving) {
                 self.held[a].turn_sign = 0;
             }
-            self.held[a].backed_m = if chosen == Some(backward) {
+            self.held[a].backed_m = if chosen == Some(backward) || chosen == Some(straight_back) {
                 self.held[a].backed_m + manoeuvre_m
             } else {
                 0.0
