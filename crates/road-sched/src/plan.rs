@@ -274,8 +274,7 @@ pub struct LaneAnticipation {
 /// gridlock (standing vehicles each in the path of the one before, round to the first:
 /// `road_sim::free_road::BlockedPaths`) has no free road: after `gridlock_after_secs`
 /// (`after_secs` when unset) its lowest-numbered vehicle is pulled away all the same, not
-/// braking ahead of the others, and those standing in its path make room; one that stands on
-/// with the way for 4 s passes it to the next for 10 s.
+/// braking ahead of the others, and those standing in its path make room.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct StallRelease {

@@ -25,10 +25,6 @@ pub(super) struct HeldMemory {
     pub(super) pulling_away: bool,
     /// Whether that pull-away has the way out of a gridlock (it goes on with vehicles ahead).
     pub(super) pulling_out_of_gridlock: bool,
-    /// Consecutive ticks it stood while it had the way out of a gridlock.
-    pub(super) stood_with_way_ticks: u32,
-    /// Ticks left in which it passes a gridlock's way on ([`WAY_PASSES_AFTER_SECS`]).
-    pub(super) passes_way_ticks: u32,
     /// The way the stall release turns it (+1 counter-clockwise, −1 clockwise; 0 before it
     /// has turned), kept while it manoeuvres in place ([`held_turn`]).
     pub(super) turn_sign: i8,
@@ -94,31 +90,11 @@ impl HeldMemory {
         self.recent_heading_rad[newest] - self.recent_heading_rad[then]
     }
 
-    /// With a gridlock's way, after a tick in which it `stands` (or not) and is still in a
-    /// gridlock (or not): whether it passes the way on now, having stood
-    /// [`WAY_PASSES_AFTER_SECS`] with it; its pull-away then ends, and for
-    /// [`WAY_PASSED_FOR_SECS`] the way goes to another ([`way_out_of_gridlock`]).
-    fn passes_way_on(&mut self, stands: bool, in_gridlock: bool) -> bool {
-        self.stood_with_way_ticks = if stands {
-            self.stood_with_way_ticks + 1
-        } else {
-            0
-        };
-        let after_ticks = (WAY_PASSES_AFTER_SECS / STEP_SECS).round() as u32;
-        if self.stood_with_way_ticks < after_ticks || !in_gridlock {
-            return false;
-        }
-        self.end_pull_away();
-        self.passes_way_ticks = (WAY_PASSED_FOR_SECS / STEP_SECS).round() as u32;
-        true
-    }
-
     /// It is no longer pulled away: the stall release starts over.
     fn end_pull_away(&mut self) {
         self.stalled_ticks = 0;
         self.pulling_away = false;
         self.pulling_out_of_gridlock = false;
-        self.stood_with_way_ticks = 0;
         self.turn_sign = 0;
         self.backed_m = 0.0;
     }
@@ -249,15 +225,12 @@ impl SceneRuntime<'_> {
             // A gridlock (standing vehicles each in the path of the one before, round to the
             // first: two nose to nose, four round a crossing) has no free road anywhere, and
             // stood for minutes in issue 39's long sessions: its lowest-numbered vehicle has
-            // the way (until it stands on with it, `way_out_of_gridlock`) and is pulled away
-            // as from a stall, those in its way asked to make room.
+            // the way and is pulled away as from a stall, those in its way asked to make room.
             // Where that is an agent the model does not drive (an ego, a scripted vehicle), or
             // has one in its path, the gridlock is left to that agent's driver: no model
             // vehicle is pulled towards a client's.
-            self.held[a].passes_way_ticks = self.held[a].passes_way_ticks.saturating_sub(1);
-            let gridlock = paths.gridlock(a, &standing);
             let has_way_out_of_gridlock = self.held[a].pulling_out_of_gridlock
-                || (way_out_of_gridlock(&gridlock, &self.held) == Some(a)
+                || (paths.gridlock(a, &standing).first() == Some(&a)
                     && paths
                         .in_path(a)
                         .iter()
@@ -317,13 +290,6 @@ impl SceneRuntime<'_> {
                 self.held[a].pulling_out_of_gridlock = true;
             }
             if self.held[a].pulling_out_of_gridlock {
-                // Standing on with the way, it passes the way on: the one it asks to make room
-                // may have none (nose to nose, that one across the centre line and against the
-                // kerb: stood 10–30 s in issue 39's long sessions), and the next may have it.
-                let stands = self.stands(a);
-                if self.held[a].passes_way_on(stands, gridlock.len() > 1) {
-                    continue;
-                }
                 // Those standing in its path make room (moving away from it), whether or not
                 // its next step is blocked yet: the collision guard brakes it short of them.
                 make_room.extend(
@@ -423,13 +389,6 @@ impl SceneRuntime<'_> {
             // swung its tail into the nose of one behind it), it backs and fills.
             let (forward, backward) = (arc(manoeuvre_m, full_lock), arc(-manoeuvre_m, full_lock));
             let driving = drive();
-            // Straight on, then straight back, where every turn swings its nose into the
-            // vehicle at it: in MA's box a vehicle pulled away stood 30 s, its nose 1 cm from
-            // another's side and 1.2 m free behind it (issue 39). Straight on first: a vehicle
-            // sliding out along a neighbour's corner while it turned towards its lane backed
-            // away instead, and the neighbour's centre came level (`tests/releases.rs`).
-            let straight_on = arc(speed * STEP_SECS, 0.0);
-            let straight_back = arc(-manoeuvre_m, 0.0);
             let (moves, on_road_too) = if on_road(before.position_m()) {
                 // Once backing it backs on for `BACK_AND_FILL_M` where it can, as a driver in
                 // a three-point turn does: choosing forwards first every tick, a vehicle at the
@@ -437,9 +396,9 @@ impl SceneRuntime<'_> {
                 let backed_m = self.held[a].backed_m;
                 let backing_on = backed_m > 0.0 && backed_m < BACK_AND_FILL_M;
                 let moves = if backing_on {
-                    vec![backward, straight_back, driving, forward, straight_on, spin]
+                    vec![backward, driving, forward, spin]
                 } else {
-                    vec![driving, forward, backward, straight_on, straight_back, spin]
+                    vec![driving, forward, backward, spin]
                 };
                 (moves, true)
             } else if target.is_none() {
@@ -479,7 +438,7 @@ impl SceneRuntime<'_> {
             if chosen == Some(driving) {
                 self.held[a].turn_sign = 0;
             }
-            self.held[a].backed_m = if chosen == Some(backward) || chosen == Some(straight_back) {
+            self.held[a].backed_m = if chosen == Some(backward) {
                 self.held[a].backed_m + manoeuvre_m
             } else {
                 0.0
@@ -772,24 +731,6 @@ impl SceneRuntime<'_> {
     }
 }
 
-/// Which vehicle of a gridlock (its vehicles in index order, [`BlockedPaths::gridlock`]) has
-/// the way out of it: the lowest-numbered one that is not passing the way on
-/// ([`HeldMemory::passes_way_on`]), or the lowest-numbered when all are. `held` by agent.
-fn way_out_of_gridlock(gridlock: &[usize], held: &[HeldMemory]) -> Option<usize> {
-    gridlock
-        .iter()
-        .copied()
-        .find(|&b| held[b].passes_way_ticks == 0)
-        .or(gridlock.first().copied())
-}
-
-/// A vehicle that stood this long (seconds) with a gridlock's way passes it on to the next
-/// vehicle of the gridlock, and for `WAY_PASSED_FOR_SECS` takes it from nobody: longer than a
-/// vehicle making room takes (`BACK_OFF_SECS`), so that a pull-away followed those backing off
-/// before it passes.
-const WAY_PASSES_AFTER_SECS: f64 = 4.0;
-const WAY_PASSED_FOR_SECS: f64 = 10.0;
-
 /// The stall release hands a vehicle back to the model only once it turned no more than
 /// `HAND_BACK_MAX_TURN_RAD` over its last `HAND_BACK_STEADY_TICKS` (the model's observed
 /// second).
@@ -915,41 +856,8 @@ mod tests {
 
     use super::{
         HeldMemory, KEEP_TURN_FROM_RAD, StallRelease, hand_back_speed_mps, held_turn,
-        lane_point_ahead, release_target, way_out_of_gridlock,
+        lane_point_ahead, release_target,
     };
-
-    #[test]
-    fn a_vehicle_that_stands_on_with_a_gridlock_s_way_passes_it_to_the_next() {
-        // Vehicles 2, 5 and 7 locked in a gridlock: 2, the lowest-numbered, has the way.
-        let gridlock = [2, 5, 7];
-        let mut held = vec![HeldMemory::default(); 8];
-        assert_eq!(way_out_of_gridlock(&gridlock, &held), Some(2));
-        held[2].pulling_away = true;
-        held[2].pulling_out_of_gridlock = true;
-        // It stands with the way for 39 ticks, moves one, stands 39 more: it keeps the way.
-        for moves in (0..39)
-            .map(|_| false)
-            .chain([true])
-            .chain((0..39).map(|_| false))
-        {
-            assert!(!held[2].passes_way_on(!moves, true));
-        }
-        assert_eq!(way_out_of_gridlock(&gridlock, &held), Some(2));
-        // Out of the gridlock it keeps it however long it stands (it is wedged elsewhere).
-        assert!(!held[2].passes_way_on(true, false));
-        // Standing on in the gridlock (over 4 s in a row): it passes the way on to 5, its
-        // pull-away over, for 10 s.
-        assert!(held[2].passes_way_on(true, true));
-        assert!(!held[2].pulling_away && !held[2].pulling_out_of_gridlock);
-        assert_eq!(held[2].stood_with_way_ticks, 0);
-        assert_eq!(held[2].passes_way_ticks, 100);
-        assert_eq!(way_out_of_gridlock(&gridlock, &held), Some(5));
-        // When every one passes it, the lowest-numbered has it again.
-        held[5].passes_way_ticks = 100;
-        held[7].passes_way_ticks = 3;
-        assert_eq!(way_out_of_gridlock(&gridlock, &held), Some(2));
-        assert_eq!(way_out_of_gridlock(&[], &held), None);
-    }
 
     #[test]
     fn a_vehicle_s_turn_is_read_over_its_last_ticks() {
