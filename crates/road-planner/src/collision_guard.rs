@@ -252,26 +252,14 @@ fn nearer_to_a_close_agent(agents: &[GuardAgent], i: usize) -> bool {
 /// away may still swing a corner closer: issue 39's long sessions saw micrometre steps of that
 /// kind close a gap to nothing over minutes, and rounding then made it an overlap. A move
 /// alongside, keeping the gap, is not nearer.
-///
-/// Down to half the clearance, a gap that shrinks by no more than [`ROUNDING_TOLERANCE_M`]
-/// is kept: the engines read poses in `f32` model units, and a step sliding alongside another
-/// box at the clearance came out some micrometres nearer as emitted, every tick the same way.
-/// The guard cut each such step to nothing, and vehicles backing off or pulled away along a
-/// neighbour stood for up to 30 s (issue 39's long sessions). Below half the clearance the
-/// rule is strict again, so rounding never closes a gap to an overlap.
 fn nearer_within_clearance(before: &OrientedBox, after: &OrientedBox, other: &OrientedBox) -> bool {
     let gap_after_m = after.gap_m(other);
-    let tolerance_m = if gap_after_m >= 0.5 * STOP_SHORT_CLEARANCE_M {
-        ROUNDING_TOLERANCE_M
-    } else {
-        GAP_TOLERANCE_M
-    };
-    gap_after_m < STOP_SHORT_CLEARANCE_M && gap_after_m + tolerance_m < before.gap_m(other)
+    gap_after_m < STOP_SHORT_CLEARANCE_M && gap_after_m + GAP_TOLERANCE_M < before.gap_m(other)
 }
 
 /// Whether a box moved from `before` to `after` passes the guard's no-overlap rule against
 /// `other` standing still: no overlap, and within [`STOP_SHORT_CLEARANCE_M`] no nearer than
-/// before (up to rounding, [`nearer_within_clearance`]). For planning a move the guard will then let through (the stall release's
+/// before. For planning a move the guard will then let through (the stall release's
 /// manoeuvres).
 pub fn keeps_clear(before: &OrientedBox, after: &OrientedBox, other: &OrientedBox) -> bool {
     !after.overlaps(other) && !nearer_within_clearance(before, after, other)
@@ -279,12 +267,6 @@ pub fn keeps_clear(before: &OrientedBox, after: &OrientedBox, other: &OrientedBo
 
 /// Gaps this close are equal: a step alongside another box keeps its gap up to rounding.
 const GAP_TOLERANCE_M: f64 = 1e-9;
-/// How much nearer (metres) a box within the clearance, but at least half of it from the
-/// other, may come and still keep its gap: over the `f32` round trip of emitted poses (some
-/// 5 µm at 100 m from a scene's origin in 40 m units, as much again from a heading's
-/// rounding over half a car's length), with room to spare. A vehicle creeping by this much a
-/// tick reaches half the clearance in 100 ticks and is held there.
-const ROUNDING_TOLERANCE_M: f64 = 5e-5;
 
 /// The length of a step of `step_m` after braking at `brake_mps2` for `steps` steps (this
 /// tick's is the first), never below standstill.
@@ -537,29 +519,6 @@ mod tests {
         guard_step(&mut agents, &settings(10, false));
         assert_eq!(agents[0].proposed.x_m, 0.0);
     }
-    #[test]
-    fn a_step_alongside_at_the_clearance_keeps_it_up_to_rounding_above_half_of_it() {
-        // Car 0 backs 0.1 m along car 1's side, 1 cm off, and comes out 5 µm nearer: what the
-        // round trip through f32 model units made of such steps in issue 39's long sessions
-        // (MA's box, a vehicle backing off beside the nose of the one it made room for: the
-        // guard cut every step, and both stood 30 s). It goes on; at 4 mm off, half the
-        // clearance gone, the same step is cut.
-        let step_at = |gap_m: f64| {
-            let mut agents = [agent(0.0, -0.1, 0.0, true), agent(0.0, 0.0, 0.0, true)];
-            agents[1].before.y_m = 2.0 + gap_m;
-            agents[1].proposed.y_m = 2.0 + gap_m;
-            agents[0].proposed.y_m = 5e-6;
-            let actions = guard_step(&mut agents, &settings(0, false));
-            (actions, agents[0].proposed)
-        };
-        let (actions, proposed) = step_at(STOP_SHORT_CLEARANCE_M);
-        assert!(actions.is_empty(), "{actions:?}");
-        assert_eq!(proposed.x_m, -0.1);
-        let (actions, proposed) = step_at(0.4 * STOP_SHORT_CLEARANCE_M);
-        assert_eq!(actions, vec![(0, GuardAction::StoppedShort)]);
-        assert_eq!(proposed.x_m, 0.0, "cut to nothing: {proposed:?}");
-    }
-
     #[test]
     fn a_car_pinned_at_the_clearance_on_both_sides_slides_out_along_them() {
         // Issue 39's intersection gridlock (long suite, intersection, seed 1, tick 705): a car
