@@ -801,7 +801,7 @@ const RELEASE_TARGET_AHEAD_M: [f64; 3] = [6.0, 4.0, 2.0];
 /// The spacing (metres) at which [`release_target`] tests a straight line for the road.
 const ROAD_LINE_STEP_M: f64 = 0.25;
 
-/// The point the stall release turns a vehicle at `at` towards ([`lane_point_ahead`]): the
+/// The point the stall release turns a vehicle at `at` towards ([`lane_line_near`]): the
 /// farthest of [`RELEASE_TARGET_AHEAD_M`] whose straight line from `at` stays on the road, or
 /// the farthest where none does (a vehicle off the road). Aiming 6 m ahead alone, a vehicle at
 /// FT's kerb turned to point straight at its point, across a corner of the road's edge: every
@@ -814,24 +814,22 @@ fn release_target(map: &LaneletMap, at: DVec2, heading: f64) -> Option<DVec2> {
             map.lanelet_at(p.into()).is_some()
         })
     };
-    let mut farthest = None;
-    for ahead_m in RELEASE_TARGET_AHEAD_M {
-        let point = lane_point_ahead(map, at, heading, ahead_m)?;
-        if on_road_line(point) {
-            return Some(point);
-        }
-        farthest.get_or_insert(point);
-    }
-    farthest
+    let (closest, direction) = lane_line_near(map, at, heading)?;
+    let point = |ahead_m: f64| closest + direction * ahead_m;
+    RELEASE_TARGET_AHEAD_M
+        .into_iter()
+        .map(point)
+        .find(|&p| on_road_line(p))
+        .or(Some(point(RELEASE_TARGET_AHEAD_M[0])))
 }
 
-/// The point `ahead_m` along the centre line of a lane near `at`, from the lane's point
-/// nearest `at` (straight on along its segment), the lane chosen in this order: one that `at`
+/// The centre line of a lane near `at`: its point nearest `at` and its direction there (along
+/// its segment; points ahead lie straight on along it), the lane chosen in this order: one that `at`
 /// lies on running within 90° of `heading` (radians); one that `at` lies on running any way
 /// (a vehicle turned against its lane turns round rather than cross a median to the lane
 /// beyond); the nearest within 10 m running within 90°; the nearest within 10 m. `None` when
 /// no lane lies within 10 m.
-fn lane_point_ahead(map: &LaneletMap, at: DVec2, heading: f64, ahead_m: f64) -> Option<DVec2> {
+fn lane_line_near(map: &LaneletMap, at: DVec2, heading: f64) -> Option<(DVec2, DVec2)> {
     let forward = DVec2::from_angle(heading);
     let its_way = |direction: DVec2| direction.dot(forward) > 0.0;
     let any_way = |_: DVec2| true;
@@ -844,7 +842,7 @@ fn lane_point_ahead(map: &LaneletMap, at: DVec2, heading: f64, ahead_m: f64) -> 
         .or_else(|| crate::initialisation::nearest_centre_on(under(), at, any_way))
         .or_else(|| near(&its_way))
         .or_else(|| near(&any_way))
-        .map(|(_, closest, direction)| closest + direction * ahead_m)
+        .map(|(_, closest, direction)| (closest, direction))
 }
 
 #[cfg(test)]
@@ -856,7 +854,7 @@ mod tests {
 
     use super::{
         HeldMemory, KEEP_TURN_FROM_RAD, StallRelease, hand_back_speed_mps, held_turn,
-        lane_point_ahead, release_target,
+        lane_line_near, release_target,
     };
 
     #[test]
@@ -924,7 +922,8 @@ mod tests {
         // on, (0.5, 0), lies on the bend's lanelet, the line to it on the road.
         let map = bending_road();
         let at = DVec2::new(-1.5, 1.7);
-        let six = lane_point_ahead(&map, at, 0.0, 6.0).unwrap();
+        let (closest, direction) = lane_line_near(&map, at, 0.0).unwrap();
+        let six = closest + direction * 6.0;
         assert!(
             map.lanelet_at(six.into()).is_none(),
             "6 m on lies off the road: {six}"

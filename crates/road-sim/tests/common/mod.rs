@@ -138,10 +138,8 @@ pub fn run_turning(
     external: Option<usize>,
 ) -> Vec<SceneTick> {
     let motion = Motion {
-        speed_mps,
         turn_rad,
-        rocking: false,
-        stuttering: false,
+        ..Motion::straight(speed_mps)
     };
     run_on(map, None, planner, keep, stands, ticks, motion, external)
 }
@@ -156,21 +154,10 @@ pub fn run_rocking(
     speed_mps: f64,
 ) -> Vec<SceneTick> {
     let motion = Motion {
-        speed_mps,
-        turn_rad: 0.0,
         rocking: true,
-        stuttering: false,
+        ..Motion::straight(speed_mps)
     };
-    run_on(
-        ProceduralMap::Merge,
-        None,
-        planner,
-        keep,
-        stands,
-        ticks,
-        motion,
-        None,
-    )
+    run_on_merge(planner, keep, stands, ticks, motion)
 }
 
 /// As [`run_turning`] on the merge (no turns, no client), every vehicle crawled on by the
@@ -183,11 +170,20 @@ pub fn run_stuttering(
     speed_mps: f64,
 ) -> Vec<SceneTick> {
     let motion = Motion {
-        speed_mps,
-        turn_rad: 0.0,
-        rocking: false,
         stuttering: true,
+        ..Motion::straight(speed_mps)
     };
+    run_on_merge(planner, keep, stands, ticks, motion)
+}
+
+/// The merge's scene without a client, its vehicles moved by the engine's plans as `motion`.
+fn run_on_merge(
+    planner: &PlannerSpec,
+    keep: &[usize],
+    stands: &[(usize, f64, f64, f64)],
+    ticks: usize,
+    motion: Motion,
+) -> Vec<SceneTick> {
     run_on(
         ProceduralMap::Merge,
         None,
@@ -209,6 +205,18 @@ struct Motion {
     stuttering: bool,
 }
 
+impl Motion {
+    /// Straight on at `speed_mps`, every step alike.
+    fn straight(speed_mps: f64) -> Self {
+        Self {
+            speed_mps,
+            turn_rad: 0.0,
+            rocking: false,
+            stuttering: false,
+        }
+    }
+}
+
 /// As [`run_turning`] (no turns, no client) with the vehicles on `lanes` instead of the
 /// procedural map's lanes (its scene's window, placed by `stands`, still frames them).
 pub fn run_on_lanes(
@@ -219,12 +227,7 @@ pub fn run_on_lanes(
     speed_mps: f64,
 ) -> Vec<SceneTick> {
     let keep: Vec<usize> = (0..stands.len()).collect();
-    let motion = Motion {
-        speed_mps,
-        turn_rad: 0.0,
-        rocking: false,
-        stuttering: false,
-    };
+    let motion = Motion::straight(speed_mps);
     run_on(
         ProceduralMap::Merge,
         Some(lanes),
