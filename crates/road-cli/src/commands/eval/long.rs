@@ -20,7 +20,7 @@ use road_sim::closed_loop::{ClosedLoop, Controller, NoExternal, SceneMap, SimSce
 use road_sim::metrics::{Estimate, bootstrap_ratio};
 use road_sim::populate::Inflow;
 use road_sim::procedural::{ProceduralMap, procedural};
-use road_sim::session::{LONG_STOP_SECS, SessionStats};
+use road_sim::session::{LONG_STOP_SECS, STOP_LENGTH_EDGES_TICKS, SessionStats};
 use serde::Serialize;
 
 use super::common::{EvalArgs, first_steps};
@@ -55,6 +55,13 @@ struct MapSummary {
     long_free_stops: u64,
     long_gridlock_stops: u64,
     longest_free_stop_secs: f64,
+    /// Such stops by length, at least each of `STOP_LENGTH_EDGES_TICKS` (3, 5, 7, 10 s), and of
+    /// them those in a gridlock; the stops of 5 s or more per 100 vehicle-minutes: a count
+    /// many times the 10 s one's, so that two builds' difference stands out of the sessions'
+    /// chance (`SessionStats::free_stops_at_least`).
+    free_stops_at_least: [u64; 4],
+    gridlock_stops_at_least: [u64; 4],
+    stops_5s_per_100_vehicle_minutes: Estimate,
     /// Stands of `LONG_STOP_SECS` or more whatever was ahead (queues behind a jam too), the
     /// longest, and the share of vehicle time spent in them, percent (`SessionStats`).
     long_stands: u64,
@@ -125,8 +132,10 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
     );
     let initialiser = super::common::load_initialiser(&args)?;
     let mut summaries = Vec::new();
+    let mut totals = Vec::new();
     let mut records = Vec::new();
     for dir in &args.checkpoints {
+        let model_from = records.len();
         let engines = Engines::load_or_embedded(dir, choice)?;
         let run =
             crate::commands::engine::with_planner(&engines.cpu.meta.run, args.planner.as_deref())?;
@@ -165,6 +174,12 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
             summaries.push(summarise(&run.name, map.name(), &sessions, args.seed));
             records.extend(sessions);
         }
+        totals.push(summarise(
+            &run.name,
+            "all maps",
+            &records[model_from..],
+            args.seed,
+        ));
     }
     out!(
         "long sessions: {} seeds from {} × {} min, every vehicle the model's, inflow {} a minute per entry, vehicles retired at the map's ends; engine {:?}",
@@ -209,11 +224,38 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
     out!(
         "(intervals: 95 % percentile bootstrap over sessions; off-road event: a present vehicle leaving every lanelet, leaving at a map's end is not one; collision: a pair of vehicles starting to overlap; a stop with free road: slower than 0.3 m/s over the last tick or on average over the last 2 s, no vehicle's box in its path (its width and 0.3 m each side, 15 m ahead of its centre) and no vehicle's centre within 15 m ahead and 3 m of its axis, or in a gridlock (on a cycle of standing vehicles, each in the path of the one before); a stand: standing so, whatever is ahead; a ring lap: a vehicle turning over 1¼ turns in total; wrong way: a tick moving forwards (≥ 1 m/s) whose course runs more than 135° off a lanelet under the vehicle and within 90° of none)"
     );
+    let edges_secs: Vec<String> = STOP_LENGTH_EDGES_TICKS
+        .iter()
+        .map(|&t| format!("{}", f64::from(t) / 10.0))
+        .collect();
+    out!(
+        "| model | map | stops with free road (in a gridlock) ≥ {} s | ≥ 5 s per 100 vehicle-minutes [95 % CI] |",
+        edges_secs.join(" / ")
+    );
+    out!("|---|---|---|---:|");
+    for s in summaries.iter().chain(&totals) {
+        let by_length: Vec<String> = s
+            .free_stops_at_least
+            .iter()
+            .zip(&s.gridlock_stops_at_least)
+            .map(|(all, gridlock)| format!("{all} ({gridlock})"))
+            .collect();
+        out!(
+            "| {} | {} | {} | {:.2} |",
+            s.model,
+            s.map,
+            by_length.join(" / "),
+            s.stops_5s_per_100_vehicle_minutes
+        );
+    }
+    out!(
+        "(the stops of the first table by length: the releases act after 1 s in a gridlock and 3 s on free road; a stop of 10 s is rare, one a build's rule can move by chance alone, the shorter ones many times as many)"
+    );
     if let Some(path) = &args.json {
         let json = serde_json::json!({
             "suite": "long", "minutes": args.minutes,
             "inflow_per_minute": args.inflow_per_minute, "seeds": args.seeds,
-            "summaries": summaries, "sessions": records,
+            "summaries": summaries, "totals": totals, "sessions": records,
         });
         std::fs::write(path, serde_json::to_string_pretty(&json)?)
             .with_context(|| format!("cannot write {}", path.display()))?;
@@ -481,6 +523,19 @@ fn summarise(model: &str, map: &str, sessions: &[SessionRecord], seed: u64) -> M
             .iter()
             .map(|s| s.stats.longest_free_stop_secs)
             .fold(0.0, f64::max),
+        free_stops_at_least: sum_by_length(sessions, |s| s.free_stops_at_least),
+        gridlock_stops_at_least: sum_by_length(sessions, |s| s.gridlock_stops_at_least),
+        stops_5s_per_100_vehicle_minutes: bootstrap_ratio(
+            &sessions
+                .iter()
+                .map(|s| {
+                    // STOP_LENGTH_EDGES_TICKS[1]: 50 ticks.
+                    let at_least_5s = s.stats.free_stops_at_least[1];
+                    (100.0 * at_least_5s as f64, s.stats.vehicle_minutes())
+                })
+                .collect::<Vec<_>>(),
+            seed,
+        ),
         long_stands: sessions.iter().map(|s| s.stats.long_stands).sum(),
         longest_stand_secs: sessions
             .iter()
@@ -522,6 +577,16 @@ fn summarise(model: &str, map: &str, sessions: &[SessionRecord], seed: u64) -> M
             within as f64 / shares.len() as f64
         },
     }
+}
+
+/// `count`'s four lengths summed over the sessions.
+fn sum_by_length(sessions: &[SessionRecord], count: fn(&SessionStats) -> [u64; 4]) -> [u64; 4] {
+    sessions.iter().fold([0; 4], |mut sum, s| {
+        for (total, n) in sum.iter_mut().zip(count(&s.stats)) {
+            *total += n;
+        }
+        sum
+    })
 }
 
 /// The share `part / whole` of `count` (ticks) over the sessions, percent, with its bootstrap
