@@ -6,8 +6,8 @@
 //! ahead, ring laps, and the vehicle count against its start (issue 39's "long sessions stay
 //! sane").
 //!
-//! An INTERACTION location's session starts from one of its validation scenes (seed k of K: the
-//! eligible scenes spread evenly, the k-th), its vehicles' logged second of history, on the
+//! An INTERACTION location's session starts from one of its validation scenes (the seed's own:
+//! [`scene_of_seed`]), its vehicles' logged second of history, on the
 //! crop of the location's map that the scene's window holds (the lanes the model sees): the
 //! crop's open lane ends are where vehicles leave and enter.
 
@@ -312,6 +312,15 @@ fn location_scenes(ds: &road_data::Dataset, location: &str, min_agents: usize) -
         .collect()
 }
 
+/// Which of a location's `scenes` eligible scenes seed `seed` starts from: the seed's base-2
+/// radical inverse (0, ½, ¼, ¾, ⅛, …) of the way along them, so that the seeds from 0 on spread
+/// over the location however many are run, and a seed starts from the same scene in every run
+/// (`--seed 7 --seeds 1` replays seed 7 of `--seeds 10`, to trace it).
+fn scene_of_seed(seed: u64, scenes: usize) -> usize {
+    let fraction = seed.reverse_bits() as f64 / 2f64.powi(64);
+    ((fraction * scenes as f64) as usize).min(scenes.saturating_sub(1))
+}
+
 /// Where a session starts: the scene's window (its observed steps) and the map it runs on.
 struct SessionStart {
     window: SceneWindow,
@@ -320,7 +329,7 @@ struct SessionStart {
 
 /// The start of `map`'s session for `seed`: a procedural map's scene (its script's vehicles, or
 /// `--populate` placed ones); for an INTERACTION location, one of its validation scenes (the
-/// eligible ones spread over the seeds), its cars and trucks with the logged second of
+/// seed's own, [`scene_of_seed`]), its cars and trucks with the logged second of
 /// history, on the crop of the location's map that the scene's window holds.
 fn session_start(
     engines: &Engines,
@@ -359,8 +368,7 @@ fn session_start(
             );
             let ds = dataset.context("the validation cache is loaded for INTERACTION maps")?;
             let scenes = location_scenes(ds, location, args.min_agents);
-            let k = (seed - args.seed) as usize;
-            let index = scenes[k * scenes.len() / args.seeds.max(1) as usize];
+            let index = scenes[scene_of_seed(seed, scenes.len())];
             let full = ds.window(index)?;
             ensure!(
                 full.steps >= n,
@@ -604,4 +612,21 @@ fn percent_over_sessions(
         })
         .collect();
     bootstrap_ratio(&per_session, seed)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::scene_of_seed;
+
+    #[test]
+    fn a_seed_starts_from_its_own_scene_and_the_first_seeds_spread() {
+        let firsts: Vec<usize> = (0..5).map(|seed| scene_of_seed(seed, 80)).collect();
+        assert_eq!(firsts, vec![0, 40, 20, 60, 10]);
+        // Sixteen seeds over sixteen scenes take each once.
+        let mut all: Vec<usize> = (0..16).map(|seed| scene_of_seed(seed, 16)).collect();
+        all.sort_unstable();
+        assert_eq!(all, (0..16).collect::<Vec<_>>());
+        assert_eq!(scene_of_seed(u64::MAX, 7), 6, "never past the last");
+        assert_eq!(scene_of_seed(3, 1), 0);
+    }
 }
