@@ -339,6 +339,17 @@ pub fn onto_an_opposing_lane(map: &LaneletMap, p: DVec2, direction: DVec2) -> bo
     on_opposing && lane_under(map, p, direction).is_none()
 }
 
+/// Whether a vehicle at `p` facing `direction` (a unit vector) points more than
+/// `min_angle_rad` off the way of every lanelet under it; true on none (off the road).
+pub fn across_every_lane(map: &LaneletMap, p: DVec2, direction: DVec2, min_angle_rad: f64) -> bool {
+    let along_cos = min_angle_rad.cos();
+    !map.lanelets.iter().any(|l| {
+        l.centre_m.len() >= 2
+            && l.contains([p.x, p.y])
+            && project_on_polyline(&l.centre_m, p).1.dot(direction) >= along_cos
+    })
+}
+
 /// The least angle between a step and a lanelet's way for [`onto_an_opposing_lane`], degrees.
 const OPPOSING_MIN_ANGLE_DEG: f64 = 135.0;
 
@@ -542,6 +553,25 @@ mod tests {
             y_m,
             heading_rad,
         }
+    }
+
+    #[test]
+    fn a_vehicle_across_or_against_every_lane_under_it_is_told_from_one_along_one() {
+        let map = two_way_road();
+        let across = |x_m: f64, y_m: f64, heading_deg: f64| {
+            let facing = DVec2::from_angle(heading_deg.to_radians());
+            across_every_lane(&map, DVec2::new(x_m, y_m), facing, 60f64.to_radians())
+        };
+        // On the +x lane: along it, or 50° off, it is not across; 70° off, it is.
+        assert!(!across(10.0, 0.0, 0.0));
+        assert!(!across(10.0, 0.0, -50.0));
+        assert!(across(10.0, 0.0, 70.0));
+        // Against the +x lane, where no lane runs −x: across every lane.
+        assert!(across(10.0, 0.0, 180.0));
+        // Facing −x on the opposite lane, it drives along that one.
+        assert!(!across(10.0, 4.0, 180.0));
+        // Off the road it is across every lane (there is none).
+        assert!(across(10.0, 20.0, 0.0));
     }
 
     /// A standing vehicle's jitter is not steered, but it may not creep off the road.

@@ -442,8 +442,8 @@ pub struct NpcTick {
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub left: Vec<u32>,
     /// Those of [`Self::left`] taken out by the planner's stuck removal: they stood stuck in a
-    /// jam for its time, far from the client's agents (`stuck_removal` in
-    /// `configs/planners.toml`).
+    /// jam for its time, or across or against their lanes for its shorter time, far from the
+    /// client's agents (`stuck_removal` in `configs/planners.toml`).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub stuck: Vec<u32>,
     /// NPCs that entered the scene before this tick (a scene created with `inflow`), as

@@ -306,6 +306,13 @@ pub struct StallRelease {
 /// client-driven agent is within `clear_of_external_m` (nobody near the ego sees a vehicle
 /// vanish). Vehicles the model keeps queued behind another are never taken out. Only in
 /// scenes whose vehicles leave (served scenes, `road demo`, the long suite).
+///
+/// With `disoriented_after_secs`, a vehicle that stood pointing across or against every
+/// lanelet under it (more than 60° off each, or on none) in ticks a guard or release acted on
+/// it leaves after that many seconds of such ticks in a row, whatever is ahead: no driver stands
+/// across a roundabout's ring, and 7 of 8 clusters of gridlocked vehicles that stood 10 s or
+/// more in issue 39's long sessions on FT and MA held such a vehicle, whose three-point turns
+/// in traffic the others could not get round.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct StuckRemoval {
@@ -313,6 +320,10 @@ pub struct StuckRemoval {
     pub after_secs: f64,
     /// No client-driven agent within this distance, metres, [0, 10 000].
     pub clear_of_external_m: f64,
+    /// Seconds stood across or against its lanes before leaving, (0, 600]; none: such a
+    /// vehicle waits for `after_secs` like any.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub disoriented_after_secs: Option<f64>,
 }
 
 /// The give-way rule's settings ([`PlannerSpec::give_way`]): a model-driven vehicle on a
@@ -574,13 +585,14 @@ impl PlannerSpec {
             }
         }
         if let Some(removal) = self.stuck_removal {
-            let ok = removal.after_secs > 0.0
-                && removal.after_secs <= 600.0
+            let in_range = |secs: f64| secs > 0.0 && secs <= 600.0;
+            let ok = in_range(removal.after_secs)
+                && removal.disoriented_after_secs.is_none_or(in_range)
                 && (0.0..=10_000.0).contains(&removal.clear_of_external_m);
             if !ok {
                 return bad(format!(
-                    "stuck_removal: after_secs must be in (0, 600] and clear_of_external_m in \
-                     [0, 10000], got {removal:?}"
+                    "stuck_removal: after_secs and disoriented_after_secs must be in (0, 600] and \
+                     clear_of_external_m in [0, 10000], got {removal:?}"
                 ));
             }
         }

@@ -639,15 +639,40 @@ fn stall_release_and_stuck_removal_outside_their_bounds_are_refused() {
             "{secs} {acc} {speed}: {message}"
         );
     }
-    let removal = |after_secs, clear_of_external_m| PlannerSpec {
-        stuck_removal: Some(road_sched::StuckRemoval {
-            after_secs,
-            clear_of_external_m,
-        }),
-        ..spec(PlannerKind::Rolling, 10, 5, 40, None)
+    let removal_disoriented =
+        |after_secs, clear_of_external_m, disoriented_after_secs| PlannerSpec {
+            stuck_removal: Some(road_sched::StuckRemoval {
+                after_secs,
+                clear_of_external_m,
+                disoriented_after_secs,
+            }),
+            ..spec(PlannerKind::Rolling, 10, 5, 40, None)
+        };
+    let removal = |after_secs, clear_of_external_m| {
+        removal_disoriented(after_secs, clear_of_external_m, None)
     };
     for (secs, clear) in [(30.0, 50.0), (0.1, 0.0), (600.0, 10_000.0)] {
         assert!(removal(secs, clear).validate("p").is_ok(), "{secs} {clear}");
+    }
+    for disoriented in [0.1, 5.0, 600.0] {
+        assert!(
+            removal_disoriented(30.0, 50.0, Some(disoriented))
+                .validate("p")
+                .is_ok(),
+            "{disoriented}"
+        );
+    }
+    for disoriented in [0.0, -1.0, 600.5, f64::NAN, f64::INFINITY] {
+        let message = removal_disoriented(30.0, 50.0, Some(disoriented))
+            .validate("p")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            message.contains(
+                "stuck_removal: after_secs and disoriented_after_secs must be in (0, 600]"
+            ),
+            "{disoriented}: {message}"
+        );
     }
     for (secs, clear) in [
         (0.0, 50.0),
@@ -660,7 +685,9 @@ fn stall_release_and_stuck_removal_outside_their_bounds_are_refused() {
     ] {
         let message = removal(secs, clear).validate("p").unwrap_err().to_string();
         assert!(
-            message.contains("stuck_removal: after_secs must be in (0, 600]"),
+            message.contains(
+                "stuck_removal: after_secs and disoriented_after_secs must be in (0, 600]"
+            ),
             "{secs} {clear}: {message}"
         );
     }

@@ -571,6 +571,7 @@ fn a_vehicle_stuck_for_the_removal_s_time_leaves_unless_the_ego_is_near() {
         stuck_removal: Some(road_sched::StuckRemoval {
             after_secs: 5.0,
             clear_of_external_m: 50.0,
+            disoriented_after_secs: None,
         }),
         obs_noise: Some(0.0),
         ..PlannerSpec::default()
@@ -621,6 +622,45 @@ fn a_vehicle_stuck_for_the_removal_s_time_leaves_unless_the_ego_is_near() {
         ticks.iter().any(|t| t.stuck == [0]),
         "the ego stands 70 m away: it is removed"
     );
+}
+
+#[test]
+fn a_vehicle_standing_across_its_lanes_leaves_sooner_and_one_along_them_does_not() {
+    // Vehicle 0 turned back against the merge's lanes (120° off them): the lane guard stops
+    // it at the road's edge every tick, for good. Vehicle 1, 40 m on, points 30° off them
+    // towards the same edge: the lane guard turns it back along its lane. With the disoriented
+    // removal at 2 s, 0 leaves after 2 s of that, not at the stuck removal's 8 s; 1 drives on.
+    let planner = |disoriented_after_secs| PlannerSpec {
+        lane_guard: Some(LANE_GUARD),
+        stuck_removal: Some(road_sched::StuckRemoval {
+            after_secs: 8.0,
+            clear_of_external_m: 50.0,
+            disoriented_after_secs,
+        }),
+        obs_noise: Some(0.0),
+        ..PlannerSpec::default()
+    };
+    let stuck = [
+        (0, -40.0, -1.6, (-120f64).to_radians()),
+        (1, 0.0, -1.6, (-30f64).to_radians()),
+    ];
+    let removed = |disoriented_after_secs| -> Vec<(usize, Vec<usize>)> {
+        let ticks = run_driving(&planner(disoriented_after_secs), &[0, 1], &stuck, 120, 1.0);
+        ticks
+            .iter()
+            .enumerate()
+            .filter(|(_, t)| !t.stuck.is_empty())
+            .map(|(k, t)| (k, t.stuck.clone()))
+            .collect()
+    };
+    let sooner = removed(Some(2.0));
+    assert_eq!(sooner.len(), 1, "{sooner:?}");
+    assert_eq!(sooner[0].1, vec![0], "{sooner:?}");
+    assert!((19..=22).contains(&sooner[0].0), "{sooner:?}");
+    let without = removed(None);
+    assert_eq!(without.len(), 1, "{without:?}");
+    assert_eq!(without[0].1, vec![0], "{without:?}");
+    assert!((79..=82).contains(&without[0].0), "{without:?}");
 }
 
 #[test]

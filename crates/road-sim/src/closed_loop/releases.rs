@@ -6,7 +6,7 @@
 use glam::DVec2;
 use road_data::{LaneletMap, wrap_angle};
 use road_planner::collision_guard::{GuardAction, GuardAgent, guard_step, keeps_clear};
-use road_planner::lane_guard::leaves_through_an_open_end;
+use road_planner::lane_guard::{across_every_lane, leaves_through_an_open_end};
 use road_sched::{CollisionGuard, StallRelease, StuckRemoval};
 
 use super::{Controller, STEP_SECS, SceneRuntime, set_emitted};
@@ -46,6 +46,9 @@ pub(super) struct HeldMemory {
     /// Ticks stood, since it last moved, in which a guard or release acted on it (the stuck
     /// removal's count).
     pub(super) stuck_ticks: u32,
+    /// Of those, the ticks in a row it pointed across or against every lanelet under it
+    /// (`StuckRemoval::disoriented_after_secs`).
+    pub(super) disoriented_ticks: u32,
     /// Where it has stayed within [`STILL_RADIUS_M`] of, and for how many ticks: a vehicle
     /// rocked back and forth in place moves every tick yet stands.
     pub(super) still_at_m: DVec2,
@@ -154,6 +157,8 @@ impl SceneRuntime<'_> {
     /// whatever is ahead while a release moves it (pulled away or backing off); vehicles the
     /// model keeps queued behind another never count (counting every standing tick a guard
     /// acted on, a first version took 108 vehicles out of queues in 1 847 vehicle-minutes).
+    /// Standing across or against every lanelet under it while a guard or release acts on it,
+    /// whatever is ahead, it leaves after `disoriented_after_secs` of such ticks in a row.
     pub(super) fn remove_stuck(&mut self, removal: StuckRemoval) {
         let after_ticks = (removal.after_secs / STEP_SECS).round() as u32;
         let present: Vec<usize> = (0..self.controllers.len())
@@ -171,6 +176,7 @@ impl SceneRuntime<'_> {
             }
             if !self.stands(a) {
                 self.held[a].stuck_ticks = 0;
+                self.held[a].disoriented_ticks = 0;
                 continue;
             }
             // A release's own move that left it standing (pulled away or backing off, wedged
@@ -187,12 +193,26 @@ impl SceneRuntime<'_> {
             {
                 self.held[a].stuck_ticks += 1;
             }
-            let memory = &mut self.held[a];
             let at = self.poses[a].position_m();
+            let disoriented = removal.disoriented_after_secs.is_some()
+                && self.guarded.iter().any(|&(b, _)| b == a)
+                && self.map.as_ref().is_some_and(|m| {
+                    let facing = DVec2::from_angle(self.heading_unwrapped[a]);
+                    across_every_lane(m.get(), at, facing, DISORIENTED_MIN_RAD)
+                });
+            let memory = &mut self.held[a];
+            memory.disoriented_ticks = if disoriented {
+                memory.disoriented_ticks + 1
+            } else {
+                0
+            };
+            let disoriented_long = removal
+                .disoriented_after_secs
+                .is_some_and(|secs| memory.disoriented_ticks >= (secs / STEP_SECS).round() as u32);
             let ego_near = externals
                 .iter()
                 .any(|e| e.distance(at) <= removal.clear_of_external_m);
-            if memory.stuck_ticks >= after_ticks && !ego_near {
+            if (memory.stuck_ticks >= after_ticks || disoriented_long) && !ego_near {
                 self.retired[a] = true;
                 self.left.push(a);
                 self.stuck.push(a);
@@ -731,6 +751,10 @@ impl SceneRuntime<'_> {
     }
 }
 
+/// A vehicle pointing more than this off every lanelet under it stands across or against its
+/// lanes (`StuckRemoval::disoriented_after_secs`), radians: 60°, wider than a turn in a
+/// junction or into a ring departs from the lanelets it turns across.
+const DISORIENTED_MIN_RAD: f64 = std::f64::consts::FRAC_PI_3;
 /// The stall release hands a vehicle back to the model only once it turned no more than
 /// `HAND_BACK_MAX_TURN_RAD` over its last `HAND_BACK_STEADY_TICKS` (the model's observed
 /// second).
