@@ -311,8 +311,7 @@ pub struct StallRelease {
 /// lanelet under it (more than 60° off each, or on none) in ticks a guard or release acted on
 /// it leaves after that many seconds of such ticks in a row, whatever is ahead: no driver stands
 /// across a roundabout's ring, and 7 of 8 clusters of gridlocked vehicles that stood 10 s or
-/// more in issue 39's long sessions on FT and MA held such a vehicle, whose three-point turns
-/// in traffic the others could not get round.
+/// more in issue 39's long sessions on FT and MA held such a vehicle.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct StuckRemoval {

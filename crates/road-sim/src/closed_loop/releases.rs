@@ -46,8 +46,8 @@ pub(super) struct HeldMemory {
     /// Ticks stood, since it last moved, in which a guard or release acted on it (the stuck
     /// removal's count).
     pub(super) stuck_ticks: u32,
-    /// Of those, the ticks in a row it pointed across or against every lanelet under it
-    /// (`StuckRemoval::disoriented_after_secs`).
+    /// Ticks in a row it stood, a guard or release acting on it, pointing across or against
+    /// every lanelet under it (`StuckRemoval::disoriented_after_secs`).
     pub(super) disoriented_ticks: u32,
     /// Where it has stayed within [`STILL_RADIUS_M`] of, and for how many ticks: a vehicle
     /// rocked back and forth in place moves every tick yet stands.
