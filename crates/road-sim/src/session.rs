@@ -41,6 +41,8 @@ pub struct LongStopEnd {
     pub secs: f64,
     /// Whether it stood in a gridlock at some time in the stop.
     pub in_gridlock: bool,
+    /// Where it stood at the end, metres.
+    pub at_m: [f64; 2],
 }
 
 /// The counts of one session; feed it every tick ([`Self::tick`]) and every vehicle that
@@ -83,10 +85,8 @@ pub struct SessionStats {
     pub removed_stuck: u64,
     /// Present vehicles at every 10 s of the session (the first at tick 0).
     pub vehicles_every_10s: Vec<usize>,
-    /// Where the long stops with free road ahead were (metres; the first 100).
-    pub long_free_stop_places: Vec<[f64; 2]>,
-    /// Which vehicle each of those stops was, and when it ended (the first 100, in the order of
-    /// `long_free_stop_places`): to find it in a trace (`road eval --suite long --trace`).
+    /// The first 100 long stops with free road ahead: which vehicle, where, and when each
+    /// ended, to find it in a trace (`road eval --suite long --trace`).
     pub long_free_stop_ends: Vec<LongStopEnd>,
     /// Stands of [`LONG_STOP_SECS`] or more whatever was ahead (queued behind another vehicle
     /// too: the free-road count cannot see a queue behind a jam), the longest, and the
@@ -317,14 +317,14 @@ impl SessionStats {
         if secs >= LONG_STOP_SECS {
             self.long_free_stops += 1;
             self.long_gridlock_stops += u64::from(self.gridlocked[agent]);
-            if let (Some(p), true) = (self.last[agent], self.long_free_stop_places.len() < 100) {
-                self.long_free_stop_places.push([p.x_m, p.y_m]);
+            if let (Some(p), true) = (self.last[agent], self.long_free_stop_ends.len() < 100) {
                 self.long_free_stop_ends.push(LongStopEnd {
                     agent,
                     // The tick under way (0-based, as a trace numbers them): the stop ended in it.
                     tick: self.ticks.saturating_sub(1),
                     secs,
                     in_gridlock: self.gridlocked[agent],
+                    at_m: [p.x_m, p.y_m],
                 });
             }
         }
@@ -418,14 +418,14 @@ mod tests {
         stats.finish();
         // Vehicles 0 and 2 have free road (15 s each); 1 is queued.
         assert_eq!(stats.long_free_stops, 2);
-        let ends: Vec<(usize, usize)> = stats
+        let ends: Vec<(usize, usize, [f64; 2])> = stats
             .long_free_stop_ends
             .iter()
-            .map(|e| (e.agent, e.tick))
+            .map(|e| (e.agent, e.tick, e.at_m))
             .collect();
         assert_eq!(
             ends,
-            vec![(0, 149), (2, 149)],
+            vec![(0, 149, [0.0, 50.0]), (2, 149, [8.0, 0.0])],
             "ended with the session's last tick"
         );
         assert!(stats.long_free_stop_ends.iter().all(|e| !e.in_gridlock));
