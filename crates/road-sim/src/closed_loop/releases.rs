@@ -161,6 +161,9 @@ impl SceneRuntime<'_> {
     /// whatever is ahead, it leaves after `disoriented_after_secs` of such ticks in a row.
     pub(super) fn remove_stuck(&mut self, removal: StuckRemoval) {
         let after_ticks = (removal.after_secs / STEP_SECS).round() as u32;
+        let disoriented_after_ticks = removal
+            .disoriented_after_secs
+            .map(|secs| (secs / STEP_SECS).round() as u32);
         let present: Vec<usize> = (0..self.controllers.len())
             .filter(|&b| !self.retired[b])
             .collect();
@@ -185,7 +188,8 @@ impl SceneRuntime<'_> {
             let released_in_vain = self.guarded.iter().any(|&(b, action)| {
                 b == a && matches!(action, GuardAction::PulledAway | GuardAction::BackedOff)
             });
-            if self.guarded.iter().any(|&(b, _)| b == a)
+            let acted_on = self.guarded.iter().any(|&(b, _)| b == a);
+            if acted_on
                 && !self.held[a].giving_way
                 && (paths.centre_rule_free(a)
                     || paths.in_gridlock(a, &standing)
@@ -194,8 +198,8 @@ impl SceneRuntime<'_> {
                 self.held[a].stuck_ticks += 1;
             }
             let at = self.poses[a].position_m();
-            let disoriented = removal.disoriented_after_secs.is_some()
-                && self.guarded.iter().any(|&(b, _)| b == a)
+            let disoriented = disoriented_after_ticks.is_some()
+                && acted_on
                 && self.map.as_ref().is_some_and(|m| {
                     let facing = DVec2::from_angle(self.heading_unwrapped[a]);
                     across_every_lane(m.get(), at, facing, DISORIENTED_MIN_RAD)
@@ -206,9 +210,8 @@ impl SceneRuntime<'_> {
             } else {
                 0
             };
-            let disoriented_long = removal
-                .disoriented_after_secs
-                .is_some_and(|secs| memory.disoriented_ticks >= (secs / STEP_SECS).round() as u32);
+            let disoriented_long =
+                disoriented_after_ticks.is_some_and(|ticks| memory.disoriented_ticks >= ticks);
             let ego_near = externals
                 .iter()
                 .any(|e| e.distance(at) <= removal.clear_of_external_m);

@@ -31,6 +31,9 @@ use crate::commands::engine::{EngineChoice, Engines};
 const SESSION_AGENTS: usize = 32;
 /// The vehicle count is judged against its start from this minute on (the first fills up).
 const SETTLED_AFTER_SECS: usize = 60;
+/// Which of `STOP_LENGTH_EDGES_TICKS` the per-100-vehicle-minutes rate counts: 5 s.
+const AT_LEAST_5_S: usize = 1;
+const _: () = assert!(STOP_LENGTH_EDGES_TICKS[AT_LEAST_5_S] == 50);
 
 #[derive(Debug, Serialize)]
 struct SessionRecord {
@@ -537,8 +540,7 @@ fn summarise(model: &str, map: &str, sessions: &[SessionRecord], seed: u64) -> M
             &sessions
                 .iter()
                 .map(|s| {
-                    // STOP_LENGTH_EDGES_TICKS[1]: 50 ticks.
-                    let at_least_5s = s.stats.free_stops_at_least[1];
+                    let at_least_5s = s.stats.free_stops_at_least[AT_LEAST_5_S];
                     (100.0 * at_least_5s as f64, s.stats.vehicle_minutes())
                 })
                 .collect::<Vec<_>>(),
