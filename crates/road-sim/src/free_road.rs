@@ -1,8 +1,8 @@
 //! Whether a vehicle stands with free road ahead: what the stall release
 //! (`road_sched::StallRelease`) and the long sessions' counts (`crate::session`) both ask. The
-//! release asks [`BlockedPaths`] for the centre rule ([`road_ahead_free`]), relaxed where only
-//! vehicles waiting for it hold it, and for gridlocks; the counts ask it what stands in the
-//! vehicle's own path, gridlocks included.
+//! release asks [`BlockedPaths`] for the centre rule ([`road_ahead_free`]; an oncoming vehicle
+//! clear of the path aside), relaxed where only vehicles waiting for it hold it, and for
+//! gridlocks; the counts ask it what stands in the vehicle's own path, gridlocks included.
 
 use glam::DVec2;
 
@@ -18,6 +18,10 @@ pub const FREE_ROAD_HALF_WIDTH_M: f64 = 3.0;
 /// A vehicle's path: its own width and this much on each side (metres), from its centre to
 /// [`FREE_ROAD_AHEAD_M`] ahead of it.
 pub const PATH_MARGIN_M: f64 = 0.3;
+/// A vehicle pointing more than this off another's heading (radians, 135°) comes towards it:
+/// one on its own side of the road, its box clear of the other's path, holds nobody
+/// ([`BlockedPaths::new`]).
+pub const ONCOMING_MIN_RAD: f64 = 3.0 * std::f64::consts::FRAC_PI_4;
 
 /// Whether no other present vehicle's centre lies ahead of `agent` within
 /// [`FREE_ROAD_AHEAD_M`] and [`FREE_ROAD_HALF_WIDTH_M`] of its axis.
@@ -51,7 +55,8 @@ pub struct BlockedPaths {
     /// Per agent (indexed like the poses; empty for absent ones): the present vehicles whose
     /// box lies in its path ([`PATH_MARGIN_M`]).
     in_path: Vec<Vec<usize>>,
-    /// Per agent: the present vehicles whose centre lies ahead of it by the centre rule.
+    /// Per agent: the present vehicles whose centre lies ahead of it by the centre rule, those
+    /// coming towards it with their box clear of its path left out.
     centre_ahead: Vec<Vec<usize>>,
 }
 
@@ -89,7 +94,18 @@ impl BlockedPaths {
                         && path.overlaps(&box_of(b, poses[b], 0.0, size_m[b][0]))
                 })
                 .collect();
-            centre_ahead[a] = centres_ahead(a, poses, present).collect();
+            // An oncoming vehicle on its own side of the road passes: two on their own lanes,
+            // centres 2.5 m apart across the centre line, each had the other "ahead", neither
+            // stood with free road by the count nor was released, and the model crawled them
+            // towards each other for 97 s (issue 39).
+            let in_path_a = &in_path[a];
+            centre_ahead[a] = centres_ahead(a, poses, present)
+                .filter(|&b| {
+                    let oncoming = DVec2::from_angle(poses[b].heading_rad).dot(forward)
+                        < ONCOMING_MIN_RAD.cos();
+                    !oncoming || in_path_a.contains(&b)
+                })
+                .collect();
         }
         Self {
             in_path,
@@ -102,7 +118,8 @@ impl BlockedPaths {
         self.in_path[agent].is_empty() && self.centre_ahead[agent].is_empty()
     }
 
-    /// No vehicle's centre ahead by the centre rule alone ([`road_ahead_free`]).
+    /// No vehicle's centre ahead by the centre rule ([`road_ahead_free`]), oncoming vehicles
+    /// clear of its path aside.
     pub fn centre_rule_free(&self, agent: usize) -> bool {
         self.centre_ahead[agent].is_empty()
     }
@@ -210,11 +227,11 @@ mod tests {
 
     #[test]
     fn a_car_held_only_by_one_waiting_for_it_is_free_but_for_those_waiting() {
-        // Car 0 north; car 1 against its lane at the kerb 2.7 m to its left, pointing back
-        // (−118°) across car 0's path, its centre 1.6 m ahead of car 0's: car 1's box lies in
-        // car 0's path, while car 0's centre lies 0.4 m ahead of car 1 and 2.7 m to the side
-        // (the centre rule) with its box clear of car 1's path.
-        let poses = [pose(1020.6, 1030.8, 89.0), pose(1018.4, 1032.4, -118.0)];
+        // Car 1 against its lane at the kerb, pointing back (−118°); car 0 turning across it
+        // (120°, 122° off car 1: not oncoming), 3 m away: car 1's box lies in car 0's path,
+        // while car 0's centre lies ahead of car 1 by the centre rule with its box clear of
+        // car 1's path.
+        let poses = [pose(1021.0, 1031.0, 120.0), pose(1018.4, 1032.4, -118.0)];
         let present = [0, 1];
         let paths = BlockedPaths::new(&poses, &[CAR; 2], &present);
         assert_eq!(paths.in_path(0), &[1]);
@@ -238,6 +255,43 @@ mod tests {
         let paths = BlockedPaths::new(&beside, &[CAR; 3], &[0, 1, 2]);
         assert!(paths.in_path(1).is_empty() && paths.in_path(2).is_empty());
         assert!(!paths.free_but_for_those_waiting(1, &[true; 3]));
+        // MA's own case: car 0 north (89°, 153° off car 1) comes towards car 1, clear of its
+        // path, and holds it no more, standing or not.
+        let ma = [pose(1020.6, 1030.8, 89.0), poses[1]];
+        let paths = BlockedPaths::new(&ma, &[CAR; 2], &present);
+        assert!(
+            !road_ahead_free(1, &ma, &present),
+            "by the centre rule alone"
+        );
+        assert!(paths.centre_rule_free(1));
+        assert!(paths.free_but_for_those_waiting(1, &[false, true]));
+    }
+
+    #[test]
+    fn an_oncoming_car_on_its_own_side_holds_nobody_and_one_in_the_path_or_the_same_way_does() {
+        // Car 0 east; car 1 west, 8 m ahead and 2.5 m to its left (the other lane of a
+        // two-lane road): each centre lies ahead of the other by the centre rule.
+        let poses = [pose(0.0, 0.0, 0.0), pose(8.0, 2.5, 180.0)];
+        let present = [0, 1];
+        assert!(
+            !road_ahead_free(0, &poses, &present),
+            "the centre rule alone"
+        );
+        let paths = BlockedPaths::new(&poses, &[CAR; 2], &present);
+        assert!(paths.road_ahead_free(0) && paths.road_ahead_free(1));
+        assert!(paths.centre_rule_free(0) && paths.centre_rule_free(1));
+        // 165° off, 2.8 m across, still comes towards it.
+        let skewed = [poses[0], pose(10.0, 2.8, 165.0)];
+        assert!(BlockedPaths::new(&skewed, &[CAR; 2], &present).road_ahead_free(0));
+        // The same way (a queue offset in its lane) holds it, as before.
+        let same_way = [poses[0], pose(8.0, 2.5, 0.0)];
+        let paths = BlockedPaths::new(&same_way, &[CAR; 2], &present);
+        assert!(paths.in_path(0).is_empty() && !paths.centre_rule_free(0));
+        // Oncoming in its lane (1.2 m across: the boxes overlap the paths) holds both.
+        let head_on = [poses[0], pose(8.0, 1.2, 180.0)];
+        let paths = BlockedPaths::new(&head_on, &[CAR; 2], &present);
+        assert!(!paths.road_ahead_free(0) && !paths.road_ahead_free(1));
+        assert!(!paths.centre_rule_free(0) && !paths.centre_rule_free(1));
     }
 
     #[test]

@@ -759,3 +759,57 @@ fn a_vehicle_turned_across_a_curving_lane_at_its_edge_backs_and_fills_onto_it() 
     let reversals = reversals(&ticks, 0);
     assert!(reversals <= 6, "{reversals} reversals");
 }
+
+#[test]
+fn two_vehicles_pulled_away_and_wedged_by_each_other_get_going() {
+    // Vehicles 0 and 1 side by side at the main road's right edge, both 56° off the road
+    // towards it, 3 cm apart, 1 the farther on: every move of each leaves the road or swings
+    // into the other, so each, pulled away, asks the other to make room. Both pulled away, each
+    // skipped the other's asking and they stood for the whole 40 s (a pair at a roundabout's
+    // exit stood 30 s until the stuck removal, issue 39). Now the one whose first step away is
+    // free makes room, and both drive on.
+    let planner = PlannerSpec {
+        stall_release: Some(StallRelease {
+            gridlock_after_secs: Some(1.0),
+            ..RELEASE
+        }),
+        ..wedge_planner()
+    };
+    let stands = [
+        (0, -40.0, -1.85, (-55.7f64).to_radians()),
+        (1, -38.033, -1.324, (-55.6f64).to_radians()),
+    ];
+    let ticks = run_with(&planner, &[0, 2], &stands, 400);
+    assert!(
+        ticks
+            .iter()
+            .all(|t| t.collisions.is_empty() && t.off_road.is_empty()),
+        "no collision, never off the road"
+    );
+    let made_room = |a| {
+        ticks
+            .iter()
+            .any(|t| t.guarded.contains(&(a, GuardAction::BackedOff)))
+    };
+    assert!(made_room(0) || made_room(1), "one makes room");
+    for a in 0..2 {
+        let longest = longest_still_ticks(&ticks, a);
+        assert!(longest < 100, "vehicle {a} stood {longest} ticks in a row");
+        assert!(moved_m(&ticks, a, 0) > 10.0, "vehicle {a} drove on");
+    }
+}
+
+/// The most ticks in a row agent `agent` moved less than 2 cm a tick.
+fn longest_still_ticks(ticks: &[SceneTick], agent: usize) -> usize {
+    let (mut longest, mut run) = (0, 0);
+    for pair in ticks.windows(2) {
+        let (p, q) = (pair[0].poses[agent], pair[1].poses[agent]);
+        run = if (q.x_m - p.x_m).hypot(q.y_m - p.y_m) < 0.02 {
+            run + 1
+        } else {
+            0
+        };
+        longest = longest.max(run);
+    }
+    longest
+}
