@@ -26,7 +26,7 @@ pub(super) struct HeldMemory {
     /// Whether that pull-away has the way out of a gridlock (it goes on with vehicles ahead).
     pub(super) pulling_out_of_gridlock: bool,
     /// Whether the pull-away found no move this tick (every one off the road or into a
-    /// neighbour): wedged, it makes room for another wedged one when it can ([`make_room`]).
+    /// neighbour): wedged, it makes room for another when it can ([`make_room`]).
     ///
     /// [`make_room`]: SceneRuntime::make_room
     pub(super) wedged: bool,
@@ -535,14 +535,16 @@ impl SceneRuntime<'_> {
     /// and jams stood for minutes: issue 39). Only those model-driven, standing, and not moving
     /// off or pulling away already: asked to back off while the release pulled it away, a
     /// vehicle at a kerb had both every tick for 29 s, and the long sessions' free-road stops
-    /// were 29 against 15 (issue 39). With the stall release on (`can_pull_away`), one asked from behind that has
-    /// free road ahead is pulled away instead: making room forwards 2 m, then standing 3 s, a
-    /// vehicle the model kept stopped on a roundabout's ring led its queue round at 0.4 m/s
-    /// for minutes (issue 39). One pulled away and wedged itself makes room all the same,
-    /// its pull-away ended, when its first step away is free and the one asking does not make
-    /// room for it: two pulled-away vehicles, each wedged by the other (one at a roundabout
-    /// exit's kerb, one 3 cm behind it), each skipped the other's asking and stood 30 s until
-    /// the stuck removal (issue 39).
+    /// were 29 against 15 (issue 39). With the stall release on (`can_pull_away`), one asked
+    /// from behind that has free road ahead is pulled away instead: making room forwards 2 m,
+    /// then standing 3 s, a vehicle the model kept stopped on a roundabout's ring led its queue
+    /// round at 0.4 m/s for minutes (issue 39). One pulled away that gets nowhere (wedged, or
+    /// standing however it backs and fills) and is asked from ahead backs off all the same, its
+    /// pull-away ended, when its first step back is free and the one asking does not make room
+    /// for it (asked from behind, its pull-away goes forwards already): two pulled-away vehicles,
+    /// each wedged by the other (one at a roundabout exit's kerb, one 3 cm behind it), each
+    /// skipped the other's asking and stood 30 s until the stuck removal, and a vehicle backing
+    /// out of a gridlock stood 30 s against one rocked 1 m back and forth behind it (issue 39).
     fn make_room(&mut self, asked: &[(usize, usize)], can_pull_away: bool, heading_scale: f64) {
         if asked.is_empty() {
             return;
@@ -555,9 +557,16 @@ impl SceneRuntime<'_> {
         let (paths, _) = self.blocked_paths(&present);
         for &(a, b) in asked {
             let memory = self.held[b];
+            // One pulled away counts as standing however it manoeuvres: backing and filling
+            // in place it moves every tick.
+            let standing = if memory.pulling_away {
+                memory.wedged || self.stands(b)
+            } else {
+                self.speed_mps[b] < crate::free_road::STOPPED_MAX_SPEED_MPS
+            };
             if self.controllers[b] != Controller::Model
                 || self.overrides[b].is_some()
-                || self.speed_mps[b] >= crate::free_road::STOPPED_MAX_SPEED_MPS
+                || !standing
                 || memory.backing_off_ticks > 0
             {
                 continue;
@@ -566,10 +575,10 @@ impl SceneRuntime<'_> {
                 .dot(DVec2::from_angle(self.heading_unwrapped[b]))
                 > 0.0;
             if memory.pulling_away {
-                let away = if asking_ahead { -1.0 } else { 1.0 };
-                if !memory.wedged
+                // Only backwards: asked from behind, its pull-away goes forwards already.
+                if !asking_ahead
                     || yielded.contains(&a)
-                    || !self.steps_away_freely(b, away, heading_scale)
+                    || !self.steps_away_freely(b, -1.0, heading_scale)
                 {
                     continue;
                 }
