@@ -25,11 +25,6 @@ pub(super) struct HeldMemory {
     pub(super) pulling_away: bool,
     /// Whether that pull-away has the way out of a gridlock (it goes on with vehicles ahead).
     pub(super) pulling_out_of_gridlock: bool,
-    /// Whether the pull-away found no move this tick (every one off the road or into a
-    /// neighbour): wedged, it makes room for another when it can ([`make_room`]).
-    ///
-    /// [`make_room`]: SceneRuntime::make_room
-    pub(super) wedged: bool,
     /// The way the stall release turns it (+1 counter-clockwise, −1 clockwise; 0 before it
     /// has turned), kept while it manoeuvres in place ([`held_turn`]).
     pub(super) turn_sign: i8,
@@ -103,7 +98,6 @@ impl HeldMemory {
         self.stalled_ticks = 0;
         self.pulling_away = false;
         self.pulling_out_of_gridlock = false;
-        self.wedged = false;
         self.turn_sign = 0;
         self.backed_m = 0.0;
     }
@@ -452,7 +446,6 @@ impl SceneRuntime<'_> {
                 .filter(moves_it)
                 .find(|&&(to, heading)| self.blockers_of(a, to, heading, heading_scale).is_empty())
                 .copied();
-            self.held[a].wedged = chosen.is_none();
             if chosen.is_none() {
                 // Wedged: those standing in the way of its moves make room.
                 for &(to, heading) in moves.iter().filter(allowed).filter(moves_it) {
@@ -478,7 +471,7 @@ impl SceneRuntime<'_> {
             set_emitted(emitted, a, frame, to, heading, heading_scale);
             self.guarded.push((a, GuardAction::PulledAway));
         }
-        self.make_room(&make_room, true, heading_scale);
+        self.make_room(&make_room, true);
     }
 
     /// What stands in each present vehicle's path as the tick starts ([`BlockedPaths`]), and
@@ -535,21 +528,14 @@ impl SceneRuntime<'_> {
     /// and jams stood for minutes: issue 39). Only those model-driven, standing, and not moving
     /// off or pulling away already: asked to back off while the release pulled it away, a
     /// vehicle at a kerb had both every tick for 29 s, and the long sessions' free-road stops
-    /// were 29 against 15 (issue 39). With the stall release on (`can_pull_away`), one asked
-    /// from behind that has free road ahead is pulled away instead: making room forwards 2 m,
-    /// then standing 3 s, a vehicle the model kept stopped on a roundabout's ring led its queue
-    /// round at 0.4 m/s for minutes (issue 39). One pulled away that gets nowhere (wedged, or
-    /// standing however it backs and fills) and is asked from ahead backs off all the same, its
-    /// pull-away ended, when its first step back is free and the one asking does not make room
-    /// for it (asked from behind, its pull-away goes forwards already): two pulled-away vehicles,
-    /// each wedged by the other (one at a roundabout exit's kerb, one 3 cm behind it), each
-    /// skipped the other's asking and stood 30 s until the stuck removal, and a vehicle backing
-    /// out of a gridlock stood 30 s against one rocked 1 m back and forth behind it (issue 39).
-    fn make_room(&mut self, asked: &[(usize, usize)], can_pull_away: bool, heading_scale: f64) {
+    /// were 29 against 15 (issue 39). With the stall release on (`can_pull_away`), one asked from behind that has
+    /// free road ahead is pulled away instead: making room forwards 2 m, then standing 3 s, a
+    /// vehicle the model kept stopped on a roundabout's ring led its queue round at 0.4 m/s
+    /// for minutes (issue 39).
+    fn make_room(&mut self, asked: &[(usize, usize)], can_pull_away: bool) {
         if asked.is_empty() {
             return;
         }
-        let mut yielded = Vec::new();
         let ticks = ((BACK_OFF_SECS + GIVE_WAY_SECS) / STEP_SECS).round() as u32;
         let present: Vec<usize> = (0..self.controllers.len())
             .filter(|&b| !self.retired[b])
@@ -557,38 +543,18 @@ impl SceneRuntime<'_> {
         let (paths, _) = self.blocked_paths(&present);
         for &(a, b) in asked {
             let memory = self.held[b];
-            // One pulled away counts as standing however it manoeuvres: backing and filling
-            // in place it moves every tick.
-            let standing = if memory.pulling_away {
-                memory.wedged || self.stands(b)
-            } else {
-                self.speed_mps[b] < crate::free_road::STOPPED_MAX_SPEED_MPS
-            };
             if self.controllers[b] != Controller::Model
                 || self.overrides[b].is_some()
-                || !standing
+                || self.speed_mps[b] >= crate::free_road::STOPPED_MAX_SPEED_MPS
                 || memory.backing_off_ticks > 0
+                || memory.pulling_away
             {
                 continue;
             }
             let asking_ahead = (self.poses[a].position_m() - self.poses[b].position_m())
                 .dot(DVec2::from_angle(self.heading_unwrapped[b]))
                 > 0.0;
-            if memory.pulling_away {
-                // Only backwards: asked from behind, its pull-away goes forwards already.
-                if !asking_ahead
-                    || yielded.contains(&a)
-                    || !self.steps_away_freely(b, -1.0, heading_scale)
-                {
-                    continue;
-                }
-                self.held[b].end_pull_away();
-                yielded.push(b);
-            } else if can_pull_away
-                && !asking_ahead
-                && paths.centre_rule_free(b)
-                && !memory.giving_way
-            {
+            if can_pull_away && !asking_ahead && paths.centre_rule_free(b) && !memory.giving_way {
                 self.held[b].pulling_away = true;
                 continue;
             }
@@ -596,19 +562,6 @@ impl SceneRuntime<'_> {
             self.held[b].backing_off_sign = if asking_ahead { -1 } else { 1 };
             self.held[b].held_streak_ticks = 0;
         }
-    }
-
-    /// Whether agent `b`'s first step of making room (`away`: +1 forwards, −1 backwards, at
-    /// [`BACK_OFF_SPEED_MPS`]) stays on the road (or leaves through an open lane end) and
-    /// keeps clear of everyone as they stand.
-    fn steps_away_freely(&self, b: usize, away: f64, heading_scale: f64) -> bool {
-        let heading = self.heading_unwrapped[b];
-        let from = self.poses[b].position_m();
-        let to = from + DVec2::from_angle(heading) * away * BACK_OFF_SPEED_MPS * STEP_SECS;
-        let stays = self.map.as_ref().is_none_or(|m| {
-            m.get().lanelet_at(to.into()).is_some() || leaves_through_an_open_end(m.get(), from, to)
-        });
-        stays && self.blockers_of(b, to, heading, heading_scale).is_empty()
     }
 
     /// Runs the collision guard on this tick's states (model units, overrides in): poses
@@ -797,7 +750,7 @@ impl SceneRuntime<'_> {
             set_emitted(emitted, a, frame, to, heading, heading_scale);
             self.guarded.push((a, GuardAction::BackedOff));
         }
-        self.make_room(&make_room, can_pull_away, heading_scale);
+        self.make_room(&make_room, can_pull_away);
     }
 }
 
