@@ -301,8 +301,8 @@ pub struct StallRelease {
 /// stood (slower than 0.3 m/s) with free road ahead (no vehicle within 15 m ahead, 3 m either
 /// side of its axis, but for one coming towards it clear of its path) or in a gridlock (see
 /// [`StallRelease`]) for `after_secs` of ticks in which the closed loop's guards or releases
-/// acted on it (a wedge or gridlock their rules did not undo), or wherever it stood in ticks a release's own move (a pull-away, a back-off to
-/// make room) left it standing, without moving in between, leaves the scene, when no
+/// acted on it (a wedge or gridlock their rules did not undo), or wherever it stood in ticks a
+/// release's own move (a pull-away, a back-off to make room) left it standing, without moving in between, leaves the scene, when no
 /// client-driven agent is within `clear_of_external_m` (nobody near the ego sees a vehicle
 /// vanish). Vehicles the model keeps queued behind another are never taken out. Only in
 /// scenes whose vehicles leave (served scenes, `road demo`, the long suite).
