@@ -305,7 +305,8 @@ pub struct StallRelease {
 /// release's own move (a pull-away, a back-off to make room) left it standing, without moving
 /// in between, leaves the scene, when no client-driven agent is within `clear_of_external_m`
 /// (nobody near the ego sees a vehicle vanish). Vehicles the model keeps queued behind another
-/// are never taken out. Only in scenes whose vehicles leave (served scenes, `road demo`, the long suite).
+/// are never taken out. Only in scenes whose vehicles leave (served scenes, `road demo`, the
+/// long suite).
 ///
 /// With `disoriented_after_secs`, a vehicle that stood pointing across or against every
 /// lanelet under it (more than 60° off each, or on none) in ticks a guard or release acted on
