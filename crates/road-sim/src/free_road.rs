@@ -1,6 +1,6 @@
 //! Whether a vehicle stands with free road ahead: what the stall release
 //! (`road_sched::StallRelease`) and the long sessions' counts (`crate::session`) both ask. The
-//! release asks [`BlockedPaths`] for the centre rule ([`road_ahead_free`]; an oncoming vehicle
+//! release asks [`BlockedPaths`] for the centre rule ([`centres_ahead`]; an oncoming vehicle
 //! clear of the path aside), relaxed where only vehicles waiting for it hold it, and for
 //! gridlocks; the counts ask it what stands in the vehicle's own path, gridlocks included.
 
@@ -23,14 +23,8 @@ pub const PATH_MARGIN_M: f64 = 0.3;
 /// ([`BlockedPaths::new`]).
 pub const ONCOMING_MIN_RAD: f64 = 3.0 * std::f64::consts::FRAC_PI_4;
 
-/// Whether no other present vehicle's centre lies ahead of `agent` within
-/// [`FREE_ROAD_AHEAD_M`] and [`FREE_ROAD_HALF_WIDTH_M`] of its axis.
-pub fn road_ahead_free(agent: usize, poses: &[Pose], present: &[usize]) -> bool {
-    centres_ahead(agent, poses, present).next().is_none()
-}
-
-/// The other present vehicles whose centre lies ahead of `agent` by the centre rule
-/// ([`road_ahead_free`]).
+/// The other present vehicles whose centre lies ahead of `agent` by the centre rule: within
+/// [`FREE_ROAD_AHEAD_M`] ahead of it and [`FREE_ROAD_HALF_WIDTH_M`] of its axis.
 fn centres_ahead<'a>(
     agent: usize,
     poses: &'a [Pose],
@@ -48,7 +42,7 @@ fn centres_ahead<'a>(
 
 /// For one tick, what stands in each present vehicle's way, by footprint: a vehicle turned
 /// across another's path has its centre beside that path and its tail in it, and the centre
-/// rule alone ([`road_ahead_free`]) called the one behind it free (8 of issue 39's 9 long
+/// rule alone ([`centres_ahead`]) called the one behind it free (8 of issue 39's 9 long
 /// stops "with free road ahead" in the 2026-11-27 sessions stood behind such a tail).
 #[derive(Debug, Clone)]
 pub struct BlockedPaths {
@@ -118,7 +112,7 @@ impl BlockedPaths {
         self.in_path[agent].is_empty() && self.centre_ahead[agent].is_empty()
     }
 
-    /// No vehicle's centre ahead by the centre rule ([`road_ahead_free`]), oncoming vehicles
+    /// No vehicle's centre ahead by the centre rule ([`centres_ahead`]), oncoming vehicles
     /// clear of its path aside.
     pub fn centre_rule_free(&self, agent: usize) -> bool {
         self.centre_ahead[agent].is_empty()
@@ -213,7 +207,7 @@ mod tests {
         ];
         let present = [0, 1, 2];
         assert!(
-            road_ahead_free(0, &poses, &present),
+            centres_ahead(0, &poses, &present).next().is_none(),
             "the centre rule misses it"
         );
         let paths = BlockedPaths::new(&poses, &[CAR; 3], &present);
@@ -260,7 +254,7 @@ mod tests {
         let ma = [pose(1020.6, 1030.8, 89.0), poses[1]];
         let paths = BlockedPaths::new(&ma, &[CAR; 2], &present);
         assert!(
-            !road_ahead_free(1, &ma, &present),
+            centres_ahead(1, &ma, &present).next().is_some(),
             "by the centre rule alone"
         );
         assert!(paths.centre_rule_free(1));
@@ -274,7 +268,7 @@ mod tests {
         let poses = [pose(0.0, 0.0, 0.0), pose(8.0, 2.5, 180.0)];
         let present = [0, 1];
         assert!(
-            !road_ahead_free(0, &poses, &present),
+            centres_ahead(0, &poses, &present).next().is_some(),
             "the centre rule alone"
         );
         let paths = BlockedPaths::new(&poses, &[CAR; 2], &present);
