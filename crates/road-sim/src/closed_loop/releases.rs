@@ -25,6 +25,10 @@ pub(super) struct HeldMemory {
     pub(super) pulling_away: bool,
     /// Whether that pull-away has the way out of a gridlock (it goes on with vehicles ahead).
     pub(super) pulling_out_of_gridlock: bool,
+    /// Consecutive ticks it stood while it had the way out of a gridlock.
+    pub(super) stood_with_way_ticks: u32,
+    /// Ticks left in which it has passed a gridlock's way on ([`HeldMemory::passes_way_on`]).
+    pub(super) passes_way_ticks: u32,
     /// The way the stall release turns it (+1 counter-clockwise, −1 clockwise; 0 before it
     /// has turned), kept while it manoeuvres in place ([`held_turn`]).
     pub(super) turn_sign: i8,
@@ -93,11 +97,31 @@ impl HeldMemory {
         self.recent_heading_rad[newest] - self.recent_heading_rad[then]
     }
 
+    /// With a gridlock's way, after a tick in which it `stands` (or not) and is still in a
+    /// gridlock (or not): whether it passes the way on now, having stood
+    /// [`WAY_PASSES_AFTER_SECS`] in a row with it. Its pull-away then ends, and for
+    /// [`WAY_PASSED_FOR_SECS`] the way goes to another ([`way_out_of_gridlock`]).
+    fn passes_way_on(&mut self, stands: bool, in_gridlock: bool) -> bool {
+        self.stood_with_way_ticks = if stands {
+            self.stood_with_way_ticks + 1
+        } else {
+            0
+        };
+        let after_ticks = (WAY_PASSES_AFTER_SECS / STEP_SECS).round() as u32;
+        if self.stood_with_way_ticks < after_ticks || !in_gridlock {
+            return false;
+        }
+        self.end_pull_away();
+        self.passes_way_ticks = (WAY_PASSED_FOR_SECS / STEP_SECS).round() as u32;
+        true
+    }
+
     /// It is no longer pulled away: the stall release starts over.
     fn end_pull_away(&mut self) {
         self.stalled_ticks = 0;
         self.pulling_away = false;
         self.pulling_out_of_gridlock = false;
+        self.stood_with_way_ticks = 0;
         self.turn_sign = 0;
         self.backed_m = 0.0;
     }
@@ -252,8 +276,12 @@ impl SceneRuntime<'_> {
             // Where that is an agent the model does not drive (an ego, a scripted vehicle), or
             // has one in its path, the gridlock is left to that agent's driver: no model
             // vehicle is pulled towards a client's.
+            // One that stood `WAY_PASSES_AFTER_SECS` with the way passes it on to the next
+            // (`way_out_of_gridlock`).
+            self.held[a].passes_way_ticks = self.held[a].passes_way_ticks.saturating_sub(1);
+            let gridlock = paths.gridlock(a, &standing);
             let has_way_out_of_gridlock = self.held[a].pulling_out_of_gridlock
-                || (paths.gridlock(a, &standing).first() == Some(&a)
+                || (way_out_of_gridlock(&gridlock, &self.held) == Some(a)
                     && paths
                         .in_path(a)
                         .iter()
@@ -313,6 +341,13 @@ impl SceneRuntime<'_> {
                 self.held[a].pulling_out_of_gridlock = true;
             }
             if self.held[a].pulling_out_of_gridlock {
+                // Standing on with the way, it passes the way on: the one it asks to make room
+                // may have none (nose to nose, that one across the centre line against the
+                // kerb, it stood 10–30 s in issue 39's long sessions), and the next may have it.
+                let stands = self.stands(a);
+                if self.held[a].passes_way_on(stands, gridlock.len() > 1) {
+                    continue;
+                }
                 // Those standing in its path make room (moving away from it), whether or not
                 // its next step is blocked yet: the collision guard brakes it short of them.
                 make_room.extend(
@@ -754,6 +789,24 @@ impl SceneRuntime<'_> {
     }
 }
 
+/// Which vehicle of a gridlock (its vehicles in index order, [`BlockedPaths::gridlock`]) has
+/// the way out of it: the lowest-numbered one that has not passed the way on
+/// ([`HeldMemory::passes_way_on`]), or the lowest-numbered when all have. `held` by agent.
+fn way_out_of_gridlock(gridlock: &[usize], held: &[HeldMemory]) -> Option<usize> {
+    gridlock
+        .iter()
+        .copied()
+        .find(|&b| held[b].passes_way_ticks == 0)
+        .or(gridlock.first().copied())
+}
+
+/// A vehicle that stood this long (seconds) in a row with a gridlock's way passes it on to the
+/// next vehicle of the gridlock: longer than a vehicle making room takes (`BACK_OFF_SECS`), so
+/// that a holder following those backing off keeps it.
+const WAY_PASSES_AFTER_SECS: f64 = 4.0;
+/// For this long (seconds) a vehicle that passed the way on takes it from nobody.
+const WAY_PASSED_FOR_SECS: f64 = 10.0;
+
 /// A vehicle pointing more than this off every lanelet under it stands across or against its
 /// lanes (`StuckRemoval::disoriented_after_secs`), radians: 60°, wider than a turn in a
 /// junction or into a ring departs from the lanelets it turns across.
@@ -881,8 +934,41 @@ mod tests {
 
     use super::{
         HeldMemory, KEEP_TURN_FROM_RAD, StallRelease, hand_back_speed_mps, held_turn,
-        lane_line_near, release_target,
+        lane_line_near, release_target, way_out_of_gridlock,
     };
+
+    #[test]
+    fn a_vehicle_that_stands_on_with_a_gridlock_s_way_passes_it_to_the_next() {
+        // Vehicles 2, 5 and 7 locked in a gridlock: 2, the lowest-numbered, has the way.
+        let gridlock = [2, 5, 7];
+        let mut held = vec![HeldMemory::default(); 8];
+        assert_eq!(way_out_of_gridlock(&gridlock, &held), Some(2));
+        held[2].pulling_away = true;
+        held[2].pulling_out_of_gridlock = true;
+        // It stands with the way for 39 ticks, moves one, stands 39 more: it keeps the way.
+        for moves in (0..39)
+            .map(|_| false)
+            .chain([true])
+            .chain((0..39).map(|_| false))
+        {
+            assert!(!held[2].passes_way_on(!moves, true));
+        }
+        assert_eq!(way_out_of_gridlock(&gridlock, &held), Some(2));
+        // Out of the gridlock it keeps it however long it stands (it is wedged elsewhere).
+        assert!(!held[2].passes_way_on(true, false));
+        // Standing on in the gridlock (over 4 s in a row): it passes the way on to 5, its
+        // pull-away over, for 10 s.
+        assert!(held[2].passes_way_on(true, true));
+        assert!(!held[2].pulling_away && !held[2].pulling_out_of_gridlock);
+        assert_eq!(held[2].stood_with_way_ticks, 0);
+        assert_eq!(held[2].passes_way_ticks, 100);
+        assert_eq!(way_out_of_gridlock(&gridlock, &held), Some(5));
+        // When every one has passed it, the lowest-numbered has it again.
+        held[5].passes_way_ticks = 100;
+        held[7].passes_way_ticks = 3;
+        assert_eq!(way_out_of_gridlock(&gridlock, &held), Some(2));
+        assert_eq!(way_out_of_gridlock(&[], &held), None);
+    }
 
     #[test]
     fn a_vehicle_s_turn_is_read_over_its_last_ticks() {
