@@ -275,9 +275,8 @@ impl SceneRuntime<'_> {
             // the way and is pulled away as from a stall, those in its way asked to make room.
             // Where that is an agent the model does not drive (an ego, a scripted vehicle), or
             // has one in its path, the gridlock is left to that agent's driver: no model
-            // vehicle is pulled towards a client's.
-            // One that stood `WAY_PASSES_AFTER_SECS` with the way passes it on to the next
-            // (`way_out_of_gridlock`).
+            // vehicle is pulled towards a client's. One that stood `WAY_PASSES_AFTER_SECS`
+            // with the way passes it on to the next (`way_out_of_gridlock`).
             self.held[a].passes_way_ticks = self.held[a].passes_way_ticks.saturating_sub(1);
             let gridlock = paths.gridlock(a, &standing);
             let has_way_out_of_gridlock = self.held[a].pulling_out_of_gridlock
