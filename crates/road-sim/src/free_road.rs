@@ -1,6 +1,6 @@
 //! Whether a vehicle stands with free road ahead: what the stall release
 //! (`road_sched::StallRelease`) and the long sessions' counts (`crate::session`) both ask. The
-//! release asks [`BlockedPaths`] for the centre rule ([`centres_ahead`]; an oncoming vehicle
+//! release asks [`BlockedPaths`] for the centre rule (`centres_ahead`; an oncoming vehicle
 //! clear of the path aside), relaxed where only vehicles waiting for it hold it, and for
 //! gridlocks; the counts ask it what stands in the vehicle's own path, gridlocks included.
 
@@ -42,7 +42,7 @@ fn centres_ahead<'a>(
 
 /// For one tick, what stands in each present vehicle's way, by footprint: a vehicle turned
 /// across another's path has its centre beside that path and its tail in it, and the centre
-/// rule alone ([`centres_ahead`]) called the one behind it free (8 of issue 39's 9 long
+/// rule alone (`centres_ahead`) called the one behind it free (8 of issue 39's 9 long
 /// stops "with free road ahead" in the 2026-11-27 sessions stood behind such a tail).
 #[derive(Debug, Clone)]
 pub struct BlockedPaths {
@@ -112,7 +112,7 @@ impl BlockedPaths {
         self.in_path[agent].is_empty() && self.centre_ahead[agent].is_empty()
     }
 
-    /// No vehicle's centre ahead by the centre rule ([`centres_ahead`]), oncoming vehicles
+    /// No vehicle's centre ahead by the centre rule (`centres_ahead`), oncoming vehicles
     /// clear of its path aside.
     pub fn centre_rule_free(&self, agent: usize) -> bool {
         self.centre_ahead[agent].is_empty()
