@@ -661,3 +661,48 @@ fn a_vehicle_starting_at_the_map_s_end_leaves_on_its_first_step() {
     assert_eq!(out[0].left, vec![0], "{:?}", out[0].poses[0]);
     assert!(out[0].off_road.is_empty());
 }
+
+/// A vehicle off every lanelet and more than 10 m from every lane (an INTERACTION scene's
+/// vehicle can start off its crop's lanes) has left the map: it is retired on its first tick,
+/// though it never had a lane end to leave through. One 6 m beside the road stays (the lane
+/// guard and the stall release bring such a vehicle back).
+#[test]
+fn a_vehicle_far_from_every_lane_leaves_on_its_first_step() {
+    use road_sim::populate::keep_agents;
+    use road_sim::procedural::{ProceduralMap, procedural};
+    let model = small_model();
+    let mut scene = procedural(ProceduralMap::Merge, &WindowConfig::default(), 10).unwrap();
+    // The script's vehicles 0 and 1 at 9 m/s east, beside the main road after the merge (its
+    // centre line y = 0, x in [0, 90]; the ramp lies south): 0 30 m north of it, 1 6 m.
+    let mut window = keep_agents(&scene.window, &[0, 1]);
+    for (agent, y_m) in [(0, 30.0), (1, 6.0)] {
+        for t in 0..window.steps {
+            let x_m = 40.0 - 0.9 * (window.steps - 1 - t) as f64;
+            let xy = window.frame.to_norm([x_m, y_m]);
+            let at = agent * window.steps + t;
+            window.states[3 * at..3 * at + 3].copy_from_slice(&[xy[0], xy[1], 0.0]);
+            window.valid[at] = true;
+        }
+    }
+    scene.window = window;
+    let mut engine = CpuEngine::new(&model);
+    let mut rng = StdRng::seed_from_u64(0);
+    let mut sim = closed_loop(
+        &mut engine,
+        &model,
+        &scene,
+        vec![Controller::ConstantVelocity; 2],
+        true,
+        10,
+        &mut rng,
+    )
+    .unwrap();
+    sim.retire_on_exit(0, true).unwrap();
+    let mut out = Vec::new();
+    sim.tick(&mut engine, &mut NoExternal, &mut out).unwrap();
+    assert_eq!(out[0].left, vec![0], "{:?}", out[0].poses[0]);
+    for _ in 0..5 {
+        sim.tick(&mut engine, &mut NoExternal, &mut out).unwrap();
+        assert!(out[0].left.is_empty(), "{:?}", out[0].poses[1]);
+    }
+}

@@ -1,5 +1,6 @@
 //! Vehicles leaving the map: an agent off every lanelet past an open end of the lane it was last
-//! on (the end of a lane with no successor, or the start of one with no predecessor) is retired.
+//! on (the end of a lane with no successor, or the start of one with no predecessor) is retired,
+//! and so is one farther than [`OFF_MAP_M`] from every lane, however it got there.
 
 use glam::DVec2;
 use road_data::LaneletMap;
@@ -10,7 +11,8 @@ impl SceneRuntime<'_> {
     /// Marks the agents (not the client's) that have just driven out of the map through an
     /// open end of the lanelet they were last on: off every lanelet, ahead of the end of a lane
     /// with no successor (or behind the start of one with no predecessor, a vehicle that drifted
-    /// onto the opposite lane) and within [`EXIT_LATERAL_MARGIN_M`] of the lane's width sideways.
+    /// onto the opposite lane) and within [`EXIT_LATERAL_MARGIN_M`] of the lane's width sideways;
+    /// or farther than [`OFF_MAP_M`] from every lane's centre line.
     pub(super) fn retire_exits(&mut self, map: &LaneletMap) {
         for a in 0..self.poses.len() {
             if self.retired[a] || self.controllers[a] == Controller::External {
@@ -19,6 +21,17 @@ impl SceneRuntime<'_> {
             let at = [self.poses[a].x_m, self.poses[a].y_m];
             if let Some(l) = map.lanelet_at(at) {
                 self.last_lanelet[a] = Some(l);
+                continue;
+            }
+            // Beyond every lane's reach it has left the map, with or without a lane to leave
+            // through: an INTERACTION scene's vehicle that started off its crop's lanes never
+            // had one, and the model drove it 30 s through the fields and stood it 54 m from
+            // any lane for 478 s (issue 39's long sessions, FT seed 26).
+            if crate::initialisation::nearest_centre(map, DVec2::from(at))
+                .is_none_or(|(distance_m, _)| distance_m > OFF_MAP_M)
+            {
+                self.retired[a] = true;
+                self.left.push(a);
                 continue;
             }
             let Some(lane) = self.last_lanelet[a].map(|l| &map.lanelets[l]) else {
@@ -37,6 +50,10 @@ impl SceneRuntime<'_> {
         }
     }
 }
+
+/// An agent off every lanelet and farther than this from every lane's centre line has left
+/// the map (metres): as far as the stall release looks for a lane to turn back to.
+pub const OFF_MAP_M: f64 = 10.0;
 
 /// How far sideways of a lane's end an agent may be and still count as having left the map
 /// through it (beyond half the lane's width).

@@ -915,7 +915,7 @@ fn lane_line_near(map: &LaneletMap, at: DVec2, heading: f64) -> Option<(DVec2, D
     let under = || map.lanelets.iter().filter(|l| l.contains(at.into()));
     let near = |keep: &dyn Fn(DVec2) -> bool| {
         crate::initialisation::nearest_centre_where(map, at, keep)
-            .filter(|&(dist_m, _, _)| dist_m <= 10.0)
+            .filter(|&(dist_m, _, _)| dist_m <= super::exits::OFF_MAP_M)
     };
     crate::initialisation::nearest_centre_on(under(), at, its_way)
         .or_else(|| crate::initialisation::nearest_centre_on(under(), at, any_way))
