@@ -25,7 +25,7 @@ impl SceneRuntime<'_> {
             }
             // Beyond every lane's reach it has left the map, with or without a lane to leave
             // through: an INTERACTION scene's vehicle that started off its crop's lanes never
-            // had one, and the model drove it 30 s through the fields and stood it 54 m from
+            // had one, and the model drove it 30 s off the lanes and stood it 54 m from
             // any lane for 478 s (issue 39's long sessions, FT seed 26).
             if crate::initialisation::nearest_centre(map, DVec2::from(at))
                 .is_none_or(|(distance_m, _)| distance_m > OFF_MAP_M)
