@@ -625,24 +625,34 @@ fn vehicles_that_drive_off_the_map_leave_the_scene() {
     }
 }
 
+/// The merge's scene with its script's first `ends_m.len()` vehicles only, each observed
+/// driving east at 9 m/s to its end point (x, y in metres).
+fn merge_driving_east(ends_m: &[[f64; 2]]) -> ProceduralScene {
+    use road_sim::populate::keep_agents;
+    use road_sim::procedural::{ProceduralMap, procedural};
+    let mut scene = procedural(ProceduralMap::Merge, &WindowConfig::default(), 10).unwrap();
+    let agents: Vec<usize> = (0..ends_m.len()).collect();
+    let mut window = keep_agents(&scene.window, &agents);
+    for (agent, &[end_x_m, y_m]) in ends_m.iter().enumerate() {
+        for t in 0..window.steps {
+            let x_m = end_x_m - 0.9 * (window.steps - 1 - t) as f64;
+            let xy = window.frame.to_norm([x_m, y_m]);
+            let at = agent * window.steps + t;
+            window.states[3 * at..3 * at + 3].copy_from_slice(&[xy[0], xy[1], 0.0]);
+            window.valid[at] = true;
+        }
+    }
+    scene.window = window;
+    scene
+}
+
 /// A vehicle whose history ends a step before a lane's open end (a populated scene can place
 /// one there) leaves on its first tick: it is retired, not driven on off road.
 #[test]
 fn a_vehicle_starting_at_the_map_s_end_leaves_on_its_first_step() {
-    use road_sim::populate::keep_agents;
-    use road_sim::procedural::{ProceduralMap, procedural};
     let model = small_model();
-    let mut scene = procedural(ProceduralMap::Merge, &WindowConfig::default(), 10).unwrap();
     // The script's vehicle 0 alone, at 9 m/s along the main road, 0.3 m before its end (x = 90).
-    let mut window = keep_agents(&scene.window, &[0]);
-    for t in 0..window.steps {
-        let xy = window
-            .frame
-            .to_norm([89.7 - 0.9 * (window.steps - 1 - t) as f64, 0.0]);
-        window.states[3 * t..3 * t + 3].copy_from_slice(&[xy[0], xy[1], 0.0]);
-        window.valid[t] = true;
-    }
-    scene.window = window;
+    let scene = merge_driving_east(&[[89.7, 0.0]]);
     let mut engine = CpuEngine::new(&model);
     let mut rng = StdRng::seed_from_u64(0);
     let mut sim = closed_loop(
@@ -668,23 +678,10 @@ fn a_vehicle_starting_at_the_map_s_end_leaves_on_its_first_step() {
 /// guard and the stall release bring such a vehicle back).
 #[test]
 fn a_vehicle_far_from_every_lane_leaves_on_its_first_step() {
-    use road_sim::populate::keep_agents;
-    use road_sim::procedural::{ProceduralMap, procedural};
     let model = small_model();
-    let mut scene = procedural(ProceduralMap::Merge, &WindowConfig::default(), 10).unwrap();
     // The script's vehicles 0 and 1 at 9 m/s east, beside the main road after the merge (its
     // centre line y = 0, x in [0, 90]; the ramp lies south): 0 30 m north of it, 1 6 m.
-    let mut window = keep_agents(&scene.window, &[0, 1]);
-    for (agent, y_m) in [(0, 30.0), (1, 6.0)] {
-        for t in 0..window.steps {
-            let x_m = 40.0 - 0.9 * (window.steps - 1 - t) as f64;
-            let xy = window.frame.to_norm([x_m, y_m]);
-            let at = agent * window.steps + t;
-            window.states[3 * at..3 * at + 3].copy_from_slice(&[xy[0], xy[1], 0.0]);
-            window.valid[at] = true;
-        }
-    }
-    scene.window = window;
+    let scene = merge_driving_east(&[[40.0, 30.0], [40.0, 6.0]]);
     let mut engine = CpuEngine::new(&model);
     let mut rng = StdRng::seed_from_u64(0);
     let mut sim = closed_loop(
