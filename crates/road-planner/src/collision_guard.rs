@@ -353,6 +353,36 @@ mod tests {
     }
 
     #[test]
+    fn a_car_that_does_not_anticipate_model_cars_backs_up_to_the_clearance_unbraked() {
+        // A backs at 1 m/s (0.1 m a tick) towards B, a model car standing 0.5 m behind it:
+        // its 1 s horizon meets B, so a car that anticipates brakes; one manoeuvred by a
+        // release (or breaking a deadlock) does not, and backs its full step, still clear.
+        let backing = |anticipates| {
+            let mut a = agent(0.0, -0.1, 0.0, true);
+            a.anticipates_model_agents = anticipates;
+            [a, agent(-4.5, -4.5, 0.0, true)]
+        };
+        let mut anticipating = backing(true);
+        let actions = guard_step(&mut anticipating, &settings(10, true));
+        assert_eq!(actions, vec![(0, GuardAction::Braked)]);
+        assert!(anticipating[0].proposed.x_m > -0.1);
+        let mut manoeuvring = backing(false);
+        assert!(guard_step(&mut manoeuvring, &settings(10, true)).is_empty());
+        assert_eq!(manoeuvring[0].proposed.x_m, -0.1);
+        // Its next steps go on up to the clearance, and no farther.
+        let mut at_the_gap = [agent(-0.45, -0.55, 0.0, true), agent(-4.5, -4.5, 0.0, true)];
+        at_the_gap[0].anticipates_model_agents = false;
+        let actions = guard_step(&mut at_the_gap, &settings(10, true));
+        assert_eq!(actions, vec![(0, GuardAction::StoppedShort)]);
+        let gap_m = at_the_gap[0].proposed.x_m - 2.0 - (-4.5 + 2.0);
+        // (The cut is a bisection of the 0.1 m step: within a millimetre of the clearance.)
+        assert!(
+            (STOP_SHORT_CLEARANCE_M..=STOP_SHORT_CLEARANCE_M + 1e-3).contains(&gap_m),
+            "gap {gap_m}"
+        );
+    }
+
+    #[test]
     fn within_the_clearance_a_car_may_move_away_but_not_creep_closer() {
         // A stands 5 mm behind B (4 m boxes): a 4 mm creep forward overlaps nobody, but would
         // close the gap to nothing, where rounding makes it an overlap: it is cut. A step back

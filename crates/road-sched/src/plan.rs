@@ -269,7 +269,9 @@ pub struct LaneAnticipation {
 /// everyone; faster than `hand_back_speed_mps` too, when set), or something comes within 15 m
 /// ahead; it is handed back only once its heading turned no more than 23° over the last second
 /// (the model carries on a turn it sees); the lane and collision guards still apply to its
-/// steps. The recordings' model stops vehicles where
+/// steps (while it backs and fills, turns in place or starts off straight, the collision
+/// guard by its no-overlap rule alone: the release kept those moves clear of everyone as they
+/// stand). The recordings' model stops vehicles where
 /// traffic ahead of them lies beyond its map crop; on an open road that stop never ends. A
 /// gridlock (standing vehicles each in the path of the one before, round to the first:
 /// `road_sim::free_road::BlockedPaths`) has no free road: after `gridlock_after_secs`

@@ -350,6 +350,55 @@ fn a_vehicle_wedged_at_the_road_edge_backs_and_fills_once_the_one_behind_makes_r
     );
 }
 
+#[test]
+fn a_vehicle_backing_and_filling_near_one_behind_it_is_not_braked_for_it() {
+    // As the wedge above, but vehicle 1 stands 0.8 m behind 0's rear-right corner: not in the
+    // way of 0's moves, but within the collision guard's 1 s horizon of 0 backing at 1 m/s.
+    // The release keeps 0's moves clear of 1 and the no-overlap rule holds it; braked ahead as
+    // well, it was cut to centimetres a tick and turned off the kerb in 7–13 s in issue 39's
+    // long sessions. It backs and fills unbraked and drives on, without a collision.
+    let corner = rear_right_corner(WEDGED);
+    let stands = [
+        (0, WEDGED.x_m, WEDGED.y_m, WEDGED.heading_rad),
+        (1, corner.0 - 0.8 - 2.4, corner.1 - 0.2, 0.0),
+    ];
+    let ticks = run_with(&wedge_planner(), &[0, 2], &stands, 250);
+    assert!(
+        ticks.iter().all(|t| t.collisions.is_empty()),
+        "no collision"
+    );
+    let backed = ticks
+        .windows(2)
+        .filter(|w| {
+            let (from, to) = (w[0].poses[0], w[1].poses[0]);
+            w[1].guarded.contains(&(0, GuardAction::PulledAway))
+                && (to.x_m - from.x_m) * from.heading_rad.cos()
+                    + (to.y_m - from.y_m) * from.heading_rad.sin()
+                    < -1e-3
+        })
+        .count();
+    assert!(backed > 0, "it backs and fills");
+    let braked: Vec<usize> = ticks
+        .iter()
+        .enumerate()
+        .filter(|(_, t)| {
+            t.guarded.contains(&(0, GuardAction::PulledAway))
+                && t.guarded.contains(&(0, GuardAction::Braked))
+        })
+        .map(|(k, _)| k)
+        .collect();
+    assert!(
+        braked.is_empty(),
+        "braked while manoeuvring at ticks {braked:?}"
+    );
+    let last = ticks.last().unwrap().poses[0];
+    assert!(last.y_m.abs() < 1.875, "on the road: {last:?}");
+    assert!(
+        last.x_m > WEDGED.x_m + 3.0,
+        "it drove on along the road: {last:?}"
+    );
+}
+
 /// The wedge tests' vehicle 0: on the main road's right edge, 60° off the road (4.6 × 1.9 m).
 const WEDGED: Pose = Pose {
     x_m: -40.0,

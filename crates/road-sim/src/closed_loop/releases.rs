@@ -35,6 +35,11 @@ pub(super) struct HeldMemory {
     /// How far the stall release has backed it in its current run of backward moves, metres (0
     /// when its last move was not one): it backs on for [`BACK_AND_FILL_M`] before filling.
     pub(super) backed_m: f64,
+    /// Whether the stall release moved it this tick at manoeuvring speed (backing and filling,
+    /// turning in place, or starting off straight below [`RELEASE_STRAIGHT_BELOW_MPS`]): the
+    /// collision guard then holds it by the no-overlap rule alone, as it does a vehicle
+    /// breaking a deadlock ([`manoeuvres_unanticipated`]).
+    pub(super) manoeuvred: bool,
     /// Consecutive ticks the collision guard braked it or stopped it short.
     pub(super) guard_held_ticks: u32,
     /// Ticks left in which it does not brake for other model-driven agents (it breaks a
@@ -260,6 +265,9 @@ impl SceneRuntime<'_> {
             .filter(|&a| !self.retired[a])
             .collect();
         let after_ticks = (release.after_secs / STEP_SECS).round() as u32;
+        for memory in &mut self.held {
+            memory.manoeuvred = false;
+        }
         let (paths, standing) = self.blocked_paths(&present);
         let mut make_room = Vec::new();
         for &a in &present {
@@ -500,6 +508,7 @@ impl SceneRuntime<'_> {
             } else {
                 0.0
             };
+            self.held[a].manoeuvred = manoeuvres_unanticipated(chosen, driving, speed);
             // Nothing feasible: it stands this tick, as the guard would have held it.
             let (to, heading) = chosen.unwrap_or((before.position_m(), heading_before));
             set_emitted(emitted, a, frame, to, heading, heading_scale);
@@ -628,7 +637,8 @@ impl SceneRuntime<'_> {
                     // braking ahead of them (braked, it stood a metre short while they waited
                     // for it); the no-overlap rule still holds it.
                     anticipates_model_agents: self.held[a].breaking_deadlock_ticks == 0
-                        && !self.held[a].pulling_out_of_gridlock,
+                        && !self.held[a].pulling_out_of_gridlock
+                        && !self.held[a].manoeuvred,
                 }
             })
             .collect();
@@ -788,6 +798,21 @@ impl SceneRuntime<'_> {
     }
 }
 
+/// Whether the stall release's move this tick (`chosen`; `driving` its plain pull-away at
+/// `speed_mps`) is a manoeuvre the collision guard leaves to its no-overlap rule: backing and
+/// filling, turning in place, or starting off straight. The release has already kept it
+/// clear of everyone as they stand; braked ahead as well (its 1 s horizon reaching a
+/// neighbour a metre away), a vehicle backing and filling beside or behind others was cut to
+/// centimetres a tick, about every other tick, and took 7–13 s to turn off a road's edge:
+/// most of issue 39's remaining long stops.
+fn manoeuvres_unanticipated(
+    chosen: Option<(DVec2, f64)>,
+    driving: (DVec2, f64),
+    speed_mps: f64,
+) -> bool {
+    chosen.is_some_and(|m| m != driving || speed_mps < RELEASE_STRAIGHT_BELOW_MPS)
+}
+
 /// Which vehicle of a gridlock (its vehicles in index order, [`BlockedPaths::gridlock`]) has
 /// the way out of it: the lowest-numbered one that has not passed the way on
 /// ([`HeldMemory::passes_way_on`]), or the lowest-numbered when all have. `held` by agent.
@@ -932,9 +957,37 @@ mod tests {
     use road_data::LaneletMap;
 
     use super::{
-        HeldMemory, KEEP_TURN_FROM_RAD, StallRelease, hand_back_speed_mps, held_turn,
-        lane_line_near, release_target, way_out_of_gridlock,
+        HeldMemory, KEEP_TURN_FROM_RAD, RELEASE_STRAIGHT_BELOW_MPS, StallRelease,
+        hand_back_speed_mps, held_turn, lane_line_near, manoeuvres_unanticipated, release_target,
+        way_out_of_gridlock,
     };
+
+    #[test]
+    fn a_release_s_manoeuvres_are_left_to_the_no_overlap_rule_its_driving_is_not() {
+        let driving = (DVec2::new(0.3, 0.0), 0.0);
+        let backing = (DVec2::new(-0.1, 0.0), 0.02);
+        let turning_in_place = (DVec2::ZERO, 0.05);
+        // Backing and filling, or turning in place, at any speed the release has reached.
+        assert!(manoeuvres_unanticipated(Some(backing), driving, 3.0));
+        assert!(manoeuvres_unanticipated(
+            Some(turning_in_place),
+            driving,
+            3.0
+        ));
+        // Driving on: only while it starts off straight, below the speed it turns from.
+        assert!(manoeuvres_unanticipated(
+            Some(driving),
+            driving,
+            0.5 * RELEASE_STRAIGHT_BELOW_MPS
+        ));
+        assert!(!manoeuvres_unanticipated(
+            Some(driving),
+            driving,
+            RELEASE_STRAIGHT_BELOW_MPS
+        ));
+        // Standing (nothing feasible): no step to anticipate.
+        assert!(!manoeuvres_unanticipated(None, driving, 0.5));
+    }
 
     #[test]
     fn a_vehicle_that_stands_on_with_a_gridlock_s_way_passes_it_to_the_next() {
