@@ -49,7 +49,8 @@ pub struct GuardAgent {
     pub movable: bool,
     /// Whether it brakes ahead of predicted collisions with other model-driven agents (the
     /// anticipation); false for an agent that breaks a deadlock
-    /// (`CollisionGuard::release_deadlock_after_secs`): only the no-overlap rule holds it then.
+    /// (`CollisionGuard::release_deadlock_after_secs`) or that the stall release manoeuvres
+    /// (backing and filling, turning in place): only the no-overlap rule holds it then.
     pub anticipates_model_agents: bool,
 }
 

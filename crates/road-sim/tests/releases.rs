@@ -391,12 +391,7 @@ fn a_vehicle_backing_and_filling_near_one_behind_it_is_not_braked_for_it() {
         braked.is_empty(),
         "braked while manoeuvring at ticks {braked:?}"
     );
-    let last = ticks.last().unwrap().poses[0];
-    assert!(last.y_m.abs() < 1.875, "on the road: {last:?}");
-    assert!(
-        last.x_m > WEDGED.x_m + 3.0,
-        "it drove on along the road: {last:?}"
-    );
+    drove_on_along_the_road(&ticks);
 }
 
 /// The wedge tests' vehicle 0: on the main road's right edge, 60° off the road (4.6 × 1.9 m).
