@@ -568,30 +568,8 @@ fn vehicles_that_drive_off_the_map_leave_the_scene() {
     use road_sim::procedural::{ProceduralMap, procedural};
     let model = small_model();
     let scene = procedural(ProceduralMap::Merge, &WindowConfig::default(), 10).unwrap();
-    let controllers = vec![Controller::ConstantVelocity; scene.window.agents];
     let steps = 150;
-    let run = |retire: bool| {
-        let mut engine = CpuEngine::new(&model);
-        let mut rng = StdRng::seed_from_u64(0);
-        let mut sim = closed_loop(
-            &mut engine,
-            &model,
-            &scene,
-            controllers.clone(),
-            true,
-            steps,
-            &mut rng,
-        )
-        .unwrap();
-        sim.retire_on_exit(0, retire).unwrap();
-        let mut out = Vec::new();
-        let mut ticks = Vec::new();
-        for _ in 0..steps {
-            sim.tick(&mut engine, &mut NoExternal, &mut out).unwrap();
-            ticks.push(out[0].clone());
-        }
-        ticks
-    };
+    let run = |retire: bool| drive_at_constant_velocity(&model, &scene, retire, steps);
     let kept = run(false);
     let off_before: std::collections::BTreeSet<usize> =
         kept.iter().flat_map(|t| t.off_road.clone()).collect();
@@ -625,6 +603,37 @@ fn vehicles_that_drive_off_the_map_leave_the_scene() {
     }
 }
 
+/// Runs `steps` ticks of `scene` (the test planner, off-road checks on) with every vehicle at
+/// constant velocity, retired where it leaves the map when `retire`; every tick's report.
+fn drive_at_constant_velocity(
+    model: &road_model::Denoiser,
+    scene: &ProceduralScene,
+    retire: bool,
+    steps: usize,
+) -> Vec<SceneTick> {
+    let mut engine = CpuEngine::new(model);
+    let mut rng = StdRng::seed_from_u64(0);
+    let controllers = vec![Controller::ConstantVelocity; scene.window.agents];
+    let mut sim = closed_loop(
+        &mut engine,
+        model,
+        scene,
+        controllers,
+        true,
+        steps,
+        &mut rng,
+    )
+    .unwrap();
+    sim.retire_on_exit(0, retire).unwrap();
+    let mut out = Vec::new();
+    let mut ticks = Vec::new();
+    for _ in 0..steps {
+        sim.tick(&mut engine, &mut NoExternal, &mut out).unwrap();
+        ticks.push(out[0].clone());
+    }
+    ticks
+}
+
 /// The merge's scene with its script's first `ends_m.len()` vehicles only, each observed
 /// driving east at 9 m/s to its end point (x, y in metres).
 fn merge_driving_east(ends_m: &[[f64; 2]]) -> ProceduralScene {
@@ -653,23 +662,9 @@ fn a_vehicle_starting_at_the_map_s_end_leaves_on_its_first_step() {
     let model = small_model();
     // The script's vehicle 0 alone, at 9 m/s along the main road, 0.3 m before its end (x = 90).
     let scene = merge_driving_east(&[[89.7, 0.0]]);
-    let mut engine = CpuEngine::new(&model);
-    let mut rng = StdRng::seed_from_u64(0);
-    let mut sim = closed_loop(
-        &mut engine,
-        &model,
-        &scene,
-        vec![Controller::ConstantVelocity],
-        true,
-        5,
-        &mut rng,
-    )
-    .unwrap();
-    sim.retire_on_exit(0, true).unwrap();
-    let mut out = Vec::new();
-    sim.tick(&mut engine, &mut NoExternal, &mut out).unwrap();
-    assert_eq!(out[0].left, vec![0], "{:?}", out[0].poses[0]);
-    assert!(out[0].off_road.is_empty());
+    let first = &drive_at_constant_velocity(&model, &scene, true, 5)[0];
+    assert_eq!(first.left, vec![0], "{:?}", first.poses[0]);
+    assert!(first.off_road.is_empty());
 }
 
 /// A vehicle off every lanelet and more than 10 m from every lane (an INTERACTION scene's
@@ -682,24 +677,9 @@ fn a_vehicle_far_from_every_lane_leaves_on_its_first_step() {
     // The script's vehicles 0 and 1 at 9 m/s east, beside the main road after the merge (its
     // centre line y = 0, x in [0, 90]; the ramp lies south): 0 30 m north of it, 1 6 m.
     let scene = merge_driving_east(&[[40.0, 30.0], [40.0, 6.0]]);
-    let mut engine = CpuEngine::new(&model);
-    let mut rng = StdRng::seed_from_u64(0);
-    let mut sim = closed_loop(
-        &mut engine,
-        &model,
-        &scene,
-        vec![Controller::ConstantVelocity; 2],
-        true,
-        10,
-        &mut rng,
-    )
-    .unwrap();
-    sim.retire_on_exit(0, true).unwrap();
-    let mut out = Vec::new();
-    sim.tick(&mut engine, &mut NoExternal, &mut out).unwrap();
-    assert_eq!(out[0].left, vec![0], "{:?}", out[0].poses[0]);
-    for _ in 0..5 {
-        sim.tick(&mut engine, &mut NoExternal, &mut out).unwrap();
-        assert!(out[0].left.is_empty(), "{:?}", out[0].poses[1]);
+    let ticks = drive_at_constant_velocity(&model, &scene, true, 10);
+    assert_eq!(ticks[0].left, vec![0], "{:?}", ticks[0].poses[0]);
+    for tick in &ticks[1..6] {
+        assert!(tick.left.is_empty(), "{:?}", tick.poses[1]);
     }
 }
