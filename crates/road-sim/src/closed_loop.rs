@@ -228,6 +228,9 @@ struct SceneRuntime<'m> {
     held: Vec<HeldMemory>,
     /// Each agent's speed over the last tick (m/s).
     speed_mps: Vec<f64>,
+    /// Whether this tick's planner keeps vehicles on the road (a lane guard, with a map): only
+    /// then does a back-off over the road's edge make no room.
+    keeps_on_road: bool,
 }
 
 /// Simulates many scenes on one engine: in lockstep with one planner ([`ClosedLoop::new`],
@@ -803,6 +806,7 @@ impl<'m> SceneRuntime<'m> {
                 speed_mps,
                 map,
                 steps,
+                keeps_on_road: false,
             },
         ))
     }
@@ -843,6 +847,7 @@ impl<'m> SceneRuntime<'m> {
         self.guarded.clear();
         self.left.clear();
         self.stuck.clear();
+        self.keeps_on_road = lane_guard.is_some() && self.map.is_some();
         if let Some(release) = stall_release {
             self.release_stalls(emitted, heading_scale, release);
         }

@@ -803,3 +803,47 @@ fn a_vehicle_turned_across_a_curving_lane_at_its_edge_backs_and_fills_onto_it() 
     let reversals = reversals(&ticks, 0);
     assert!(reversals <= 6, "{reversals} reversals");
 }
+
+#[test]
+fn a_holder_wedged_beside_a_vehicle_at_a_median_passes_the_way_and_never_backs_it_over_it() {
+    // The roundabout's east arm (the entry lane north of a 0.5 m median, the exit lane south
+    // of it): vehicle 1 on the exit lane, its centre 5 cm inside the median's kerb and its tail
+    // across it, turned 17° towards its lane; vehicle 0 on the entry lane behind that tail,
+    // turned towards the median. Each stands in the other's path, and 0 has the gridlock's way.
+    // Issue 39's long sessions had such a pair stand 16 s: 0 backed and filled over 1.7 m
+    // behind the tail, never standing and so never passing the way on, and 1, asked to make
+    // room backwards over the median, was stopped at its kerb every tick. Now 0 passes the way
+    // within 10 s, and 1, never asked over the median, drives on along its lane.
+    let stands = [
+        (0, 44.1, 1.08, 172f64.to_radians()),
+        (1, 40.8, -0.30, (-17f64).to_radians()),
+    ];
+    let ticks = run_scene(
+        ProceduralMap::Roundabout,
+        &wedge_planner(),
+        &[0, 2],
+        &stands,
+        250,
+        0.0,
+        None,
+    );
+    assert!(
+        ticks.iter().all(|t| t.collisions.is_empty()),
+        "no collision"
+    );
+    assert!(ticks.iter().all(|t| t.off_road.is_empty()), "on the road");
+    let first = |a, action| ticks.iter().position(|t| t.guarded.contains(&(a, action)));
+    assert_eq!(first(0, GuardAction::PulledAway), Some(29), "0 has the way");
+    assert_eq!(
+        first(1, GuardAction::BackedOff),
+        None,
+        "1 is not backed over"
+    );
+    let took_way = first(1, GuardAction::PulledAway).expect("1 gets the way");
+    assert!(took_way < 150, "0 passes the way on at tick {took_way}");
+    let last = ticks.last().unwrap().poses[1];
+    assert!(
+        last.x_m > 45.0 && (-4.0..-0.25).contains(&last.y_m),
+        "1 drove on along its lane: {last:?}"
+    );
+}

@@ -62,6 +62,11 @@ pub(super) struct HeldMemory {
     /// rocked back and forth in place moves every tick yet stands.
     pub(super) still_at_m: DVec2,
     pub(super) still_ticks: u32,
+    /// While the stall release pulls it away: where it has stayed within
+    /// [`MANOEUVRE_RADIUS_M`] of, and for how many ticks (backing and filling that gets
+    /// nowhere).
+    pub(super) manoeuvring_at_m: DVec2,
+    pub(super) manoeuvring_ticks: u32,
     /// Where it was at each of its last [`STANDING_WINDOW_TICKS`] + 1 ticks (a ring, oldest
     /// at `recent_next` once full), for the long suite's notion of standing on average.
     pub(super) recent_m: [DVec2; STANDING_WINDOW_TICKS + 1],
@@ -102,18 +107,21 @@ impl HeldMemory {
         self.recent_heading_rad[newest] - self.recent_heading_rad[then]
     }
 
-    /// With a gridlock's way, after a tick in which it `stands` (or not) and is still in a
-    /// gridlock (or not): whether it passes the way on now, having stood
-    /// [`WAY_PASSES_AFTER_SECS`] in a row with it. Its pull-away then ends, and for
-    /// [`WAY_PASSED_FOR_SECS`] the way goes to another ([`way_out_of_gridlock`]).
-    fn passes_way_on(&mut self, stands: bool, in_gridlock: bool) -> bool {
+    /// With a gridlock's way, after a tick in which it `stands` (or not): whether it passes the
+    /// way on now, having stood [`WAY_PASSES_AFTER_SECS`] in a row with it. Its pull-away then
+    /// ends, and for [`WAY_PASSED_FOR_SECS`] the way goes to another
+    /// ([`way_out_of_gridlock`]). Out of the gridlock too: kept while wedged elsewhere, a
+    /// vehicle's pull-away backed and filled it behind a queue for 29 s, towards the vehicle
+    /// that was backing off for the gridlock's new holder, and was never asked to make room
+    /// (issue 39).
+    fn passes_way_on(&mut self, stands: bool) -> bool {
         self.stood_with_way_ticks = if stands {
             self.stood_with_way_ticks + 1
         } else {
             0
         };
         let after_ticks = (WAY_PASSES_AFTER_SECS / STEP_SECS).round() as u32;
-        if self.stood_with_way_ticks < after_ticks || !in_gridlock {
+        if self.stood_with_way_ticks < after_ticks {
             return false;
         }
         self.end_pull_away();
@@ -139,11 +147,20 @@ impl HeldMemory {
 pub(super) const STILL_RADIUS_M: f64 = 0.6;
 /// Ticks (2 s) within [`STILL_RADIUS_M`] of one place that make a vehicle stand.
 pub(super) const STILL_TICKS: u32 = 20;
+/// A vehicle the stall release pulls away that stays within this of one place (metres: a
+/// back-and-fill leg, [`BACK_AND_FILL_M`], and a half metre) for [`MANOEUVRING_STILL_TICKS`]
+/// stands too: wedged behind a tail that stuck into its lane, a gridlock's holder backed and
+/// filled over 1.7 m for 16 s, never standing by [`STILL_RADIUS_M`], and so never passed the
+/// way on to the vehicle that could go (issue 39).
+const MANOEUVRE_RADIUS_M: f64 = BACK_AND_FILL_M + 0.5;
+/// Ticks (4 s) within [`MANOEUVRE_RADIUS_M`] that make a vehicle pulled away stand.
+const MANOEUVRING_STILL_TICKS: u32 = 40;
 
 impl SceneRuntime<'_> {
     /// Whether agent `a` stands: slower than `STOPPED_MAX_SPEED_MPS` over the last tick, or on
     /// average over the last [`STANDING_WINDOW_TICKS`] (as the long suite counts a stand), or
-    /// within [`STILL_RADIUS_M`] of one place for [`STILL_TICKS`]. Without the average, a
+    /// within [`STILL_RADIUS_M`] of one place for [`STILL_TICKS`], or pulled away within
+    /// [`MANOEUVRE_RADIUS_M`] for [`MANOEUVRING_STILL_TICKS`]. Without the average, a
     /// vehicle the model crawled on at about 0.3 m/s, some ticks faster, never stood for the
     /// stall release's 3 s, and stood 10 s by the suite's count (issue 39).
     pub(super) fn stands(&self, a: usize) -> bool {
@@ -157,6 +174,7 @@ impl SceneRuntime<'_> {
         self.speed_mps[a] < crate::free_road::STOPPED_MAX_SPEED_MPS
             || slow_on_average
             || memory.still_ticks >= STILL_TICKS
+            || memory.manoeuvring_ticks >= MANOEUVRING_STILL_TICKS
     }
 
     /// Follows where each agent stays ([`HeldMemory::still_at_m`]) and where it was
@@ -175,6 +193,12 @@ impl SceneRuntime<'_> {
             } else {
                 memory.still_at_m = at;
                 memory.still_ticks = 0;
+            }
+            if memory.pulling_away && at.distance(memory.manoeuvring_at_m) <= MANOEUVRE_RADIUS_M {
+                memory.manoeuvring_ticks += 1;
+            } else {
+                memory.manoeuvring_at_m = at;
+                memory.manoeuvring_ticks = 0;
             }
         }
     }
@@ -352,7 +376,7 @@ impl SceneRuntime<'_> {
                 // may have none (nose to nose, that one across the centre line against the
                 // kerb, it stood 10–30 s in issue 39's long sessions), and the next may have it.
                 let stands = self.stands(a);
-                if self.held[a].passes_way_on(stands, gridlock.len() > 1) {
+                if self.held[a].passes_way_on(stands) {
                     continue;
                 }
                 // Those standing in its path make room (moving away from it), whether or not
@@ -571,10 +595,11 @@ impl SceneRuntime<'_> {
     /// and jams stood for minutes: issue 39). Only those model-driven, standing, and not moving
     /// off or pulling away already: asked to back off while the release pulled it away, a
     /// vehicle at a kerb had both every tick for 29 s, and the long sessions' free-road stops
-    /// were 29 against 15 (issue 39). With the stall release on (`can_pull_away`), one asked from behind that has
-    /// free road ahead is pulled away instead: making room forwards 2 m, then standing 3 s, a
-    /// vehicle the model kept stopped on a roundabout's ring led its queue round at 0.4 m/s
-    /// for minutes (issue 39).
+    /// were 29 against 15 (issue 39). With the stall release on (`can_pull_away`), one asked
+    /// from behind that has free road ahead is pulled away instead: making room forwards 2 m,
+    /// then standing 3 s, a vehicle the model kept stopped on a roundabout's ring led its
+    /// queue round at 0.4 m/s for minutes (issue 39). Nor is one asked whose move would cross
+    /// the road's edge ([`Self::backs_off_on_the_road`]).
     fn make_room(&mut self, asked: &[(usize, usize)], can_pull_away: bool) {
         if asked.is_empty() {
             return;
@@ -601,10 +626,43 @@ impl SceneRuntime<'_> {
                 self.held[b].pulling_away = true;
                 continue;
             }
+            let sign = if asking_ahead { -1 } else { 1 };
+            if !self.backs_off_on_the_road(b, sign) {
+                continue;
+            }
             self.held[b].backing_off_ticks = ticks;
-            self.held[b].backing_off_sign = if asking_ahead { -1 } else { 1 };
+            self.held[b].backing_off_sign = sign;
             self.held[b].held_streak_ticks = 0;
         }
+    }
+
+    /// Whether agent `b` backing off (`sign` −1 backwards, +1 forwards) keeps its centre on the
+    /// road for its first [`BACK_OFF_MIN_ROOM_M`], step by step, or takes it out of the map
+    /// through an open lane end; always, where no lane guard keeps it on the road. Asked to
+    /// back off over the road's edge, a vehicle with its centre on a median's kerb was stopped
+    /// there by the lane guard, and its own pull-away, which the back-off overrides, never ran:
+    /// two vehicles nose to nose on the roundabout's east arm stood 16 and 29 s (issue 39).
+    fn backs_off_on_the_road(&self, b: usize, sign: i8) -> bool {
+        let Some(map) = self.map.as_ref().filter(|_| self.keeps_on_road) else {
+            return true;
+        };
+        let map = map.get();
+        let from = self.poses[b].position_m();
+        let step = DVec2::from_angle(self.heading_unwrapped[b])
+            * (f64::from(sign) * BACK_OFF_SPEED_MPS * STEP_SECS);
+        let steps = (BACK_OFF_MIN_ROOM_M / (BACK_OFF_SPEED_MPS * STEP_SECS)).round() as usize;
+        let mut at = from;
+        for _ in 0..steps {
+            let to = at + step;
+            if leaves_through_an_open_end(map, at, to) {
+                return true;
+            }
+            if map.lanelet_at(to.into()).is_none() {
+                return false;
+            }
+            at = to;
+        }
+        true
     }
 
     /// Runs the collision guard on this tick's states (model units, overrides in): poses
@@ -732,7 +790,7 @@ impl SceneRuntime<'_> {
                 .iter()
                 .enumerate()
                 .any(|(j, &b)| b < a && held(b) && box_of(k, TOUCHING_M).overlaps(&box_of(j, 0.0)));
-            if gives_way {
+            if gives_way && self.backs_off_on_the_road(a, -1) {
                 let memory = &mut self.held[a];
                 memory.held_streak_ticks = 0;
                 memory.backing_off_ticks =
@@ -855,6 +913,9 @@ const BACK_OFF_SECS: f64 = 2.0;
 /// How long it then stands while the vehicle that has the way goes, seconds.
 const GIVE_WAY_SECS: f64 = 3.0;
 const BACK_OFF_SPEED_MPS: f64 = 1.0;
+/// A vehicle asked to back off must have this much road behind it (metres, half its run):
+/// less makes no room ([`SceneRuntime::backs_off_on_the_road`]).
+const BACK_OFF_MIN_ROOM_M: f64 = 1.0;
 
 /// The tightest circle a vehicle pulled away by the stall release turns on, metres.
 const RELEASE_TURN_RADIUS_M: f64 = 4.0;
@@ -1003,14 +1064,12 @@ mod tests {
             .chain([true])
             .chain((0..39).map(|_| false))
         {
-            assert!(!held[2].passes_way_on(!moves, true));
+            assert!(!held[2].passes_way_on(!moves));
         }
         assert_eq!(way_out_of_gridlock(&gridlock, &held), Some(2));
-        // Out of the gridlock it keeps it however long it stands (it is wedged elsewhere).
-        assert!(!held[2].passes_way_on(true, false));
-        // Standing on in the gridlock (over 4 s in a row): it passes the way on to 5, its
-        // pull-away over, for 10 s.
-        assert!(held[2].passes_way_on(true, true));
+        // Standing on (over 4 s in a row): it passes the way on to 5, its pull-away over, for
+        // 10 s.
+        assert!(held[2].passes_way_on(true));
         assert!(!held[2].pulling_away && !held[2].pulling_out_of_gridlock);
         assert_eq!(held[2].stood_with_way_ticks, 0);
         assert_eq!(held[2].passes_way_ticks, 100);
