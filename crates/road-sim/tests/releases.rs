@@ -813,7 +813,7 @@ fn a_holder_wedged_beside_a_vehicle_at_a_median_passes_the_way_and_never_backs_i
     // Issue 39's long sessions had such a pair stand 16 s: 0 backed and filled over 1.7 m
     // behind the tail, never standing and so never passing the way on, and 1, asked to make
     // room backwards over the median, was stopped at its kerb every tick. Now 0 passes the way
-    // within 10 s, and 1, never asked over the median, drives on along its lane.
+    // within 15 s, and 1, never asked over the median, drives on along its lane.
     let stands = [
         (0, 44.1, 1.08, 172f64.to_radians()),
         (1, 40.8, -0.30, (-17f64).to_radians()),
