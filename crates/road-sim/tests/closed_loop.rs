@@ -122,12 +122,7 @@ fn simulate_under(
         &mut rng,
     )
     .unwrap();
-    let mut out = Vec::new();
-    let mut ticks = Vec::new();
-    for _ in 0..steps {
-        sim.tick(&mut engine, external, &mut out).unwrap();
-        ticks.push(out[0].clone());
-    }
+    let ticks = tick_reports(&mut sim, &mut engine, external, steps);
     assert_eq!(sim.ticks(), steps);
     // Rolling with K/F = 2 steps per tick after a K = 8 step warm-up, Heun (≤ 2 NFE a step).
     assert!(sim.nfe().unwrap() > 0);
@@ -625,13 +620,23 @@ fn drive_at_constant_velocity(
     )
     .unwrap();
     sim.retire_on_exit(0, retire).unwrap();
+    tick_reports(&mut sim, &mut engine, &mut NoExternal, steps)
+}
+
+/// Ticks `sim`'s one scene `steps` times; every tick's report.
+fn tick_reports(
+    sim: &mut ClosedLoop<'_>,
+    engine: &mut CpuEngine,
+    external: &mut dyn road_sim::closed_loop::ExternalDriver,
+    steps: usize,
+) -> Vec<SceneTick> {
     let mut out = Vec::new();
-    let mut ticks = Vec::new();
-    for _ in 0..steps {
-        sim.tick(&mut engine, &mut NoExternal, &mut out).unwrap();
-        ticks.push(out[0].clone());
-    }
-    ticks
+    (0..steps)
+        .map(|_| {
+            sim.tick(engine, external, &mut out).unwrap();
+            out[0].clone()
+        })
+        .collect()
 }
 
 /// The merge's scene with its script's first `ends_m.len()` vehicles only, each observed
