@@ -276,8 +276,9 @@ pub struct LaneAnticipation {
 /// gridlock (standing vehicles each in the path of the one before, round to the first:
 /// `road_sim::free_road::BlockedPaths`) has no free road: after `gridlock_after_secs`
 /// (`after_secs` when unset) its lowest-numbered vehicle is pulled away all the same, not
-/// braking ahead of the others, and those standing in its path make room; one that stands 4 s
-/// with that way passes it to the next for 10 s.
+/// braking ahead of the others, and those standing in its path make room (none over the road's
+/// edge, where a lane guard keeps vehicles on the road); one that stands 4 s with that way
+/// (backing and filling within 2 m counts as standing) passes it to the next for 10 s.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct StallRelease {
