@@ -269,16 +269,17 @@ pub struct LaneAnticipation {
 /// everyone; faster than `hand_back_speed_mps` too, when set), or something comes within 15 m
 /// ahead; it is handed back only once its heading turned no more than 23° over the last second
 /// (the model carries on a turn it sees); the lane and collision guards still apply to its
-/// steps (while it backs and fills, turns in place or starts off straight, the collision
-/// guard by its no-overlap rule alone: the release kept those moves clear of everyone as they
-/// stand). The recordings' model stops vehicles where
-/// traffic ahead of them lies beyond its map crop; on an open road that stop never ends. A
-/// gridlock (standing vehicles each in the path of the one before, round to the first:
+/// steps (while it backs and fills at 2 m/s, turns in place or starts off straight, the
+/// collision guard by its no-overlap rule alone: the release kept those moves clear of
+/// everyone as they stand). The recordings' model stops vehicles where traffic ahead of them
+/// lies beyond its map crop; on an open road that stop never ends. A gridlock (standing
+/// vehicles each in the path of the one before, round to the first:
 /// `road_sim::free_road::BlockedPaths`) has no free road: after `gridlock_after_secs`
 /// (`after_secs` when unset) its lowest-numbered vehicle is pulled away all the same, not
-/// braking ahead of the others, and those standing in its path make room (none over the road's
-/// edge, where a lane guard keeps vehicles on the road); one that stands 4 s with that way
-/// (backing and filling within 2 m counts as standing) passes it to the next for 10 s.
+/// braking ahead of the others, and those standing in its path make room (2 m at 2 m/s; none
+/// over the road's edge, where a lane guard keeps vehicles on the road); one that stands 4 s
+/// with that way (backing and filling within 2 m counts as standing) passes it to the next for
+/// 10 s.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct StallRelease {

@@ -353,7 +353,7 @@ fn a_vehicle_wedged_at_the_road_edge_backs_and_fills_once_the_one_behind_makes_r
 #[test]
 fn a_vehicle_backing_and_filling_near_one_behind_it_is_not_braked_for_it() {
     // As the wedge above, but vehicle 1 stands 0.8 m behind 0's rear-right corner: not in the
-    // way of 0's moves, but within the collision guard's 1 s horizon of 0 backing at 1 m/s.
+    // way of 0's moves, but within the collision guard's 1 s horizon of 0 backing at 2 m/s.
     // The release keeps 0's moves clear of 1 and the no-overlap rule holds it; braked ahead as
     // well, it was cut to centimetres a tick and turned off the kerb in 7–13 s in issue 39's
     // long sessions. It backs and fills unbraked and drives on, without a collision.
@@ -846,4 +846,41 @@ fn a_holder_wedged_beside_a_vehicle_at_a_median_passes_the_way_and_never_backs_i
         last.x_m > 45.0 && (-4.0..-0.25).contains(&last.y_m),
         "1 drove on along its lane: {last:?}"
     );
+}
+
+#[test]
+fn a_vehicle_turned_against_the_ring_turns_round_and_drives_on_within_8_s() {
+    // On the procedural roundabout's ring (counter-clockwise, 5 m wide) at its top, turned
+    // 120°, 150° and 170° against the ring's way, alone: the release backs and fills it round
+    // after its 3 s, and it drives on along the ring (within 20° of its way, at 2 m/s or more)
+    // within 8 s of the start. Backing and filling at 1 m/s it took 7.2, 9.2 and 9.6 s, and such
+    // vehicles stood 11–12 s in issue 39's long sessions.
+    let planner = release_planner();
+    for off_deg in [120.0f64, 150.0, 170.0] {
+        let heading = (180.0 + off_deg).to_radians();
+        let ticks = run_scene(
+            ProceduralMap::Roundabout,
+            &planner,
+            &[0],
+            &[(0, 0.0, 20.0, heading)],
+            120,
+            0.0,
+            None,
+        );
+        assert!(
+            ticks.iter().all(|t| t.off_road.is_empty()),
+            "{off_deg}° off: never off the road"
+        );
+        let drives_on = ticks.windows(2).position(|w| {
+            let (from, to) = (w[0].poses[0], w[1].poses[0]);
+            let ring_way = to.y_m.atan2(to.x_m) + PI / 2.0;
+            let off_way = road_data::wrap_angle((to.heading_rad - ring_way) as f32).abs();
+            let speed_mps = (to.x_m - from.x_m).hypot(to.y_m - from.y_m) / 0.1;
+            off_way < 20f32.to_radians() && speed_mps >= 2.0
+        });
+        assert!(
+            drives_on.is_some_and(|tick| tick < 80),
+            "{off_deg}° off: drives on along the ring at tick {drives_on:?}"
+        );
+    }
 }

@@ -908,11 +908,13 @@ const CRAWL_MAX_SPEED_MPS: f64 = 1.0;
 const TOUCHING_M: f64 = 0.1;
 /// How long a vehicle that gives way in a deadlock (or makes room) backs off, seconds, and how
 /// fast (m/s): 2 m. At 0.5 m/s its 1 m was too little room, and jams in junction boxes stood
-/// on (issue 39's long sessions: stops of 10 s or more 127 at 0.5 m/s, 64 at 1 m/s).
-const BACK_OFF_SECS: f64 = 2.0;
+/// on (issue 39's long sessions: stops of 10 s or more 127 at 0.5 m/s, 64 at 1 m/s). At
+/// manoeuvring pace (`MANOEUVRE_SPEED_MPS`) since 2026-11-29: at 1 m/s the 2 m took 2 s of
+/// every gridlock's release.
+const BACK_OFF_SECS: f64 = 1.0;
 /// How long it then stands while the vehicle that has the way goes, seconds.
 const GIVE_WAY_SECS: f64 = 3.0;
-const BACK_OFF_SPEED_MPS: f64 = 1.0;
+const BACK_OFF_SPEED_MPS: f64 = MANOEUVRE_SPEED_MPS;
 /// A vehicle asked to back off must have this much road behind it (metres, half its run):
 /// less makes no room ([`SceneRuntime::backs_off_on_the_road`]).
 const BACK_OFF_MIN_ROOM_M: f64 = 1.0;
@@ -922,14 +924,16 @@ const RELEASE_TURN_RADIUS_M: f64 = 4.0;
 /// Below this speed a vehicle pulled away by the stall release drives straight on (m/s).
 const RELEASE_STRAIGHT_BELOW_MPS: f64 = 1.0;
 /// How fast a vehicle the stall release pulls away backs and fills (m/s): its manoeuvres at
-/// full lock when the plain pull-away is blocked.
-const MANOEUVRE_SPEED_MPS: f64 = 1.0;
+/// full lock when the plain pull-away is blocked, a brisk parking pace. At 1 m/s a vehicle
+/// turned 120–170° against its lane took 4–7 s of backing and filling to drive on, and such
+/// vehicles stood 11–12 s by the long suite's count (issue 39).
+const MANOEUVRE_SPEED_MPS: f64 = 2.0;
 /// The most a vehicle the stall release holds at the road's edge turns in place a tick, radians.
 const RELEASE_TURN_IN_PLACE_RAD: f64 = 0.05;
 /// How far a car's rear axle lies behind its box's centre, as a share of its length (a 4.5 m
 /// car's about 1.1 m).
 const REAR_AXLE_SHARE_OF_LENGTH: f64 = 0.25;
-/// How far a vehicle the stall release backs and fills backs on in one go, metres: 15 ticks
+/// How far a vehicle the stall release backs and fills backs on in one go, metres: 8 ticks
 /// at `MANOEUVRE_SPEED_MPS`, turning 21° at full lock.
 const BACK_AND_FILL_M: f64 = 1.5;
 /// A turn of the stall release's smaller than this (radians) is no way to keep: the vehicle
