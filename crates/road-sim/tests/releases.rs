@@ -752,6 +752,33 @@ fn a_step_cut_short_beside_a_roundabout_s_island_stands_on_the_road() {
 
 /// Times a vehicle's moves along its heading change between forwards and backwards (moves
 /// under 1 cm count as neither).
+/// Vehicle 0 alone on the procedural roundabout's ring (radius 20 m, 5 m wide,
+/// counter-clockwise) at its top, `y_m` from the centre, turned `off_deg` left of the ring's
+/// way, for `ticks` under the release planner; it never leaves the road.
+fn alone_on_the_ring(y_m: f64, off_deg: f64, ticks: usize) -> Vec<SceneTick> {
+    let heading = (180.0 + off_deg).to_radians();
+    let ticks = run_scene(
+        ProceduralMap::Roundabout,
+        &release_planner(),
+        &[0],
+        &[(0, 0.0, y_m, heading)],
+        ticks,
+        0.0,
+        None,
+    );
+    assert!(
+        ticks.iter().all(|t| t.off_road.is_empty()),
+        "{off_deg}° off: never off the road"
+    );
+    ticks
+}
+
+/// How far `pose` points off the procedural roundabout's ring's way there, radians (0..=π).
+fn off_the_ring_s_way(pose: Pose) -> f32 {
+    let ring_way = pose.y_m.atan2(pose.x_m) + PI / 2.0;
+    road_data::wrap_angle((pose.heading_rad - ring_way) as f32).abs()
+}
+
 fn reversals(ticks: &[SceneTick], agent: usize) -> usize {
     let mut last = 0.0f64;
     let mut count = 0;
@@ -777,24 +804,9 @@ fn a_vehicle_turned_across_a_curving_lane_at_its_edge_backs_and_fills_onto_it() 
     // (30 reversals in 20 s; such a vehicle on DR_USA_Roundabout_FT rocked for 90 s, issue
     // 39). Now it backs on before filling, as in a three-point turn, until it drives on along
     // the ring. (The kept way of turning has its own unit test, `held_turn`'s.)
-    let planner = release_planner();
-    let heading = (180f64 + 95.0).to_radians();
-    let ticks = run_scene(
-        ProceduralMap::Roundabout,
-        &planner,
-        &[0],
-        &[(0, 0.0, 18.6, heading)],
-        200,
-        0.0,
-        None,
-    );
-    assert!(
-        ticks.iter().all(|t| t.off_road.is_empty()),
-        "never off the road"
-    );
+    let ticks = alone_on_the_ring(18.6, 95.0, 200);
     let last = ticks.last().unwrap().poses[0];
-    let ring_way = last.y_m.atan2(last.x_m) + PI / 2.0;
-    let off_way = road_data::wrap_angle((last.heading_rad - ring_way) as f32).abs();
+    let off_way = off_the_ring_s_way(last);
     assert!(
         off_way < 20f32.to_radians(),
         "along the ring: {last:?}, {:.0}° off its way",
@@ -855,28 +867,12 @@ fn a_vehicle_turned_against_the_ring_turns_round_and_drives_on_within_8_s() {
     // after its 3 s, and it drives on along the ring (within 20° of its way, at 2 m/s or more)
     // within 8 s of the start. Backing and filling at 1 m/s it took 7.2, 9.2 and 9.6 s, and such
     // vehicles stood 11–12 s in issue 39's long sessions.
-    let planner = release_planner();
-    for off_deg in [120.0f64, 150.0, 170.0] {
-        let heading = (180.0 + off_deg).to_radians();
-        let ticks = run_scene(
-            ProceduralMap::Roundabout,
-            &planner,
-            &[0],
-            &[(0, 0.0, 20.0, heading)],
-            120,
-            0.0,
-            None,
-        );
-        assert!(
-            ticks.iter().all(|t| t.off_road.is_empty()),
-            "{off_deg}° off: never off the road"
-        );
+    for off_deg in [120.0, 150.0, 170.0] {
+        let ticks = alone_on_the_ring(20.0, off_deg, 120);
         let drives_on = ticks.windows(2).position(|w| {
             let (from, to) = (w[0].poses[0], w[1].poses[0]);
-            let ring_way = to.y_m.atan2(to.x_m) + PI / 2.0;
-            let off_way = road_data::wrap_angle((to.heading_rad - ring_way) as f32).abs();
             let speed_mps = (to.x_m - from.x_m).hypot(to.y_m - from.y_m) / 0.1;
-            off_way < 20f32.to_radians() && speed_mps >= 2.0
+            off_the_ring_s_way(to) < 20f32.to_radians() && speed_mps >= 2.0
         });
         assert!(
             drives_on.is_some_and(|tick| tick < 80),
