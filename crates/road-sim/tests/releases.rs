@@ -750,8 +750,6 @@ fn a_step_cut_short_beside_a_roundabout_s_island_stands_on_the_road() {
     );
 }
 
-/// Times a vehicle's moves along its heading change between forwards and backwards (moves
-/// under 1 cm count as neither).
 /// Vehicle 0 alone on the procedural roundabout's ring (radius 20 m, 5 m wide,
 /// counter-clockwise) at its top, `y_m` from the centre, turned `off_deg` left of the ring's
 /// way, for `ticks` under the release planner; it never leaves the road.
@@ -779,6 +777,8 @@ fn off_the_ring_s_way(pose: Pose) -> f32 {
     road_data::wrap_angle((pose.heading_rad - ring_way) as f32).abs()
 }
 
+/// Times a vehicle's moves along its heading change between forwards and backwards (moves
+/// under 1 cm count as neither).
 fn reversals(ticks: &[SceneTick], agent: usize) -> usize {
     let mut last = 0.0f64;
     let mut count = 0;
