@@ -151,7 +151,10 @@ def colour_of(actions):
 def draw(trace_path, ticks, centre, radius_m, agent):
     lanelet_map, frames = read_ticks(trace_path, ticks)
     if centre is None:
-        pose = frames[ticks[0]][0]["scene"]["poses"][agent]
+        poses = frames[ticks[0]][0]["scene"]["poses"]
+        if not 0 <= agent < len(poses):
+            sys.exit(f"{trace_path}: --agent {agent}: tick {ticks[0]} has agents 0 to {len(poses) - 1}")
+        pose = poses[agent]
         centre = (pose["x_m"], pose["y_m"])
     cx, cy = centre
     scale = PANEL_PX / (2 * radius_m)

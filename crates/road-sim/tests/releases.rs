@@ -11,7 +11,7 @@ use road_planner::collision_guard::GuardAction;
 use road_sched::{PlannerSpec, StallRelease};
 use road_sim::Pose;
 use road_sim::closed_loop::SceneTick;
-use road_sim::procedural::ProceduralMap;
+use road_sim::procedural::{ProceduralMap, STEP_SECS};
 
 mod common;
 use common::{moved_m, run_rocking, run_stuttering, run_turning};
@@ -871,7 +871,7 @@ fn a_vehicle_turned_against_the_ring_turns_round_and_drives_on_within_8_s() {
         let ticks = alone_on_the_ring(20.0, off_deg, 120);
         let drives_on = ticks.windows(2).position(|w| {
             let (from, to) = (w[0].poses[0], w[1].poses[0]);
-            let speed_mps = (to.x_m - from.x_m).hypot(to.y_m - from.y_m) / 0.1;
+            let speed_mps = (to.x_m - from.x_m).hypot(to.y_m - from.y_m) / STEP_SECS;
             off_the_ring_s_way(to) < 20f32.to_radians() && speed_mps >= 2.0
         });
         assert!(
