@@ -23,13 +23,12 @@
 //! the window, so the model plans on from where the vehicle really is.
 
 use glam::DVec2;
+use road_data::tracks::STEP_SECS;
 use road_sched::CollisionGuard;
 
 use crate::Pose;
 use crate::geometry::OrientedBox;
 
-/// Seconds per simulated step (INTERACTION's 10 Hz).
-const STEP_SECS: f64 = 0.1;
 /// Bisection rounds of the no-overlap fraction: 2⁻¹² of a step.
 const BISECTION_ROUNDS: usize = 12;
 /// The gap (metres) the no-overlap rule leaves between an agent it stops short and the other

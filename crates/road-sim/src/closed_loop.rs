@@ -16,6 +16,7 @@ use road_sched::{CollisionGuard, GiveWay, LaneGuard, PlannerSpec, StallRelease, 
 
 use crate::geometry::OrientedBox;
 use crate::infractions::{collisions, off_road};
+use crate::kinematics::STEP_SECS;
 use crate::{Error, Pose, Result};
 use road_planner::collision_guard::GuardAction;
 use road_planner::lane_guard::{LaneAction, keep_on_road, nudge_towards_lane};
@@ -29,9 +30,6 @@ pub use exits::EXIT_LATERAL_MARGIN_M;
 use releases::HeldMemory;
 use scripted::script;
 pub use scripted::{pick_adversary, simulate_scripted};
-
-/// Seconds per tick (the recordings' 10 Hz).
-const STEP_SECS: f64 = 0.1;
 
 /// Who drives an agent.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]

@@ -10,9 +10,8 @@ use road_data::LaneletMap;
 use crate::Pose;
 use crate::geometry::OrientedBox;
 use crate::infractions::{collisions, off_road};
+use crate::kinematics::STEP_SECS;
 
-/// Seconds between the two poses a speed is taken from (10 Hz).
-const STEP_SECS: f64 = 0.1;
 /// The vehicle ahead: the nearest other vehicle whose centre lies ahead within this distance
 /// (metres), within [`AHEAD_HALF_WIDTH_M`] of the vehicle's axis.
 pub const AHEAD_MAX_M: f64 = 50.0;

@@ -10,8 +10,8 @@ use glam::DVec2;
 use road_data::geometry::hypot_length;
 use serde::Serialize;
 
-/// The recordings' and the simulation's step.
-pub const STEP_SECS: f64 = 0.1;
+/// The recordings' and the simulation's step: INTERACTION's (`road_data::tracks`), re-exported.
+pub use road_data::tracks::STEP_SECS;
 
 /// Yaw is read from the direction of motion between consecutive positions (the path's
 /// course, not the heading channel), and only where the agent covers at least this much per

@@ -38,11 +38,9 @@ use road_rollout::heun::heun_update;
 use road_sched::edm::EdmSchedule;
 
 use crate::geometry::OrientedBox;
+use crate::kinematics::STEP_SECS;
 use crate::route::Route;
 use crate::{Error, Pose, Result};
-
-/// Seconds per step of a history (the recordings' 10 Hz).
-const STEP_SECS: f64 = 0.1;
 
 /// How many vehicles to put on a map.
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -15,8 +15,9 @@ use road_data::{AgentType, LaneletMap, SceneFrame, SceneWindow, WindowConfig};
 use crate::closed_loop::ExternalDriver;
 use crate::{Error, Pose, Result};
 
-/// Seconds per simulated step (INTERACTION's 10 Hz).
-pub const STEP_SECS: f64 = 0.1;
+/// Seconds per simulated step (INTERACTION's 10 Hz), re-exported for the procedural scenes'
+/// users.
+pub use crate::kinematics::STEP_SECS;
 
 /// Ring centre-line radius.
 const RING_RADIUS_M: f64 = 20.0;

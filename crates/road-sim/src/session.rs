@@ -9,12 +9,11 @@ use serde::Serialize;
 use crate::Pose;
 use crate::closed_loop::SceneTick;
 use crate::free_road::{BlockedPaths, STOPPED_MAX_SPEED_MPS};
+use crate::kinematics::STEP_SECS;
 use road_data::LaneletMap;
 use road_planner::collision_guard::GuardAction;
 use road_planner::lane_guard::onto_an_opposing_lane;
 
-/// Seconds per tick (10 Hz).
-const STEP_SECS: f64 = 0.1;
 /// A stop with free road ahead counts once it lasts this long (seconds).
 pub const LONG_STOP_SECS: f64 = 10.0;
 /// The lengths by which stops with free road ahead are counted too
