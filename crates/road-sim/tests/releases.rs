@@ -446,7 +446,12 @@ fn two_vehicles_standing_nose_to_nose_are_undone_by_the_gridlock_release() {
     // On the 30th tick it stood (it stood over its whole history: tick 0 is the first).
     assert_eq!(first(0, GuardAction::PulledAway), Some(29), "0 has the way");
     assert!(first(1, GuardAction::BackedOff).is_some(), "1 makes room");
-    assert_eq!(first(1, GuardAction::PulledAway), None);
+    // Backing, 1 (against its lane) turns its nose towards its lane, which runs the other way:
+    // it is pulled away, from a stall with free road, only once turned off the line facing 0.
+    if let Some(k) = first(1, GuardAction::PulledAway) {
+        let facing_0 = (ticks[k].poses[1].heading_rad.rem_euclid(2.0 * PI) - PI).abs();
+        assert!(facing_0 > 45f64.to_radians(), "1 pulled away at tick {k}");
+    }
     let last = ticks.last().unwrap();
     assert!(last.poses[0].x_m > -38.0, "0 drove on: {:?}", last.poses[0]);
     assert!(
@@ -455,6 +460,57 @@ fn two_vehicles_standing_nose_to_nose_are_undone_by_the_gridlock_release() {
         last.poses[1]
     );
     assert!(ticks.iter().all(|t| t.off_road.is_empty()));
+}
+
+#[test]
+fn a_vehicle_cut_across_the_centre_line_nose_to_nose_backs_into_its_lane_and_both_go_on() {
+    // On the intersection's east arm (two lanes: eastbound below y = 0, westbound above), as
+    // issue 39's longest gridlock stood: vehicle 2 eastbound cut 24° across the centre line,
+    // nose to nose with vehicle 0 on its own westbound lane; vehicle 1 close behind 2 at the
+    // kerb, vehicle 3 behind 0. Vehicle 3, whose path runs on past 0 to 2, closes a cycle of
+    // paths, yet locks nothing and never has the way; 2, asked to make room, backs with its
+    // nose turned towards its lane (it points over 20° off it), and 0 drives on past it.
+    let stands = [
+        (0, 24.3, 0.98, 170f64.to_radians()),
+        (1, 15.5, -3.3, 19f64.to_radians()),
+        (2, 20.1, -0.96, 24f64.to_radians()),
+        (3, 31.9, 1.85, PI),
+    ];
+    let ticks = run_scene(
+        ProceduralMap::Intersection,
+        &wedge_planner(),
+        &[1, 2, 3, 4],
+        &stands,
+        200,
+        0.0,
+        None,
+    );
+    assert!(
+        ticks.iter().all(|t| t.collisions.is_empty()),
+        "no collision"
+    );
+    assert!(
+        ticks.iter().all(|t| t.off_road.is_empty()),
+        "no one off the road"
+    );
+    let first = |a, action| ticks.iter().position(|t| t.guarded.contains(&(a, action)));
+    assert!(first(2, GuardAction::BackedOff).is_some(), "2 makes room");
+    // 3 is pulled away only from a stall, once 0 has left the 15 m ahead of it.
+    let pulled_3 = first(3, GuardAction::PulledAway).unwrap_or(ticks.len() - 1);
+    assert!(
+        ticks[pulled_3].poses[0].x_m < 31.9 - 15.0,
+        "3 never has the way: pulled away at tick {pulled_3}"
+    );
+    let passed = ticks
+        .iter()
+        .position(|t| t.poses[0].x_m < 14.0)
+        .expect("0 drove on past 2");
+    assert!(passed <= 120, "0 passed 2 after {passed} ticks");
+    let intruder = ticks[passed].poses[2];
+    assert!(
+        intruder.heading_rad.abs() < 15f64.to_radians() && intruder.y_m < -0.5,
+        "2 turned back along its lane: {intruder:?}"
+    );
 }
 
 #[test]

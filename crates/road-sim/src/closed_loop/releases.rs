@@ -303,16 +303,19 @@ impl SceneRuntime<'_> {
             let model_speed = (proposed - before.position_m()).length() / STEP_SECS;
             // A gridlock (standing vehicles each in the path of the one before, round to the
             // first: two nose to nose, four round a crossing) has no free road anywhere, and
-            // stood for minutes in issue 39's long sessions: its lowest-numbered vehicle has
-            // the way and is pulled away as from a stall, those in its way asked to make room.
-            // Where that is an agent the model does not drive (an ego, a scripted vehicle), or
-            // has one in its path, the gridlock is left to that agent's driver: no model
-            // vehicle is pulled towards a client's. One that stood `WAY_PASSES_AFTER_SECS`
-            // with the way passes it on to the next (`way_out_of_gridlock`).
+            // stood for minutes in issue 39's long sessions: of the vehicles that lock it
+            // (`gridlock_core`), the lowest-numbered has the way and is pulled away as from a
+            // stall, those in its way asked to make room (backing, one far off its lane turns
+            // towards it: `backing_off_to`). Where that is an agent the model does
+            // not drive (an ego, a scripted vehicle), or has one in its path, the gridlock is
+            // left to that agent's driver: no model vehicle is pulled towards a client's. One
+            // that stood `WAY_PASSES_AFTER_SECS` with the way passes it on to the next
+            // (`way_out_of_gridlock`).
             self.held[a].passes_way_ticks = self.held[a].passes_way_ticks.saturating_sub(1);
             let gridlock = paths.gridlock(a, &standing);
+            let core = gridlock_core(&gridlock, |b| self.nearest_in_path(&paths, b));
             let has_way_out_of_gridlock = self.held[a].pulling_out_of_gridlock
-                || (way_out_of_gridlock(&gridlock, &self.held) == Some(a)
+                || (way_out_of_gridlock(&core, &self.held) == Some(a)
                     && paths
                         .in_path(a)
                         .iter()
@@ -453,13 +456,12 @@ impl SceneRuntime<'_> {
             // nose turned towards the target by at most `max_turn_rad`.
             let rear_axle_m = REAR_AXLE_SHARE_OF_LENGTH * f64::from(self.window.length_m[a]);
             let arc = |distance_m: f64, max_turn_rad: f64| {
-                let heading = heading_before + turn.clamp(-max_turn_rad, max_turn_rad);
-                let rear_axle =
-                    before.position_m() - DVec2::from_angle(heading_before) * rear_axle_m;
-                let to = rear_axle
-                    + DVec2::from_angle(heading_before) * distance_m
-                    + DVec2::from_angle(heading) * rear_axle_m;
-                (to, heading)
+                arc_about_rear_axle(
+                    (before.position_m(), heading_before),
+                    rear_axle_m,
+                    distance_m,
+                    turn.clamp(-max_turn_rad, max_turn_rad),
+                )
             };
             let drive = || {
                 let max_turn = if speed < RELEASE_STRAIGHT_BELOW_MPS {
@@ -539,6 +541,66 @@ impl SceneRuntime<'_> {
             self.guarded.push((a, GuardAction::PulledAway));
         }
         self.make_room(&make_room, true);
+    }
+
+    /// The vehicle in agent `a`'s path ([`BlockedPaths::in_path`]) whose centre lies nearest
+    /// its own.
+    fn nearest_in_path(&self, paths: &BlockedPaths, a: usize) -> Option<usize> {
+        let at = self.poses[a].position_m();
+        paths.in_path(a).iter().copied().min_by(|&b, &c| {
+            let from = |x: usize| self.poses[x].position_m().distance(at);
+            from(b).total_cmp(&from(c))
+        })
+    }
+
+    /// How far agent `a` points off its lane (radians, 0 or more): the turn towards the stall
+    /// release's point on its lane ([`release_target`]); 0 without a map or a lane near.
+    fn off_lane_rad(&self, a: usize) -> f64 {
+        let Some(map) = self.map.as_ref() else {
+            return 0.0;
+        };
+        let at = self.poses[a].position_m();
+        let heading = self.heading_unwrapped[a];
+        release_target(map.get(), at, heading).map_or(0.0, |target| {
+            f64::from(wrap_angle(((target - at).to_angle() - heading) as f32)).abs()
+        })
+    }
+
+    /// Where agent `a` backing off `distance_m` (at most [`BACK_OFF_SPEED_MPS`]'s step) ends,
+    /// and its heading there: pointing [`STEERED_BACK_OFF_MIN_RAD`] or more off its lane
+    /// ([`Self::off_lane_rad`]), backwards about its rear axle, its nose turned towards its lane
+    /// point ([`release_target`]) at full lock ([`RELEASE_TURN_RADIUS_M`]), as the stall
+    /// release backs and fills; otherwise, where that would leave the road, or without a map,
+    /// straight back. Backing straight, a vehicle that had cut across the centre line towards
+    /// an oncoming one stood nose to nose with it as before, and their gridlock lasted 15 s
+    /// (issue 39).
+    fn backing_off_to(&self, a: usize, distance_m: f64) -> (DVec2, f64) {
+        let at = self.poses[a].position_m();
+        let heading = self.heading_unwrapped[a];
+        let straight = (at - DVec2::from_angle(heading) * distance_m, heading);
+        let Some(map) = self.map.as_ref().map(|m| m.get()) else {
+            return straight;
+        };
+        let Some(target) = release_target(map, at, heading) else {
+            return straight;
+        };
+        if self.off_lane_rad(a) < STEERED_BACK_OFF_MIN_RAD {
+            return straight;
+        }
+        let full_lock = distance_m / RELEASE_TURN_RADIUS_M;
+        let turn = f64::from(wrap_angle(((target - at).to_angle() - heading) as f32));
+        let rear_axle_m = REAR_AXLE_SHARE_OF_LENGTH * f64::from(self.window.length_m[a]);
+        let steered = arc_about_rear_axle(
+            (at, heading),
+            rear_axle_m,
+            -distance_m,
+            turn.clamp(-full_lock, full_lock),
+        );
+        if map.lanelet_at(steered.0.into()).is_some() {
+            steered
+        } else {
+            straight
+        }
     }
 
     /// What stands in each present vehicle's path as the tick starts ([`BlockedPaths`]), and
@@ -801,9 +863,10 @@ impl SceneRuntime<'_> {
     }
 
     /// Moves the vehicles that give way in a deadlock ([`Self::choose_who_backs_off`]) or make
-    /// room for a wedged one ([`Self::make_room`]) off along their heading (backwards, or
-    /// forwards when the one asking stands behind) at [`BACK_OFF_SPEED_MPS`], then holds them
-    /// where they stopped; the guards then check that step as any.
+    /// room for a wedged one ([`Self::make_room`]) off at [`BACK_OFF_SPEED_MPS`]: backwards,
+    /// their nose turned towards their lane ([`Self::backing_off_to`]), or straight forwards
+    /// when the one asking stands behind; then holds them where they stopped. The guards then
+    /// check that step as any.
     pub(super) fn back_off(
         &mut self,
         emitted: &mut [f32],
@@ -832,7 +895,14 @@ impl SceneRuntime<'_> {
             } else {
                 -DVec2::from_angle(heading)
             };
-            let to = self.poses[a].position_m() + way * speed_mps * STEP_SECS;
+            let (to, heading_to) = if backing && self.held[a].backing_off_sign <= 0 {
+                self.backing_off_to(a, speed_mps * STEP_SECS)
+            } else {
+                (
+                    self.poses[a].position_m() + way * speed_mps * STEP_SECS,
+                    heading,
+                )
+            };
             if backing {
                 // Those standing in its way make room in turn (a jam of four stood for
                 // minutes: the vehicle asked to back off had another at its tail); those in the
@@ -849,7 +919,7 @@ impl SceneRuntime<'_> {
                         .map(|b| (a, b)),
                 );
             }
-            set_emitted(emitted, a, frame, to, heading, heading_scale);
+            set_emitted(emitted, a, frame, to, heading_to, heading_scale);
             self.guarded.push((a, GuardAction::BackedOff));
         }
         self.make_room(&make_room, can_pull_away);
@@ -871,16 +941,51 @@ fn manoeuvres_unanticipated(
     chosen.is_some_and(|m| m != driving || speed_mps < RELEASE_STRAIGHT_BELOW_MPS)
 }
 
-/// Which vehicle of a gridlock (its vehicles in index order, [`BlockedPaths::gridlock`]) has
-/// the way out of it: the lowest-numbered one that has not passed the way on
-/// ([`HeldMemory::passes_way_on`]), or the lowest-numbered when all have. `held` by agent.
-fn way_out_of_gridlock(gridlock: &[usize], held: &[HeldMemory]) -> Option<usize> {
-    gridlock
-        .iter()
+/// The vehicles of a gridlock ([`BlockedPaths::gridlock`], in index order) that lock it: those
+/// on a cycle in which each has the next nearest in its path (`nearest_ahead`,
+/// [`SceneRuntime::nearest_in_path`]); the whole gridlock where there is no such cycle. A
+/// vehicle queued behind one of the gridlock, the gridlock's farther vehicle in its path too,
+/// closes a cycle of paths without locking anything: with the way, it drove at the tail of the
+/// one ahead, which was asked to make room forwards into the vehicle nose to nose with it, and
+/// the gridlock stood 15 s (issue 39).
+fn gridlock_core(gridlock: &[usize], nearest_ahead: impl Fn(usize) -> Option<usize>) -> Vec<usize> {
+    let on_cycle = |start: usize| {
+        let mut at = start;
+        for _ in 0..gridlock.len() {
+            match nearest_ahead(at) {
+                Some(next) if gridlock.contains(&next) => at = next,
+                _ => return false,
+            }
+            if at == start {
+                return true;
+            }
+        }
+        false
+    };
+    let core: Vec<usize> = gridlock.iter().copied().filter(|&b| on_cycle(b)).collect();
+    if core.is_empty() {
+        gridlock.to_vec()
+    } else {
+        core
+    }
+}
+
+/// Which vehicle of a gridlock's core ([`gridlock_core`], in index order) has the way out of
+/// it: the lowest-numbered one that has not passed the way on ([`HeldMemory::passes_way_on`]),
+/// or the lowest-numbered when all have. `held` by agent. (Given to the vehicle pointing least
+/// off its lane instead, the way made the INTERACTION maps' gridlocks worse: issue 39.)
+fn way_out_of_gridlock(core: &[usize], held: &[HeldMemory]) -> Option<usize> {
+    core.iter()
         .copied()
         .find(|&b| held[b].passes_way_ticks == 0)
-        .or(gridlock.first().copied())
+        .or(core.first().copied())
 }
+
+/// A vehicle backing off steers towards its lane only pointing this far off it (radians, 20°;
+/// [`SceneRuntime::backing_off_to`]): steering every vehicle that backed off, queues in the
+/// INTERACTION maps' junction boxes turned towards one lane point after another, across each
+/// other's paths, and stood longer (issue 39).
+const STEERED_BACK_OFF_MIN_RAD: f64 = 20.0 * std::f64::consts::PI / 180.0;
 
 /// A vehicle that stood this long (seconds) in a row with a gridlock's way passes it on to the
 /// next vehicle of the gridlock: longer than a vehicle making room takes (`BACK_OFF_SECS`), so
@@ -964,6 +1069,24 @@ fn held_turn(raw_turn: f64, kept_sign: i8) -> (f64, i8) {
     }
 }
 
+/// A car's move from `from` (position, heading in radians) by `distance_m` along its heading
+/// (negative: backwards) about its rear axle, `rear_axle_m` behind its centre, its nose turned
+/// by `turn_rad` (positive counter-clockwise): where its centre ends, and its heading.
+fn arc_about_rear_axle(
+    from: (DVec2, f64),
+    rear_axle_m: f64,
+    distance_m: f64,
+    turn_rad: f64,
+) -> (DVec2, f64) {
+    let (at, heading_before) = from;
+    let heading = heading_before + turn_rad;
+    let rear_axle = at - DVec2::from_angle(heading_before) * rear_axle_m;
+    let to = rear_axle
+        + DVec2::from_angle(heading_before) * distance_m
+        + DVec2::from_angle(heading) * rear_axle_m;
+    (to, heading)
+}
+
 /// How far ahead along its lane (metres) the stall release's point lies, nearest last: the
 /// first whose straight line from the vehicle stays on the road ([`release_target`]).
 const RELEASE_TARGET_AHEAD_M: [f64; 3] = [6.0, 4.0, 2.0];
@@ -1022,7 +1145,7 @@ mod tests {
     use road_data::LaneletMap;
 
     use super::{
-        HeldMemory, KEEP_TURN_FROM_RAD, RELEASE_STRAIGHT_BELOW_MPS, StallRelease,
+        HeldMemory, KEEP_TURN_FROM_RAD, RELEASE_STRAIGHT_BELOW_MPS, StallRelease, gridlock_core,
         hand_back_speed_mps, held_turn, lane_line_near, manoeuvres_unanticipated, release_target,
         way_out_of_gridlock,
     };
@@ -1083,6 +1206,25 @@ mod tests {
         held[7].passes_way_ticks = 3;
         assert_eq!(way_out_of_gridlock(&gridlock, &held), Some(2));
         assert_eq!(way_out_of_gridlock(&[], &held), None);
+    }
+
+    #[test]
+    fn a_vehicle_queued_behind_a_gridlock_s_vehicle_is_not_of_its_core() {
+        // 0 and 5 nose to nose; 3 queued behind 0, its path on to 5, and 5's path past 0 on to
+        // 3: paths make a gridlock of all three, nearest blockers of 0 and 5 alone.
+        let nearest = |b: usize| match b {
+            0 => Some(5),
+            5 => Some(0),
+            3 => Some(0),
+            _ => None,
+        };
+        assert_eq!(gridlock_core(&[0, 3, 5], nearest), vec![0, 5]);
+        // Four round a crossing, each the next's nearest: all of them.
+        let round = |b: usize| Some([1, 2, 3, 0][b]);
+        assert_eq!(gridlock_core(&[0, 1, 2, 3], round), vec![0, 1, 2, 3]);
+        // No cycle of nearest blockers (one's nearest is outside the gridlock): the gridlock.
+        let outside = |b: usize| Some(if b == 0 { 9 } else { 0 });
+        assert_eq!(gridlock_core(&[0, 1], outside), vec![0, 1]);
     }
 
     #[test]
