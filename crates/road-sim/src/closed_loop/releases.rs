@@ -553,23 +553,10 @@ impl SceneRuntime<'_> {
         })
     }
 
-    /// How far agent `a` points off its lane (radians, 0 or more): the turn towards the stall
-    /// release's point on its lane ([`release_target`]); 0 without a map or a lane near.
-    fn off_lane_rad(&self, a: usize) -> f64 {
-        let Some(map) = self.map.as_ref() else {
-            return 0.0;
-        };
-        let at = self.poses[a].position_m();
-        let heading = self.heading_unwrapped[a];
-        release_target(map.get(), at, heading).map_or(0.0, |target| {
-            f64::from(wrap_angle(((target - at).to_angle() - heading) as f32)).abs()
-        })
-    }
-
     /// Where agent `a` backing off `distance_m` (at most [`BACK_OFF_SPEED_MPS`]'s step) ends,
-    /// and its heading there: pointing [`STEERED_BACK_OFF_MIN_RAD`] or more off its lane
-    /// ([`Self::off_lane_rad`]), backwards about its rear axle, its nose turned towards its lane
-    /// point ([`release_target`]) at full lock ([`RELEASE_TURN_RADIUS_M`]), as the stall
+    /// and its heading there: pointing [`STEERED_BACK_OFF_MIN_RAD`] or more off its lane (the
+    /// turn towards the stall release's lane point, [`release_target`]), backwards about its
+    /// rear axle, its nose turned towards that point at full lock ([`RELEASE_TURN_RADIUS_M`]), as the stall
     /// release backs and fills; otherwise, where that would leave the road, or without a map,
     /// straight back. Backing straight, a vehicle that had cut across the centre line towards
     /// an oncoming one stood nose to nose with it as before, and their gridlock lasted 15 s
@@ -584,11 +571,11 @@ impl SceneRuntime<'_> {
         let Some(target) = release_target(map, at, heading) else {
             return straight;
         };
-        if self.off_lane_rad(a) < STEERED_BACK_OFF_MIN_RAD {
+        let turn = f64::from(wrap_angle(((target - at).to_angle() - heading) as f32));
+        if turn.abs() < STEERED_BACK_OFF_MIN_RAD {
             return straight;
         }
         let full_lock = distance_m / RELEASE_TURN_RADIUS_M;
-        let turn = f64::from(wrap_angle(((target - at).to_angle() - heading) as f32));
         let rear_axle_m = REAR_AXLE_SHARE_OF_LENGTH * f64::from(self.window.length_m[a]);
         let steered = arc_about_rear_axle(
             (at, heading),
@@ -863,9 +850,9 @@ impl SceneRuntime<'_> {
     }
 
     /// Moves the vehicles that give way in a deadlock ([`Self::choose_who_backs_off`]) or make
-    /// room for a wedged one ([`Self::make_room`]) off at [`BACK_OFF_SPEED_MPS`]: backwards,
-    /// their nose turned towards their lane ([`Self::backing_off_to`]), or straight forwards
-    /// when the one asking stands behind; then holds them where they stopped. The guards then
+    /// room for a wedged one ([`Self::make_room`]) off at [`BACK_OFF_SPEED_MPS`]: backwards
+    /// (one far off its lane turning towards it, [`Self::backing_off_to`]), or straight
+    /// forwards when the one asking stands behind; then holds them where they stopped. The guards then
     /// check that step as any.
     pub(super) fn back_off(
         &mut self,
