@@ -8,6 +8,7 @@ use std::sync::Arc;
 
 use glam::DVec2;
 use rand::rngs::StdRng;
+use road_data::tracks::STEP_SECS;
 use road_data::{LaneletMap, SceneWindow, wrap_angle};
 use road_model::batch::SceneInput;
 use road_model::{ModelConfig, Result as ModelResult};
@@ -16,7 +17,6 @@ use road_sched::{CollisionGuard, GiveWay, LaneGuard, PlannerSpec, StallRelease, 
 
 use crate::geometry::OrientedBox;
 use crate::infractions::{collisions, off_road};
-use crate::kinematics::STEP_SECS;
 use crate::{Error, Pose, Result};
 use road_planner::collision_guard::GuardAction;
 use road_planner::lane_guard::{LaneAction, keep_on_road, nudge_towards_lane};

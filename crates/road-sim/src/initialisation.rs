@@ -6,11 +6,11 @@
 
 use glam::DVec2;
 use road_data::LaneletMap;
+use road_data::tracks::STEP_SECS;
 
 use crate::Pose;
 use crate::geometry::OrientedBox;
 use crate::infractions::{collisions, off_road};
-use crate::kinematics::STEP_SECS;
 
 /// The vehicle ahead: the nearest other vehicle whose centre lies ahead within this distance
 /// (metres), within [`AHEAD_HALF_WIDTH_M`] of the vehicle's axis.

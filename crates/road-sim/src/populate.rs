@@ -30,6 +30,7 @@ use glam::DVec2;
 use rand::Rng;
 use rand::rngs::StdRng;
 use road_data::geometry::{Point, dist};
+use road_data::tracks::STEP_SECS;
 use road_data::{LaneletMap, SceneWindow};
 use road_model::ModelConfig;
 use road_model::batch::{SceneInput, normal_vec};
@@ -38,7 +39,6 @@ use road_rollout::heun::heun_update;
 use road_sched::edm::EdmSchedule;
 
 use crate::geometry::OrientedBox;
-use crate::kinematics::STEP_SECS;
 use crate::route::Route;
 use crate::{Error, Pose, Result};
 

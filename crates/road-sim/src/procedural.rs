@@ -17,7 +17,7 @@ use crate::{Error, Pose, Result};
 
 /// Seconds per simulated step (INTERACTION's 10 Hz), re-exported for the procedural scenes'
 /// users.
-pub use crate::kinematics::STEP_SECS;
+pub use road_data::tracks::STEP_SECS;
 
 /// Ring centre-line radius.
 const RING_RADIUS_M: f64 = 20.0;

@@ -9,8 +9,8 @@ use serde::Serialize;
 use crate::Pose;
 use crate::closed_loop::SceneTick;
 use crate::free_road::{BlockedPaths, STOPPED_MAX_SPEED_MPS};
-use crate::kinematics::STEP_SECS;
 use road_data::LaneletMap;
+use road_data::tracks::STEP_SECS;
 use road_planner::collision_guard::GuardAction;
 use road_planner::lane_guard::onto_an_opposing_lane;
 
