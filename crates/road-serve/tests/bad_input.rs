@@ -17,11 +17,12 @@ use zenoh::Wait;
 /// One server for the file; payloads over 64 KiB are refused; the late-ego deadline is off
 /// so that slow debug ticks never turn late.
 fn server() -> &'static ServerHandle {
-    // Its recordings' folder lives as long (a static is never dropped: the folder stays).
+    // Its recordings' folder lives as long (a static is never dropped: the folder stays, and
+    // the next run sweeps it).
     static SERVER: OnceLock<(common::TempFolder, ServerHandle)> = OnceLock::new();
     &SERVER
         .get_or_init(|| {
-            let dir = common::temp_dir("bad-input");
+            let dir = common::static_temp_dir("bad-input");
             let mut config = common::config(&dir);
             config.max_payload_bytes = 64 << 10;
             config.late_ego_deadline = Duration::ZERO;

@@ -24,6 +24,35 @@ pub fn temp_dir(name: &str) -> TempFolder {
     TempFolder(dir)
 }
 
+/// A temp folder for a server held in a `static`, which is never dropped, so its folder outlives
+/// the process: the folders of earlier runs (the same name, any other process, last written
+/// over an hour ago) are swept first, so that repeated test runs do not pile up in the temp folder.
+pub fn static_temp_dir(name: &str) -> TempFolder {
+    const STALE_AFTER: Duration = Duration::from_secs(3600);
+    let prefix = format!("road-serve-{name}-");
+    let own = format!("{prefix}{}", std::process::id());
+    if let Ok(entries) = std::fs::read_dir(std::env::temp_dir()) {
+        for entry in entries.flatten() {
+            let file_name = entry.file_name();
+            let file_name = file_name.to_string_lossy();
+            let earlier_run = file_name
+                .strip_prefix(&prefix)
+                .is_some_and(|pid| pid.bytes().all(|b| b.is_ascii_digit()))
+                && *file_name != own;
+            let stale = entry
+                .metadata()
+                .and_then(|m| m.modified())
+                .ok()
+                .and_then(|t| t.elapsed().ok())
+                .is_some_and(|age| age > STALE_AFTER);
+            if earlier_run && stale {
+                let _ = std::fs::remove_dir_all(entry.path());
+            }
+        }
+    }
+    temp_dir(name)
+}
+
 /// A folder [`temp_dir`] made; bind it for as long as the server writes there.
 pub struct TempFolder(PathBuf);
 
