@@ -351,6 +351,35 @@ fn a_vehicle_wedged_at_the_road_edge_backs_and_fills_once_the_one_behind_makes_r
 }
 
 #[test]
+fn a_vehicle_with_its_tail_at_the_road_edge_makes_room_backing_along_it() {
+    // As the wedge above, but vehicle 1 stands with its centre 10 cm inside the road's right
+    // edge, pointing 8° into the road (its tail over the edge), its nose 1 cm from 0's right
+    // side: straight back, it would leave the road within its first metre, so it was never
+    // asked to make room, and 0 stood wedged (issue 39: a vehicle in MA's junction 28 s). Now
+    // 1 backs off along the edge at full lock, and 0 backs and fills onto its lane.
+    let stands = [
+        (0, WEDGED.x_m, WEDGED.y_m, WEDGED.heading_rad),
+        (1, -44.144, -1.775, 8f64.to_radians()),
+    ];
+    let ticks = run_with(&wedge_planner(), &[0, 2], &stands, 250);
+    assert!(
+        ticks.iter().all(|t| t.collisions.is_empty()),
+        "no collision"
+    );
+    let backed_off: Vec<Pose> = ticks
+        .iter()
+        .filter(|t| t.guarded.contains(&(1, GuardAction::BackedOff)))
+        .map(|t| t.poses[1])
+        .collect();
+    assert!(!backed_off.is_empty(), "1 makes room");
+    assert!(
+        backed_off.iter().all(|p| p.y_m > -1.875),
+        "1 keeps its centre on the road"
+    );
+    drove_on_along_the_road(&ticks);
+}
+
+#[test]
 fn a_vehicle_backing_and_filling_near_one_behind_it_is_not_braked_for_it() {
     // As the wedge above, but vehicle 1 stands 0.8 m behind 0's rear-right corner: not in the
     // way of 0's moves, but within the collision guard's 1 s horizon of 0 backing at 2 m/s.

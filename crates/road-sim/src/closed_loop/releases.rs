@@ -554,31 +554,93 @@ impl SceneRuntime<'_> {
     }
 
     /// Where agent `a` backing off `distance_m` (at most [`BACK_OFF_SPEED_MPS`]'s step) ends,
-    /// and its heading there: pointing [`STEERED_BACK_OFF_MIN_RAD`] or more off its lane (the
-    /// turn towards the stall release's lane point, [`release_target`]), backwards about its
-    /// rear axle, its nose turned towards that point at full lock ([`RELEASE_TURN_RADIUS_M`]), as the stall
-    /// release backs and fills; otherwise, where that would leave the road, or without a map,
-    /// straight back. Backing straight, a vehicle that had cut across the centre line towards
-    /// an oncoming one stood nose to nose with it as before, and their gridlock lasted 15 s
+    /// and its heading there. By preference ([`Self::preferred_back_off`]) straight back, or,
+    /// pointing [`STEERED_BACK_OFF_MIN_RAD`] or more off its lane, turning towards it; where
+    /// that step leaves the road or runs into a vehicle as they stand, straight back or at
+    /// either full lock, the first that does neither ([`Self::back_off_steps`]); the preferred
+    /// one where none is free (the guards then hold it). Backing its one way only, a vehicle
+    /// nose to nose with one at a median's tip, asked to make room again and again, was stopped
+    /// short by the collision guard within a step or two each time, and the pair stood 29 s
     /// (issue 39).
-    fn backing_off_to(&self, a: usize, distance_m: f64) -> (DVec2, f64) {
-        let at = self.poses[a].position_m();
-        let heading = self.heading_unwrapped[a];
-        let straight = (at - DVec2::from_angle(heading) * distance_m, heading);
+    fn backing_off_to(&self, a: usize, distance_m: f64, heading_scale: f64) -> (DVec2, f64) {
+        let steps = self.back_off_steps(
+            a,
+            self.poses[a].position_m(),
+            self.heading_unwrapped[a],
+            distance_m,
+        );
+        let map = self.map.as_ref().map(|m| m.get());
+        let stays_on_road = |to: DVec2| {
+            map.is_none_or(|m| {
+                m.lanelet_at(to.into()).is_some()
+                    || leaves_through_an_open_end(m, self.poses[a].position_m(), to)
+            })
+        };
+        steps
+            .iter()
+            .copied()
+            .find(|&(to, heading)| {
+                stays_on_road(to) && self.blockers_of(a, to, heading, heading_scale).is_empty()
+            })
+            .unwrap_or(steps[0])
+    }
+
+    /// The steps agent `a`, at `at` pointing `heading_rad`, may back off `distance_m` by,
+    /// the preferred first ([`Self::preferred_back_off`]), then straight back and about its
+    /// rear axle at either full lock ([`RELEASE_TURN_RADIUS_M`]).
+    fn back_off_steps(
+        &self,
+        a: usize,
+        at: DVec2,
+        heading_rad: f64,
+        distance_m: f64,
+    ) -> [(DVec2, f64); 4] {
+        let full_lock = distance_m / RELEASE_TURN_RADIUS_M;
+        let rear_axle_m = REAR_AXLE_SHARE_OF_LENGTH * f64::from(self.window.length_m[a]);
+        let arc = |turn_rad: f64| {
+            arc_about_rear_axle((at, heading_rad), rear_axle_m, -distance_m, turn_rad)
+        };
+        [
+            self.preferred_back_off(a, at, heading_rad, distance_m),
+            arc(0.0),
+            arc(full_lock),
+            arc(-full_lock),
+        ]
+    }
+
+    /// The step agent `a`, at `at` pointing `heading_rad`, backs off `distance_m` by, by
+    /// preference: pointing [`STEERED_BACK_OFF_MIN_RAD`] or more off its lane (the turn towards the
+    /// stall release's lane point, [`release_target`]), backwards about its rear axle, its nose
+    /// turned towards that point at full lock ([`RELEASE_TURN_RADIUS_M`]), as the stall release
+    /// backs and fills; otherwise, where that would leave the road, or without a map, straight
+    /// back. Backing straight, a vehicle that had cut across the centre line towards an
+    /// oncoming one stood nose to nose with it as before, and their gridlock lasted 15 s
+    /// (issue 39).
+    fn preferred_back_off(
+        &self,
+        a: usize,
+        at: DVec2,
+        heading_rad: f64,
+        distance_m: f64,
+    ) -> (DVec2, f64) {
+        let straight = (
+            at - DVec2::from_angle(heading_rad) * distance_m,
+            heading_rad,
+        );
         let Some(map) = self.map.as_ref().map(|m| m.get()) else {
             return straight;
         };
-        let Some(target) = release_target(map, at, heading) else {
+        let Some(target) = release_target(map, at, heading_rad) else {
             return straight;
         };
-        let turn = f64::from(wrap_angle(((target - at).to_angle() - heading) as f32));
+        let turn = f64::from(wrap_angle(((target - at).to_angle() - heading_rad) as f32));
         if turn.abs() < STEERED_BACK_OFF_MIN_RAD {
             return straight;
         }
         let full_lock = distance_m / RELEASE_TURN_RADIUS_M;
         let rear_axle_m = REAR_AXLE_SHARE_OF_LENGTH * f64::from(self.window.length_m[a]);
         let steered = arc_about_rear_axle(
-            (at, heading),
+            (at, heading_rad),
             rear_axle_m,
             -distance_m,
             turn.clamp(-full_lock, full_lock),
@@ -687,29 +749,41 @@ impl SceneRuntime<'_> {
 
     /// Whether agent `b` backing off (`sign` −1 backwards, +1 forwards) keeps its centre on the
     /// road for its first [`BACK_OFF_MIN_ROOM_M`], step by step, or takes it out of the map
-    /// through an open lane end; always, where no lane guard keeps it on the road. Asked to
-    /// back off over the road's edge, a vehicle with its centre on a median's kerb was stopped
-    /// there by the lane guard, and its own pull-away, which the back-off overrides, never ran:
-    /// two vehicles nose to nose on the roundabout's east arm stood 16 and 29 s (issue 39).
+    /// through an open lane end; always, where no lane guard keeps it on the road. Backwards,
+    /// each step may be any of [`Self::back_off_steps`] that stays on the road, as
+    /// [`Self::backing_off_to`] takes them. Asked to back off over the road's edge, a vehicle
+    /// with its centre on a median's kerb was stopped there by the lane guard, and its own
+    /// pull-away, which the back-off overrides, never ran: two vehicles nose to nose on the
+    /// roundabout's east arm stood 16 and 29 s (issue 39). Straight back alone, a vehicle with
+    /// its centre 10 cm inside the road's edge and its nose 6° into the road (its tail over the
+    /// edge) could not make room for one wedged against its nose, which stood 28 s (issue 39).
     fn backs_off_on_the_road(&self, b: usize, sign: i8) -> bool {
         let Some(map) = self.map.as_ref().filter(|_| self.keeps_on_road) else {
             return true;
         };
         let map = map.get();
-        let from = self.poses[b].position_m();
-        let step = DVec2::from_angle(self.heading_unwrapped[b])
-            * (f64::from(sign) * BACK_OFF_SPEED_MPS * STEP_SECS);
-        let steps = (BACK_OFF_MIN_ROOM_M / (BACK_OFF_SPEED_MPS * STEP_SECS)).round() as usize;
-        let mut at = from;
+        let step_m = BACK_OFF_SPEED_MPS * STEP_SECS;
+        let steps = (BACK_OFF_MIN_ROOM_M / step_m).round() as usize;
+        let (mut at, mut heading) = (self.poses[b].position_m(), self.heading_unwrapped[b]);
         for _ in 0..steps {
-            let to = at + step;
-            if leaves_through_an_open_end(map, at, to) {
+            let moves = if sign > 0 {
+                vec![(at + DVec2::from_angle(heading) * step_m, heading)]
+            } else {
+                self.back_off_steps(b, at, heading, step_m).to_vec()
+            };
+            if moves
+                .iter()
+                .any(|&(to, _)| leaves_through_an_open_end(map, at, to))
+            {
                 return true;
             }
-            if map.lanelet_at(to.into()).is_none() {
+            let Some(&next) = moves
+                .iter()
+                .find(|&&(to, _)| map.lanelet_at(to.into()).is_some())
+            else {
                 return false;
-            }
-            at = to;
+            };
+            (at, heading) = next;
         }
         true
     }
@@ -883,7 +957,7 @@ impl SceneRuntime<'_> {
                 -DVec2::from_angle(heading)
             };
             let (to, heading_to) = if backing && self.held[a].backing_off_sign <= 0 {
-                self.backing_off_to(a, speed_mps * STEP_SECS)
+                self.backing_off_to(a, speed_mps * STEP_SECS, heading_scale)
             } else {
                 (
                     self.poses[a].position_m() + way * speed_mps * STEP_SECS,
