@@ -946,6 +946,46 @@ fn a_holder_wedged_beside_a_vehicle_at_a_median_passes_the_way_and_never_backs_i
 }
 
 #[test]
+fn two_pulled_away_vehicles_wedged_tail_to_nose_at_the_island_both_get_out() {
+    // On the procedural roundabout's ring, at its island's edge (issue 39's last long stop,
+    // the populated roundabout's seed 3): vehicle 1 (4.8 m) pointing 156°, its nose at the
+    // island; vehicle 0 (4.6 m) behind it along the ring, pointing 85°, its nose at 1's tail.
+    // Both stand with the stall release pulling them away: 1's every move leaves the road or
+    // runs into 0, 0's runs into 1, and a vehicle being pulled away was never asked to make
+    // room: they stood 27 s. Now a wedged one gives its pull-away up when asked, 0 makes room,
+    // and both get out, without a collision.
+    let heading_0 = 85f64.to_radians();
+    let stands = [
+        (
+            0,
+            17.5 + 0.025 * heading_0.cos(),
+            6.61 + 0.025 * heading_0.sin(),
+            heading_0,
+        ),
+        (1, 14.46, 9.85, 156f64.to_radians()),
+    ];
+    let ticks = run_scene(
+        ProceduralMap::Roundabout,
+        &wedge_planner(),
+        &[0, 2],
+        &stands,
+        250,
+        0.0,
+        None,
+    );
+    assert!(
+        ticks.iter().all(|t| t.collisions.is_empty()),
+        "no collision"
+    );
+    assert!(ticks.iter().all(|t| t.off_road.is_empty()), "on the road");
+    let (moved_0, moved_1) = (moved_m(&ticks, 0, 0), moved_m(&ticks, 1, 0));
+    assert!(
+        moved_0 > 3.0 && moved_1 > 3.0,
+        "both got out: {moved_0:.2} and {moved_1:.2} m"
+    );
+}
+
+#[test]
 fn a_vehicle_turned_against_the_ring_turns_round_and_drives_on_within_8_s() {
     // On the procedural roundabout's ring (counter-clockwise, 5 m wide) at its top, turned
     // 120°, 150° and 170° against the ring's way, alone: the release backs and fills it round

@@ -40,6 +40,9 @@ pub(super) struct HeldMemory {
     /// collision guard then holds it by the no-overlap rule alone, as it does a vehicle
     /// breaking a deadlock ([`manoeuvres_unanticipated`]).
     pub(super) manoeuvred: bool,
+    /// Whether the stall release found no move for it this tick (every one off the road or into
+    /// a neighbour): asked, it makes room as a standing vehicle does ([`SceneRuntime::make_room`]).
+    pub(super) wedged: bool,
     /// Consecutive ticks the collision guard braked it or stopped it short.
     pub(super) guard_held_ticks: u32,
     /// Ticks left in which it does not brake for other model-driven agents (it breaks a
@@ -137,6 +140,7 @@ impl HeldMemory {
         self.stood_with_way_ticks = 0;
         self.turn_sign = 0;
         self.backed_m = 0.0;
+        self.wedged = false;
     }
 }
 
@@ -535,6 +539,7 @@ impl SceneRuntime<'_> {
                 0.0
             };
             self.held[a].manoeuvred = manoeuvres_unanticipated(chosen, driving, speed);
+            self.held[a].wedged = chosen.is_none();
             // Nothing feasible: it stands this tick, as the guard would have held it.
             let (to, heading) = chosen.unwrap_or((before.position_m(), heading_before));
             set_emitted(emitted, a, frame, to, heading, heading_scale);
@@ -706,7 +711,8 @@ impl SceneRuntime<'_> {
     /// and jams stood for minutes: issue 39). Only those model-driven, standing, and not moving
     /// off or pulling away already: asked to back off while the release pulled it away, a
     /// vehicle at a kerb had both every tick for 29 s, and the long sessions' free-road stops
-    /// were 29 against 15 (issue 39). With the stall release on (`can_pull_away`), one asked
+    /// were 29 against 15 (issue 39); but one the release found wedged this tick gives its
+    /// pull-away up and makes room (`HeldMemory::wedged`). With the stall release on (`can_pull_away`), one asked
     /// from behind that has free road ahead is pulled away instead: making room forwards 2 m,
     /// then standing 3 s, a vehicle the model kept stopped on a roundabout's ring led its
     /// queue round at 0.4 m/s for minutes (issue 39). Nor is one asked whose move would cross
@@ -726,7 +732,7 @@ impl SceneRuntime<'_> {
                 || self.overrides[b].is_some()
                 || self.speed_mps[b] >= crate::free_road::STOPPED_MAX_SPEED_MPS
                 || memory.backing_off_ticks > 0
-                || memory.pulling_away
+                || (memory.pulling_away && !memory.wedged)
             {
                 continue;
             }
@@ -741,6 +747,10 @@ impl SceneRuntime<'_> {
             if !self.backs_off_on_the_road(b, sign) {
                 continue;
             }
+            // A pulled-away vehicle wedged itself gives its pull-away up to make room: two
+            // pulled away tail to nose at a roundabout's island, each wedged against the
+            // other and never asked, stood 27 s (issue 39).
+            self.held[b].end_pull_away();
             self.held[b].backing_off_ticks = ticks;
             self.held[b].backing_off_sign = sign;
             self.held[b].held_streak_ticks = 0;
