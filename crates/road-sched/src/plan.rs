@@ -279,7 +279,8 @@ pub struct LaneAnticipation {
 /// ahead of the others, and those standing in its path make room (2 m at 2 m/s, one pointing
 /// 20° or more off its lane backing with its nose turned towards it, and each step, where that
 /// one would leave the road or run into a vehicle, straight back or at either full lock; none
-/// over the road's edge, where a lane guard keeps vehicles on the road). The way goes to the lowest-numbered
+/// over the road's edge, where a lane guard keeps vehicles on the road; one being pulled away
+/// only where the release finds it wedged). The way goes to the lowest-numbered
 /// of those each nearest in the path of the one before (a vehicle queued behind one of them
 /// never has it); one that stands 4 s with that way (backing and filling within 2 m counts as
 /// standing) passes it to the next for 10 s.
