@@ -901,6 +901,28 @@ fn a_vehicle_turned_across_a_curving_lane_at_its_edge_backs_and_fills_onto_it() 
     assert!(reversals <= 6, "{reversals} reversals");
 }
 
+/// The roundabout's script's vehicles 0 and 2 placed as `stands` for 25 s under
+/// [`wedge_planner`], asserting that nobody collides or leaves the road.
+fn run_on_the_roundabout_clear_and_on_the_road(
+    stands: &[(usize, f64, f64, f64)],
+) -> Vec<SceneTick> {
+    let ticks = run_scene(
+        ProceduralMap::Roundabout,
+        &wedge_planner(),
+        &[0, 2],
+        stands,
+        250,
+        0.0,
+        None,
+    );
+    assert!(
+        ticks.iter().all(|t| t.collisions.is_empty()),
+        "no collision"
+    );
+    assert!(ticks.iter().all(|t| t.off_road.is_empty()), "on the road");
+    ticks
+}
+
 #[test]
 fn a_holder_wedged_beside_a_vehicle_at_a_median_passes_the_way_and_never_backs_it_over_it() {
     // The roundabout's east arm (the entry lane north of a 0.5 m median, the exit lane south
@@ -915,20 +937,7 @@ fn a_holder_wedged_beside_a_vehicle_at_a_median_passes_the_way_and_never_backs_i
         (0, 44.1, 1.08, 172f64.to_radians()),
         (1, 40.8, -0.30, (-17f64).to_radians()),
     ];
-    let ticks = run_scene(
-        ProceduralMap::Roundabout,
-        &wedge_planner(),
-        &[0, 2],
-        &stands,
-        250,
-        0.0,
-        None,
-    );
-    assert!(
-        ticks.iter().all(|t| t.collisions.is_empty()),
-        "no collision"
-    );
-    assert!(ticks.iter().all(|t| t.off_road.is_empty()), "on the road");
+    let ticks = run_on_the_roundabout_clear_and_on_the_road(&stands);
     let first = |a, action| ticks.iter().position(|t| t.guarded.contains(&(a, action)));
     assert_eq!(first(0, GuardAction::PulledAway), Some(29), "0 has the way");
     assert_eq!(
@@ -964,20 +973,7 @@ fn two_pulled_away_vehicles_wedged_tail_to_nose_at_the_island_both_get_out() {
         ),
         (1, 14.46, 9.85, 156f64.to_radians()),
     ];
-    let ticks = run_scene(
-        ProceduralMap::Roundabout,
-        &wedge_planner(),
-        &[0, 2],
-        &stands,
-        250,
-        0.0,
-        None,
-    );
-    assert!(
-        ticks.iter().all(|t| t.collisions.is_empty()),
-        "no collision"
-    );
-    assert!(ticks.iter().all(|t| t.off_road.is_empty()), "on the road");
+    let ticks = run_on_the_roundabout_clear_and_on_the_road(&stands);
     let (moved_0, moved_1) = (moved_m(&ticks, 0, 0), moved_m(&ticks, 1, 0));
     assert!(
         moved_0 > 3.0 && moved_1 > 3.0,
