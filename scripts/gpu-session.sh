@@ -93,7 +93,7 @@ echo "train: exit $rc after $(($(date +%s) - start)) s (budget $minutes min)" | 
 # copies of the weights: 29 MB for road20-large) in parts of 15 MiB. Back here:
 # `cat $run.train_state.part-* > $run/train_state.safetensors` restores it for --from.
 results=()
-for f in machine.txt engine.json engine-buckets.json engine-profile.json serve.json train-bench.json; do
+for f in machine.txt engine.json engine-buckets.json engine-profile.json serve.json serve-large.json train-bench.json; do
     [ -f "$out/$f" ] && results+=("$f")
 done
 if [ ${#results[@]} -gt 0 ]; then

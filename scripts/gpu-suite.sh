@@ -6,7 +6,7 @@
 #
 #   bash scripts/gpu-suite.sh prepare     # here: dist/road.gz (stripped release binary) and
 #                                         # dist/validation.roadds.gz (from .road-cache)
-#   bash scripts/gpu-suite.sh run [--quick] [--no-torch] [--engine-only]
+#   bash scripts/gpu-suite.sh run [--quick] [--no-torch] [--engine-only] [--pack]
 #                                         # there (device tool: carry ["dist", ".gl"]), or here
 #                                         # on lavapipe; writes $OUT (default gpu-suite-out/)
 #
@@ -14,10 +14,12 @@
 # here with --no-torch). `--no-torch` skips the Heun serving bench and PyTorch. `--engine-only`
 # runs the self-test, the engine and the GPU's serving bench alone (about 2 minutes on an H100):
 # what a lend measures when the kernels changed and the front end did not, leaving time to
-# train (scripts/gpu-session.sh runs it so). The procedure for
+# train (scripts/gpu-session.sh runs it so). `--pack` leaves one suite.tar in $OUT (a lent
+# machine returns at most 8 files). The procedure for
 # a lent machine (what to move out of the tree so that it travels, the Vulkan loader, the run
 # call) is in docs/lent-gpu.md, "The GPU suite"; it ran on an H100
-# on 2026-11-26 in 203 s with --no-torch, before the demo-gpu and zenoh-gpu steps were added.
+# on 2026-11-26 in 203 s with --no-torch, before the demo-gpu and zenoh-gpu steps were added,
+# and whole on an H200 on 2026-11-30 in about 450 s (before serve-large and the split torch steps).
 # Each step below has its own time limit and the suite goes on past a step that fails or
 # overruns (`steps.txt` says which), so whatever finished comes back.
 # The PyTorch eager reference of the same weights (and `torch.compile`) runs where PyTorch and
@@ -44,12 +46,14 @@ run)
     quick=false
     torch=true
     engine_only=false
+    pack=false
     for option in "${@:2}"; do
         case "$option" in
         --quick) quick=true ;;
         --no-torch) torch=false ;;
         --engine-only) engine_only=true ;;
-        *) echo "unknown option $option (run [--quick] [--no-torch] [--engine-only])" >&2; exit 2 ;;
+        --pack) pack=true ;;
+        *) echo "unknown option $option (run [--quick] [--no-torch] [--engine-only] [--pack])" >&2; exit 2 ;;
         esac
     done
     bin="${ROAD_BIN:-dist/road}"
@@ -73,7 +77,7 @@ run)
     else
         batches=(1 8 64 512 2048 4096)
         scenes=(1 16 128 512 1024)
-        zenoh_scenes=(16 128 512)
+        zenoh_scenes=(16 128 512 1024)
         ticks=8
     fi
     # step NAME SECS OUTPUT COMMAND...: COMMAND's standard output into OUTPUT under a time
@@ -81,6 +85,15 @@ run)
     # full suite on a GPU); its outcome and time go to steps.txt, and the suite goes on whatever
     # it was.
     limit_scale=1
+    # finish: the cache removed and, with --pack, every file of $out in one suite.tar (a lent
+    # machine returns at most 8 files; the full suite writes 13).
+    finish() {
+        rm -rf "$out/cache"
+        if $pack; then
+            (cd "$out" && tar -cf suite.tar --exclude suite.tar -- * && find . -maxdepth 1 -type f ! -name suite.tar -delete)
+        fi
+        ls -la "$out"
+    }
     $quick && limit_scale=3
     step() {
         local name=$1 secs=$(($2 * limit_scale)) output=$3 start rc=0
@@ -121,7 +134,9 @@ run)
         --checkpoints models/road20-wide4 models/road20 --batches "${batches[@]}" \
         --cpu-max-batch 8 --fusion chains layers --linear-kernels auto rowwise tiled blocked \
         --cache "$out/cache" --json
-    profile_batches=(512 4096)
+    # 4 096 scenes of road20-wide4 padded to 23 agents pass the adapter's 2 GiB binding when
+    # profiled whole (H200, 2026-11-30); bucketed, as the engine step runs them, they fit.
+    profile_batches=(512 2048)
     $quick && profile_batches=(8)
     # Scenes bucketed by agent count (the default since 2026-11-26) against one batch padded to
     # the most agents, the default kernels.
@@ -139,9 +154,12 @@ run)
     step serve 150 "$out/serve.json" "$bin" bench serve --checkpoint models/road20-wide4 \
         --engines "${serve_engines[@]}" --scenes "${scenes[@]}" --ticks "$ticks" \
         --cache "$out/cache" --json
+    # The GPU's serving ceiling: thousands of scenes (the CPU engine takes seconds a tick there).
+    $quick || step serve-large 90 "$out/serve-large.json" "$bin" bench serve \
+        --checkpoint models/road20-wide4 --engines gpu --scenes 2048 4096 --ticks "$ticks" \
+        --cache "$out/cache" --json
     if $engine_only; then
-        rm -rf "$out/cache"
-        ls -la "$out"
+        finish
         exit 0
     fi
     # The networked path: `road demo` served by `road serve --engine gpu` in-process over
@@ -153,17 +171,16 @@ run)
         --checkpoint models/road20-wide4 --scenes "${zenoh_scenes[@]}" --ticks "$ticks" --json
     if ! $torch; then
         # A short lend: the Heun serving bench and PyTorch were measured on the first one.
-        rm -rf "$out/cache"
-        ls -la "$out"
+        finish
         exit 0
     fi
     # The default's planner before the multistep sampler, under Heun (two evaluations per
-    # step; the default samples by the multistep sampler's one: docs/results.md).
+    # step; the default samples by the multistep sampler's one: docs/results.md). The GPU
+    # alone: with the CPU column as well it ran past 80 s on the H200 (2026-11-30).
     step serve-heun 80 "$out/serve-heun.json" "$bin" bench serve \
         --checkpoint models/road20-wide4 \
-        --planner road20-nearfit-lanes-guarded-k20-jerk-3cm-a2-amax6-yield --engines cpu gpu \
+        --planner road20-nearfit-lanes-guarded-k20-jerk-3cm-a2-amax6-yield --engines gpu \
         --scenes "${scenes[@]}" --ticks "$ticks" --cache "$out/cache" --json
-    rm -rf "$out/cache"
     # The PyTorch peer: the same checkpoint's forward in eager PyTorch (fp32), one denoiser
     # evaluation per call, batches as above; `torch.compile` too unless --quick.
     if python3 -c 'import torch, safetensors' 2>/dev/null; then
@@ -171,16 +188,19 @@ run)
         if python3 -c 'import sys, torch; sys.exit(0 if torch.cuda.is_available() else 1)'; then
             device=cuda
         fi
-        compile=(--compile)
-        $quick && compile=()
-        # Its table is torch.json's rows (a lent machine returns at most 8 files).
-        step torch 120 /dev/null python3 scripts/torch_denoiser.py bench \
+        # Eager over every batch with cuBLAS at the model's shapes (torch.json's `gemm`), then
+        # `torch.compile` at two batches apart: compiling all six ran past 120 s on the H200
+        # (2026-11-30; two took 75 s).
+        step torch 60 /dev/null python3 scripts/torch_denoiser.py bench \
             --checkpoint models/road20-wide4 --batches "${batches[@]}" --device "$device" \
-            ${compile[@]+"${compile[@]}"} --json-out "$out/torch.json"
+            --json-out "$out/torch.json"
+        $quick || step torch-compile 150 /dev/null python3 scripts/torch_denoiser.py bench \
+            --checkpoint models/road20-wide4 --batches 512 4096 --device "$device" --compile \
+            --json-out "$out/torch-compile.json"
     else
         echo "torch: no PyTorch with safetensors here: no PyTorch column" | tee -a "$out/steps.txt"
     fi
-    ls -la "$out"
+    finish
     ;;
 *)
     sed -n 2,12p "$0" >&2

@@ -1007,6 +1007,58 @@ def time_forward(
             chunk *= 2
 
 
+def gemm_reference(
+    config: Any, batches: list[int], agents: int, device: torch.device, min_secs: float
+) -> list[dict[str, Any]]:
+    """The vendor library's matrix product at the model's largest linear shape (the MLP's
+    first layer over every agent slot: rows = batch x agents x W, D in, mlp_ratio x D out), in
+    fp32 (TF32 as the bench's flag says) and f16, and at 8192^3: what a hand-written kernel is
+    measured against (issue 40). CUDA only; a failure is a row with its error."""
+    if device.type != "cuda":
+        return []
+    shapes = [
+        (batch * agents * config.window_slots, config.hidden, config.hidden * config.mlp_ratio)
+        for batch in batches
+        if batch >= 64
+    ]
+    shapes.append((8192, 8192, 8192))
+    rows: list[dict[str, Any]] = []
+    for m, k, n in shapes:
+        for dtype in (torch.float32, torch.float16):
+            try:
+                a = torch.randn(m, k, device=device, dtype=dtype)
+                b = torch.randn(k, n, device=device, dtype=dtype)
+                for _ in range(3):
+                    torch.matmul(a, b)
+                torch.cuda.synchronize(device)
+                chunk = 1
+                while True:
+                    start = time.perf_counter()
+                    for _ in range(chunk):
+                        torch.matmul(a, b)
+                    torch.cuda.synchronize(device)
+                    elapsed = time.perf_counter() - start
+                    if elapsed >= min_secs / 4:
+                        break
+                    chunk *= 2
+                secs = elapsed / chunk
+                rows.append(
+                    {
+                        "m": m,
+                        "k": k,
+                        "n": n,
+                        "dtype": str(dtype).removeprefix("torch."),
+                        "ms_per_product": secs * 1e3,
+                        "tflops": 2.0 * m * k * n / secs / 1e12,
+                    }
+                )
+                del a, b
+            except Exception as e:  # out of memory at a large batch: say so, go on
+                rows.append({"m": m, "k": k, "n": n, "error": f"{type(e).__name__}: {e}"[:300]})
+            print(f"gemm {rows[-1]}", file=sys.stderr)
+    return rows
+
+
 def bench(
     checkpoint: Path,
     batches: list[int],
@@ -1042,6 +1094,7 @@ def bench(
                     "scene_evals_per_s": batch / secs,
                 }
             )
+    gemm_rows = gemm_reference(model.config, batches, agents, device, min_secs)
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"
     print(
         f"# {checkpoint} on {name}, torch {torch.__version__}, fp32, {agents} agents, "
@@ -1061,6 +1114,7 @@ def bench(
             "torch": torch.__version__,
             "tf32": torch.backends.cuda.matmul.allow_tf32,
             "rows": rows,
+            "gemm": gemm_rows,
         }
     )
     print(result)

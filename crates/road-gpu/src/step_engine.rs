@@ -10,11 +10,38 @@ use crate::proxies::{Work, flops_per_evaluation};
 use crate::sampler_step::{HeunPlan, StepRule};
 use crate::{Error, GpuContext, Result};
 
-/// Fewest moving scenes for which a step buckets them by agent count: below, one batch's
-/// dispatches cost more than the padding they would save.
-const MIN_BUCKETED_SCENES: usize = 32;
-/// Fewest scenes of a bucket: a smaller one joins the next larger agent count.
-const MIN_BUCKET_SCENES: usize = 16;
+/// When a step buckets its moving scenes by agent count: from `min_moving` of them, in buckets
+/// of at least `min_bucket` scenes (a smaller one joins the next larger agent count). Below,
+/// the buckets' dispatches cost more than the padding they save.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) struct BucketRule {
+    min_moving: usize,
+    min_bucket: usize,
+}
+
+impl BucketRule {
+    /// lavapipe: 64 scenes of road20-wide4 stepped 25 % faster in buckets of 16 and more.
+    const SOFTWARE: Self = Self {
+        min_moving: 32,
+        min_bucket: 16,
+    };
+    /// A card: small sub-batches leave it idle between dispatches. On an H200 (2026-11-30,
+    /// docs/experiments/bench-2026-11-30-wgsl-engine-h200.md) 64 scenes in buckets of 16 and
+    /// more stepped 20-23 % slower than one batch, 512 scenes 19-33 % faster: buckets of at
+    /// least 64 scenes, so from 128 moving.
+    const HARDWARE: Self = Self {
+        min_moving: 128,
+        min_bucket: 64,
+    };
+
+    fn for_context(ctx: &GpuContext) -> Self {
+        if ctx.is_software() {
+            Self::SOFTWARE
+        } else {
+            Self::HARDWARE
+        }
+    }
+}
 /// Most compact sub-batch shapes kept (each with its buffers and plan: up to a whole batch's
 /// memory); beyond, the least recently used is dropped. A step makes at most one per bucket
 /// (a quarter of the agent count's range).
@@ -26,6 +53,61 @@ const MAX_COMPACTS: usize = 12;
 fn compact_capacity(scenes: usize) -> usize {
     let step = (scenes.next_power_of_two() / 8).max(1);
     scenes.next_multiple_of(step)
+}
+
+/// The `active` scenes of a batch of `(scenes, agents)` (each with `live_agents[i]` live agent
+/// rows) in buckets of like counts, one compact sub-batch each, when that saves at least a
+/// fifth of the padded batch's work: `(scenes, agent rows)` per bucket, or nothing to step the
+/// batch as one. Agent rows are each scene's live rows rounded up to 4.
+fn plan_buckets(
+    live_agents: &[usize],
+    active: &[usize],
+    (batch_scenes, a): (usize, usize),
+    rule: BucketRule,
+) -> Vec<(Vec<usize>, usize)> {
+    if active.len() < rule.min_moving {
+        return Vec::new();
+    }
+    let mut by_agents = std::collections::BTreeMap::<usize, Vec<usize>>::new();
+    for &i in active {
+        let rows = live_agents[i].next_multiple_of(4).clamp(1, a);
+        by_agents.entry(rows).or_default().push(i);
+    }
+    let mut buckets: Vec<(Vec<usize>, usize)> = Vec::new();
+    let mut pending: Vec<usize> = Vec::new();
+    let mut pending_rows = 0;
+    for (rows, scenes) in by_agents {
+        pending.extend(scenes);
+        pending_rows = rows;
+        if pending.len() >= rule.min_bucket {
+            buckets.push((std::mem::take(&mut pending), rows));
+        }
+    }
+    if !pending.is_empty() {
+        // The largest counts, too few for a bucket of their own: the last bucket takes them
+        // at their rows.
+        match buckets.last_mut() {
+            Some((scenes, rows)) => {
+                scenes.extend(pending);
+                *rows = pending_rows;
+            }
+            None => buckets.push((pending, pending_rows)),
+        }
+    }
+    // Against one step of them all as `step_rule` would take it: the whole batch in place,
+    // or one compact sub-batch at the most live rows.
+    let padded = |(scenes, rows): &(Vec<usize>, usize)| compact_capacity(scenes.len()) * rows;
+    let bucketed: usize = buckets.iter().map(padded).sum();
+    let most_rows = buckets.iter().map(|(_, rows)| *rows).max().unwrap_or(a);
+    let single = if active.len() * 2 > batch_scenes && most_rows * 4 > a * 3 {
+        batch_scenes * a
+    } else {
+        compact_capacity(active.len()) * most_rows
+    };
+    if buckets.len() < 2 || bucketed * 5 > single * 4 {
+        return Vec::new();
+    }
+    buckets
 }
 
 /// The rollout driver's engine on the GPU: windows stay on the device through a tick's steps
@@ -314,55 +396,18 @@ impl GpuStepEngine<'_> {
         self.step_compact(&active, a_c, sigma_cur, sigma_next, rule, evaluations)
     }
 
-    /// Scenes of mixed agent counts in buckets of like counts, one compact sub-batch each, when
-    /// that saves at least a fifth of the padded batch's work: `(scenes, agent rows)` per
-    /// bucket, or nothing to step the batch as one. Agent rows are each scene's live rows
-    /// rounded up to 4; buckets of fewer than [`MIN_BUCKET_SCENES`] scenes join the next larger.
+    /// Scenes of mixed agent counts in buckets of like counts ([`plan_buckets`]), or nothing to
+    /// step the batch as one.
     fn buckets(&self, active: &[usize]) -> Vec<(Vec<usize>, usize)> {
-        let a = self.agents;
-        if !self.ctx.bucket_scenes() || active.len() < MIN_BUCKETED_SCENES {
+        if !self.ctx.bucket_scenes() {
             return Vec::new();
         }
-        let mut by_agents = std::collections::BTreeMap::<usize, Vec<usize>>::new();
-        for &i in active {
-            let rows = self.live_agents[i].next_multiple_of(4).clamp(1, a);
-            by_agents.entry(rows).or_default().push(i);
-        }
-        let mut buckets: Vec<(Vec<usize>, usize)> = Vec::new();
-        let mut pending: Vec<usize> = Vec::new();
-        let mut pending_rows = 0;
-        for (rows, scenes) in by_agents {
-            pending.extend(scenes);
-            pending_rows = rows;
-            if pending.len() >= MIN_BUCKET_SCENES {
-                buckets.push((std::mem::take(&mut pending), rows));
-            }
-        }
-        if !pending.is_empty() {
-            // The largest counts, too few for a bucket of their own: the last bucket takes them
-            // at their rows.
-            match buckets.last_mut() {
-                Some((scenes, rows)) => {
-                    scenes.extend(pending);
-                    *rows = pending_rows;
-                }
-                None => buckets.push((pending, pending_rows)),
-            }
-        }
-        // Against one step of them all as `step_rule` would take it: the whole batch in place,
-        // or one compact sub-batch at the most live rows.
-        let padded = |(scenes, rows): &(Vec<usize>, usize)| compact_capacity(scenes.len()) * rows;
-        let bucketed: usize = buckets.iter().map(padded).sum();
-        let most_rows = buckets.iter().map(|(_, rows)| *rows).max().unwrap_or(a);
-        let single = if active.len() * 2 > self.scenes && most_rows * 4 > a * 3 {
-            self.scenes * a
-        } else {
-            compact_capacity(active.len()) * most_rows
-        };
-        if buckets.len() < 2 || bucketed * 5 > single * 4 {
-            return Vec::new();
-        }
-        buckets
+        plan_buckets(
+            &self.live_agents,
+            active,
+            (self.scenes, self.agents),
+            BucketRule::for_context(self.ctx),
+        )
     }
 
     /// Steps the `active` scenes' first `a_c` agent rows in a compact sub-batch (made on first
@@ -891,5 +936,46 @@ impl road_rollout::StepEngine for GpuStepEngine<'_> {
             );
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `n` scenes whose live agent counts cycle through 3 ..= 23, like the validation windows.
+    fn mixed_agents(n: usize) -> Vec<usize> {
+        (0..n).map(|i| 3 + (i * 7) % 21).collect()
+    }
+
+    #[test]
+    fn a_card_steps_64_mixed_scenes_as_one_batch_where_lavapipe_buckets_them() {
+        let live = mixed_agents(64);
+        let active: Vec<usize> = (0..64).collect();
+        let software = plan_buckets(&live, &active, (64, 24), BucketRule::SOFTWARE);
+        assert!(software.len() >= 2, "lavapipe buckets: {software:?}");
+        let hardware = plan_buckets(&live, &active, (64, 24), BucketRule::HARDWARE);
+        assert!(hardware.is_empty(), "a card steps one batch: {hardware:?}");
+    }
+
+    #[test]
+    fn a_card_buckets_512_mixed_scenes_by_64_or_more_each_scene_once_within_its_rows() {
+        let live = mixed_agents(512);
+        let active: Vec<usize> = (0..512).collect();
+        let buckets = plan_buckets(&live, &active, (512, 24), BucketRule::HARDWARE);
+        assert!(buckets.len() >= 2, "{buckets:?}");
+        let mut stepped = vec![0; 512];
+        for (scenes, rows) in &buckets {
+            assert!(scenes.len() >= 64, "a bucket of {} scenes", scenes.len());
+            for &i in scenes {
+                stepped[i] += 1;
+                assert!(
+                    live[i] <= *rows,
+                    "scene {i}: {} agents in {rows} rows",
+                    live[i]
+                );
+            }
+        }
+        assert!(stepped.iter().all(|&n| n == 1), "each scene stepped once");
     }
 }
