@@ -489,11 +489,6 @@ class Scene:
         self.created = created
         self.last: Optional[NpcTick] = None
         self._inbox = client._open_inbox(created.scene)
-        # The ego key declared once: a put through it reuses its route, where the session's put
-        # computes it anew each time (Block, not zenoh's default Drop: a tick is never lost to
-        # a full queue).
-        self._ego = client.session.declare_publisher(
-            created.ego_key, congestion_control=zenoh.CongestionControl.BLOCK)
         # Gone once the server's token went away after this scene began (sticky: a server back
         # under the same prefix does not know this scene).
         self._server_losses_before = client.server_losses
@@ -505,7 +500,9 @@ class Scene:
     def put(self, tick: int, agents: list[AgentState]) -> None:
         msg = {"tick": tick, "agents": [asdict(a) for a in agents],
                "client": self.client.client_id, "token": self.created.token}
-        self._ego.put(json.dumps(msg).encode())
+        # Block, not zenoh's default Drop: a tick is never lost to a full queue.
+        self.client.session.put(self.created.ego_key, json.dumps(msg).encode(),
+                                congestion_control=zenoh.CongestionControl.BLOCK)
 
     def poll(self, tick: int) -> Optional[NpcTick]:
         """The NPCs of ``tick`` if they have come, else None, without waiting (to drive several
@@ -551,5 +548,4 @@ class Scene:
 
     def close(self) -> SceneClosed:
         self.client._close_inbox(self.id)
-        self._ego.undeclare()
         return self.client.close_scene(self.id, self.created.token)

@@ -289,15 +289,8 @@ impl Client {
     /// scene: attaching it again takes its messages away from the earlier handle.
     pub fn attach(&self, created: SceneCreated) -> Result<Scene> {
         let (npc, errors) = self.inbox.open(created.scene);
-        // Block, not zenoh's default Drop: a tick is never lost to a full queue.
-        let ego_publisher = self
-            .session
-            .declare_publisher(self.keys.ego(&self.id, created.scene))
-            .congestion_control(zenoh::qos::CongestionControl::Block)
-            .wait()?;
         Ok(Scene {
             session: self.session.clone(),
-            ego_publisher,
             keys: self.keys.clone(),
             client: self.id.clone(),
             timeout: self.timeout,
@@ -371,10 +364,6 @@ pub const PROBE_INTERVAL: Duration = Duration::from_secs(1);
 #[derive(Debug)]
 pub struct Scene {
     session: zenoh::Session,
-    /// The scene's ego key, declared once: a put through it reuses its route, where a
-    /// session's put computes it anew each time, against every subscription the session knows
-    /// (100 µs a put beside 256 scenes' subscriptions on the development VM).
-    ego_publisher: zenoh::pubsub::Publisher<'static>,
     keys: Keys,
     client: String,
     timeout: Duration,
@@ -424,7 +413,11 @@ impl Scene {
 
     /// Puts any payload on the scene's ego key (tests of the server's input checks).
     pub fn put_raw(&self, payload: Vec<u8>) -> Result<()> {
-        self.ego_publisher.put(payload).wait()?;
+        // Block, not zenoh's default Drop: a tick is never lost to a full queue.
+        self.session
+            .put(self.keys.ego(&self.client, self.created.scene), payload)
+            .congestion_control(zenoh::qos::CongestionControl::Block)
+            .wait()?;
         Ok(())
     }
 
