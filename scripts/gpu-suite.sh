@@ -86,7 +86,7 @@ run)
     # it was.
     limit_scale=1
     # finish: the cache removed and, with --pack, every file of $out in one suite.tar (a lent
-    # machine returns at most 8 files; the full suite writes 13).
+    # machine returns at most 8 files; the full suite writes 15).
     finish() {
         rm -rf "$out/cache"
         if $pack; then
@@ -111,7 +111,16 @@ run)
     # Kernels and whole denoisers against the CPU references on this adapter: nothing is timed
     # unless they agree.
     # (Into machine.txt too: a lent machine returns at most 8 files.)
-    "$bin" gpu selftest --checkpoints models/road20-wide4 models/road20 | tee -a "$out/machine.txt"
+    # Exit 3: only the f16 checks failed; f32 is measured, the f16 steps are skipped.
+    selftest=0
+    "$bin" gpu selftest --checkpoints models/road20-wide4 models/road20 | tee -a "$out/machine.txt" \
+        || selftest=${PIPESTATUS[0]}
+    f16=true
+    case $selftest in
+    0) ;;
+    3) f16=false; echo "selftest: f16 checks failed: no f16 steps" | tee -a "$out/steps.txt" ;;
+    *) echo "selftest: exit $selftest: nothing timed" | tee -a "$out/steps.txt"; finish; exit "$selftest" ;;
+    esac
     # The autotuner's table for this adapter (into machine.txt too), cached where every later
     # step's `road serve` and `road demo` read it (they would tune on their own otherwise).
     mkdir -p "$out/cache"
@@ -143,6 +152,12 @@ run)
     step engine-buckets 60 "$out/engine-buckets.json" "$bin" bench engine \
         --checkpoints models/road20-wide4 models/road20 --batches "${batches[@]}" \
         --cpu-max-batch 0 --bucketing on off --cache "$out/cache" --json
+    # f16 (the blocks' layers on the tensor cores where cooperative matrices are offered, and
+    # `linear_f16`, the same rounding without them; layer by layer, as f16 runs) beside f32
+    # layer by layer, the same run; the self-test above checked each against its reference.
+    $f16 && step engine-f16 90 "$out/engine-f16.json" "$bin" bench engine \
+        --checkpoints models/road20-wide4 --batches "${batches[@]}" --cpu-max-batch 0 \
+        --fusion layers --precisions f32 f16 --tensor-cores on off --cache "$out/cache" --json
     step engine-profile 120 "$out/engine-profile.json" "$bin" bench engine \
         --checkpoints models/road20-wide4 --batches "${profile_batches[@]}" --cpu-max-batch 0 \
         --linear-kernels auto --fusion chains layers --shader-checks checked unchecked --profile \
@@ -158,6 +173,12 @@ run)
     $quick || step serve-large 90 "$out/serve-large.json" "$bin" bench serve \
         --checkpoint models/road20-wide4 --engines gpu --scenes 2048 4096 --ticks "$ticks" \
         --cache "$out/cache" --json
+    # Serving with the f16 layers (ROAD_GPU_PRECISION), the GPU alone, up to its ceiling.
+    f16_scenes=(512 2048 4096)
+    $quick && f16_scenes=(1 8)
+    $f16 && ROAD_GPU_PRECISION=f16 step serve-f16 90 "$out/serve-f16.json" "$bin" bench serve \
+        --checkpoint models/road20-wide4 --engines gpu --scenes "${f16_scenes[@]}" \
+        --ticks "$ticks" --cache "$out/cache" --json
     if $engine_only; then
         finish
         exit 0

@@ -38,6 +38,65 @@ pub struct ContextOptions {
     /// layer by layer: on by default (issue 40: fewer dispatches and bytes moved; the layers
     /// stay as the variant to time against, and for hidden widths past the chain's tile).
     pub residual_chains: bool,
+    /// The linear layers' arithmetic ([`Precision`]): f32 by default; f16 needs an adapter
+    /// with `SHADER_F16` and runs on the tensor cores where cooperative matrices are offered.
+    pub precision: Precision,
+    /// With f16, use the adapter's cooperative matrices where it offers them (on by default);
+    /// off, the f16 layers run `linear_f16` (the same numerics without tensor cores): to time
+    /// one against the other.
+    pub cooperative_matrices: bool,
+}
+
+/// The arithmetic of the linear layers.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Precision {
+    /// Everything in f32: the reference.
+    #[default]
+    F32,
+    /// The layers of the blocks whose inputs and outputs are multiples of 16 (every q/k/v,
+    /// output projection and MLP layer) with f16 weights and inputs and f32 sums; layer norms,
+    /// attention, softmax, embeddings and the rest in f32. On the tensor cores (`linear_coop`)
+    /// where the adapter offers cooperative 16 × 16 × 16 f16 matrices with f32 sums and
+    /// subgroups 32 wide, else `linear_f16` with the same rounding.
+    F16,
+}
+
+impl Precision {
+    /// As command lines name it.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::F32 => "f32",
+            Self::F16 => "f16",
+        }
+    }
+}
+
+impl std::str::FromStr for Precision {
+    type Err = String;
+
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        match s {
+            "f32" | "fp32" => Ok(Self::F32),
+            "f16" | "fp16" => Ok(Self::F16),
+            other => Err(format!("unknown precision {other:?}: expected f32 or f16")),
+        }
+    }
+}
+
+/// Whether an adapter offers what `linear_coop` runs on: `EXPERIMENTAL_COOPERATIVE_MATRIX` with a
+/// 16 × 16 × 16 configuration of f16 inputs and f32 sums, `SHADER_F16`, and subgroups of
+/// exactly 32 invocations (the kernel's workgroup is one subgroup).
+pub fn offers_cooperative_f16(adapter: &wgpu::Adapter) -> bool {
+    let needed = wgpu::Features::SHADER_F16 | wgpu::Features::EXPERIMENTAL_COOPERATIVE_MATRIX;
+    let info = adapter.get_info();
+    adapter.features().contains(needed)
+        && info.subgroup_min_size == 32
+        && info.subgroup_max_size == 32
+        && adapter.cooperative_matrix_properties().iter().any(|p| {
+            (p.m_size, p.n_size, p.k_size) == (16, 16, 16)
+                && p.ab_type == wgpu::CooperativeScalarType::F16
+                && p.cr_type == wgpu::CooperativeScalarType::F32
+        })
 }
 
 impl Default for ContextOptions {
@@ -51,6 +110,8 @@ impl Default for ContextOptions {
             unchecked_shaders: false,
             bucket_scenes: true,
             residual_chains: true,
+            precision: Precision::F32,
+            cooperative_matrices: true,
         }
     }
 }
@@ -69,6 +130,10 @@ pub struct GpuContext {
     unchecked_shaders: bool,
     bucket_scenes: bool,
     residual_chains: bool,
+    precision: Precision,
+    /// f16 layers on the tensor cores (`linear_coop`): the adapter offers them, the device has
+    /// them enabled, and the options asked for them.
+    cooperative_f16: bool,
 }
 
 /// Advice printed when no adapter exists.
@@ -80,6 +145,7 @@ impl GpuContext {
         pollster::block_on(Self::new_async(options))
     }
 
+    #[allow(unsafe_code)]
     async fn new_async(options: &ContextOptions) -> Result<Self> {
         let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
         desc.backends = wgpu::Backends::VULKAN;
@@ -107,11 +173,46 @@ impl GpuContext {
         };
         let info = adapter.get_info();
         tracing::info!(adapter = %describe(&info), "picked the GPU adapter");
+        // Features only for f16: the f32 path's kernels compile as they always have (the
+        // cooperative-matrix feature switches wgpu's SPIR-V to the Vulkan memory model).
+        let mut required_features = wgpu::Features::empty();
+        let mut cooperative_f16 = false;
+        if options.precision == Precision::F16 {
+            if !adapter.features().contains(wgpu::Features::SHADER_F16) {
+                return Err(Error::Device(format!(
+                    "precision f16: the adapter {} offers no SHADER_F16 (run with f32)",
+                    describe(&info)
+                )));
+            }
+            required_features |= wgpu::Features::SHADER_F16;
+            if options.cooperative_matrices && offers_cooperative_f16(&adapter) {
+                required_features |= wgpu::Features::EXPERIMENTAL_COOPERATIVE_MATRIX;
+                cooperative_f16 = true;
+            }
+            tracing::info!(
+                tensor_cores = cooperative_f16,
+                "f16 linear layers ({})",
+                if cooperative_f16 {
+                    "linear_coop"
+                } else {
+                    "linear_f16"
+                }
+            );
+        }
         let (device, queue) = adapter
             .request_device(&wgpu::DeviceDescriptor {
                 label: Some("road"),
-                required_features: wgpu::Features::empty(),
+                required_features,
                 required_limits: adapter.limits(),
+                // SAFETY: the one experimental feature asked for is the cooperative matrices,
+                // used by `linear_coop` alone, whose every load and store stays in its bindings
+                // and workgroup arrays by construction (`shaders/linear_coop.wgsl`); the
+                // self-test compares it with its CPU reference on the adapter.
+                experimental_features: if cooperative_f16 {
+                    unsafe { wgpu::ExperimentalFeatures::enabled() }
+                } else {
+                    wgpu::ExperimentalFeatures::disabled()
+                },
                 ..Default::default()
             })
             .await
@@ -127,8 +228,26 @@ impl GpuContext {
             map_encoder_chunk_bytes: options.map_encoder_chunk_bytes,
             unchecked_shaders: options.unchecked_shaders,
             bucket_scenes: options.bucket_scenes,
-            residual_chains: options.residual_chains,
+            // The chains run f32 only.
+            residual_chains: options.residual_chains && options.precision == Precision::F32,
+            precision: options.precision,
+            cooperative_f16,
         })
+    }
+
+    /// See [`ContextOptions::precision`].
+    pub fn precision(&self) -> Precision {
+        self.precision
+    }
+
+    /// Whether the adapter offers `SHADER_F16`, which [`Precision::F16`] needs.
+    pub fn offers_shader_f16(&self) -> bool {
+        self.adapter.features().contains(wgpu::Features::SHADER_F16)
+    }
+
+    /// Whether the f16 layers run on the tensor cores (`linear_coop`) rather than `linear_f16`.
+    pub fn cooperative_f16(&self) -> bool {
+        self.cooperative_f16
     }
 
     /// Blocks until the queue's work is done, within the poll timeout.

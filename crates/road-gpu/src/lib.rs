@@ -28,7 +28,9 @@ pub mod tolerance;
 pub mod tune;
 pub mod tuning;
 
-pub use context::{ContextOptions, GpuContext, hardware_adapter};
+pub use context::{
+    ContextOptions, GpuContext, Precision, hardware_adapter, offers_cooperative_f16,
+};
 pub use tolerance::Tolerance;
 
 /// Errors of the GPU layer.

@@ -62,6 +62,73 @@ pub fn linear_fused(
     y
 }
 
+/// The f16 linear layer's reference (`linear_f16.wgsl`, `linear_coop.wgsl`), per output of
+/// `[rows, out]` (`w`, `b` with any layer norm already folded in; `norm_eps` standardises the
+/// rows first; `residual` is added last).
+#[derive(Debug, Clone)]
+pub struct LinearF16Reference {
+    /// The kernels' meaning: inputs (standardised) and weights rounded to f16, sums in f64.
+    pub rounded: Vec<f32>,
+    /// The same layer in exact arithmetic, nothing rounded: what the f32 path computes.
+    pub exact: Vec<f32>,
+    /// How far the f16 layer may be from `exact`: each of the two roundings moves a factor by
+    /// at most 2⁻¹¹ of it, so a product by at most about 2⁻¹⁰ of it, and the sum by at most
+    /// `2⁻¹⁰ · Σ_k |n(x)_k · w_k|` (a bound, not an estimate; ×1.01 for the f32 statistics).
+    pub bound: Vec<f32>,
+}
+
+/// See [`LinearF16Reference`].
+#[allow(clippy::too_many_arguments)]
+pub fn linear_f16(
+    x: &[f32],
+    w: &[f32],
+    b: &[f32],
+    rows: usize,
+    in_dim: usize,
+    out_dim: usize,
+    relu: bool,
+    norm_eps: Option<f32>,
+    residual: Option<&[f32]>,
+) -> LinearF16Reference {
+    let round = |v: f64| f64::from(half::f16::from_f64(v).to_f32());
+    let normed: Vec<f64> = match norm_eps {
+        Some(eps) => {
+            let ones = vec![1.0f32; in_dim];
+            let zeros = vec![0.0f32; in_dim];
+            layer_norm(x, &ones, &zeros, rows, in_dim, eps)
+                .into_iter()
+                .map(f64::from)
+                .collect()
+        }
+        None => x.iter().map(|&v| f64::from(v)).collect(),
+    };
+    let mut out = LinearF16Reference {
+        rounded: vec![0.0; rows * out_dim],
+        exact: vec![0.0; rows * out_dim],
+        bound: vec![0.0; rows * out_dim],
+    };
+    let finish = |v: f64, i: usize| {
+        let v = if relu { v.max(0.0) } else { v };
+        (v + residual.map_or(0.0, |r| f64::from(r[i]))) as f32
+    };
+    for r in 0..rows {
+        for o in 0..out_dim {
+            let (mut rounded, mut exact, mut magnitude) = (f64::from(b[o]), f64::from(b[o]), 0.0);
+            for k in 0..in_dim {
+                let (xv, wv) = (normed[r * in_dim + k], f64::from(w[o * in_dim + k]));
+                rounded += round(xv) * round(wv);
+                exact += xv * wv;
+                magnitude += (xv * wv).abs();
+            }
+            let i = r * out_dim + o;
+            out.rounded[i] = finish(rounded, i);
+            out.exact[i] = finish(exact, i);
+            out.bound[i] = (1.01 * magnitude * 2f64.powi(-10)) as f32;
+        }
+    }
+    out
+}
+
 /// Layer norm with the biased variance.
 pub fn layer_norm(
     x: &[f32],

@@ -455,3 +455,108 @@ fn window_checks(
     });
     Ok(checks)
 }
+
+/// The f16 linear kernels on `ctx` (opened with [`crate::Precision::F16`]): `linear_f16`, and
+/// `linear_coop` where the adapter offers cooperative matrices, on the engine's f16 layers
+/// (the MLP's first layer behind its norm, with ReLU; its second with the residual add;
+/// the q/k/v projection in 3 parts, as one layer here). Fed raw rows, each against the layer
+/// with its inputs and weights rounded to f16 (f32 sums: [`Tolerance`]'s 10⁻⁴); behind the
+/// norm, against the unrounded layer within f16's proven bound (the largest of
+/// [`reference::LinearF16Reference::bound`] over the outputs).
+pub fn f16_kernel_checks(ctx: &GpuContext) -> Result<Vec<KernelCheck>> {
+    use crate::kernels::linear_f16::{LinearF16, LinearF16Kernel};
+    let mut kernels = vec![LinearF16::new(ctx, LinearF16Kernel::Rowwise)?];
+    if ctx.cooperative_f16() {
+        kernels.push(LinearF16::new(ctx, LinearF16Kernel::Coop)?);
+    }
+    let mut rng = Inputs(0xF16_5EED);
+    let tokens = 3 * 12 * 20;
+    let mut checks = Vec::new();
+    // ([name under linear_f16, under linear_coop], in, out, relu, norm, residual)
+    for (names, d_in, d_out, relu, norm, residual) in [
+        (
+            [
+                "linear_f16 mlp_in (norm, relu)",
+                "linear_coop mlp_in (norm, relu)",
+            ],
+            96usize,
+            384usize,
+            true,
+            true,
+            false,
+        ),
+        (
+            [
+                "linear_f16 mlp_out (residual)",
+                "linear_coop mlp_out (residual)",
+            ],
+            384,
+            96,
+            false,
+            false,
+            true,
+        ),
+        (
+            ["linear_f16 qkv (raw rows)", "linear_coop qkv (raw rows)"],
+            96,
+            288,
+            false,
+            false,
+            false,
+        ),
+    ] {
+        let x = rng.uniform(tokens * d_in, 1.5);
+        let w = rng.uniform(d_out * d_in, 0.2);
+        let b = rng.uniform(d_out, 0.1);
+        let y0 = rng.uniform(tokens * d_out, 1.0);
+        let p = LinearParams {
+            relu: u32::from(relu),
+            residual: u32::from(residual),
+            norm: u32::from(norm),
+            eps: 1e-5,
+            ..LinearParams::new(tokens, d_in, d_out)
+        };
+        let want = reference::linear_f16(
+            &x,
+            &w,
+            &b,
+            tokens,
+            d_in,
+            d_out,
+            relu,
+            norm.then_some(1e-5),
+            residual.then_some(&y0[..]),
+        );
+        let (expected, tolerance) = if norm {
+            let bound = want.bound.iter().copied().fold(0.0f32, f32::max);
+            (
+                want.exact,
+                Tolerance {
+                    rel: 1e-5,
+                    abs: bound + 1e-5,
+                },
+            )
+        } else {
+            (
+                want.rounded,
+                Tolerance {
+                    rel: 1e-4,
+                    abs: 1e-7 * d_in as f32 + 1e-6,
+                },
+            )
+        };
+        for kernel in &kernels {
+            let got = kernel.run_fused(ctx, p, &x, &w, &b, &y0)?;
+            checks.push(KernelCheck {
+                name: match kernel.kernel {
+                    LinearF16Kernel::Rowwise => names[0],
+                    LinearF16Kernel::Coop => names[1],
+                },
+                values: got.len(),
+                tolerance,
+                outcome: tolerance.check(&got, &expected),
+            });
+        }
+    }
+    Ok(checks)
+}

@@ -9,6 +9,10 @@ pub enum Shader {
     Edm,
     /// Linear layers (+ bias, optional ReLU; layer norm, residual add and split outputs fused).
     Linear,
+    /// The same layers with f16 weights and inputs, f32 sums, on any adapter with `SHADER_F16`.
+    LinearF16,
+    /// The same on the tensor cores (cooperative matrices): compiled only where offered.
+    LinearCoop,
     /// The map's polyline encoder: points to tokens in one workgroup per polyline.
     Polyline,
     /// Masked multi-head attention over strided token layouts.
@@ -31,11 +35,20 @@ pub enum Shader {
 
 /// `shaders/common/precondition.wgsl`: the output preconditioning of one token.
 const PRECONDITION: &str = include_str!("../../../shaders/common/precondition.wgsl");
+/// `shaders/common/linear_io.wgsl`: the linear kernels' params, bindings and epilogue.
+const LINEAR_IO: &str = include_str!("../../../shaders/common/linear_io.wgsl");
+/// `shaders/common/enable_f16.wgsl`: `enable f16;`, first in the f16 families.
+const ENABLE_F16: &str = include_str!("../../../shaders/common/enable_f16.wgsl");
+/// `shaders/common/enable_cooperative_matrix.wgsl`: `enable wgpu_cooperative_matrix;`.
+const ENABLE_COOPERATIVE_MATRIX: &str =
+    include_str!("../../../shaders/common/enable_cooperative_matrix.wgsl");
 
 impl Shader {
-    pub const ALL: [Shader; 11] = [
+    pub const ALL: [Shader; 13] = [
         Shader::Edm,
         Shader::Linear,
+        Shader::LinearF16,
+        Shader::LinearCoop,
         Shader::Polyline,
         Shader::Attention,
         Shader::Embed,
@@ -52,6 +65,8 @@ impl Shader {
         match self {
             Shader::Edm => "edm.wgsl",
             Shader::Linear => "linear.wgsl",
+            Shader::LinearF16 => "linear_f16.wgsl",
+            Shader::LinearCoop => "linear_coop.wgsl",
             Shader::Polyline => "polyline.wgsl",
             Shader::Attention => "attention.wgsl",
             Shader::Embed => "embed.wgsl",
@@ -67,7 +82,21 @@ impl Shader {
     pub fn source(self) -> &'static str {
         match self {
             Shader::Edm => include_str!("../../../shaders/edm.wgsl"),
-            Shader::Linear => include_str!("../../../shaders/linear.wgsl"),
+            Shader::Linear => concat!(
+                include_str!("../../../shaders/common/linear_io.wgsl"),
+                include_str!("../../../shaders/linear.wgsl")
+            ),
+            Shader::LinearF16 => concat!(
+                include_str!("../../../shaders/common/enable_f16.wgsl"),
+                include_str!("../../../shaders/common/linear_io.wgsl"),
+                include_str!("../../../shaders/linear_f16.wgsl")
+            ),
+            Shader::LinearCoop => concat!(
+                include_str!("../../../shaders/common/enable_f16.wgsl"),
+                include_str!("../../../shaders/common/enable_cooperative_matrix.wgsl"),
+                include_str!("../../../shaders/common/linear_io.wgsl"),
+                include_str!("../../../shaders/linear_coop.wgsl")
+            ),
             Shader::Polyline => include_str!("../../../shaders/polyline.wgsl"),
             Shader::Attention => include_str!("../../../shaders/attention.wgsl"),
             Shader::Embed => include_str!("../../../shaders/embed.wgsl"),
@@ -91,7 +120,21 @@ impl Shader {
     pub fn includes(self) -> &'static [&'static str] {
         match self {
             Shader::Elementwise | Shader::ResidualChain => &[PRECONDITION],
+            Shader::Linear => &[LINEAR_IO],
+            Shader::LinearF16 => &[ENABLE_F16, LINEAR_IO],
+            Shader::LinearCoop => &[ENABLE_F16, ENABLE_COOPERATIVE_MATRIX, LINEAR_IO],
             _ => &[],
+        }
+    }
+
+    /// The device features a module of this family needs beyond WebGPU's core.
+    pub fn required_features(self) -> wgpu::Features {
+        match self {
+            Shader::LinearF16 => wgpu::Features::SHADER_F16,
+            Shader::LinearCoop => {
+                wgpu::Features::SHADER_F16 | wgpu::Features::EXPERIMENTAL_COOPERATIVE_MATRIX
+            }
+            _ => wgpu::Features::empty(),
         }
     }
 

@@ -22,6 +22,14 @@ const WHOLE_MODEL: Tolerance = Tolerance {
     rel: 1e-4,
     abs: 1e-5,
 };
+/// The whole denoiser with its blocks' layers in f16: each rounding moves an input or weight by
+/// up to 2⁻¹¹ of it (5·10⁻⁴), through two blocks of the test model. Measured on the lavapipe
+/// here (2026-11-30): largest difference 7.1·10⁻⁴ on outputs up to 7.1 (f32: 10⁻⁵); the
+/// tolerance leaves about 3× for a card's other order of sums.
+const F16_WHOLE_MODEL: Tolerance = Tolerance {
+    rel: 2e-3,
+    abs: 2e-3,
+};
 /// Rollouts chain dozens of evaluations and Heun steps: differences grow along the way.
 const ROLLOUT: Tolerance = Tolerance {
     rel: 1e-3,
@@ -273,6 +281,21 @@ fn whole_denoiser_matches_candle_layer_by_layer() {
     whole_denoiser_matches_candle_on(&ctx, &agent_pairs_config(), "denoiser-layers");
 }
 
+/// Under [`road_gpu::Precision::F16`] (the blocks' layers with f16 inputs and weights, f32
+/// sums: `linear_coop` on a card that offers it, `linear_f16` here) the default checkpoint's
+/// features stay within [`F16_WHOLE_MODEL`] of candle's f32.
+#[test]
+fn whole_denoiser_in_f16_stays_near_candle() {
+    let ctx = GpuContext::new(&ContextOptions {
+        validation: true,
+        precision: road_gpu::Precision::F16,
+        ..ContextOptions::default()
+    })
+    .unwrap_or_else(|e| panic!("the f16 tests need an adapter with SHADER_F16: {e}"));
+    assert_eq!(ctx.precision(), road_gpu::Precision::F16);
+    whole_denoiser_within(&ctx, &agent_pairs_config(), "denoiser-f16", F16_WHOLE_MODEL);
+}
+
 fn agent_pairs_config() -> ModelConfig {
     ModelConfig {
         agent_pairs: Some(road_model::AgentPairs {
@@ -302,6 +325,11 @@ fn whole_denoiser_matches_candle(config: &ModelConfig, name: &str) {
 }
 
 fn whole_denoiser_matches_candle_on(ctx: &GpuContext, config: &ModelConfig, name: &str) {
+    whole_denoiser_within(ctx, config, name, WHOLE_MODEL);
+}
+
+/// The GPU denoiser on `ctx` against candle's on real validation scenes, within `tolerance`.
+fn whole_denoiser_within(ctx: &GpuContext, config: &ModelConfig, name: &str, tolerance: Tolerance) {
     let (dir, reference) = checkpoint_dir(config, name);
     let gpu = GpuDenoiser::from_checkpoint(ctx, &dir).unwrap();
     let ds = validation_set();
@@ -349,7 +377,16 @@ fn whole_denoiser_matches_candle_on(ctx: &GpuContext, config: &ModelConfig, name
         agent_features: &features,
     };
     let got = gpu.denoise(ctx, &inputs, &map).unwrap();
-    if let Err(m) = WHOLE_MODEL.check(&got, &want) {
+    if std::env::var_os("ROAD_PRINT_ERRORS").is_some() {
+        let worst = got
+            .iter()
+            .zip(&want)
+            .map(|(g, w)| (g - w).abs())
+            .fold(0.0f32, f32::max);
+        let scale = want.iter().map(|w| w.abs()).fold(0.0f32, f32::max);
+        eprintln!("{name}: largest difference {worst} (largest output {scale})");
+    }
+    if let Err(m) = tolerance.check(&got, &want) {
         panic!("denoiser on {}: {m}", ctx.describe());
     }
     std::fs::remove_dir_all(&dir).ok();

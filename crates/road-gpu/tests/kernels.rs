@@ -209,6 +209,123 @@ fn fused_linear_matches_the_cpu_reference_on_random_shapes() {
     }
 }
 
+/// The f16 linear kernels (`linear_f16` here; `linear_coop` too where the adapter offers
+/// cooperative matrices) with every fusion, against [`road_gpu::reference::linear_f16`]: within
+/// f32 rounding of the same layer with its inputs and weights rounded to f16 (the rows fed raw,
+/// where the rounding is exactly defined), and within the proven bound of f16's error of the
+/// unrounded layer (every shape, the standardised rows too). CI's lavapipe offers `SHADER_F16`:
+/// an adapter without it fails here, as one without Vulkan does.
+#[test]
+fn f16_linear_matches_its_reference_on_random_shapes() {
+    use road_gpu::kernels::linear::{LinearParams, fold_layer_norm};
+    use road_gpu::kernels::linear_f16::{LinearF16, LinearF16Kernel, fits};
+    let ctx = GpuContext::new(&ContextOptions {
+        validation: true,
+        precision: road_gpu::Precision::F16,
+        ..ContextOptions::default()
+    })
+    .unwrap_or_else(|e| panic!("the f16 tests need an adapter with SHADER_F16: {e}"));
+    let mut kernels = vec![LinearF16::new(&ctx, LinearF16Kernel::Rowwise).unwrap()];
+    if ctx.cooperative_f16() {
+        kernels.push(LinearF16::new(&ctx, LinearF16Kernel::Coop).unwrap());
+    }
+    eprintln!(
+        "adapter: {}; f16 kernels: {:?}",
+        ctx.describe(),
+        kernels.iter().map(|k| k.kernel).collect::<Vec<_>>()
+    );
+    let mut rng = rand::rngs::StdRng::seed_from_u64(17);
+    // (rows, in, out, part, relu, norm, residual): the engine's f16 layers (q/k/v in 3 parts,
+    // map k/v, the MLP, output projections), the cooperative kernel's edges (32 rows, 96
+    // outputs, K-chunks of 96, out_dim not a multiple of 96), and a shape only the row-wise
+    // kernel takes.
+    for (rows, in_dim, out_dim, part, relu, norm, residual) in [
+        (1, 16, 16, 16, false, false, false),
+        (33, 96, 288, 96, false, true, false),
+        (200, 96, 384, 384, true, true, false),
+        (129, 384, 96, 96, false, false, true),
+        (64, 96, 192, 96, false, false, false),
+        (31, 32, 48, 48, true, false, true),
+        (97, 192, 112, 112, false, true, true),
+        (7, 40, 20, 20, false, true, false),
+    ] {
+        let x: Vec<f32> = random(&mut rng, rows * in_dim, 2.0)
+            .iter()
+            .map(|v| v + 0.7)
+            .collect();
+        let w = random(&mut rng, out_dim * in_dim, 0.5);
+        let b = random(&mut rng, out_dim, 0.5);
+        let (w, b) = if norm {
+            let gamma = random(&mut rng, in_dim, 1.0);
+            let beta = random(&mut rng, in_dim, 1.0);
+            fold_layer_norm(&w, &b, &gamma, &beta)
+        } else {
+            (w, b)
+        };
+        let part_stride = rows * part + 8;
+        let p = LinearParams {
+            relu: u32::from(relu),
+            residual: u32::from(residual),
+            norm: u32::from(norm),
+            eps: 1e-5,
+            part: part as u32,
+            part_stride: part_stride as u32,
+            ..LinearParams::new(rows, in_dim, out_dim)
+        };
+        let y0 = random(&mut rng, p.y_len(), 1.0);
+        let at = |r: usize, o: usize| (o / part) * part_stride + r * part + o % part;
+        let residual_in: Vec<f32> = (0..rows * out_dim)
+            .map(|i| y0[at(i / out_dim, i % out_dim)])
+            .collect();
+        let want = road_gpu::reference::linear_f16(
+            &x,
+            &w,
+            &b,
+            rows,
+            in_dim,
+            out_dim,
+            relu,
+            norm.then_some(1e-5),
+            residual.then_some(&residual_in[..]),
+        );
+        for kernel in &kernels {
+            if kernel.kernel == LinearF16Kernel::Coop && !fits(&p) {
+                continue; // the engine runs such layers in f32
+            }
+            let y = kernel.run_fused(&ctx, p, &x, &w, &b, &y0).unwrap();
+            let got: Vec<f32> = (0..rows * out_dim)
+                .map(|i| y[at(i / out_dim, i % out_dim)])
+                .collect();
+            let shape = format!(
+                "{:?} {rows}×{in_dim}→{out_dim} relu {relu}, norm {norm}, residual {residual}",
+                kernel.kernel
+            );
+            let outputs = got.iter().zip(&want.exact).zip(&want.bound);
+            for (i, ((&g, &exact), &bound)) in outputs.enumerate() {
+                assert!(
+                    (g - exact).abs() <= bound + 1e-5 * exact.abs() + 1e-5,
+                    "{shape}: output {i} is {g}, the unrounded layer's {exact}: beyond f16's \
+                     bound {bound}"
+                );
+            }
+            if !norm {
+                let tol = Tolerance {
+                    rel: 1e-4,
+                    abs: 1e-7 * in_dim as f32 + 1e-6,
+                };
+                if let Err(m) = tol.check(&got, &want.rounded) {
+                    panic!("{shape} against the rounded layer: {m}");
+                }
+            }
+            let parts = out_dim.div_ceil(part);
+            for j in 0..parts.saturating_sub(1) {
+                let gap = j * part_stride + rows * part..(j + 1) * part_stride;
+                assert_eq!(y[gap.clone()], y0[gap], "{shape}: the gap after part {j}");
+            }
+        }
+    }
+}
+
 /// The fused polyline encoder (point embedding, mixing layer, max over points, layer norm in
 /// one workgroup per polyline) on shapes around its edges: one point, points staged in several
 /// chunks (Q · D above its 2 048 staged floats), D above the workgroup's 64 invocations, up to

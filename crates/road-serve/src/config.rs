@@ -58,6 +58,8 @@ pub struct ServeConfig {
     pub foxglove_listen: Option<SocketAddr>,
     /// The engine every pool runs on.
     pub engine: ServeEngine,
+    /// The GPU engine's arithmetic (`road_gpu::Precision`; the CLI's `ROAD_GPU_PRECISION`).
+    pub gpu_precision: road_gpu::Precision,
 }
 
 /// What the pools' denoiser runs on.
@@ -93,6 +95,7 @@ impl ServeConfig {
             map_files: Vec::new(),
             foxglove_listen: None,
             engine: ServeEngine::Cpu,
+            gpu_precision: road_gpu::Precision::F32,
         }
     }
 

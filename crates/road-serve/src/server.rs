@@ -117,8 +117,11 @@ impl Server {
                     .to_owned(),
             ),
             ServeEngine::Gpu => {
-                let ctx: &'static GpuContext =
-                    Box::leak(Box::new(GpuContext::new(&ContextOptions::default())?));
+                let options = ContextOptions {
+                    precision: config.gpu_precision,
+                    ..ContextOptions::default()
+                };
+                let ctx: &'static GpuContext = Box::leak(Box::new(GpuContext::new(&options)?));
                 tracing::info!(adapter = %ctx.describe(), "serving on the GPU engine");
                 let engine = format!(
                     "WGSL engine on {} (continuous batching: one pool per checkpoint and planner)",

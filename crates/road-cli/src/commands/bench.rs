@@ -129,6 +129,16 @@ pub struct EngineBenchArgs {
     /// runtime checks, the default) or `unchecked` (`ContextOptions::unchecked_shaders`).
     #[arg(long, num_args = 1.., default_values = ["checked"], value_parser = ["checked", "unchecked"])]
     pub shader_checks: Vec<String>,
+    /// The linear layers' arithmetic, each a GPU row per other setting: `f32` (the default)
+    /// or `f16` (the blocks' layers with f16 inputs and weights, f32 sums; on the tensor cores
+    /// where the adapter offers cooperative matrices, layer by layer: the chains are f32).
+    #[arg(long, num_args = 1.., default_values = ["f32"])]
+    pub precisions: Vec<road_gpu::Precision>,
+    /// Under f16, whether the layers run on the tensor cores where the adapter offers
+    /// cooperative matrices (`on`, the default) or `linear_f16` everywhere (`off`: the same
+    /// rounding without them), each a GPU row per f16 row.
+    #[arg(long, num_args = 1.., default_values = ["on"], value_parser = ["on", "off"])]
+    pub tensor_cores: Vec<String>,
     /// Also time each GPU step kernel by kernel (one evaluation and the Euler update, each
     /// dispatch waited for alone): where the device time goes.
     #[arg(long)]
@@ -156,6 +166,12 @@ fn gpu_setting(row: &serde_json::Value) -> String {
     }
     if row["fusion"].as_str() == Some("layers") {
         setting += ", layer by layer";
+    }
+    if let Some(f16) = row["precision"].as_str().filter(|p| *p != "f32") {
+        setting += &format!(", {f16}");
+        if row["tensor_cores"].as_bool() == Some(true) {
+            setting += " (tensor cores)";
+        }
     }
     setting
 }
@@ -415,22 +431,33 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
     use road_model::batch::SceneInput;
     use road_rollout::StepEngine;
     let validation = load_cache(&args.cache, Split::Validation)?;
-    // One context per fusion, bucketing, shader-check, polyline and linear kernel setting
-    // compared.
+    // One context per fusion, bucketing, shader-check, polyline and linear kernel and
+    // precision setting compared.
     let mut settings = Vec::new();
     for fusion in &args.fusion {
         for bucketing in &args.bucketing {
             for checks in &args.shader_checks {
                 for &polyline_kernel in &args.polyline_kernels {
                     for &linear_kernel in &args.linear_kernels {
-                        settings.push(road_gpu::ContextOptions {
-                            linear_kernel,
-                            polyline_kernel,
-                            unchecked_shaders: checks == "unchecked",
-                            bucket_scenes: bucketing == "on",
-                            residual_chains: fusion == "chains",
-                            ..road_gpu::ContextOptions::default()
-                        });
+                        for &precision in &args.precisions {
+                            // Tensor cores on or off matter to f16 rows alone.
+                            let tensor_cores: &[String] = match precision {
+                                road_gpu::Precision::F32 => &args.tensor_cores[..1],
+                                road_gpu::Precision::F16 => &args.tensor_cores,
+                            };
+                            for cores in tensor_cores {
+                                settings.push(road_gpu::ContextOptions {
+                                    linear_kernel,
+                                    polyline_kernel,
+                                    unchecked_shaders: checks == "unchecked",
+                                    bucket_scenes: bucketing == "on",
+                                    residual_chains: fusion == "chains",
+                                    precision,
+                                    cooperative_matrices: cores == "on",
+                                    ..road_gpu::ContextOptions::default()
+                                });
+                            }
+                        }
                     }
                 }
             }
@@ -526,6 +553,8 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
                     "polyline_kernel": ctx.polyline_kernel_setting(),
                     "bucketing": if ctx.bucket_scenes() { "on" } else { "off" },
                     "fusion": ctx.fusion_setting(),
+                    "precision": ctx.precision().name(),
+                    "tensor_cores": ctx.cooperative_f16(),
                     "flops_per_scene_step": flops,
                     "cpu_ms_per_step": cpu_secs.map(|s| s * 1e3),
                     "cpu_scene_steps_per_sec": cpu_secs.map(|s| b as f64 / s),

@@ -55,6 +55,7 @@ pub fn run(
     config.default_checkpoint = name.to_owned();
     config.record_dir = Some(record.clone());
     config.engine = engine;
+    config.gpu_precision = crate::commands::gpu_options::context_options()?.precision;
     let port = std::net::TcpListener::bind("127.0.0.1:0")?
         .local_addr()?
         .port();

@@ -5,9 +5,9 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 use road_cpu::{CpuEngine, FastCpuEngine};
+use road_gpu::GpuContext;
 use road_gpu::engine::GpuDenoiser;
 use road_gpu::step_engine::GpuStepEngine;
-use road_gpu::{ContextOptions, GpuContext};
 use road_model::checkpoint::{self, LoadedModel};
 use road_model::config::RunConfig;
 use road_rollout::StepEngine;
@@ -110,27 +110,29 @@ impl Engines {
         let gpu = match choice {
             EngineChoice::Cpu | EngineChoice::Candle => None,
             EngineChoice::Gpu => {
-                let ctx = GpuContext::new(&ContextOptions::default())?;
+                let ctx = GpuContext::new(&crate::commands::gpu_options::context_options()?)?;
                 let model = tuned(&ctx, upload(&ctx, &cpu)?);
                 Some((ctx, model))
             }
-            EngineChoice::Auto => match GpuContext::new(&ContextOptions::default()) {
-                Ok(ctx) if !ctx.is_software() => {
-                    let model = tuned(&ctx, upload(&ctx, &cpu)?);
-                    Some((ctx, model))
+            EngineChoice::Auto => {
+                match GpuContext::new(&crate::commands::gpu_options::context_options()?) {
+                    Ok(ctx) if !ctx.is_software() => {
+                        let model = tuned(&ctx, upload(&ctx, &cpu)?);
+                        Some((ctx, model))
+                    }
+                    Ok(ctx) => {
+                        tracing::info!(
+                            adapter = %ctx.describe(),
+                            "software adapter only: running the fast CPU engine instead"
+                        );
+                        None
+                    }
+                    Err(e) => {
+                        tracing::info!("no GPU adapter ({e}): running the fast CPU engine");
+                        None
+                    }
                 }
-                Ok(ctx) => {
-                    tracing::info!(
-                        adapter = %ctx.describe(),
-                        "software adapter only: running the fast CPU engine instead"
-                    );
-                    None
-                }
-                Err(e) => {
-                    tracing::info!("no GPU adapter ({e}): running the fast CPU engine");
-                    None
-                }
-            },
+            }
         };
         Ok(Self {
             cpu,
@@ -150,7 +152,13 @@ impl Engines {
 
     pub fn describe(&self) -> String {
         match &self.gpu {
-            Some((ctx, _)) => format!("WGSL on {}", ctx.info.name),
+            Some((ctx, _)) => match (ctx.precision(), ctx.cooperative_f16()) {
+                (road_gpu::Precision::F32, _) => format!("WGSL on {}", ctx.info.name),
+                (road_gpu::Precision::F16, true) => {
+                    format!("WGSL f16 (tensor cores) on {}", ctx.info.name)
+                }
+                (road_gpu::Precision::F16, false) => format!("WGSL f16 on {}", ctx.info.name),
+            },
             None if self.candle => "the candle CPU reference".into(),
             None => "the fast CPU engine".into(),
         }

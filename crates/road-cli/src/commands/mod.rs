@@ -9,6 +9,7 @@ pub mod eval;
 pub mod flood;
 pub mod fuzz;
 pub mod gpu;
+pub mod gpu_options;
 pub mod recover;
 pub mod render;
 pub mod replay;

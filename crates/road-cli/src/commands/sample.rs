@@ -106,7 +106,7 @@ pub fn run(args: SampleArgs) -> Result<ExitCode> {
             rollout_with(&mut engine, &run.planner, &scenes, steps, &mut rng)?
         }
         Engine::Gpu => {
-            let ctx = road_gpu::GpuContext::new(&road_gpu::ContextOptions::default())?;
+            let ctx = road_gpu::GpuContext::new(&crate::commands::gpu_options::context_options()?)?;
             let model = road_gpu::engine::GpuDenoiser::from_checkpoint(&ctx, &args.checkpoint)?;
             let mut engine = road_gpu::step_engine::GpuStepEngine::new(&ctx, &model);
             rollout_with(&mut engine, &run.planner, &scenes, steps, &mut rng)?

@@ -132,6 +132,7 @@ pub fn run(args: ServeArgs) -> Result<ExitCode> {
     config.max_payload_bytes = args.max_payload_bytes;
     config.foxglove_listen = args.foxglove;
     config.engine = args.engine.resolve();
+    config.gpu_precision = crate::commands::gpu_options::context_options()?.precision;
     for item in &args.maps {
         let (name, path) = item
             .split_once('=')

@@ -91,6 +91,7 @@ pub fn run(
         config.late_ego_deadline = Duration::ZERO;
         config.capacity = b.max(1);
         config.engine = engine;
+        config.gpu_precision = crate::commands::gpu_options::context_options()?.precision;
         let endpoint = format!("tcp/127.0.0.1:{}", free_port()?);
         let server = Server::new(
             config,

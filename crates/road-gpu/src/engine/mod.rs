@@ -25,6 +25,7 @@ use crate::kernels::agent_map::AgentMapParams;
 use crate::kernels::agent_pairs::PairAttentionParams;
 use crate::kernels::attention::{AttentionParams, MAX_HEAD_DIM, TokenLayout};
 use crate::kernels::linear::{Linear, LinearKernel, LinearParams};
+use crate::kernels::linear_f16::{LinearF16, LinearF16Kernel};
 use crate::kernels::polyline::{PolylineEncoder, PolylineKernel, PolylineParams};
 use crate::kernels::residual_chain::{ChainParams, ResidualChain};
 use crate::kernels::{Dispatch, Pipeline, read_back, record_all, rows_of, storage_buffer, upload};
@@ -37,7 +38,7 @@ mod weights;
 use crate::{Error, GpuContext, Result};
 pub(crate) use scratch::Scratch;
 use scratch::{PolylineScratch, part_floats};
-use weights::{CHAIN_BIAS, CHAIN_WEIGHT, MAP_KV_ALL, Slice};
+use weights::{CHAIN_BIAS, CHAIN_WEIGHT, F16_WEIGHT, MAP_KV_ALL, Slice};
 
 const LN_EPS: f32 = 1e-5;
 
@@ -154,6 +155,8 @@ pub(crate) struct Pipelines {
     linear_rowwise: Linear,
     linear_tiled: Linear,
     linear_blocked: Linear,
+    /// The f16 layers' kernel, under [`crate::Precision::F16`].
+    linear_f16: Option<LinearF16>,
     attention: Pipeline,
     embed_tokens: Pipeline,
     precondition_output: Pipeline,
@@ -168,11 +171,16 @@ pub(crate) struct Pipelines {
 }
 
 impl Pipelines {
-    fn new(ctx: &GpuContext) -> Self {
-        Self {
+    fn new(ctx: &GpuContext) -> Result<Self> {
+        let linear_f16 = match ctx.precision() {
+            crate::Precision::F32 => None,
+            crate::Precision::F16 => Some(LinearF16::new(ctx, LinearF16Kernel::for_context(ctx))?),
+        };
+        Ok(Self {
             linear_rowwise: Linear::with_kernel(ctx, LinearKernel::Rowwise),
             linear_tiled: Linear::with_kernel(ctx, LinearKernel::Tiled),
             linear_blocked: Linear::with_kernel(ctx, LinearKernel::Blocked),
+            linear_f16,
             attention: Pipeline::new(ctx, Shader::Attention, "attention"),
             embed_tokens: Pipeline::new(ctx, Shader::Embed, "embed_tokens"),
             precondition_output: Pipeline::new(ctx, Shader::Elementwise, "precondition_output"),
@@ -184,7 +192,7 @@ impl Pipelines {
             pick_agent_maps: Pipeline::new(ctx, Shader::AgentMap, "pick_agent_maps"),
             pair_attention: Pipeline::new(ctx, Shader::AgentPairs, "pair_attention"),
             residual_chain: ResidualChain::new(ctx),
-        }
+        })
     }
 }
 
@@ -313,7 +321,7 @@ impl GpuDenoiser {
             config: config.clone(),
             weights,
             slices,
-            pipelines: Pipelines::new(ctx),
+            pipelines: Pipelines::new(ctx)?,
             tuning: None,
         })
     }
@@ -341,7 +349,9 @@ impl GpuDenoiser {
                 linear_kernel: ctx.named_linear_kernel(),
             },
         };
-        settings.residual_chains &= fits_chain(&self.config);
+        // The chains run f32 only: under f16 the layers run one by one.
+        settings.residual_chains &=
+            fits_chain(&self.config) && ctx.precision() == crate::Precision::F32;
         settings
     }
 
@@ -529,6 +539,23 @@ impl GpuDenoiser {
             ..LinearParams::new(rows, in_dim, out_dim)
         };
         let params = Self::params(ctx, &p);
+        let f16 =
+            (self.pipelines.linear_f16.as_ref()).filter(|_| crate::kernels::linear_f16::fits(&p));
+        if let Some(f16) = f16 {
+            let resources = [
+                x.as_entire_binding(),
+                self.w(&format!("{layer}.weight.{F16_WEIGHT}"))?,
+                self.w(&format!("{layer}.bias"))?,
+                y,
+            ];
+            ops.push(f16.pipeline.prepare_resources(
+                ctx,
+                &params,
+                &resources,
+                f16.kernel.threads(&p),
+            ));
+            return Ok(());
+        }
         let resources = [
             x.as_entire_binding(),
             self.w(&format!("{layer}.weight"))?,

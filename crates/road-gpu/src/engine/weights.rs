@@ -2,13 +2,15 @@
 //! one buffer. On upload the layer norms before a linear layer are folded into its weights,
 //! projections that read the same input are stacked into one layer (q/k/v; the map's k/v, also
 //! of every block at once), and the residual chains get their layers transposed, in the order
-//! they run them, so that each chain binds one short range.
+//! they run them, so that each chain binds one short range. Under f16 each layer's weight is
+//! there as f16 too.
 
 use std::collections::HashMap;
 
 use road_model::ModelConfig;
 
 use super::fits_chain;
+use crate::kernels::linear_f16::to_f16_bytes;
 use crate::kernels::residual_chain::transpose;
 use crate::kernels::upload;
 use crate::{Error, GpuContext, Result};
@@ -26,6 +28,9 @@ pub(super) const MAP_KV_ALL: &str = "packed.map_kv_all";
 /// A residual chain's copy of a layer: its weight transposed (`[in, out]`), its bias.
 pub(super) const CHAIN_WEIGHT: &str = "chain_weight";
 pub(super) const CHAIN_BIAS: &str = "chain_bias";
+
+/// A layer's weight as f16 (`{layer}.weight.f16`), under [`crate::Precision::F16`].
+pub(super) const F16_WEIGHT: &str = "f16";
 
 /// The layers the residual chains run, in the order they run them (the weights buffer's
 /// order): per block time attention's q, k, v and output, the agents', the map's q and output,
@@ -193,17 +198,25 @@ pub(super) fn lay_out(
         .iter()
         .map(|(n, v)| (n.clone(), v))
         .chain(laid);
+    let f16 = ctx.precision() == crate::Precision::F16;
     for (name, values) in laid {
-        let offset = (blob.len() as u64).div_ceil(align) * align;
-        blob.resize(offset as usize, 0);
-        blob.extend_from_slice(bytemuck::cast_slice(values));
-        slices.insert(
-            name,
-            Slice {
-                offset,
-                size: (values.len() * 4) as u64,
-            },
-        );
+        // Under f16 every layer's weights also as f16 (`{name}.f16`), which the f16 kernels
+        // bind instead (`F16_WEIGHT`); the chains' copies are never run in f16.
+        let f16_copy = (f16 && name.ends_with(".weight"))
+            .then(|| (format!("{name}.{F16_WEIGHT}"), to_f16_bytes(values)));
+        let f32_bytes = (name, bytemuck::cast_slice::<f32, u8>(values).to_vec());
+        for (name, bytes) in std::iter::once(f32_bytes).chain(f16_copy) {
+            let offset = (blob.len() as u64).div_ceil(align) * align;
+            blob.resize(offset as usize, 0);
+            blob.extend_from_slice(&bytes);
+            slices.insert(
+                name,
+                Slice {
+                    offset,
+                    size: bytes.len() as u64,
+                },
+            );
+        }
     }
     let weights = upload(ctx, "weights", &blob, wgpu::BufferUsages::STORAGE);
     Ok((weights, slices))

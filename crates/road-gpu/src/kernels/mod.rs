@@ -7,6 +7,7 @@ pub mod agent_pairs;
 pub mod attention;
 pub mod edm;
 pub mod linear;
+pub mod linear_f16;
 pub mod polyline;
 pub mod residual_chain;
 pub mod window;

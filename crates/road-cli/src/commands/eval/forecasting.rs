@@ -138,7 +138,7 @@ pub fn run(args: EvalArgs) -> Result<ExitCode> {
 
     let ctx = match args.engine {
         Engine::Gpu => Some(road_gpu::GpuContext::new(
-            &road_gpu::ContextOptions::default(),
+            &crate::commands::gpu_options::context_options()?,
         )?),
         Engine::Cpu | Engine::Candle => None,
     };
