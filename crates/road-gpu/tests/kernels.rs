@@ -118,18 +118,113 @@ fn linear_matches_on_random_shapes(ctx: &GpuContext, kernel: &road_gpu::kernels:
     }
 }
 
+/// One fused linear layer's random case: rows offset from zero (the norm's shift matters),
+/// weights, biases, a layer norm's γ and β, parts 8 floats apart beyond their `rows · part` (the
+/// gaps must keep their values), `y`'s initial contents and the residual they hold in
+/// `[rows, out]` order.
+struct FusedCase {
+    x: Vec<f32>,
+    w: Vec<f32>,
+    b: Vec<f32>,
+    gamma: Vec<f32>,
+    beta: Vec<f32>,
+    p: road_gpu::kernels::linear::LinearParams,
+    y0: Vec<f32>,
+    residual_in: Vec<f32>,
+}
+
+impl FusedCase {
+    /// `(rows, in, out, part, relu, norm, residual)`.
+    fn new(
+        rng: &mut rand::rngs::StdRng,
+        (rows, in_dim, out_dim, part, relu, norm, residual): (
+            usize,
+            usize,
+            usize,
+            usize,
+            bool,
+            bool,
+            bool,
+        ),
+    ) -> Self {
+        use road_gpu::kernels::linear::LinearParams;
+        let x: Vec<f32> = random(rng, rows * in_dim, 2.0)
+            .iter()
+            .map(|v| v + 0.7)
+            .collect();
+        let w = random(rng, out_dim * in_dim, 0.5);
+        let b = random(rng, out_dim, 0.5);
+        let gamma = random(rng, in_dim, 1.0);
+        let beta = random(rng, in_dim, 1.0);
+        let p = LinearParams {
+            relu: u32::from(relu),
+            residual: u32::from(residual),
+            norm: u32::from(norm),
+            eps: 1e-5,
+            part: part as u32,
+            part_stride: (rows * part + 8) as u32,
+            ..LinearParams::new(rows, in_dim, out_dim)
+        };
+        let y0 = random(rng, p.y_len(), 1.0);
+        let mut case = Self {
+            x,
+            w,
+            b,
+            gamma,
+            beta,
+            p,
+            y0,
+            residual_in: Vec::new(),
+        };
+        case.residual_in = case.gather(&case.y0);
+        case
+    }
+
+    /// Index of output `(r, o)` in `y`'s parts.
+    fn at(&self, r: usize, o: usize) -> usize {
+        let (part, stride) = (self.p.part as usize, self.p.part_stride as usize);
+        (o / part) * stride + r * part + o % part
+    }
+
+    /// `y`'s outputs in `[rows, out]` order.
+    fn gather(&self, y: &[f32]) -> Vec<f32> {
+        let out = self.p.out_dim as usize;
+        (0..self.p.rows as usize * out)
+            .map(|i| y[self.at(i / out, i % out)])
+            .collect()
+    }
+
+    /// Panics unless every gap between `y`'s parts kept its value.
+    fn check_gaps(&self, y: &[f32], shape: &str) {
+        let (rows, part, stride) = (
+            self.p.rows as usize,
+            self.p.part as usize,
+            self.p.part_stride as usize,
+        );
+        let parts = (self.p.out_dim as usize).div_ceil(part);
+        for j in 0..parts.saturating_sub(1) {
+            let gap = j * stride + rows * part..(j + 1) * stride;
+            assert_eq!(
+                y[gap.clone()],
+                self.y0[gap],
+                "{shape}: the gap after part {j}"
+            );
+        }
+    }
+}
+
 /// The fusions the engine runs (`linear.wgsl`'s prologue and epilogue, and outputs split into
 /// parts), each variant against [`road_gpu::reference::linear_fused`]: the layer norm of the
 /// rows first (γ, β folded into the weights as the engine folds them), ReLU, the residual
 /// added into what `y` held; parts at an aligned stride with the gaps between them untouched.
 #[test]
 fn fused_linear_matches_the_cpu_reference_on_random_shapes() {
-    use road_gpu::kernels::linear::{Linear, LinearKernel, LinearParams, fold_layer_norm};
+    use road_gpu::kernels::linear::{Linear, LinearKernel, fold_layer_norm};
     let ctx = context();
     let mut rng = rand::rngs::StdRng::seed_from_u64(13);
     // (rows, in, out, part, relu, norm, residual): the engine's q/k/v (3 parts), map k/v
     // (2 parts), MLP (norm + ReLU, then residual), output projections and head, and tile edges.
-    for (rows, in_dim, out_dim, part, relu, norm, residual) in [
+    for shape in [
         (1, 2, 3, 3, false, true, false),
         (130, 64, 192, 64, false, true, false),
         (65, 32, 64, 32, false, false, false),
@@ -141,42 +236,18 @@ fn fused_linear_matches_the_cpu_reference_on_random_shapes() {
         (257, 96, 288, 96, false, true, false),
         (140, 96, 192, 192, true, true, false),
     ] {
-        let x: Vec<f32> = random(&mut rng, rows * in_dim, 2.0)
-            .iter()
-            .map(|v| v + 0.7)
-            .collect();
-        let w = random(&mut rng, out_dim * in_dim, 0.5);
-        let b = random(&mut rng, out_dim, 0.5);
-        let gamma = random(&mut rng, in_dim, 1.0);
-        let beta = random(&mut rng, in_dim, 1.0);
-        // Parts 8 floats apart beyond their rows · part: the gaps must keep their values.
-        let part_stride = rows * part + 8;
-        let p = LinearParams {
-            relu: u32::from(relu),
-            residual: u32::from(residual),
-            norm: u32::from(norm),
-            eps: 1e-5,
-            part: part as u32,
-            part_stride: part_stride as u32,
-            ..LinearParams::new(rows, in_dim, out_dim)
-        };
-        let y0 = random(&mut rng, p.y_len(), 1.0);
-        // y0 in [rows, out] order: the residual the reference adds.
-        let parts = out_dim.div_ceil(part);
-        let at = |r: usize, o: usize| (o / part) * part_stride + r * part + o % part;
-        let residual_in: Vec<f32> = (0..rows * out_dim)
-            .map(|i| y0[at(i / out_dim, i % out_dim)])
-            .collect();
+        let (rows, in_dim, out_dim, part, relu, norm, residual) = shape;
+        let case = FusedCase::new(&mut rng, shape);
         let want = road_gpu::reference::linear_fused(
-            &x,
-            &w,
-            &b,
+            &case.x,
+            &case.w,
+            &case.b,
             rows,
             in_dim,
             out_dim,
             relu,
-            norm.then_some((&gamma[..], &beta[..], 1e-5)),
-            residual.then_some(&residual_in[..]),
+            norm.then_some((&case.gamma[..], &case.beta[..], 1e-5)),
+            residual.then_some(&case.residual_in[..]),
         );
         // Outputs near 0 come from differences of O(1) terms: the absolute part covers them.
         let tol = Tolerance {
@@ -184,27 +255,23 @@ fn fused_linear_matches_the_cpu_reference_on_random_shapes() {
             abs: 1e-5,
         };
         let (w, b) = if norm {
-            fold_layer_norm(&w, &b, &gamma, &beta)
+            fold_layer_norm(&case.w, &case.b, &case.gamma, &case.beta)
         } else {
-            (w, b)
+            (case.w.clone(), case.b.clone())
         };
         for variant in LinearKernel::ALL {
             let kernel = Linear::with_kernel(&ctx, variant);
-            let y = kernel.run_fused(&ctx, p, &x, &w, &b, &y0).unwrap();
-            let got: Vec<f32> = (0..rows * out_dim)
-                .map(|i| y[at(i / out_dim, i % out_dim)])
-                .collect();
+            let y = kernel
+                .run_fused(&ctx, case.p, &case.x, &w, &b, &case.y0)
+                .unwrap();
             let shape = format!(
-                "{variant:?} {rows}×{in_dim}→{out_dim} in {parts} parts, relu {relu}, \
+                "{variant:?} {rows}×{in_dim}→{out_dim} in parts of {part}, relu {relu}, \
                  norm {norm}, residual {residual}"
             );
-            if let Err(m) = tol.check(&got, &want) {
+            if let Err(m) = tol.check(&case.gather(&y), &want) {
                 panic!("{shape}: {m}");
             }
-            for j in 0..parts.saturating_sub(1) {
-                let gap = j * part_stride + rows * part..(j + 1) * part_stride;
-                assert_eq!(y[gap.clone()], y0[gap], "{shape}: the gap after part {j}");
-            }
+            case.check_gaps(&y, &shape);
         }
     }
 }
@@ -217,7 +284,7 @@ fn fused_linear_matches_the_cpu_reference_on_random_shapes() {
 /// an adapter without it fails here, as one without Vulkan does.
 #[test]
 fn f16_linear_matches_its_reference_on_random_shapes() {
-    use road_gpu::kernels::linear::{LinearParams, fold_layer_norm};
+    use road_gpu::kernels::linear::fold_layer_norm;
     use road_gpu::kernels::linear_f16::{LinearF16, LinearF16Kernel, fits};
     let ctx = GpuContext::new(&ContextOptions {
         validation: true,
@@ -239,7 +306,7 @@ fn f16_linear_matches_its_reference_on_random_shapes() {
     // map k/v, the MLP, output projections), the cooperative kernel's edges (32 rows, 96
     // outputs, K-chunks of 96, out_dim not a multiple of 96), and a shape only the row-wise
     // kernel takes.
-    for (rows, in_dim, out_dim, part, relu, norm, residual) in [
+    for shape in [
         (1, 16, 16, 16, false, false, false),
         (33, 96, 288, 96, false, true, false),
         (200, 96, 384, 384, true, true, false),
@@ -249,36 +316,16 @@ fn f16_linear_matches_its_reference_on_random_shapes() {
         (97, 192, 112, 112, false, true, true),
         (7, 40, 20, 20, false, true, false),
     ] {
-        let x: Vec<f32> = random(&mut rng, rows * in_dim, 2.0)
-            .iter()
-            .map(|v| v + 0.7)
-            .collect();
-        let w = random(&mut rng, out_dim * in_dim, 0.5);
-        let b = random(&mut rng, out_dim, 0.5);
+        let (rows, in_dim, out_dim, _, relu, norm, residual) = shape;
+        let case = FusedCase::new(&mut rng, shape);
+        // The norm's γ, β folded in as the engine uploads them: the kernels standardise alone.
         let (w, b) = if norm {
-            let gamma = random(&mut rng, in_dim, 1.0);
-            let beta = random(&mut rng, in_dim, 1.0);
-            fold_layer_norm(&w, &b, &gamma, &beta)
+            fold_layer_norm(&case.w, &case.b, &case.gamma, &case.beta)
         } else {
-            (w, b)
+            (case.w.clone(), case.b.clone())
         };
-        let part_stride = rows * part + 8;
-        let p = LinearParams {
-            relu: u32::from(relu),
-            residual: u32::from(residual),
-            norm: u32::from(norm),
-            eps: 1e-5,
-            part: part as u32,
-            part_stride: part_stride as u32,
-            ..LinearParams::new(rows, in_dim, out_dim)
-        };
-        let y0 = random(&mut rng, p.y_len(), 1.0);
-        let at = |r: usize, o: usize| (o / part) * part_stride + r * part + o % part;
-        let residual_in: Vec<f32> = (0..rows * out_dim)
-            .map(|i| y0[at(i / out_dim, i % out_dim)])
-            .collect();
         let want = road_gpu::reference::linear_f16(
-            &x,
+            &case.x,
             &w,
             &b,
             rows,
@@ -286,16 +333,16 @@ fn f16_linear_matches_its_reference_on_random_shapes() {
             out_dim,
             relu,
             norm.then_some(1e-5),
-            residual.then_some(&residual_in[..]),
+            residual.then_some(&case.residual_in[..]),
         );
         for kernel in &kernels {
-            if kernel.kernel == LinearF16Kernel::Coop && !fits(&p) {
+            if kernel.kernel == LinearF16Kernel::Coop && !fits(&case.p) {
                 continue; // the engine runs such layers in f32
             }
-            let y = kernel.run_fused(&ctx, p, &x, &w, &b, &y0).unwrap();
-            let got: Vec<f32> = (0..rows * out_dim)
-                .map(|i| y[at(i / out_dim, i % out_dim)])
-                .collect();
+            let y = kernel
+                .run_fused(&ctx, case.p, &case.x, &w, &b, &case.y0)
+                .unwrap();
+            let got = case.gather(&y);
             let shape = format!(
                 "{:?} {rows}×{in_dim}→{out_dim} relu {relu}, norm {norm}, residual {residual}",
                 kernel.kernel
@@ -317,11 +364,7 @@ fn f16_linear_matches_its_reference_on_random_shapes() {
                     panic!("{shape} against the rounded layer: {m}");
                 }
             }
-            let parts = out_dim.div_ceil(part);
-            for j in 0..parts.saturating_sub(1) {
-                let gap = j * part_stride + rows * part..(j + 1) * part_stride;
-                assert_eq!(y[gap.clone()], y0[gap], "{shape}: the gap after part {j}");
-            }
+            case.check_gaps(&y, &shape);
         }
     }
 }

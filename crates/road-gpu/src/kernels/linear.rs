@@ -231,44 +231,49 @@ impl Linear {
         b: &[f32],
         y: &[f32],
     ) -> Result<Vec<f32>> {
-        assert_eq!(y.len(), p.y_len(), "y holds every part");
-        let input = |label: &str, data: &[f32]| {
-            upload(
-                ctx,
-                label,
-                bytemuck::cast_slice(data),
-                wgpu::BufferUsages::STORAGE,
-            )
-        };
-        let params = upload(
-            ctx,
-            "params",
-            bytemuck::bytes_of(&p),
-            wgpu::BufferUsages::UNIFORM,
-        );
-        let (x, w, b) = (input("x", x), input("w", w), input("b", b));
-        let bytes = (y.len() * 4) as u64;
-        let out = storage_buffer(ctx, "y", bytes);
-        ctx.queue.write_buffer(&out, 0, bytemuck::cast_slice(y));
-        let mut encoder = ctx
-            .device
-            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                label: Some("linear"),
-            });
-        self.pipeline.encode(
-            ctx,
-            &mut encoder,
-            &params,
-            &[&x, &w, &b, &out],
-            p.threads(self.kernel),
-        );
-        ctx.queue.submit([encoder.finish()]);
-        if y.is_empty() {
-            return Ok(Vec::new());
-        }
-        let bytes = read_back(ctx, &out, bytes)?;
-        Ok(bytemuck::cast_slice::<u8, f32>(&bytes).to_vec())
+        let w = bytemuck::cast_slice(w);
+        run_once(ctx, &self.pipeline, p, p.threads(self.kernel), (x, w, b), y)
     }
+}
+
+/// One dispatch of a linear kernel family's `pipeline` over `threads` invocations (uploads,
+/// dispatch, read-back; the one-shot form of tests and self-tests): `x`, the weights as the
+/// family binds them (f32 or f16 bytes), `b`, and `y`'s initial contents (`p.y_len()` floats)
+/// → `y` after.
+pub(crate) fn run_once(
+    ctx: &GpuContext,
+    pipeline: &Pipeline,
+    p: LinearParams,
+    threads: u32,
+    (x, w, b): (&[f32], &[u8], &[f32]),
+    y: &[f32],
+) -> Result<Vec<f32>> {
+    assert_eq!(y.len(), p.y_len(), "y holds every part");
+    let storage = wgpu::BufferUsages::STORAGE;
+    let params = upload(
+        ctx,
+        "params",
+        bytemuck::bytes_of(&p),
+        wgpu::BufferUsages::UNIFORM,
+    );
+    let x = upload(ctx, "x", bytemuck::cast_slice(x), storage);
+    let w = upload(ctx, "w", w, storage);
+    let b = upload(ctx, "b", bytemuck::cast_slice(b), storage);
+    let bytes = (y.len() * 4) as u64;
+    let out = storage_buffer(ctx, "y", bytes);
+    ctx.queue.write_buffer(&out, 0, bytemuck::cast_slice(y));
+    let mut encoder = ctx
+        .device
+        .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+            label: Some("linear"),
+        });
+    pipeline.encode(ctx, &mut encoder, &params, &[&x, &w, &b, &out], threads);
+    ctx.queue.submit([encoder.finish()]);
+    if y.is_empty() {
+        return Ok(Vec::new());
+    }
+    let bytes = read_back(ctx, &out, bytes)?;
+    Ok(bytemuck::cast_slice::<u8, f32>(&bytes).to_vec())
 }
 
 #[cfg(test)]

@@ -6,8 +6,8 @@
 //! offered. [`Precision::F16`](crate::Precision) runs a layer this way where [`fits`] holds,
 //! on every adapter alike, so that what lavapipe measures of f16's quality is what a card runs.
 
+use super::Pipeline;
 use super::linear::LinearParams;
-use super::{Pipeline, read_back, storage_buffer, upload};
 use crate::shaders::Shader;
 use crate::{Error, GpuContext, Precision, Result};
 
@@ -130,38 +130,9 @@ impl LinearF16 {
         b: &[f32],
         y: &[f32],
     ) -> Result<Vec<f32>> {
-        assert_eq!(y.len(), p.y_len(), "y holds every part");
-        let storage = wgpu::BufferUsages::STORAGE;
-        let params = upload(
-            ctx,
-            "params",
-            bytemuck::bytes_of(&p),
-            wgpu::BufferUsages::UNIFORM,
-        );
-        let x = upload(ctx, "x", bytemuck::cast_slice(x), storage);
-        let w = upload(ctx, "w16", &to_f16_bytes(w), storage);
-        let b = upload(ctx, "b", bytemuck::cast_slice(b), storage);
-        let bytes = (y.len() * 4) as u64;
-        let out = storage_buffer(ctx, "y", bytes);
-        ctx.queue.write_buffer(&out, 0, bytemuck::cast_slice(y));
-        let mut encoder = ctx
-            .device
-            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                label: Some(self.kernel.entry()),
-            });
-        self.pipeline.encode(
-            ctx,
-            &mut encoder,
-            &params,
-            &[&x, &w, &b, &out],
-            self.kernel.threads(&p),
-        );
-        ctx.queue.submit([encoder.finish()]);
-        if y.is_empty() {
-            return Ok(Vec::new());
-        }
-        let bytes = read_back(ctx, &out, bytes)?;
-        Ok(bytemuck::cast_slice::<u8, f32>(&bytes).to_vec())
+        let w = to_f16_bytes(w);
+        let threads = self.kernel.threads(&p);
+        super::linear::run_once(ctx, &self.pipeline, p, threads, (x, &w, b), y)
     }
 }
 
