@@ -41,7 +41,8 @@ pub struct ContextOptions {
     /// The linear layers' arithmetic ([`Precision`]): f32 by default; f16 needs an adapter
     /// with `SHADER_F16` and runs on the tensor cores where cooperative matrices are offered.
     pub precision: Precision,
-    /// With f16, use the adapter's cooperative matrices where it offers them (on by default);
+    /// With f16, use the adapter's cooperative matrices where it offers them ([`cooperative_f16`];
+    /// on by default);
     /// off, the f16 layers run `linear_f16` (the same numerics without tensor cores): to time
     /// one against the other.
     pub cooperative_matrices: bool,
@@ -55,9 +56,9 @@ pub enum Precision {
     F32,
     /// The layers of the blocks whose inputs and outputs are multiples of 16 (every q/k/v,
     /// output projection and MLP layer) with f16 weights and inputs and f32 sums; layer norms,
-    /// attention, softmax, embeddings and the rest in f32. On the tensor cores (`linear_coop`)
-    /// where the adapter offers cooperative 16 × 16 × 16 f16 matrices with f32 sums and
-    /// subgroups 32 wide, else `linear_f16` with the same rounding.
+    /// attention, softmax, embeddings and the rest in f32. On the tensor cores
+    /// (`linear_coop.wgsl`) where the adapter offers cooperative f16 matrices with f32 sums
+    /// ([`cooperative_f16`]), else `linear_f16` with the same rounding.
     F16,
 }
 
@@ -83,19 +84,38 @@ impl std::str::FromStr for Precision {
     }
 }
 
-/// Whether an adapter offers what `linear_coop` runs on: `EXPERIMENTAL_COOPERATIVE_MATRIX` with a
-/// 16 × 16 × 16 configuration of f16 inputs and f32 sums, `SHADER_F16`, and subgroups of
-/// exactly 32 invocations (the kernel's workgroup is one subgroup).
-pub fn offers_cooperative_f16(adapter: &wgpu::Adapter) -> bool {
+/// The cooperative matrices `linear_coop.wgsl` can run on an adapter: tiles of f16 inputs and
+/// f32 sums, 16 × 16 × 16 (`linear_coop`) or else 8 × 8 × 8 (`linear_coop8`), with `SHADER_F16`
+/// and subgroups of one fixed width (a workgroup is one subgroup).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct CooperativeF16 {
+    /// The tiles' side: 16 or 8.
+    pub tile: u32,
+    /// The adapter's subgroup width: the kernel's workgroup.
+    pub lanes: u32,
+}
+
+/// See [`CooperativeF16`]; `None` where the adapter offers neither configuration.
+pub fn cooperative_f16(adapter: &wgpu::Adapter) -> Option<CooperativeF16> {
     let needed = wgpu::Features::SHADER_F16 | wgpu::Features::EXPERIMENTAL_COOPERATIVE_MATRIX;
     let info = adapter.get_info();
-    adapter.features().contains(needed)
-        && info.subgroup_min_size == 32
-        && info.subgroup_max_size == 32
-        && adapter.cooperative_matrix_properties().iter().any(|p| {
-            (p.m_size, p.n_size, p.k_size) == (16, 16, 16)
+    if !adapter.features().contains(needed) || info.subgroup_min_size != info.subgroup_max_size {
+        return None;
+    }
+    let configs = adapter.cooperative_matrix_properties();
+    let offers = |side: u32| {
+        configs.iter().any(|p| {
+            (p.m_size, p.n_size, p.k_size) == (side, side, side)
                 && p.ab_type == wgpu::CooperativeScalarType::F16
                 && p.cr_type == wgpu::CooperativeScalarType::F32
+        })
+    };
+    [16, 8]
+        .into_iter()
+        .find(|&side| offers(side))
+        .map(|tile| CooperativeF16 {
+            tile,
+            lanes: info.subgroup_min_size,
         })
 }
 
@@ -131,9 +151,9 @@ pub struct GpuContext {
     bucket_scenes: bool,
     residual_chains: bool,
     precision: Precision,
-    /// f16 layers on the tensor cores (`linear_coop`): the adapter offers them, the device has
-    /// them enabled, and the options asked for them.
-    cooperative_f16: bool,
+    /// f16 layers on the tensor cores (`linear_coop.wgsl`): the adapter offers them, the device
+    /// has them enabled, and the options asked for them.
+    cooperative: Option<CooperativeF16>,
 }
 
 /// Advice printed when no adapter exists.
@@ -176,7 +196,7 @@ impl GpuContext {
         // Features only for f16: the f32 path's kernels compile as they always have (the
         // cooperative-matrix feature switches wgpu's SPIR-V to the Vulkan memory model).
         let mut required_features = wgpu::Features::empty();
-        let mut cooperative_f16 = false;
+        let mut cooperative = None;
         if options.precision == Precision::F16 {
             if !adapter.features().contains(wgpu::Features::SHADER_F16) {
                 return Err(Error::Device(format!(
@@ -185,19 +205,13 @@ impl GpuContext {
                 )));
             }
             required_features |= wgpu::Features::SHADER_F16;
-            if options.cooperative_matrices && offers_cooperative_f16(&adapter) {
-                required_features |= wgpu::Features::EXPERIMENTAL_COOPERATIVE_MATRIX;
-                cooperative_f16 = true;
+            if options.cooperative_matrices {
+                cooperative = self::cooperative_f16(&adapter);
             }
-            tracing::info!(
-                tensor_cores = cooperative_f16,
-                "f16 linear layers ({})",
-                if cooperative_f16 {
-                    "linear_coop"
-                } else {
-                    "linear_f16"
-                }
-            );
+            if cooperative.is_some() {
+                required_features |= wgpu::Features::EXPERIMENTAL_COOPERATIVE_MATRIX;
+            }
+            tracing::info!(?cooperative, "f16 linear layers");
         }
         let (device, queue) = adapter
             .request_device(&wgpu::DeviceDescriptor {
@@ -208,7 +222,7 @@ impl GpuContext {
                 // used by `linear_coop` alone, whose every load and store stays in its bindings
                 // and workgroup arrays by construction (`shaders/linear_coop.wgsl`); the
                 // self-test compares it with its CPU reference on the adapter.
-                experimental_features: if cooperative_f16 {
+                experimental_features: if cooperative.is_some() {
                     unsafe { wgpu::ExperimentalFeatures::enabled() }
                 } else {
                     wgpu::ExperimentalFeatures::disabled()
@@ -231,7 +245,7 @@ impl GpuContext {
             // The chains run f32 only.
             residual_chains: options.residual_chains && options.precision == Precision::F32,
             precision: options.precision,
-            cooperative_f16,
+            cooperative,
         })
     }
 
@@ -245,9 +259,15 @@ impl GpuContext {
         self.adapter.features().contains(wgpu::Features::SHADER_F16)
     }
 
-    /// Whether the f16 layers run on the tensor cores (`linear_coop`) rather than `linear_f16`.
+    /// Whether the f16 layers run on the tensor cores (`linear_coop.wgsl`) rather than
+    /// `linear_f16`.
     pub fn cooperative_f16(&self) -> bool {
-        self.cooperative_f16
+        self.cooperative.is_some()
+    }
+
+    /// The cooperative matrices the f16 layers run on, if they do.
+    pub fn cooperative(&self) -> Option<CooperativeF16> {
+        self.cooperative
     }
 
     /// Blocks until the queue's work is done, within the poll timeout.

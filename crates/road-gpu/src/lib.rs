@@ -29,7 +29,7 @@ pub mod tune;
 pub mod tuning;
 
 pub use context::{
-    ContextOptions, GpuContext, Precision, hardware_adapter, offers_cooperative_f16,
+    ContextOptions, CooperativeF16, GpuContext, Precision, cooperative_f16, hardware_adapter,
 };
 pub use tolerance::Tolerance;
 

@@ -457,7 +457,7 @@ fn window_checks(
 }
 
 /// The f16 linear kernels on `ctx` (opened with [`crate::Precision::F16`]): `linear_f16`, and
-/// `linear_coop` where the adapter offers cooperative matrices, on the engine's f16 layers
+/// `linear_coop` (or `linear_coop8`) where the adapter offers cooperative matrices, on the engine's f16 layers
 /// (the MLP's first layer behind its norm, with ReLU; its second with the residual add;
 /// the q/k/v projection in 3 parts, as one layer here). Fed raw rows, each against the layer
 /// with its inputs and weights rounded to f16 (f32 sums: [`Tolerance`]'s 10⁻⁴); behind the
@@ -466,8 +466,8 @@ fn window_checks(
 pub fn f16_kernel_checks(ctx: &GpuContext) -> Result<Vec<KernelCheck>> {
     use crate::kernels::linear_f16::{LinearF16, LinearF16Kernel};
     let mut kernels = vec![LinearF16::new(ctx, LinearF16Kernel::Rowwise)?];
-    if ctx.cooperative_f16() {
-        kernels.push(LinearF16::new(ctx, LinearF16Kernel::Coop)?);
+    if let Some(c) = ctx.cooperative() {
+        kernels.push(LinearF16::new(ctx, LinearF16Kernel::Coop(c))?);
     }
     let mut rng = Inputs(0xF16_5EED);
     let tokens = 3 * 12 * 20;
@@ -477,7 +477,7 @@ pub fn f16_kernel_checks(ctx: &GpuContext) -> Result<Vec<KernelCheck>> {
         (
             [
                 "linear_f16 mlp_in (norm, relu)",
-                "linear_coop mlp_in (norm, relu)",
+                "cooperative mlp_in (norm, relu)",
             ],
             96usize,
             384usize,
@@ -488,7 +488,7 @@ pub fn f16_kernel_checks(ctx: &GpuContext) -> Result<Vec<KernelCheck>> {
         (
             [
                 "linear_f16 mlp_out (residual)",
-                "linear_coop mlp_out (residual)",
+                "cooperative mlp_out (residual)",
             ],
             384,
             96,
@@ -497,7 +497,7 @@ pub fn f16_kernel_checks(ctx: &GpuContext) -> Result<Vec<KernelCheck>> {
             true,
         ),
         (
-            ["linear_f16 qkv (raw rows)", "linear_coop qkv (raw rows)"],
+            ["linear_f16 qkv (raw rows)", "cooperative qkv (raw rows)"],
             96,
             288,
             false,
@@ -550,7 +550,7 @@ pub fn f16_kernel_checks(ctx: &GpuContext) -> Result<Vec<KernelCheck>> {
             checks.push(KernelCheck {
                 name: match kernel.kernel {
                     LinearF16Kernel::Rowwise => names[0],
-                    LinearF16Kernel::Coop => names[1],
+                    LinearF16Kernel::Coop(_) => names[1],
                 },
                 values: got.len(),
                 tolerance,

@@ -85,22 +85,24 @@ fn every_kernel_file_is_embedded() {
     }
 }
 
-/// Every kernel family, with its helpers, also goes through naga's SPIR-V writer as wgpu's
-/// Vulkan backend runs it (SPIR-V 1.6 with indices clamped and loops bounded):
-/// the cooperative-matrix family, which no adapter here can compile (lavapipe offers no
-/// cooperative matrices), is at least written out here, not first on a lent GPU.
+/// Every entry point of every kernel family, with its helpers, also goes through naga's SPIR-V
+/// writer as wgpu's Vulkan backend runs it (override constants at their defaults, one entry
+/// point a module, SPIR-V 1.6 with indices clamped and loops bounded): the cooperative-matrix
+/// family, which CI's lavapipe cannot compile (it offers no cooperative matrices), is at least
+/// written out here, not first on a lent GPU.
 #[test]
 fn every_kernel_family_writes_spirv() {
     for shader in Shader::ALL {
         let source = shader.source();
+        let name = shader.file_name();
         let module = naga::front::wgsl::parse_str(source)
-            .unwrap_or_else(|e| panic!("{}: {}", shader.file_name(), e.emit_to_string(source)));
+            .unwrap_or_else(|e| panic!("{name}: {}", e.emit_to_string(source)));
         let info = naga::valid::Validator::new(
             naga::valid::ValidationFlags::all(),
             naga::valid::Capabilities::all(),
         )
         .validate(&module)
-        .unwrap_or_else(|e| panic!("{}: {}", shader.file_name(), e.emit_to_string(source)));
+        .unwrap_or_else(|e| panic!("{name}: {}", e.emit_to_string(source)));
         // As wgpu's Vulkan backend on a Vulkan 1.3 device without robust buffer access 2:
         // indices clamped, loops bounded.
         let restrict = naga::proc::BoundsCheckPolicy::Restrict;
@@ -115,13 +117,28 @@ fn every_kernel_family_writes_spirv() {
             force_loop_bounding: true,
             ..naga::back::spv::Options::default()
         };
-        let words = naga::back::spv::write_vec(&module, &info, &options, None)
-            .unwrap_or_else(|e| panic!("{}: SPIR-V: {e}", shader.file_name()));
-        assert!(words.len() > 5, "{}: empty SPIR-V", shader.file_name());
-        // For a look with `spirv-val --target-env vulkan1.3` where SPIR-V tools are installed.
-        if let Some(dir) = std::env::var_os("ROAD_SPIRV_OUT") {
-            let path = Path::new(&dir).join(shader.file_name().replace(".wgsl", ".spv"));
-            std::fs::write(&path, bytemuck::cast_slice::<u32, u8>(&words)).unwrap();
+        for entry in &module.entry_points {
+            let stage = (naga::ShaderStage::Compute, entry.name.as_str());
+            let constants = naga::back::PipelineConstants::default();
+            let (module, info) = naga::back::pipeline_constants::process_overrides(
+                &module,
+                &info,
+                Some(stage),
+                &constants,
+            )
+            .unwrap_or_else(|e| panic!("{name} {}: overrides: {e}", entry.name));
+            let pipeline = naga::back::spv::PipelineOptions {
+                shader_stage: naga::ShaderStage::Compute,
+                entry_point: entry.name.clone(),
+            };
+            let words = naga::back::spv::write_vec(&module, &info, &options, Some(&pipeline))
+                .unwrap_or_else(|e| panic!("{name} {}: SPIR-V: {e}", entry.name));
+            assert!(words.len() > 5, "{name} {}: empty SPIR-V", entry.name);
+            // For a look with `spirv-val --target-env vulkan1.3` where SPIR-V tools are installed.
+            if let Some(dir) = std::env::var_os("ROAD_SPIRV_OUT") {
+                let path = Path::new(&dir).join(format!("{}.spv", entry.name));
+                std::fs::write(&path, bytemuck::cast_slice::<u32, u8>(&words)).unwrap();
+            }
         }
     }
 }

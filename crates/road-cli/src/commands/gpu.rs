@@ -105,16 +105,17 @@ pub fn run(cmd: GpuCommand) -> Result<ExitCode> {
                     }
                 );
             }
-            out!(
-                "--precision f16: {}",
-                if road_gpu::offers_cooperative_f16(&ctx.adapter) {
-                    "on the tensor cores (linear_coop)"
-                } else if ctx.offers_shader_f16() {
-                    "linear_f16 (no cooperative 16×16×16 f16 matrices with 32-wide subgroups)"
-                } else {
-                    "not offered (no SHADER_F16)"
-                }
-            );
+            let f16 = match road_gpu::cooperative_f16(&ctx.adapter) {
+                Some(c) => format!(
+                    "on the tensor cores ({}×{} tiles, a workgroup of {})",
+                    c.tile, c.tile, c.lanes
+                ),
+                None if ctx.offers_shader_f16() => "linear_f16 (no cooperative f16 matrices \
+                    with f32 sums of 16 or 8, or subgroups of varying width)"
+                    .to_string(),
+                None => "not offered (no SHADER_F16)".to_string(),
+            };
+            out!("ROAD_GPU_PRECISION=f16: {f16}");
             Ok(ExitCode::SUCCESS)
         }
         GpuCommand::Selftest { checkpoints } => {
@@ -135,10 +136,9 @@ pub fn run(cmd: GpuCommand) -> Result<ExitCode> {
                 .context("cannot open the adapter for f16")?;
                 out!(
                     "f16 layers: {}",
-                    if f16.cooperative_f16() {
-                        "linear_coop (tensor cores)"
-                    } else {
-                        "linear_f16"
+                    match f16.cooperative() {
+                        Some(c) => format!("cooperative {}×{} tiles", c.tile, c.tile),
+                        None => "linear_f16".to_string(),
                     }
                 );
                 for check in road_gpu::selftest::f16_kernel_checks(&f16)? {

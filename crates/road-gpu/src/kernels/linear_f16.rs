@@ -1,68 +1,67 @@
 //! `shaders/linear_f16.wgsl` and `shaders/linear_coop.wgsl`: the fused linear layer of
 //! `linear.wgsl` (same params, bindings and epilogue) with f16 weights and f16 inputs (each row
-//! standardised first under `norm`, then rounded), summed in f32. `linear_coop` runs it on the
-//! tensor cores through cooperative matrices; `linear_f16` is the same rounding on any adapter
-//! with `SHADER_F16` (lavapipe in CI), and the engine's f16 path where no tensor cores are
-//! offered. [`Precision::F16`](crate::Precision) runs a layer this way where [`fits`] holds,
-//! on every adapter alike, so that what lavapipe measures of f16's quality is what a card runs.
+//! standardised first under `norm`, then rounded), summed in f32. `linear_coop` (16 × 16 tiles)
+//! and `linear_coop8` (8 × 8) run it on the tensor cores through cooperative matrices;
+//! `linear_f16` is the same rounding on any adapter with `SHADER_F16` (lavapipe in CI), and the
+//! engine's f16 path where no cooperative matrices are offered.
+//! [`Precision::F16`](crate::Precision) runs a layer this way where [`fits`] holds, on every
+//! adapter alike, so that what lavapipe measures of f16's quality is what a card runs.
 
 use super::Pipeline;
 use super::linear::LinearParams;
 use crate::shaders::Shader;
-use crate::{Error, GpuContext, Precision, Result};
+use crate::{CooperativeF16, Error, GpuContext, Precision, Result};
 
 /// Which f16 kernel computes a layer.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum LinearF16Kernel {
     /// `linear_f16`: one invocation per 4 outputs of a row.
     Rowwise,
-    /// `linear_coop`: one subgroup of 32 per 32 rows × 96 outputs on cooperative matrices.
-    Coop,
+    /// `linear_coop` (16 × 16 tiles: 32 rows × 96 outputs a workgroup) or `linear_coop8` (8 × 8:
+    /// 16 × 48), a workgroup of one subgroup, on cooperative matrices.
+    Coop(CooperativeF16),
 }
 
 impl LinearF16Kernel {
-    /// Rows and outputs of one `linear_coop` workgroup (`COOP_ROWS`, `COOP_OUTS`).
-    pub const COOP_BLOCK: (u32, u32) = (32, 96);
-    /// Invocations of one `linear_coop` workgroup: one subgroup.
-    pub const COOP_WORKGROUP: u32 = 32;
-
     pub fn entry(self) -> &'static str {
         match self {
             Self::Rowwise => "linear_f16",
-            Self::Coop => "linear_coop",
+            Self::Coop(c) if c.tile == 16 => "linear_coop",
+            Self::Coop(_) => "linear_coop8",
         }
     }
 
     fn shader(self) -> Shader {
         match self {
             Self::Rowwise => Shader::LinearF16,
-            Self::Coop => Shader::LinearCoop,
+            Self::Coop(_) => Shader::LinearCoop,
         }
     }
 
     fn workgroup_size(self) -> u32 {
         match self {
             Self::Rowwise => super::WORKGROUP,
-            Self::Coop => Self::COOP_WORKGROUP,
+            Self::Coop(c) => c.lanes,
         }
+    }
+
+    /// Rows and outputs of one cooperative workgroup: 2 × 6 tiles.
+    pub fn coop_block(c: CooperativeF16) -> (u32, u32) {
+        (2 * c.tile, 6 * c.tile)
     }
 
     /// The kernel of `ctx`'s f16 layers: on the tensor cores where it has them.
     pub fn for_context(ctx: &GpuContext) -> Self {
-        if ctx.cooperative_f16() {
-            Self::Coop
-        } else {
-            Self::Rowwise
-        }
+        ctx.cooperative().map_or(Self::Rowwise, Self::Coop)
     }
 
     /// Invocations of one dispatch over `p`.
     pub fn threads(self, p: &LinearParams) -> u32 {
         match self {
             Self::Rowwise => p.rows * p.out_dim.div_ceil(4),
-            Self::Coop => {
-                let (rows, outs) = Self::COOP_BLOCK;
-                p.rows.div_ceil(rows) * p.out_dim.div_ceil(outs) * Self::COOP_WORKGROUP
+            Self::Coop(c) => {
+                let (rows, outs) = Self::coop_block(c);
+                p.rows.div_ceil(rows) * p.out_dim.div_ceil(outs) * c.lanes
             }
         }
     }
@@ -102,19 +101,29 @@ impl LinearF16 {
                 kernel.entry()
             )));
         }
-        if kernel == LinearF16Kernel::Coop && !ctx.cooperative_f16() {
+        let opened = match kernel {
+            LinearF16Kernel::Rowwise => None,
+            LinearF16Kernel::Coop(c) => Some(c),
+        };
+        if let Some(c) = opened.filter(|&c| ctx.cooperative() != Some(c)) {
             return Err(Error::Device(format!(
-                "linear_coop: the adapter {} offers no cooperative 16×16×16 f16 matrices with \
-                 subgroups of 32 (or they were turned off)",
+                "{}: the device was not opened with {c:?} (adapter {})",
+                kernel.entry(),
                 ctx.describe()
             )));
         }
+        let lanes = f64::from(kernel.workgroup_size());
+        let constants: &[(&str, f64)] = match kernel {
+            LinearF16Kernel::Rowwise => &[],
+            LinearF16Kernel::Coop(_) => &[("COOP_LANES", lanes)],
+        };
         Ok(Self {
-            pipeline: Pipeline::with_workgroup_size(
+            pipeline: Pipeline::with_constants(
                 ctx,
                 kernel.shader(),
                 kernel.entry(),
                 kernel.workgroup_size(),
+                constants,
             ),
             kernel,
         })
@@ -167,8 +176,17 @@ mod tests {
     #[test]
     fn coop_threads_cover_whole_blocks() {
         let p = LinearParams::new(33, 96, 288);
-        // 2 row blocks × 3 output blocks, a subgroup each.
-        assert_eq!(LinearF16Kernel::Coop.threads(&p), 2 * 3 * 32);
+        // 16 × 16 tiles: 2 row blocks of 32 × 3 output blocks of 96, a subgroup of 32 each.
+        let nvidia = LinearF16Kernel::Coop(CooperativeF16 {
+            tile: 16,
+            lanes: 32,
+        });
+        assert_eq!(nvidia.threads(&p), 2 * 3 * 32);
+        assert_eq!(nvidia.entry(), "linear_coop");
+        // 8 × 8 tiles: 3 row blocks of 16 × 6 output blocks of 48, a subgroup of 8 each.
+        let lavapipe = LinearF16Kernel::Coop(CooperativeF16 { tile: 8, lanes: 8 });
+        assert_eq!(lavapipe.threads(&p), 3 * 6 * 8);
+        assert_eq!(lavapipe.entry(), "linear_coop8");
         assert_eq!(LinearF16Kernel::Rowwise.threads(&p), 33 * 72);
     }
 }

@@ -147,6 +147,18 @@ impl Pipeline {
         entry: &'static str,
         workgroup_size: u32,
     ) -> Self {
+        Self::with_constants(ctx, shader, entry, workgroup_size, &[])
+    }
+
+    /// An entry point with its override `constants` set (name, value), whose
+    /// `@workgroup_size` they make `workgroup_size`.
+    pub fn with_constants(
+        ctx: &GpuContext,
+        shader: Shader,
+        entry: &'static str,
+        workgroup_size: u32,
+        constants: &[(&str, f64)],
+    ) -> Self {
         let module = if ctx.unchecked_shaders() {
             unchecked_module(ctx, shader)
         } else {
@@ -159,7 +171,10 @@ impl Pipeline {
                 layout: None,
                 module: &module,
                 entry_point: Some(entry),
-                compilation_options: Default::default(),
+                compilation_options: wgpu::PipelineCompilationOptions {
+                    constants,
+                    ..Default::default()
+                },
                 cache: None,
             });
         let layout = pipeline.get_bind_group_layout(0);
