@@ -86,7 +86,7 @@ run)
     # it was.
     limit_scale=1
     # finish: the cache removed and, with --pack, every file of $out in one suite.tar (a lent
-    # machine returns at most 8 files; the full suite writes 15).
+    # machine returns at most 8 files; the full suite writes 16).
     finish() {
         rm -rf "$out/cache"
         if $pack; then
@@ -152,12 +152,19 @@ run)
     step engine-buckets 60 "$out/engine-buckets.json" "$bin" bench engine \
         --checkpoints models/road20-wide4 models/road20 --batches "${batches[@]}" \
         --cpu-max-batch 0 --bucketing on off --cache "$out/cache" --json
-    # f16 (the blocks' layers on the tensor cores where cooperative matrices are offered, and
-    # `linear_f16`, the same rounding without them; layer by layer, as f16 runs) beside f32
-    # layer by layer, the same run; the self-test above checked each against its reference.
+    # f16 (the blocks' layers on the tensor cores where cooperative matrices are offered;
+    # layer by layer, as f16 runs) beside f32 layer by layer, the same run; the self-test above
+    # checked it against its reference. Then `linear_f16` (the same rounding without tensor
+    # cores) beside it up to 512 scenes, a step of its own: row-wise at thousands of scenes it
+    # could overrun, and a step cut off returns nothing.
     $f16 && step engine-f16 90 "$out/engine-f16.json" "$bin" bench engine \
         --checkpoints models/road20-wide4 --batches "${batches[@]}" --cpu-max-batch 0 \
-        --fusion layers --precisions f32 f16 --tensor-cores on off --cache "$out/cache" --json
+        --fusion layers --precisions f32 f16 --cache "$out/cache" --json
+    f16_off_batches=(1 8 64 512)
+    $quick && f16_off_batches=(1 8)
+    $f16 && step engine-f16-cores 60 "$out/engine-f16-cores.json" "$bin" bench engine \
+        --checkpoints models/road20-wide4 --batches "${f16_off_batches[@]}" --cpu-max-batch 0 \
+        --fusion layers --precisions f16 --tensor-cores on off --cache "$out/cache" --json
     step engine-profile 120 "$out/engine-profile.json" "$bin" bench engine \
         --checkpoints models/road20-wide4 --batches "${profile_batches[@]}" --cpu-max-batch 0 \
         --linear-kernels auto --fusion chains layers --shader-checks checked unchecked --profile \

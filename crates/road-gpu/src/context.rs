@@ -41,10 +41,9 @@ pub struct ContextOptions {
     /// The linear layers' arithmetic ([`Precision`]): f32 by default; f16 needs an adapter
     /// with `SHADER_F16` and runs on the tensor cores where cooperative matrices are offered.
     pub precision: Precision,
-    /// With f16, use the adapter's cooperative matrices where it offers them ([`cooperative_f16`];
-    /// on by default);
-    /// off, the f16 layers run `linear_f16` (the same numerics without tensor cores): to time
-    /// one against the other.
+    /// With f16, use the adapter's cooperative matrices where it offers them
+    /// ([`cooperative_f16`]; on by default); off, the f16 layers run `linear_f16` (the same
+    /// rounding without tensor cores): to time one against the other.
     pub cooperative_matrices: bool,
 }
 
