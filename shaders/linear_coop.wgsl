@@ -5,7 +5,7 @@
 // of the model's blocks); `linear_f16.wgsl` has the same rounding everywhere else.
 // A workgroup is one subgroup (`COOP_LANES` invocations, set to the adapter's width) and
 // computes a block of rows × outputs as 2 × 6 accumulator tiles: 32 × 96 with 16 × 16 tiles
-// (`linear_coop`: NVIDIA's), 16 × 48 with 8 × 8 ones (`linear_coop8`: lavapipe's, Apple's). Per
+// (`linear_coop`: NVIDIA's), 16 × 48 with 8 × 8 ones (`linear_coop8`: Mesa 26's lavapipe's). Per
 // K-chunk of 96 it stages its rows' inputs in workgroup memory as f16 (standardised first under
 // `norm`: the statistics from one pass over each row), then per tile of K loads the two row
 // tiles from there and the six weight tiles straight from the f16 weights (2–10 MB: they stay

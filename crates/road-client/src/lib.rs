@@ -36,8 +36,8 @@ use inbox::Inbox;
 
 pub use road_protocol as protocol;
 use road_protocol::{
-    AgentState, CloseScene, CreateScene, EgoTick, ErrorReply, Keys, NpcTick, SceneClosed,
-    SceneCreated, Status,
+    AgentState, CloseScene, CreateScene, EgoTick, ErrorCode, ErrorReply, Keys, NpcTick,
+    SceneClosed, SceneCreated, SceneStatus, Status,
 };
 
 /// Errors of the client: the server refused (its [`ErrorReply`]), nothing came in time, or
@@ -337,6 +337,12 @@ impl Client {
         self.query(&self.keys.status(), Vec::new())
     }
 
+    /// One live scene's line of the status (`status?scene=<id>`); [`Error::Refused`] with
+    /// `unknown_scene` when the server holds no such scene.
+    pub fn scene_status(&self, scene: u64) -> Result<SceneStatus> {
+        self.query(&format!("{}?scene={scene}", self.keys.status()), Vec::new())
+    }
+
     /// Closes a scene by id, with its secret (`SceneCreated::token`; [`Scene::close`] knows
     /// it).
     pub fn close_scene(&self, scene: u64, token: &str) -> Result<SceneClosed> {
@@ -436,7 +442,10 @@ impl Scene {
     /// timeout.
     pub fn wait_tick(&mut self, tick: u64) -> Result<NpcTick> {
         let deadline = Instant::now() + self.timeout;
-        let mut next_probe = Instant::now() + PROBE_INTERVAL;
+        // Clients waiting in lockstep would ask together: each scene's probes are offset by
+        // up to half an interval, by its id.
+        let offset = PROBE_INTERVAL.mul_f64((self.created.scene % 64) as f64 / 128.0);
+        let mut next_probe = Instant::now() + PROBE_INTERVAL + offset;
         loop {
             if Instant::now() >= next_probe {
                 self.probe_scene()?;
@@ -467,15 +476,25 @@ impl Scene {
         }
     }
 
-    /// [`Error::SceneGone`] when the server answers its status without this scene; nothing
-    /// when it does not answer (the wait goes on: a router may be coming back).
+    /// [`Error::SceneGone`] when the server says it holds no such scene; nothing when it does
+    /// not answer (the wait goes on: a router may be coming back). It asks for this scene's
+    /// status alone (`status?scene=<id>`): the whole status grows with the server's scenes,
+    /// and every waiting client asks. A server before that query answers the whole status,
+    /// which is read the old way.
     fn probe_scene(&self) -> Result<()> {
-        let key = self.keys.status();
-        let Ok(Ok(bytes)) = query_raw(&self.session, &key, Vec::new(), PROBE_INTERVAL) else {
-            return Ok(());
+        let key = format!("{}?scene={}", self.keys.status(), self.created.scene);
+        let gone = match query_raw(&self.session, &key, Vec::new(), PROBE_INTERVAL) {
+            Ok(Ok(bytes)) => match parse_reply::<SceneStatus>(&key, &bytes) {
+                Ok(_) => false,
+                Err(_) => {
+                    let status: Status = parse_reply(&key, &bytes)?;
+                    !status.scenes.iter().any(|s| s.scene == self.created.scene)
+                }
+            },
+            Ok(Err(refused)) => refused.code == ErrorCode::UnknownScene,
+            Err(_) => false,
         };
-        let status: Status = parse_reply(&key, &bytes)?;
-        if status.scenes.iter().any(|s| s.scene == self.created.scene) {
+        if !gone {
             return Ok(());
         }
         // The NPCs may have come (and the scene closed at its last tick) meanwhile.

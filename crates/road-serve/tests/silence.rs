@@ -1,6 +1,7 @@
 //! Issue 41, finding 3: a scene whose client goes quiet is closed as `client_silent`, however
 //! many ticks the late-ego policy drove for it meanwhile; and so is one whose ego has been
-//! missing for too many ticks in a row.
+//! missing for too many ticks in a row. And the status of one scene, by which a waiting client
+//! finds its scene gone.
 
 mod common;
 
@@ -78,5 +79,35 @@ fn a_client_that_answers_keeps_its_scene() {
         t += 1;
     }
     scene.close().unwrap();
+    server.stop().unwrap();
+}
+
+/// `status?scene=<id>` (what a waiting client probes): that live scene's line alone; for an id
+/// the server does not hold, `unknown_scene` naming it; for one that is no number,
+/// `invalid_field` naming the parameter. The whole status is unchanged beside it.
+#[test]
+fn a_scenes_own_status_is_its_line_alone_and_bad_ids_are_named() {
+    let dir = common::temp_dir("scene-status");
+    let server = common::start(common::config(&dir));
+    let c = common::client(&server, "asker");
+    let scene = c.create(common::roundabout()).unwrap();
+    let own = c.scene_status(scene.id()).unwrap();
+    assert_eq!(own.scene, scene.id());
+    assert_eq!(own.client.as_deref(), Some("asker"));
+    let missing = scene.id() + 1000;
+    match c.scene_status(missing).unwrap_err() {
+        road_client::Error::Refused(e) => {
+            assert_eq!(e.code, ErrorCode::UnknownScene, "{e}");
+            assert_eq!(e.scene, Some(missing), "{e}");
+        }
+        other => panic!("expected unknown_scene, got {other}"),
+    }
+    let key = format!("{}?scene=first", c.keys().status());
+    let refused = c.query_raw(&key, Vec::new()).unwrap().unwrap_err();
+    assert_eq!(refused.code, ErrorCode::InvalidField, "{refused}");
+    assert_eq!(refused.field.as_deref(), Some("scene"), "{refused}");
+    assert!(refused.message.contains("scene=first"), "{refused}");
+    let status = c.status().unwrap();
+    assert!(status.scenes.iter().any(|s| s.scene == scene.id()));
     server.stop().unwrap();
 }
