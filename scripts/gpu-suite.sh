@@ -6,7 +6,7 @@
 #
 #   bash scripts/gpu-suite.sh prepare     # here: dist/road.gz (stripped release binary) and
 #                                         # dist/validation.roadds.gz (from .road-cache)
-#   bash scripts/gpu-suite.sh run [--quick] [--no-torch] [--engine-only] [--pack]
+#   bash scripts/gpu-suite.sh run [--quick] [--no-torch] [--engine-only] [--pack] [--budget-secs S]
 #                                         # there (device tool: carry ["dist", ".gl"]), or here
 #                                         # on lavapipe; writes $OUT (default gpu-suite-out/)
 #
@@ -47,15 +47,22 @@ run)
     torch=true
     engine_only=false
     pack=false
-    for option in "${@:2}"; do
-        case "$option" in
+    budget=0
+    args=("${@:2}")
+    for ((i = 0; i < ${#args[@]}; i++)); do
+        case "${args[$i]}" in
         --quick) quick=true ;;
         --no-torch) torch=false ;;
         --engine-only) engine_only=true ;;
         --pack) pack=true ;;
-        *) echo "unknown option $option (run [--quick] [--no-torch] [--engine-only] [--pack])" >&2; exit 2 ;;
+        --budget-secs) i=$((i + 1)); budget=${args[$i]:-0} ;;
+        *) echo "unknown option ${args[$i]} (run [--quick] [--no-torch] [--engine-only] [--pack] [--budget-secs S])" >&2; exit 2 ;;
         esac
     done
+    # With --budget-secs, each step's limit is cut to what is left of the budget (less 20 s
+    # for packing) and a step with under 20 s left is skipped, so that the suite always ends
+    # by itself and packs what it has: a device call cut off at its limit packs nothing.
+    suite_start=$(date +%s)
     bin="${ROAD_BIN:-dist/road}"
     out="${OUT:-gpu-suite-out}"
     mkdir -p "$out"
@@ -99,6 +106,14 @@ run)
         local name=$1 secs=$(($2 * limit_scale)) output=$3 start rc=0
         shift 3
         start=$(date +%s)
+        if [ "$budget" -gt 0 ]; then
+            local left=$((suite_start + budget - 20 - start))
+            if [ "$left" -lt 20 ]; then
+                echo "$name: skipped, $left s of the budget left" | tee -a "$out/steps.txt"
+                return 0
+            fi
+            if [ "$left" -lt "$secs" ]; then secs=$left; fi
+        fi
         timeout "$secs" "$@" > "$output" || rc=$?
         echo "$name: exit $rc after $(($(date +%s) - start)) s (limit $secs s)" | tee -a "$out/steps.txt"
     }
@@ -181,7 +196,7 @@ run)
         --checkpoint models/road20-wide4 --engines gpu --scenes 2048 4096 --ticks "$ticks" \
         --cache "$out/cache" --json
     # Serving with the f16 layers (ROAD_GPU_PRECISION), the GPU alone, up to its ceiling.
-    f16_scenes=(512 2048 4096)
+    f16_scenes=(2048 4096)
     $quick && f16_scenes=(1 8)
     $f16 && ROAD_GPU_PRECISION=f16 step serve-f16 90 "$out/serve-f16.json" "$bin" bench serve \
         --checkpoint models/road20-wide4 --engines gpu --scenes "${f16_scenes[@]}" \
