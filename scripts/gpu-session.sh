@@ -7,7 +7,8 @@
 # the run's tar and its training state in 15 MiB parts (see the end of this script).
 #
 #   bash scripts/gpu-session.sh [--budget-secs S] [--from DIR] [--config CONFIG]
-#                               [--train-bench-secs S] [--quick] [-- torch_train.py train options]
+#                               [--train-bench-secs S] [--no-suite] [--quick]
+#                               [-- torch_train.py train options]
 #
 #   --budget-secs S   the whole command's wall clock (default 540: a device call may run 600)
 #   --from DIR        the previous lend's run folder (its tar unpacked and its state parts
@@ -17,6 +18,8 @@
 #                 run's model at batches of 256 and 1024, fp32 (the path before 2026-11-26),
 #                 bf16 with batches made on the GPU, and that compiled (which did not finish
 #                 compiling within 120 s on the H100)
+#   --no-suite    skip the engine suite (a lend whose first call ran the whole suite:
+#                 scripts/gpu-suite.sh run --budget-secs 510; this call then trains)
 #   --quick       small batches (how this machine tests the procedure on lavapipe and the CPU)
 #   options after `--` go to torch_train.py train (default: --precision bf16 --pipeline device;
 #                 not --compile: on the H100, 2026-11-26, compiling road20-large took the
@@ -36,6 +39,7 @@ from=""
 config=configs/road20-large.toml
 bench_secs=120
 quick=()
+suite=true
 train_options=(--precision bf16 --pipeline device)
 while [ $# -gt 0 ]; do
     case "$1" in
@@ -44,6 +48,7 @@ while [ $# -gt 0 ]; do
     --config) config=$2; shift 2 ;;
     --train-bench-secs) bench_secs=$2; shift 2 ;;
     --quick) quick=(--quick); shift ;;
+    --no-suite) suite=false; shift ;;
     --) shift; train_options=("$@"); break ;;
     *) sed -n '2,/^set -euo/p' "$0" | sed '$d' >&2; exit 2 ;;
     esac
@@ -55,8 +60,10 @@ export ROAD_TORCH_EXPORT=${ROAD_TORCH_EXPORT:-.road-cache/torch-large}
 left() { echo $((started + budget - $(date +%s))); }
 
 # 1. The engine suite: self-test, engine (GPU settings side by side), profile, serving.
-OUT="$out" bash scripts/gpu-suite.sh run --engine-only ${quick[@]+"${quick[@]}"} \
-    || echo "suite: exit $?" >>"$out/steps.txt"
+if $suite; then
+    OUT="$out" bash scripts/gpu-suite.sh run --engine-only ${quick[@]+"${quick[@]}"} \
+        || echo "suite: exit $?" >>"$out/steps.txt"
+fi
 
 # 2. The trainer's throughput: a few timed steps per variant, no checkpoint.
 if [ "$bench_secs" -gt 0 ] && [ "$(left)" -gt $((bench_secs + 120)) ]; then
@@ -93,7 +100,8 @@ echo "train: exit $rc after $(($(date +%s) - start)) s (budget $minutes min)" | 
 # copies of the weights: 29 MB for road20-large) in parts of 15 MiB. Back here:
 # `cat $run.train_state.part-* > $run/train_state.safetensors` restores it for --from.
 results=()
-for f in machine.txt engine.json engine-buckets.json engine-profile.json serve.json serve-large.json train-bench.json; do
+for f in machine.txt engine.json engine-buckets.json engine-f16.json engine-f16-cores.json \
+    engine-profile.json serve.json serve-large.json serve-f16.json train-bench.json; do
     [ -f "$out/$f" ] && results+=("$f")
 done
 if [ ${#results[@]} -gt 0 ]; then
