@@ -1226,9 +1226,9 @@ impl Core {
     }
 
     /// The status query: the whole `Status`, or with `?scene=<id>` that live scene's
-    /// `SceneStatus` alone (or `unknown_scene`): what a client waiting for a tick asks, a few
-    /// bytes whatever the server holds (the whole status of 1 024 scenes is ~110 kB, asked by
-    /// every waiting client).
+    /// `SceneStatus` alone (or `unknown_scene`): what a client waiting for a tick asks, one
+    /// line whatever the server holds (the whole status has a line per scene, and at thousands
+    /// of scenes every client waits at once).
     fn on_status(&self, query: &Query) {
         let Some(value) = query.parameters().get("scene") else {
             return reply_ok(query, &self.status());
