@@ -162,7 +162,9 @@ run)
         --cache "$out/cache" --json
     # 4 096 scenes of road20-wide4 padded to 23 agents pass the adapter's 2 GiB binding when
     # profiled whole (H200, 2026-11-30); bucketed, as the engine step runs them, they fit.
-    profile_batches=(512 2048)
+    # One scene too: its 3.6 ms a Heun step (24 dispatches) is 75 µs a dispatch, far above a
+    # kernel's work there; the profile's round trip and per-kernel times say which it is.
+    profile_batches=(1 512 2048)
     $quick && profile_batches=(8)
     # Scenes bucketed by agent count (the default since 2026-11-26) against one batch padded to
     # the most agents, the default kernels.
