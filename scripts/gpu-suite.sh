@@ -126,8 +126,14 @@ run)
     # Kernels and whole denoisers against the CPU references on this adapter: nothing is timed
     # unless they agree.
     # (Into machine.txt too: a lent machine returns at most 8 files.)
+    selftest=0
     "$bin" gpu selftest --checkpoints models/road20-wide4 models/road20 --precisions f32 \
-        | tee -a "$out/machine.txt"
+        | tee -a "$out/machine.txt" || selftest=${PIPESTATUS[0]}
+    if [ "$selftest" -ne 0 ]; then
+        echo "selftest: exit $selftest: nothing timed" | tee -a "$out/steps.txt"
+        finish
+        exit "$selftest"
+    fi
     # f16 in a process of its own: a driver that refuses the cooperative kernels (a panic,
     # not a mismatch) or a mismatch skips the f16 steps and stops nothing else.
     f16=true
@@ -162,8 +168,8 @@ run)
         --cache "$out/cache" --json
     # 4 096 scenes of road20-wide4 padded to 23 agents pass the adapter's 2 GiB binding when
     # profiled whole (H200, 2026-11-30); bucketed, as the engine step runs them, they fit.
-    # One scene too: its 3.6 ms a Heun step (24 dispatches) is 75 µs a dispatch, far above a
-    # kernel's work there; the profile's round trip and per-kernel times say which it is.
+    # One scene too: its 3.6 ms a Heun step (2 evaluations of 24 dispatches) is 75 µs a
+    # dispatch, far above a kernel's work there; the profile's round trip and per-kernel times say which it is.
     profile_batches=(1 512 2048)
     $quick && profile_batches=(8)
     # Scenes bucketed by agent count (the default since 2026-11-26) against one batch padded to
