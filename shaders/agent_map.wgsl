@@ -5,7 +5,9 @@
 // then the lower index).
 //
 // One invocation per agent row; the polylines' distances sit in a private array, so a scene
-// offers at most MAX_POLYLINES of them (the engine checks `map_polylines` against it).
+// offers at most MAX_POLYLINES of them (the engine checks `map_polylines` against it). Each
+// agent row picks from the map of its scene `agent_scene[row]`: a plain batch's row of scene b
+// holds b; a packed batch (several scenes' agents in one of its scenes) holds the map's.
 
 struct Params {
     rows: u32,        // B·A agent rows
@@ -24,10 +26,11 @@ const FAR: f32 = 3.0e38;
 @group(0) @binding(0) var<uniform> params: Params;
 @group(0) @binding(1) var<storage, read> x: array<f32>;          // [B, A, W, 3]
 @group(0) @binding(2) var<storage, read> valid: array<f32>;      // [B, A, W]
-@group(0) @binding(3) var<storage, read> map_points: array<f32>; // [B, P, Q, 2]
-@group(0) @binding(4) var<storage, read> map_valid: array<f32>;  // [B, P]
-@group(0) @binding(5) var<storage, read_write> out_points: array<f32>; // [B·A, K, Q, 2]
-@group(0) @binding(6) var<storage, read_write> out_valid: array<f32>;  // [B·A, K]
+@group(0) @binding(3) var<storage, read> map_points: array<f32>; // [M, P, Q, 2]: M map scenes
+@group(0) @binding(4) var<storage, read> map_valid: array<f32>;  // [M, P]
+@group(0) @binding(5) var<storage, read> agent_scene: array<u32>;     // [B·A]: map scene
+@group(0) @binding(6) var<storage, read_write> out_points: array<f32>; // [B·A, K, Q, 2]
+@group(0) @binding(7) var<storage, read_write> out_valid: array<f32>;  // [B·A, K]
 
 @compute @workgroup_size(64)
 fn pick_agent_maps(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
@@ -35,7 +38,7 @@ fn pick_agent_maps(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     if (row >= params.rows) {
         return;
     }
-    let scene = row / params.agents;
+    let scene = agent_scene[row];
     let token = row * params.slots + params.anchor_slot;
     let v = valid[token];
     let ax = x[3u * token] * v;

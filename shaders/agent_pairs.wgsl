@@ -5,8 +5,10 @@
 //
 // Tokens are [B, A, W, D] (q, k, v, out), states [B, A, W, 3], flags [B, A, W]; group n =
 // (scene, slot); token l = agent. The pair weights are [D, F] (head h owns rows h·head_dim…).
-// Masked keys carry exactly zero weight; a query with no valid key yields zeros (as
-// attention.wgsl). One invocation per (group, head, query) with an online softmax; heads of 16
+// Masked keys carry exactly zero weight: invalid ones, and those of another scene where a
+// packed batch holds several scenes in one (`agent_scene`, [B·A]: agents attend only to agents
+// of their own scene; a plain batch's row a of scene b holds b). A query with no valid key
+// yields zeros (as attention.wgsl). One invocation per (group, head, query) with an online softmax; heads of 16
 // keep the query and the accumulator in registers (as attention.wgsl).
 
 struct Params {
@@ -36,7 +38,8 @@ const F: u32 = 6u;
 @group(0) @binding(5) var<storage, read> states: array<f32>;
 @group(0) @binding(6) var<storage, read> pair_k: array<f32>;
 @group(0) @binding(7) var<storage, read> pair_v: array<f32>;
-@group(0) @binding(8) var<storage, read_write> out: array<f32>;
+@group(0) @binding(8) var<storage, read> agent_scene: array<u32>; // [B·A]
+@group(0) @binding(9) var<storage, read_write> out: array<f32>;
 
 // Token row of agent `agent` in group (scene, slot).
 fn row_of(group: u32, agent: u32) -> u32 {
@@ -82,6 +85,7 @@ fn pair_attention(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wo
     let anchor_heading = states[anchor_row * 3u + 2u] * valid[anchor_row] / params.heading_scale;
     let cos_a = cos(anchor_heading);
     let sin_a = sin(anchor_heading);
+    let own_scene = agent_scene[scene * params.agents + query];
 
     // K_hᵀ q_h.
     var q_pair: array<f32, 6>;
@@ -93,7 +97,7 @@ fn pair_attention(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wo
         q_pair[f] = acc;
     }
     if (hd == 16u) {
-        pair_attend16(group, q_row, q_base, head, d, cos_a, sin_a, q_pair);
+        pair_attend16(group, q_row, q_base, head, d, cos_a, sin_a, q_pair, own_scene);
         return;
     }
 
@@ -109,7 +113,7 @@ fn pair_attention(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wo
     var denom = 0.0;
     for (var j = 0u; j < params.agents; j++) {
         let k_row = row_of(group, j);
-        if (valid[k_row] == 0.0) {
+        if (!is_key(group, j, k_row, own_scene)) {
             continue;
         }
         var r = pair_features(q_row, k_row, cos_a, sin_a);
@@ -144,6 +148,13 @@ fn pair_attention(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wo
     }
 }
 
+// Whether agent `agent` (token row `k_row`) of group `group` is a key of a query of scene
+// `own_scene`: valid, and of the same scene.
+fn is_key(group: u32, agent: u32, k_row: u32, own_scene: u32) -> bool {
+    let scene = group / params.slots;
+    return valid[k_row] != 0.0 && agent_scene[scene * params.agents + agent] == own_scene;
+}
+
 // Four consecutive floats of q, k or v from `i`.
 fn q4(i: u32) -> vec4<f32> {
     return vec4<f32>(q[i], q[i + 1u], q[i + 2u], q[i + 3u]);
@@ -159,7 +170,7 @@ fn v4(i: u32) -> vec4<f32> {
 // four vec4 registers.
 fn pair_attend16(
     group: u32, q_row: u32, q_base: u32, head: u32, d: u32, cos_a: f32, sin_a: f32,
-    q_pair: array<f32, 6>,
+    q_pair: array<f32, 6>, own_scene: u32,
 ) {
     let q0 = q4(q_base);
     let q1 = q4(q_base + 4u);
@@ -177,7 +188,7 @@ fn pair_attend16(
     var denom = 0.0;
     for (var j = 0u; j < params.agents; j++) {
         let k_row = row_of(group, j);
-        if (valid[k_row] == 0.0) {
+        if (!is_key(group, j, k_row, own_scene)) {
             continue;
         }
         let r = pair_features(q_row, k_row, cos_a, sin_a);

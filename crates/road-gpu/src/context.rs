@@ -24,8 +24,10 @@ pub struct ContextOptions {
     /// chunk by chunk (at least 64 polylines each) so that agent maps of large batches fit one
     /// buffer binding. Tests make it tiny to run many chunks.
     pub map_encoder_chunk_bytes: u64,
-    /// Step scenes of mixed agent counts in buckets of like counts once enough of them move
-    /// (`GpuStepEngine`; on by default): less padded work for more dispatches.
+    /// Step scenes of mixed agent counts with less padding once enough of them move
+    /// (`GpuStepEngine`; on by default): packed, several small scenes' agents in one
+    /// sub-batch scene (models with agent maps and agent pairs: one batch's dispatches), else
+    /// in buckets of like counts (more dispatches).
     pub bucket_scenes: bool,
     /// Compile the kernels without wgpu's runtime checks (index clamping, loop bounding,
     /// division guards): every kernel here bounds its own indices and loops, and divides by

@@ -245,7 +245,8 @@ pub fn attention(
 /// Agent attention with pair features: per (scene, slot) group, head and query agent, softmax
 /// over valid key agents of `(q·k + (K_hᵀ q)·r) · scale`, output `Σ a (v + V_h r)`, with `r` of
 /// `road_model::agent_pairs::pair_features` in the query agent's anchor frame (its state at
-/// the anchor slot times its flag there, as `anchors_of`). Zeros where no key is valid.
+/// the anchor slot times its flag there, as `anchors_of`). Keys of another scene
+/// (`agent_scene [B·A]`, a packed batch's) carry no weight. Zeros where no key is valid.
 #[allow(clippy::too_many_arguments)]
 pub fn pair_attention(
     p: &PairAttentionParams,
@@ -256,6 +257,7 @@ pub fn pair_attention(
     states: &[f32],
     pair_k: &[f32],
     pair_v: &[f32],
+    agent_scene: &[u32],
 ) -> Vec<f32> {
     use road_model::agent_pairs::{PAIR_FEATURES as F, pair_features};
     let (a, w) = (p.agents as usize, p.slots as usize);
@@ -289,7 +291,9 @@ pub fn pair_attention(
                     let mut scored = Vec::new();
                     for j in 0..a {
                         let kj = row(scene, j, slot);
-                        if valid[kj] == 0.0 {
+                        if valid[kj] == 0.0
+                            || agent_scene[scene * a + j] != agent_scene[scene * a + i]
+                        {
                             continue;
                         }
                         let r = pair_features(

@@ -290,8 +290,31 @@ pub fn kernel_checks(ctx: &GpuContext) -> Result<Vec<KernelCheck>> {
         far: 0.5,
         _pad: 0,
     };
-    let got = PairAttention::new(ctx).run(ctx, p, &q, &k, &v, &valid, &states, &pair_k, &pair_v)?;
-    let want = reference::pair_attention(&p, &q, &k, &v, &valid, &states, &pair_k, &pair_v);
+    // Each scene's agents as two packed scenes (even and odd rows), attending apart.
+    let agent_scene: Vec<u32> = (0..b * a).map(|r| (2 * (r / a) + r % 2) as u32).collect();
+    let got = PairAttention::new(ctx).run(
+        ctx,
+        p,
+        &q,
+        &k,
+        &v,
+        &valid,
+        &states,
+        &pair_k,
+        &pair_v,
+        &agent_scene,
+    )?;
+    let want = reference::pair_attention(
+        &p,
+        &q,
+        &k,
+        &v,
+        &valid,
+        &states,
+        &pair_k,
+        &pair_v,
+        &agent_scene,
+    );
     checks.push(KernelCheck {
         name: "pair_attention",
         values: got.len(),
@@ -321,11 +344,25 @@ pub fn kernel_checks(ctx: &GpuContext) -> Result<Vec<KernelCheck>> {
         picked: picked as u32,
         heading_scale: 0.25,
     };
+    // Every agent row picks from the map of the scene mirrored to its own (b − 1 − its), as
+    // a packed batch's rows pick from their own scenes' maps: the reference on the maps in
+    // that order.
+    let agent_scene: Vec<u32> = (0..b * a).map(|r| (b - 1 - r / a) as u32).collect();
     let (got_points, got_flags) =
-        AgentMap::new(ctx).run(ctx, p, &states, &valid, &map, &map_valid)?;
+        AgentMap::new(ctx).run(ctx, p, &states, &valid, &map, &map_valid, &agent_scene)?;
     let anchors = road_model::agent_map::anchors_of(&states, &valid, w, 9, 0.25);
-    let (want_points, want_flags) =
-        road_model::agent_map::agent_maps(&anchors, a, &map, &map_valid, points, picked);
+    let mirrored = |values: &[f32]| -> Vec<f32> {
+        let per_scene = values.len() / b;
+        values.chunks(per_scene).rev().flatten().copied().collect()
+    };
+    let (want_points, want_flags) = road_model::agent_map::agent_maps(
+        &anchors,
+        a,
+        &mirrored(&map),
+        &mirrored(&map_valid),
+        points,
+        picked,
+    );
     let mut got = got_points;
     got.extend(got_flags);
     let mut want = want_points;

@@ -1,7 +1,8 @@
 //! The rollout driver's engine on the GPU ([`GpuStepEngine`]): `road-model`'s
 //! `StepEngine` over a [`GpuDenoiser`]'s kernels, with the windows kept on the device through a
-//! tick's steps, and compacted sub-batches for mixed-phase rounds and for buckets of scenes of
-//! like agent counts.
+//! tick's steps, and compacted sub-batches for mixed-phase rounds, for buckets of scenes of
+//! like agent counts and for packed scenes (several small scenes' agents in one sub-batch
+//! scene, attending apart).
 
 use crate::engine::{DenoiseInputs, DeviceBatch, GpuDenoiser, MapTokens};
 use crate::kernels::window::ShiftList;
@@ -42,6 +43,163 @@ impl BucketRule {
         }
     }
 }
+/// When a step packs its moving scenes ([`plan_packing`]; models whose agents see other agents
+/// only through pair attention and the map through agent maps, both of which keep a packed
+/// scene's agents apart by `agent_scene`): from `min_moving` of them, when that saves a fifth of
+/// the work.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) struct PackRule {
+    min_moving: usize,
+}
+
+impl PackRule {
+    /// lavapipe computes every padded row: from two scenes (8 validation scenes of 3-15 agents
+    /// padded to 15 computed 1.98× their own work).
+    const SOFTWARE: Self = Self { min_moving: 2 };
+    /// A card: below this a step is bound by its launches, not its rows (the H200's 8-scene
+    /// step took 4 ms at 1.98× padding), and a packed step adds a copy per scene and region,
+    /// as buckets do; from as many scenes as buckets.
+    const HARDWARE: Self = Self {
+        min_moving: BucketRule::HARDWARE.min_moving,
+    };
+
+    fn for_context(ctx: &GpuContext) -> Self {
+        if ctx.is_software() {
+            Self::SOFTWARE
+        } else {
+            Self::HARDWARE
+        }
+    }
+}
+
+/// Whether a model's scenes can be packed: agents meet other agents only in pair attention and
+/// the map only through agent maps (plain agent attention and scene-frame map tokens would
+/// mix the scenes sharing a sub-batch scene).
+fn packable(config: &road_model::ModelConfig) -> bool {
+    config.agent_pairs.is_some() && config.agent_map.is_some()
+}
+
+/// One moving scene in a compact sub-batch: its first `rows` agent rows at agent row `offset`
+/// of sub-batch scene `slot`. Its map is the sub-batch's map scene of its index in
+/// [`Layout::placed`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Placement {
+    scene: usize,
+    slot: usize,
+    offset: usize,
+    rows: usize,
+}
+
+/// Where a compact sub-batch of `slots` scenes × `agents` agent rows holds the moving scenes.
+/// Plain: scene k of the step in slot k ([`Layout::plain`]); packed: several per slot
+/// ([`plan_packing`]).
+#[derive(Debug, Clone, PartialEq)]
+struct Layout {
+    slots: usize,
+    agents: usize,
+    placed: Vec<Placement>,
+}
+
+impl Layout {
+    /// Each of `active` alone in a sub-batch scene of its first `agents` rows.
+    fn plain(active: &[usize], agents: usize) -> Self {
+        Self {
+            slots: active.len(),
+            agents,
+            placed: active
+                .iter()
+                .enumerate()
+                .map(|(slot, &scene)| Placement {
+                    scene,
+                    slot,
+                    offset: 0,
+                    rows: agents,
+                })
+                .collect(),
+        }
+    }
+
+    /// The work computed: the sub-batch's scenes (empty places included) at its agents,
+    /// `flops(agents)` each.
+    fn cost(&self, flops: &impl Fn(usize) -> f64) -> f64 {
+        compact_capacity(self.slots) as f64 * flops(self.agents)
+    }
+
+    /// `[slots·agents]`: each agent row's map scene (its placement's index; rows no scene
+    /// fills: 0, invalid).
+    fn agent_scenes(&self) -> Vec<u32> {
+        let mut out = vec![0u32; compact_capacity(self.slots) * self.agents];
+        for (k, p) in self.placed.iter().enumerate() {
+            out[p.slot * self.agents + p.offset..][..p.rows].fill(k as u32);
+        }
+        out
+    }
+}
+
+/// The `active` scenes packed first fit decreasing (most live rows first) into sub-batch
+/// scenes of `agents` rows, each holding scenes of one `class` only (`class[k]` of `active[k]`:
+/// scenes of like σ rows, since σ is per sub-batch scene).
+fn pack_first_fit(
+    live_agents: &[usize],
+    active: &[usize],
+    class: &[usize],
+    agents: usize,
+) -> Layout {
+    let mut order: Vec<usize> = (0..active.len()).collect();
+    order.sort_by_key(|&k| (std::cmp::Reverse(live_agents[active[k]]), k));
+    // Per slot: its class and rows filled.
+    let mut slots: Vec<(usize, usize)> = Vec::new();
+    let mut placed = Vec::with_capacity(active.len());
+    for k in order {
+        let rows = live_agents[active[k]].clamp(1, agents);
+        let slot = match slots
+            .iter()
+            .position(|&(c, filled)| c == class[k] && filled + rows <= agents)
+        {
+            Some(slot) => slot,
+            None => {
+                slots.push((class[k], 0));
+                slots.len() - 1
+            }
+        };
+        placed.push(Placement {
+            scene: active[k],
+            slot,
+            offset: slots[slot].1,
+            rows,
+        });
+        slots[slot].1 += rows;
+    }
+    Layout {
+        slots: slots.len(),
+        agents,
+        placed,
+    }
+}
+
+/// The packing of least work (`flops(agents)` per sub-batch scene) among sub-batch scenes of
+/// the most live rows rounded up to 4, up to twice that in steps of 4 (larger ones hold more
+/// scenes each but attend over more agents), packed by [`pack_first_fit`].
+fn plan_packing(
+    live_agents: &[usize],
+    active: &[usize],
+    class: &[usize],
+    flops: &impl Fn(usize) -> f64,
+) -> Layout {
+    let most = active
+        .iter()
+        .map(|&i| live_agents[i])
+        .max()
+        .unwrap_or(1)
+        .max(1)
+        .next_multiple_of(4);
+    (most..=2 * most)
+        .step_by(4)
+        .map(|agents| pack_first_fit(live_agents, active, class, agents))
+        .min_by(|a, b| a.cost(flops).total_cmp(&b.cost(flops)))
+        .expect("at least one size")
+}
+
 /// Most compact sub-batch shapes kept (each with its buffers and plan: up to a whole batch's
 /// memory); beyond, the least recently used is dropped. A step makes at most one per bucket
 /// (a quarter of the agent count's range).
@@ -212,8 +370,11 @@ fn step_work(
 #[derive(Debug)]
 struct Compact {
     batch: DeviceBatch,
+    /// The moving scenes' maps, one map scene per placement (`Layout::placed`).
     map: MapTokens,
     plan: HeunPlan,
+    /// What `batch.agent_scene` holds.
+    agent_scenes: Vec<u32>,
     sigma_cur: Vec<f32>,  // [capacity, W]
     sigma_next: Vec<f32>, // [capacity, W]
     gamma: Vec<f32>,      // [capacity, W]
@@ -222,12 +383,12 @@ struct Compact {
 }
 
 impl Compact {
-    /// `like`: the scene set's map (its polylines and what each holds).
+    /// `capacity` scenes of `agents` rows and `map_scenes` maps; `like`: the scene set's map
+    /// (its polylines and what each holds).
     fn new(
         ctx: &GpuContext,
         model: &GpuDenoiser,
-        capacity: usize,
-        agents: usize,
+        (capacity, agents, map_scenes): (usize, usize, usize),
         like: &MapTokens,
     ) -> Result<Self> {
         let (w, d) = (model.config.window_slots, model.config.hidden);
@@ -239,12 +400,16 @@ impl Compact {
             sigma: buffer("compact.sigma", capacity * w),
             valid: buffer("compact.valid", capacity * agents * w),
             agent_embedding: buffer("compact.agent_embedding", capacity * agents * d),
+            agent_scene: buffer("compact.agent_scene", capacity * agents),
         };
         let polylines = like.polylines;
         let map = MapTokens {
-            data: buffer("compact.map.data", capacity * polylines * like.per_polyline),
-            valid: buffer("compact.map.valid", capacity * polylines),
-            scenes: capacity,
+            data: buffer(
+                "compact.map.data",
+                map_scenes * polylines * like.per_polyline,
+            ),
+            valid: buffer("compact.map.valid", map_scenes * polylines),
+            scenes: map_scenes,
             polylines,
             per_polyline: like.per_polyline,
             picked: like.picked,
@@ -254,6 +419,8 @@ impl Compact {
             batch,
             map,
             plan,
+            // Storage buffers start zeroed.
+            agent_scenes: vec![0; capacity * agents],
             sigma_cur: vec![1.0; capacity * w],
             sigma_next: vec![1.0; capacity * w],
             gamma: vec![0.0; capacity * w],
@@ -320,18 +487,34 @@ impl GpuStepEngine<'_> {
             .max()
             .unwrap_or(1);
         let a_c = live.next_multiple_of(4).clamp(1, a);
-        // Scenes of mixed agent counts: a compact sub-batch per bucket of like counts, when
-        // that saves enough of the padding.
+        // The whole batch in place when most of it moves and most of its agent rows are live;
+        // else the moving scenes' live rows in a compact sub-batch.
+        let in_place = active.len() * 2 > b && a_c * 4 > a * 3;
+        // Scenes of mixed agent counts: packed into one compact sub-batch, or a compact
+        // sub-batch per bucket of like counts, when that saves enough of the padding.
+        let polylines = self.map.as_ref().map_or(0, |m| m.polylines);
+        let flops = |agents| flops_per_evaluation(&self.model.config, agents, polylines);
+        let unpacked = if in_place {
+            b as f64 * flops(a)
+        } else {
+            compact_capacity(active.len()) as f64 * flops(a_c)
+        };
+        if let Some(layout) = self.packing(&active, sigma_cur, sigma_next, rule, unpacked) {
+            return self.step_compact(&layout, sigma_cur, sigma_next, rule, evaluations);
+        }
         let buckets = self.buckets(&active);
         if !buckets.is_empty() {
             for (scenes, rows) in &buckets {
-                self.step_compact(scenes, *rows, sigma_cur, sigma_next, rule, evaluations)?;
+                let layout = Layout::plain(scenes, *rows);
+                self.step_compact(&layout, sigma_cur, sigma_next, rule, evaluations)?;
             }
+            // One step of the batch, however many sub-batches ran it: its proxies are per
+            // evaluation of the batch (each bucket counted its own before, so that dispatches
+            // and bytes per evaluation read as one bucket's).
+            self.work.evaluations -= evaluations * (buckets.len() as u64 - 1);
             return Ok(());
         }
-        // The whole batch in place when most of it moves and most of its agent rows are live;
-        // else the moving scenes' live rows in a compact sub-batch.
-        if active.len() * 2 > b && a_c * 4 > a * 3 {
+        if in_place {
             // Its plan is made on the first such step: a server's pool of hundreds of scenes
             // that steps a few at a time never holds the whole batch's activations (they may
             // exceed what a software adapter binds).
@@ -393,7 +576,8 @@ impl GpuStepEngine<'_> {
         }
         // Few scenes move (others idle in a mixed-phase batch), or few of their agent rows are
         // live: copy those into a compact sub-batch, step it, copy the states back.
-        self.step_compact(&active, a_c, sigma_cur, sigma_next, rule, evaluations)
+        let layout = Layout::plain(&active, a_c);
+        self.step_compact(&layout, sigma_cur, sigma_next, rule, evaluations)
     }
 
     /// Scenes of mixed agent counts in buckets of like counts ([`plan_buckets`]), or nothing to
@@ -410,13 +594,12 @@ impl GpuStepEngine<'_> {
         )
     }
 
-    /// Steps the `active` scenes' first `a_c` agent rows in a compact sub-batch (made on first
+    /// Steps the moving scenes where `layout` places them in a compact sub-batch (made on first
     /// use and kept, the least recently used dropped beyond [`MAX_COMPACTS`]): their rows are
     /// copied in, stepped under `rule`, and copied back with their estimates.
     fn step_compact(
         &mut self,
-        active: &[usize],
-        a_c: usize,
+        layout: &Layout,
         sigma_cur: &[f32],
         sigma_next: &[f32],
         rule: StepRule<'_>,
@@ -428,72 +611,81 @@ impl GpuStepEngine<'_> {
             ));
         };
         let (a, w) = (self.agents, self.model.config.window_slots);
-        let row_bytes = (a * w * 3 * 4) as u64;
-        let capacity = compact_capacity(active.len());
+        let a_c = layout.agents;
+        let shape = (
+            compact_capacity(layout.slots),
+            a_c,
+            compact_capacity(layout.placed.len()),
+        );
         let d = self.model.config.hidden;
         self.compact_uses += 1;
-        if !self
-            .compact
-            .iter()
-            .any(|c| (c.batch.scenes, c.batch.agents) == (capacity, a_c))
-        {
+        let shape_of = |c: &Compact| (c.batch.scenes, c.batch.agents, c.map.scenes);
+        if !self.compact.iter().any(|c| shape_of(c) == shape) {
             if self.compact.len() >= MAX_COMPACTS {
                 let oldest = (0..self.compact.len())
                     .min_by_key(|&k| self.compact[k].last_use)
                     .expect("not empty");
                 self.compact.swap_remove(oldest);
             }
-            let c = Compact::new(self.ctx, self.model, capacity, a_c, map).map_err(engine_err)?;
+            let c = Compact::new(self.ctx, self.model, shape, map).map_err(engine_err)?;
             self.compact.push(c);
         }
         let compact = self
             .compact
             .iter_mut()
-            .find(|c| (c.batch.scenes, c.batch.agents) == (capacity, a_c))
+            .find(|c| shape_of(c) == shape)
             .expect("made above");
         compact.last_use = self.compact_uses;
+        let agent_scenes = layout.agent_scenes();
+        if agent_scenes != compact.agent_scenes {
+            self.ctx.queue.write_buffer(
+                &compact.batch.agent_scene,
+                0,
+                bytemuck::cast_slice(&agent_scenes),
+            );
+            compact.agent_scenes = agent_scenes;
+        }
         let p = map.polylines;
-        // (source, destination, floats per scene in the batch, floats per scene in the compact
-        // sub-batch) of every per-scene region: agent rows come first in each, so a scene's
-        // first a_c agents are a prefix of its block.
-        let regions = [
-            (&batch.x, &compact.batch.x, a * w * 3, a_c * w * 3),
-            (&batch.valid, &compact.batch.valid, a * w, a_c * w),
-            (
-                &batch.agent_embedding,
-                &compact.batch.agent_embedding,
-                a * d,
-                a_c * d,
-            ),
-            (
-                &map.data,
-                &compact.map.data,
-                p * map.per_polyline,
-                p * map.per_polyline,
-            ),
-            (&map.valid, &compact.map.valid, p, p),
-        ];
+        // Per placement k: its rows from the batch's scene into its slot at its offset, its
+        // map into map scene k. Agent rows come first in each per-scene region, so a scene's
+        // first rows are a prefix of its block.
         let mut enc = self
             .ctx
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                 label: Some("compact gather"),
             });
-        for (k, &i) in active.iter().enumerate() {
-            for (src, dst, scene_len, compact_len) in regions {
-                let (from, to) = ((i * scene_len * 4) as u64, (k * compact_len * 4) as u64);
-                enc.copy_buffer_to_buffer(src, from, dst, to, (compact_len * 4) as u64);
+        // Rows no scene fills hold no agent (nor stale ones of an earlier step's layout).
+        enc.clear_buffer(&compact.batch.valid, 0, None);
+        for (k, place) in layout.placed.iter().enumerate() {
+            let (i, at, rows) = (place.scene, place.slot * a_c + place.offset, place.rows);
+            for (src, dst, per_row) in [
+                (&batch.x, &compact.batch.x, w * 3),
+                (&batch.valid, &compact.batch.valid, w),
+                (&batch.agent_embedding, &compact.batch.agent_embedding, d),
+            ] {
+                let (from, to) = ((i * a * per_row * 4) as u64, (at * per_row * 4) as u64);
+                enc.copy_buffer_to_buffer(src, from, dst, to, (rows * per_row * 4) as u64);
+            }
+            for (src, dst, per_scene) in [
+                (&map.data, &compact.map.data, p * map.per_polyline),
+                (&map.valid, &compact.map.valid, p),
+            ] {
+                let (from, to) = ((i * per_scene * 4) as u64, (k * per_scene * 4) as u64);
+                enc.copy_buffer_to_buffer(src, from, dst, to, (per_scene * 4) as u64);
             }
         }
         self.ctx.queue.submit([enc.finish()]);
+        // σ (and γ) rows per sub-batch scene: a slot's scenes share theirs.
         compact.sigma_cur.fill(1.0);
         compact.sigma_next.fill(1.0);
         compact.gamma.fill(0.0);
-        for (k, &i) in active.iter().enumerate() {
-            compact.sigma_cur[k * w..(k + 1) * w].copy_from_slice(&sigma_cur[i * w..(i + 1) * w]);
-            compact.sigma_next[k * w..(k + 1) * w].copy_from_slice(&sigma_next[i * w..(i + 1) * w]);
+        for place in &layout.placed {
+            let (i, s) = (place.scene, place.slot);
+            compact.sigma_cur[s * w..(s + 1) * w].copy_from_slice(&sigma_cur[i * w..(i + 1) * w]);
+            compact.sigma_next[s * w..(s + 1) * w].copy_from_slice(&sigma_next[i * w..(i + 1) * w]);
             if let StepRule::Multistep { gamma } = rule {
-                compact.gamma[k * w..(k + 1) * w].copy_from_slice(&gamma[i * w..(i + 1) * w]);
+                compact.gamma[s * w..(s + 1) * w].copy_from_slice(&gamma[i * w..(i + 1) * w]);
             }
         }
         let compact_rule = match rule {
@@ -502,6 +694,19 @@ impl GpuStepEngine<'_> {
             },
             heun => heun,
         };
+        // (batch byte offset, compact byte offset, bytes) of each placement's states.
+        let state_ranges: Vec<(u64, u64, u64)> = layout
+            .placed
+            .iter()
+            .map(|place| {
+                let row_bytes = (w * 3 * 4) as u64;
+                (
+                    (place.scene * a) as u64 * row_bytes,
+                    (place.slot * a_c + place.offset) as u64 * row_bytes,
+                    place.rows as u64 * row_bytes,
+                )
+            })
+            .collect();
         let denoised = self.denoised.as_ref();
         compact
             .plan
@@ -515,23 +720,22 @@ impl GpuStepEngine<'_> {
                     let (StepRule::Multistep { .. }, Some(kept)) = (rule, denoised) else {
                         return;
                     };
-                    let compact_row_bytes = (a_c * w * 3 * 4) as u64;
-                    for (k, &i) in active.iter().enumerate() {
-                        let (from, to) = (i as u64 * row_bytes, k as u64 * compact_row_bytes);
-                        enc.copy_buffer_to_buffer(kept, from, previous, to, compact_row_bytes);
+                    for &(batch_at, compact_at, bytes) in &state_ranges {
+                        enc.copy_buffer_to_buffer(kept, batch_at, previous, compact_at, bytes);
                     }
                 },
                 |_, _| {},
             )
             .map_err(engine_err)?;
-        // The sub-batch's empty places (up to a power of two) are computed too.
+        // The sub-batch's empty places (up to its capacity) and empty rows are computed too.
+        let active: Vec<usize> = layout.placed.iter().map(|place| place.scene).collect();
         self.work += step_work(
             &self.model.config,
             evaluations,
-            capacity,
+            shape.0,
             a_c,
             p,
-            active,
+            &active,
             &self.own_agents,
             &self.own_polylines,
             compact.plan.take_traffic(),
@@ -542,18 +746,57 @@ impl GpuStepEngine<'_> {
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                 label: Some("compact scatter"),
             });
-        // The live rows back; a scene's padding rows beyond a_c hold still.
-        let compact_row_bytes = (a_c * w * 3 * 4) as u64;
-        for (k, &i) in active.iter().enumerate() {
-            let (from, to) = (k as u64 * compact_row_bytes, i as u64 * row_bytes);
-            enc.copy_buffer_to_buffer(&compact.batch.x, from, &batch.x, to, compact_row_bytes);
+        // The placed rows back; a scene's rows beyond them hold still.
+        for &(batch_at, compact_at, bytes) in &state_ranges {
+            enc.copy_buffer_to_buffer(&compact.batch.x, compact_at, &batch.x, batch_at, bytes);
             if let Some(denoised) = &self.denoised {
                 let estimate = compact.plan.denoised();
-                enc.copy_buffer_to_buffer(estimate, from, denoised, to, compact_row_bytes);
+                enc.copy_buffer_to_buffer(estimate, compact_at, denoised, batch_at, bytes);
             }
         }
         self.ctx.queue.submit([enc.finish()]);
         Ok(())
+    }
+
+    /// The moving scenes packed ([`plan_packing`]) when the model, the context and
+    /// [`PackRule`] allow it and that computes at most four fifths of `unpacked` (the work of
+    /// the step otherwise taken); else nothing.
+    fn packing(
+        &self,
+        active: &[usize],
+        sigma_cur: &[f32],
+        sigma_next: &[f32],
+        rule: StepRule<'_>,
+        unpacked: f64,
+    ) -> Option<Layout> {
+        if !self.ctx.bucket_scenes()
+            || !packable(&self.model.config)
+            || active.len() < PackRule::for_context(self.ctx).min_moving
+        {
+            return None;
+        }
+        let w = self.model.config.window_slots;
+        // Scenes share a sub-batch scene only with scenes of the same σ (and γ) rows.
+        let mut classes = std::collections::HashMap::<Vec<u32>, usize>::new();
+        let class: Vec<usize> = active
+            .iter()
+            .map(|&i| {
+                let mut key: Vec<u32> = sigma_cur[i * w..(i + 1) * w]
+                    .iter()
+                    .chain(&sigma_next[i * w..(i + 1) * w])
+                    .map(|v| v.to_bits())
+                    .collect();
+                if let StepRule::Multistep { gamma } = rule {
+                    key.extend(gamma[i * w..(i + 1) * w].iter().map(|v| v.to_bits()));
+                }
+                let next = classes.len();
+                *classes.entry(key).or_insert(next)
+            })
+            .collect();
+        let polylines = self.map.as_ref().map_or(0, |m| m.polylines);
+        let flops = |agents| flops_per_evaluation(&self.model.config, agents, polylines);
+        let layout = plan_packing(&self.live_agents, active, &class, &flops);
+        (layout.cost(&flops) * 5.0 <= unpacked * 4.0).then_some(layout)
     }
 }
 
@@ -946,6 +1189,70 @@ mod tests {
     /// `n` scenes whose live agent counts cycle through 3 ..= 23, like the validation windows.
     fn mixed_agents(n: usize) -> Vec<usize> {
         (0..n).map(|i| 3 + (i * 7) % 21).collect()
+    }
+
+    /// Each scene placed once, within its slot, apart from the others there, with scenes of
+    /// one class only; fewer slots than scenes.
+    fn check_layout(layout: &Layout, live: &[usize], active: &[usize], class: &[usize]) {
+        let mut scenes: Vec<usize> = layout.placed.iter().map(|p| p.scene).collect();
+        scenes.sort_unstable();
+        let mut want = active.to_vec();
+        want.sort_unstable();
+        assert_eq!(scenes, want, "each moving scene once: {layout:?}");
+        let mut rows = vec![None; layout.slots * layout.agents];
+        for p in &layout.placed {
+            assert_eq!(p.rows, live[p.scene], "{p:?}: its live rows");
+            assert!(
+                p.offset + p.rows <= layout.agents,
+                "{p:?} overflows its slot"
+            );
+            let k = active.iter().position(|&i| i == p.scene).unwrap();
+            for row in &mut rows[p.slot * layout.agents + p.offset..][..p.rows] {
+                assert!(row.is_none(), "{p:?} overlaps another scene");
+                *row = Some(class[k]);
+            }
+        }
+        for slot in rows.chunks(layout.agents) {
+            let mut classes: Vec<usize> = slot.iter().flatten().copied().collect();
+            classes.dedup();
+            assert!(classes.len() <= 1, "one class a slot: {classes:?}");
+        }
+    }
+
+    #[test]
+    fn eight_validation_sized_scenes_pack_into_fewer_scenes_of_like_work() {
+        let live = [15, 3, 13, 4, 11, 5, 9, 7];
+        let active: Vec<usize> = (0..8).collect();
+        let class = vec![0; 8];
+        let flops = |agents: usize| agents as f64 * (1.0 + agents as f64 / 100.0);
+        let layout = plan_packing(&live, &active, &class, &flops);
+        check_layout(&layout, &live, &active, &class);
+        let own: f64 = live.iter().map(|&a| flops(a)).sum();
+        let padded = 8.0 * flops(15);
+        assert!(
+            layout.cost(&flops) <= 1.25 * own && padded > 1.5 * own,
+            "packed {:.1}, own {own:.1}, padded {padded:.1}: {layout:?}",
+            layout.cost(&flops)
+        );
+        // The agent rows' map scenes: each placement's index over its rows.
+        let scenes = layout.agent_scenes();
+        for (k, p) in layout.placed.iter().enumerate() {
+            let at = p.slot * layout.agents + p.offset;
+            assert!(scenes[at..at + p.rows].iter().all(|&s| s == k as u32));
+        }
+    }
+
+    #[test]
+    fn scenes_of_different_sigma_rows_never_share_a_slot() {
+        let live = mixed_agents(40);
+        let active: Vec<usize> = (0..40).collect();
+        let class: Vec<usize> = (0..40).map(|k| k % 3).collect();
+        let layout = plan_packing(&live, &active, &class, &|a| a as f64);
+        check_layout(&layout, &live, &active, &class);
+        assert!(layout.slots < 40, "{layout:?}");
+        // One scene: alone, at its live rows rounded up to 4.
+        let layout = plan_packing(&[6], &[0], &[0], &|a| a as f64);
+        assert_eq!((layout.slots, layout.agents), (1, 8));
     }
 
     #[test]

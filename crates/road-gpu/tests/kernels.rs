@@ -671,18 +671,40 @@ fn agent_maps_match_the_cpu_reference() {
             picked: k as u32,
             heading_scale: 0.25,
         };
-        let (points, flags) = kernel
-            .run(&ctx, params, &x, &valid, &map, &map_valid)
-            .unwrap();
         let anchors = anchors_of(&x, &valid, w, anchor_slot, 0.25);
-        let (want_points, want_flags) = agent_maps(&anchors, a, &map, &map_valid, q, k);
-        assert_eq!(flags, want_flags, "{b}×{a} agents, {p} polylines: flags");
-        let tol = Tolerance {
-            rel: 1e-4,
-            abs: 1e-5,
-        };
-        if let Err(m) = tol.check(&points, &want_points) {
-            panic!("{b}×{a} agents, {p} polylines of {q} points, K = {k}: {m}");
+        // Each row of scene b picks from map b (a plain batch), then every row from a map
+        // scene of its own, at random (a packed batch): the reference on each row's map.
+        let plain: Vec<u32> = (0..b * a).map(|r| (r / a) as u32).collect();
+        let packed: Vec<u32> = (0..b * a).map(|_| rng.random_range(0..b as u32)).collect();
+        for (layout, agent_scene) in [("plain", plain), ("packed", packed)] {
+            let (points, flags) = kernel
+                .run(&ctx, params, &x, &valid, &map, &map_valid, &agent_scene)
+                .unwrap();
+            let (mut want_points, mut want_flags) = (Vec::new(), Vec::new());
+            for (row, &scene) in agent_scene.iter().enumerate() {
+                let scene = scene as usize;
+                let (row_points, row_flags) = agent_maps(
+                    &anchors[row..row + 1],
+                    1,
+                    &map[scene * p * q * 2..][..p * q * 2],
+                    &map_valid[scene * p..][..p],
+                    q,
+                    k,
+                );
+                want_points.extend(row_points);
+                want_flags.extend(row_flags);
+            }
+            assert_eq!(
+                flags, want_flags,
+                "{layout}: {b}×{a} agents, {p} polylines: flags"
+            );
+            let tol = Tolerance {
+                rel: 1e-4,
+                abs: 1e-5,
+            };
+            if let Err(m) = tol.check(&points, &want_points) {
+                panic!("{layout}: {b}×{a} agents, {p} polylines of {q} points, K = {k}: {m}");
+            }
         }
     }
     // More polylines than the kernel holds: a clear error, not a wrong pick.
@@ -697,9 +719,26 @@ fn agent_maps_match_the_cpu_reference() {
         heading_scale: 0.25,
     };
     let err = kernel
-        .run(&ctx, too_many, &[0.0; 3], &[1.0], &[0.0; 258], &[1.0; 129])
+        .run(
+            &ctx,
+            too_many,
+            &[0.0; 3],
+            &[1.0],
+            &[0.0; 258],
+            &[1.0; 129],
+            &[0],
+        )
         .unwrap_err();
     assert!(err.to_string().contains("128"), "{err}");
+    // A row naming a map scene the batch lacks: refused, not read past the map.
+    let fits = AgentMapParams {
+        polylines: 1,
+        ..too_many
+    };
+    let err = kernel
+        .run(&ctx, fits, &[0.0; 3], &[1.0], &[0.0; 2], &[1.0], &[1])
+        .unwrap_err();
+    assert!(err.to_string().contains("map scenes"), "{err}");
 }
 
 /// Agent attention with pair features matches its CPU reference (on the CPU engines'
@@ -744,18 +783,47 @@ fn pair_attention_matches_the_cpu_reference() {
             far: 0.5,
             _pad: 0,
         };
-        let got = kernel
-            .run(&ctx, params, &q, &k, &v, &valid, &states, &pair_k, &pair_v)
-            .unwrap();
-        let want = road_gpu::reference::pair_attention(
-            &params, &q, &k, &v, &valid, &states, &pair_k, &pair_v,
-        );
-        let tol = Tolerance {
-            rel: 1e-4,
-            abs: 1e-5,
-        };
-        if let Err(m) = tol.check(&got, &want) {
-            panic!("{b} scenes × {a} agents × {w} slots, {heads} heads of {head_dim}: {m}");
+        // Each scene's agents as one scene (a plain batch), then split at random into up to
+        // three packed scenes that attend apart.
+        let plain: Vec<u32> = (0..b * a).map(|r| (r / a) as u32).collect();
+        let packed: Vec<u32> = (0..b * a)
+            .map(|r| (3 * (r / a)) as u32 + rng.random_range(0..3))
+            .collect();
+        for (layout, agent_scene) in [("plain", plain), ("packed", packed)] {
+            let got = kernel
+                .run(
+                    &ctx,
+                    params,
+                    &q,
+                    &k,
+                    &v,
+                    &valid,
+                    &states,
+                    &pair_k,
+                    &pair_v,
+                    &agent_scene,
+                )
+                .unwrap();
+            let want = road_gpu::reference::pair_attention(
+                &params,
+                &q,
+                &k,
+                &v,
+                &valid,
+                &states,
+                &pair_k,
+                &pair_v,
+                &agent_scene,
+            );
+            let tol = Tolerance {
+                rel: 1e-4,
+                abs: 1e-5,
+            };
+            if let Err(m) = tol.check(&got, &want) {
+                panic!(
+                    "{layout}: {b} scenes × {a} agents × {w} slots, {heads} heads of {head_dim}: {m}"
+                );
+            }
         }
     }
 }

@@ -33,6 +33,16 @@ fn context_with_chains(residual_chains: bool) -> GpuContext {
     .unwrap_or_else(|e| panic!("GPU tests need an adapter: {e}"))
 }
 
+/// As [`context`], scenes of mixed agent counts never packed nor bucketed: one batch padded.
+fn context_unpacked() -> GpuContext {
+    GpuContext::new(&ContextOptions {
+        validation: true,
+        bucket_scenes: false,
+        ..ContextOptions::default()
+    })
+    .unwrap_or_else(|e| panic!("GPU tests need an adapter: {e}"))
+}
+
 /// A padded batch, host side: `agents[i]` valid agents and `polylines[i]` valid polylines of
 /// scene i, the rest padding.
 struct Scenes {
@@ -173,9 +183,10 @@ fn dispatches_and_bytes_are_the_bindings_of_the_recorded_dispatches() {
 
 /// Work computed over useful: 1 when every scene fills the batch's agents and polylines; above
 /// 1 by exactly the padding when they do not; idle scenes of a step are computed, not useful.
+/// (Scenes never packed: `packing_computes_the_packed_scenes`.)
 #[test]
 fn computed_over_useful_counts_the_padding() {
-    let ctx = context();
+    let ctx = context_unpacked();
     let config = config();
     let gpu = denoiser(&ctx, &config);
     let f = |agents, polylines| flops_per_evaluation(&config, agents, polylines);
@@ -204,6 +215,39 @@ fn computed_over_useful_counts_the_padding() {
     let one = ratio(agents, polylines, &[0, 2]);
     let want = f(AGENTS, POLYLINES) / f(2, 3);
     assert!((one - want).abs() < 1e-9 * want, "{one} against {want}");
+}
+
+/// Packed (lavapipe packs from two moving scenes): 4, 2 and 1 agents padded to 4 step as the
+/// scene of 4 and one scene holding the 2 and the 1 (or one scene of 8, whichever computes
+/// less), with the dispatches of one batch; scenes that fill the batch are not packed.
+#[test]
+fn packing_computes_the_packed_scenes() {
+    let ctx = context();
+    let config = config();
+    let gpu = denoiser(&ctx, &config);
+    let f = |agents| flops_per_evaluation(&config, agents, POLYLINES);
+    let step = |agents: [usize; SCENES]| {
+        let s = scenes(&config, agents, [POLYLINES; SCENES]);
+        let mut engine = engine_on(&ctx, &gpu, &s);
+        let (sigma_cur, sigma_next) = sigma_rows(&config, &[]);
+        engine.step(&sigma_cur, &sigma_next, true).unwrap();
+        engine.take_work()
+    };
+    let full = step([AGENTS; SCENES]);
+    assert!((full.computed_over_useful() - 1.0).abs() < 1e-12);
+    let mixed = step([4, 2, 1]);
+    let useful = f(4) + f(2) + f(1);
+    let want = (2.0 * f(4)).min(f(8)) / useful;
+    let got = mixed.computed_over_useful();
+    assert!((got - want).abs() < 1e-9 * want, "{got} against {want}");
+    assert!(
+        got < 0.8 * 3.0 * f(4) / useful,
+        "less than the padded batch"
+    );
+    assert_eq!(
+        mixed.dispatches_per_evaluation(),
+        full.dispatches_per_evaluation()
+    );
 }
 
 /// Residual chains: per evaluation the embedding, the agent maps' pick and encoder, every

@@ -116,8 +116,9 @@ pub struct EngineBenchArgs {
     /// `per-polyline`, `blocked` or `auto` (blocked where the shape fits).
     #[arg(long, num_args = 1.., default_values = ["auto"], value_parser = parse_polyline_kernel)]
     pub polyline_kernels: Vec<Option<road_gpu::kernels::polyline::PolylineKernel>>,
-    /// Whether the engine steps scenes of mixed agent counts in buckets of like counts
-    /// (`on`, the default) or as one batch padded to the most agents (`off`), each a GPU row.
+    /// Whether the engine steps scenes of mixed agent counts packed (several small scenes'
+    /// agents in one sub-batch scene) or in buckets of like counts (`on`, the default), or as
+    /// one batch padded to the most agents (`off`), each a GPU row.
     #[arg(long, num_args = 1.., default_values = ["on"], value_parser = ["on", "off"])]
     pub bucketing: Vec<String>,
     /// How a block's layers between attentions run, each a GPU row: `chains` (one

@@ -234,6 +234,15 @@ pub struct DeviceBatch {
     pub sigma: wgpu::Buffer,
     pub valid: wgpu::Buffer,
     pub agent_embedding: wgpu::Buffer, // [B, A, D]
+    /// `[B·A]` u32: each agent row's own scene, whose map it picks from and whose agents alone
+    /// it attends to. A plain batch's row of scene b holds b ([`plain_agent_scenes`]); a packed
+    /// one (several scenes' agents in one of its scenes: `step_engine`) the scene of its map.
+    pub agent_scene: wgpu::Buffer,
+}
+
+/// `agent_scene` of a plain batch of `scenes × agents`: row a of scene b holds b.
+pub fn plain_agent_scenes(scenes: usize, agents: usize) -> Vec<u32> {
+    (0..scenes * agents).map(|r| (r / agents) as u32).collect()
 }
 
 /// A checkpoint's denoiser on the GPU.
@@ -699,6 +708,12 @@ impl GpuDenoiser {
         let sigma = upload(ctx, "sigma", bytemuck::cast_slice(inputs.sigma), usage);
         let valid = upload(ctx, "valid", bytemuck::cast_slice(inputs.valid), usage);
         let agent_embedding = self.embed_agents(ctx, inputs.agent_features, b * a)?;
+        let agent_scene = upload(
+            ctx,
+            "agent scene",
+            bytemuck::cast_slice(&plain_agent_scenes(b, a)),
+            usage,
+        );
         Ok(DeviceBatch {
             scenes: b,
             agents: a,
@@ -706,6 +721,7 @@ impl GpuDenoiser {
             sigma,
             valid,
             agent_embedding,
+            agent_scene,
         })
     }
 
@@ -762,7 +778,11 @@ impl GpuDenoiser {
     ) -> Result<()> {
         let c = &self.config;
         let (b, a, w, d) = (batch.scenes, batch.agents, c.window_slots, c.hidden);
-        assert_eq!(map.scenes, b, "map tokens for another scene count");
+        // Agent maps pick each row's polylines from its own scene's map (`agent_scene`), which
+        // a packed batch holds apart from its scenes; scene-frame maps are the batch's own.
+        if map.picked.is_none() {
+            assert_eq!(map.scenes, b, "map tokens for another scene count");
+        }
         let tokens = b * a * w;
         let m = d * c.mlp_ratio;
         let Scratch {
@@ -837,6 +857,7 @@ impl GpuDenoiser {
                     &batch.valid,
                     &map.data,
                     &map.valid,
+                    &batch.agent_scene,
                     &maps.points,
                     &maps.valid,
                 ],
@@ -972,6 +993,7 @@ impl GpuDenoiser {
                         x.as_entire_binding(),
                         self.w(&format!("{blk}.agents.pair_k"))?,
                         self.w(&format!("{blk}.agents.pair_v"))?,
+                        batch.agent_scene.as_entire_binding(),
                         att.as_entire_binding(),
                     ];
                     ops.push(self.pipelines.pair_attention.prepare_resources(

@@ -49,8 +49,10 @@ impl AgentMap {
         Self(Pipeline::new(ctx, Shader::AgentMap, "pick_agent_maps"))
     }
 
-    /// `x [B, A, W, 3]`, `valid [B, A, W]`, `map [B, P, Q, 2]`, `map_valid [B, P]` →
-    /// (`points [B·A, K, Q, 2]`, `valid [B·A, K]`).
+    /// `x [B, A, W, 3]`, `valid [B, A, W]`, `map [M, P, Q, 2]`, `map_valid [M, P]`,
+    /// `agent_scene [B·A]` (each agent row's map scene, `< M`) → (`points [B·A, K, Q, 2]`,
+    /// `valid [B·A, K]`).
+    #[allow(clippy::too_many_arguments)]
     pub fn run(
         &self,
         ctx: &GpuContext,
@@ -59,25 +61,37 @@ impl AgentMap {
         valid: &[f32],
         map: &[f32],
         map_valid: &[f32],
+        agent_scene: &[u32],
     ) -> Result<(Vec<f32>, Vec<f32>)> {
         p.check()?;
+        let map_scenes = map_valid.len() / (p.polylines as usize).max(1);
+        if agent_scene.len() != p.rows as usize
+            || agent_scene.iter().any(|&s| s as usize >= map_scenes)
+        {
+            return Err(Error::Input(format!(
+                "agent maps: {} agent scenes for {} rows, each below the {map_scenes} map scenes",
+                agent_scene.len(),
+                p.rows
+            )));
+        }
         let params = upload(
             ctx,
             "params",
             bytemuck::bytes_of(&p),
             wgpu::BufferUsages::UNIFORM,
         );
-        let inputs: Vec<wgpu::Buffer> = [x, valid, map, map_valid]
-            .iter()
-            .map(|data| {
-                upload(
-                    ctx,
-                    "input",
-                    bytemuck::cast_slice(data),
-                    wgpu::BufferUsages::STORAGE,
-                )
-            })
-            .collect();
+        let inputs: Vec<wgpu::Buffer> =
+            [x, valid, map, map_valid, bytemuck::cast_slice(agent_scene)]
+                .iter()
+                .map(|data| {
+                    upload(
+                        ctx,
+                        "input",
+                        bytemuck::cast_slice(data),
+                        wgpu::BufferUsages::STORAGE,
+                    )
+                })
+                .collect();
         let picked = (p.rows * p.picked) as u64;
         let points_bytes = picked * u64::from(p.points) * 2 * 4;
         let out_points = storage_buffer(ctx, "agent map points", points_bytes);

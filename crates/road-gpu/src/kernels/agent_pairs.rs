@@ -79,7 +79,8 @@ impl PairAttention {
     }
 
     /// Runs once: `q`, `k`, `v [B, A, W, D]`, `valid [B, A, W]`, `states [B, A, W, 3]`,
-    /// `pair_k`, `pair_v [D, F]` → `[B, A, W, D]`.
+    /// `pair_k`, `pair_v [D, F]`, `agent_scene [B·A]` (agents attend to agents of their own
+    /// scene only) → `[B, A, W, D]`.
     #[allow(clippy::too_many_arguments)]
     pub fn run(
         &self,
@@ -92,7 +93,15 @@ impl PairAttention {
         states: &[f32],
         pair_k: &[f32],
         pair_v: &[f32],
+        agent_scene: &[u32],
     ) -> Result<Vec<f32>> {
+        let rows = (p.groups / p.slots.max(1) * p.agents) as usize;
+        if agent_scene.len() != rows {
+            return Err(Error::Input(format!(
+                "pair attention: {} agent scenes for {rows} agent rows",
+                agent_scene.len()
+            )));
+        }
         if p.head_dim > MAX_HEAD_DIM {
             return Err(Error::Input(format!(
                 "head_dim {} exceeds {MAX_HEAD_DIM}",
@@ -102,7 +111,16 @@ impl PairAttention {
         self.0.run_once(
             ctx,
             bytemuck::bytes_of(&p),
-            &[q, k, v, valid, states, pair_k, pair_v],
+            &[
+                q,
+                k,
+                v,
+                valid,
+                states,
+                pair_k,
+                pair_v,
+                bytemuck::cast_slice(agent_scene),
+            ],
             q.len(),
             p.threads(),
         )
