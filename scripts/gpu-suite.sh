@@ -172,8 +172,8 @@ run)
     # dispatch, far above a kernel's work there; the profile's round trip and per-kernel times say which it is.
     profile_batches=(1 512 2048)
     $quick && profile_batches=(8)
-    # Scenes bucketed by agent count (the default since 2026-11-26) against one batch padded to
-    # the most agents, the default kernels.
+    # Scenes packed (road20-wide4, from 128 moving scenes on a card; 2026-11-30) or bucketed by
+    # agent count (road20) against one batch padded to the most agents, the default kernels.
     step engine-buckets 60 "$out/engine-buckets.json" "$bin" bench engine \
         --checkpoints models/road20-wide4 models/road20 --batches "${batches[@]}" \
         --cpu-max-batch 0 --bucketing on off --cache "$out/cache" --json
