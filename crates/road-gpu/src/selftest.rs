@@ -6,6 +6,7 @@
 use crate::kernels::agent_map::{AgentMap, AgentMapParams};
 use crate::kernels::agent_pairs::{PairAttention, PairAttentionParams};
 use crate::kernels::attention::{Attention, AttentionParams, TokenLayout};
+use crate::kernels::compact::{CompactRows, NONE, gather_rows_reference, scatter_rows_reference};
 use crate::kernels::linear::{Linear, LinearKernel, LinearParams, fold_layer_norm};
 use crate::kernels::polyline::{PolylineEncoder, PolylineKernel, PolylineParams};
 use crate::kernels::residual_chain::{
@@ -372,6 +373,41 @@ pub fn kernel_checks(ctx: &GpuContext) -> Result<Vec<KernelCheck>> {
         values: got.len(),
         tolerance: loose,
         outcome: loose.check(&got, &want),
+    });
+
+    // Compact sub-batch rows: 96 of 200 rows of 96 floats gathered (some mapped to none),
+    // then scattered back over the batch. Copies: exact.
+    let (batch_rows, row_floats) = (200usize, 96usize);
+    let batch = rng.uniform(batch_rows * row_floats, 2.0);
+    let row_map: Vec<u32> = (0..96u32)
+        .map(|r| {
+            if r % 7 == 6 {
+                NONE
+            } else {
+                (r * 37 + 11) % 200
+            }
+        })
+        .collect();
+    let kernel = CompactRows::new(ctx);
+    let sub = kernel.run(
+        ctx,
+        false,
+        &batch,
+        &row_map,
+        &vec![0.0; 96 * row_floats],
+        row_floats,
+    )?;
+    let mut got = sub.clone();
+    got.extend(kernel.run(ctx, true, &sub, &row_map, &batch, row_floats)?);
+    let gathered = gather_rows_reference(&batch, &row_map, row_floats);
+    let scattered = scatter_rows_reference(&gathered, &row_map, &batch, row_floats);
+    let want: Vec<f32> = gathered.into_iter().chain(scattered).collect();
+    let exact = Tolerance { rel: 0.0, abs: 0.0 };
+    checks.push(KernelCheck {
+        name: "compact_rows",
+        values: got.len(),
+        tolerance: exact,
+        outcome: exact.check(&got, &want),
     });
 
     // edm preconditioning of 1 001 noise levels.

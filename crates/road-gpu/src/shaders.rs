@@ -31,6 +31,8 @@ pub enum Shader {
     AgentPairs,
     /// The residual chain: output projection, MLP and the next layer in one kernel.
     ResidualChain,
+    /// Compact sub-batches: a batch's rows gathered in and scattered back.
+    Compact,
 }
 
 /// `shaders/common/precondition.wgsl`: the output preconditioning of one token.
@@ -44,7 +46,7 @@ const ENABLE_COOPERATIVE_MATRIX: &str =
     include_str!("../../../shaders/common/enable_cooperative_matrix.wgsl");
 
 impl Shader {
-    pub const ALL: [Shader; 13] = [
+    pub const ALL: [Shader; 14] = [
         Shader::Edm,
         Shader::Linear,
         Shader::LinearF16,
@@ -58,6 +60,7 @@ impl Shader {
         Shader::AgentMap,
         Shader::AgentPairs,
         Shader::ResidualChain,
+        Shader::Compact,
     ];
 
     /// File name under `shaders/`.
@@ -76,6 +79,7 @@ impl Shader {
             Shader::AgentMap => "agent_map.wgsl",
             Shader::AgentPairs => "agent_pairs.wgsl",
             Shader::ResidualChain => "residual_chain.wgsl",
+            Shader::Compact => "compact.wgsl",
         }
     }
 
@@ -112,6 +116,7 @@ impl Shader {
                 include_str!("../../../shaders/common/precondition.wgsl"),
                 include_str!("../../../shaders/residual_chain.wgsl")
             ),
+            Shader::Compact => include_str!("../../../shaders/compact.wgsl"),
         }
     }
 

@@ -5,6 +5,7 @@
 //! scene, attending apart).
 
 use crate::engine::{DenoiseInputs, DeviceBatch, GpuDenoiser, MapTokens};
+use crate::kernels::compact::NONE;
 use crate::kernels::window::ShiftList;
 use crate::kernels::{Traffic, read_back_ranges, storage_buffer};
 use crate::proxies::{Work, flops_per_evaluation};
@@ -125,7 +126,30 @@ impl Layout {
         compact_capacity(self.slots) as f64 * flops(self.agents)
     }
 
-    /// `[slots·agents]`: each agent row's map scene (its placement's index; rows no scene
+    /// `[capacity·agents]`: each sub-batch agent row's row in the batch (its scene's rows of
+    /// `batch_agents` each), [`NONE`] where no scene fills it.
+    fn batch_rows(&self, batch_agents: usize) -> Vec<u32> {
+        let mut out = vec![NONE; compact_capacity(self.slots) * self.agents];
+        for p in &self.placed {
+            let rows = &mut out[p.slot * self.agents + p.offset..][..p.rows];
+            for (j, row) in rows.iter_mut().enumerate() {
+                *row = (p.scene * batch_agents + j) as u32;
+            }
+        }
+        out
+    }
+
+    /// `[capacity(placed)]`: each map scene's scene in the batch (placement k's), [`NONE`]
+    /// beyond.
+    fn map_scenes(&self) -> Vec<u32> {
+        let mut out = vec![NONE; compact_capacity(self.placed.len())];
+        for (k, p) in self.placed.iter().enumerate() {
+            out[k] = p.scene as u32;
+        }
+        out
+    }
+
+    /// `[capacity·agents]`: each agent row's map scene (its placement's index; rows no scene
     /// fills: 0, invalid).
     fn agent_scenes(&self) -> Vec<u32> {
         let mut out = vec![0u32; compact_capacity(self.slots) * self.agents];
@@ -375,6 +399,14 @@ struct Compact {
     plan: HeunPlan,
     /// What `batch.agent_scene` holds.
     agent_scenes: Vec<u32>,
+    /// `[capacity·agents]` u32: each agent row's row in the batch (`Layout::batch_rows`), and
+    /// what it holds.
+    batch_rows: wgpu::Buffer,
+    batch_rows_held: Vec<u32>,
+    /// `[map scenes]` u32: each map scene's scene in the batch (`Layout::map_scenes`), and what
+    /// it holds.
+    map_scenes: wgpu::Buffer,
+    map_scenes_held: Vec<u32>,
     sigma_cur: Vec<f32>,  // [capacity, W]
     sigma_next: Vec<f32>, // [capacity, W]
     gamma: Vec<f32>,      // [capacity, W]
@@ -421,6 +453,10 @@ impl Compact {
             plan,
             // Storage buffers start zeroed.
             agent_scenes: vec![0; capacity * agents],
+            batch_rows: buffer("compact.batch_rows", capacity * agents),
+            batch_rows_held: vec![0; capacity * agents],
+            map_scenes: buffer("compact.map_scenes", map_scenes),
+            map_scenes_held: vec![0; map_scenes],
             sigma_cur: vec![1.0; capacity * w],
             sigma_next: vec![1.0; capacity * w],
             gamma: vec![0.0; capacity * w],
@@ -636,43 +672,76 @@ impl GpuStepEngine<'_> {
             .find(|c| shape_of(c) == shape)
             .expect("made above");
         compact.last_use = self.compact_uses;
-        let agent_scenes = layout.agent_scenes();
-        if agent_scenes != compact.agent_scenes {
-            self.ctx.queue.write_buffer(
+        for (held, buffer, now) in [
+            (
+                &mut compact.agent_scenes,
                 &compact.batch.agent_scene,
-                0,
-                bytemuck::cast_slice(&agent_scenes),
-            );
-            compact.agent_scenes = agent_scenes;
+                layout.agent_scenes(),
+            ),
+            (
+                &mut compact.batch_rows_held,
+                &compact.batch_rows,
+                layout.batch_rows(a),
+            ),
+            (
+                &mut compact.map_scenes_held,
+                &compact.map_scenes,
+                layout.map_scenes(),
+            ),
+        ] {
+            if *held != now {
+                self.ctx
+                    .queue
+                    .write_buffer(buffer, 0, bytemuck::cast_slice(&now));
+                *held = now;
+            }
         }
         let p = map.polylines;
-        // Per placement k: its rows from the batch's scene into its slot at its offset, its
-        // map into map scene k. Agent rows come first in each per-scene region, so a scene's
-        // first rows are a prefix of its block.
+        // Each region's rows gathered in one dispatch: agent rows by `batch_rows` (rows no
+        // scene fills come in as zeros: no agent, nor a stale one of an earlier layout), maps
+        // by `map_scenes`.
+        let compact_rows = &self.model.pipelines.compact_rows;
+        let agent_rows = shape.0 * a_c;
+        let gathers = [
+            (&batch.x, &compact.batch.x, w * 3),
+            (&batch.valid, &compact.batch.valid, w),
+            (&batch.agent_embedding, &compact.batch.agent_embedding, d),
+        ]
+        .map(|(src, dst, per_row)| {
+            compact_rows.prepare_gather(
+                self.ctx,
+                src,
+                &compact.batch_rows,
+                dst,
+                (agent_rows, per_row),
+            )
+        });
+        let map_gathers = [
+            (&map.data, &compact.map.data, p * map.per_polyline),
+            (&map.valid, &compact.map.valid, p),
+        ]
+        .map(|(src, dst, per_scene)| {
+            compact_rows.prepare_gather(
+                self.ctx,
+                src,
+                &compact.map_scenes,
+                dst,
+                (shape.2, per_scene),
+            )
+        });
         let mut enc = self
             .ctx
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                 label: Some("compact gather"),
             });
-        // Rows no scene fills hold no agent (nor stale ones of an earlier step's layout).
-        enc.clear_buffer(&compact.batch.valid, 0, None);
-        for (k, place) in layout.placed.iter().enumerate() {
-            let (i, at, rows) = (place.scene, place.slot * a_c + place.offset, place.rows);
-            for (src, dst, per_row) in [
-                (&batch.x, &compact.batch.x, w * 3),
-                (&batch.valid, &compact.batch.valid, w),
-                (&batch.agent_embedding, &compact.batch.agent_embedding, d),
-            ] {
-                let (from, to) = ((i * a * per_row * 4) as u64, (at * per_row * 4) as u64);
-                enc.copy_buffer_to_buffer(src, from, dst, to, (rows * per_row * 4) as u64);
-            }
-            for (src, dst, per_scene) in [
-                (&map.data, &compact.map.data, p * map.per_polyline),
-                (&map.valid, &compact.map.valid, p),
-            ] {
-                let (from, to) = ((i * per_scene * 4) as u64, (k * per_scene * 4) as u64);
-                enc.copy_buffer_to_buffer(src, from, dst, to, (per_scene * 4) as u64);
+        {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("compact gather"),
+                timestamp_writes: None,
+            });
+            for dispatch in gathers.iter().chain(&map_gathers) {
+                dispatch.record(&mut pass);
             }
         }
         self.ctx.queue.submit([enc.finish()]);
@@ -694,19 +763,7 @@ impl GpuStepEngine<'_> {
             },
             heun => heun,
         };
-        // (batch byte offset, compact byte offset, bytes) of each placement's states.
-        let state_ranges: Vec<(u64, u64, u64)> = layout
-            .placed
-            .iter()
-            .map(|place| {
-                let row_bytes = (w * 3 * 4) as u64;
-                (
-                    (place.scene * a) as u64 * row_bytes,
-                    (place.slot * a_c + place.offset) as u64 * row_bytes,
-                    place.rows as u64 * row_bytes,
-                )
-            })
-            .collect();
+        let (ctx, batch_rows) = (self.ctx, &compact.batch_rows);
         let denoised = self.denoised.as_ref();
         compact
             .plan
@@ -720,9 +777,18 @@ impl GpuStepEngine<'_> {
                     let (StepRule::Multistep { .. }, Some(kept)) = (rule, denoised) else {
                         return;
                     };
-                    for &(batch_at, compact_at, bytes) in &state_ranges {
-                        enc.copy_buffer_to_buffer(kept, batch_at, previous, compact_at, bytes);
-                    }
+                    let gather = compact_rows.prepare_gather(
+                        ctx,
+                        kept,
+                        batch_rows,
+                        previous,
+                        (agent_rows, w * 3),
+                    );
+                    let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                        label: Some("compact previous"),
+                        timestamp_writes: None,
+                    });
+                    gather.record(&mut pass);
                 },
                 |_, _| {},
             )
@@ -740,18 +806,36 @@ impl GpuStepEngine<'_> {
             &self.own_polylines,
             compact.plan.take_traffic(),
         );
+        // The placed rows back (a scene's rows beyond them hold still), with their estimates.
+        let mut scatters = vec![compact_rows.prepare_scatter(
+            self.ctx,
+            &compact.batch.x,
+            &compact.batch_rows,
+            &batch.x,
+            (agent_rows, w * 3),
+        )];
+        if let Some(denoised) = &self.denoised {
+            scatters.push(compact_rows.prepare_scatter(
+                self.ctx,
+                compact.plan.denoised(),
+                &compact.batch_rows,
+                denoised,
+                (agent_rows, w * 3),
+            ));
+        }
         let mut enc = self
             .ctx
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                 label: Some("compact scatter"),
             });
-        // The placed rows back; a scene's rows beyond them hold still.
-        for &(batch_at, compact_at, bytes) in &state_ranges {
-            enc.copy_buffer_to_buffer(&compact.batch.x, compact_at, &batch.x, batch_at, bytes);
-            if let Some(denoised) = &self.denoised {
-                let estimate = compact.plan.denoised();
-                enc.copy_buffer_to_buffer(estimate, compact_at, denoised, batch_at, bytes);
+        {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("compact scatter"),
+                timestamp_writes: None,
+            });
+            for dispatch in &scatters {
+                dispatch.record(&mut pass);
             }
         }
         self.ctx.queue.submit([enc.finish()]);

@@ -1101,3 +1101,48 @@ fn residual_chain_refuses_widths_past_its_tile() {
     let err = head_of_two.check().unwrap_err().to_string();
     assert!(err.contains("3 outputs"), "{err}");
 }
+
+/// The compact sub-batches' row gathers and scatters match their CPU references exactly:
+/// rows mapped in any order, rows mapped to nothing (gathered as zeros, scattered nowhere) and
+/// rows mapped past the other side (the kernels bound their own indices: zeros, nothing).
+#[test]
+fn compact_rows_match_the_cpu_reference() {
+    use road_gpu::kernels::compact::{
+        CompactRows, NONE, gather_rows_reference, scatter_rows_reference,
+    };
+    let ctx = context();
+    let kernel = CompactRows::new(&ctx);
+    let mut rng = rand::rngs::StdRng::seed_from_u64(29);
+    for (batch_rows, sub_rows, row_floats) in [(1, 1, 1), (7, 5, 60), (40, 64, 3), (300, 257, 96)] {
+        let batch = random(&mut rng, batch_rows * row_floats, 2.0);
+        let sub = random(&mut rng, sub_rows * row_floats, 2.0);
+        // A permutation's prefix, some rows mapped to nothing, one past the end.
+        let mut order: Vec<u32> = (0..batch_rows as u32).collect();
+        for i in (1..order.len()).rev() {
+            order.swap(i, rng.random_range(0..=i));
+        }
+        let row_map: Vec<u32> = (0..sub_rows)
+            .map(|r| match r % 5 {
+                4 => NONE,
+                _ if r == sub_rows - 1 && sub_rows > 1 => batch_rows as u32 + 3,
+                _ => order.get(r).copied().unwrap_or(NONE),
+            })
+            .collect();
+        let gathered = kernel
+            .run(&ctx, false, &batch, &row_map, &sub, row_floats)
+            .unwrap();
+        assert_eq!(
+            gathered,
+            gather_rows_reference(&batch, &row_map, row_floats),
+            "gather {batch_rows} → {sub_rows} rows of {row_floats}"
+        );
+        let scattered = kernel
+            .run(&ctx, true, &sub, &row_map, &batch, row_floats)
+            .unwrap();
+        assert_eq!(
+            scattered,
+            scatter_rows_reference(&sub, &row_map, &batch, row_floats),
+            "scatter {sub_rows} → {batch_rows} rows of {row_floats}"
+        );
+    }
+}

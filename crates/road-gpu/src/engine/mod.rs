@@ -168,6 +168,8 @@ pub(crate) struct Pipelines {
     pick_agent_maps: Pipeline,
     pair_attention: Pipeline,
     residual_chain: ResidualChain,
+    /// A batch's rows into and out of compact sub-batches (`GpuStepEngine`).
+    pub(crate) compact_rows: crate::kernels::compact::CompactRows,
 }
 
 impl Pipelines {
@@ -192,6 +194,7 @@ impl Pipelines {
             pick_agent_maps: Pipeline::new(ctx, Shader::AgentMap, "pick_agent_maps"),
             pair_attention: Pipeline::new(ctx, Shader::AgentPairs, "pair_attention"),
             residual_chain: ResidualChain::new(ctx),
+            compact_rows: crate::kernels::compact::CompactRows::new(ctx),
         })
     }
 }

@@ -5,6 +5,7 @@
 pub mod agent_map;
 pub mod agent_pairs;
 pub mod attention;
+pub mod compact;
 pub mod edm;
 pub mod linear;
 pub mod linear_f16;
