@@ -229,6 +229,12 @@ fn plan_packing(
 /// (a quarter of the agent count's range).
 const MAX_COMPACTS: usize = 12;
 
+/// Most agent rows (scenes × agents) the kept compact sub-batches hold together, in whole
+/// batches: a packed sub-batch holds every moving scene, and a pool whose layouts drift (agents
+/// leaving, scenes joining) must not keep a dozen of them (at 4 096 scenes each holds gigabytes
+/// of activations). Beyond, the least recently used are dropped.
+const MAX_COMPACT_ROWS_IN_BATCHES: usize = 2;
+
 /// Scenes of a compact sub-batch holding `scenes`: rounded up to an eighth of the next power
 /// of two, so that few shapes are made (each with its own buffers and plan) and at most an
 /// eighth of it is empty places.
@@ -631,7 +637,8 @@ impl GpuStepEngine<'_> {
     }
 
     /// Steps the moving scenes where `layout` places them in a compact sub-batch (made on first
-    /// use and kept, the least recently used dropped beyond [`MAX_COMPACTS`]): their rows are
+    /// use and kept, the least recently used dropped beyond [`MAX_COMPACTS`] or
+    /// [`MAX_COMPACT_ROWS_IN_BATCHES`]): their rows are
     /// copied in, stepped under `rule`, and copied back with their estimates.
     fn step_compact(
         &mut self,
@@ -657,7 +664,13 @@ impl GpuStepEngine<'_> {
         self.compact_uses += 1;
         let shape_of = |c: &Compact| (c.batch.scenes, c.batch.agents, c.map.scenes);
         if !self.compact.iter().any(|c| shape_of(c) == shape) {
-            if self.compact.len() >= MAX_COMPACTS {
+            let rows_of = |c: &Compact| c.batch.scenes * c.batch.agents;
+            let most_rows = MAX_COMPACT_ROWS_IN_BATCHES * self.scenes * self.agents;
+            while !self.compact.is_empty()
+                && (self.compact.len() >= MAX_COMPACTS
+                    || self.compact.iter().map(rows_of).sum::<usize>() + shape.0 * shape.1
+                        > most_rows)
+            {
                 let oldest = (0..self.compact.len())
                     .min_by_key(|&k| self.compact[k].last_use)
                     .expect("not empty");
