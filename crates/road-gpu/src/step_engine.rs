@@ -396,7 +396,7 @@ fn step_work(
 }
 
 /// A compacted sub-batch of `capacity` scenes with its own Heun plan: the moving scenes of a
-/// mixed-phase round are copied in, stepped, and copied back, so idle scenes cost nothing.
+/// mixed-phase round are gathered in, stepped, and scattered back, so idle scenes cost nothing.
 #[derive(Debug)]
 struct Compact {
     batch: DeviceBatch,
@@ -617,7 +617,7 @@ impl GpuStepEngine<'_> {
             return Ok(());
         }
         // Few scenes move (others idle in a mixed-phase batch), or few of their agent rows are
-        // live: copy those into a compact sub-batch, step it, copy the states back.
+        // live: gather those into a compact sub-batch, step it, scatter the states back.
         let layout = Layout::plain(&active, a_c);
         self.step_compact(&layout, sigma_cur, sigma_next, rule, evaluations)
     }
@@ -638,8 +638,8 @@ impl GpuStepEngine<'_> {
 
     /// Steps the moving scenes where `layout` places them in a compact sub-batch (made on first
     /// use and kept, the least recently used dropped beyond [`MAX_COMPACTS`] or
-    /// [`MAX_COMPACT_ROWS_IN_BATCHES`]): their rows are
-    /// copied in, stepped under `rule`, and copied back with their estimates.
+    /// [`MAX_COMPACT_ROWS_IN_BATCHES`]): their rows are gathered in, stepped under `rule`, and
+    /// scattered back with their estimates.
     fn step_compact(
         &mut self,
         layout: &Layout,
