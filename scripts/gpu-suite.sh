@@ -173,10 +173,11 @@ run)
     profile_batches=(1 512 2048)
     $quick && profile_batches=(8)
     # Scenes packed (road20-wide4, from 128 moving scenes on a card; 2026-11-30) or bucketed by
-    # agent count (road20) against one batch padded to the most agents, the default kernels.
+    # agent count (road20) against one batch padded to the most agents, the default kernels;
+    # `eager` packs from 2 scenes, as lavapipe does: whether a card's rule should start lower.
     step engine-buckets 60 "$out/engine-buckets.json" "$bin" bench engine \
         --checkpoints models/road20-wide4 models/road20 --batches "${batches[@]}" \
-        --cpu-max-batch 0 --bucketing on off --cache "$out/cache" --json
+        --cpu-max-batch 0 --bucketing on eager off --cache "$out/cache" --json
     # f16 (the blocks' layers on the tensor cores where cooperative matrices are offered;
     # layer by layer, as f16 runs) beside f32 layer by layer, the same run; the self-test above
     # checked it against its reference. Then `linear_f16` (the same rounding without tensor

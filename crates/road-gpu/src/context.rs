@@ -29,6 +29,10 @@ pub struct ContextOptions {
     /// sub-batch scene (models with agent maps and agent pairs: one batch's dispatches), else
     /// in buckets of like counts (more dispatches).
     pub bucket_scenes: bool,
+    /// With `bucket_scenes`: group from as few moving scenes on any adapter as lavapipe does
+    /// (packed from 2, bucketed from 32) instead of the adapter's rule (a card's: from 128),
+    /// so that a bench measures the rule (`road bench engine --bucketing eager`). Off by default.
+    pub eager_grouping: bool,
     /// Compile the kernels without wgpu's runtime checks (index clamping, loop bounding,
     /// division guards): every kernel here bounds its own indices and loops, and divides by
     /// sizes the engine sets. Off by default: on the H100 it gained 4–20 % a step from 8 scenes
@@ -130,6 +134,7 @@ impl Default for ContextOptions {
             map_encoder_chunk_bytes: 64 << 20,
             unchecked_shaders: false,
             bucket_scenes: true,
+            eager_grouping: false,
             residual_chains: true,
             precision: Precision::F32,
             cooperative_matrices: true,
@@ -150,6 +155,7 @@ pub struct GpuContext {
     map_encoder_chunk_bytes: u64,
     unchecked_shaders: bool,
     bucket_scenes: bool,
+    eager_grouping: bool,
     residual_chains: bool,
     precision: Precision,
     /// f16 layers on the tensor cores (`linear_coop.wgsl`): the adapter offers them, the device
@@ -243,6 +249,7 @@ impl GpuContext {
             map_encoder_chunk_bytes: options.map_encoder_chunk_bytes,
             unchecked_shaders: options.unchecked_shaders,
             bucket_scenes: options.bucket_scenes,
+            eager_grouping: options.eager_grouping,
             // The chains run f32 only.
             residual_chains: options.residual_chains && options.precision == Precision::F32,
             precision: options.precision,
@@ -320,6 +327,11 @@ impl GpuContext {
     /// See [`ContextOptions::bucket_scenes`].
     pub fn bucket_scenes(&self) -> bool {
         self.bucket_scenes
+    }
+
+    /// See [`ContextOptions::eager_grouping`].
+    pub fn eager_grouping(&self) -> bool {
+        self.eager_grouping
     }
 
     /// See [`ContextOptions::residual_chains`].

@@ -37,7 +37,7 @@ impl BucketRule {
     };
 
     fn for_context(ctx: &GpuContext) -> Self {
-        if ctx.is_software() {
+        if ctx.is_software() || ctx.eager_grouping() {
             Self::SOFTWARE
         } else {
             Self::HARDWARE
@@ -65,7 +65,7 @@ impl PackRule {
     };
 
     fn for_context(ctx: &GpuContext) -> Self {
-        if ctx.is_software() {
+        if ctx.is_software() || ctx.eager_grouping() {
             Self::SOFTWARE
         } else {
             Self::HARDWARE

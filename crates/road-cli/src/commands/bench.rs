@@ -117,9 +117,11 @@ pub struct EngineBenchArgs {
     #[arg(long, num_args = 1.., default_values = ["auto"], value_parser = parse_polyline_kernel)]
     pub polyline_kernels: Vec<Option<road_gpu::kernels::polyline::PolylineKernel>>,
     /// Whether the engine steps scenes of mixed agent counts packed (several small scenes'
-    /// agents in one sub-batch scene) or in buckets of like counts (`on`, the default), or as
-    /// one batch padded to the most agents (`off`), each a GPU row.
-    #[arg(long, num_args = 1.., default_values = ["on"], value_parser = ["on", "off"])]
+    /// agents in one sub-batch scene) or in buckets of like counts (`on`, the default: from as
+    /// many moving scenes as the adapter's rule says), `eager` (from as few as lavapipe's rule
+    /// on any adapter: packed from 2, bucketed from 32; to measure a card's rule), or as one
+    /// batch padded to the most agents (`off`), each a GPU row.
+    #[arg(long, num_args = 1.., default_values = ["on"], value_parser = ["on", "eager", "off"])]
     pub bucketing: Vec<String>,
     /// How a block's layers between attentions run, each a GPU row: `chains` (one
     /// `residual_chain` dispatch each: output projection, MLP, the next layer; the default) or
@@ -162,8 +164,10 @@ fn gpu_setting(row: &serde_json::Value) -> String {
     if row["shader_checks"].as_str() == Some("unchecked") {
         setting += ", unchecked";
     }
-    if row["bucketing"].as_str() == Some("off") {
-        setting += ", one batch";
+    match row["bucketing"].as_str() {
+        Some("off") => setting += ", one batch",
+        Some("eager") => setting += ", grouped eagerly",
+        _ => {}
     }
     if row["fusion"].as_str() == Some("layers") {
         setting += ", layer by layer";
@@ -451,7 +455,8 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
                                     linear_kernel,
                                     polyline_kernel,
                                     unchecked_shaders: checks == "unchecked",
-                                    bucket_scenes: bucketing == "on",
+                                    bucket_scenes: bucketing != "off",
+                                    eager_grouping: bucketing == "eager",
                                     residual_chains: fusion == "chains",
                                     precision,
                                     cooperative_matrices: cores == "on",
@@ -552,7 +557,11 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
                     "linear_kernel": ctx.linear_kernel_setting(),
                     "shader_checks": ctx.shader_checks_setting(),
                     "polyline_kernel": ctx.polyline_kernel_setting(),
-                    "bucketing": if ctx.bucket_scenes() { "on" } else { "off" },
+                    "bucketing": match (ctx.bucket_scenes(), ctx.eager_grouping()) {
+                        (false, _) => "off",
+                        (true, false) => "on",
+                        (true, true) => "eager",
+                    },
                     "fusion": ctx.fusion_setting(),
                     "precision": ctx.precision().name(),
                     "tensor_cores": ctx.cooperative_f16(),
