@@ -100,7 +100,7 @@ echo "train: exit $rc after $(($(date +%s) - start)) s (budget $minutes min)" | 
 # copies of the weights: 29 MB for road20-large) in parts of 15 MiB. Back here:
 # `cat $run.train_state.part-* > $run/train_state.safetensors` restores it for --from.
 results=()
-for f in machine.txt engine.json engine-buckets.json engine-f16.json engine-f16-cores.json \
+for f in machine.txt engine.json engine-packing.json engine-f16.json engine-f16-cores.json \
     engine-profile.json serve.json serve-large.json serve-f16.json train-bench.json; do
     [ -f "$out/$f" ] && results+=("$f")
 done

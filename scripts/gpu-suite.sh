@@ -167,17 +167,17 @@ run)
         --cpu-max-batch 8 --fusion chains layers --linear-kernels auto rowwise tiled blocked \
         --cache "$out/cache" --json
     # 4 096 scenes of road20-wide4 padded to 23 agents pass the adapter's 2 GiB binding when
-    # profiled whole (H200, 2026-11-30); bucketed, as the engine step runs them, they fit.
+    # profiled whole (H200, 2026-11-30); packed, as the engine step runs them, they fit.
     # One scene too: its 3.6 ms a Heun step (2 evaluations of 24 dispatches) is 75 µs a
     # dispatch, far above a kernel's work there; the profile's round trip and per-kernel times say which it is.
     profile_batches=(1 512 2048)
     $quick && profile_batches=(8)
-    # Scenes packed (road20-wide4, from 128 moving scenes on a card; 2026-11-30) or bucketed by
-    # agent count (road20) against one batch padded to the most agents, the default kernels;
-    # `eager` packs from 2 scenes, as lavapipe does: whether a card's rule should start lower.
-    step engine-buckets 60 "$out/engine-buckets.json" "$bin" bench engine \
+    # Scenes packed (from 128 moving scenes on a card; 2026-11-30) against one batch padded to
+    # the most agents, the default kernels; `eager` packs from 2 scenes, as lavapipe does:
+    # whether a card's rule should start lower.
+    step engine-packing 60 "$out/engine-packing.json" "$bin" bench engine \
         --checkpoints models/road20-wide4 models/road20 --batches "${batches[@]}" \
-        --cpu-max-batch 0 --bucketing on eager off --cache "$out/cache" --json
+        --cpu-max-batch 0 --packing on eager off --cache "$out/cache" --json
     # f16 (the blocks' layers on the tensor cores where cooperative matrices are offered;
     # layer by layer, as f16 runs) beside f32 layer by layer, the same run; the self-test above
     # checked it against its reference. Then `linear_f16` (the same rounding without tensor

@@ -8,6 +8,12 @@
 // l · token_stride (all in rows). Queries and outputs share one layout, keys and values another,
 // key validity (f32, 1 = valid) a third with the same group/token meaning.
 //
+// Scenes packed into one batch scene (`agent_scene`, [B·A] u32: each agent row's own scene; a
+// plain batch's row of scene b holds b): `scene_mode` 1, agents attend only to agents of their
+// own scene (agent rows (group / inner_count) · scene_agents + token, for the query's and the
+// keys' layouts); `scene_mode` 2, group n is agent row n and its keys are those of group
+// agent_scene[n] (the scene-frame map of the agent's own scene). 0: neither.
+//
 // Masked keys carry exactly zero weight (as an additive −1e9 bias does after exp in f32).
 // One invocation per (group, head, query) with an online softmax; a query with no valid key
 // yields zeros (the reference's output there is never read: such tokens are invalid).
@@ -28,8 +34,8 @@ struct Params {
     queries: u32,
     keys: u32,
     scale: f32,
-    _pad0: u32,
-    _pad1: u32,
+    scene_agents: u32, // A: agent rows per batch scene (scene_mode 1)
+    scene_mode: u32,
     q_layout: Layout,
     kv_layout: Layout,
     mask_layout: Layout,
@@ -42,12 +48,38 @@ const MAX_HEAD_DIM: u32 = 64u;
 @group(0) @binding(2) var<storage, read> k: array<f32>;
 @group(0) @binding(3) var<storage, read> v: array<f32>;
 @group(0) @binding(4) var<storage, read> key_valid: array<f32>;
-@group(0) @binding(5) var<storage, read_write> out: array<f32>;
+@group(0) @binding(5) var<storage, read> agent_scene: array<u32>; // [B·A]
+@group(0) @binding(6) var<storage, read_write> out: array<f32>;
 
 fn row_of(tokens: Layout, group: u32, token: u32) -> u32 {
     return (group / tokens.inner_count) * tokens.outer_stride
         + (group % tokens.inner_count) * tokens.inner_stride
         + token * tokens.token_stride;
+}
+
+// The group whose keys, values and key flags a query of `group` reads (`scene_mode` 2: its
+// agent's scene's).
+fn key_group(group: u32) -> u32 {
+    if (params.scene_mode == 2u) {
+        return agent_scene[group];
+    }
+    return group;
+}
+
+// Scene mode 1: the scene of agent `token` of `group` under `tokens`' grouping.
+fn scene_of(tokens: Layout, group: u32, token: u32) -> u32 {
+    return agent_scene[(group / tokens.inner_count) * params.scene_agents + token];
+}
+
+// Whether key `j` of `group` is a key of query `query`: valid, and (scene mode 1) of the
+// query's scene.
+fn is_key(group: u32, query: u32, j: u32) -> bool {
+    let kg = key_group(group);
+    if (key_valid[row_of(params.mask_layout, kg, j)] == 0.0) {
+        return false;
+    }
+    return params.scene_mode != 1u
+        || scene_of(params.kv_layout, group, j) == scene_of(params.q_layout, group, query);
 }
 
 @compute @workgroup_size(64)
@@ -63,9 +95,10 @@ fn attention(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgro
     let hd = params.head_dim;
     let q_base = row_of(params.q_layout, group, query) * d + head * hd;
     if (hd == 16u) {
-        attend16(group, q_base, head * hd, d);
+        attend16(group, query, q_base, head * hd, d);
         return;
     }
+    let kg = key_group(group);
 
     var acc: array<f32, MAX_HEAD_DIM>;
     for (var c = 0u; c < hd; c++) {
@@ -74,10 +107,10 @@ fn attention(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgro
     var running_max = -3.0e38;
     var denom = 0.0;
     for (var j = 0u; j < params.keys; j++) {
-        if (key_valid[row_of(params.mask_layout, group, j)] == 0.0) {
+        if (!is_key(group, query, j)) {
             continue;
         }
-        let k_base = row_of(params.kv_layout, group, j) * d + head * hd;
+        let k_base = row_of(params.kv_layout, kg, j) * d + head * hd;
         var score = 0.0;
         for (var c = 0u; c < hd; c++) {
             score += q[q_base + c] * k[k_base + c];
@@ -111,7 +144,8 @@ fn v4(i: u32) -> vec4<f32> {
 
 // `attention` for a head of 16: the same online softmax, the query and the accumulator in
 // registers. `head_offset` is the head's first column, `d` the row width.
-fn attend16(group: u32, q_base: u32, head_offset: u32, d: u32) {
+fn attend16(group: u32, query: u32, q_base: u32, head_offset: u32, d: u32) {
+    let kg = key_group(group);
     let q0 = q4(q_base);
     let q1 = q4(q_base + 4u);
     let q2 = q4(q_base + 8u);
@@ -123,10 +157,10 @@ fn attend16(group: u32, q_base: u32, head_offset: u32, d: u32) {
     var running_max = -3.0e38;
     var denom = 0.0;
     for (var j = 0u; j < params.keys; j++) {
-        if (key_valid[row_of(params.mask_layout, group, j)] == 0.0) {
+        if (!is_key(group, query, j)) {
             continue;
         }
-        let k_base = row_of(params.kv_layout, group, j) * d + head_offset;
+        let k_base = row_of(params.kv_layout, kg, j) * d + head_offset;
         let score = (dot(q0, k4(k_base)) + dot(q1, k4(k_base + 4u))
             + dot(q2, k4(k_base + 8u)) + dot(q3, k4(k_base + 12u))) * params.scale;
         let new_max = max(running_max, score);

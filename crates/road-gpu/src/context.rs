@@ -24,15 +24,14 @@ pub struct ContextOptions {
     /// chunk by chunk (at least 64 polylines each) so that agent maps of large batches fit one
     /// buffer binding. Tests make it tiny to run many chunks.
     pub map_encoder_chunk_bytes: u64,
-    /// Step scenes of mixed agent counts with less padding once enough of them move
-    /// (`GpuStepEngine`; on by default): packed, several small scenes' agents in one
-    /// sub-batch scene (models with agent maps and agent pairs: one batch's dispatches), else
-    /// in buckets of like counts (more dispatches).
-    pub bucket_scenes: bool,
-    /// With `bucket_scenes`: group from as few moving scenes on any adapter as lavapipe does
-    /// (packed from 2, bucketed from 32) instead of the adapter's rule (a card's: from 128),
-    /// so that a bench measures the rule (`road bench engine --bucketing eager`). Off by default.
-    pub eager_grouping: bool,
+    /// Pack scenes of mixed agent counts once enough of them move (`GpuStepEngine`; on by
+    /// default): several small scenes' agents in one sub-batch scene, kept apart by each agent
+    /// row's scene, so that less padding is computed at one batch's dispatches.
+    pub pack_scenes: bool,
+    /// With `pack_scenes`: pack from 2 moving scenes on any adapter, as on lavapipe, instead of
+    /// the adapter's rule (a card's: from 128), so that a bench measures the rule (`road bench
+    /// engine --packing eager`). Off by default.
+    pub eager_packing: bool,
     /// Compile the kernels without wgpu's runtime checks (index clamping, loop bounding,
     /// division guards): every kernel here bounds its own indices and loops, and divides by
     /// sizes the engine sets. Off by default: on the H100 it gained 4–20 % a step from 8 scenes
@@ -133,8 +132,8 @@ impl Default for ContextOptions {
             polyline_kernel: None,
             map_encoder_chunk_bytes: 64 << 20,
             unchecked_shaders: false,
-            bucket_scenes: true,
-            eager_grouping: false,
+            pack_scenes: true,
+            eager_packing: false,
             residual_chains: true,
             precision: Precision::F32,
             cooperative_matrices: true,
@@ -154,8 +153,8 @@ pub struct GpuContext {
     polyline_kernel: Option<PolylineKernel>,
     map_encoder_chunk_bytes: u64,
     unchecked_shaders: bool,
-    bucket_scenes: bool,
-    eager_grouping: bool,
+    pack_scenes: bool,
+    eager_packing: bool,
     residual_chains: bool,
     precision: Precision,
     /// f16 layers on the tensor cores (`linear_coop.wgsl`): the adapter offers them, the device
@@ -248,8 +247,8 @@ impl GpuContext {
             polyline_kernel: options.polyline_kernel,
             map_encoder_chunk_bytes: options.map_encoder_chunk_bytes,
             unchecked_shaders: options.unchecked_shaders,
-            bucket_scenes: options.bucket_scenes,
-            eager_grouping: options.eager_grouping,
+            pack_scenes: options.pack_scenes,
+            eager_packing: options.eager_packing,
             // The chains run f32 only.
             residual_chains: options.residual_chains && options.precision == Precision::F32,
             precision: options.precision,
@@ -324,14 +323,14 @@ impl GpuContext {
         self.linear_kernel.map_or("auto", LinearKernel::entry)
     }
 
-    /// See [`ContextOptions::bucket_scenes`].
-    pub fn bucket_scenes(&self) -> bool {
-        self.bucket_scenes
+    /// See [`ContextOptions::pack_scenes`].
+    pub fn pack_scenes(&self) -> bool {
+        self.pack_scenes
     }
 
-    /// See [`ContextOptions::eager_grouping`].
-    pub fn eager_grouping(&self) -> bool {
-        self.eager_grouping
+    /// See [`ContextOptions::eager_packing`].
+    pub fn eager_packing(&self) -> bool {
+        self.eager_packing
     }
 
     /// See [`ContextOptions::residual_chains`].

@@ -1,7 +1,7 @@
 //! The engine's speed proxies, which need no GPU to measure (issue 40: "Without a GPU"): how
 //! many compute dispatches one denoiser evaluation records, how many bytes their bindings read
 //! and write, and how much of the work computed is padding. Fusing kernels lowers the first two
-//! on any adapter, lavapipe included; bucketing scenes by agent count lowers the third.
+//! on any adapter, lavapipe included; packing scenes of mixed agent counts lowers the third.
 //!
 //! The dispatch and byte counts are counted as the engine records its dispatches
 //! ([`crate::kernels::Dispatch::record_counted`]), so they follow whatever kernels it runs; the

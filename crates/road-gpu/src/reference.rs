@@ -197,27 +197,45 @@ pub fn encode_polylines(
     layer_norm(&pooled, gamma, beta, n, d, eps)
 }
 
-/// Softmax attention per (group, head, query) over valid keys; zeros where no key is valid.
+/// Softmax attention per (group, head, query) over valid keys, packed scenes kept apart as
+/// `p.scene_mode` says (`agent_scene`, [`crate::kernels::attention::SceneMode`]); zeros where
+/// no key is valid.
 pub fn attention(
     p: &AttentionParams,
     q: &[f32],
     k: &[f32],
     v: &[f32],
     key_valid: &[f32],
+    agent_scene: &[u32],
 ) -> Vec<f32> {
+    use crate::kernels::attention::SceneMode;
     let d = (p.heads * p.head_dim) as usize;
     let hd = p.head_dim as usize;
+    let mode = p.scene_mode;
+    let scene_of = |layout: &crate::kernels::attention::TokenLayout, g: u32, token: u32| {
+        agent_scene[((g / layout.inner_count) * p.scene_agents + token) as usize]
+    };
     let mut out = vec![0.0f32; q.len()];
     for g in 0..p.groups {
+        let kg = if mode == SceneMode::KeysOfTheAgentsScene as u32 {
+            agent_scene[g as usize]
+        } else {
+            g
+        };
         for h in 0..p.heads as usize {
             for i in 0..p.queries {
                 let qb = p.q_layout.row(g, i) as usize * d + h * hd;
                 let mut scores = Vec::new();
                 for j in 0..p.keys {
-                    if key_valid[p.mask_layout.row(g, j) as usize] == 0.0 {
+                    if key_valid[p.mask_layout.row(kg, j) as usize] == 0.0 {
                         continue;
                     }
-                    let kb = p.kv_layout.row(g, j) as usize * d + h * hd;
+                    if mode == SceneMode::AgentsOfOneScene as u32
+                        && scene_of(&p.kv_layout, g, j) != scene_of(&p.q_layout, g, i)
+                    {
+                        continue;
+                    }
+                    let kb = p.kv_layout.row(kg, j) as usize * d + h * hd;
                     let s: f64 = (0..hd)
                         .map(|c| f64::from(q[qb + c]) * f64::from(k[kb + c]))
                         .sum::<f64>()

@@ -5,7 +5,7 @@
 
 use crate::kernels::agent_map::{AgentMap, AgentMapParams};
 use crate::kernels::agent_pairs::{PairAttention, PairAttentionParams};
-use crate::kernels::attention::{Attention, AttentionParams, TokenLayout};
+use crate::kernels::attention::{Attention, AttentionParams, SceneMode, TokenLayout};
 use crate::kernels::compact::{CompactRows, NONE, gather_rows_reference, scatter_rows_reference};
 use crate::kernels::linear::{Linear, LinearKernel, LinearParams, fold_layer_norm};
 use crate::kernels::polyline::{PolylineEncoder, PolylineKernel, PolylineParams};
@@ -259,13 +259,16 @@ pub fn kernel_checks(ctx: &GpuContext) -> Result<Vec<KernelCheck>> {
         queries: a as u32,
         keys: a as u32,
         scale: 1.0 / (head_dim as f32).sqrt(),
-        _pad: [0; 2],
+        scene_agents: a as u32,
+        scene_mode: SceneMode::AgentsOfOneScene as u32,
         q_layout: agents,
         kv_layout: agents,
         mask_layout: agents,
     };
-    let got = Attention::new(ctx).run(ctx, p, &q, &k, &v, &valid)?;
-    let want = reference::attention(&p, &q, &k, &v, &valid);
+    // Each scene's agents as two packed scenes (even and odd rows), attending apart.
+    let two_per_scene: Vec<u32> = (0..b * a).map(|r| (2 * (r / a) + r % 2) as u32).collect();
+    let got = Attention::new(ctx).run(ctx, p, &q, &k, &v, &valid, &two_per_scene)?;
+    let want = reference::attention(&p, &q, &k, &v, &valid, &two_per_scene);
     checks.push(KernelCheck {
         name: "attention",
         values: got.len(),

@@ -1,8 +1,7 @@
 //! The rollout driver's engine on the GPU ([`GpuStepEngine`]): `road-model`'s
 //! `StepEngine` over a [`GpuDenoiser`]'s kernels, with the windows kept on the device through a
-//! tick's steps, and compacted sub-batches for mixed-phase rounds, for buckets of scenes of
-//! like agent counts and for packed scenes (several small scenes' agents in one sub-batch
-//! scene, attending apart).
+//! tick's steps, and compacted sub-batches for mixed-phase rounds and for packed scenes
+//! (several small scenes' agents in one sub-batch scene, attending apart).
 
 use crate::engine::{DenoiseInputs, DeviceBatch, GpuDenoiser, MapTokens};
 use crate::kernels::compact::NONE;
@@ -12,42 +11,9 @@ use crate::proxies::{Work, flops_per_evaluation};
 use crate::sampler_step::{HeunPlan, StepRule};
 use crate::{Error, GpuContext, Result};
 
-/// When a step buckets its moving scenes by agent count: from `min_moving` of them, in buckets
-/// of at least `min_bucket` scenes (a smaller one joins the next larger agent count). Below,
-/// the buckets' dispatches cost more than the padding they save.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(crate) struct BucketRule {
-    min_moving: usize,
-    min_bucket: usize,
-}
-
-impl BucketRule {
-    /// lavapipe: 64 scenes of road20-wide4 stepped 25 % faster in buckets of 16 and more.
-    const SOFTWARE: Self = Self {
-        min_moving: 32,
-        min_bucket: 16,
-    };
-    /// A card: small sub-batches leave it idle between dispatches. On an H200 (2026-11-30,
-    /// docs/experiments/bench-2026-11-30-wgsl-engine-h200.md) 64 scenes in buckets of 16 and
-    /// more stepped 20-23 % slower than one batch, 512 scenes 19-33 % faster: buckets of at
-    /// least 64 scenes, so from 128 moving.
-    const HARDWARE: Self = Self {
-        min_moving: 128,
-        min_bucket: 64,
-    };
-
-    fn for_context(ctx: &GpuContext) -> Self {
-        if ctx.is_software() || ctx.eager_grouping() {
-            Self::SOFTWARE
-        } else {
-            Self::HARDWARE
-        }
-    }
-}
-/// When a step packs its moving scenes ([`plan_packing`]; models whose agents see other agents
-/// only through pair attention and the map through agent maps, both of which keep a packed
-/// scene's agents apart by `agent_scene`): from `min_moving` of them, when that saves a fifth of
-/// the work.
+/// When a step packs its moving scenes ([`plan_packing`]; every kernel that mixes agents or
+/// reads a scene's map keeps a packed scene's agents apart by `agent_scene`): from `min_moving`
+/// of them, when that saves a fifth of the work.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub(crate) struct PackRule {
     min_moving: usize,
@@ -58,26 +24,19 @@ impl PackRule {
     /// padded to 15 computed 1.98× their own work).
     const SOFTWARE: Self = Self { min_moving: 2 };
     /// A card: below this a step is bound by its launches, not its rows (the H200's 8-scene
-    /// step took 4 ms at 1.98× padding), and a packed step adds a copy per scene and region,
-    /// as buckets do; from as many scenes as buckets.
-    const HARDWARE: Self = Self {
-        min_moving: BucketRule::HARDWARE.min_moving,
-    };
+    /// step took 4 ms at 1.98× padding), and a packed step adds its gathers and scatters. From
+    /// 128, where buckets of scenes of like agent counts (what packing replaced) began to win:
+    /// on an H200 (2026-11-30, docs/experiments/bench-2026-11-30-wgsl-engine-h200.md) 64 scenes
+    /// in buckets of 16 stepped 20-23 % slower than one batch, 512 scenes 19-33 % faster.
+    const HARDWARE: Self = Self { min_moving: 128 };
 
     fn for_context(ctx: &GpuContext) -> Self {
-        if ctx.is_software() || ctx.eager_grouping() {
+        if ctx.is_software() || ctx.eager_packing() {
             Self::SOFTWARE
         } else {
             Self::HARDWARE
         }
     }
-}
-
-/// Whether a model's scenes can be packed: agents meet other agents only in pair attention and
-/// the map only through agent maps (plain agent attention and scene-frame map tokens would
-/// mix the scenes sharing a sub-batch scene).
-fn packable(config: &road_model::ModelConfig) -> bool {
-    config.agent_pairs.is_some() && config.agent_map.is_some()
 }
 
 /// One moving scene in a compact sub-batch: its first `rows` agent rows at agent row `offset`
@@ -225,8 +184,7 @@ fn plan_packing(
 }
 
 /// Most compact sub-batch shapes kept (each with its buffers and plan: up to a whole batch's
-/// memory); beyond, the least recently used is dropped. A step makes at most one per bucket
-/// (a quarter of the agent count's range).
+/// memory); beyond, the least recently used is dropped. A step makes at most one.
 const MAX_COMPACTS: usize = 12;
 
 /// Most agent rows (scenes × agents) the kept compact sub-batches hold together, in whole
@@ -241,61 +199,6 @@ const MAX_COMPACT_ROWS_IN_BATCHES: usize = 2;
 fn compact_capacity(scenes: usize) -> usize {
     let step = (scenes.next_power_of_two() / 8).max(1);
     scenes.next_multiple_of(step)
-}
-
-/// The `active` scenes of a batch of `(scenes, agents)` (each with `live_agents[i]` live agent
-/// rows) in buckets of like counts, one compact sub-batch each, when that saves at least a
-/// fifth of the padded batch's work: `(scenes, agent rows)` per bucket, or nothing to step the
-/// batch as one. Agent rows are each scene's live rows rounded up to 4.
-fn plan_buckets(
-    live_agents: &[usize],
-    active: &[usize],
-    (batch_scenes, a): (usize, usize),
-    rule: BucketRule,
-) -> Vec<(Vec<usize>, usize)> {
-    if active.len() < rule.min_moving {
-        return Vec::new();
-    }
-    let mut by_agents = std::collections::BTreeMap::<usize, Vec<usize>>::new();
-    for &i in active {
-        let rows = live_agents[i].next_multiple_of(4).clamp(1, a);
-        by_agents.entry(rows).or_default().push(i);
-    }
-    let mut buckets: Vec<(Vec<usize>, usize)> = Vec::new();
-    let mut pending: Vec<usize> = Vec::new();
-    let mut pending_rows = 0;
-    for (rows, scenes) in by_agents {
-        pending.extend(scenes);
-        pending_rows = rows;
-        if pending.len() >= rule.min_bucket {
-            buckets.push((std::mem::take(&mut pending), rows));
-        }
-    }
-    if !pending.is_empty() {
-        // The largest counts, too few for a bucket of their own: the last bucket takes them
-        // at their rows.
-        match buckets.last_mut() {
-            Some((scenes, rows)) => {
-                scenes.extend(pending);
-                *rows = pending_rows;
-            }
-            None => buckets.push((pending, pending_rows)),
-        }
-    }
-    // Against one step of them all as `step_rule` would take it: the whole batch in place,
-    // or one compact sub-batch at the most live rows.
-    let padded = |(scenes, rows): &(Vec<usize>, usize)| compact_capacity(scenes.len()) * rows;
-    let bucketed: usize = buckets.iter().map(padded).sum();
-    let most_rows = buckets.iter().map(|(_, rows)| *rows).max().unwrap_or(a);
-    let single = if active.len() * 2 > batch_scenes && most_rows * 4 > a * 3 {
-        batch_scenes * a
-    } else {
-        compact_capacity(active.len()) * most_rows
-    };
-    if buckets.len() < 2 || bucketed * 5 > single * 4 {
-        return Vec::new();
-    }
-    buckets
 }
 
 /// The rollout driver's engine on the GPU: windows stay on the device through a tick's steps
@@ -532,8 +435,8 @@ impl GpuStepEngine<'_> {
         // The whole batch in place when most of it moves and most of its agent rows are live;
         // else the moving scenes' live rows in a compact sub-batch.
         let in_place = active.len() * 2 > b && a_c * 4 > a * 3;
-        // Scenes of mixed agent counts: packed into one compact sub-batch, or a compact
-        // sub-batch per bucket of like counts, when that saves enough of the padding.
+        // Scenes of mixed agent counts: packed into one compact sub-batch, when that saves
+        // enough of the padding.
         let polylines = self.map.as_ref().map_or(0, |m| m.polylines);
         let flops = |agents| flops_per_evaluation(&self.model.config, agents, polylines);
         let unpacked = if in_place {
@@ -543,18 +446,6 @@ impl GpuStepEngine<'_> {
         };
         if let Some(layout) = self.packing(&active, sigma_cur, sigma_next, rule, unpacked) {
             return self.step_compact(&layout, sigma_cur, sigma_next, rule, evaluations);
-        }
-        let buckets = self.buckets(&active);
-        if !buckets.is_empty() {
-            for (scenes, rows) in &buckets {
-                let layout = Layout::plain(scenes, *rows);
-                self.step_compact(&layout, sigma_cur, sigma_next, rule, evaluations)?;
-            }
-            // One step of the batch, however many sub-batches ran it: its proxies are per
-            // evaluation of the batch (each bucket counted its own before, so that dispatches
-            // and bytes per evaluation read as one bucket's).
-            self.work.evaluations -= evaluations * (buckets.len() as u64 - 1);
-            return Ok(());
         }
         if in_place {
             // Its plan is made on the first such step: a server's pool of hundreds of scenes
@@ -620,20 +511,6 @@ impl GpuStepEngine<'_> {
         // live: gather those into a compact sub-batch, step it, scatter the states back.
         let layout = Layout::plain(&active, a_c);
         self.step_compact(&layout, sigma_cur, sigma_next, rule, evaluations)
-    }
-
-    /// Scenes of mixed agent counts in buckets of like counts ([`plan_buckets`]), or nothing to
-    /// step the batch as one.
-    fn buckets(&self, active: &[usize]) -> Vec<(Vec<usize>, usize)> {
-        if !self.ctx.bucket_scenes() {
-            return Vec::new();
-        }
-        plan_buckets(
-            &self.live_agents,
-            active,
-            (self.scenes, self.agents),
-            BucketRule::for_context(self.ctx),
-        )
     }
 
     /// Steps the moving scenes where `layout` places them in a compact sub-batch (made on first
@@ -866,10 +743,7 @@ impl GpuStepEngine<'_> {
         rule: StepRule<'_>,
         unpacked: f64,
     ) -> Option<Layout> {
-        if !self.ctx.bucket_scenes()
-            || !packable(&self.model.config)
-            || active.len() < PackRule::for_context(self.ctx).min_moving
-        {
+        if !self.ctx.pack_scenes() || active.len() < PackRule::for_context(self.ctx).min_moving {
             return None;
         }
         let w = self.model.config.window_slots;
@@ -1353,33 +1227,19 @@ mod tests {
     }
 
     #[test]
-    fn a_card_steps_64_mixed_scenes_as_one_batch_where_lavapipe_buckets_them() {
-        let live = mixed_agents(64);
-        let active: Vec<usize> = (0..64).collect();
-        let software = plan_buckets(&live, &active, (64, 24), BucketRule::SOFTWARE);
-        assert!(software.len() >= 2, "lavapipe buckets: {software:?}");
-        let hardware = plan_buckets(&live, &active, (64, 24), BucketRule::HARDWARE);
-        assert!(hardware.is_empty(), "a card steps one batch: {hardware:?}");
-    }
-
-    #[test]
-    fn a_card_buckets_512_mixed_scenes_by_64_or_more_each_scene_once_within_its_rows() {
+    fn five_hundred_mixed_scenes_pack_near_their_own_rows() {
         let live = mixed_agents(512);
         let active: Vec<usize> = (0..512).collect();
-        let buckets = plan_buckets(&live, &active, (512, 24), BucketRule::HARDWARE);
-        assert!(buckets.len() >= 2, "{buckets:?}");
-        let mut stepped = vec![0; 512];
-        for (scenes, rows) in &buckets {
-            assert!(scenes.len() >= 64, "a bucket of {} scenes", scenes.len());
-            for &i in scenes {
-                stepped[i] += 1;
-                assert!(
-                    live[i] <= *rows,
-                    "scene {i}: {} agents in {rows} rows",
-                    live[i]
-                );
-            }
-        }
-        assert!(stepped.iter().all(|&n| n == 1), "each scene stepped once");
+        let class = vec![0; 512];
+        let rows = |agents: usize| agents as f64;
+        let layout = plan_packing(&live, &active, &class, &rows);
+        check_layout(&layout, &live, &active, &class);
+        let own: usize = live.iter().sum();
+        let padded = 512 * 24;
+        assert!(
+            layout.cost(&rows) <= 1.1 * own as f64 && (padded as f64) > 1.5 * own as f64,
+            "{} rows packed, {own} own, {padded} padded",
+            layout.cost(&rows)
+        );
     }
 }

@@ -443,7 +443,7 @@ fn polyline_encoder_matches_the_cpu_reference_on_random_shapes() {
 
 #[test]
 fn attention_matches_the_cpu_reference_over_every_layout() {
-    use road_gpu::kernels::attention::{Attention, AttentionParams, TokenLayout};
+    use road_gpu::kernels::attention::{Attention, AttentionParams, SceneMode, TokenLayout};
     let ctx = context();
     let kernel = Attention::new(&ctx);
     let mut rng = rand::rngs::StdRng::seed_from_u64(13);
@@ -482,10 +482,28 @@ fn attention_matches_the_cpu_reference_over_every_layout() {
             queries: 0,
             keys: 0,
             scale,
-            _pad: [0; 2],
+            scene_agents: a,
+            scene_mode: SceneMode::None as u32,
             q_layout: time,
             kv_layout: time,
             mask_layout: time,
+        };
+        // Each agent row's scene: plain (row a of scene b holds b), and packed (each scene's
+        // agents split at random into up to three scenes).
+        let rows = (b * a) as usize;
+        let plain: Vec<u32> = (0..rows).map(|r| r as u32 / a).collect();
+        let packed: Vec<u32> = (0..rows)
+            .map(|r| 3 * (r as u32 / a) + rng.random_range(0..3))
+            .collect();
+        let agents_of_one_scene = AttentionParams {
+            groups: b * w,
+            queries: a,
+            keys: a,
+            q_layout: agents,
+            kv_layout: agents,
+            mask_layout: agents,
+            scene_mode: SceneMode::AgentsOfOneScene as u32,
+            ..base
         };
         let cases = [
             (
@@ -496,33 +514,43 @@ fn attention_matches_the_cpu_reference_over_every_layout() {
                     keys: w,
                     ..base
                 },
+                &plain,
             ),
             (
                 "agents",
                 AttentionParams {
-                    groups: b * w,
-                    queries: a,
-                    keys: a,
-                    q_layout: agents,
-                    kv_layout: agents,
-                    mask_layout: agents,
-                    ..base
+                    scene_mode: SceneMode::None as u32,
+                    ..agents_of_one_scene
                 },
+                &plain,
             ),
+            ("agents, plain scenes", agents_of_one_scene, &plain),
+            ("agents, packed scenes", agents_of_one_scene, &packed),
         ];
-        for (name, params) in cases {
-            let got = kernel.run(&ctx, params, &h, &h, &h, &valid).unwrap();
-            let want = road_gpu::reference::attention(&params, &h, &h, &h, &valid);
+        for (name, params, agent_scene) in cases {
+            let got = kernel
+                .run(&ctx, params, &h, &h, &h, &valid, agent_scene)
+                .unwrap();
+            let want = road_gpu::reference::attention(&params, &h, &h, &h, &valid, agent_scene);
             if let Err(m) = Tolerance::F32.check(&got, &want) {
                 panic!("{name} attention b{b} a{a} w{w} heads {heads}×{head_dim}: {m}");
             }
         }
-        // Map cross-attention: queries [B, A·W, D], keys [B, P, D], map validity [B, P].
+        // The plain scenes kept apart are the same as no scenes at all.
+        let apart = kernel
+            .run(&ctx, agents_of_one_scene, &h, &h, &h, &valid, &plain)
+            .unwrap();
+        let together = kernel
+            .run(&ctx, cases[1].1, &h, &h, &h, &valid, &plain)
+            .unwrap();
+        assert_eq!(apart, together);
+        // Map cross-attention: queries [B, A·W, D], keys [B, P, D], map validity [B, P]; per
+        // scene, then per agent over its own scene's map (plain and at random).
         let map = random(&mut rng, b as usize * p * d, 1.0);
         let map_valid: Vec<f32> = (0..b as usize * p)
             .map(|i| f32::from(u8::from(i % 4 != 1)))
             .collect();
-        let params = AttentionParams {
+        let per_scene = AttentionParams {
             groups: b,
             queries: a * w,
             keys: p as u32,
@@ -531,13 +559,35 @@ fn attention_matches_the_cpu_reference_over_every_layout() {
             mask_layout: TokenLayout::contiguous(p as u32),
             ..base
         };
-        let got = kernel
-            .run(&ctx, params, &h, &map, &map, &map_valid)
-            .unwrap();
-        let want = road_gpu::reference::attention(&params, &h, &map, &map, &map_valid);
-        if let Err(m) = Tolerance::F32.check(&got, &want) {
-            panic!("map attention b{b} a{a} w{w} p{p}: {m}");
+        let per_agent = AttentionParams {
+            groups: b * a,
+            queries: w,
+            q_layout: time,
+            scene_mode: SceneMode::KeysOfTheAgentsScene as u32,
+            ..per_scene
+        };
+        let random_maps: Vec<u32> = (0..rows).map(|_| rng.random_range(0..b)).collect();
+        for (name, params, agent_scene) in [
+            ("per scene", per_scene, &plain),
+            ("per agent, plain", per_agent, &plain),
+            ("per agent, packed", per_agent, &random_maps),
+        ] {
+            let got = kernel
+                .run(&ctx, params, &h, &map, &map, &map_valid, agent_scene)
+                .unwrap();
+            let want =
+                road_gpu::reference::attention(&params, &h, &map, &map, &map_valid, agent_scene);
+            if let Err(m) = Tolerance::F32.check(&got, &want) {
+                panic!("map attention {name} b{b} a{a} w{w} p{p}: {m}");
+            }
         }
+        // Per agent over plain scenes is per scene.
+        let run = |params| {
+            kernel
+                .run(&ctx, params, &h, &map, &map, &map_valid, &plain)
+                .unwrap()
+        };
+        assert_eq!(run(per_agent), run(per_scene));
     }
 }
 

@@ -37,7 +37,7 @@ fn context_with_chains(residual_chains: bool) -> GpuContext {
 fn context_unpacked() -> GpuContext {
     GpuContext::new(&ContextOptions {
         validation: true,
-        bucket_scenes: false,
+        pack_scenes: false,
         ..ContextOptions::default()
     })
     .unwrap_or_else(|e| panic!("GPU tests need an adapter: {e}"))

@@ -116,13 +116,12 @@ pub struct EngineBenchArgs {
     /// `per-polyline`, `blocked` or `auto` (blocked where the shape fits).
     #[arg(long, num_args = 1.., default_values = ["auto"], value_parser = parse_polyline_kernel)]
     pub polyline_kernels: Vec<Option<road_gpu::kernels::polyline::PolylineKernel>>,
-    /// Whether the engine steps scenes of mixed agent counts packed (several small scenes'
-    /// agents in one sub-batch scene) or in buckets of like counts (`on`, the default: from as
-    /// many moving scenes as the adapter's rule says), `eager` (from as few as lavapipe's rule
-    /// on any adapter: packed from 2, bucketed from 32; to measure a card's rule), or as one
-    /// batch padded to the most agents (`off`), each a GPU row.
+    /// Whether the engine packs scenes of mixed agent counts (several small scenes' agents in
+    /// one sub-batch scene): `on` (the default: from as many moving scenes as the adapter's rule
+    /// says), `eager` (from 2 on any adapter, as lavapipe's rule: to measure a card's), or `off`
+    /// (one batch padded to the most agents), each a GPU row.
     #[arg(long, num_args = 1.., default_values = ["on"], value_parser = ["on", "eager", "off"])]
-    pub bucketing: Vec<String>,
+    pub packing: Vec<String>,
     /// How a block's layers between attentions run, each a GPU row: `chains` (one
     /// `residual_chain` dispatch each: output projection, MLP, the next layer; the default) or
     /// `layers` (a dispatch per layer, `ContextOptions::residual_chains` off).
@@ -154,7 +153,7 @@ pub struct EngineBenchArgs {
 
 /// An engine row's GPU setting: its linear kernel, the polyline kernel when one was named,
 /// `unchecked` when its kernels were compiled without wgpu's runtime checks, and `one batch`
-/// when its scenes were not bucketed by agent count.
+/// when its scenes were not packed.
 fn gpu_setting(row: &serde_json::Value) -> String {
     let mut setting = row["linear_kernel"].as_str().unwrap_or("").to_string();
     match row["polyline_kernel"].as_str() {
@@ -164,9 +163,9 @@ fn gpu_setting(row: &serde_json::Value) -> String {
     if row["shader_checks"].as_str() == Some("unchecked") {
         setting += ", unchecked";
     }
-    match row["bucketing"].as_str() {
+    match row["packing"].as_str() {
         Some("off") => setting += ", one batch",
-        Some("eager") => setting += ", grouped eagerly",
+        Some("eager") => setting += ", packed eagerly",
         _ => {}
     }
     if row["fusion"].as_str() == Some("layers") {
@@ -436,11 +435,11 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
     use road_model::batch::SceneInput;
     use road_rollout::StepEngine;
     let validation = load_cache(&args.cache, Split::Validation)?;
-    // One context per fusion, bucketing, shader-check, polyline and linear kernel and
+    // One context per fusion, packing, shader-check, polyline and linear kernel and
     // precision setting compared.
     let mut settings = Vec::new();
     for fusion in &args.fusion {
-        for bucketing in &args.bucketing {
+        for packing in &args.packing {
             for checks in &args.shader_checks {
                 for &polyline_kernel in &args.polyline_kernels {
                     for &linear_kernel in &args.linear_kernels {
@@ -455,8 +454,8 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
                                     linear_kernel,
                                     polyline_kernel,
                                     unchecked_shaders: checks == "unchecked",
-                                    bucket_scenes: bucketing != "off",
-                                    eager_grouping: bucketing == "eager",
+                                    pack_scenes: packing != "off",
+                                    eager_packing: packing == "eager",
                                     residual_chains: fusion == "chains",
                                     precision,
                                     cooperative_matrices: cores == "on",
@@ -557,7 +556,7 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
                     "linear_kernel": ctx.linear_kernel_setting(),
                     "shader_checks": ctx.shader_checks_setting(),
                     "polyline_kernel": ctx.polyline_kernel_setting(),
-                    "bucketing": match (ctx.bucket_scenes(), ctx.eager_grouping()) {
+                    "packing": match (ctx.pack_scenes(), ctx.eager_packing()) {
                         (false, _) => "off",
                         (true, false) => "on",
                         (true, true) => "eager",

@@ -23,7 +23,7 @@ use road_model::ModelConfig;
 
 use crate::kernels::agent_map::AgentMapParams;
 use crate::kernels::agent_pairs::PairAttentionParams;
-use crate::kernels::attention::{AttentionParams, MAX_HEAD_DIM, TokenLayout};
+use crate::kernels::attention::{AttentionParams, MAX_HEAD_DIM, SceneMode, TokenLayout};
 use crate::kernels::linear::{Linear, LinearKernel, LinearParams};
 use crate::kernels::linear_f16::{LinearF16, LinearF16Kernel};
 use crate::kernels::polyline::{PolylineEncoder, PolylineKernel, PolylineParams};
@@ -781,11 +781,9 @@ impl GpuDenoiser {
     ) -> Result<()> {
         let c = &self.config;
         let (b, a, w, d) = (batch.scenes, batch.agents, c.window_slots, c.hidden);
-        // Agent maps pick each row's polylines from its own scene's map (`agent_scene`), which
-        // a packed batch holds apart from its scenes; scene-frame maps are the batch's own.
-        if map.picked.is_none() {
-            assert_eq!(map.scenes, b, "map tokens for another scene count");
-        }
+        // Each agent row reads its own scene's map (`agent_scene`: agent maps pick from it,
+        // scene-frame map tokens are attended in it), which a packed batch holds apart from
+        // its scenes.
         let tokens = b * a * w;
         let m = d * c.mlp_ratio;
         let Scratch {
@@ -892,7 +890,8 @@ impl GpuDenoiser {
             queries: 0,
             keys: 0,
             scale,
-            _pad: [0; 2],
+            scene_agents: a32,
+            scene_mode: SceneMode::None as u32,
             q_layout: time,
             kv_layout: time,
             mask_layout: time,
@@ -902,7 +901,7 @@ impl GpuDenoiser {
         // The map's keys: each agent's own polylines, or the scene's.
         let (keys, key_rows) = match (agent_maps, map.picked) {
             (Some(maps), Some(k)) => (&maps.encoder.tokens, b * a * k),
-            _ => (&map.data, b * map.polylines),
+            _ => (&map.data, map.scenes * map.polylines),
         };
         if *map_kv_all {
             // Every block's map k, v in one layer: part 2i is block i's k, 2i + 1 its v.
@@ -965,6 +964,7 @@ impl GpuDenoiser {
                         q_layout: agents,
                         kv_layout: agents,
                         mask_layout: agents,
+                        scene_mode: SceneMode::AgentsOfOneScene as u32,
                         ..base
                     },
                 ),
@@ -1012,6 +1012,7 @@ impl GpuDenoiser {
                         k,
                         v,
                         batch.valid.as_entire_binding(),
+                        batch.agent_scene.as_entire_binding(),
                         att.as_entire_binding(),
                     ];
                     ops.push(self.pipelines.attention.prepare_resources(
@@ -1101,14 +1102,17 @@ impl GpuDenoiser {
                     (attn, &maps.valid)
                 }
                 _ => {
+                    // Each agent's tokens attend to its own scene's polylines (`agent_scene`:
+                    // a packed batch holds several scenes' maps apart from its scenes).
                     let pl = map.polylines as u32;
                     let attn = AttentionParams {
-                        groups: b32,
-                        queries: a32 * w32,
+                        groups: b32 * a32,
+                        queries: w32,
                         keys: pl,
-                        q_layout: TokenLayout::contiguous(a32 * w32),
+                        q_layout: time,
                         kv_layout: TokenLayout::contiguous(pl),
                         mask_layout: TokenLayout::contiguous(pl),
+                        scene_mode: SceneMode::KeysOfTheAgentsScene as u32,
                         ..base
                     };
                     (attn, &map.valid)
@@ -1120,6 +1124,7 @@ impl GpuDenoiser {
                 part_of(mkv, kv_part, key_part, key_rows * d),
                 part_of(mkv, kv_part + 1, key_part, key_rows * d),
                 key_valid.as_entire_binding(),
+                batch.agent_scene.as_entire_binding(),
                 att.as_entire_binding(),
             ];
             ops.push(self.pipelines.attention.prepare_resources(

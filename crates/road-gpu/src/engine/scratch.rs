@@ -95,7 +95,7 @@ impl Scratch {
                 scenes * agents * k,
                 scenes * agents * k * c.polyline_points * 2,
             ),
-            None => (scenes * map.polylines, 0),
+            None => (map.scenes * map.polylines, 0),
         };
         let largest_bytes = 4
             * (tokens * d * c.mlp_ratio)
@@ -116,7 +116,7 @@ impl Scratch {
         }
         let buf = |label: &str, floats: usize| storage_buffer(ctx, label, (floats * 4) as u64);
         let (key_rows, agent_maps) = match map.picked {
-            None => (scenes * map.polylines, None),
+            None => (map.scenes * map.polylines, None),
             Some(k) => {
                 let (rows, q) = (scenes * agents * k, c.polyline_points);
                 let maps = AgentMapScratch {

@@ -44,10 +44,28 @@ pub struct AttentionParams {
     pub queries: u32,
     pub keys: u32,
     pub scale: f32,
-    pub _pad: [u32; 2],
+    /// Agent rows per batch scene, for [`SceneMode::AgentsOfOneScene`].
+    pub scene_agents: u32,
+    /// A [`SceneMode`] as `u32`.
+    pub scene_mode: u32,
     pub q_layout: TokenLayout,
     pub kv_layout: TokenLayout,
     pub mask_layout: TokenLayout,
+}
+
+/// How packed scenes (several scenes' agents in one batch scene, each agent row tagged with its
+/// own scene: `agent_scene`) are kept apart.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[repr(u32)]
+pub enum SceneMode {
+    /// Groups do not mix scenes (attention over time, over an agent's own map).
+    None = 0,
+    /// Agent attention: group `n`'s token `l` is agent row `(n / inner_count) · scene_agents +
+    /// l` (for the query's and the keys' layouts); keys of another scene carry no weight.
+    AgentsOfOneScene = 1,
+    /// Group `n` is agent row `n`; its keys, values and key flags are group `agent_scene[n]`'s
+    /// (the scene-frame map of the agent's own scene).
+    KeysOfTheAgentsScene = 2,
 }
 
 /// Largest head size the kernel's private accumulator holds.
@@ -67,8 +85,10 @@ impl Attention {
         Self(Pipeline::new(ctx, Shader::Attention, "attention"))
     }
 
-    /// Runs once; `out_len` is the size of the query tensor (the output shares its layout;
-    /// rows no query touches stay 0).
+    /// Runs once; the output has the query tensor's size (and layout; rows no query touches
+    /// stay 0). `agent_scene`: each agent row's scene (read under a [`SceneMode`] other than
+    /// `None`; at least one entry).
+    #[allow(clippy::too_many_arguments)]
     pub fn run(
         &self,
         ctx: &GpuContext,
@@ -77,6 +97,7 @@ impl Attention {
         k: &[f32],
         v: &[f32],
         key_valid: &[f32],
+        agent_scene: &[u32],
     ) -> Result<Vec<f32>> {
         assert!(
             p.head_dim <= MAX_HEAD_DIM,
@@ -86,7 +107,7 @@ impl Attention {
         self.0.run_once(
             ctx,
             bytemuck::bytes_of(&p),
-            &[q, k, v, key_valid],
+            &[q, k, v, key_valid, bytemuck::cast_slice(agent_scene)],
             q.len(),
             p.threads(),
         )
