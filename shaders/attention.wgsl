@@ -71,15 +71,21 @@ fn scene_of(tokens: Layout, group: u32, token: u32) -> u32 {
     return agent_scene[(group / tokens.inner_count) * params.scene_agents + token];
 }
 
-// Whether key `j` of `group` is a key of query `query`: valid, and (scene mode 1) of the
-// query's scene.
-fn is_key(group: u32, query: u32, j: u32) -> bool {
-    let kg = key_group(group);
+// The scene of query `query` of `group` (scene mode 1; 0 otherwise, unread).
+fn query_scene(group: u32, query: u32) -> u32 {
+    if (params.scene_mode == 1u) {
+        return scene_of(params.q_layout, group, query);
+    }
+    return 0u;
+}
+
+// Whether key `j` of `group` (its keys' group `kg`) is a key of a query of scene `own_scene`:
+// valid, and (scene mode 1) of that scene.
+fn is_key(group: u32, kg: u32, own_scene: u32, j: u32) -> bool {
     if (key_valid[row_of(params.mask_layout, kg, j)] == 0.0) {
         return false;
     }
-    return params.scene_mode != 1u
-        || scene_of(params.kv_layout, group, j) == scene_of(params.q_layout, group, query);
+    return params.scene_mode != 1u || scene_of(params.kv_layout, group, j) == own_scene;
 }
 
 @compute @workgroup_size(64)
@@ -99,6 +105,7 @@ fn attention(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgro
         return;
     }
     let kg = key_group(group);
+    let own_scene = query_scene(group, query);
 
     var acc: array<f32, MAX_HEAD_DIM>;
     for (var c = 0u; c < hd; c++) {
@@ -107,7 +114,7 @@ fn attention(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgro
     var running_max = -3.0e38;
     var denom = 0.0;
     for (var j = 0u; j < params.keys; j++) {
-        if (!is_key(group, query, j)) {
+        if (!is_key(group, kg, own_scene, j)) {
             continue;
         }
         let k_base = row_of(params.kv_layout, kg, j) * d + head * hd;
@@ -146,6 +153,7 @@ fn v4(i: u32) -> vec4<f32> {
 // registers. `head_offset` is the head's first column, `d` the row width.
 fn attend16(group: u32, query: u32, q_base: u32, head_offset: u32, d: u32) {
     let kg = key_group(group);
+    let own_scene = query_scene(group, query);
     let q0 = q4(q_base);
     let q1 = q4(q_base + 4u);
     let q2 = q4(q_base + 8u);
@@ -157,7 +165,7 @@ fn attend16(group: u32, query: u32, q_base: u32, head_offset: u32, d: u32) {
     var running_max = -3.0e38;
     var denom = 0.0;
     for (var j = 0u; j < params.keys; j++) {
-        if (!is_key(group, query, j)) {
+        if (!is_key(group, kg, own_scene, j)) {
             continue;
         }
         let k_base = row_of(params.kv_layout, kg, j) * d + head_offset;

@@ -1,5 +1,5 @@
 //! `shaders/compact.wgsl`: a batch's rows gathered into a compact sub-batch and its results
-//! scattered back (`GpuStepEngine`'s packed, bucketed and mixed-phase steps), one dispatch per
+//! scattered back (`GpuStepEngine`'s packed and mixed-phase steps), one dispatch per
 //! region. CPU reference: [`gather_rows_reference`], [`scatter_rows_reference`].
 
 use bytemuck::{Pod, Zeroable};
