@@ -33,7 +33,7 @@ fn context_with_chains(residual_chains: bool) -> GpuContext {
     .unwrap_or_else(|e| panic!("GPU tests need an adapter: {e}"))
 }
 
-/// As [`context`], scenes of mixed agent counts never packed nor bucketed: one batch padded.
+/// As [`context`], scenes of mixed agent counts never packed: one batch padded.
 fn context_unpacked() -> GpuContext {
     GpuContext::new(&ContextOptions {
         validation: true,
