@@ -284,6 +284,18 @@ impl HeunPlan {
         std::mem::take(&mut self.recorded)
     }
 
+    /// The multistep sampler's previous estimate `D_prev` `[B, A, W, 3]`, which `run_rule`'s
+    /// `before` fills.
+    pub(crate) fn previous(&self) -> &wgpu::Buffer {
+        &self.previous
+    }
+
+    /// Both buffers [`Self::denoised`] may return: the first evaluation's estimate and the
+    /// second's.
+    pub(crate) fn estimates(&self) -> [&wgpu::Buffer; 2] {
+        [&self.first, &self.second]
+    }
+
     /// The last run's last denoiser estimate D `[B, A, W, 3]` (the second evaluation's when
     /// it made one).
     pub fn denoised(&self) -> &wgpu::Buffer {

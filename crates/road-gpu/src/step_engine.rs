@@ -6,7 +6,7 @@
 use crate::engine::{DenoiseInputs, DeviceBatch, GpuDenoiser, MapTokens};
 use crate::kernels::compact::NONE;
 use crate::kernels::window::ShiftList;
-use crate::kernels::{Traffic, read_back_ranges, storage_buffer};
+use crate::kernels::{Dispatch, Traffic, read_back_ranges, record_all, storage_buffer};
 use crate::proxies::{Work, flops_per_evaluation};
 use crate::sampler_step::{HeunPlan, StepRule};
 use crate::{Error, GpuContext, Result};
@@ -316,11 +316,67 @@ struct Compact {
     /// it holds.
     map_scenes: wgpu::Buffer,
     map_scenes_held: Vec<u32>,
+    /// Its gathers and scatters, prepared on its first step.
+    moves: Option<CompactMoves>,
     sigma_cur: Vec<f32>,  // [capacity, W]
     sigma_next: Vec<f32>, // [capacity, W]
     gamma: Vec<f32>,      // [capacity, W]
     /// `GpuStepEngine::compact_uses` when it last stepped.
     last_use: u64,
+}
+
+/// A compact sub-batch's row moves (`shaders/compact.wgsl`), prepared once: the batch's
+/// buffers and the sub-batch's own outlive it (a new scene set clears the sub-batches), so a
+/// step makes no uniform buffer or bind group of its own.
+#[derive(Debug)]
+struct CompactMoves {
+    /// States, flags and agent embeddings by `batch_rows`, map data and flags by `map_scenes`.
+    gathers: Vec<Dispatch>,
+    /// The kept estimates into the plan's `D_prev` (the multistep sampler), with a kept one.
+    previous: Option<Dispatch>,
+    /// States back, with the estimate of the plan's first or (index 1) second evaluation.
+    scatters: [Vec<Dispatch>; 2],
+}
+
+impl CompactMoves {
+    fn new(
+        ctx: &GpuContext,
+        model: &GpuDenoiser,
+        (batch, map, kept): (&DeviceBatch, &MapTokens, Option<&wgpu::Buffer>),
+        compact: &Compact,
+    ) -> Self {
+        let rows = &model.pipelines.compact_rows;
+        let (w, d) = (model.config.window_slots, model.config.hidden);
+        let agent_rows = compact.batch.scenes * compact.batch.agents;
+        let (p, c) = (map.polylines, &compact.batch);
+        let by_row = |src, dst, per_row| {
+            rows.prepare_gather(ctx, src, &compact.batch_rows, dst, (agent_rows, per_row))
+        };
+        let by_map = |src, dst, per_scene| {
+            let shape = (compact.map.scenes, per_scene);
+            rows.prepare_gather(ctx, src, &compact.map_scenes, dst, shape)
+        };
+        let gathers = vec![
+            by_row(&batch.x, &c.x, w * 3),
+            by_row(&batch.valid, &c.valid, w),
+            by_row(&batch.agent_embedding, &c.agent_embedding, d),
+            by_map(&map.data, &compact.map.data, p * map.per_polyline),
+            by_map(&map.valid, &compact.map.valid, p),
+        ];
+        let back = |src, dst| {
+            rows.prepare_scatter(ctx, src, &compact.batch_rows, dst, (agent_rows, w * 3))
+        };
+        let scatters = compact.plan.estimates().map(|estimate| {
+            let mut out = vec![back(&c.x, &batch.x)];
+            out.extend(kept.map(|kept| back(estimate, kept)));
+            out
+        });
+        Self {
+            gathers,
+            previous: kept.map(|kept| by_row(kept, compact.plan.previous(), w * 3)),
+            scatters,
+        }
+    }
 }
 
 impl Compact {
@@ -366,6 +422,7 @@ impl Compact {
             batch_rows_held: vec![0; capacity * agents],
             map_scenes: buffer("compact.map_scenes", map_scenes),
             map_scenes_held: vec![0; map_scenes],
+            moves: None,
             sigma_cur: vec![1.0; capacity * w],
             sigma_next: vec![1.0; capacity * w],
             gamma: vec![0.0; capacity * w],
@@ -537,7 +594,6 @@ impl GpuStepEngine<'_> {
             a_c,
             compact_capacity(layout.placed.len()),
         );
-        let d = self.model.config.hidden;
         self.compact_uses += 1;
         let shape_of = |c: &Compact| (c.batch.scenes, c.batch.agents, c.map.scenes);
         if !self.compact.iter().any(|c| shape_of(c) == shape) {
@@ -590,50 +646,18 @@ impl GpuStepEngine<'_> {
         // Each region's rows gathered in one dispatch: agent rows by `batch_rows` (rows no
         // scene fills come in as zeros: no agent, nor a stale one of an earlier layout), maps
         // by `map_scenes`.
-        let compact_rows = &self.model.pipelines.compact_rows;
-        let agent_rows = shape.0 * a_c;
-        let gathers = [
-            (&batch.x, &compact.batch.x, w * 3),
-            (&batch.valid, &compact.batch.valid, w),
-            (&batch.agent_embedding, &compact.batch.agent_embedding, d),
-        ]
-        .map(|(src, dst, per_row)| {
-            compact_rows.prepare_gather(
-                self.ctx,
-                src,
-                &compact.batch_rows,
-                dst,
-                (agent_rows, per_row),
-            )
-        });
-        let map_gathers = [
-            (&map.data, &compact.map.data, p * map.per_polyline),
-            (&map.valid, &compact.map.valid, p),
-        ]
-        .map(|(src, dst, per_scene)| {
-            compact_rows.prepare_gather(
-                self.ctx,
-                src,
-                &compact.map_scenes,
-                dst,
-                (shape.2, per_scene),
-            )
-        });
+        if compact.moves.is_none() {
+            let buffers = (batch, map, self.denoised.as_ref());
+            compact.moves = Some(CompactMoves::new(self.ctx, self.model, buffers, compact));
+        }
+        let moves = compact.moves.as_ref().expect("made above");
         let mut enc = self
             .ctx
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                 label: Some("compact gather"),
             });
-        {
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                label: Some("compact gather"),
-                timestamp_writes: None,
-            });
-            for dispatch in gathers.iter().chain(&map_gathers) {
-                dispatch.record(&mut pass);
-            }
-        }
+        record_all(&mut enc, "compact gather", &moves.gathers);
         self.ctx.queue.submit([enc.finish()]);
         // σ (and γ) rows per sub-batch scene: a slot's scenes share theirs.
         compact.sigma_cur.fill(1.0);
@@ -653,8 +677,6 @@ impl GpuStepEngine<'_> {
             },
             heun => heun,
         };
-        let (ctx, batch_rows) = (self.ctx, &compact.batch_rows);
-        let denoised = self.denoised.as_ref();
         compact
             .plan
             .run_rule(
@@ -663,22 +685,10 @@ impl GpuStepEngine<'_> {
                 &compact.sigma_cur,
                 &compact.sigma_next,
                 compact_rule,
-                |enc, previous| {
-                    let (StepRule::Multistep { .. }, Some(kept)) = (rule, denoised) else {
-                        return;
-                    };
-                    let gather = compact_rows.prepare_gather(
-                        ctx,
-                        kept,
-                        batch_rows,
-                        previous,
-                        (agent_rows, w * 3),
-                    );
-                    let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                        label: Some("compact previous"),
-                        timestamp_writes: None,
-                    });
-                    gather.record(&mut pass);
+                |enc, _| {
+                    if let (StepRule::Multistep { .. }, Some(previous)) = (rule, &moves.previous) {
+                        record_all(enc, "compact previous", std::slice::from_ref(previous));
+                    }
                 },
                 |_, _| {},
             )
@@ -697,37 +707,15 @@ impl GpuStepEngine<'_> {
             compact.plan.take_traffic(),
         );
         // The placed rows back (a scene's rows beyond them hold still), with their estimates.
-        let mut scatters = vec![compact_rows.prepare_scatter(
-            self.ctx,
-            &compact.batch.x,
-            &compact.batch_rows,
-            &batch.x,
-            (agent_rows, w * 3),
-        )];
-        if let Some(denoised) = &self.denoised {
-            scatters.push(compact_rows.prepare_scatter(
-                self.ctx,
-                compact.plan.denoised(),
-                &compact.batch_rows,
-                denoised,
-                (agent_rows, w * 3),
-            ));
-        }
+        let [first, _] = compact.plan.estimates();
+        let which = usize::from(!std::ptr::eq(compact.plan.denoised(), first));
         let mut enc = self
             .ctx
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                 label: Some("compact scatter"),
             });
-        {
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                label: Some("compact scatter"),
-                timestamp_writes: None,
-            });
-            for dispatch in &scatters {
-                dispatch.record(&mut pass);
-            }
-        }
+        record_all(&mut enc, "compact scatter", &moves.scatters[which]);
         self.ctx.queue.submit([enc.finish()]);
         Ok(())
     }

@@ -491,7 +491,7 @@ fn attention_matches_the_cpu_reference_over_every_layout() {
         // Each agent row's scene: plain (row a of scene b holds b), and packed (each scene's
         // agents split at random into up to three scenes).
         let rows = (b * a) as usize;
-        let plain: Vec<u32> = (0..rows).map(|r| r as u32 / a).collect();
+        let plain = road_gpu::engine::plain_agent_scenes(b as usize, a as usize);
         let packed: Vec<u32> = (0..rows)
             .map(|r| 3 * (r as u32 / a) + rng.random_range(0..3))
             .collect();
@@ -724,7 +724,7 @@ fn agent_maps_match_the_cpu_reference() {
         let anchors = anchors_of(&x, &valid, w, anchor_slot, 0.25);
         // Each row of scene b picks from map b (a plain batch), then every row from a map
         // scene of its own, at random (a packed batch): the reference on each row's map.
-        let plain: Vec<u32> = (0..b * a).map(|r| (r / a) as u32).collect();
+        let plain = road_gpu::engine::plain_agent_scenes(b, a);
         let packed: Vec<u32> = (0..b * a).map(|_| rng.random_range(0..b as u32)).collect();
         for (layout, agent_scene) in [("plain", plain), ("packed", packed)] {
             let (points, flags) = kernel
@@ -835,7 +835,7 @@ fn pair_attention_matches_the_cpu_reference() {
         };
         // Each scene's agents as one scene (a plain batch), then split at random into up to
         // three packed scenes that attend apart.
-        let plain: Vec<u32> = (0..b * a).map(|r| (r / a) as u32).collect();
+        let plain = road_gpu::engine::plain_agent_scenes(b, a);
         let packed: Vec<u32> = (0..b * a)
             .map(|r| (3 * (r / a)) as u32 + rng.random_range(0..3))
             .collect();

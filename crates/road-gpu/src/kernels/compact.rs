@@ -4,7 +4,7 @@
 
 use bytemuck::{Pod, Zeroable};
 
-use super::{Dispatch, Pipeline, read_back, storage_buffer, upload};
+use super::{Dispatch, Pipeline, read_back, record_all, storage_buffer, upload};
 use crate::shaders::Shader;
 use crate::{GpuContext, Result};
 
@@ -115,13 +115,11 @@ impl CompactRows {
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                 label: Some("compact rows"),
             });
-        {
-            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                label: Some("compact rows"),
-                timestamp_writes: None,
-            });
-            dispatch.record(&mut pass);
-        }
+        record_all(
+            &mut encoder,
+            "compact rows",
+            std::slice::from_ref(&dispatch),
+        );
         ctx.queue.submit([encoder.finish()]);
         Ok(bytemuck::cast_slice(&read_back(ctx, &dst, bytes)?).to_vec())
     }
