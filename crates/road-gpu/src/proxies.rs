@@ -1,7 +1,9 @@
 //! The engine's speed proxies, which need no GPU to measure (issue 40: "Without a GPU"): how
-//! many compute dispatches one denoiser evaluation records, how many bytes their bindings read
-//! and write, and how much of the work computed is padding. Fusing kernels lowers the first two
-//! on any adapter, lavapipe included; packing scenes of mixed agent counts lowers the third.
+//! many compute dispatches one denoiser evaluation records (with its share of the step's
+//! sampler update and of a compact sub-batch's row moves), how many bytes their bindings read
+//! and write, and how much of the work computed is padding. Fusing kernels lowers the first
+//! two on any adapter, lavapipe included; packing scenes of mixed agent counts lowers the
+//! third.
 //!
 //! The dispatch and byte counts are counted as the engine records its dispatches
 //! ([`crate::kernels::Dispatch::record_counted`]), so they follow whatever kernels it runs; the
@@ -54,7 +56,8 @@ pub fn flops_per_evaluation(c: &ModelConfig, agents: usize, polylines: usize) ->
 pub struct Work {
     /// Denoiser evaluations of the batch (a Heun step with its second evaluation makes 2).
     pub evaluations: u64,
-    /// The dispatches recorded: every evaluation's and its sampler update's.
+    /// The dispatches recorded: every evaluation's and its sampler update's, and a compact
+    /// sub-batch's row moves (its gathers and scatters, once a step).
     pub traffic: Traffic,
     /// FLOPs at the shape computed: scenes and agents as the engine padded them.
     pub computed_flops: f64,
@@ -63,7 +66,8 @@ pub struct Work {
 }
 
 impl Work {
-    /// Dispatches recorded per evaluation (its share of the sampler update included).
+    /// Dispatches recorded per evaluation (its share of the sampler update and of a compact
+    /// sub-batch's row moves included).
     pub fn dispatches_per_evaluation(&self) -> f64 {
         self.traffic.dispatches as f64 / self.evaluations.max(1) as f64
     }

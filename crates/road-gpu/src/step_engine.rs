@@ -221,6 +221,9 @@ pub struct GpuStepEngine<'a> {
     compact: Vec<Compact>,
     /// Compact sub-batch steps so far: each sub-batch's `last_use` is one of them.
     compact_uses: u64,
+    /// Bumped whenever a scene's agent embeddings or map change (`prepare_scene`): a compact
+    /// sub-batch gathers those again only then, or when its row maps change.
+    fixed_generation: u64,
     features: Vec<f32>,
     /// Zeros for the kept estimate's shift (nothing emitted, no noise), grown on demand.
     zeros: Vec<f32>,
@@ -250,6 +253,7 @@ impl<'a> GpuStepEngine<'a> {
             estimate_window: None,
             compact: Vec::new(),
             compact_uses: 0,
+            fixed_generation: 0,
             features: Vec::new(),
             zeros: Vec::new(),
             live_agents: Vec::new(),
@@ -318,6 +322,9 @@ struct Compact {
     map_scenes_held: Vec<u32>,
     /// Its gathers and scatters, prepared on its first step.
     moves: Option<CompactMoves>,
+    /// The engine's `fixed_generation` when the fixed regions were last gathered under the
+    /// row maps held now (none: gather them at the next step).
+    fixed_gathered: Option<u64>,
     sigma_cur: Vec<f32>,  // [capacity, W]
     sigma_next: Vec<f32>, // [capacity, W]
     gamma: Vec<f32>,      // [capacity, W]
@@ -330,8 +337,11 @@ struct Compact {
 /// step makes no uniform buffer or bind group of its own.
 #[derive(Debug)]
 struct CompactMoves {
-    /// States, flags and agent embeddings by `batch_rows`, map data and flags by `map_scenes`.
+    /// States and flags by `batch_rows`, every step.
     gathers: Vec<Dispatch>,
+    /// Agent embeddings by `batch_rows`, map data and flags by `map_scenes`: only when they or
+    /// the row maps changed (`Compact::fixed_gathered`).
+    fixed_gathers: Vec<Dispatch>,
     /// The kept estimates into the plan's `D_prev` (the multistep sampler), with a kept one.
     previous: Option<Dispatch>,
     /// States back, with the estimate of the plan's first or (index 1) second evaluation.
@@ -359,6 +369,8 @@ impl CompactMoves {
         let gathers = vec![
             by_row(&batch.x, &c.x, w * 3),
             by_row(&batch.valid, &c.valid, w),
+        ];
+        let fixed_gathers = vec![
             by_row(&batch.agent_embedding, &c.agent_embedding, d),
             by_map(&map.data, &compact.map.data, p * map.per_polyline),
             by_map(&map.valid, &compact.map.valid, p),
@@ -373,6 +385,7 @@ impl CompactMoves {
         });
         Self {
             gathers,
+            fixed_gathers,
             previous: kept.map(|kept| by_row(kept, compact.plan.previous(), w * 3)),
             scatters,
         }
@@ -423,6 +436,7 @@ impl Compact {
             map_scenes: buffer("compact.map_scenes", map_scenes),
             map_scenes_held: vec![0; map_scenes],
             moves: None,
+            fixed_gathered: None,
             sigma_cur: vec![1.0; capacity * w],
             sigma_next: vec![1.0; capacity * w],
             gamma: vec![0.0; capacity * w],
@@ -618,21 +632,24 @@ impl GpuStepEngine<'_> {
             .find(|c| shape_of(c) == shape)
             .expect("made above");
         compact.last_use = self.compact_uses;
-        for (held, buffer, now) in [
+        for (held, buffer, now, moves_fixed) in [
             (
                 &mut compact.agent_scenes,
                 &compact.batch.agent_scene,
                 layout.agent_scenes(),
+                false,
             ),
             (
                 &mut compact.batch_rows_held,
                 &compact.batch_rows,
                 layout.batch_rows(a),
+                true,
             ),
             (
                 &mut compact.map_scenes_held,
                 &compact.map_scenes,
                 layout.map_scenes(),
+                true,
             ),
         ] {
             if *held != now {
@@ -640,25 +657,22 @@ impl GpuStepEngine<'_> {
                     .queue
                     .write_buffer(buffer, 0, bytemuck::cast_slice(&now));
                 *held = now;
+                if moves_fixed {
+                    compact.fixed_gathered = None;
+                }
             }
         }
         let p = map.polylines;
         // Each region's rows gathered in one dispatch: agent rows by `batch_rows` (rows no
         // scene fills come in as zeros: no agent, nor a stale one of an earlier layout), maps
-        // by `map_scenes`.
+        // by `map_scenes`; the agent embeddings and maps only when they or the maps of rows
+        // changed.
         if compact.moves.is_none() {
             let buffers = (batch, map, self.denoised.as_ref());
             compact.moves = Some(CompactMoves::new(self.ctx, self.model, buffers, compact));
         }
+        let gather_fixed = compact.fixed_gathered != Some(self.fixed_generation);
         let moves = compact.moves.as_ref().expect("made above");
-        let mut enc = self
-            .ctx
-            .device
-            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                label: Some("compact gather"),
-            });
-        record_all(&mut enc, "compact gather", &moves.gathers);
-        self.ctx.queue.submit([enc.finish()]);
         // σ (and γ) rows per sub-batch scene: a slot's scenes share theirs.
         compact.sigma_cur.fill(1.0);
         compact.sigma_next.fill(1.0);
@@ -677,6 +691,15 @@ impl GpuStepEngine<'_> {
             },
             heun => heun,
         };
+        // Gathers, the step and the scatters in the plan's one submission; their dispatches
+        // are counted with the step's (`dispatches_per_evaluation` includes them).
+        let first_estimate: *const wgpu::Buffer = compact.plan.estimates()[0];
+        let moved = std::cell::Cell::new(Traffic::default());
+        let count = |d: &Dispatch| {
+            let mut traffic = moved.get();
+            traffic.count(d);
+            moved.set(traffic);
+        };
         compact
             .plan
             .run_rule(
@@ -686,15 +709,31 @@ impl GpuStepEngine<'_> {
                 &compact.sigma_next,
                 compact_rule,
                 |enc, _| {
+                    if gather_fixed {
+                        moves.fixed_gathers.iter().for_each(count);
+                        record_all(enc, "compact gather (fixed)", &moves.fixed_gathers);
+                    }
+                    moves.gathers.iter().for_each(count);
+                    record_all(enc, "compact gather", &moves.gathers);
                     if let (StepRule::Multistep { .. }, Some(previous)) = (rule, &moves.previous) {
+                        count(previous);
                         record_all(enc, "compact previous", std::slice::from_ref(previous));
                     }
                 },
-                |_, _| {},
+                |enc, denoised| {
+                    // The placed rows back (a scene's rows beyond them hold still), with the
+                    // estimate of the plan's first or second evaluation.
+                    let which = usize::from(!std::ptr::eq(denoised, first_estimate));
+                    moves.scatters[which].iter().for_each(count);
+                    record_all(enc, "compact scatter", &moves.scatters[which]);
+                },
             )
             .map_err(engine_err)?;
+        compact.fixed_gathered = Some(self.fixed_generation);
         // The sub-batch's empty places (up to its capacity) and empty rows are computed too.
         let active: Vec<usize> = layout.placed.iter().map(|place| place.scene).collect();
+        let mut traffic = compact.plan.take_traffic();
+        traffic += moved.get();
         self.work += step_work(
             &self.model.config,
             evaluations,
@@ -704,19 +743,8 @@ impl GpuStepEngine<'_> {
             &active,
             &self.own_agents,
             &self.own_polylines,
-            compact.plan.take_traffic(),
+            traffic,
         );
-        // The placed rows back (a scene's rows beyond them hold still), with their estimates.
-        let [first, _] = compact.plan.estimates();
-        let which = usize::from(!std::ptr::eq(compact.plan.denoised(), first));
-        let mut enc = self
-            .ctx
-            .device
-            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                label: Some("compact scatter"),
-            });
-        record_all(&mut enc, "compact scatter", &moves.scatters[which]);
-        self.ctx.queue.submit([enc.finish()]);
         Ok(())
     }
 
@@ -860,6 +888,7 @@ impl road_rollout::StepEngine for GpuStepEngine<'_> {
             )));
         }
         self.features[scene * a * 6..][..a * 6].copy_from_slice(features);
+        self.fixed_generation += 1;
         self.own_polylines[scene] = map_valid.iter().filter(|&&v| v > 0.0).count();
         // The scene's map as the batch holds it (points with agent maps, else its encoded
         // tokens), encoded alone and copied over its rows.

@@ -219,7 +219,8 @@ fn computed_over_useful_counts_the_padding() {
 
 /// Packed (lavapipe packs from two moving scenes): 4, 2 and 1 agents padded to 4 step as the
 /// scene of 4 and one scene holding the 2 and the 1 (or one scene of 8, whichever computes
-/// less), with the dispatches of one batch; scenes that fill the batch are not packed.
+/// less), with the dispatches of one batch and the packed rows' moves (counted with them);
+/// scenes that fill the batch are not packed.
 #[test]
 fn packing_computes_the_packed_scenes() {
     let ctx = context();
@@ -244,10 +245,42 @@ fn packing_computes_the_packed_scenes() {
         got < 0.8 * 3.0 * f(4) / useful,
         "less than the padded batch"
     );
-    assert_eq!(
-        mixed.dispatches_per_evaluation(),
-        full.dispatches_per_evaluation()
-    );
+    // The moves: five gathers (states, flags, agent embeddings, map data and flags) and two
+    // scatters (states, the kept estimate), once a step.
+    assert_eq!(mixed.evaluations, full.evaluations);
+    assert_eq!(mixed.traffic.dispatches, full.traffic.dispatches + 5 + 2);
+}
+
+/// A packed sub-batch gathers the agent embeddings and maps only when they change: its next
+/// step moves states and flags alone, and a scene's new map (`prepare_scene`) brings them back.
+#[test]
+fn packed_steps_gather_agent_embeddings_and_maps_only_when_they_change() {
+    let ctx = context();
+    let config = config();
+    let gpu = denoiser(&ctx, &config);
+    let s = scenes(&config, [4, 2, 1], [POLYLINES; SCENES]);
+    let mut engine = engine_on(&ctx, &gpu, &s);
+    let (sigma_cur, sigma_next) = sigma_rows(&config, &[]);
+    let mut step = |engine: &mut GpuStepEngine<'_>| {
+        engine.step(&sigma_cur, &sigma_next, true).unwrap();
+        engine.take_work()
+    };
+    let first = step(&mut engine);
+    let again = step(&mut engine);
+    assert_eq!(again.evaluations, first.evaluations);
+    assert_eq!(again.traffic.dispatches, first.traffic.dispatches - 3);
+    assert!(again.traffic.bytes() < first.traffic.bytes());
+    let (a, q) = (AGENTS, config.polyline_points);
+    engine
+        .prepare_scene(
+            1,
+            &s.features[a * 6..2 * a * 6],
+            &s.map[POLYLINES * q * 2..2 * POLYLINES * q * 2],
+            &s.map_valid[POLYLINES..2 * POLYLINES],
+        )
+        .unwrap();
+    let changed = step(&mut engine);
+    assert_eq!(changed.traffic, first.traffic);
 }
 
 /// Residual chains: per evaluation the embedding, the agent maps' pick and encoder, every
@@ -369,4 +402,49 @@ fn a_batch_stepped_only_in_compact_sub_batches_is_profiled() {
         "{:?}",
         profile.kernels.iter().map(|k| k.kernel).collect::<Vec<_>>()
     );
+}
+
+/// What a packed step skips it does not need: after a scene's new map and agents
+/// (`prepare_scene`), the packed sub-batch that gathered the old ones steps exactly as an
+/// engine prepared with the new ones from the start.
+#[test]
+fn a_packed_step_after_a_scenes_new_map_uses_the_new_map() {
+    let ctx = context();
+    let config = config();
+    let gpu = denoiser(&ctx, &config);
+    let agents = [4, 2, 1];
+    let old = scenes(&config, agents, [POLYLINES; SCENES]);
+    // Scene 1's map and agents' features replaced.
+    let mut new = scenes(&config, agents, [POLYLINES; SCENES]);
+    let (a, q) = (AGENTS, config.polyline_points);
+    let map_rows = POLYLINES * q * 2;
+    for (i, v) in new.map[map_rows..2 * map_rows].iter_mut().enumerate() {
+        *v = ((i as f32) * 0.11).cos() * 3.0;
+    }
+    for (i, v) in new.features[a * 6..2 * a * 6].iter_mut().enumerate() {
+        *v = ((i as f32) * 0.23).cos();
+    }
+    let (sigma_cur, sigma_next) = sigma_rows(&config, &[]);
+    let denoised = |engine: &mut GpuStepEngine<'_>| {
+        engine.step(&sigma_cur, &sigma_next, true).unwrap();
+        let mut out = vec![0.0f32; SCENES * AGENTS * config.window_slots * 3];
+        engine.read_denoised(&[0, 1, 2], &mut out).unwrap();
+        out
+    };
+    let mut kept = engine_on(&ctx, &gpu, &old);
+    denoised(&mut kept);
+    kept.prepare_scene(
+        1,
+        &new.features[a * 6..2 * a * 6],
+        &new.map[map_rows..2 * map_rows],
+        &new.map_valid[POLYLINES..2 * POLYLINES],
+    )
+    .unwrap();
+    kept.load(&new.x, &new.valid).unwrap();
+    let after = denoised(&mut kept);
+    let mut fresh = engine_on(&ctx, &gpu, &new);
+    let want = denoised(&mut fresh);
+    assert_eq!(after, want);
+    let mut stale = engine_on(&ctx, &gpu, &old);
+    assert_ne!(denoised(&mut stale), want, "scene 1's new map matters");
 }

@@ -655,7 +655,8 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
         );
     }
     out!(
-        "(the last three, per evaluation and its sampler update: compute dispatches recorded; \
+        "(the last three, per evaluation with its share of the sampler update and of a packed or \
+         compact sub-batch's row moves: compute dispatches recorded; \
          bytes of their bindings, read-only ones read, read-write ones read and written; work \
          computed at the padded shape over each scene's own, agents with a valid slot)"
     );
