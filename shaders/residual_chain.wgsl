@@ -6,7 +6,9 @@
 //   y ← n(h) · W_nextᵀ + b_next                               (the next layer, when next_out > 0)
 // n is the layer norm with its γ, β folded into the layer after it (as `linear.wgsl`'s `norm`),
 // y goes to parts as `linear.wgsl`'s (the next attention's q/k/v) or, with `precondition`, is
-// the head's F and the kernel writes D(x; σ) instead (common/precondition.wgsl, prepended).
+// the head's F and the kernel writes D(x; σ) instead (common/precondition.wgsl, prepended),
+// and with `update` also the sampler's step from it (heun.wgsl's `heun_euler`, then its
+// `multistep_correct` where γ ≠ 0; γ is 0 in a Heun step): x_e, a dispatch saved.
 // Every weight lives in one bound range of the weights buffer, at offsets in floats, transposed
 // ([in, out]: the engine transposes them on upload) so that neighbouring invocations load
 // neighbouring weights. A workgroup of 64 holds ROWS rows of a layer's input in workgroup
@@ -38,7 +40,7 @@ struct Params {
     sigma_data: f32,
     heading_scale: f32,
     residual_scale: f32,
-    _pad0: u32,
+    update: u32,      // precondition: 1 also writes x_e (the Euler step, γ-corrected)
     _pad1: u32,
 }
 
@@ -57,6 +59,30 @@ const NO_BIAS: u32 = 0xffffffffu;
 @group(0) @binding(5) var<storage, read> x: array<f32>;        // precondition: [rows, 3]
 @group(0) @binding(6) var<storage, read> sigma: array<f32>;    // precondition: [B, W]
 @group(0) @binding(7) var<storage, read> valid: array<f32>;    // precondition: [rows]
+@group(0) @binding(8) var<storage, read> sigma_next: array<f32>;   // update: [B, W]
+@group(0) @binding(9) var<storage, read_write> x_e: array<f32>;    // update: [rows, 3]
+@group(0) @binding(10) var<storage, read> previous: array<f32>;    // update: D_prev [rows, 3]
+@group(0) @binding(11) var<storage, read> gamma: array<f32>;       // update: [B, W]
+
+// heun.wgsl's `heun_euler` and `multistep_correct` for the three values of `token`, with its
+// D(x; σ) `denoised` as those kernels read it back (the same operations in the same order).
+fn sampler_update(token: u32, denoised: vec3<f32>) {
+    let row = (token / (params.slots * params.agents)) * params.slots + token % params.slots;
+    let s = sigma[row];
+    let s_next = sigma_next[row];
+    let g = gamma[row];
+    for (var c = 0u; c < 3u; c++) {
+        let i = token * 3u + c;
+        var value = x[i];
+        if (s != s_next) {
+            value = x[i] + (s_next - s) * (x[i] - denoised[c]) / s;
+        }
+        if (g != 0.0) {
+            value = value + g * (denoised[c] - previous[i]);
+        }
+        x_e[i] = value;
+    }
+}
 
 var<workgroup> tile: array<f32, 2048>;          // [ROWS, MAX_D]: att, then the rows of h, standardised
 var<workgroup> hidden_units: array<f32, 1024>;  // [ROWS, UNITS]: a chunk of MLP units, or F [ROWS, 3]
@@ -271,6 +297,9 @@ fn residual_chain(
             y[token * 3u] = out.x;
             y[token * 3u + 1u] = out.y;
             y[token * 3u + 2u] = out.z;
+            if (params.update == 1u) {
+                sampler_update(token, out);
+            }
         }
         return;
     }

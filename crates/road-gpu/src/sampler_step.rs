@@ -7,7 +7,7 @@
 
 use bytemuck::{Pod, Zeroable};
 
-use crate::engine::{DeviceBatch, GpuDenoiser, MapTokens};
+use crate::engine::{DeviceBatch, GpuDenoiser, MapTokens, SamplerUpdate};
 use crate::kernels::{Dispatch, Traffic, read_back, storage_buffer};
 use crate::{Error, GpuContext, Result};
 
@@ -48,16 +48,35 @@ impl GpuDenoiser {
             _pad: 0,
         };
         let params = Self::params(ctx, &p);
+        let previous = storage_buffer(ctx, "D_prev", len);
+        let gamma = storage_buffer(ctx, "gamma", (b * w * 4) as u64);
+        // The first evaluation's last residual chain makes the Euler step and the multistep
+        // correction (γ = 0 in a Heun step) where the model runs chains: 1–2 dispatches saved.
         let mut euler = Vec::new();
-        self.prepare_denoise(
-            ctx, &mut euler, batch, &batch.x, &sigma_cur, map, &scratch, &first,
-        )?;
-        euler.push(self.pipelines.heun_euler.prepare_buffers(
+        let update = SamplerUpdate {
+            sigma_next: &sigma_next,
+            x_e: &x_e,
+            previous: &previous,
+            gamma: &gamma,
+        };
+        let fused_update = self.prepare_denoise_with_update(
             ctx,
-            &params,
-            &[&batch.x, &first, &sigma_cur, &sigma_next, &x_e],
-            p.count,
-        ));
+            &mut euler,
+            batch,
+            (&batch.x, &sigma_cur),
+            map,
+            &scratch,
+            &first,
+            Some(update),
+        )?;
+        if !fused_update {
+            euler.push(self.pipelines.heun_euler.prepare_buffers(
+                ctx,
+                &params,
+                &[&batch.x, &first, &sigma_cur, &sigma_next, &x_e],
+                p.count,
+            ));
+        }
         let mut correct = Vec::new();
         self.prepare_denoise(
             ctx,
@@ -75,20 +94,20 @@ impl GpuDenoiser {
             &[&batch.x, &first, &sigma_cur, &sigma_next, &x_e, &second],
             p.count,
         ));
-        let previous = storage_buffer(ctx, "D_prev", len);
-        let gamma = storage_buffer(ctx, "gamma", (b * w * 4) as u64);
         // Bindings of heun.wgsl's shared module that multistep_correct reads.
-        let multistep = self.pipelines.multistep_correct.prepare(
-            ctx,
-            &params,
-            &[
-                (2, first.as_entire_binding()),
-                (5, x_e.as_entire_binding()),
-                (7, previous.as_entire_binding()),
-                (8, gamma.as_entire_binding()),
-            ],
-            p.count,
-        );
+        let multistep = (!fused_update).then(|| {
+            self.pipelines.multistep_correct.prepare(
+                ctx,
+                &params,
+                &[
+                    (2, first.as_entire_binding()),
+                    (5, x_e.as_entire_binding()),
+                    (7, previous.as_entire_binding()),
+                    (8, gamma.as_entire_binding()),
+                ],
+                p.count,
+            )
+        });
         Ok(HeunPlan {
             sigma_cur,
             sigma_next,
@@ -102,6 +121,7 @@ impl GpuDenoiser {
             previous,
             gamma,
             multistep,
+            gamma_zero: true,
             bytes: len,
             sigma_eval_host: vec![0.0; b * w],
             recorded: Traffic::default(),
@@ -147,10 +167,13 @@ pub struct HeunPlan {
     euler: Vec<Dispatch>,
     correct: Vec<Dispatch>,
     /// The multistep sampler's previous estimate `[B, A, W, 3]` (filled by the caller before
-    /// each multistep step), its γ `[B, W]` and its correction.
+    /// each multistep step), its γ `[B, W]` and its correction (none where the first
+    /// evaluation's last chain makes it, γ = 0 then in a Heun step).
     previous: wgpu::Buffer,
     gamma: wgpu::Buffer,
-    multistep: Dispatch,
+    multistep: Option<Dispatch>,
+    /// Whether `gamma` holds zeros (as made): a Heun step after a multistep one writes them.
+    gamma_zero: bool,
     bytes: u64,
     sigma_eval_host: Vec<f32>,
     /// The dispatches recorded by the runs since [`HeunPlan::take_traffic`].
@@ -221,9 +244,16 @@ impl HeunPlan {
                 }
                 ctx.queue
                     .write_buffer(&self.gamma, 0, bytemuck::cast_slice(gamma));
+                self.gamma_zero = false;
                 false
             }
         };
+        if matches!(rule, StepRule::Heun { .. }) && !self.gamma_zero {
+            // The fused Euler step corrects where γ ≠ 0: a Heun step has none.
+            ctx.queue
+                .write_buffer(&self.gamma, 0, &vec![0u8; self.sigma_eval_host.len() * 4]);
+            self.gamma_zero = true;
+        }
         ctx.queue
             .write_buffer(&self.sigma_cur, 0, bytemuck::cast_slice(sigma_cur));
         ctx.queue
@@ -251,7 +281,7 @@ impl HeunPlan {
         let after_euler: &[Dispatch] = match rule {
             StepRule::Heun { .. } if second_evaluation => &self.correct,
             StepRule::Heun { .. } => &[],
-            StepRule::Multistep { .. } => std::slice::from_ref(&self.multistep),
+            StepRule::Multistep { .. } => self.multistep.as_slice(),
         };
         // One pass per dispatch: measured faster on lavapipe than one pass for all of them.
         for d in self.euler.iter().chain(after_euler) {

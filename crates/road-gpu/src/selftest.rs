@@ -199,6 +199,7 @@ pub fn kernel_checks(ctx: &GpuContext) -> Result<Vec<KernelCheck>> {
         tolerance: loose,
         outcome: loose.check(&got, &want),
     });
+    checks.push(head_chain_check(ctx, &mut rng, &tensors[..6], d, m, loose)?);
 
     // The polyline encoder over 3 scenes' 32 polylines of 20 points.
     let (n, q) = (3 * 32, 20);
@@ -451,6 +452,135 @@ pub fn kernel_checks(ctx: &GpuContext) -> Result<Vec<KernelCheck>> {
 
     checks.extend(window_checks(ctx, &mut rng, b, a, w)?);
     Ok(checks)
+}
+
+/// The last block's chain as a Heun or multistep step's first evaluation runs it: output
+/// projection and MLP (the weights `block`), the head with the output preconditioning (agent
+/// frame, constant-velocity reference), then the sampler's Euler step with the multistep
+/// correction: D against the references, x_e against `road_rollout::heun` from the kernel's D.
+fn head_chain_check(
+    ctx: &GpuContext,
+    rng: &mut Inputs,
+    block: &[Vec<f32>],
+    d: usize,
+    m: usize,
+    loose: Tolerance,
+) -> Result<KernelCheck> {
+    let (scenes, agents, slots) = (2, 3, 5);
+    let rows = scenes * agents * slots;
+    let head = (rng.uniform(3 * d, 0.3), rng.uniform(3, 0.3));
+    let mut weights = Vec::new();
+    let mut push = |t: Vec<f32>| {
+        let at = weights.len() as u32;
+        weights.extend(t);
+        at
+    };
+    let outputs = [d, 1, m, 1, d, 1];
+    let offsets: Vec<u32> = block
+        .iter()
+        .zip(outputs)
+        .map(|(t, out)| push(transpose(t, out)))
+        .collect();
+    let (next_w, next_b) = (push(transpose(&head.0, 3)), push(head.1.clone()));
+    let p = ChainParams {
+        rows: rows as u32,
+        d: d as u32,
+        m: m as u32,
+        eps: 1e-5,
+        o_w: offsets[0],
+        o_b: offsets[1],
+        w1: offsets[2],
+        b1: offsets[3],
+        w2: offsets[4],
+        b2: offsets[5],
+        next_w,
+        next_b,
+        next_out: 3,
+        part: 3,
+        part_stride: (rows * 3) as u32,
+        precondition: 1,
+        slots: slots as u32,
+        agents: agents as u32,
+        anchor_slot: 2,
+        sigma_data: 0.5,
+        heading_scale: 2.0,
+        residual_scale: 4.0,
+        update: 1,
+        ..ChainParams::default()
+    };
+    let (att, h, x) = (
+        rng.uniform(rows * d, 1.0),
+        rng.uniform(rows * d, 1.0),
+        rng.uniform(rows * 3, 3.0),
+    );
+    let sigma: Vec<f32> = rng
+        .uniform(scenes * slots, 1.0)
+        .iter()
+        .map(|v| 1.5 + v)
+        .collect();
+    // Unchanged slots, one landing on 0, the rest stepping down; γ 0 in some.
+    let sigma_next: Vec<f32> = sigma
+        .iter()
+        .enumerate()
+        .map(|(i, &s)| [s, 0.0, 0.6 * s][i % 3])
+        .collect();
+    let gamma: Vec<f32> = rng
+        .uniform(scenes * slots, 1.0)
+        .iter()
+        .enumerate()
+        .map(|(i, &g)| if i % 4 == 0 { 0.0 } else { g })
+        .collect();
+    let previous = rng.uniform(rows * 3, 2.0);
+    let valid = rng.flags(rows, 0.9);
+    let inputs = ChainInputs {
+        weights: &weights,
+        att: &att,
+        h: &h,
+        y: &vec![0.0; rows * 3],
+        x: &x,
+        sigma: &sigma,
+        valid: &valid,
+    };
+    let update = crate::kernels::residual_chain::UpdateInputs {
+        sigma_next: &sigma_next,
+        previous: &previous,
+        gamma: &gamma,
+    };
+    let (h_got, d_got, x_e_got) =
+        ResidualChain::new(ctx).run_with_update(ctx, p, &inputs, Some(update))?;
+    let (h_want, f) = reference::residual_chain(
+        &att,
+        &h,
+        rows,
+        d,
+        (&block[0], &block[1]),
+        Some(((&block[2], &block[3]), (&block[4], &block[5]))),
+        Some((&head.0, &head.1)),
+        1e-5,
+    );
+    let shape = reference::PreconditionShape {
+        slots,
+        agents,
+        anchor_slot: Some(2),
+        sigma_data: 0.5,
+        heading_scale: 2.0,
+        residual_scale: 4.0,
+    };
+    let d_want = reference::precondition_output(&x, &f, &sigma, &valid, shape);
+    let (mut x_e_want, _) =
+        road_rollout::heun::heun_update(&x, agents, slots, &sigma, &sigma_next, false, |_, _| {
+            Ok(d_got.clone())
+        })
+        .map_err(|e| crate::Error::Input(e.to_string()))?;
+    road_rollout::heun::multistep_correct(&mut x_e_want, &d_got, &previous, &gamma, agents, slots);
+    let got: Vec<f32> = h_got.into_iter().chain(d_got).chain(x_e_got).collect();
+    let want: Vec<f32> = h_want.into_iter().chain(d_want).chain(x_e_want).collect();
+    Ok(KernelCheck {
+        name: "residual_chain (head, preconditioning, sampler step)",
+        values: got.len(),
+        tolerance: loose,
+        outcome: loose.check(&got, &want),
+    })
 }
 
 /// The window kernels on `b` scenes of `a` agents and `w` slots: the emitted-slot gather (one

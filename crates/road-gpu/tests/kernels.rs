@@ -1126,6 +1126,69 @@ fn residual_chain_matches_the_cpu_reference() {
         if let Err(e) = tol.check(&d_got, &d_want) {
             panic!("{case}: D(x; σ): {e}");
         }
+
+        // With the sampler's step: the Euler step from the kernel's own D where σ changes
+        // (unchanged slots, one landing on 0, some γ 0), then the multistep correction,
+        // against `road_rollout::heun`; h and D as without it.
+        let sigma_next: Vec<f32> = sigma
+            .iter()
+            .enumerate()
+            .map(|(i, &s)| match i % 4 {
+                0 => s,
+                1 => 0.0,
+                _ => s * 0.7,
+            })
+            .collect();
+        let previous = random(&mut rng, rows * 3, 2.0);
+        let gamma: Vec<f32> = (0..scenes * slots)
+            .map(|i| {
+                if i % 3 == 0 {
+                    0.0
+                } else {
+                    rng.random_range(-1.0..1.0)
+                }
+            })
+            .collect();
+        let update = road_gpu::kernels::residual_chain::UpdateInputs {
+            sigma_next: &sigma_next,
+            previous: &previous,
+            gamma: &gamma,
+        };
+        let with_update = ChainParams { update: 1, ..p };
+        let (h_upd, d_upd, x_e_got) = kernel
+            .run_with_update(&ctx, with_update, &inputs, Some(update))
+            .unwrap();
+        assert_eq!(
+            (h_upd, &d_upd),
+            (h_got, &d_got),
+            "{case}: h and D with the update"
+        );
+        let (mut x_e_want, _) = road_rollout::heun::heun_update(
+            &x,
+            agents,
+            slots,
+            &sigma,
+            &sigma_next,
+            false,
+            |_, _| Ok(d_got.clone()),
+        )
+        .unwrap();
+        road_rollout::heun::multistep_correct(
+            &mut x_e_want,
+            &d_got,
+            &previous,
+            &gamma,
+            agents,
+            slots,
+        );
+        // The same operations in the same order; a fused multiply-add may round once less.
+        let exact = Tolerance {
+            rel: 1e-6,
+            abs: 1e-6,
+        };
+        if let Err(e) = exact.check(&x_e_got, &x_e_want) {
+            panic!("{case}: x_e: {e}");
+        }
     }
 }
 

@@ -261,7 +261,7 @@ fn packed_steps_gather_agent_embeddings_and_maps_only_when_they_change() {
     let s = scenes(&config, [4, 2, 1], [POLYLINES; SCENES]);
     let mut engine = engine_on(&ctx, &gpu, &s);
     let (sigma_cur, sigma_next) = sigma_rows(&config, &[]);
-    let mut step = |engine: &mut GpuStepEngine<'_>| {
+    let step = |engine: &mut GpuStepEngine<'_>| {
         engine.step(&sigma_cur, &sigma_next, true).unwrap();
         engine.take_work()
     };
@@ -285,28 +285,43 @@ fn packed_steps_gather_agent_embeddings_and_maps_only_when_they_change() {
 
 /// Residual chains: per evaluation the embedding, the agent maps' pick and encoder, every
 /// block's map k, v at once, the first q, k, v, then per block its three attentions and three
-/// chains, and the sampler's update; layer by layer 11 per block (the map k, v of every block
-/// still at once), the head, the preconditioning. Fewer bytes too: the MLP's hidden layer and the head's F stay on chip. The
-/// last chain (the head's) writes the residual stream and D(x; σ), nothing else.
+/// chains, the last of which makes the first evaluation's Euler step too (a Heun step's second
+/// evaluation adds its correction: half a dispatch an evaluation; a multistep step none); layer
+/// by layer 11 per block (the map k, v of every block still at once), the head, the
+/// preconditioning, the update (and the multistep correction).
+/// Fewer bytes too: the MLP's hidden layer and the head's F stay on chip. The last chain (the
+/// head's) writes the residual stream, D(x; σ) and the Euler step's x_e, nothing else.
 #[test]
 fn residual_chains_cut_the_dispatches_and_bytes_of_an_evaluation() {
     let config = config();
     let s = scenes(&config, [AGENTS; SCENES], [POLYLINES; SCENES]);
     let (sigma_cur, sigma_next) = sigma_rows(&config, &[]);
-    let mut per_setting = Vec::new();
+    let gamma = vec![0.5f32; sigma_cur.len()];
+    let (mut per_setting, mut multistep) = (Vec::new(), Vec::new());
     for chains in [true, false] {
         let ctx = context_with_chains(chains);
         let gpu = denoiser(&ctx, &config);
         let mut engine = engine_on(&ctx, &gpu, &s);
         engine.step(&sigma_cur, &sigma_next, true).unwrap();
         per_setting.push(engine.take_work());
+        // The multistep sampler's step (the server's default): one evaluation, the Euler step
+        // and its correction, all in the last chain.
+        engine
+            .step_multistep(&sigma_cur, &sigma_next, &gamma)
+            .unwrap();
+        multistep.push(engine.take_work());
     }
     let (chains, layers) = (per_setting[0], per_setting[1]);
     let blocks = config.blocks as f64;
-    assert_eq!(chains.dispatches_per_evaluation(), 5.0 + 6.0 * blocks + 1.0);
+    assert_eq!(chains.dispatches_per_evaluation(), 5.0 + 6.0 * blocks + 0.5);
     assert_eq!(
         layers.dispatches_per_evaluation(),
         4.0 + 11.0 * blocks + 3.0
+    );
+    assert_eq!(multistep[0].dispatches_per_evaluation(), 5.0 + 6.0 * blocks);
+    assert_eq!(
+        multistep[1].dispatches_per_evaluation(),
+        4.0 + 11.0 * blocks + 4.0
     );
     assert!(
         chains.bytes_per_evaluation() < layers.bytes_per_evaluation(),
@@ -332,12 +347,12 @@ fn residual_chains_cut_the_dispatches_and_bytes_of_an_evaluation() {
         .unwrap();
     let plan = gpu.heun_plan(&ctx, &batch, &map).unwrap();
     let euler = plan.euler_dispatches();
-    let head = &euler[euler.len() - 2];
+    let head = euler.last().unwrap();
     assert_eq!(head.label(), "residual_chain");
     let tokens = (SCENES * AGENTS * config.window_slots) as u64;
     assert_eq!(
         head.bytes_written(),
-        4 * (tokens * config.hidden as u64 + tokens * 3)
+        4 * (tokens * config.hidden as u64 + 2 * tokens * 3)
     );
 }
 
@@ -447,4 +462,32 @@ fn a_packed_step_after_a_scenes_new_map_uses_the_new_map() {
     assert_eq!(after, want);
     let mut stale = engine_on(&ctx, &gpu, &old);
     assert_ne!(denoised(&mut stale), want, "scene 1's new map matters");
+}
+
+/// The fused Euler step corrects by γ (the multistep sampler's): a Heun step after a multistep
+/// one must not (its γ is 0), so it moves the windows exactly as on a fresh engine.
+#[test]
+fn a_heun_step_after_a_multistep_one_has_no_multistep_correction() {
+    let ctx = context();
+    let config = config();
+    let gpu = denoiser(&ctx, &config);
+    let s = scenes(&config, [AGENTS; SCENES], [POLYLINES; SCENES]);
+    let (sigma_cur, sigma_next) = sigma_rows(&config, &[]);
+    let w = config.window_slots;
+    let slots: Vec<Option<usize>> = (0..SCENES).map(|b| Some(w - 1 - b)).collect();
+    let heun = |engine: &mut GpuStepEngine<'_>| {
+        engine.step(&sigma_cur, &sigma_next, false).unwrap();
+        let mut out = vec![0.0f32; SCENES * AGENTS * 3];
+        engine.read_emitted(&slots, &mut out).unwrap();
+        out
+    };
+    let mut after_multistep = engine_on(&ctx, &gpu, &s);
+    let gamma = vec![0.5f32; sigma_cur.len()];
+    after_multistep
+        .step_multistep(&sigma_cur, &sigma_next, &gamma)
+        .unwrap();
+    after_multistep.load(&s.x, &s.valid).unwrap();
+    let got = heun(&mut after_multistep);
+    let want = heun(&mut engine_on(&ctx, &gpu, &s));
+    assert_eq!(got, want);
 }

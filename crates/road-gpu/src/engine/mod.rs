@@ -110,6 +110,18 @@ struct Precondition<'a> {
     sigma: &'a wgpu::Buffer,
     valid: &'a wgpu::Buffer,
     agents: usize,
+    update: Option<SamplerUpdate<'a>>,
+}
+
+/// The sampler's step an evaluation's last residual chain makes from its D (`heun_euler`, then
+/// `multistep_correct` where γ ≠ 0): `σ_next [B, W]`, the step's `x_e [B, A, W, 3]` (written),
+/// `D_prev [B, A, W, 3]` and `γ [B, W]`.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct SamplerUpdate<'a> {
+    pub(crate) sigma_next: &'a wgpu::Buffer,
+    pub(crate) x_e: &'a wgpu::Buffer,
+    pub(crate) previous: &'a wgpu::Buffer,
+    pub(crate) gamma: &'a wgpu::Buffer,
 }
 
 /// What a linear layer fuses with its neighbours (`linear.wgsl`), each a dispatch saved.
@@ -460,8 +472,22 @@ impl GpuDenoiser {
             p.part = part as u32;
             p.part_stride = part_stride as u32;
         }
-        // Unread without preconditioning: one float of `att` each keeps the layout.
+        // Unread without preconditioning: one float of `att` each keeps the layout (of `h` for
+        // the written `x_e`: a buffer bound read-only may not be written in the same dispatch).
         let unread = || rows_of(att, 0, 1, 1);
+        let unwritten = || rows_of(h, 0, 1, 1);
+        let (sigma_next, x_e, previous, gamma) = match precondition.and_then(|pre| pre.update) {
+            Some(u) => {
+                p.update = 1;
+                (
+                    u.sigma_next.as_entire_binding(),
+                    u.x_e.as_entire_binding(),
+                    u.previous.as_entire_binding(),
+                    u.gamma.as_entire_binding(),
+                )
+            }
+            None => (unread(), unwritten(), unread(), unread()),
+        };
         let (x, sigma, valid) = match precondition {
             Some(pre) => {
                 p.precondition = 1;
@@ -492,6 +518,10 @@ impl GpuDenoiser {
             x,
             sigma,
             valid,
+            sigma_next,
+            x_e,
+            previous,
+            gamma,
         ];
         ops.push(self.pipelines.residual_chain.pipeline.prepare_resources(
             ctx,
@@ -779,6 +809,25 @@ impl GpuDenoiser {
         scratch: &Scratch,
         out: &wgpu::Buffer,
     ) -> Result<()> {
+        self.prepare_denoise_with_update(ctx, ops, batch, (x, sigma), map, scratch, out, None)?;
+        Ok(())
+    }
+
+    /// [`Self::prepare_denoise`], and `update`, the sampler's step from its D, in the last
+    /// residual chain where the evaluation ends in one: whether it did (else the caller
+    /// records the step's own dispatches).
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn prepare_denoise_with_update(
+        &self,
+        ctx: &GpuContext,
+        ops: &mut Vec<Dispatch>,
+        batch: &DeviceBatch,
+        (x, sigma): (&wgpu::Buffer, &wgpu::Buffer),
+        map: &MapTokens,
+        scratch: &Scratch,
+        out: &wgpu::Buffer,
+        update: Option<SamplerUpdate<'_>>,
+    ) -> Result<bool> {
         let c = &self.config;
         let (b, a, w, d) = (batch.scenes, batch.agents, c.window_slots, c.hidden);
         // Each agent row reads its own scene's map (`agent_scene`: agent maps pick from it,
@@ -1162,6 +1211,7 @@ impl GpuDenoiser {
                         sigma,
                         valid: &batch.valid,
                         agents: a,
+                        update,
                     };
                     let y = out.as_entire_binding();
                     self.chain(ctx, ops, layers, (att, h, y), tokens, 0, Some(precondition))?;
@@ -1209,7 +1259,8 @@ impl GpuDenoiser {
             )?;
         }
         if chains {
-            return Ok(());
+            // The last block's chain made the sampler's step too.
+            return Ok(update.is_some() && c.blocks > 0);
         }
         self.linear(
             ctx,
@@ -1245,7 +1296,7 @@ impl GpuDenoiser {
             &[x, f, sigma, &batch.valid, out],
             p.count,
         ));
-        Ok(())
+        Ok(false)
     }
 
     /// One evaluation, read back: `D(x; σ)` as `[B, A, W, 3]`.

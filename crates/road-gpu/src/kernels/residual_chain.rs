@@ -2,8 +2,9 @@
 //! whose rows stay in workgroup memory: the attention's output projection added into the
 //! residual stream, optionally the MLP (its hidden layer 64 units at a time, never in memory),
 //! and optionally the next layer behind its layer norm (the next attention's q/k/v, the map's
-//! q, or the head with the output preconditioning). The engine runs it where the layer-by-layer
-//! path ran four to six dispatches (`ContextOptions::residual_chains`).
+//! q, or the head with the output preconditioning, and then optionally the sampler's Euler step
+//! with the multistep sampler's correction). The engine runs it where the layer-by-layer path
+//! ran four to six dispatches (`ContextOptions::residual_chains`).
 
 use bytemuck::{Pod, Zeroable};
 
@@ -55,7 +56,10 @@ pub struct ChainParams {
     pub sigma_data: f32,
     pub heading_scale: f32,
     pub residual_scale: f32,
-    pub _pad: [u32; 2],
+    /// 1 (with `precondition`): also the sampler's step into `x_e`, as `heun_euler` then
+    /// `multistep_correct` (`shaders/heun.wgsl`; γ = 0 leaves the Euler step).
+    pub update: u32,
+    pub _pad: u32,
 }
 
 impl ChainParams {
@@ -74,6 +78,11 @@ impl ChainParams {
         }
         if self.next_out > 0 && self.part == 0 {
             return Err(Error::Input("a next layer needs outputs per part".into()));
+        }
+        if self.update == 1 && self.precondition != 1 {
+            return Err(Error::Input(
+                "the sampler's step follows the preconditioned head only".into(),
+            ));
         }
         if self.precondition == 1 && self.next_out != 3 {
             return Err(Error::Input(format!(
@@ -121,6 +130,15 @@ pub struct ChainInputs<'a> {
     pub valid: &'a [f32],
 }
 
+/// The sampler's step a chain with `update` makes from its D: `σ_next [B, W]`, `D_prev [rows,
+/// 3]`, `γ [B, W]` (its σ is [`ChainInputs::sigma`]).
+#[derive(Debug, Clone, Copy)]
+pub struct UpdateInputs<'a> {
+    pub sigma_next: &'a [f32],
+    pub previous: &'a [f32],
+    pub gamma: &'a [f32],
+}
+
 /// The `residual_chain` kernel, compiled once.
 #[derive(Debug)]
 pub struct ResidualChain {
@@ -141,6 +159,19 @@ impl ResidualChain {
         p: ChainParams,
         inputs: &ChainInputs<'_>,
     ) -> Result<(Vec<f32>, Vec<f32>)> {
+        let (h, y, _) = self.run_with_update(ctx, p, inputs, None)?;
+        Ok((h, y))
+    }
+
+    /// [`Self::run`] with the sampler's step (`p.update`): `(h, y, x_e)` after, `x_e` empty
+    /// without `update`.
+    pub fn run_with_update(
+        &self,
+        ctx: &GpuContext,
+        p: ChainParams,
+        inputs: &ChainInputs<'_>,
+        update: Option<UpdateInputs<'_>>,
+    ) -> Result<(Vec<f32>, Vec<f32>, Vec<f32>)> {
         p.check()?;
         let read = |label: &str, data: &[f32]| {
             upload(
@@ -169,6 +200,19 @@ impl ResidualChain {
             read("sigma", inputs.sigma),
             read("valid", inputs.valid),
         );
+        let none = UpdateInputs {
+            sigma_next: &[0.0],
+            previous: &[0.0],
+            gamma: &[0.0],
+        };
+        let u = update.unwrap_or(none);
+        let x_e_len = if update.is_some() { inputs.x.len() } else { 1 };
+        let (sigma_next, previous, gamma) = (
+            read("sigma_next", u.sigma_next),
+            read("previous", u.previous),
+            read("gamma", u.gamma),
+        );
+        let x_e = storage_buffer(ctx, "x_e", (x_e_len * 4) as u64);
         let mut encoder = ctx
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
@@ -178,7 +222,19 @@ impl ResidualChain {
             ctx,
             &mut encoder,
             &params,
-            &[&weights, &att, &h, &y, &x, &sigma, &valid],
+            &[
+                &weights,
+                &att,
+                &h,
+                &y,
+                &x,
+                &sigma,
+                &valid,
+                &sigma_next,
+                &x_e,
+                &previous,
+                &gamma,
+            ],
             p.threads(),
         );
         ctx.queue.submit([encoder.finish()]);
@@ -189,6 +245,11 @@ impl ResidualChain {
         } else {
             floats(read_back(ctx, &y, (inputs.y.len() * 4) as u64)?)
         };
-        Ok((h_after, y_after))
+        let x_e_after = if update.is_some() {
+            floats(read_back(ctx, &x_e, (x_e_len * 4) as u64)?)
+        } else {
+            Vec::new()
+        };
+        Ok((h_after, y_after, x_e_after))
     }
 }
