@@ -446,6 +446,32 @@ impl Compact {
 }
 
 impl GpuStepEngine<'_> {
+    /// The byte ranges of `scenes`' kept estimates `[A, W, 3]` each, for `out_len` floats
+    /// read: a clear error for a scene past the batch or a wrong length.
+    fn denoised_ranges(
+        &self,
+        scenes: &[usize],
+        out_len: usize,
+    ) -> road_model::Result<Vec<(u64, u64)>> {
+        let x_len = self.agents * self.model.config.window_slots * 3;
+        if let Some(&bad) = scenes.iter().find(|&&s| s >= self.scenes) {
+            return Err(road_model::Error::Engine(format!(
+                "read_denoised of scene {bad}: the batch has {} scenes",
+                self.scenes
+            )));
+        }
+        if out_len != scenes.len() * x_len {
+            return Err(road_model::Error::Engine(format!(
+                "read_denoised of {} scenes: {out_len} outputs; scenes of {x_len} each",
+                scenes.len(),
+            )));
+        }
+        Ok(scenes
+            .iter()
+            .map(|&s| ((s * x_len * 4) as u64, (x_len * 4) as u64))
+            .collect())
+    }
+
     /// Times one evaluation and Euler update of the loaded batch kernel by kernel (see
     /// [`crate::profile`]); the windows move as in `repeats` Euler steps at the last step's σ.
     /// The whole batch's plan is made here if no step ran the batch in place yet.
@@ -1073,33 +1099,43 @@ impl road_rollout::StepEngine for GpuStepEngine<'_> {
         window.emitted(self.ctx, slots, out).map_err(engine_err)
     }
 
+    fn read_emitted_and_denoised(
+        &mut self,
+        slots: &[Option<usize>],
+        out: &mut [f32],
+        scenes: &[usize],
+        denoised_out: &mut [f32],
+    ) -> road_model::Result<()> {
+        let ranges = self.denoised_ranges(scenes, denoised_out.len())?;
+        if scenes.is_empty() {
+            return self.read_emitted(slots, out);
+        }
+        let (Some(window), Some(denoised)) = (self.window.as_mut(), self.denoised.as_ref()) else {
+            return Err(road_model::Error::Engine(
+                "read_emitted_and_denoised before load".into(),
+            ));
+        };
+        // The emitted states and the plans in one submission and one wait.
+        let copies: Vec<(&wgpu::Buffer, u64, u64)> = ranges
+            .iter()
+            .map(|&(at, len)| (denoised, at, len))
+            .collect();
+        let bytes = window
+            .emitted_and(self.ctx, slots, out, &copies)
+            .map_err(engine_err)?;
+        denoised_out.copy_from_slice(bytemuck::cast_slice(&bytes));
+        Ok(())
+    }
+
     fn read_denoised(&mut self, scenes: &[usize], out: &mut [f32]) -> road_model::Result<()> {
+        let ranges = self.denoised_ranges(scenes, out.len())?;
+        if scenes.is_empty() {
+            return Ok(());
+        }
         let denoised = self
             .denoised
             .as_ref()
             .ok_or_else(|| road_model::Error::Engine("read_denoised before load".into()))?;
-        let x_len = self.agents * self.model.config.window_slots * 3;
-        if let Some(&bad) = scenes.iter().find(|&&s| s >= self.scenes) {
-            return Err(road_model::Error::Engine(format!(
-                "read_denoised of scene {bad}: the batch has {} scenes",
-                self.scenes
-            )));
-        }
-        if out.len() != scenes.len() * x_len {
-            return Err(road_model::Error::Engine(format!(
-                "read_denoised of {} scenes: {} outputs; scenes of {x_len} each",
-                scenes.len(),
-                out.len()
-            )));
-        }
-        if scenes.is_empty() {
-            return Ok(());
-        }
-        // Every scene's range copied in one submission, then one map: one wait per round.
-        let ranges: Vec<(u64, u64)> = scenes
-            .iter()
-            .map(|&s| ((s * x_len * 4) as u64, (x_len * 4) as u64))
-            .collect();
         let bytes = read_back_ranges(self.ctx, denoised, &ranges).map_err(engine_err)?;
         out.copy_from_slice(bytemuck::cast_slice(&bytes));
         Ok(())
@@ -1118,9 +1154,17 @@ impl road_rollout::StepEngine for GpuStepEngine<'_> {
             .iter()
             .map(|e| (e.scene, e.emitted, e.noise, e.turns))
             .collect();
+        // Both windows' shifts in one submission.
         window
-            .shift(self.ctx, &batch.x, &list, shape)
+            .prepare_shift(self.ctx, &list, shape)
             .map_err(engine_err)?;
+        let mut encoder = self
+            .ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("window_shift"),
+            });
+        window.record_shift(&mut encoder, &batch.x);
         // The kept estimate moves with its slots (`road_rollout::estimate_shift`): the
         // same kernel with nothing emitted and no noise, its plan turned as the window's.
         if let (Some(estimate_window), Some(denoised)) = (&mut self.estimate_window, &self.denoised)
@@ -1147,9 +1191,11 @@ impl road_rollout::StepEngine for GpuStepEngine<'_> {
                 sigma_max: 0.0,
             };
             estimate_window
-                .shift(self.ctx, denoised, &list, still)
+                .prepare_shift(self.ctx, &list, still)
                 .map_err(engine_err)?;
+            estimate_window.record_shift(&mut encoder, denoised);
         }
+        self.ctx.queue.submit([encoder.finish()]);
         for e in edits {
             if e.valid.len() != v_len {
                 return Err(road_model::Error::Engine(format!(

@@ -1,7 +1,9 @@
 //! The engine's proxies (`road bench engine`'s `dispatches_per_evaluation`,
 //! `bytes_per_evaluation`, `computed_over_useful`) on the adapter at hand (lavapipe in CI):
 //! counted as dispatches are recorded, equal to the sum of their bindings, stable from step to
-//! step, and padding counted as computed but not useful.
+//! step, and padding counted as computed but not useful; and what the step engine does to save
+//! them (row moves skipped, the sampler's step fused, a round's readback in one wait) changes
+//! no result.
 
 use road_gpu::engine::{DenoiseInputs, GpuDenoiser};
 use road_gpu::kernels::Dispatch;
@@ -490,4 +492,44 @@ fn a_heun_step_after_a_multistep_one_has_no_multistep_correction() {
     let got = heun(&mut after_multistep);
     let want = heun(&mut engine_on(&ctx, &gpu, &s));
     assert_eq!(got, want);
+}
+
+/// A round's readback in one submission and wait (`read_emitted_and_denoised`) reads what
+/// `read_emitted` and `read_denoised` read apart, and refuses a scene past the batch by name.
+#[test]
+fn emitted_states_and_plans_read_together_match_their_reads_apart() {
+    let ctx = context();
+    let config = config();
+    let gpu = denoiser(&ctx, &config);
+    let s = scenes(&config, [AGENTS; SCENES], [POLYLINES; SCENES]);
+    let (sigma_cur, sigma_next) = sigma_rows(&config, &[]);
+    let mut engine = engine_on(&ctx, &gpu, &s);
+    engine.step(&sigma_cur, &sigma_next, true).unwrap();
+    let w = config.window_slots;
+    let slots = [Some(w - 1), None, Some(3)];
+    let plans = [2, 0];
+    let per_scene = AGENTS * w * 3;
+    let (mut emitted, mut denoised) = (
+        vec![0.0f32; SCENES * AGENTS * 3],
+        vec![0.0f32; 2 * per_scene],
+    );
+    engine
+        .read_emitted_and_denoised(&slots, &mut emitted, &plans, &mut denoised)
+        .unwrap();
+    let (mut emitted_apart, mut denoised_apart) = (emitted.clone(), denoised.clone());
+    engine.read_emitted(&slots, &mut emitted_apart).unwrap();
+    engine.read_denoised(&plans, &mut denoised_apart).unwrap();
+    assert_eq!(emitted, emitted_apart);
+    assert_eq!(denoised, denoised_apart);
+    assert!(
+        denoised.iter().any(|&v| v != 0.0),
+        "a step's plans are read"
+    );
+    let err = engine
+        .read_emitted_and_denoised(&slots, &mut emitted, &[SCENES], &mut denoised[..per_scene])
+        .unwrap_err();
+    assert!(
+        err.to_string().contains(&format!("scene {SCENES}")),
+        "{err}"
+    );
 }

@@ -912,13 +912,13 @@ impl RolloutDriver {
             let i = self.scene_of_slot[o.scene.index()];
             self.emit_slots[i] = Some(n + o.emit_future_slot);
         }
-        engine.read_emitted(&self.emit_slots, &mut self.emitted)?;
         let shape = ShiftShape {
             observed: n,
             obs_noise: self.obs_noise,
             sigma_max: self.sigma_max,
         };
-        // The denoised windows of the scenes whose client or planner needs them, in one read.
+        // The denoised windows of the scenes whose client or planner needs them, read with the
+        // emitted states (one readback a round).
         self.denoised_scenes.clear();
         for o in &self.outcomes {
             let i = self.scene_of_slot[o.scene.index()];
@@ -933,9 +933,12 @@ impl RolloutDriver {
         let per_scene = a_max * w * 3;
         self.denoised
             .resize(self.denoised_scenes.len() * per_scene, 0.0);
-        if !self.denoised_scenes.is_empty() {
-            engine.read_denoised(&self.denoised_scenes, &mut self.denoised)?;
-        }
+        engine.read_emitted_and_denoised(
+            &self.emit_slots,
+            &mut self.emitted,
+            &self.denoised_scenes,
+            &mut self.denoised,
+        )?;
         let mut shifts: Vec<PendingShift> = Vec::new();
         let mut done = Vec::with_capacity(self.outcomes.len());
         let mut read = 0;

@@ -99,6 +99,22 @@ pub trait StepEngine {
             "this engine does not keep its denoiser estimate (read_denoised)".into(),
         ))
     }
+    /// A round's readback: [`Self::read_emitted`] into `out`, then, when `scenes` is not
+    /// empty, [`Self::read_denoised`] of them into `denoised`. An engine on a device overrides
+    /// it to read both in one submission and one wait.
+    fn read_emitted_and_denoised(
+        &mut self,
+        slots: &[Option<usize>],
+        out: &mut [f32],
+        scenes: &[usize],
+        denoised: &mut [f32],
+    ) -> Result<()> {
+        self.read_emitted(slots, out)?;
+        if !scenes.is_empty() {
+            self.read_denoised(scenes, denoised)?;
+        }
+        Ok(())
+    }
     /// One step of the multistep sampler (`road_sched::Sampler::Multistep`), one evaluation:
     /// with D = D(x; σ_cur), the Euler step of [`Self::step`], then `x += γ·(D − D_prev)` per
     /// scene and slot, `gamma [B, W]` (0: no correction), D_prev being the kept estimate of

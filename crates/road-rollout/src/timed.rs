@@ -105,6 +105,16 @@ impl StepEngine for TimedEngine<'_> {
         self.timed(|e| e.read_denoised(scenes, out))
     }
 
+    fn read_emitted_and_denoised(
+        &mut self,
+        slots: &[Option<usize>],
+        out: &mut [f32],
+        scenes: &[usize],
+        denoised: &mut [f32],
+    ) -> Result<()> {
+        self.timed(|e| e.read_emitted_and_denoised(slots, out, scenes, denoised))
+    }
+
     fn step_multistep(
         &mut self,
         sigma_cur: &[f32],

@@ -488,24 +488,39 @@ pub fn read_back_ranges(
     source: &wgpu::Buffer,
     ranges: &[(u64, u64)],
 ) -> Result<Vec<u8>> {
-    let bytes: u64 = ranges.iter().map(|r| r.1).sum();
+    let encoder = ctx
+        .device
+        .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+            label: Some("readback"),
+        });
+    let copies: Vec<(&wgpu::Buffer, u64, u64)> =
+        ranges.iter().map(|&(at, len)| (source, at, len)).collect();
+    read_back_after(ctx, encoder, &copies)
+}
+
+/// `(source, offset, bytes)` ranges, concatenated, read back after the commands already in
+/// `encoder`: copied into one staging buffer, submitted with them, mapped once (one wait).
+pub fn read_back_after(
+    ctx: &GpuContext,
+    mut encoder: wgpu::CommandEncoder,
+    copies: &[(&wgpu::Buffer, u64, u64)],
+) -> Result<Vec<u8>> {
+    let bytes: u64 = copies.iter().map(|c| c.2).sum();
     let staging = ctx.device.create_buffer(&wgpu::BufferDescriptor {
         label: Some("readback"),
         size: bytes.max(4),
         usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
         mapped_at_creation: false,
     });
-    let mut encoder = ctx
-        .device
-        .create_command_encoder(&wgpu::CommandEncoderDescriptor {
-            label: Some("readback"),
-        });
     let mut at = 0;
-    for &(offset, len) in ranges {
+    for &(source, offset, len) in copies {
         encoder.copy_buffer_to_buffer(source, offset, &staging, at, len);
         at += len;
     }
     ctx.queue.submit([encoder.finish()]);
+    if bytes == 0 {
+        return Ok(Vec::new());
+    }
     let (tx, rx) = std::sync::mpsc::channel();
     staging
         .slice(..bytes)

@@ -137,6 +137,20 @@ impl WindowOps {
         slots: &[Option<usize>],
         out: &mut [f32],
     ) -> Result<()> {
+        self.emitted_and(ctx, slots, out, &[])?;
+        Ok(())
+    }
+
+    /// [`Self::emitted`], and the `(source, offset, bytes)` ranges `also` read back in the
+    /// same submission and wait (a round's plans beside its emitted states): their bytes,
+    /// concatenated.
+    pub fn emitted_and(
+        &mut self,
+        ctx: &GpuContext,
+        slots: &[Option<usize>],
+        out: &mut [f32],
+        also: &[(&wgpu::Buffer, u64, u64)],
+    ) -> Result<Vec<u8>> {
         if slots.len() != self.scenes || out.len() != self.scenes * self.agents * 3 {
             return Err(Error::Input(format!(
                 "emitted: {} slots and {} outputs for {} scenes of {} agents",
@@ -173,10 +187,14 @@ impl WindowOps {
             "window_emitted",
             std::slice::from_ref(&self.gather),
         );
-        ctx.queue.submit([encoder.finish()]);
-        let bytes = super::read_back(ctx, &self.emitted_out, (out.len() * 4) as u64)?;
+        // The gathered states and `also`, copied after the gather in its submission.
+        let emitted_bytes = (out.len() * 4) as u64;
+        let mut copies = vec![(&self.emitted_out, 0, emitted_bytes)];
+        copies.extend_from_slice(also);
+        let mut bytes = super::read_back_after(ctx, encoder, &copies)?;
+        let rest = bytes.split_off(emitted_bytes as usize);
         out.copy_from_slice(bytemuck::cast_slice(&bytes));
-        Ok(())
+        Ok(rest)
     }
 
     /// Shifts the windows of the scenes in `edits` (`(scene, emitted [agents, 3], noise
@@ -186,6 +204,24 @@ impl WindowOps {
         &mut self,
         ctx: &GpuContext,
         x: &wgpu::Buffer,
+        edits: &[ShiftList<'_>],
+        shape: ShiftShape,
+    ) -> Result<()> {
+        self.prepare_shift(ctx, edits, shape)?;
+        let mut encoder = ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("window_shift"),
+            });
+        self.record_shift(&mut encoder, x);
+        ctx.queue.submit([encoder.finish()]);
+        Ok(())
+    }
+
+    /// [`Self::shift`]'s inputs written (the queue's writes land before the next submission).
+    pub fn prepare_shift(
+        &mut self,
+        ctx: &GpuContext,
         edits: &[ShiftList<'_>],
         shape: ShiftShape,
     ) -> Result<()> {
@@ -244,16 +280,12 @@ impl WindowOps {
         );
         q.write_buffer(&self.noise, 0, bytemuck::cast_slice(&self.noise_host));
         q.write_buffer(&self.turns, 0, bytemuck::cast_slice(&self.turns_host));
-        let mut encoder = ctx
-            .device
-            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                label: Some("window_shift"),
-            });
-        record_all(
-            &mut encoder,
-            "window_shift",
-            std::slice::from_ref(&self.shift),
-        );
+        Ok(())
+    }
+
+    /// [`Self::shift`]'s commands on `x` (bound at construction), after [`Self::prepare_shift`].
+    pub fn record_shift(&self, encoder: &mut wgpu::CommandEncoder, x: &wgpu::Buffer) {
+        record_all(encoder, "window_shift", std::slice::from_ref(&self.shift));
         encoder.copy_buffer_to_buffer(
             &self.scratch,
             0,
@@ -261,7 +293,5 @@ impl WindowOps {
             0,
             (self.scenes * self.agents * self.slots * 3 * 4) as u64,
         );
-        q.submit([encoder.finish()]);
-        Ok(())
     }
 }
