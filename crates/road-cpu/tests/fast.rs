@@ -701,6 +701,47 @@ fn fast_engine_rollouts_with_least_jerk_tracking_match_candle() {
     assert!(moved > 1e-4, "the acceleration bound changed nothing");
 }
 
+/// A round's planning (plan smoothing, least-jerk tracking with its turning circle and heading
+/// along the course, acceleration smoothing) spread over threads gives the rollout it gives on
+/// one: 24 scenes on 1 thread and on 4 of at least 5 scenes each.
+#[test]
+fn planning_on_several_threads_gives_the_same_rollout() {
+    let c = config(Frame::AgentPairs);
+    let model = seeded_model(&c, 5);
+    let planner = PlannerSpec {
+        steps_per_diffusion: 10,
+        plan_smoothing: Some(4),
+        plan_smoothing_ahead: Some(2),
+        acceleration_smoothing: Some(0.3),
+        jerk_tracking: Some(JerkTracking {
+            jerk_cost_m: 0.03,
+            ahead: 2,
+            max_acceleration_mps2: Some(6.0),
+            max_slip_deg: Some(5.0),
+            max_course_offset_deg: Some(8.0),
+            min_turn_radius_m: Some(4.0),
+        }),
+        ..PlannerSpec::default()
+    };
+    let scenes = scenes(&c, 24);
+    let steps = 6;
+    let run = |threads: usize, min_scenes: usize| {
+        let mut engine = FastCpuEngine::with_threads(&model, 1).unwrap();
+        let seeds: Vec<u64> = (0..scenes.len() as u64).collect();
+        let mut driver =
+            RolloutDriver::with_seeds(&mut engine, &planner, &scenes, &seeds, steps).unwrap();
+        driver.set_planner_threads(threads, min_scenes);
+        for _ in 0..steps {
+            driver.tick(&mut engine, &mut |_, _, _| Ok(())).unwrap();
+        }
+        driver.into_rollout().unwrap()
+    };
+    let one = run(1, 1);
+    let four = run(4, 5);
+    assert_eq!(one, four);
+    assert!(one.states.iter().flatten().all(|v| v.is_finite()));
+}
+
 /// Mixed phases: scenes tick in different subsets, so the engines evaluate gathered rows.
 #[test]
 fn fast_engine_matches_candle_when_only_some_scenes_tick() {

@@ -145,10 +145,103 @@ pub fn stream_seed(run_seed: u64, stream: u64) -> u64 {
     mix(run_seed ^ mix(stream))
 }
 
+/// One emitting scene of a round: its batch row, the first window slot after the emitted one
+/// (before the window moves on), and its plan's place among the round's read plans.
+struct PlanJob {
+    scene: usize,
+    from: usize,
+    plan: Option<usize>,
+    then: WindowUpdate,
+}
+
+/// The planner's work on one scene's `emitted` states `[agents, 3]` (model units): smoothing
+/// against the model's plan `denoised` (`[A, W, 3]`; empty when not read), least-jerk tracking
+/// with its turning circle and heading along the course, acceleration smoothing. Reads only
+/// the scene and its planner, so that a round's scenes can be planned on several threads.
+/// `scales`: the engine's metres per position unit and units per radian of heading.
+fn plan_emitted(
+    s: &SceneState,
+    planner: &PlannerSpec,
+    denoised: &[f32],
+    w: usize,
+    from: usize,
+    (position_scale_m, heading_scale): (Option<f64>, Option<f64>),
+    emitted: &mut [f32],
+) {
+    if let Some(fit) = planner.plan_smoothing_fit() {
+        smooth_with_plan(
+            &s.history,
+            &s.history_valid,
+            denoised,
+            &s.valid,
+            w,
+            from,
+            fit,
+            emitted,
+        );
+    }
+    if let Some(tracking) = planner.jerk_tracking {
+        // m/s² → position units per step², where the engine knows the unit.
+        let max_acceleration = tracking
+            .max_acceleration_mps2
+            .zip(position_scale_m)
+            .map(|(bound, scale_m)| bound * STEP_SECS * STEP_SECS / scale_m);
+        track_least_jerk(
+            &s.history,
+            &s.history_valid,
+            denoised,
+            &s.valid,
+            w,
+            from,
+            tracking.ahead,
+            tracking.jerk_weight(STEP_SECS),
+            max_acceleration,
+            heading_scale,
+            tracking.max_slip_deg.map(|deg| deg.to_radians().tan()),
+            emitted,
+        );
+        // The turning circle first: slow steps keep it; from 2 m/s the heading then
+        // follows the course (a car's body follows its wheels) and does not slide.
+        if let (Some(radius_m), Some(scale), Some(scale_m)) =
+            (tracking.min_turn_radius_m, heading_scale, position_scale_m)
+        {
+            limit_turn_to_radius(
+                &s.history,
+                &s.history_valid,
+                emitted,
+                scale,
+                radius_m / scale_m,
+            );
+        }
+        if let (Some(offset_deg), Some(scale), Some(scale_m)) = (
+            tracking.max_course_offset_deg,
+            heading_scale,
+            position_scale_m,
+        ) {
+            let min_step = road_sched::COURSE_MIN_SPEED_MPS * STEP_SECS / scale_m;
+            align_heading_to_course(
+                &s.history,
+                &s.history_valid,
+                emitted,
+                scale,
+                min_step,
+                offset_deg.to_radians(),
+            );
+        }
+    }
+    if let Some(alpha) = planner.acceleration_smoothing {
+        // External agents' states replace theirs just below.
+        smooth_accelerations(&s.history, &s.history_valid, emitted, alpha as f32);
+    }
+}
+
 /// σ of a slot that holds still in a batch (any positive value: σ_cur = σ_next skips it).
 const IDLE_SIGMA: f32 = 1.0;
 /// Seconds per simulated step (the recordings' 10 Hz): the unit of least-jerk tracking's jerk.
 const STEP_SECS: f64 = 0.1;
+/// Scenes a planner thread takes at least: below twice this a round's planning stays on the
+/// driver's thread (a thread's start costs about what planning 5 scenes does).
+const SCENES_PER_PLANNER_THREAD: usize = 64;
 
 /// Drives the rollouts of many scenes on one engine; see the module's documentation.
 pub struct RolloutDriver {
@@ -196,6 +289,9 @@ pub struct RolloutDriver {
     /// with the window as the engine moves the estimate: the multistep sampler's memory.
     estimate_sigma: Vec<f32>,
     ticks: Vec<usize>,
+    /// Threads a round's planning may use, and scenes each takes at least
+    /// ([`RolloutDriver::set_planner_threads`]).
+    planner_threads: (usize, usize),
 }
 
 impl std::fmt::Debug for RolloutDriver {
@@ -378,7 +474,18 @@ impl RolloutDriver {
             gamma: vec![0.0; b * w],
             estimate_sigma: vec![0.0; b * w],
             ticks: vec![0; b],
+            planner_threads: (
+                std::thread::available_parallelism().map_or(1, |n| n.get()),
+                SCENES_PER_PLANNER_THREAD,
+            ),
         })
+    }
+
+    /// Up to `threads` threads for a round's planning (smoothing and least-jerk tracking of
+    /// each scene's emitted states), each taking at least `min_scenes` scenes; by default
+    /// every core, from 2 × [`SCENES_PER_PLANNER_THREAD`] scenes. Results do not depend on it.
+    pub fn set_planner_threads(&mut self, threads: usize, min_scenes: usize) {
+        self.planner_threads = (threads.max(1), min_scenes.max(1));
     }
 
     /// Whether `scene` (batch row `i`) fits the driver under `planner`.
@@ -939,22 +1046,66 @@ impl RolloutDriver {
             &self.denoised_scenes,
             &mut self.denoised,
         )?;
+        // Each outcome's scene, its first slot after the emitted one and its plan's place in
+        // `denoised` (outcomes come in the order `denoised_scenes` was filled in).
+        let mut read = 0;
+        let jobs: Vec<PlanJob> = self
+            .outcomes
+            .iter()
+            .map(|o| {
+                let i = self.scene_of_slot[o.scene.index()];
+                let plan = (self.denoised_scenes.get(read) == Some(&i)).then(|| {
+                    read += 1;
+                    read - 1
+                });
+                PlanJob {
+                    scene: i,
+                    from: n + o.emit_future_slot + 1,
+                    plan,
+                    then: o.then,
+                }
+            })
+            .collect();
+        // The planner's smoothing and tracking of every scene's emitted states: pure per
+        // scene, so spread over threads when many scenes emit.
+        let mut planned: Vec<Vec<f32>> = jobs
+            .iter()
+            .map(|job| {
+                let agents = self.states[job.scene].agents;
+                self.emitted[job.scene * a_max * 3..][..agents * 3].to_vec()
+            })
+            .collect();
+        let scales = (position_scale_m, heading_scale);
+        let plan_all = |jobs: &[PlanJob], planned: &mut [Vec<f32>]| {
+            for (job, emitted) in jobs.iter().zip(planned) {
+                let denoised = job
+                    .plan
+                    .map_or(&[][..], |k| &self.denoised[k * per_scene..][..per_scene]);
+                let planner = &self.planners[job.scene];
+                let s = &self.states[job.scene];
+                plan_emitted(s, planner, denoised, w, job.from, scales, emitted);
+            }
+        };
+        let (threads, min_scenes) = self.planner_threads;
+        let threads = threads.min(jobs.len() / min_scenes).max(1);
+        if threads == 1 {
+            plan_all(&jobs, &mut planned);
+        } else {
+            let chunk = jobs.len().div_ceil(threads);
+            std::thread::scope(|scope| {
+                for (jobs, planned) in jobs.chunks(chunk).zip(planned.chunks_mut(chunk)) {
+                    scope.spawn(|| plan_all(jobs, planned));
+                }
+            });
+        }
         let mut shifts: Vec<PendingShift> = Vec::new();
         let mut done = Vec::with_capacity(self.outcomes.len());
-        let mut read = 0;
-        for o in &self.outcomes {
-            let i = self.scene_of_slot[o.scene.index()];
+        for (job, mut emitted) in jobs.iter().zip(planned) {
+            let (i, from) = (job.scene, job.from);
             let s = &mut self.states[i];
-            // Slots after the emitted one, before the window moves on.
-            let from = n + o.emit_future_slot + 1;
-            let plan_smoothing = self.planners[i].plan_smoothing_fit();
-            // Outcomes come in the order `denoised_scenes` was filled in.
-            let denoised = if self.denoised_scenes.get(read) == Some(&i) {
-                read += 1;
-                &self.denoised[(read - 1) * per_scene..][..per_scene]
-            } else {
-                &[][..]
-            };
+            let denoised = job
+                .plan
+                .map_or(&[][..], |k| &self.denoised[k * per_scene..][..per_scene]);
             if s.wants_plan {
                 s.plan_steps = w.saturating_sub(from);
                 s.plan.clear();
@@ -962,72 +1113,6 @@ impl RolloutDriver {
                     s.plan
                         .extend_from_slice(&denoised[3 * (a * w + from)..3 * (a * w + w)]);
                 }
-            }
-            let mut emitted = self.emitted[i * a_max * 3..][..s.agents * 3].to_vec();
-            if let Some(fit) = plan_smoothing {
-                smooth_with_plan(
-                    &s.history,
-                    &s.history_valid,
-                    denoised,
-                    &s.valid,
-                    w,
-                    from,
-                    fit,
-                    &mut emitted,
-                );
-            }
-            if let Some(tracking) = self.planners[i].jerk_tracking {
-                // m/s² → position units per step², where the engine knows the unit.
-                let max_acceleration = tracking
-                    .max_acceleration_mps2
-                    .zip(position_scale_m)
-                    .map(|(bound, scale_m)| bound * STEP_SECS * STEP_SECS / scale_m);
-                track_least_jerk(
-                    &s.history,
-                    &s.history_valid,
-                    denoised,
-                    &s.valid,
-                    w,
-                    from,
-                    tracking.ahead,
-                    tracking.jerk_weight(STEP_SECS),
-                    max_acceleration,
-                    heading_scale,
-                    tracking.max_slip_deg.map(|deg| deg.to_radians().tan()),
-                    &mut emitted,
-                );
-                // The turning circle first: slow steps keep it; from 2 m/s the heading then
-                // follows the course (a car's body follows its wheels) and does not slide.
-                if let (Some(radius_m), Some(scale), Some(scale_m)) =
-                    (tracking.min_turn_radius_m, heading_scale, position_scale_m)
-                {
-                    limit_turn_to_radius(
-                        &s.history,
-                        &s.history_valid,
-                        &mut emitted,
-                        scale,
-                        radius_m / scale_m,
-                    );
-                }
-                if let (Some(offset_deg), Some(scale), Some(scale_m)) = (
-                    tracking.max_course_offset_deg,
-                    heading_scale,
-                    position_scale_m,
-                ) {
-                    let min_step = road_sched::COURSE_MIN_SPEED_MPS * STEP_SECS / scale_m;
-                    align_heading_to_course(
-                        &s.history,
-                        &s.history_valid,
-                        &mut emitted,
-                        scale,
-                        min_step,
-                        offset_deg.to_radians(),
-                    );
-                }
-            }
-            if let Some(alpha) = self.planners[i].acceleration_smoothing {
-                // External agents' states replace theirs just below.
-                smooth_accelerations(&s.history, &s.history_valid, &mut emitted, alpha as f32);
             }
             self.plan_turns.clear();
             self.plan_turns.resize(s.agents * 4, 0.0);
@@ -1044,7 +1129,7 @@ impl RolloutDriver {
             }
             s.emitted.extend_from_slice(&emitted);
             let rng = &mut self.rngs[i];
-            match o.then {
+            match job.then {
                 WindowUpdate::Shift => {
                     let mut noise = normal_vec(rng, s.agents * 6);
                     // The new slot's draws (the last 3 of each agent's 6) at the planner's
