@@ -763,23 +763,45 @@ fn mixed_phase_batches_agree(config: &ModelConfig, name: &str) {
 /// reference, at less padded work than one batch at the most agents.
 #[test]
 fn packed_batches_of_scene_frame_maps_agree_with_the_reference() {
+    packed_rollouts_agree(&test_config(), "packed-scene-frame", 40, |i| i * 131, 5);
+}
+
+/// Scenes of mixed agent counts packed (several scenes' agents in one sub-batch scene,
+/// attending apart and picking from their own maps): the same rollouts as the CPU reference,
+/// at a quarter over their own work where one batch at the most agents computes half again.
+/// Eight validation scenes, as `road bench engine`'s 8-scene row.
+#[test]
+fn packed_batches_agree_with_the_reference() {
+    packed_rollouts_agree(&agent_pairs_config(), "packed", 8, |i| i * 613 + 7, 6);
+}
+
+/// `count` validation windows (window `pick(i) % len` for scene i) of mixed agent counts,
+/// rolled out 3 ticks by the GPU engine, which packs them, and by the CPU reference (`seed`):
+/// the same states within the rollout tolerance, at most 1.25 computed over useful where one
+/// batch at the most agents computes over 1.5, and as many evaluations as one batch.
+fn packed_rollouts_agree(
+    config: &ModelConfig,
+    name: &str,
+    count: usize,
+    pick: impl Fn(usize) -> usize,
+    seed: u64,
+) {
     use road_cpu::CpuEngine;
     use road_gpu::proxies::flops_per_evaluation;
     use road_gpu::step_engine::GpuStepEngine;
     use road_rollout::{RolloutDriver, RolloutScene, StepEngine};
     use road_sched::PlannerSpec;
     let ctx = context();
-    let config = test_config();
-    let (dir, reference) = checkpoint_dir(&config, "packed-scene-frame");
+    let (dir, reference) = checkpoint_dir(config, name);
     let gpu = GpuDenoiser::from_checkpoint(&ctx, &dir).unwrap();
     let ds = validation_set();
-    let scenes: Vec<RolloutScene> = (0..40)
+    let scenes: Vec<RolloutScene> = (0..count)
         .map(|i| RolloutScene {
             history: SceneInput::from_window(
-                &ds.window((i * 131) % ds.len()).unwrap(),
+                &ds.window(pick(i) % ds.len()).unwrap(),
                 0,
                 10,
-                &config,
+                config,
             ),
         })
         .collect();
@@ -789,10 +811,10 @@ fn packed_batches_of_scene_frame_maps_agree_with_the_reference() {
         scenes.iter().map(|s| s.history.polylines).max().unwrap(),
     );
     let padded: f64 =
-        scenes.len() as f64 * flops_per_evaluation(&config, most_agents, most_polylines);
+        scenes.len() as f64 * flops_per_evaluation(config, most_agents, most_polylines);
     let own: f64 = scenes
         .iter()
-        .map(|s| flops_per_evaluation(&config, s.history.agents, s.history.polylines))
+        .map(|s| flops_per_evaluation(config, s.history.agents, s.history.polylines))
         .sum();
     assert!(
         padded / own > 1.5,
@@ -803,96 +825,14 @@ fn packed_batches_of_scene_frame_maps_agree_with_the_reference() {
         ..PlannerSpec::default()
     };
     let run = |engine: &mut dyn StepEngine| -> Vec<Vec<f32>> {
-        let mut driver =
-            RolloutDriver::new(engine, &planner, &scenes, 3, &mut StdRng::seed_from_u64(5))
-                .unwrap();
-        let all: Vec<usize> = (0..scenes.len()).collect();
-        let mut out: Vec<Vec<f32>> = vec![Vec::new(); scenes.len()];
-        for _ in 0..3 {
-            driver
-                .tick_scenes(engine, &all, &mut |i, e, _| {
-                    out[i].extend_from_slice(e);
-                    Ok(())
-                })
-                .unwrap();
-        }
-        out
-    };
-    let cpu = run(&mut CpuEngine::new(&reference));
-    let mut engine = GpuStepEngine::new(&ctx, &gpu);
-    let on_gpu = run(&mut engine);
-    for (i, (c, g)) in cpu.iter().zip(&on_gpu).enumerate() {
-        if let Err(m) = ROLLOUT.check(g, c) {
-            panic!("scene {i} ({} agents): {m}", counts[i]);
-        }
-    }
-    let work = engine.take_work();
-    let ratio = work.computed_flops / work.useful_flops;
-    assert!(
-        ratio <= 1.25,
-        "computed over useful {ratio:.2}: one batch at the most agents would be {:.2}",
-        padded / own
-    );
-    // An evaluation is the batch's, however it was packed: as many as one batch has.
-    let one_batch = GpuContext::new(&ContextOptions {
-        validation: true,
-        pack_scenes: false,
-        ..ContextOptions::default()
-    })
-    .unwrap();
-    let gpu = GpuDenoiser::from_checkpoint(&one_batch, &dir).unwrap();
-    let mut unpacked = GpuStepEngine::new(&one_batch, &gpu);
-    run(&mut unpacked);
-    assert_eq!(work.evaluations, unpacked.take_work().evaluations);
-    std::fs::remove_dir_all(&dir).ok();
-}
-
-/// Scenes of mixed agent counts packed (several scenes' agents in one sub-batch scene,
-/// attending apart and picking from their own maps): the same rollouts as the CPU reference,
-/// at a quarter over their own work where one batch at the most agents computes half again.
-/// Eight validation scenes, as `road bench engine`'s 8-scene row.
-#[test]
-fn packed_batches_agree_with_the_reference() {
-    use road_cpu::CpuEngine;
-    use road_gpu::proxies::flops_per_evaluation;
-    use road_gpu::step_engine::GpuStepEngine;
-    use road_rollout::{RolloutDriver, RolloutScene, StepEngine};
-    use road_sched::PlannerSpec;
-    let ctx = context();
-    let config = agent_pairs_config();
-    let (dir, reference) = checkpoint_dir(&config, "packed");
-    let gpu = GpuDenoiser::from_checkpoint(&ctx, &dir).unwrap();
-    let ds = validation_set();
-    let scenes: Vec<RolloutScene> = (0..8)
-        .map(|i| RolloutScene {
-            history: SceneInput::from_window(
-                &ds.window((i * 613 + 7) % ds.len()).unwrap(),
-                0,
-                10,
-                &config,
-            ),
-        })
-        .collect();
-    let counts: Vec<usize> = scenes.iter().map(|s| s.history.agents).collect();
-    let polylines = scenes.iter().map(|s| s.history.polylines).max().unwrap();
-    let most_agents = *counts.iter().max().unwrap();
-    let padded = scenes.len() as f64 * flops_per_evaluation(&config, most_agents, polylines);
-    let own: f64 = scenes
-        .iter()
-        .map(|s| flops_per_evaluation(&config, s.history.agents, s.history.polylines))
-        .sum();
-    assert!(
-        padded / own > 1.5,
-        "the scenes' agent counts {counts:?} should be mixed enough to pack"
-    );
-    let planner = PlannerSpec {
-        steps_per_diffusion: 10,
-        ..PlannerSpec::default()
-    };
-    let run = |engine: &mut dyn StepEngine| -> Vec<Vec<f32>> {
-        let mut driver =
-            RolloutDriver::new(engine, &planner, &scenes, 3, &mut StdRng::seed_from_u64(6))
-                .unwrap();
+        let mut driver = RolloutDriver::new(
+            engine,
+            &planner,
+            &scenes,
+            3,
+            &mut StdRng::seed_from_u64(seed),
+        )
+        .unwrap();
         let all: Vec<usize> = (0..scenes.len()).collect();
         let mut out: Vec<Vec<f32>> = vec![Vec::new(); scenes.len()];
         for _ in 0..3 {
@@ -920,5 +860,16 @@ fn packed_batches_agree_with_the_reference() {
         "computed over useful {ratio:.2}: one batch at the most agents would be {:.2}",
         padded / own
     );
+    // An evaluation is the batch's, however it was packed: as many as one batch has.
+    let one_batch = GpuContext::new(&ContextOptions {
+        validation: true,
+        pack_scenes: false,
+        ..ContextOptions::default()
+    })
+    .unwrap();
+    let gpu = GpuDenoiser::from_checkpoint(&one_batch, &dir).unwrap();
+    let mut unpacked = GpuStepEngine::new(&one_batch, &gpu);
+    run(&mut unpacked);
+    assert_eq!(work.evaluations, unpacked.take_work().evaluations);
     std::fs::remove_dir_all(&dir).ok();
 }
