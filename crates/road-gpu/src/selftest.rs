@@ -132,36 +132,13 @@ pub fn kernel_checks(ctx: &GpuContext) -> Result<Vec<KernelCheck>> {
         .iter()
         .map(|&n| rng.uniform(n, 0.3))
         .collect();
-    let mut weights = Vec::new();
-    // Weights transposed ([out, in] → [in, out]) as the engine uploads a chain's; biases not.
-    let outputs = [d, 1, m, 1, d, 1, 3 * d, 1];
-    let offsets: Vec<u32> = tensors
-        .iter()
-        .zip(outputs)
-        .map(|(t, out)| {
-            let at = weights.len() as u32;
-            weights.extend(transpose(t, out));
-            at
-        })
-        .collect();
+    let (weights, chain) = packed_chain(&tensors, (rows, d, m, 3 * d));
     let p = ChainParams {
-        rows: rows as u32,
-        d: d as u32,
-        m: m as u32,
-        eps: 1e-5,
-        o_w: offsets[0],
-        o_b: offsets[1],
-        w1: offsets[2],
-        b1: offsets[3],
-        w2: offsets[4],
-        b2: offsets[5],
-        next_w: offsets[6],
-        next_b: offsets[7],
         next_out: (3 * d) as u32,
         part: d as u32,
         part_stride: (rows * d) as u32,
         anchor_slot: NO_FRAME,
-        ..ChainParams::default()
+        ..chain
     };
     let (att, h) = (rng.uniform(rows * d, 1.0), rng.uniform(rows * d, 1.0));
     let inputs = ChainInputs {
@@ -454,6 +431,42 @@ pub fn kernel_checks(ctx: &GpuContext) -> Result<Vec<KernelCheck>> {
     Ok(checks)
 }
 
+/// A chain's 8 tensors (`W_o`, `b_o`, `W_1`, `b_1`, `W_2`, `b_2`, `W_next`, `b_next`, each
+/// `[out, in]`) packed as the engine uploads them (weights transposed, biases as they are),
+/// and the params of `(rows, D, M, next outputs)` pointing at them.
+fn packed_chain(
+    tensors: &[Vec<f32>],
+    (rows, d, m, next_out): (usize, usize, usize, usize),
+) -> (Vec<f32>, ChainParams) {
+    let mut weights = Vec::new();
+    let outputs = [d, 1, m, 1, d, 1, next_out, 1];
+    let offsets: Vec<u32> = tensors
+        .iter()
+        .zip(outputs)
+        .map(|(t, out)| {
+            let at = weights.len() as u32;
+            weights.extend(transpose(t, out));
+            at
+        })
+        .collect();
+    let params = ChainParams {
+        rows: rows as u32,
+        d: d as u32,
+        m: m as u32,
+        eps: 1e-5,
+        o_w: offsets[0],
+        o_b: offsets[1],
+        w1: offsets[2],
+        b1: offsets[3],
+        w2: offsets[4],
+        b2: offsets[5],
+        next_w: offsets[6],
+        next_b: offsets[7],
+        ..ChainParams::default()
+    };
+    (weights, params)
+}
+
 /// The last block's chain as a Heun or multistep step's first evaluation runs it: output
 /// projection and MLP (the weights `block`), the head with the output preconditioning (agent
 /// frame, constant-velocity reference), then the sampler's Euler step with the multistep
@@ -469,32 +482,13 @@ fn head_chain_check(
     let (scenes, agents, slots) = (2, 3, 5);
     let rows = scenes * agents * slots;
     let head = (rng.uniform(3 * d, 0.3), rng.uniform(3, 0.3));
-    let mut weights = Vec::new();
-    let mut push = |t: Vec<f32>| {
-        let at = weights.len() as u32;
-        weights.extend(t);
-        at
-    };
-    let outputs = [d, 1, m, 1, d, 1];
-    let offsets: Vec<u32> = block
+    let tensors: Vec<Vec<f32>> = block
         .iter()
-        .zip(outputs)
-        .map(|(t, out)| push(transpose(t, out)))
+        .cloned()
+        .chain([head.0.clone(), head.1.clone()])
         .collect();
-    let (next_w, next_b) = (push(transpose(&head.0, 3)), push(head.1.clone()));
+    let (weights, chain) = packed_chain(&tensors, (rows, d, m, 3));
     let p = ChainParams {
-        rows: rows as u32,
-        d: d as u32,
-        m: m as u32,
-        eps: 1e-5,
-        o_w: offsets[0],
-        o_b: offsets[1],
-        w1: offsets[2],
-        b1: offsets[3],
-        w2: offsets[4],
-        b2: offsets[5],
-        next_w,
-        next_b,
         next_out: 3,
         part: 3,
         part_stride: (rows * 3) as u32,
@@ -506,7 +500,7 @@ fn head_chain_check(
         heading_scale: 2.0,
         residual_scale: 4.0,
         update: 1,
-        ..ChainParams::default()
+        ..chain
     };
     let (att, h, x) = (
         rng.uniform(rows * d, 1.0),
