@@ -156,8 +156,8 @@ run)
     # The candle reference takes minutes per step at thousands of scenes: timed up to 8 only
     # (the first lent run, 2026-11-26, measured it to 64: docs/experiments/2026-11-26-gpu-h100/).
     # road20 stands for every D = 64 checkpoint (the same shapes), road20-wide4 is the default.
-    # The blocks as residual chains (the default since 2026-11-27: 24 dispatches an evaluation)
-    # and layer by layer (40), each with the kernels chosen per layer (auto) beside each linear
+    # The blocks as residual chains (the default since 2026-11-27: 22–23.5 dispatches an
+    # evaluation) and layer by layer (38–40), each with the kernels chosen per layer (auto) beside each linear
     # variant alone (the chains run linear layers only for the first q/k/v and the map's k/v;
     # the per-polyline encoder was measured against the blocked one on 2026-11-26); then the
     # default's steps profiled kernel by kernel at two batches, compiled with and without wgpu's
@@ -168,7 +168,7 @@ run)
         --cache "$out/cache" --json
     # 4 096 scenes of road20-wide4 padded to 23 agents pass the adapter's 2 GiB binding when
     # profiled whole (H200, 2026-11-30); packed, as the engine step runs them, they fit.
-    # One scene too: its 3.6 ms a Heun step (2 evaluations of 24 dispatches) is 75 µs a
+    # One scene too: its 3.6 ms a Heun step (2 evaluations of 24 dispatches, 2026-11-30) is 75 µs a
     # dispatch, far above a kernel's work there; the profile's round trip and per-kernel times say which it is.
     profile_batches=(1 512 2048)
     $quick && profile_batches=(8)
@@ -178,6 +178,14 @@ run)
     step engine-packing 60 "$out/engine-packing.json" "$bin" bench engine \
         --checkpoints models/road20-wide4 models/road20 --batches "${batches[@]}" \
         --cpu-max-batch 0 --packing on eager off --cache "$out/cache" --json
+    # The map's keys kept between evaluations while the anchors hold (the default since
+    # 2026-11-30: a Heun step makes them once) against made every evaluation, the default
+    # kernels: what the pick, the encoder and every block's map k, v cost a card.
+    keys_batches=(1 8 512 4096)
+    $quick && keys_batches=(1 8)
+    step engine-map-keys 45 "$out/engine-map-keys.json" "$bin" bench engine \
+        --checkpoints models/road20-wide4 --batches "${keys_batches[@]}" --cpu-max-batch 0 \
+        --map-keys kept remade --cache "$out/cache" --json
     # f16 (the blocks' layers on the tensor cores where cooperative matrices are offered;
     # layer by layer, as f16 runs) beside f32 layer by layer, the same run; the self-test above
     # checked it against its reference. Then `linear_f16` (the same rounding without tensor

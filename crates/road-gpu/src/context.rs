@@ -43,6 +43,13 @@ pub struct ContextOptions {
     /// layer by layer: on by default (issue 40: fewer dispatches and bytes moved; the layers
     /// stay as the variant to time against, and for hidden widths past the chain's tile).
     pub residual_chains: bool,
+    /// Keep the map's keys (the agent maps' pick and encoder, every block's map k, v) from one
+    /// evaluation to the next while what they are made from holds: the maps, and with agent
+    /// maps each agent's anchor state, which a step leaves as it is where σ (and γ) do not
+    /// change at the anchor slot (observed slots), as the fast CPU engine's memo does. On by
+    /// default; off, every evaluation makes them (to time against, and the tests' reference:
+    /// the states are the same to the bit).
+    pub keep_map_keys: bool,
     /// The linear layers' arithmetic ([`Precision`]): f32 by default; f16 needs an adapter
     /// with `SHADER_F16` and runs on the tensor cores where cooperative matrices are offered.
     pub precision: Precision,
@@ -135,6 +142,7 @@ impl Default for ContextOptions {
             pack_scenes: true,
             eager_packing: false,
             residual_chains: true,
+            keep_map_keys: true,
             precision: Precision::F32,
             cooperative_matrices: true,
         }
@@ -156,6 +164,7 @@ pub struct GpuContext {
     pack_scenes: bool,
     eager_packing: bool,
     residual_chains: bool,
+    keep_map_keys: bool,
     precision: Precision,
     /// f16 layers on the tensor cores (`linear_coop.wgsl`): the adapter offers them, the device
     /// has them enabled, and the options asked for them.
@@ -251,6 +260,7 @@ impl GpuContext {
             eager_packing: options.eager_packing,
             // The chains run f32 only.
             residual_chains: options.residual_chains && options.precision == Precision::F32,
+            keep_map_keys: options.keep_map_keys,
             precision: options.precision,
             cooperative,
         })
@@ -331,6 +341,11 @@ impl GpuContext {
     /// See [`ContextOptions::eager_packing`].
     pub fn eager_packing(&self) -> bool {
         self.eager_packing
+    }
+
+    /// See [`ContextOptions::keep_map_keys`].
+    pub fn keep_map_keys(&self) -> bool {
+        self.keep_map_keys
     }
 
     /// See [`ContextOptions::residual_chains`].

@@ -1,9 +1,9 @@
 //! The engine's speed proxies, which need no GPU to measure (issue 40: "Without a GPU"): how
 //! many compute dispatches one denoiser evaluation records (with its share of the step's
 //! sampler update and of a compact sub-batch's row moves), how many bytes their bindings read
-//! and write, and how much of the work computed is padding. Fusing kernels lowers the first
-//! two on any adapter, lavapipe included; packing scenes of mixed agent counts lowers the
-//! third.
+//! and write, and how much of the work computed is padding. Fusing kernels and keeping the
+//! map's keys between evaluations lower the first two on any adapter, lavapipe included;
+//! packing scenes of mixed agent counts lowers the third.
 //!
 //! The dispatch and byte counts are counted as the engine records its dispatches
 //! ([`crate::kernels::Dispatch::record_counted`]), so they follow whatever kernels it runs; the
@@ -19,7 +19,8 @@ use crate::kernels::Traffic;
 /// polylines: projections, attention, MLP, the agent maps' point encoder and keys. Not counted:
 /// the agent-pair features, layer norms and elementwise kernels, and (without agent maps) the
 /// map encoder, which runs once per scene set. The one FLOP model of `road bench engine` and
-/// `road bench serve` (their GFLOP/s) and of [`Work::computed_over_useful`].
+/// `road bench serve` (their GFLOP/s) and of [`Work::computed_over_useful`]; of it,
+/// [`map_key_flops`] is what an evaluation that keeps the map's keys leaves out.
 pub fn flops_per_evaluation(c: &ModelConfig, agents: usize, polylines: usize) -> f64 {
     let (a, p, w, d) = (
         agents as f64,
@@ -50,6 +51,25 @@ pub fn flops_per_evaluation(c: &ModelConfig, agents: usize, polylines: usize) ->
     c.blocks as f64 * per_block + map_encoder + linear(t, 3.0, d) + linear(t, d, 3.0)
 }
 
+/// The part of [`flops_per_evaluation`] that makes the map's keys: with agent maps the point
+/// encoder and every block's map k, v of the agents' polylines, else every block's map k, v of
+/// the scene's. The engine makes them only in evaluations whose map inputs changed (the
+/// windows' anchors, the maps; `HeunPlan`), and counts them only there.
+pub fn map_key_flops(c: &ModelConfig, agents: usize, polylines: usize) -> f64 {
+    let d = c.hidden as f64;
+    let linear = |rows: f64, i: f64, o: f64| 2.0 * rows * i * o;
+    let (map_kv_rows, map_encoder) = match &c.agent_map {
+        Some(spec) => {
+            let k = road_model::agent_map::polylines_per_agent(spec.polylines, polylines) as f64;
+            let q = c.polyline_points as f64;
+            let a = agents as f64;
+            (a * k, linear(a * k * q, d, d))
+        }
+        None => (polylines as f64, 0.0),
+    };
+    c.blocks as f64 * 2.0 * linear(map_kv_rows, d, d) + map_encoder
+}
+
 /// What an engine's steps did, summed since it was last taken
 /// ([`crate::step_engine::GpuStepEngine::take_work`]).
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
@@ -59,10 +79,13 @@ pub struct Work {
     /// The dispatches recorded: every evaluation's and its sampler update's, and a compact
     /// sub-batch's row moves (its gathers and scatters, once a step).
     pub traffic: Traffic,
-    /// FLOPs at the shape computed: scenes and agents as the engine padded them.
+    /// FLOPs at the shape computed: scenes and agents as the engine padded them, the map's
+    /// keys counted only in the evaluations that made them ([`map_key_flops`]).
     pub computed_flops: f64,
-    /// FLOPs of the moving scenes at their own agents and polylines.
+    /// FLOPs of the moving scenes at their own agents and polylines, counted alike.
     pub useful_flops: f64,
+    /// Evaluations that made the map's keys (the rest kept those of an earlier one).
+    pub map_key_evaluations: u64,
 }
 
 impl Work {
@@ -93,5 +116,6 @@ impl std::ops::AddAssign for Work {
         self.traffic += other.traffic;
         self.computed_flops += other.computed_flops;
         self.useful_flops += other.useful_flops;
+        self.map_key_evaluations += other.map_key_evaluations;
     }
 }

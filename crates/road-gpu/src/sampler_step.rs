@@ -2,8 +2,11 @@
 //! Heun step (EDM Algorithm 1 per slot: the Euler step, then the second evaluation's
 //! correction where σ_next > 0) or the multistep sampler's step (the Euler step and its
 //! correction against each slot's previous estimate), prepared once per batch shape
-//! ([`HeunPlan`]) so that a step only writes σ and submits. Kernels: `shaders/heun.wgsl`; CPU
-//! reference: `road_rollout::heun`.
+//! ([`HeunPlan`]) so that a step only writes σ and submits. An evaluation leaves out the
+//! dispatches that make the map's keys where those in the scratch were made from the same
+//! inputs ([`MapInputs`]): a Heun step's second evaluation wherever the step leaves the anchor
+//! slot, and a tick's later steps. Kernels: `shaders/heun.wgsl`; CPU reference:
+//! `road_rollout::heun`.
 
 use bytemuck::{Pod, Zeroable};
 
@@ -59,7 +62,7 @@ impl GpuDenoiser {
             previous: &previous,
             gamma: &gamma,
         };
-        let fused_update = self.prepare_denoise_with_update(
+        let first_prepared = self.prepare_denoise_with_update(
             ctx,
             &mut euler,
             batch,
@@ -69,6 +72,7 @@ impl GpuDenoiser {
             &first,
             Some(update),
         )?;
+        let fused_update = first_prepared.fused_update;
         if !fused_update {
             euler.push(self.pipelines.heun_euler.prepare_buffers(
                 ctx,
@@ -78,15 +82,15 @@ impl GpuDenoiser {
             ));
         }
         let mut correct = Vec::new();
-        self.prepare_denoise(
+        let second_prepared = self.prepare_denoise_with_update(
             ctx,
             &mut correct,
             batch,
-            &x_e,
-            &sigma_eval,
+            (&x_e, &sigma_eval),
             map,
             &scratch,
             &second,
+            None,
         )?;
         correct.push(self.pipelines.heun_correct.prepare_buffers(
             ctx,
@@ -122,6 +126,15 @@ impl GpuDenoiser {
             gamma,
             multistep,
             gamma_zero: true,
+            map_keys: MapKeys {
+                first: first_prepared.map_keys,
+                second: second_prepared.map_keys,
+                follow_anchors: first_prepared.keys_follow_anchors,
+                anchor_slot: self.config.agent_frame.as_ref().map(|f| f.anchor_slot),
+                slots: w,
+                keep: ctx.keep_map_keys(),
+                made_from: None,
+            },
             bytes: len,
             sigma_eval_host: vec![0.0; b * w],
             recorded: Traffic::default(),
@@ -174,10 +187,72 @@ pub struct HeunPlan {
     multistep: Option<Dispatch>,
     /// Whether `gamma` holds zeros (as made): a Heun step after a multistep one writes them.
     gamma_zero: bool,
+    /// Which dispatches make the map's keys, and from what the scratch's were made.
+    map_keys: MapKeys,
     bytes: u64,
     sigma_eval_host: Vec<f32>,
     /// The dispatches recorded by the runs since [`HeunPlan::take_traffic`].
     recorded: Traffic,
+}
+
+/// Counters a [`HeunPlan`]'s caller bumps whenever what the map's keys are made from may have
+/// changed outside the plan's own steps: the windows (`x` and `valid`: agent maps pick from
+/// each agent's anchor state; loads, shifts, another plan's step that moved an anchor) and the
+/// maps (their points and flags, which scene each row reads). Equal counters: the keys a plan
+/// made under them still hold.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct MapInputs {
+    pub windows: u64,
+    pub maps: u64,
+}
+
+/// What a [`HeunPlan::run_rule`] did with the map's keys.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct KeysOutcome {
+    /// Evaluations that made the map's keys (the others kept those in the scratch).
+    pub made: u64,
+    /// Whether the step left what the keys are made from as it was: no anchor state moved
+    /// (σ and γ unchanged at the anchor slot of every scene), or the keys follow the maps
+    /// alone. Otherwise the caller bumps [`MapInputs::windows`].
+    pub inputs_held: bool,
+}
+
+/// Which of a plan's dispatches make the map's keys
+/// ([`crate::engine::PreparedEvaluation::map_keys`]), and from what its scratch's were made.
+#[derive(Debug)]
+struct MapKeys {
+    first: std::ops::Range<usize>,
+    second: std::ops::Range<usize>,
+    follow_anchors: bool,
+    anchor_slot: Option<usize>,
+    /// W: the σ rows' length per scene.
+    slots: usize,
+    /// `ContextOptions::keep_map_keys`.
+    keep: bool,
+    /// The inputs the scratch's keys were made from, when the caller named them.
+    made_from: Option<MapInputs>,
+}
+
+impl MapKeys {
+    /// Whether keys made from `made` still hold under `now`.
+    fn hold(&self, made: MapInputs, now: MapInputs) -> bool {
+        made.maps == now.maps && (!self.follow_anchors || made.windows == now.windows)
+    }
+
+    /// Whether a step with these σ (and γ) rows `[B, W]` leaves every anchor state as it is:
+    /// the update writes x back unchanged where σ does not change and γ is 0 (`heun.wgsl`,
+    /// `residual_chain.wgsl`'s `sampler_update`).
+    fn anchors_hold(&self, sigma_cur: &[f32], sigma_next: &[f32], gamma: Option<&[f32]>) -> bool {
+        if !self.follow_anchors {
+            return true;
+        }
+        let Some(anchor) = self.anchor_slot else {
+            return false;
+        };
+        (anchor..sigma_cur.len())
+            .step_by(self.slots)
+            .all(|at| sigma_cur[at] == sigma_next[at] && gamma.is_none_or(|g| g[at] == 0.0))
+    }
 }
 
 /// How a [`HeunPlan`] moves the windows: Heun (EDM Algorithm 1, the Euler step alone without
@@ -205,15 +280,19 @@ impl HeunPlan {
             sigma_cur,
             sigma_next,
             rule,
+            None,
             |_, _| {},
             |_, _| {},
         )
+        .map(|_| ())
     }
 
     /// One step under `rule` in one submission: `before(encoder, D_prev)` records first (a
     /// multistep step's caller copies each scene's previous estimate into `D_prev`, `[B, A, W,
     /// 3]`), then the step, then `then(encoder, D)`, D being this step's last denoiser estimate
-    /// `[B, A, W, 3]`.
+    /// `[B, A, W, 3]`. `inputs`: the caller's [`MapInputs`] now (none: the first evaluation
+    /// makes the map's keys); the second evaluation keeps the first's where the step left the
+    /// anchors as they were.
     #[allow(clippy::too_many_arguments)]
     pub fn run_rule(
         &mut self,
@@ -222,9 +301,10 @@ impl HeunPlan {
         sigma_cur: &[f32],
         sigma_next: &[f32],
         rule: StepRule<'_>,
+        inputs: Option<MapInputs>,
         before: impl FnOnce(&mut wgpu::CommandEncoder, &wgpu::Buffer),
         then: impl FnOnce(&mut wgpu::CommandEncoder, &wgpu::Buffer),
-    ) -> Result<()> {
+    ) -> Result<KeysOutcome> {
         let expected = self.sigma_eval_host.len();
         if sigma_cur.len() != expected || sigma_next.len() != expected {
             return Err(Error::Input(format!(
@@ -278,13 +358,53 @@ impl HeunPlan {
                 label: Some("heun"),
             });
         before(&mut enc, &self.previous);
-        let after_euler: &[Dispatch] = match rule {
-            StepRule::Heun { .. } if second_evaluation => &self.correct,
-            StepRule::Heun { .. } => &[],
-            StepRule::Multistep { .. } => self.multistep.as_slice(),
+        // The map's keys: the first evaluation keeps the scratch's where they were made from
+        // the same inputs, the second the first's where this step leaves the anchors.
+        let keys = &self.map_keys;
+        let keep_first = keys.keep
+            && inputs
+                .zip(keys.made_from)
+                .is_some_and(|(now, made)| keys.hold(made, now));
+        let gamma = match rule {
+            StepRule::Multistep { gamma } => Some(gamma),
+            StepRule::Heun { .. } => None,
+        };
+        let inputs_held = keys.anchors_hold(sigma_cur, sigma_next, gamma);
+        let keep_second = keys.keep && inputs_held;
+        let none = 0..0;
+        let (skip_first, skip_second) = (
+            if keep_first {
+                keys.first.clone()
+            } else {
+                none.clone()
+            },
+            if keep_second {
+                keys.second.clone()
+            } else {
+                none
+            },
+        );
+        let made = u64::from(!keep_first || keys.first.is_empty())
+            + u64::from(second_evaluation && (!keep_second || keys.second.is_empty()));
+        let euler = self
+            .euler
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| !skip_first.contains(i))
+            .map(|(_, d)| d);
+        let after_euler: Vec<&Dispatch> = match rule {
+            StepRule::Heun { .. } if second_evaluation => self
+                .correct
+                .iter()
+                .enumerate()
+                .filter(|(i, _)| !skip_second.contains(i))
+                .map(|(_, d)| d)
+                .collect(),
+            StepRule::Heun { .. } => Vec::new(),
+            StepRule::Multistep { .. } => self.multistep.iter().collect(),
         };
         // One pass per dispatch: measured faster on lavapipe than one pass for all of them.
-        for d in self.euler.iter().chain(after_euler) {
+        for d in euler.chain(after_euler) {
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
                 label: Some("heun"),
                 timestamp_writes: None,
@@ -293,9 +413,18 @@ impl HeunPlan {
         }
         enc.copy_buffer_to_buffer(&self.x_e, 0, &batch.x, 0, self.bytes);
         self.last_had_second = second_evaluation;
+        // The scratch's keys are those of the windows now where the step left the anchors
+        // (else of the windows before it).
+        self.map_keys.made_from = if keep_second { inputs } else { None };
         then(&mut enc, self.denoised());
         ctx.queue.submit([enc.finish()]);
-        Ok(())
+        Ok(KeysOutcome { made, inputs_held })
+    }
+
+    /// Forgets what the scratch's map keys were made from: the next step makes them (the
+    /// caller changed the rows' maps, or ran the plan's dispatches outside a step).
+    pub fn forget_map_keys(&mut self) {
+        self.map_keys.made_from = None;
     }
 
     /// The dispatches of a step without its second evaluation (one evaluation and the Euler

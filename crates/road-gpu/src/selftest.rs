@@ -356,10 +356,11 @@ pub fn kernel_checks(ctx: &GpuContext) -> Result<Vec<KernelCheck>> {
         outcome: loose.check(&got, &want),
     });
 
-    // Compact sub-batch rows: 96 of 200 rows of 96 floats gathered (some mapped to none),
-    // then scattered back over the batch. Copies: exact.
-    let (batch_rows, row_floats) = (200usize, 96usize);
-    let batch = rng.uniform(batch_rows * row_floats, 2.0);
+    // Compact sub-batch rows: 96 of 200 rows of two regions (96 and 20 floats a row) gathered
+    // in one dispatch (some mapped to none), then scattered back over the batch. Copies: exact.
+    let batch_rows = 200usize;
+    let floats = [96usize, 20];
+    let batch = floats.map(|f| rng.uniform(batch_rows * f, 2.0));
     let row_map: Vec<u32> = (0..96u32)
         .map(|r| {
             if r % 7 == 6 {
@@ -370,19 +371,30 @@ pub fn kernel_checks(ctx: &GpuContext) -> Result<Vec<KernelCheck>> {
         })
         .collect();
     let kernel = CompactRows::new(ctx);
+    let empty = floats.map(|f| vec![0.0; row_map.len() * f]);
     let sub = kernel.run(
         ctx,
         false,
-        &batch,
         &row_map,
-        &vec![0.0; 96 * row_floats],
-        row_floats,
+        &[
+            (&batch[0], &empty[0], floats[0]),
+            (&batch[1], &empty[1], floats[1]),
+        ],
     )?;
-    let mut got = sub.clone();
-    got.extend(kernel.run(ctx, true, &sub, &row_map, &batch, row_floats)?);
-    let gathered = gather_rows_reference(&batch, &row_map, row_floats);
-    let scattered = scatter_rows_reference(&gathered, &row_map, &batch, row_floats);
-    let want: Vec<f32> = gathered.into_iter().chain(scattered).collect();
+    let back = kernel.run(
+        ctx,
+        true,
+        &row_map,
+        &[
+            (&sub[0], &batch[0], floats[0]),
+            (&sub[1], &batch[1], floats[1]),
+        ],
+    )?;
+    let got: Vec<f32> = sub.into_iter().chain(back).flatten().collect();
+    let gathered = [0, 1].map(|k| gather_rows_reference(&batch[k], &row_map, floats[k]));
+    let scattered =
+        [0, 1].map(|k| scatter_rows_reference(&gathered[k], &row_map, &batch[k], floats[k]));
+    let want: Vec<f32> = gathered.into_iter().chain(scattered).flatten().collect();
     let exact = Tolerance { rel: 0.0, abs: 0.0 };
     checks.push(KernelCheck {
         name: "compact_rows",

@@ -4,11 +4,11 @@
 //! (several small scenes' agents in one sub-batch scene, attending apart).
 
 use crate::engine::{DenoiseInputs, DeviceBatch, GpuDenoiser, MapTokens};
-use crate::kernels::compact::NONE;
+use crate::kernels::compact::{NONE, Region};
 use crate::kernels::window::ShiftList;
 use crate::kernels::{Dispatch, Traffic, read_back_ranges, record_all, storage_buffer};
-use crate::proxies::{Work, flops_per_evaluation};
-use crate::sampler_step::{HeunPlan, StepRule};
+use crate::proxies::{Work, flops_per_evaluation, map_key_flops};
+use crate::sampler_step::{HeunPlan, KeysOutcome, MapInputs, StepRule};
 use crate::{Error, GpuContext, Result};
 
 /// When a step packs its moving scenes ([`plan_packing`]; every kernel that mixes agents or
@@ -222,8 +222,13 @@ pub struct GpuStepEngine<'a> {
     /// Compact sub-batch steps so far: each sub-batch's `last_use` is one of them.
     compact_uses: u64,
     /// Bumped whenever a scene's agent embeddings or map change (`prepare_scene`): a compact
-    /// sub-batch gathers those again only then, or when its row maps change.
+    /// sub-batch gathers those again only then, or when its row maps change. The maps' count of
+    /// the plans' [`MapInputs`].
     fixed_generation: u64,
+    /// Bumped whenever the windows may have moved an anchor state (loads, shifts, a step that
+    /// moved one): the windows' count of the plans' [`MapInputs`], under which a plan keeps
+    /// the map's keys it made.
+    windows_generation: u64,
     features: Vec<f32>,
     /// Zeros for the kept estimate's shift (nothing emitted, no noise), grown on demand.
     zeros: Vec<f32>,
@@ -254,6 +259,7 @@ impl<'a> GpuStepEngine<'a> {
             compact: Vec::new(),
             compact_uses: 0,
             fixed_generation: 0,
+            windows_generation: 0,
             features: Vec::new(),
             zeros: Vec::new(),
             live_agents: Vec::new(),
@@ -271,15 +277,23 @@ impl<'a> GpuStepEngine<'a> {
     pub fn take_work(&mut self) -> Work {
         std::mem::take(&mut self.work)
     }
+
+    /// The next step makes the map's keys again, as a tick's first step does after a shift
+    /// moved the anchors: for a benchmark that repeats one step on the same windows.
+    pub fn remake_map_keys(&mut self) {
+        self.windows_generation += 1;
+    }
 }
 
-/// The work of one step of `evaluations` evaluations computed at `computed_scenes` ×
-/// `computed_agents` × `polylines` (a batch or a compact sub-batch, padding included), of which
-/// the `active` scenes' own agents and polylines are the useful part.
+/// The work of one step of `evaluations` evaluations, `keys.made` of them making the map's
+/// keys, computed at `computed_scenes` × `computed_agents` × `polylines` (a batch or a compact
+/// sub-batch, padding included), of which the `active` scenes' own agents and polylines are
+/// the useful part.
 #[allow(clippy::too_many_arguments)]
 fn step_work(
     config: &road_model::ModelConfig,
     evaluations: u64,
+    keys: KeysOutcome,
     computed_scenes: usize,
     computed_agents: usize,
     polylines: usize,
@@ -288,17 +302,23 @@ fn step_work(
     own_polylines: &[usize],
     traffic: Traffic,
 ) -> Work {
-    let e = evaluations as f64;
+    let (e, kept) = (
+        evaluations as f64,
+        evaluations.saturating_sub(keys.made) as f64,
+    );
+    let flops = |agents, polylines| {
+        e * flops_per_evaluation(config, agents, polylines)
+            - kept * map_key_flops(config, agents, polylines)
+    };
     Work {
         evaluations,
         traffic,
-        computed_flops: e
-            * computed_scenes as f64
-            * flops_per_evaluation(config, computed_agents, polylines),
-        useful_flops: e * active
+        computed_flops: computed_scenes as f64 * flops(computed_agents, polylines),
+        useful_flops: active
             .iter()
-            .map(|&i| flops_per_evaluation(config, own_agents[i], own_polylines[i]))
+            .map(|&i| flops(own_agents[i], own_polylines[i]))
             .sum::<f64>(),
+        map_key_evaluations: keys.made,
     }
 }
 
@@ -334,18 +354,19 @@ struct Compact {
 
 /// A compact sub-batch's row moves (`shaders/compact.wgsl`), prepared once: the batch's
 /// buffers and the sub-batch's own outlive it (a new scene set clears the sub-batches), so a
-/// step makes no uniform buffer or bind group of its own.
+/// step makes no uniform buffer or bind group of its own. Regions of one row map move in one
+/// dispatch.
 #[derive(Debug)]
 struct CompactMoves {
-    /// States and flags by `batch_rows`, every step.
-    gathers: Vec<Dispatch>,
+    /// States and flags by `batch_rows`, every step of a Heun step; with the kept estimates
+    /// into the plan's `D_prev` too, every multistep step (index 1, with a kept estimate).
+    gathers: [Dispatch; 2],
     /// Agent embeddings by `batch_rows`, map data and flags by `map_scenes`: only when they or
     /// the row maps changed (`Compact::fixed_gathered`).
     fixed_gathers: Vec<Dispatch>,
-    /// The kept estimates into the plan's `D_prev` (the multistep sampler), with a kept one.
-    previous: Option<Dispatch>,
-    /// States back, with the estimate of the plan's first or (index 1) second evaluation.
-    scatters: [Vec<Dispatch>; 2],
+    /// States back, and the estimate of the plan's first or (index 1) second evaluation with a
+    /// kept one.
+    scatters: [Dispatch; 2],
 }
 
 impl CompactMoves {
@@ -354,41 +375,42 @@ impl CompactMoves {
         model: &GpuDenoiser,
         (batch, map, kept): (&DeviceBatch, &MapTokens, Option<&wgpu::Buffer>),
         compact: &Compact,
-    ) -> Self {
+    ) -> Result<Self> {
         let rows = &model.pipelines.compact_rows;
         let (w, d) = (model.config.window_slots, model.config.hidden);
         let agent_rows = compact.batch.scenes * compact.batch.agents;
         let (p, c) = (map.polylines, &compact.batch);
-        let by_row = |src, dst, per_row| {
-            rows.prepare_gather(ctx, src, &compact.batch_rows, dst, (agent_rows, per_row))
+        let by_row = |regions: &[Region<'_>]| {
+            rows.prepare_gather(ctx, &compact.batch_rows, agent_rows, regions)
         };
-        let by_map = |src, dst, per_scene| {
-            let shape = (compact.map.scenes, per_scene);
-            rows.prepare_gather(ctx, src, &compact.map_scenes, dst, shape)
-        };
-        let gathers = vec![
-            by_row(&batch.x, &c.x, w * 3),
-            by_row(&batch.valid, &c.valid, w),
-        ];
+        let states = (&batch.x, &c.x, w * 3);
+        let flags = (&batch.valid, &c.valid, w);
+        let previous = kept.map(|kept| (kept, compact.plan.previous(), w * 3));
+        let with_previous: Vec<Region<'_>> = [states, flags].into_iter().chain(previous).collect();
+        let gathers = [by_row(&[states, flags])?, by_row(&with_previous)?];
         let fixed_gathers = vec![
-            by_row(&batch.agent_embedding, &c.agent_embedding, d),
-            by_map(&map.data, &compact.map.data, p * map.per_polyline),
-            by_map(&map.valid, &compact.map.valid, p),
+            by_row(&[(&batch.agent_embedding, &c.agent_embedding, d)])?,
+            rows.prepare_gather(
+                ctx,
+                &compact.map_scenes,
+                compact.map.scenes,
+                &[
+                    (&map.data, &compact.map.data, p * map.per_polyline),
+                    (&map.valid, &compact.map.valid, p),
+                ],
+            )?,
         ];
-        let back = |src, dst| {
-            rows.prepare_scatter(ctx, src, &compact.batch_rows, dst, (agent_rows, w * 3))
+        let estimates = compact.plan.estimates();
+        let back = |estimate| {
+            let mut regions = vec![(&c.x, &batch.x, w * 3)];
+            regions.extend(kept.map(|kept| (estimate, kept, w * 3)));
+            rows.prepare_scatter(ctx, &compact.batch_rows, agent_rows, &regions)
         };
-        let scatters = compact.plan.estimates().map(|estimate| {
-            let mut out = vec![back(&c.x, &batch.x)];
-            out.extend(kept.map(|kept| back(estimate, kept)));
-            out
-        });
-        Self {
+        Ok(Self {
             gathers,
             fixed_gathers,
-            previous: kept.map(|kept| by_row(kept, compact.plan.previous(), w * 3)),
-            scatters,
-        }
+            scatters: [back(estimates[0])?, back(estimates[1])?],
+        })
     }
 }
 
@@ -482,7 +504,9 @@ impl GpuStepEngine<'_> {
             };
             self.plan = Some(self.model.heun_plan(self.ctx, batch, map)?);
         }
-        let plan = self.plan.as_ref().expect("made above");
+        let plan = self.plan.as_mut().expect("made above");
+        // The profile runs the first evaluation's dispatches outside a step.
+        plan.forget_map_keys();
         crate::profile::profile(self.ctx, plan.euler_dispatches(), repeats)
     }
 
@@ -566,34 +590,44 @@ impl GpuStepEngine<'_> {
             // estimates are kept in the same submission (idle rows were evaluated, not moved).
             let denoised = self.denoised.as_ref();
             let multistep = matches!(rule, StepRule::Multistep { .. });
-            plan.run_rule(
-                self.ctx,
-                batch,
-                sigma_cur,
-                sigma_next,
-                rule,
-                |enc, previous| {
-                    if let (true, Some(kept)) = (multistep, denoised) {
-                        enc.copy_buffer_to_buffer(kept, 0, previous, 0, b as u64 * row_bytes);
-                    }
-                },
-                |enc, d| {
-                    let Some(kept) = denoised else { return };
-                    if active.len() == b {
-                        enc.copy_buffer_to_buffer(d, 0, kept, 0, b as u64 * row_bytes);
-                    } else {
-                        for &i in &active {
-                            let at = i as u64 * row_bytes;
-                            enc.copy_buffer_to_buffer(d, at, kept, at, row_bytes);
+            let inputs = MapInputs {
+                windows: self.windows_generation,
+                maps: self.fixed_generation,
+            };
+            let keys = plan
+                .run_rule(
+                    self.ctx,
+                    batch,
+                    sigma_cur,
+                    sigma_next,
+                    rule,
+                    Some(inputs),
+                    |enc, previous| {
+                        if let (true, Some(kept)) = (multistep, denoised) {
+                            enc.copy_buffer_to_buffer(kept, 0, previous, 0, b as u64 * row_bytes);
                         }
-                    }
-                },
-            )
-            .map_err(engine_err)?;
+                    },
+                    |enc, d| {
+                        let Some(kept) = denoised else { return };
+                        if active.len() == b {
+                            enc.copy_buffer_to_buffer(d, 0, kept, 0, b as u64 * row_bytes);
+                        } else {
+                            for &i in &active {
+                                let at = i as u64 * row_bytes;
+                                enc.copy_buffer_to_buffer(d, at, kept, at, row_bytes);
+                            }
+                        }
+                    },
+                )
+                .map_err(engine_err)?;
+            if !keys.inputs_held {
+                self.windows_generation += 1;
+            }
             // Every scene of the batch was evaluated at its padded agents, idle ones too.
             self.work += step_work(
                 &self.model.config,
                 evaluations,
+                keys,
                 b,
                 a,
                 map.polylines,
@@ -686,6 +720,8 @@ impl GpuStepEngine<'_> {
                 if moves_fixed {
                     compact.fixed_gathered = None;
                 }
+                // Other rows, or rows reading other maps: other keys.
+                compact.plan.forget_map_keys();
             }
         }
         let p = map.polylines;
@@ -695,9 +731,17 @@ impl GpuStepEngine<'_> {
         // changed.
         if compact.moves.is_none() {
             let buffers = (batch, map, self.denoised.as_ref());
-            compact.moves = Some(CompactMoves::new(self.ctx, self.model, buffers, compact));
+            let moves = CompactMoves::new(self.ctx, self.model, buffers, compact);
+            compact.moves = Some(moves.map_err(engine_err)?);
         }
         let gather_fixed = compact.fixed_gathered != Some(self.fixed_generation);
+        if gather_fixed {
+            compact.plan.forget_map_keys();
+        }
+        let inputs = MapInputs {
+            windows: self.windows_generation,
+            maps: self.fixed_generation,
+        };
         let moves = compact.moves.as_ref().expect("made above");
         // σ (and γ) rows per sub-batch scene: a slot's scenes share theirs.
         compact.sigma_cur.fill(1.0);
@@ -720,13 +764,14 @@ impl GpuStepEngine<'_> {
         // Gathers, the step and the scatters in the plan's one submission; their dispatches
         // are counted with the step's (`dispatches_per_evaluation` includes them).
         let first_estimate: *const wgpu::Buffer = compact.plan.estimates()[0];
+        let multistep = matches!(rule, StepRule::Multistep { .. });
         let moved = std::cell::Cell::new(Traffic::default());
         let count = |d: &Dispatch| {
             let mut traffic = moved.get();
             traffic.count(d);
             moved.set(traffic);
         };
-        compact
+        let keys = compact
             .plan
             .run_rule(
                 self.ctx,
@@ -734,27 +779,30 @@ impl GpuStepEngine<'_> {
                 &compact.sigma_cur,
                 &compact.sigma_next,
                 compact_rule,
+                Some(inputs),
                 |enc, _| {
                     if gather_fixed {
                         moves.fixed_gathers.iter().for_each(count);
                         record_all(enc, "compact gather (fixed)", &moves.fixed_gathers);
                     }
-                    moves.gathers.iter().for_each(count);
-                    record_all(enc, "compact gather", &moves.gathers);
-                    if let (StepRule::Multistep { .. }, Some(previous)) = (rule, &moves.previous) {
-                        count(previous);
-                        record_all(enc, "compact previous", std::slice::from_ref(previous));
-                    }
+                    // A multistep step's gather brings the kept estimates into `D_prev` too.
+                    let gather = &moves.gathers[usize::from(multistep)];
+                    count(gather);
+                    record_all(enc, "compact gather", std::slice::from_ref(gather));
                 },
                 |enc, denoised| {
                     // The placed rows back (a scene's rows beyond them hold still), with the
                     // estimate of the plan's first or second evaluation.
                     let which = usize::from(!std::ptr::eq(denoised, first_estimate));
-                    moves.scatters[which].iter().for_each(count);
-                    record_all(enc, "compact scatter", &moves.scatters[which]);
+                    let scatter = &moves.scatters[which];
+                    count(scatter);
+                    record_all(enc, "compact scatter", std::slice::from_ref(scatter));
                 },
             )
             .map_err(engine_err)?;
+        if !keys.inputs_held {
+            self.windows_generation += 1;
+        }
         compact.fixed_gathered = Some(self.fixed_generation);
         // The sub-batch's empty places (up to its capacity) and empty rows are computed too.
         let active: Vec<usize> = layout.placed.iter().map(|place| place.scene).collect();
@@ -763,6 +811,7 @@ impl GpuStepEngine<'_> {
         self.work += step_work(
             &self.model.config,
             evaluations,
+            keys,
             shape.0,
             a_c,
             p,
@@ -863,6 +912,7 @@ impl road_rollout::StepEngine for GpuStepEngine<'_> {
                 .map_err(engine_err)?,
         );
         self.features = features.to_vec();
+        self.windows_generation += 1;
         self.scenes = scenes;
         self.agents = agents;
         self.live_agents = vec![agents; scenes];
@@ -915,6 +965,7 @@ impl road_rollout::StepEngine for GpuStepEngine<'_> {
         }
         self.features[scene * a * 6..][..a * 6].copy_from_slice(features);
         self.fixed_generation += 1;
+        self.windows_generation += 1;
         self.own_polylines[scene] = map_valid.iter().filter(|&&v| v > 0.0).count();
         // The scene's map as the batch holds it (points with agent maps, else its encoded
         // tokens), encoded alone and copied over its rows.
@@ -964,6 +1015,7 @@ impl road_rollout::StepEngine for GpuStepEngine<'_> {
     }
 
     fn load(&mut self, windows: &[f32], valid: &[f32]) -> road_model::Result<()> {
+        self.windows_generation += 1;
         let v_len = self.agents * self.model.config.window_slots;
         if v_len > 0 {
             self.live_agents = valid
@@ -1052,6 +1104,7 @@ impl road_rollout::StepEngine for GpuStepEngine<'_> {
         }
         self.live_agents[scene] = live_agent_rows(valid, self.agents);
         self.own_agents[scene] = valid_agents(valid, self.agents);
+        self.windows_generation += 1;
         self.ctx.queue.write_buffer(
             &batch.x,
             (scene * x_len * 4) as u64,
@@ -1150,6 +1203,7 @@ impl road_rollout::StepEngine for GpuStepEngine<'_> {
             return Err(road_model::Error::Engine("shift before load".into()));
         };
         let v_len = self.agents * self.model.config.window_slots;
+        self.windows_generation += 1;
         let list: Vec<ShiftList<'_>> = edits
             .iter()
             .map(|e| (e.scene, e.emitted, e.noise, e.turns))

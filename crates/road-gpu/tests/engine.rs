@@ -56,6 +56,59 @@ fn context_with_checks(linear_kernel: Option<LinearKernel>, unchecked: bool) -> 
     .unwrap_or_else(|e| panic!("GPU tests need an adapter: {e}"))
 }
 
+/// As [`context`], every evaluation making the map's keys (`keep_map_keys` off): the
+/// reference of the kept keys, which must change no state.
+fn context_remaking_map_keys() -> GpuContext {
+    GpuContext::new(&ContextOptions {
+        validation: true,
+        keep_map_keys: false,
+        ..ContextOptions::default()
+    })
+    .unwrap_or_else(|e| panic!("GPU tests need an adapter: {e}"))
+}
+
+/// Rollouts by `run` with the map's keys kept (`ctx`'s default) and remade every evaluation:
+/// the same states and plans to the bit, with fewer keys made when kept (`what` names the
+/// rollout in a failure).
+fn kept_map_keys_change_nothing<T: PartialEq + std::fmt::Debug>(
+    ctx: &GpuContext,
+    dir: &std::path::Path,
+    what: &str,
+    run: impl Fn(&mut road_gpu::step_engine::GpuStepEngine<'_>) -> T,
+) -> T {
+    use road_gpu::step_engine::GpuStepEngine;
+    assert!(ctx.keep_map_keys());
+    let gpu = GpuDenoiser::from_checkpoint(ctx, dir).unwrap();
+    let mut kept = GpuStepEngine::new(ctx, &gpu);
+    let kept_out = run(&mut kept);
+    let kept_work = kept.take_work();
+    let remaking = context_remaking_map_keys();
+    let gpu = GpuDenoiser::from_checkpoint(&remaking, dir).unwrap();
+    let mut remade = GpuStepEngine::new(&remaking, &gpu);
+    let remade_out = run(&mut remade);
+    let remade_work = remade.take_work();
+    assert_eq!(
+        kept_out, remade_out,
+        "{what}: kept map keys changed a state"
+    );
+    assert_eq!(kept_work.evaluations, remade_work.evaluations, "{what}");
+    assert_eq!(
+        remade_work.map_key_evaluations, remade_work.evaluations,
+        "{what}"
+    );
+    assert!(
+        kept_work.map_key_evaluations < kept_work.evaluations,
+        "{what}: {} of {} evaluations made the map keys",
+        kept_work.map_key_evaluations,
+        kept_work.evaluations
+    );
+    assert!(
+        kept_work.traffic.dispatches < remade_work.traffic.dispatches,
+        "{what}"
+    );
+    kept_out
+}
+
 fn validation_set() -> Dataset {
     let dir = std::env::var_os("ROAD_DATA")
         .map(PathBuf::from)
@@ -587,6 +640,7 @@ fn multistep_step_matches_the_reference() {
         &sigma_cur,
         &sigma_next,
         StepRule::Multistep { gamma: &gamma },
+        None,
         |enc, kept| enc.copy_buffer_to_buffer(&previous_buffer, 0, kept, 0, (x.len() * 4) as u64),
         |_, _| {},
     )
@@ -743,6 +797,7 @@ fn mixed_phase_batches_agree(config: &ModelConfig, name: &str) {
     };
     let (cpu, cpu_plans) = run(&mut CpuEngine::new(&reference));
     let (on_gpu, gpu_plans) = run(&mut GpuStepEngine::new(&ctx, &gpu));
+    kept_map_keys_change_nothing(&ctx, &dir, name, |engine| run(engine));
     for (i, (c, g)) in cpu.iter().zip(&on_gpu).enumerate() {
         if let Err(m) = ROLLOUT.check(g, c) {
             panic!("scene {i}: {m}");
@@ -848,6 +903,7 @@ fn packed_rollouts_agree(
     let cpu = run(&mut CpuEngine::new(&reference));
     let mut engine = GpuStepEngine::new(&ctx, &gpu);
     let on_gpu = run(&mut engine);
+    kept_map_keys_change_nothing(&ctx, &dir, name, |engine| run(engine));
     for (i, (c, g)) in cpu.iter().zip(&on_gpu).enumerate() {
         if let Err(m) = ROLLOUT.check(g, c) {
             panic!("scene {i} ({} agents): {m}", counts[i]);

@@ -1215,20 +1215,34 @@ fn residual_chain_refuses_widths_past_its_tile() {
     assert!(err.contains("3 outputs"), "{err}");
 }
 
-/// The compact sub-batches' row gathers and scatters match their CPU references exactly:
-/// rows mapped in any order, rows mapped to nothing (gathered as zeros, scattered nowhere) and
-/// rows mapped past the other side (the kernels bound their own indices: zeros, nothing).
+/// The compact sub-batches' row gathers and scatters match their CPU references exactly, one
+/// to three regions of different widths in one dispatch (scatters: one or two): rows mapped in
+/// any order, rows mapped to nothing (gathered as zeros, scattered nowhere) and rows mapped past
+/// the other side (the kernels bound their own indices: zeros, nothing). Four regions are
+/// refused by name.
 #[test]
 fn compact_rows_match_the_cpu_reference() {
     use road_gpu::kernels::compact::{
-        CompactRows, NONE, gather_rows_reference, scatter_rows_reference,
+        CompactRows, MAX_GATHERED, MAX_SCATTERED, NONE, gather_rows_reference,
+        scatter_rows_reference,
     };
     let ctx = context();
     let kernel = CompactRows::new(&ctx);
     let mut rng = rand::rngs::StdRng::seed_from_u64(29);
-    for (batch_rows, sub_rows, row_floats) in [(1, 1, 1), (7, 5, 60), (40, 64, 3), (300, 257, 96)] {
-        let batch = random(&mut rng, batch_rows * row_floats, 2.0);
-        let sub = random(&mut rng, sub_rows * row_floats, 2.0);
+    for (batch_rows, sub_rows, widths) in [
+        (1, 1, &[1usize][..]),
+        (7, 5, &[60, 1][..]),
+        (40, 64, &[3, 60, 3][..]),
+        (300, 257, &[96, 20][..]),
+    ] {
+        let batch: Vec<Vec<f32>> = widths
+            .iter()
+            .map(|&f| random(&mut rng, batch_rows * f, 2.0))
+            .collect();
+        let sub: Vec<Vec<f32>> = widths
+            .iter()
+            .map(|&f| random(&mut rng, sub_rows * f, 2.0))
+            .collect();
         // A permutation's prefix, some rows mapped to nothing, one past the end.
         let mut order: Vec<u32> = (0..batch_rows as u32).collect();
         for i in (1..order.len()).rev() {
@@ -1241,21 +1255,46 @@ fn compact_rows_match_the_cpu_reference() {
                 _ => order.get(r).copied().unwrap_or(NONE),
             })
             .collect();
+        let regions = |src: &[Vec<f32>], dst: &[Vec<f32>]| -> Vec<(Vec<f32>, Vec<f32>, usize)> {
+            (0..widths.len())
+                .map(|k| (src[k].clone(), dst[k].clone(), widths[k]))
+                .collect()
+        };
+        let into_sub = regions(&batch, &sub);
         let gathered = kernel
-            .run(&ctx, false, &batch, &row_map, &sub, row_floats)
+            .run(&ctx, false, &row_map, &borrowed(&into_sub))
             .unwrap();
-        assert_eq!(
-            gathered,
-            gather_rows_reference(&batch, &row_map, row_floats),
-            "gather {batch_rows} → {sub_rows} rows of {row_floats}"
-        );
-        let scattered = kernel
-            .run(&ctx, true, &sub, &row_map, &batch, row_floats)
-            .unwrap();
-        assert_eq!(
-            scattered,
-            scatter_rows_reference(&sub, &row_map, &batch, row_floats),
-            "scatter {sub_rows} → {batch_rows} rows of {row_floats}"
-        );
+        for (k, got) in gathered.iter().enumerate() {
+            assert_eq!(
+                got,
+                &gather_rows_reference(&batch[k], &row_map, widths[k]),
+                "gather {batch_rows} → {sub_rows} rows, region {k} of {widths:?}"
+            );
+        }
+        let back = regions(&sub, &batch);
+        let back = &back[..widths.len().min(MAX_SCATTERED)];
+        let scattered = kernel.run(&ctx, true, &row_map, &borrowed(back)).unwrap();
+        for (k, got) in scattered.iter().enumerate() {
+            assert_eq!(
+                got,
+                &scatter_rows_reference(&sub[k], &row_map, &batch[k], widths[k]),
+                "scatter {sub_rows} → {batch_rows} rows, region {k} of {widths:?}"
+            );
+        }
     }
+    let one = [1.0f32];
+    let too_many = vec![(&one[..], &one[..], 1); MAX_GATHERED + 1];
+    let err = kernel
+        .run(&ctx, false, &[0], &too_many)
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("4 regions"), "{err}");
+}
+
+/// Host regions as `CompactRows::run` takes them.
+fn borrowed(regions: &[(Vec<f32>, Vec<f32>, usize)]) -> Vec<(&[f32], &[f32], usize)> {
+    regions
+        .iter()
+        .map(|(s, d, f)| (&s[..], &d[..], *f))
+        .collect()
 }

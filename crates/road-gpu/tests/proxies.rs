@@ -7,7 +7,7 @@
 
 use road_gpu::engine::{DenoiseInputs, GpuDenoiser};
 use road_gpu::kernels::Dispatch;
-use road_gpu::proxies::{Work, flops_per_evaluation};
+use road_gpu::proxies::{Work, flops_per_evaluation, map_key_flops};
 use road_gpu::step_engine::GpuStepEngine;
 use road_gpu::{ContextOptions, GpuContext};
 use road_model::ModelConfig;
@@ -247,10 +247,10 @@ fn packing_computes_the_packed_scenes() {
         got < 0.8 * 3.0 * f(4) / useful,
         "less than the padded batch"
     );
-    // The moves: five gathers (states, flags, agent embeddings, map data and flags) and two
-    // scatters (states, the kept estimate), once a step.
+    // The moves, once a step: three gathers (states and flags; agent embeddings; map data and
+    // flags: one dispatch per row map and kind) and one scatter (states and the kept estimate).
     assert_eq!(mixed.evaluations, full.evaluations);
-    assert_eq!(mixed.traffic.dispatches, full.traffic.dispatches + 5 + 2);
+    assert_eq!(mixed.traffic.dispatches, full.traffic.dispatches + 3 + 1);
 }
 
 /// A packed sub-batch gathers the agent embeddings and maps only when they change: its next
@@ -270,7 +270,7 @@ fn packed_steps_gather_agent_embeddings_and_maps_only_when_they_change() {
     let first = step(&mut engine);
     let again = step(&mut engine);
     assert_eq!(again.evaluations, first.evaluations);
-    assert_eq!(again.traffic.dispatches, first.traffic.dispatches - 3);
+    assert_eq!(again.traffic.dispatches, first.traffic.dispatches - 2);
     assert!(again.traffic.bytes() < first.traffic.bytes());
     let (a, q) = (AGENTS, config.polyline_points);
     engine
@@ -283,6 +283,55 @@ fn packed_steps_gather_agent_embeddings_and_maps_only_when_they_change() {
         .unwrap();
     let changed = step(&mut engine);
     assert_eq!(changed.traffic, first.traffic);
+}
+
+/// The map's keys (the agent maps' pick and encoder, every block's map k, v: 3 dispatches
+/// here) are made only when what they are made from changed: a Heun step whose σ moves the
+/// anchor slot makes them in both evaluations; one that leaves it (as a tick's observed slots)
+/// in its first only; the next such step in neither; a load brings them back. Their work is
+/// counted only where made.
+#[test]
+fn map_keys_are_made_only_when_their_inputs_change() {
+    let ctx = context();
+    let config = config();
+    let gpu = denoiser(&ctx, &config);
+    let s = scenes(&config, [AGENTS; SCENES], [POLYLINES; SCENES]);
+    let mut engine = engine_on(&ctx, &gpu, &s);
+    let w = config.window_slots;
+    let anchor = config.agent_frame.as_ref().unwrap().anchor_slot;
+    let (sigma_cur, moving) = sigma_rows(&config, &[]);
+    let mut held = moving.clone();
+    for b in 0..SCENES {
+        held[b * w + anchor] = sigma_cur[b * w + anchor];
+    }
+    let step = |engine: &mut GpuStepEngine<'_>, sigma_next: &[f32]| {
+        engine.step(&sigma_cur, sigma_next, true).unwrap();
+        engine.take_work()
+    };
+    let both = step(&mut engine, &moving);
+    engine.load(&s.x, &s.valid).unwrap();
+    let first = step(&mut engine, &held);
+    let neither = step(&mut engine, &held);
+    engine.load(&s.x, &s.valid).unwrap();
+    let reloaded = step(&mut engine, &held);
+    assert_eq!(
+        [both, first, neither, reloaded].map(|w| w.map_key_evaluations),
+        [2, 1, 0, 1]
+    );
+    let keys = 3;
+    assert_eq!(first.traffic.dispatches, both.traffic.dispatches - keys);
+    assert_eq!(
+        neither.traffic.dispatches,
+        both.traffic.dispatches - 2 * keys
+    );
+    assert_eq!(reloaded.traffic, first.traffic);
+    let key_flops = SCENES as f64 * map_key_flops(&config, AGENTS, POLYLINES);
+    let saved = both.computed_flops - neither.computed_flops;
+    assert!(
+        (saved - 2.0 * key_flops).abs() < 1e-9 * saved,
+        "{saved} against {key_flops}"
+    );
+    assert_eq!(neither.computed_flops, neither.useful_flops);
 }
 
 /// Residual chains: per evaluation the embedding, the agent maps' pick and encoder, every

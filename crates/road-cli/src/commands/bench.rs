@@ -127,6 +127,13 @@ pub struct EngineBenchArgs {
     /// `layers` (a dispatch per layer, `ContextOptions::residual_chains` off).
     #[arg(long, num_args = 1.., default_values = ["chains"], value_parser = ["chains", "layers"])]
     pub fusion: Vec<String>,
+    /// Whether an evaluation keeps the map's keys (agent maps, every block's map k, v) of the
+    /// one before while what they are made from holds (`kept`, the default:
+    /// `ContextOptions::keep_map_keys`) or makes them every time (`remade`), each a GPU row.
+    /// Every timed step is a tick's first (its anchors moved since the last), so that a Heun
+    /// step makes them once; a tick's later steps, which keep them too, are not timed.
+    #[arg(long, num_args = 1.., default_values = ["kept"], value_parser = ["kept", "remade"])]
+    pub map_keys: Vec<String>,
     /// How the kernels are compiled, each a GPU row per linear kernel: `checked` (wgpu's
     /// runtime checks, the default) or `unchecked` (`ContextOptions::unchecked_shaders`).
     #[arg(long, num_args = 1.., default_values = ["checked"], value_parser = ["checked", "unchecked"])]
@@ -170,6 +177,9 @@ fn gpu_setting(row: &serde_json::Value) -> String {
     }
     if row["fusion"].as_str() == Some("layers") {
         setting += ", layer by layer";
+    }
+    if row["map_keys"].as_str() == Some("remade") {
+        setting += ", map keys remade";
     }
     if let Some(f16) = row["precision"].as_str().filter(|p| *p != "f32") {
         setting += &format!(", {f16}");
@@ -430,15 +440,56 @@ fn sched_bench(args: &SchedBenchArgs) -> Result<()> {
     Ok(())
 }
 
+/// One batch of `road bench engine`: `shape` = (scenes, agents, polylines) and its inputs.
+struct BenchBatch<'a> {
+    shape: (usize, usize, usize),
+    features: &'a [f32],
+    map: &'a [f32],
+    map_valid: &'a [f32],
+    x: &'a [f32],
+    valid: &'a [f32],
+    sigma_cur: &'a [f32],
+    sigma_next: &'a [f32],
+}
+
+impl BenchBatch<'_> {
+    /// Seconds a Heun step of the batch takes on `engine`: prepared, loaded, one step to warm
+    /// up, then the mean of `reps` steps, `before_step` before each (and the warm-up).
+    fn time_steps<E: road_rollout::StepEngine>(
+        &self,
+        engine: &mut E,
+        reps: usize,
+        wait: &dyn Fn() -> Result<()>,
+        before_step: fn(&mut E),
+    ) -> Result<f64> {
+        let (b, a, p) = self.shape;
+        engine.prepare(b, a, self.features, p, self.map, self.map_valid)?;
+        engine.load(self.x, self.valid)?;
+        before_step(engine);
+        engine.step(self.sigma_cur, self.sigma_next, true)?;
+        wait()?;
+        let started = Instant::now();
+        for _ in 0..reps {
+            before_step(engine);
+            engine.step(self.sigma_cur, self.sigma_next, true)?;
+        }
+        wait()?;
+        Ok(started.elapsed().as_secs_f64() / reps as f64)
+    }
+}
+
 fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
     use road_cpu::CpuEngine;
     use road_model::batch::SceneInput;
-    use road_rollout::StepEngine;
     let validation = load_cache(&args.cache, Split::Validation)?;
-    // One context per fusion, packing, shader-check, polyline and linear kernel and
+    // One context per map-key, fusion, packing, shader-check, polyline and linear kernel and
     // precision setting compared.
     let mut settings = Vec::new();
-    for fusion in &args.fusion {
+    for (map_keys, fusion) in args
+        .map_keys
+        .iter()
+        .flat_map(|k| args.fusion.iter().map(move |f| (k, f)))
+    {
         for packing in &args.packing {
             for checks in &args.shader_checks {
                 for &polyline_kernel in &args.polyline_kernels {
@@ -457,6 +508,7 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
                                     pack_scenes: packing != "off",
                                     eager_packing: packing == "eager",
                                     residual_chains: fusion == "chains",
+                                    keep_map_keys: map_keys == "kept",
                                     precision,
                                     cooperative_matrices: cores == "on",
                                     ..road_gpu::ContextOptions::default()
@@ -528,21 +580,19 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
             // Every scene at the same step here; each still gets its own σ row, as in serving.
             let sigma_cur = plan.sigma_cur.repeat(b);
             let sigma_next = plan.sigma_next.repeat(b);
-            let time =
-                |engine: &mut dyn StepEngine, wait: &dyn Fn() -> Result<()>| -> Result<f64> {
-                    engine.prepare(b, a, &feats, p, &map, &map_valid)?;
-                    engine.load(&x, &valid)?;
-                    engine.step(&sigma_cur, &sigma_next, true)?;
-                    wait()?;
-                    let started = Instant::now();
-                    for _ in 0..args.reps {
-                        engine.step(&sigma_cur, &sigma_next, true)?;
-                    }
-                    wait()?;
-                    Ok(started.elapsed().as_secs_f64() / args.reps as f64)
-                };
+            let batch = BenchBatch {
+                shape: (b, a, p),
+                features: &feats,
+                map: &map,
+                map_valid: &map_valid,
+                x: &x,
+                valid: &valid,
+                sigma_cur: &sigma_cur,
+                sigma_next: &sigma_next,
+            };
             let cpu_secs = if args.cpu_max_batch.is_none_or(|max| b <= max) {
-                Some(time(&mut CpuEngine::new(&loaded.model), &|| Ok(()))?)
+                let mut engine = CpuEngine::new(&loaded.model);
+                Some(batch.time_steps(&mut engine, args.reps, &|| Ok(()), |_| {})?)
             } else {
                 None
             };
@@ -562,6 +612,7 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
                         (true, true) => "eager",
                     },
                     "fusion": ctx.fusion_setting(),
+                    "map_keys": if ctx.keep_map_keys() { "kept" } else { "remade" },
                     "precision": ctx.precision().name(),
                     "tensor_cores": ctx.cooperative_f16(),
                     "flops_per_scene_step": flops,
@@ -572,21 +623,30 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
                 });
                 let mut engine = road_gpu::step_engine::GpuStepEngine::new(ctx, gpu_model);
                 // A batch the adapter cannot hold is a row saying so, not the end of the run.
-                let gpu_secs = match time(&mut engine, &|| Ok(ctx.wait()?)) {
-                    Ok(secs) => secs,
-                    Err(e) => {
-                        tracing::warn!(scenes = b, "GPU column skipped: {e:#}");
-                        row["gpu_error"] = format!("{e:#}").into();
-                        rows.push(row);
-                        continue;
-                    }
-                };
-                row["gpu_ms_per_step"] = (gpu_secs * 1e3).into();
-                row["gpu_scene_steps_per_sec"] = (b as f64 / gpu_secs).into();
-                row["gpu_gflops"] = (flops * b as f64 / gpu_secs / 1e9).into();
+                // Each timed step a tick's first: its map keys made again.
+                let tick = road_gpu::step_engine::GpuStepEngine::remake_map_keys;
+                let gpu_secs =
+                    match batch.time_steps(&mut engine, args.reps, &|| Ok(ctx.wait()?), tick) {
+                        Ok(secs) => secs,
+                        Err(e) => {
+                            tracing::warn!(scenes = b, "GPU column skipped: {e:#}");
+                            row["gpu_error"] = format!("{e:#}").into();
+                            rows.push(row);
+                            continue;
+                        }
+                    };
                 // The proxies of issue 40 over the timed steps and the warm-up (all alike):
                 // counted as the engine records its dispatches, so fusion moves them by itself.
                 let work = engine.take_work();
+                // The GPU's work as it computed it: the map keys only where it made them.
+                let steps = (args.reps + 1) as f64;
+                let gpu_flops = work.useful_flops / steps / b as f64;
+                row["gpu_flops_per_scene_step"] = gpu_flops.into();
+                row["map_key_evaluations_per_step"] =
+                    (work.map_key_evaluations as f64 / steps).into();
+                row["gpu_ms_per_step"] = (gpu_secs * 1e3).into();
+                row["gpu_scene_steps_per_sec"] = (b as f64 / gpu_secs).into();
+                row["gpu_gflops"] = (gpu_flops * b as f64 / gpu_secs / 1e9).into();
                 row["dispatches_per_evaluation"] = work.dispatches_per_evaluation().into();
                 row["bytes_per_evaluation"] = work.bytes_per_evaluation().into();
                 row["computed_over_useful"] = work.computed_over_useful().into();
@@ -627,7 +687,7 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
         crate::commands::train::hardware()
     );
     out!(
-        "| checkpoint | scenes | GPU linear kernel | MFLOP per scene-step | GPU ms/step | GPU scene-steps/s | GPU GFLOP/s | CPU ms/step | CPU scene-steps/s | CPU GFLOP/s | dispatches per evaluation | MB read + written per evaluation | computed ÷ useful |"
+        "| checkpoint | scenes | GPU linear kernel | MFLOP per scene-step: model / GPU | GPU ms/step | GPU scene-steps/s | GPU GFLOP/s | CPU ms/step | CPU scene-steps/s | CPU GFLOP/s | dispatches per evaluation | MB read + written per evaluation | computed ÷ useful |"
     );
     out!("|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
     for r in &rows {
@@ -642,7 +702,11 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
             r["checkpoint"].as_str().unwrap_or(""),
             r["scenes"],
             gpu_setting(r),
-            num("flops_per_scene_step", 1e-6, 1),
+            format!(
+                "{} / {}",
+                num("flops_per_scene_step", 1e-6, 1),
+                num("gpu_flops_per_scene_step", 1e-6, 1)
+            ),
             num("gpu_ms_per_step", 1.0, 1),
             num("gpu_scene_steps_per_sec", 1.0, 1),
             num("gpu_gflops", 1.0, 2),
@@ -658,7 +722,10 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
         "(the last three, per evaluation with its share of the sampler update and of a packed or \
          compact sub-batch's row moves: compute dispatches recorded; \
          bytes of their bindings, read-only ones read, read-write ones read and written; work \
-         computed at the padded shape over each scene's own, agents with a valid slot)"
+         computed at the padded shape over each scene's own, agents with a valid slot; \
+         the model's MFLOP make the map's keys in both evaluations, the GPU's where it made them: \
+         each timed step is a tick's first, its second evaluation keeps the first's keys unless \
+         `--map-keys remade`)"
     );
     for r in rows.iter().filter(|r| r["gpu_error"].is_string()) {
         out!(
@@ -694,7 +761,7 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
 fn serve_bench(args: &ServeBenchArgs) -> Result<()> {
     use road_rollout::{RolloutDriver, RolloutScene, TimedEngine};
 
-    use crate::commands::engine::{EngineChoice, Engines};
+    use crate::commands::engine::{Engine, EngineChoice, Engines};
     let validation = load_cache(&args.cache, Split::Validation)?;
     let reference = WindowConfig::default().reference_step;
     anyhow::ensure!(args.join_every > 0, "--join-every must be at least 1");
@@ -722,18 +789,20 @@ fn serve_bench(args: &ServeBenchArgs) -> Result<()> {
                 .collect::<Result<_, _>>()?;
             for joining in [false, true] {
                 let mut engine = engines.engine()?;
-                // The time inside the engine, so that a tick splits into it and the host's.
-                let mut timed = TimedEngine::new(engine.as_dyn());
                 let mut rng = rand::rngs::StdRng::seed_from_u64(0);
                 let mut driver = RolloutDriver::new(
-                    &mut timed,
+                    engine.as_dyn(),
                     &run.planner,
                     &scenes,
                     args.ticks + 1,
                     &mut rng,
                 )?;
-                driver.tick(&mut timed, &mut |_, _, _| Ok(()))?; // every scene's warm-up, untimed
-                timed.take_spent();
+                driver.tick(engine.as_dyn(), &mut |_, _, _| Ok(()))?; // every scene's warm-up, untimed
+                if let Engine::Gpu(gpu) = &mut engine {
+                    gpu.take_work();
+                }
+                // The time inside the engine, so that a tick splits into it and the host's.
+                let mut timed = TimedEngine::new(engine.as_dyn());
                 let nfe_before_of = (0..b)
                     .map(|i| driver.scene_nfe(i))
                     .collect::<road_model::Result<Vec<u64>>>()?;
@@ -747,6 +816,19 @@ fn serve_bench(args: &ServeBenchArgs) -> Result<()> {
                 }
                 let secs = started.elapsed().as_secs_f64();
                 let engine_secs = timed.take_spent().as_secs_f64();
+                // The GPU's proxies over the timed ticks (issue 40), as `road bench engine`'s.
+                let proxies = match &mut engine {
+                    Engine::Gpu(gpu) => {
+                        let work = gpu.take_work();
+                        serde_json::json!({
+                            "dispatches_per_evaluation": work.dispatches_per_evaluation(),
+                            "bytes_per_evaluation": work.bytes_per_evaluation(),
+                            "computed_over_useful": work.computed_over_useful(),
+                            "map_key_share": work.map_key_evaluations as f64 / work.evaluations.max(1) as f64,
+                        })
+                    }
+                    _ => serde_json::Value::Null,
+                };
                 // Useful work: each scene's evaluations times its multiply-adds (agents with
                 // any valid slot; with agent maps, each query attends to its K polylines).
                 let mut flops = 0.0;
@@ -785,6 +867,7 @@ fn serve_bench(args: &ServeBenchArgs) -> Result<()> {
                     "engine_ms_per_tick": engine_secs * 1e3 / args.ticks as f64,
                     "host_ms_per_tick": (secs - engine_secs) * 1e3 / args.ticks as f64,
                     "host_share": (secs - engine_secs) / secs,
+                    "gpu_proxies": proxies,
                 }));
             }
         }
@@ -835,8 +918,9 @@ fn serve_bench(args: &ServeBenchArgs) -> Result<()> {
     out!(
         "(GFLOP/s: the denoiser's multiply-adds ×2 of every evaluation (`flops_per_evaluation`: \
          projections, attention, MLP, the agent maps' point encoder and keys; the pair features \
-         not counted, and the encoder counted every evaluation although the fast CPU engine \
-         memoises it per anchor) over the timed ticks: compare it with the device's peak; host \
+         not counted, and the encoder and keys counted every evaluation although the fast CPU \
+         engine memoises them per anchor and the GPU engine keeps them while the anchors hold: \
+         the model's work served, not the work computed) over the timed ticks; host \
          share: the tick's time outside the engine's calls (kernels, uploads, readbacks), i.e. \
          the rollout driver's bookkeeping and the planner's smoothing; this bench runs no \
          closed loop, so the guards and infraction checks are not in it)"

@@ -1,7 +1,9 @@
 //! The denoiser `D(x; σ)` of a checkpoint in WGSL kernels, for many scenes at once, each with
 //! its own per-slot noise vector σ[W]. Weights are uploaded once into one buffer (each tensor
 //! at an aligned offset); map tokens are computed once per scene set, or, with agent maps, each
-//! agent's own every evaluation (`agent_map.wgsl` picks them from the anchors).
+//! agent's own from its anchor (`agent_map.wgsl`). The map's keys (those tokens' k, v of every
+//! block) are made by an evaluation only when the maps or, with agent maps, the anchors changed
+//! since the last one ([`PreparedEvaluation::map_keys`], kept by `sampler_step::HeunPlan`).
 //!
 //! The forward pass is the one of `docs/checkpoint.md`, kernel by kernel: `embed_tokens`
 //! (the agents' `embed_agent` ran once on upload) → with agent maps `pick_agent_maps` and the
@@ -10,8 +12,8 @@
 //! `residual_chain` (the time output projection into the residual stream, the agents' q/k/v),
 //! `attention` or `pair_attention` (agents), `residual_chain` (output, the map's q), `attention`
 //! (map), `residual_chain` (output, the MLP, the next block's q/k/v or the head with
-//! `precondition_output`'s math): 24 dispatches an evaluation of road20-wide4 with its sampler
-//! update. With `ContextOptions::residual_chains` off (or D past the chain's tile) each layer
+//! `precondition_output`'s math): 23.5 dispatches an evaluation of road20-wide4 with its
+//! sampler update, 22 where its second evaluation keeps the first's map keys. With `ContextOptions::residual_chains` off (or D past the chain's tile) each layer
 //! is a `linear` of its own (norm, ReLU and residual add fused in) and the head's output goes
 //! through `precondition_output`. The sampler steps around it are in `sampler_step`.
 
@@ -122,6 +124,21 @@ pub(crate) struct SamplerUpdate<'a> {
     pub(crate) x_e: &'a wgpu::Buffer,
     pub(crate) previous: &'a wgpu::Buffer,
     pub(crate) gamma: &'a wgpu::Buffer,
+}
+
+/// What [`GpuDenoiser::prepare_denoise_with_update`] prepared, beyond the dispatches.
+#[derive(Debug, Clone)]
+pub(crate) struct PreparedEvaluation {
+    /// Whether the last residual chain makes the sampler's step.
+    pub(crate) fused_update: bool,
+    /// The dispatches (indices into the list) that make the map's keys: with agent maps the
+    /// pick and the polyline encoder, and every block's map k, v where one layer makes them
+    /// all (`map_kv_all`). An evaluation whose map inputs are those of the last one leaves them
+    /// out ([`crate::sampler_step::HeunPlan`]); their outputs stay in the scratch.
+    pub(crate) map_keys: std::ops::Range<usize>,
+    /// Whether the keys follow the windows (agent maps pick from each agent's anchor state),
+    /// or only the maps.
+    pub(crate) keys_follow_anchors: bool,
 }
 
 /// What a linear layer fuses with its neighbours (`linear.wgsl`), each a dispatch saved.
@@ -815,7 +832,7 @@ impl GpuDenoiser {
 
     /// [`Self::prepare_denoise`], and `update`, the sampler's step from its D, in the last
     /// residual chain where the evaluation ends in one: whether it did (else the caller
-    /// records the step's own dispatches).
+    /// records the step's own dispatches), and which of the dispatches make the map's keys.
     #[allow(clippy::too_many_arguments)]
     pub(crate) fn prepare_denoise_with_update(
         &self,
@@ -827,7 +844,7 @@ impl GpuDenoiser {
         scratch: &Scratch,
         out: &wgpu::Buffer,
         update: Option<SamplerUpdate<'_>>,
-    ) -> Result<bool> {
+    ) -> Result<PreparedEvaluation> {
         let c = &self.config;
         let (b, a, w, d) = (batch.scenes, batch.agents, c.window_slots, c.hidden);
         // Each agent row reads its own scene's map (`agent_scene`: agent maps pick from it,
@@ -885,6 +902,9 @@ impl GpuDenoiser {
             (tokens * d) as u32,
         ));
 
+        // The map's keys: with agent maps the pick and the encoder, then (`map_kv_all`) every
+        // block's k, v; contiguous, so that an evaluation keeping them leaves them out.
+        let keys_start = ops.len();
         // Agent maps: every agent's polylines, picked from its anchor in this `x`, encoded.
         if let (Some(k), Some(maps), Some(frame)) = (map.picked, agent_maps, &c.agent_frame) {
             let p = AgentMapParams {
@@ -968,6 +988,8 @@ impl GpuDenoiser {
                 },
             )?;
         }
+        let map_keys = keys_start..ops.len();
+        let keys_follow_anchors = map.picked.is_some() && agent_maps.is_some();
         let qkv_of = |i: usize, part: &str| {
             (
                 format!("blocks.{i}.{part}.qkv"),
@@ -1258,9 +1280,14 @@ impl GpuDenoiser {
                 Fused::residual(),
             )?;
         }
+        let prepared = |fused_update| PreparedEvaluation {
+            fused_update,
+            map_keys: map_keys.clone(),
+            keys_follow_anchors,
+        };
         if chains {
             // The last block's chain made the sampler's step too.
-            return Ok(update.is_some() && c.blocks > 0);
+            return Ok(prepared(update.is_some() && c.blocks > 0));
         }
         self.linear(
             ctx,
@@ -1296,7 +1323,7 @@ impl GpuDenoiser {
             &[x, f, sigma, &batch.valid, out],
             p.count,
         ));
-        Ok(false)
+        Ok(prepared(false))
     }
 
     /// One evaluation, read back: `D(x; σ)` as `[B, A, W, 3]`.

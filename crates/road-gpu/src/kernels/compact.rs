@@ -1,76 +1,92 @@
 //! `shaders/compact.wgsl`: a batch's rows gathered into a compact sub-batch and its results
-//! scattered back (`GpuStepEngine`'s packed and mixed-phase steps), one dispatch per
-//! region. CPU reference: [`gather_rows_reference`], [`scatter_rows_reference`].
+//! scattered back (`GpuStepEngine`'s packed and mixed-phase steps), the regions that share a
+//! row map in one dispatch (up to three gathered, two scattered). CPU reference:
+//! [`gather_rows_reference`], [`scatter_rows_reference`], region by region.
 
 use bytemuck::{Pod, Zeroable};
 
 use super::{Dispatch, Pipeline, read_back, record_all, storage_buffer, upload};
 use crate::shaders::Shader;
-use crate::{GpuContext, Result};
+use crate::{Error, GpuContext, Result};
 
 /// A sub-batch row no batch row maps to (`row_map`).
 pub const NONE: u32 = u32::MAX;
+
+/// Most regions one gather moves (`gather_rows_3`), and one scatter (`scatter_rows_2`).
+pub const MAX_GATHERED: usize = 3;
+pub const MAX_SCATTERED: usize = 2;
 
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
 struct Params {
     rows: u32,
-    row_floats: u32,
-    _pad: [u32; 2],
+    floats: [u32; 3],
 }
 
-/// Both kernels, compiled once.
+/// One region a dispatch moves: its source, its destination and floats per row.
+pub type Region<'a> = (&'a wgpu::Buffer, &'a wgpu::Buffer, usize);
+
+/// The kernels, compiled once: gathers of 1, 2 and 3 regions, scatters of 1 and 2.
 #[derive(Debug)]
 pub struct CompactRows {
-    gather: Pipeline,
-    scatter: Pipeline,
+    gather: [Pipeline; MAX_GATHERED],
+    scatter: [Pipeline; MAX_SCATTERED],
 }
 
 impl CompactRows {
     pub fn new(ctx: &GpuContext) -> Self {
+        let pipeline = |entry| Pipeline::new(ctx, Shader::Compact, entry);
         Self {
-            gather: Pipeline::new(ctx, Shader::Compact, "gather_rows"),
-            scatter: Pipeline::new(ctx, Shader::Compact, "scatter_rows"),
+            gather: ["gather_rows", "gather_rows_2", "gather_rows_3"].map(pipeline),
+            scatter: ["scatter_rows", "scatter_rows_2"].map(pipeline),
         }
     }
 
-    /// `dst [rows, row_floats]` ← `src`'s row `row_map[r]` (zeros where [`NONE`]);
-    /// `row_map [rows]`.
+    /// For each region `(src, dst, floats)`: `dst [rows, floats]` ← `src`'s row `row_map[r]`
+    /// (zeros where [`NONE`]); `row_map [rows]`. One to [`MAX_GATHERED`] regions.
     pub fn prepare_gather(
         &self,
         ctx: &GpuContext,
-        src: &wgpu::Buffer,
         row_map: &wgpu::Buffer,
-        dst: &wgpu::Buffer,
-        (rows, row_floats): (usize, usize),
-    ) -> Dispatch {
-        Self::prepare(&self.gather, ctx, src, row_map, dst, (rows, row_floats))
+        rows: usize,
+        regions: &[Region<'_>],
+    ) -> Result<Dispatch> {
+        Self::prepare(&self.gather, ctx, row_map, rows, regions)
     }
 
-    /// `dst`'s row `row_map[r]` ← `src [rows, row_floats]`'s row r (nothing where [`NONE`]).
+    /// For each region `(src, dst, floats)`: `dst`'s row `row_map[r]` ← `src [rows, floats]`'s
+    /// row r (nothing where [`NONE`]). One to [`MAX_SCATTERED`] regions.
     pub fn prepare_scatter(
         &self,
         ctx: &GpuContext,
-        src: &wgpu::Buffer,
         row_map: &wgpu::Buffer,
-        dst: &wgpu::Buffer,
-        (rows, row_floats): (usize, usize),
-    ) -> Dispatch {
-        Self::prepare(&self.scatter, ctx, src, row_map, dst, (rows, row_floats))
+        rows: usize,
+        regions: &[Region<'_>],
+    ) -> Result<Dispatch> {
+        Self::prepare(&self.scatter, ctx, row_map, rows, regions)
     }
 
     fn prepare(
-        pipeline: &Pipeline,
+        pipelines: &[Pipeline],
         ctx: &GpuContext,
-        src: &wgpu::Buffer,
         row_map: &wgpu::Buffer,
-        dst: &wgpu::Buffer,
-        (rows, row_floats): (usize, usize),
-    ) -> Dispatch {
+        rows: usize,
+        regions: &[Region<'_>],
+    ) -> Result<Dispatch> {
+        let Some(pipeline) = regions.len().checked_sub(1).and_then(|i| pipelines.get(i)) else {
+            return Err(Error::Input(format!(
+                "a row move of {} regions: the kernels move 1 to {}",
+                regions.len(),
+                pipelines.len()
+            )));
+        };
+        let mut floats = [0u32; 3];
+        for (f, &(_, _, per_row)) in floats.iter_mut().zip(regions) {
+            *f = per_row as u32;
+        }
         let params = Params {
             rows: rows as u32,
-            row_floats: row_floats as u32,
-            _pad: [0; 2],
+            floats,
         };
         let params = upload(
             ctx,
@@ -78,37 +94,43 @@ impl CompactRows {
             bytemuck::bytes_of(&params),
             wgpu::BufferUsages::UNIFORM,
         );
-        pipeline.prepare_buffers(
-            ctx,
-            &params,
-            &[src, row_map, dst],
-            (rows * row_floats) as u32,
-        )
+        let mut bound = vec![(1, row_map.as_entire_binding())];
+        for (k, &(src, dst, _)) in regions.iter().enumerate() {
+            let k = k as u32;
+            bound.push((2 + 2 * k, src.as_entire_binding()));
+            bound.push((3 + 2 * k, dst.as_entire_binding()));
+        }
+        let per_row: usize = regions.iter().map(|&(_, _, f)| f).sum();
+        Ok(pipeline.prepare(ctx, &params, &bound, (rows * per_row) as u32))
     }
 
-    /// Runs once on host data: `dst` starts as `dst_init` (its length fixes the other side's
-    /// rows for a scatter); gather (`scatter == false`) or scatter.
+    /// Runs once on host data, every region `(src, dst_init, floats)` in one dispatch: each
+    /// `dst` starts as its `dst_init` (whose length fixes the other side's rows for a scatter);
+    /// gather (`scatter == false`) or scatter. Returns each region's `dst`.
     pub fn run(
         &self,
         ctx: &GpuContext,
         scatter: bool,
-        src: &[f32],
         row_map: &[u32],
-        dst_init: &[f32],
-        row_floats: usize,
-    ) -> Result<Vec<f32>> {
+        regions: &[(&[f32], &[f32], usize)],
+    ) -> Result<Vec<Vec<f32>>> {
         let usage = wgpu::BufferUsages::STORAGE;
-        let src_buffer = upload(ctx, "src", bytemuck::cast_slice(src), usage);
         let map_buffer = upload(ctx, "row map", bytemuck::cast_slice(row_map), usage);
-        let bytes = (dst_init.len() * 4) as u64;
-        let dst = storage_buffer(ctx, "dst", bytes);
-        ctx.queue
-            .write_buffer(&dst, 0, bytemuck::cast_slice(dst_init));
-        let shape = (row_map.len(), row_floats);
+        let buffers: Vec<(wgpu::Buffer, wgpu::Buffer, usize)> = regions
+            .iter()
+            .map(|&(src, dst_init, floats)| {
+                let src = upload(ctx, "src", bytemuck::cast_slice(src), usage);
+                let dst = storage_buffer(ctx, "dst", (dst_init.len() * 4) as u64);
+                ctx.queue
+                    .write_buffer(&dst, 0, bytemuck::cast_slice(dst_init));
+                (src, dst, floats)
+            })
+            .collect();
+        let bound: Vec<Region<'_>> = buffers.iter().map(|(s, d, f)| (s, d, *f)).collect();
         let dispatch = if scatter {
-            self.prepare_scatter(ctx, &src_buffer, &map_buffer, &dst, shape)
+            self.prepare_scatter(ctx, &map_buffer, row_map.len(), &bound)?
         } else {
-            self.prepare_gather(ctx, &src_buffer, &map_buffer, &dst, shape)
+            self.prepare_gather(ctx, &map_buffer, row_map.len(), &bound)?
         };
         let mut encoder = ctx
             .device
@@ -121,7 +143,14 @@ impl CompactRows {
             std::slice::from_ref(&dispatch),
         );
         ctx.queue.submit([encoder.finish()]);
-        Ok(bytemuck::cast_slice(&read_back(ctx, &dst, bytes)?).to_vec())
+        buffers
+            .iter()
+            .zip(regions)
+            .map(|((_, dst, _), (_, dst_init, _))| {
+                let bytes = read_back(ctx, dst, (dst_init.len() * 4) as u64)?;
+                Ok(bytemuck::cast_slice(&bytes).to_vec())
+            })
+            .collect()
     }
 }
 
