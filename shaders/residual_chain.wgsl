@@ -41,7 +41,11 @@ struct Params {
     heading_scale: f32,
     residual_scale: f32,
     update: u32,      // precondition: 1 also writes x_e (the Euler step, γ-corrected)
+    relative_scale: f32, // embed_chain: the agent frame's relative features' multiplier
+    _pad0: u32,
     _pad1: u32,
+    _pad2: u32,
+    _pad3: u32,
 }
 
 const ROWS: u32 = 8u;
@@ -63,6 +67,17 @@ const NO_BIAS: u32 = 0xffffffffu;
 @group(0) @binding(9) var<storage, read_write> x_e: array<f32>;    // update: [rows, 3]
 @group(0) @binding(10) var<storage, read> previous: array<f32>;    // update: D_prev [rows, 3]
 @group(0) @binding(11) var<storage, read> gamma: array<f32>;       // update: [B, W]
+@group(0) @binding(12) var<storage, read> agent: array<f32>;       // embed_chain: [B, A, D]
+@group(0) @binding(13) var<storage, read> embed_weights: array<f32>; // embed_chain: the packed small weights
+
+// What common/embed_token.wgsl reads of this kernel's (`embed_chain`).
+fn embed_weight(i: u32) -> f32 {
+    return embed_weights[i];
+}
+
+fn agent_embedding(i: u32) -> f32 {
+    return agent[i];
+}
 
 // heun.wgsl's `heun_euler` and `multistep_correct` for the three values of `token`, with its
 // D(x; σ) `denoised` as those kernels read it back (the same operations in the same order).
@@ -278,32 +293,81 @@ fn residual_chain(
     }
     load_standardised(lid, first, live);
     if (params.precondition == 1u) {
-        // The head's F of every row into workgroup memory, then D(x; σ) a token per invocation.
-        if (lid < ROWS * 3u) {
-            let r = lid / 3u;
-            let o = lid % 3u;
-            var sum = weights[params.next_b + o];
-            for (var k = 0u; k < d; k++) {
-                sum += tile[r * MAX_D + k] * weights[params.next_w + k * 3u + o];
-            }
-            hidden_units[lid] = sum;
-        }
-        workgroupBarrier();
-        if (lid < live) {
-            let token = first + lid;
-            let f = vec3<f32>(hidden_units[lid * 3u], hidden_units[lid * 3u + 1u], hidden_units[lid * 3u + 2u]);
-            let t = gather_token(token, f);
-            let out = precondition_token(t, params.sigma_data, params.heading_scale, params.residual_scale);
-            y[token * 3u] = out.x;
-            y[token * 3u + 1u] = out.y;
-            y[token * 3u + 2u] = out.z;
-            if (params.update == 1u) {
-                sampler_update(token, out);
-            }
-        }
-        return;
+        head(lid, first, live);
+    } else {
+        next_parts(lid, first, live);
     }
-    // The next layer, into its parts (as `linear.wgsl`'s `store4`).
+}
+
+// The first layer after the token embedding, as a chain: h ← embed(x, σ) (common/
+// embed_token.wgsl), then y ← n(h) · W_nextᵀ + b_next into its parts (block 0's q, k, v): the
+// embedding and the first layer in one dispatch. The chain's output projection and MLP are not
+// run (`m` is 0, `o_w` unread); `slots`, `agents`, `anchor_slot`, `sigma_data`, `heading_scale`,
+// `residual_scale` and `relative_scale` describe the embedding, `embed_weights` holds its weights.
+@compute @workgroup_size(64)
+fn embed_chain(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let d = params.d;
+    let first = (wid.x + wid.y * groups.x) * ROWS;
+    var live = ROWS;
+    if (first >= params.rows) {
+        live = 0u;
+    } else {
+        live = min(ROWS, params.rows - first);
+    }
+    let shape = EmbedShape(
+        params.agents,
+        params.slots,
+        d,
+        params.sigma_data,
+        params.anchor_slot,
+        params.heading_scale,
+        params.relative_scale,
+        params.residual_scale,
+    );
+    for (var i = lid; i < live * d; i += LANES) {
+        let token = first + i / d;
+        h[token * d + i % d] = embed_value(shape, token, i % d);
+    }
+    load_standardised(lid, first, live);
+    next_parts(lid, first, live);
+}
+
+// The head from the standardised tile (`load_standardised` ran): D(x; σ), and the sampler's step
+// with `update`. Call from uniform control flow.
+fn head(lid: u32, first: u32, live: u32) {
+    let d = params.d;
+    // The head's F of every row into workgroup memory, then D(x; σ) a token per invocation.
+    if (lid < ROWS * 3u) {
+        let r = lid / 3u;
+        let o = lid % 3u;
+        var sum = weights[params.next_b + o];
+        for (var k = 0u; k < d; k++) {
+            sum += tile[r * MAX_D + k] * weights[params.next_w + k * 3u + o];
+        }
+        hidden_units[lid] = sum;
+    }
+    workgroupBarrier();
+    if (lid < live) {
+        let token = first + lid;
+        let f = vec3<f32>(hidden_units[lid * 3u], hidden_units[lid * 3u + 1u], hidden_units[lid * 3u + 2u]);
+        let t = gather_token(token, f);
+        let out = precondition_token(t, params.sigma_data, params.heading_scale, params.residual_scale);
+        y[token * 3u] = out.x;
+        y[token * 3u + 1u] = out.y;
+        y[token * 3u + 2u] = out.z;
+        if (params.update == 1u) {
+            sampler_update(token, out);
+        }
+    }
+}
+
+// The next layer from the standardised tile (`load_standardised` ran), into y's parts (as
+// `linear.wgsl`'s `store4`).
+fn next_parts(lid: u32, first: u32, live: u32) {
     for (var t = lid; t < tasks_of(params.next_out); t += LANES) {
         let blk = block_of(t, params.next_out);
         let values = tile_block(params.next_w, params.next_b, blk, params.next_out, params.next_out);

@@ -457,3 +457,102 @@ pub fn precondition_output(
     }
     out
 }
+
+/// The shape and constants of [`embed_tokens`] (`common/embed_token.wgsl`'s `EmbedShape`).
+#[derive(Debug, Clone, Copy)]
+pub struct EmbedShape {
+    pub agents: usize,
+    pub slots: usize,
+    pub hidden: usize,
+    pub sigma_data: f64,
+    /// The agent frame's anchor slot (≥ 1); `None` without an agent frame.
+    pub anchor_slot: Option<usize>,
+    /// State units per radian of heading.
+    pub heading_scale: f64,
+    pub relative_scale: f64,
+    /// The constant-velocity reference's scale; 0 without one.
+    pub residual_scale: f64,
+}
+
+/// The token embedding `h [B·A·W, D]` of `common/embed_token.wgsl` (`embed_tokens` and
+/// `embed_chain`), in f64: `x [B, A, W, 3]`, `σ [B, W]`, `valid [B, A, W]`, the agents'
+/// embedding `[B·A, D]`, and `packed` = W_state `[D, 3]` | b_state `[D]` | w_noise `[D]` |
+/// b_noise `[D]` | slot `[W, D]` (| W_rel `[D, 4 or 6]` | b_rel `[D]` with an agent frame).
+pub fn embed_tokens(
+    shape: &EmbedShape,
+    x: &[f32],
+    sigma: &[f32],
+    valid: &[f32],
+    agent: &[f32],
+    packed: &[f32],
+) -> Vec<f32> {
+    let (a_n, w_n, d_n) = (shape.agents, shape.slots, shape.hidden);
+    let wt = |i: usize| f64::from(packed[i]);
+    let xs = |token: usize, c: usize| f64::from(x[3 * token + c]);
+    let (b_state, w_noise) = (3 * d_n, 4 * d_n);
+    let (b_noise, slot) = (5 * d_n, 6 * d_n);
+    let tokens = valid.len();
+    let mut h = vec![0.0f32; tokens * d_n];
+    for token in 0..tokens {
+        let w = token % w_n;
+        let b = token / (w_n * a_n);
+        let s = f64::from(sigma[b * w_n + w]);
+        let sd = shape.sigma_data;
+        let c_in = 1.0 / (s * s + sd * sd).sqrt();
+        let c_noise = s.ln() * 0.25;
+        let v = f64::from(valid[token]);
+        for d in 0..d_n {
+            let mut acc = (0..3)
+                .map(|c| wt(3 * d + c) * xs(token, c) * c_in * v)
+                .sum::<f64>()
+                + wt(b_state + d)
+                + wt(w_noise + d) * c_noise
+                + wt(b_noise + d)
+                + f64::from(agent[(token / w_n) * d_n + d])
+                + wt(slot + w * d_n + d);
+            if let Some(anchor_slot) = shape.anchor_slot {
+                let anchor = (token / w_n) * w_n + anchor_slot;
+                let av = f64::from(valid[anchor]);
+                let xa = [0, 1, 2].map(|c| xs(anchor, c) * av);
+                let heading = xa[2] / shape.heading_scale;
+                let (cs, sn) = (heading.cos(), heading.sin());
+                let (mut dx, mut dy, mut dh) = (
+                    xs(token, 0) - xa[0],
+                    xs(token, 1) - xa[1],
+                    xs(token, 2) - xa[2],
+                );
+                let mut k = c_in * shape.relative_scale * v * av;
+                let (mut width, mut forward, mut left) = (4, 0.0, 0.0);
+                if shape.residual_scale > 0.0 {
+                    let rs = shape.residual_scale;
+                    let previous = anchor - 1;
+                    let both = f64::from(valid[previous]) * av;
+                    let step_x = (xs(anchor, 0) - xs(previous, 0)) * both;
+                    let step_y = (xs(anchor, 1) - xs(previous, 1)) * both;
+                    let t = w as f64 - anchor_slot as f64;
+                    dx = (dx - t * step_x) * rs;
+                    dy = (dy - t * step_y) * rs;
+                    dh *= rs;
+                    let s_y = s * rs;
+                    k = shape.relative_scale * v * av / (s_y * s_y + sd * sd).sqrt();
+                    width = 6;
+                    forward = (cs * step_x + sn * step_y) * rs;
+                    left = (cs * step_y - sn * step_x) * rs;
+                }
+                let w_rel = slot + w_n * d_n;
+                let b_rel = w_rel + width * d_n;
+                let row = w_rel + width * d;
+                acc += wt(row) * (cs * dx + sn * dy) * k
+                    + wt(row + 1) * (cs * dy - sn * dx) * k
+                    + wt(row + 2) * dh * k
+                    + wt(row + 3) * av
+                    + wt(b_rel + d);
+                if width == 6 {
+                    acc += wt(row + 4) * forward + wt(row + 5) * left;
+                }
+            }
+            h[token * d_n + d] = acc as f32;
+        }
+    }
+    h
+}

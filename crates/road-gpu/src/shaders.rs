@@ -29,7 +29,8 @@ pub enum Shader {
     AgentMap,
     /// Agent attention with pair features (relative pose of every pair of agents).
     AgentPairs,
-    /// The residual chain: output projection, MLP and the next layer in one kernel.
+    /// The residual chain: output projection, MLP and the next layer in one kernel (or the
+    /// token embedding and the first layer).
     ResidualChain,
     /// Compact sub-batches: a batch's rows gathered in and scattered back.
     Compact,
@@ -37,6 +38,8 @@ pub enum Shader {
 
 /// `shaders/common/precondition.wgsl`: the output preconditioning of one token.
 const PRECONDITION: &str = include_str!("../../../shaders/common/precondition.wgsl");
+/// `shaders/common/embed_token.wgsl`: one value of the token embedding.
+const EMBED_TOKEN: &str = include_str!("../../../shaders/common/embed_token.wgsl");
 /// `shaders/common/linear_io.wgsl`: the linear kernels' params, bindings and epilogue.
 const LINEAR_IO: &str = include_str!("../../../shaders/common/linear_io.wgsl");
 /// `shaders/common/enable_f16.wgsl`: `enable f16;`, first in the f16 families.
@@ -103,7 +106,10 @@ impl Shader {
             ),
             Shader::Polyline => include_str!("../../../shaders/polyline.wgsl"),
             Shader::Attention => include_str!("../../../shaders/attention.wgsl"),
-            Shader::Embed => include_str!("../../../shaders/embed.wgsl"),
+            Shader::Embed => concat!(
+                include_str!("../../../shaders/common/embed_token.wgsl"),
+                include_str!("../../../shaders/embed.wgsl")
+            ),
             Shader::Elementwise => concat!(
                 include_str!("../../../shaders/common/precondition.wgsl"),
                 include_str!("../../../shaders/elementwise.wgsl")
@@ -114,6 +120,7 @@ impl Shader {
             Shader::AgentPairs => include_str!("../../../shaders/agent_pairs.wgsl"),
             Shader::ResidualChain => concat!(
                 include_str!("../../../shaders/common/precondition.wgsl"),
+                include_str!("../../../shaders/common/embed_token.wgsl"),
                 include_str!("../../../shaders/residual_chain.wgsl")
             ),
             Shader::Compact => include_str!("../../../shaders/compact.wgsl"),
@@ -124,7 +131,9 @@ impl Shader {
     /// [`Self::source`] is theirs followed by the file's.
     pub fn includes(self) -> &'static [&'static str] {
         match self {
-            Shader::Elementwise | Shader::ResidualChain => &[PRECONDITION],
+            Shader::Elementwise => &[PRECONDITION],
+            Shader::ResidualChain => &[PRECONDITION, EMBED_TOKEN],
+            Shader::Embed => &[EMBED_TOKEN],
             Shader::Linear => &[LINEAR_IO],
             Shader::LinearF16 => &[ENABLE_F16, LINEAR_IO],
             Shader::LinearCoop => &[ENABLE_F16, ENABLE_COOPERATIVE_MATRIX, LINEAR_IO],

@@ -1215,6 +1215,118 @@ fn residual_chain_refuses_widths_past_its_tile() {
     assert!(err.contains("3 outputs"), "{err}");
 }
 
+/// The embedding chain (`residual_chain.wgsl`'s `embed_chain`) against the CPU references of the
+/// token embedding ([`road_gpu::reference::embed_tokens`]) and of the first layer behind its
+/// norm: without an agent frame, with one, with a constant-velocity reference; rows not a
+/// multiple of the tile's; invalid slots and an agent without an anchor.
+#[test]
+fn embed_chain_matches_the_cpu_reference() {
+    use road_gpu::kernels::residual_chain::{
+        ChainParams, EmbedChainInputs, NO_FRAME, ResidualChain, transpose,
+    };
+    use road_gpu::reference::{EmbedShape, embed_tokens, linear_fused};
+    let ctx = context();
+    let kernel = ResidualChain::new(&ctx);
+    let mut rng = rand::rngs::StdRng::seed_from_u64(41);
+    // (scenes, agents, slots, D, anchor slot, constant-velocity scale)
+    for (scenes, agents, slots, d, anchor, residual_scale) in [
+        (2, 3, 5, 24, None, 0.0),
+        (1, 4, 7, 32, Some(3), 0.0),
+        (3, 2, 6, 16, Some(2), 40.0),
+        (2, 5, 20, 96, Some(9), 40.0),
+    ] {
+        let rows = scenes * agents * slots;
+        let width = if residual_scale > 0.0 { 6 } else { 4 };
+        let packed_len = 6 * d + slots * d + anchor.map_or(0, |_| width * d + d);
+        let mut weights = PackedWeights { values: Vec::new() };
+        let packed = random(&mut rng, packed_len, 0.5);
+        let next_out = 3 * d;
+        let (next_w_host, next_b_host) = (
+            random(&mut rng, next_out * d, 0.3),
+            random(&mut rng, next_out, 0.3),
+        );
+        let next_w = weights.push(transpose(&next_w_host, next_out));
+        let next_b = weights.push(next_b_host.clone());
+        let x = random(&mut rng, rows * 3, 2.0);
+        let sigma: Vec<f32> = (0..scenes * slots)
+            .map(|_| rng.random_range(0.01f32..10.0))
+            .collect();
+        // Every seventh slot invalid, and agent 1's anchor (so it has none).
+        let mut valid: Vec<f32> = (0..rows).map(|i| f32::from(i % 7 != 3)).collect();
+        if let Some(anchor) = anchor {
+            valid[slots + anchor] = 0.0;
+        }
+        let agent = random(&mut rng, scenes * agents * d, 1.0);
+        let shape = EmbedShape {
+            agents,
+            slots,
+            hidden: d,
+            sigma_data: 0.5,
+            anchor_slot: anchor,
+            heading_scale: 0.25,
+            relative_scale: 1.0,
+            residual_scale,
+        };
+        let p = ChainParams {
+            rows: rows as u32,
+            d: d as u32,
+            eps: 1e-5,
+            next_w,
+            next_b,
+            next_out: next_out as u32,
+            part: d as u32,
+            part_stride: (rows * d + 3) as u32,
+            slots: slots as u32,
+            agents: agents as u32,
+            anchor_slot: anchor.map_or(NO_FRAME, |a| a as u32),
+            sigma_data: 0.5,
+            heading_scale: 0.25,
+            residual_scale: residual_scale as f32,
+            relative_scale: 1.0,
+            ..ChainParams::default()
+        };
+        let inputs = EmbedChainInputs {
+            weights: &weights.values,
+            embed: &packed,
+            x: &x,
+            sigma: &sigma,
+            valid: &valid,
+            agent: &agent,
+        };
+        let (h_got, y_got) = kernel.run_embed(&ctx, p, &inputs).unwrap();
+        let h_want = embed_tokens(&shape, &x, &sigma, &valid, &agent, &packed);
+        let (ones, zeros) = (vec![1.0; d], vec![0.0; d]);
+        let standardise = Some((&ones[..], &zeros[..], 1e-5));
+        let next_want = linear_fused(
+            &h_want,
+            &next_w_host,
+            &next_b_host,
+            rows,
+            d,
+            next_out,
+            false,
+            standardise,
+            None,
+        );
+        let what =
+            format!("{scenes} × {agents} × {slots}, D {d}, anchor {anchor:?}, cv {residual_scale}");
+        let tol = Tolerance {
+            rel: 1e-4,
+            abs: 2e-5,
+        };
+        if let Err(e) = tol.check(&h_got, &h_want) {
+            panic!("{what}: h: {e}");
+        }
+        let at = |r: usize, o: usize| (o / d) * p.part_stride as usize + r * d + o % d;
+        let next_got: Vec<f32> = (0..rows * next_out)
+            .map(|i| y_got[at(i / next_out, i % next_out)])
+            .collect();
+        if let Err(e) = tol.check(&next_got, &next_want) {
+            panic!("{what}: first layer: {e}");
+        }
+    }
+}
+
 /// The compact sub-batches' row gathers and scatters match their CPU references exactly, one
 /// to three regions of different widths in one dispatch (scatters: one or two): rows mapped in
 /// any order, rows mapped to nothing (gathered as zeros, scattered nowhere) and rows mapped past

@@ -5,17 +5,19 @@
 //! block) are made by an evaluation only when the maps or, with agent maps, the anchors changed
 //! since the last one ([`PreparedEvaluation::map_keys`], kept by `sampler_step::HeunPlan`).
 //!
-//! The forward pass is the one of `docs/checkpoint.md`, kernel by kernel: `embed_tokens`
-//! (the agents' `embed_agent` ran once on upload) → with agent maps `pick_agent_maps` and the
-//! polyline encoder → `linear` map k/v of every block at once → `linear` q/k/v of block 0 (the
-//! layer norm in its prologue, one layer of 3·D outputs) → per block: `attention` (time),
-//! `residual_chain` (the time output projection into the residual stream, the agents' q/k/v),
-//! `attention` or `pair_attention` (agents), `residual_chain` (output, the map's q), `attention`
-//! (map), `residual_chain` (output, the MLP, the next block's q/k/v or the head with
-//! `precondition_output`'s math): 23.5 dispatches an evaluation of road20-wide4 with its
-//! sampler update, 22 where its second evaluation keeps the first's map keys. With `ContextOptions::residual_chains` off (or D past the chain's tile) each layer
-//! is a `linear` of its own (norm, ReLU and residual add fused in) and the head's output goes
-//! through `precondition_output`. The sampler steps around it are in `sampler_step`.
+//! The forward pass is the one of `docs/checkpoint.md`, kernel by kernel (the agents'
+//! `embed_agent` ran once on upload): with agent maps `pick_agent_maps` and the polyline
+//! encoder → `linear` map k/v of every block at once → `embed_chain` (the token embedding, then
+//! block 0's q/k/v behind its layer norm, one layer of 3·D outputs) → per block: `attention`
+//! (time), `residual_chain` (the time output projection into the residual stream, the agents'
+//! q/k/v), `attention` or `pair_attention` (agents), `residual_chain` (output, the map's q),
+//! `attention` (map), `residual_chain` (output, the MLP, the next block's q/k/v or the head
+//! with `precondition_output`'s math and the sampler's update): 22.5 dispatches an evaluation of
+//! road20-wide4 with its share of a Heun step's update, 21 where its second evaluation keeps
+//! the first's map keys. With `ContextOptions::residual_chains` off (or D past the chain's
+//! tile) the embedding is `embed_tokens` and each layer a `linear` of its own (norm, ReLU and
+//! residual add fused in), and the head's output goes through `precondition_output`. The sampler
+//! steps around it are in `sampler_step`.
 
 use std::collections::HashMap;
 use std::path::Path;
@@ -413,16 +415,16 @@ impl GpuDenoiser {
         &self,
         layers: &[&str],
     ) -> Result<(wgpu::BindingResource<'_>, HashMap<String, u32>)> {
+        let names = layers
+            .iter()
+            .flat_map(|layer| [CHAIN_WEIGHT, CHAIN_BIAS].map(|kind| format!("{layer}.{kind}")));
         let mut found = Vec::new();
-        for layer in layers {
-            for kind in [CHAIN_WEIGHT, CHAIN_BIAS] {
-                let name = format!("{layer}.{kind}");
-                let slice = *self
-                    .slices
-                    .get(&name)
-                    .ok_or_else(|| Error::Checkpoint(format!("missing tensor `{name}`")))?;
-                found.push((name, slice));
-            }
+        for name in names {
+            let slice = *self
+                .slices
+                .get(&name)
+                .ok_or_else(|| Error::Checkpoint(format!("missing tensor `{name}`")))?;
+            found.push((name, slice));
         }
         let start = found.iter().map(|(_, s)| s.offset).min().unwrap_or(0);
         let end = found
@@ -886,21 +888,26 @@ impl GpuDenoiser {
             residual_scale: residual_scale(c),
             _pad: 0,
         };
-        let params = Self::params(ctx, &p);
-        let resources = [
-            x.as_entire_binding(),
-            sigma.as_entire_binding(),
-            batch.valid.as_entire_binding(),
-            batch.agent_embedding.as_entire_binding(),
-            self.w("packed.embed")?,
-            h.as_entire_binding(),
-        ];
-        ops.push(self.pipelines.embed_tokens.prepare_resources(
-            ctx,
-            &params,
-            &resources,
-            (tokens * d) as u32,
-        ));
+        let settings = self.settings_for(ctx, tokens);
+        let chains = settings.residual_chains;
+        if !chains {
+            // With chains the embedding is made by the first layer's chain (`embed_chain`).
+            let params = Self::params(ctx, &p);
+            let resources = [
+                x.as_entire_binding(),
+                sigma.as_entire_binding(),
+                batch.valid.as_entire_binding(),
+                batch.agent_embedding.as_entire_binding(),
+                self.w("packed.embed")?,
+                h.as_entire_binding(),
+            ];
+            ops.push(self.pipelines.embed_tokens.prepare_resources(
+                ctx,
+                &params,
+                &resources,
+                (tokens * d) as u32,
+            ));
+        }
 
         // The map's keys: with agent maps the pick and the encoder, then (`map_kv_all`) every
         // block's k, v; contiguous, so that an evaluation keeping them leaves them out.
@@ -965,8 +972,6 @@ impl GpuDenoiser {
             kv_layout: time,
             mask_layout: time,
         };
-        let settings = self.settings_for(ctx, tokens);
-        let chains = settings.residual_chains;
         // The map's keys: each agent's own polylines, or the scene's.
         let (keys, key_rows) = match (agent_maps, map.picked) {
             (Some(maps), Some(k)) => (&maps.encoder.tokens, b * a * k),
@@ -1001,18 +1006,42 @@ impl GpuDenoiser {
             )
         };
         if chains {
-            // The first q, k, v; each chain writes the next attention's after it.
-            let (layer, fused) = qkv_of(0, "time");
-            self.linear(
-                ctx,
-                ops,
-                settings.linear_kernel,
-                &layer,
+            // The embedding and the first q, k, v in one chain; each chain writes the next
+            // attention's after it.
+            let (layer, _) = qkv_of(0, "time");
+            let (range, at) = self.weight_range(&[&layer])?;
+            let chain = ChainParams {
+                rows: tokens as u32,
+                d: d as u32,
+                eps: LN_EPS,
+                next_w: at[&format!("{layer}.{CHAIN_WEIGHT}")],
+                next_b: at[&format!("{layer}.{CHAIN_BIAS}")],
+                next_out: (3 * d) as u32,
+                part: d as u32,
+                part_stride: token_part as u32,
+                slots: p.slots,
+                agents: p.agents,
+                anchor_slot: p.anchor_slot,
+                sigma_data: p.sigma_data,
+                heading_scale: p.heading_scale,
+                residual_scale: p.residual_scale,
+                relative_scale: p.relative_scale,
+                ..ChainParams::default()
+            };
+            chain.check()?;
+            let params = Self::params(ctx, &chain);
+            let bound = crate::kernels::residual_chain::embed_bindings(
+                (range, self.w("packed.embed")?),
                 h,
                 qkv.as_entire_binding(),
-                (tokens, d, 3 * d),
-                fused,
-            )?;
+                (x, sigma, &batch.valid, &batch.agent_embedding),
+            );
+            ops.push(self.pipelines.residual_chain.embed.prepare(
+                ctx,
+                &params,
+                &bound,
+                chain.threads(),
+            ));
         }
         for i in 0..c.blocks {
             let blk = format!("blocks.{i}");

@@ -3,8 +3,10 @@
 //! residual stream, optionally the MLP (its hidden layer 64 units at a time, never in memory),
 //! and optionally the next layer behind its layer norm (the next attention's q/k/v, the map's
 //! q, or the head with the output preconditioning, and then optionally the sampler's Euler step
-//! with the multistep sampler's correction). The engine runs it where the layer-by-layer path
-//! ran four to six dispatches (`ContextOptions::residual_chains`).
+//! with the multistep sampler's correction). Its `embed_chain` entry makes the token embedding
+//! (`shaders/common/embed_token.wgsl`) and the first layer (block 0's q, k, v) the same way. The
+//! engine runs them where the layer-by-layer path ran two to six dispatches
+//! (`ContextOptions::residual_chains`).
 
 use bytemuck::{Pod, Zeroable};
 
@@ -59,7 +61,9 @@ pub struct ChainParams {
     /// 1 (with `precondition`): also the sampler's step into `x_e`, as `heun_euler` then
     /// `multistep_correct` (`shaders/heun.wgsl`; γ = 0 leaves the Euler step).
     pub update: u32,
-    pub _pad: u32,
+    /// `embed_chain`: the agent frame's relative features' multiplier.
+    pub relative_scale: f32,
+    pub _pad: [u32; 4],
 }
 
 impl ChainParams {
@@ -103,6 +107,32 @@ impl ChainParams {
     }
 }
 
+/// The bindings of an `embed_chain` dispatch: the next layer's weights and the packed
+/// embedding weights, `h` (written), `y` (written), `x`, `σ`, `valid` and the agents'
+/// embedding.
+pub fn embed_bindings<'a>(
+    (weights, embed): (wgpu::BindingResource<'a>, wgpu::BindingResource<'a>),
+    h: &'a wgpu::Buffer,
+    y: wgpu::BindingResource<'a>,
+    (x, sigma, valid, agent): (
+        &'a wgpu::Buffer,
+        &'a wgpu::Buffer,
+        &'a wgpu::Buffer,
+        &'a wgpu::Buffer,
+    ),
+) -> Vec<(u32, wgpu::BindingResource<'a>)> {
+    vec![
+        (1, weights),
+        (3, h.as_entire_binding()),
+        (4, y),
+        (5, x.as_entire_binding()),
+        (6, sigma.as_entire_binding()),
+        (7, valid.as_entire_binding()),
+        (12, agent.as_entire_binding()),
+        (13, embed),
+    ]
+}
+
 /// `w [out, in]` (a checkpoint's layout) as `[in, out]`, the chain's.
 pub fn transpose(w: &[f32], out_dim: usize) -> Vec<f32> {
     let in_dim = w.len() / out_dim.max(1);
@@ -139,17 +169,90 @@ pub struct UpdateInputs<'a> {
     pub gamma: &'a [f32],
 }
 
-/// The `residual_chain` kernel, compiled once.
+/// The `residual_chain` kernel and its `embed_chain` entry (the token embedding, then the
+/// first layer), compiled once.
 #[derive(Debug)]
 pub struct ResidualChain {
     pub pipeline: Pipeline,
+    pub embed: Pipeline,
+}
+
+/// Host inputs of one run of `embed_chain` ([`ResidualChain::run_embed`]): `x [rows, 3]`,
+/// `σ [B, W]`, `valid [rows]`, the agents' embedding `[B·A, D]`, the packed small embedding
+/// weights (`shaders/common/embed_token.wgsl`); `weights` hold the next layer at its offsets.
+#[derive(Debug, Clone, Copy)]
+pub struct EmbedChainInputs<'a> {
+    pub weights: &'a [f32],
+    pub embed: &'a [f32],
+    pub x: &'a [f32],
+    pub sigma: &'a [f32],
+    pub valid: &'a [f32],
+    pub agent: &'a [f32],
 }
 
 impl ResidualChain {
     pub fn new(ctx: &GpuContext) -> Self {
         Self {
             pipeline: Pipeline::new(ctx, Shader::ResidualChain, "residual_chain"),
+            embed: Pipeline::new(ctx, Shader::ResidualChain, "embed_chain"),
         }
+    }
+
+    /// One `embed_chain` dispatch on host data: `(h, y)` after (`h [rows, D]` the embedding,
+    /// `y` of `ChainParams::y_len` floats the next layer's parts).
+    pub fn run_embed(
+        &self,
+        ctx: &GpuContext,
+        p: ChainParams,
+        inputs: &EmbedChainInputs<'_>,
+    ) -> Result<(Vec<f32>, Vec<f32>)> {
+        p.check()?;
+        let read = |label: &str, data: &[f32]| {
+            upload(
+                ctx,
+                label,
+                bytemuck::cast_slice(data),
+                wgpu::BufferUsages::STORAGE,
+            )
+        };
+        let params = upload(
+            ctx,
+            "params",
+            bytemuck::bytes_of(&p),
+            wgpu::BufferUsages::UNIFORM,
+        );
+        let h_len = (p.rows * p.d) as usize;
+        let (h, y) = (
+            storage_buffer(ctx, "h", (h_len * 4) as u64),
+            storage_buffer(ctx, "y", (p.y_len().max(1) * 4) as u64),
+        );
+        let (weights, embed, x, sigma, valid, agent) = (
+            read("weights", inputs.weights),
+            read("embed", inputs.embed),
+            read("x", inputs.x),
+            read("sigma", inputs.sigma),
+            read("valid", inputs.valid),
+            read("agent", inputs.agent),
+        );
+        let mut encoder = ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("embed chain"),
+            });
+        let bound = embed_bindings(
+            (weights.as_entire_binding(), embed.as_entire_binding()),
+            &h,
+            y.as_entire_binding(),
+            (&x, &sigma, &valid, &agent),
+        );
+        self.embed
+            .encode_bound(ctx, &mut encoder, &params, &bound, p.threads());
+        ctx.queue.submit([encoder.finish()]);
+        let floats = |bytes: Vec<u8>| bytemuck::cast_slice::<u8, f32>(&bytes).to_vec();
+        Ok((
+            floats(read_back(ctx, &h, (h_len * 4) as u64)?),
+            floats(read_back(ctx, &y, (p.y_len() * 4) as u64)?),
+        ))
     }
 
     /// One dispatch on host data: `(h after, y after)`.
