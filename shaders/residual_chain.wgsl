@@ -8,7 +8,9 @@
 // y goes to parts as `linear.wgsl`'s (the next attention's q/k/v) or, with `precondition`, is
 // the head's F and the kernel writes D(x; σ) instead (common/precondition.wgsl, prepended),
 // and with `update` also the sampler's step from it (heun.wgsl's `heun_euler`, then its
-// `multistep_correct` where γ ≠ 0; γ is 0 in a Heun step): x_e, a dispatch saved.
+// `multistep_correct` where γ ≠ 0; γ is 0 in a Heun step): x_e, a dispatch saved. With
+// `attend`, att is the map attention of the tile's rows, made here from the map's q (bound as
+// `att`) and its kept keys: the map's attention dispatch saved too.
 // Every weight lives in one bound range of the weights buffer, at offsets in floats, transposed
 // ([in, out]: the engine transposes them on upload) so that neighbouring invocations load
 // neighbouring weights. A workgroup of 64 holds ROWS rows of a layer's input in workgroup
@@ -42,10 +44,14 @@ struct Params {
     residual_scale: f32,
     update: u32,      // precondition: 1 also writes x_e (the Euler step, γ-corrected)
     relative_scale: f32, // embed_chain: the agent frame's relative features' multiplier
-    _pad0: u32,
-    _pad1: u32,
-    _pad2: u32,
-    _pad3: u32,
+    attend: u32,      // 1: the attention's rows are the map attention's, made here from its queries in `att`
+    heads: u32,       // attend: heads, each of head_dim columns (heads · head_dim = D)
+    head_dim: u32,
+    scale: f32,       // attend: 1 / √head_dim
+    keys: u32,        // attend: keys per agent row (K, its own) or per map scene (P)
+    key_mode: u32,    // attend: 0, agent row n's keys are rows n·keys …; 1, those of its scene agent_scene[n]
+    k_off: u32,       // attend: offsets (floats) of the keys' k and v in map_kv
+    v_off: u32,
 }
 
 const ROWS: u32 = 8u;
@@ -69,6 +75,9 @@ const NO_BIAS: u32 = 0xffffffffu;
 @group(0) @binding(11) var<storage, read> gamma: array<f32>;       // update: [B, W]
 @group(0) @binding(12) var<storage, read> agent: array<f32>;       // embed_chain: [B, A, D]
 @group(0) @binding(13) var<storage, read> embed_weights: array<f32>; // embed_chain: the packed small weights
+@group(0) @binding(14) var<storage, read> map_kv: array<f32>;      // attend: the map's k, v [key rows, D] at k_off, v_off
+@group(0) @binding(15) var<storage, read> key_valid: array<f32>;   // attend: [key rows]
+@group(0) @binding(16) var<storage, read> agent_scene: array<u32>; // attend: [B·A], each agent row's map scene
 
 // What common/embed_token.wgsl reads of this kernel's (`embed_chain`).
 fn embed_weight(i: u32) -> f32 {
@@ -102,6 +111,62 @@ fn sampler_update(token: u32, denoised: vec3<f32>) {
 var<workgroup> tile: array<f32, 2048>;          // [ROWS, MAX_D]: att, then the rows of h, standardised
 var<workgroup> hidden_units: array<f32, 1024>;  // [ROWS, UNITS]: a chunk of MLP units, or F [ROWS, 3]
 var<workgroup> tile_stats: array<vec2<f32>, 8>; // [ROWS]: (mean, 1/σ) of each row of the tile
+
+// The map attention of the tile's rows (as `attention.wgsl`'s over the map: one (row, head) a
+// task, an online softmax over the row's agent's valid keys, zeros where none is valid) into
+// the tile; rows past `live` zero. The queries are `att`'s rows (the map's q), the keys and
+// values `map_kv`'s: agent row n = token / W reads key rows n·keys + j (its own polylines) or,
+// with `key_mode` 1, agent_scene[n]·keys + j (its scene's map).
+const MAX_HEAD_DIM: u32 = 64u;
+
+fn map_attention(lid: u32, first: u32, live: u32) {
+    let d = params.d;
+    let hd = params.head_dim;
+    for (var task = lid; task < ROWS * params.heads; task += LANES) {
+        let r = task / params.heads;
+        let head = task % params.heads;
+        var acc: array<f32, MAX_HEAD_DIM>;
+        for (var c = 0u; c < hd; c++) {
+            acc[c] = 0.0;
+        }
+        var running_max = -3.0e38;
+        var denom = 0.0;
+        if (r < live) {
+            let token = first + r;
+            let agent_row = token / params.slots;
+            var key0 = agent_row * params.keys;
+            if (params.key_mode == 1u) {
+                key0 = agent_scene[agent_row] * params.keys;
+            }
+            let q_base = token * d + head * hd;
+            for (var j = 0u; j < params.keys; j++) {
+                let key = key0 + j;
+                if (key_valid[key] == 0.0) {
+                    continue;
+                }
+                let k_base = params.k_off + key * d + head * hd;
+                let v_base = params.v_off + key * d + head * hd;
+                var score = 0.0;
+                for (var c = 0u; c < hd; c++) {
+                    score += att[q_base + c] * map_kv[k_base + c];
+                }
+                score *= params.scale;
+                let new_max = max(running_max, score);
+                let correction = exp(running_max - new_max);
+                let weight = exp(score - new_max);
+                denom = denom * correction + weight;
+                for (var c = 0u; c < hd; c++) {
+                    acc[c] = acc[c] * correction + weight * map_kv[v_base + c];
+                }
+                running_max = new_max;
+            }
+        }
+        let inv = select(0.0, 1.0 / denom, denom > 0.0);
+        for (var c = 0u; c < hd; c++) {
+            tile[r * MAX_D + head * hd + c] = acc[c] * inv;
+        }
+    }
+}
 
 // The tile's live rows from h (the rest zero), standardised in place: n(h) as the layer norm's
 // prologue (its γ, β folded into the next layer), statistics one row per invocation, shifted
@@ -230,16 +295,21 @@ fn residual_chain(
         live = min(ROWS, params.rows - first);
     }
 
-    // The output projection: the attention's rows into the tile, then each invocation adds its
-    // blocks of every row into h (no other invocation touches them).
-    for (var i = lid; i < ROWS * d; i += LANES) {
-        let r = i / d;
-        let k = i % d;
-        var value = 0.0;
-        if (r < live) {
-            value = att[(first + r) * d + k];
+    // The output projection: the attention's rows into the tile (read, or with `attend` made
+    // here), then each invocation adds its blocks of every row into h (no other invocation
+    // touches them).
+    if (params.attend == 1u) {
+        map_attention(lid, first, live);
+    } else {
+        for (var i = lid; i < ROWS * d; i += LANES) {
+            let r = i / d;
+            let k = i % d;
+            var value = 0.0;
+            if (r < live) {
+                value = att[(first + r) * d + k];
+            }
+            tile[r * MAX_D + k] = value;
         }
-        tile[r * MAX_D + k] = value;
     }
     workgroupBarrier();
     for (var t = lid; t < tasks_of(d); t += LANES) {

@@ -1215,6 +1215,143 @@ fn residual_chain_refuses_widths_past_its_tile() {
     assert!(err.contains("3 outputs"), "{err}");
 }
 
+/// The residual chain that attends itself (`ChainParams::attend`: the map attention of its
+/// rows before the output projection) against the CPU references of the attention and of the
+/// chain: each agent row's own keys, and (`key_mode` 1) its scene's; invalid keys, an agent
+/// (or a map scene) with none valid, heads of 16 and of 8. (The last block's, which attends and
+/// preconditions, is checked by every whole-denoiser test against candle.)
+#[test]
+fn residual_chain_attending_matches_the_cpu_reference() {
+    use road_gpu::kernels::attention::{AttentionParams, SceneMode, TokenLayout};
+    use road_gpu::kernels::residual_chain::{
+        AttendInputs, ChainInputs, ChainParams, NO_FRAME, ResidualChain, transpose,
+    };
+    use road_gpu::reference::{attention, residual_chain};
+    let ctx = context();
+    let kernel = ResidualChain::new(&ctx);
+    let mut rng = rand::rngs::StdRng::seed_from_u64(23);
+    // (agent rows, slots W, D, heads, keys, scene keys: map scenes)
+    for (agents, slots, d, heads, keys, map_scenes) in [
+        (5, 4, 32, 2, 6, None),
+        (3, 7, 48, 6, 12, None),
+        (6, 5, 32, 4, 9, Some(2)),
+    ] {
+        let rows = agents * slots;
+        let m = 2 * d;
+        let key_rows = map_scenes.map_or(agents * keys, |scenes| scenes * keys);
+        let mut weights = PackedWeights { values: Vec::new() };
+        let hosts: Vec<Vec<f32>> = [d * d, d, m * d, m, d * m, d, d * d, d]
+            .iter()
+            .map(|&n| random(&mut rng, n, 0.3))
+            .collect();
+        let mut p = ChainParams {
+            rows: rows as u32,
+            d: d as u32,
+            m: m as u32,
+            eps: 1e-5,
+            next_out: d as u32,
+            part: d as u32,
+            part_stride: (rows * d) as u32,
+            anchor_slot: NO_FRAME,
+            attend: 1,
+            slots: slots as u32,
+            heads: heads as u32,
+            head_dim: (d / heads) as u32,
+            scale: 1.0 / ((d / heads) as f32).sqrt(),
+            keys: keys as u32,
+            key_mode: u32::from(map_scenes.is_some()),
+            ..ChainParams::default()
+        };
+        p.o_w = weights.push(transpose(&hosts[0], d));
+        p.o_b = weights.push(hosts[1].clone());
+        p.w1 = weights.push(transpose(&hosts[2], m));
+        p.b1 = weights.push(hosts[3].clone());
+        p.w2 = weights.push(transpose(&hosts[4], d));
+        p.b2 = weights.push(hosts[5].clone());
+        p.next_w = weights.push(transpose(&hosts[6], d));
+        p.next_b = weights.push(hosts[7].clone());
+        // k then v, 3 floats apart, in one buffer.
+        let (k, v) = (
+            random(&mut rng, key_rows * d, 1.0),
+            random(&mut rng, key_rows * d, 1.0),
+        );
+        let mut map_kv = vec![7.0; 2];
+        p.k_off = map_kv.len() as u32;
+        map_kv.extend(&k);
+        map_kv.extend([7.0; 3]);
+        p.v_off = map_kv.len() as u32;
+        map_kv.extend(&v);
+        // Every fifth key invalid; agent row 1's (or map scene 1's) all.
+        let mut key_valid: Vec<f32> = (0..key_rows).map(|i| f32::from(i % 5 != 2)).collect();
+        key_valid[keys..2 * keys].fill(0.0);
+        let agent_scene: Vec<u32> = (0..agents as u32)
+            .map(|a| map_scenes.map_or(0, |scenes| (a * 7 + 1) % scenes as u32))
+            .collect();
+        let queries = random(&mut rng, rows * d, 1.0);
+        let h: Vec<f32> = random(&mut rng, rows * d, 1.0);
+        let y0 = random(&mut rng, p.y_len(), 1.0);
+        let inputs = ChainInputs {
+            weights: &weights.values,
+            att: &queries,
+            h: &h,
+            y: &y0,
+            x: &[0.0],
+            sigma: &[0.0],
+            valid: &[0.0],
+        };
+        let attend = AttendInputs {
+            map_kv: &map_kv,
+            key_valid: &key_valid,
+            agent_scene: &agent_scene,
+        };
+        let (h_got, y_got, _) = kernel
+            .run_full(&ctx, p, &inputs, None, Some(attend))
+            .unwrap();
+        let by_agent = TokenLayout::contiguous(keys as u32);
+        let attn = AttentionParams {
+            groups: agents as u32,
+            heads: heads as u32,
+            head_dim: (d / heads) as u32,
+            queries: slots as u32,
+            keys: keys as u32,
+            scale: p.scale,
+            scene_agents: agents as u32,
+            scene_mode: if map_scenes.is_some() {
+                SceneMode::KeysOfTheAgentsScene as u32
+            } else {
+                SceneMode::None as u32
+            },
+            q_layout: TokenLayout::contiguous(slots as u32),
+            kv_layout: by_agent,
+            mask_layout: by_agent,
+        };
+        let att = attention(&attn, &queries, &k, &v, &key_valid, &agent_scene);
+        let layer = |i: usize| (&hosts[i][..], &hosts[i + 1][..]);
+        let (h_want, y_want) = residual_chain(
+            &att,
+            &h,
+            rows,
+            d,
+            layer(0),
+            Some((layer(2), layer(4))),
+            Some(layer(6)),
+            1e-5,
+        );
+        let what =
+            format!("{agents} agents × {slots}, D {d}, {heads} heads, {keys} keys, {map_scenes:?}");
+        let tol = Tolerance {
+            rel: 1e-4,
+            abs: 2e-5,
+        };
+        if let Err(e) = tol.check(&h_got, &h_want) {
+            panic!("{what}: h: {e}");
+        }
+        if let Err(e) = tol.check(&y_got, &y_want) {
+            panic!("{what}: next layer: {e}");
+        }
+    }
+}
+
 /// The embedding chain (`residual_chain.wgsl`'s `embed_chain`) against the CPU references of the
 /// token embedding ([`road_gpu::reference::embed_tokens`]) and of the first layer behind its
 /// norm: without an agent frame, with one, with a constant-velocity reference; rows not a

@@ -10,13 +10,14 @@
 //! encoder → `linear` map k/v of every block at once → `embed_chain` (the token embedding, then
 //! block 0's q/k/v behind its layer norm, one layer of 3·D outputs) → per block: `attention`
 //! (time), `residual_chain` (the time output projection into the residual stream, the agents'
-//! q/k/v), `attention` or `pair_attention` (agents), `residual_chain` (output, the map's q),
-//! `attention` (map), `residual_chain` (output, the MLP, the next block's q/k/v or the head
-//! with `precondition_output`'s math and the sampler's update): 22.5 dispatches an evaluation of
-//! road20-wide4 with its share of a Heun step's update, 21 where its second evaluation keeps
-//! the first's map keys. With `ContextOptions::residual_chains` off (or D past the chain's
-//! tile) the embedding is `embed_tokens` and each layer a `linear` of its own (norm, ReLU and
-//! residual add fused in), and the head's output goes through `precondition_output`. The sampler
+//! q/k/v), `attention` or `pair_attention` (agents), `residual_chain` (output, the map's q into
+//! `map_q`), `residual_chain` attending (the map attention of its rows from `map_q` and the
+//! kept keys, output, the MLP, the next block's q/k/v or the head with `precondition_output`'s
+//! math and the sampler's update): 19.5 dispatches an evaluation of road20-wide4 with its share
+//! of a Heun step's update, 18 where its second evaluation keeps the first's map keys. With
+//! `ContextOptions::residual_chains` off (or D past the chain's tile) the embedding is
+//! `embed_tokens`, the map attention an `attention`, and each layer a `linear` of its own (norm,
+//! ReLU and residual add fused in), and the head's output goes through `precondition_output`. The sampler
 //! steps around it are in `sampler_step`.
 
 use std::collections::HashMap;
@@ -104,6 +105,21 @@ struct ChainLayers<'a> {
     mlp: Option<(&'a str, &'a str)>,
     /// The next layer (behind its folded norm), its outputs and outputs per part.
     next: Option<(&'a str, usize, usize)>,
+}
+
+/// The map attention a residual chain makes before its output projection
+/// (`ChainParams::attend`), its queries being the chain's `att` input: every block's k, v in
+/// `map_kv` (k at `k_off`, v at `v_off` floats), each key row's flag, each agent row's map
+/// scene; `keys` per agent row or (`key_mode` 1) per map scene.
+#[derive(Debug, Clone, Copy)]
+struct ChainAttention<'a> {
+    map_kv: &'a wgpu::Buffer,
+    k_off: usize,
+    v_off: usize,
+    key_valid: &'a wgpu::Buffer,
+    agent_scene: &'a wgpu::Buffer,
+    keys: u32,
+    key_mode: u32,
 }
 
 /// What the head's residual chain preconditions with: the evaluation's `x [B, A, W, 3]`,
@@ -457,6 +473,7 @@ impl GpuDenoiser {
         rows: usize,
         part_stride: usize,
         precondition: Option<Precondition<'_>>,
+        attend: Option<ChainAttention<'_>>,
     ) -> Result<()> {
         let c = &self.config;
         let mut names = vec![layers.output];
@@ -527,6 +544,26 @@ impl GpuDenoiser {
             }
             None => (unread(), unread(), unread()),
         };
+        // The map attention's bindings: the layout has them whether the chain attends or not.
+        let (map_kv, key_valid, agent_scene) = match attend {
+            Some(a) => {
+                let heads = c.heads as u32;
+                p.attend = 1;
+                p.slots = c.window_slots as u32;
+                p.heads = heads;
+                p.head_dim = c.hidden as u32 / heads;
+                p.scale = 1.0 / (p.head_dim as f32).sqrt();
+                p.keys = a.keys;
+                p.key_mode = a.key_mode;
+                (p.k_off, p.v_off) = (a.k_off as u32, a.v_off as u32);
+                (
+                    a.map_kv.as_entire_binding(),
+                    a.key_valid.as_entire_binding(),
+                    a.agent_scene.as_entire_binding(),
+                )
+            }
+            None => (unread(), unread(), unread()),
+        };
         p.check()?;
         let params = Self::params(ctx, &p);
         let resources = [
@@ -542,12 +579,18 @@ impl GpuDenoiser {
             previous,
             gamma,
         ];
-        ops.push(self.pipelines.residual_chain.pipeline.prepare_resources(
-            ctx,
-            &params,
-            &resources,
-            p.threads(),
-        ));
+        let mut bound: Vec<(u32, wgpu::BindingResource<'_>)> = resources
+            .into_iter()
+            .enumerate()
+            .map(|(i, r)| (i as u32 + 1, r))
+            .collect();
+        bound.extend([(14, map_kv), (15, key_valid), (16, agent_scene)]);
+        ops.push(
+            self.pipelines
+                .residual_chain
+                .pipeline
+                .prepare(ctx, &params, &bound, p.threads()),
+        );
         Ok(())
     }
 
@@ -859,6 +902,7 @@ impl GpuDenoiser {
             qkv,
             token_part,
             att,
+            map_q,
             hidden,
             mkv,
             key_part,
@@ -1126,18 +1170,20 @@ impl GpuDenoiser {
                 if chains {
                     // The output projection, then the next layer: the agents' q, k, v after
                     // time attention, the map's q after agent attention.
-                    let (next, next_layer) = if part == "time" {
-                        (qkv_of(i, "agents").0, (3 * d, d))
+                    // The map's q goes to `map_q`, which the map's chain attends from.
+                    let (next, next_layer, y) = if part == "time" {
+                        (qkv_of(i, "agents").0, (3 * d, d), qkv)
                     } else {
-                        (format!("{blk}.map.q"), (d, d))
+                        (format!("{blk}.map.q"), (d, d), map_q)
                     };
                     let layers = ChainLayers {
                         output: &output,
                         mlp: None,
                         next: Some((&next, next_layer.0, next_layer.1)),
                     };
-                    let y = qkv.as_entire_binding();
-                    self.chain(ctx, ops, layers, (att, h, y), tokens, token_part, None)?;
+                    let y = y.as_entire_binding();
+                    let io = (att, h, y);
+                    self.chain(ctx, ops, layers, io, tokens, token_part, None, None)?;
                 } else {
                     // The output projection adds into the residual stream.
                     self.linear(
@@ -1218,21 +1264,33 @@ impl GpuDenoiser {
                     (attn, &map.valid)
                 }
             };
-            let params = Self::params(ctx, &attn);
-            let resources = [
-                part_of(qkv, 0, token_part, tokens * d),
-                part_of(mkv, kv_part, key_part, key_rows * d),
-                part_of(mkv, kv_part + 1, key_part, key_rows * d),
-                key_valid.as_entire_binding(),
-                batch.agent_scene.as_entire_binding(),
-                att.as_entire_binding(),
-            ];
-            ops.push(self.pipelines.attention.prepare_resources(
-                ctx,
-                &params,
-                &resources,
-                attn.threads(),
-            ));
+            // With chains the map's chain attends itself (`ChainParams::attend`).
+            let attend = ChainAttention {
+                map_kv: mkv,
+                k_off: kv_part * key_part,
+                v_off: (kv_part + 1) * key_part,
+                key_valid,
+                agent_scene: &batch.agent_scene,
+                keys: attn.keys,
+                key_mode: u32::from(attn.scene_mode == SceneMode::KeysOfTheAgentsScene as u32),
+            };
+            if !chains {
+                let params = Self::params(ctx, &attn);
+                let resources = [
+                    part_of(qkv, 0, token_part, tokens * d),
+                    part_of(mkv, kv_part, key_part, key_rows * d),
+                    part_of(mkv, kv_part + 1, key_part, key_rows * d),
+                    key_valid.as_entire_binding(),
+                    batch.agent_scene.as_entire_binding(),
+                    att.as_entire_binding(),
+                ];
+                ops.push(self.pipelines.attention.prepare_resources(
+                    ctx,
+                    &params,
+                    &resources,
+                    attn.threads(),
+                ));
+            }
             let (map_o, mlp_in, mlp_out) = (
                 format!("{blk}.map.o"),
                 format!("{blk}.mlp_in"),
@@ -1256,6 +1314,8 @@ impl GpuDenoiser {
                         (&next, 3 * d, d)
                     }),
                 };
+                // Its input is the map's q, from which it attends.
+                let attend = Some(attend);
                 if last {
                     let precondition = Precondition {
                         x,
@@ -1264,11 +1324,11 @@ impl GpuDenoiser {
                         agents: a,
                         update,
                     };
-                    let y = out.as_entire_binding();
-                    self.chain(ctx, ops, layers, (att, h, y), tokens, 0, Some(precondition))?;
+                    let io = (map_q, h, out.as_entire_binding());
+                    self.chain(ctx, ops, layers, io, tokens, 0, Some(precondition), attend)?;
                 } else {
-                    let y = qkv.as_entire_binding();
-                    self.chain(ctx, ops, layers, (att, h, y), tokens, token_part, None)?;
+                    let io = (map_q, h, qkv.as_entire_binding());
+                    self.chain(ctx, ops, layers, io, tokens, token_part, None, attend)?;
                 }
                 continue;
             }

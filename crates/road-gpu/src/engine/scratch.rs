@@ -24,7 +24,10 @@ pub(crate) struct Scratch {
     pub(super) qkv: wgpu::Buffer,
     /// Floats from one part of `qkv` to the next: `T · D` rounded up to the offset alignment.
     pub(super) token_part: usize,
-    pub(super) att: wgpu::Buffer,    // [T, D]
+    pub(super) att: wgpu::Buffer, // [T, D]
+    /// `[T, D]` with residual chains: the map's q, which the map's chain attends from (`qkv`
+    /// receives the next block's q, k, v in the same dispatch); one float otherwise.
+    pub(super) map_q: wgpu::Buffer,
     pub(super) hidden: wgpu::Buffer, // [T, M]
     /// `[2, key_part]`: the map's k, v `[key rows, D]`; with `map_kv_all`, `[2 · blocks,
     /// key_part]`: every block's.
@@ -131,16 +134,17 @@ impl Scratch {
         let map_kv_all = (2 * c.blocks * key_part * 4) as u64 <= max_bytes;
         let kv_parts = if map_kv_all { 2 * c.blocks } else { 2 };
         // Residual chains keep the MLP's hidden layer and the head's F on chip.
-        let (hidden, f) = if chains {
-            (1, 1)
+        let (hidden, f, map_q) = if chains {
+            (1, 1, tokens * d)
         } else {
-            (tokens * d * c.mlp_ratio, tokens * 3)
+            (tokens * d * c.mlp_ratio, tokens * 3, 1)
         };
         Ok(Self {
             h: buf("h", tokens * d),
             qkv: buf("qkv", 3 * token_part),
             token_part,
             att: buf("attention", tokens * d),
+            map_q: buf("map q", map_q),
             hidden: buf("mlp", hidden),
             mkv: buf("map kv", kv_parts * key_part),
             key_part,

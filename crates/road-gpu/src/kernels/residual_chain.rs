@@ -3,7 +3,9 @@
 //! residual stream, optionally the MLP (its hidden layer 64 units at a time, never in memory),
 //! and optionally the next layer behind its layer norm (the next attention's q/k/v, the map's
 //! q, or the head with the output preconditioning, and then optionally the sampler's Euler step
-//! with the multistep sampler's correction). Its `embed_chain` entry makes the token embedding
+//! with the multistep sampler's correction); with `attend` it first makes its rows' map
+//! attention itself (the queries in `att`, the keys and values bound apart). Its `embed_chain`
+//! entry makes the token embedding
 //! (`shaders/common/embed_token.wgsl`) and the first layer (block 0's q, k, v) the same way. The
 //! engine runs them where the layer-by-layer path ran two to six dispatches
 //! (`ContextOptions::residual_chains`).
@@ -20,6 +22,8 @@ pub const ROWS: u32 = 8;
 pub const MAX_HIDDEN: u32 = 256;
 /// Invocations of one workgroup.
 const LANES: u32 = 64;
+/// Widest head the chain's map attention holds (the shader's `MAX_HEAD_DIM`).
+pub const MAX_HEAD_DIM: u32 = 64;
 /// `anchor_slot` without an agent frame.
 pub const NO_FRAME: u32 = u32::MAX;
 
@@ -63,7 +67,18 @@ pub struct ChainParams {
     pub update: u32,
     /// `embed_chain`: the agent frame's relative features' multiplier.
     pub relative_scale: f32,
-    pub _pad: [u32; 4],
+    /// 1: the attention's rows are made here, the map attention of `att`'s rows (the map's q)
+    /// over the keys and values in the `map_kv` binding (`heads` of `head_dim`, `scale`; `keys`
+    /// per agent row, or with `key_mode` 1 per map scene of `agent_scene`; k at `k_off`, v at
+    /// `v_off` floats).
+    pub attend: u32,
+    pub heads: u32,
+    pub head_dim: u32,
+    pub scale: f32,
+    pub keys: u32,
+    pub key_mode: u32,
+    pub k_off: u32,
+    pub v_off: u32,
 }
 
 impl ChainParams {
@@ -87,6 +102,18 @@ impl ChainParams {
             return Err(Error::Input(
                 "the sampler's step follows the preconditioned head only".into(),
             ));
+        }
+        if self.attend == 1
+            && (self.heads == 0
+                || self.head_dim > MAX_HEAD_DIM
+                || self.heads * self.head_dim != self.d
+                || self.keys == 0)
+        {
+            return Err(Error::Input(format!(
+                "the chain's map attention needs heads × head dim = D ({} × {} against {}, head \
+                 dim ≤ {MAX_HEAD_DIM}) and keys ({})",
+                self.heads, self.head_dim, self.d, self.keys
+            )));
         }
         if self.precondition == 1 && self.next_out != 3 {
             return Err(Error::Input(format!(
@@ -133,6 +160,20 @@ pub fn embed_bindings<'a>(
     ]
 }
 
+/// The map attention's bindings of a `residual_chain` dispatch (bound whether it attends or
+/// not: the kernel's layout has them): keys and values, key flags, agent rows' map scenes.
+pub fn attend_bindings<'a>(
+    map_kv: &'a wgpu::Buffer,
+    key_valid: &'a wgpu::Buffer,
+    agent_scene: &'a wgpu::Buffer,
+) -> [(u32, wgpu::BindingResource<'a>); 3] {
+    [
+        (14, map_kv.as_entire_binding()),
+        (15, key_valid.as_entire_binding()),
+        (16, agent_scene.as_entire_binding()),
+    ]
+}
+
 /// `w [out, in]` (a checkpoint's layout) as `[in, out]`, the chain's.
 pub fn transpose(w: &[f32], out_dim: usize) -> Vec<f32> {
     let in_dim = w.len() / out_dim.max(1);
@@ -158,6 +199,15 @@ pub struct ChainInputs<'a> {
     pub x: &'a [f32],
     pub sigma: &'a [f32],
     pub valid: &'a [f32],
+}
+
+/// The map attention a chain with `attend` makes ([`ResidualChain::run_full`]): the keys' and
+/// values' buffer (`k_off`, `v_off` into it), each key row's flag, each agent row's map scene.
+#[derive(Debug, Clone, Copy)]
+pub struct AttendInputs<'a> {
+    pub map_kv: &'a [f32],
+    pub key_valid: &'a [f32],
+    pub agent_scene: &'a [u32],
 }
 
 /// The sampler's step a chain with `update` makes from its D: `σ_next [B, W]`, `D_prev [rows,
@@ -275,6 +325,18 @@ impl ResidualChain {
         inputs: &ChainInputs<'_>,
         update: Option<UpdateInputs<'_>>,
     ) -> Result<(Vec<f32>, Vec<f32>, Vec<f32>)> {
+        self.run_full(ctx, p, inputs, update, None)
+    }
+
+    /// [`Self::run_with_update`] with the map attention (`p.attend`, `att` holding the queries).
+    pub fn run_full(
+        &self,
+        ctx: &GpuContext,
+        p: ChainParams,
+        inputs: &ChainInputs<'_>,
+        update: Option<UpdateInputs<'_>>,
+        attend: Option<AttendInputs<'_>>,
+    ) -> Result<(Vec<f32>, Vec<f32>, Vec<f32>)> {
         p.check()?;
         let read = |label: &str, data: &[f32]| {
             upload(
@@ -316,30 +378,49 @@ impl ResidualChain {
             read("gamma", u.gamma),
         );
         let x_e = storage_buffer(ctx, "x_e", (x_e_len * 4) as u64);
+        let (map_kv, key_valid, agent_scene) = match attend {
+            Some(a) => (
+                read("map_kv", a.map_kv),
+                read("key_valid", a.key_valid),
+                upload(
+                    ctx,
+                    "agent_scene",
+                    bytemuck::cast_slice(a.agent_scene),
+                    wgpu::BufferUsages::STORAGE,
+                ),
+            ),
+            None => (
+                read("map_kv", &[0.0]),
+                read("key_valid", &[0.0]),
+                read("agent_scene", &[0.0]),
+            ),
+        };
         let mut encoder = ctx
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                 label: Some("residual chain"),
             });
-        self.pipeline.encode(
-            ctx,
-            &mut encoder,
-            &params,
-            &[
-                &weights,
-                &att,
-                &h,
-                &y,
-                &x,
-                &sigma,
-                &valid,
-                &sigma_next,
-                &x_e,
-                &previous,
-                &gamma,
-            ],
-            p.threads(),
-        );
+        let buffers = [
+            &weights,
+            &att,
+            &h,
+            &y,
+            &x,
+            &sigma,
+            &valid,
+            &sigma_next,
+            &x_e,
+            &previous,
+            &gamma,
+        ];
+        let mut bound: Vec<(u32, wgpu::BindingResource<'_>)> = buffers
+            .iter()
+            .enumerate()
+            .map(|(i, b)| (i as u32 + 1, b.as_entire_binding()))
+            .collect();
+        bound.extend(attend_bindings(&map_kv, &key_valid, &agent_scene));
+        self.pipeline
+            .encode_bound(ctx, &mut encoder, &params, &bound, p.threads());
         ctx.queue.submit([encoder.finish()]);
         let floats = |bytes: Vec<u8>| bytemuck::cast_slice::<u8, f32>(&bytes).to_vec();
         let h_after = floats(read_back(ctx, &h, (inputs.h.len() * 4) as u64)?);
