@@ -10,7 +10,7 @@ use crate::kernels::compact::{CompactRows, NONE, gather_rows_reference, scatter_
 use crate::kernels::linear::{Linear, LinearKernel, LinearParams, fold_layer_norm};
 use crate::kernels::polyline::{PolylineEncoder, PolylineKernel, PolylineParams};
 use crate::kernels::residual_chain::{
-    ChainInputs, ChainParams, NO_FRAME, ResidualChain, transpose,
+    AttendInputs, ChainInputs, ChainParams, EmbedChainInputs, NO_FRAME, ResidualChain, transpose,
 };
 use crate::tolerance::Mismatch;
 use crate::{GpuContext, Result, Tolerance, reference};
@@ -125,9 +125,19 @@ pub fn kernel_checks(ctx: &GpuContext) -> Result<Vec<KernelCheck>> {
         });
     }
 
-    // The residual chain as the engine runs it after a block's map attention: the output
-    // projection, the MLP (2·D) and the next block's q, k, v in 3 parts.
+    // The residual chain as the engine runs it for a block's map: its map attention (each
+    // agent row's 8 keys, some invalid, the queries in `att`), the output projection, the MLP
+    // (2·D) and the next block's q, k, v in 3 parts.
     let (d, m) = (d_in, 2 * d_in);
+    let keys = 8usize;
+    let key_rows = b * a * keys;
+    let (k, v) = (
+        rng.uniform(key_rows * d, 1.0),
+        rng.uniform(key_rows * d, 1.0),
+    );
+    let key_valid = rng.flags(key_rows, 0.8);
+    let map_kv: Vec<f32> = k.iter().chain(&v).copied().collect();
+    let agent_scene = vec![0u32; b * a];
     let tensors: Vec<Vec<f32>> = [d * d, d, m * d, m, d * m, d, 3 * d * d, 3 * d]
         .iter()
         .map(|&n| rng.uniform(n, 0.3))
@@ -138,19 +148,48 @@ pub fn kernel_checks(ctx: &GpuContext) -> Result<Vec<KernelCheck>> {
         part: d as u32,
         part_stride: (rows * d) as u32,
         anchor_slot: NO_FRAME,
+        attend: 1,
+        slots: w as u32,
+        heads: heads as u32,
+        head_dim: (d / heads) as u32,
+        scale: 1.0 / ((d / heads) as f32).sqrt(),
+        keys: keys as u32,
+        k_off: 0,
+        v_off: (key_rows * d) as u32,
         ..chain
     };
-    let (att, h) = (rng.uniform(rows * d, 1.0), rng.uniform(rows * d, 1.0));
+    let (queries, h) = (rng.uniform(rows * d, 1.0), rng.uniform(rows * d, 1.0));
     let inputs = ChainInputs {
         weights: &weights,
-        att: &att,
+        att: &queries,
         h: &h,
         y: &vec![0.0; 3 * rows * d],
         x: &[0.0],
         sigma: &[0.0],
         valid: &[0.0],
     };
-    let (h_got, y_got) = ResidualChain::new(ctx).run(ctx, p, &inputs)?;
+    let attend = AttendInputs {
+        map_kv: &map_kv,
+        key_valid: &key_valid,
+        agent_scene: &agent_scene,
+    };
+    let chain_kernel = ResidualChain::new(ctx);
+    let (h_got, y_got, _) = chain_kernel.run_full(ctx, p, &inputs, None, Some(attend))?;
+    let by_agent = TokenLayout::contiguous(keys as u32);
+    let map_attention = AttentionParams {
+        groups: (b * a) as u32,
+        heads: heads as u32,
+        head_dim: (d / heads) as u32,
+        queries: w as u32,
+        keys: keys as u32,
+        scale: p.scale,
+        scene_agents: a as u32,
+        scene_mode: SceneMode::None as u32,
+        q_layout: TokenLayout::contiguous(w as u32),
+        kv_layout: by_agent,
+        mask_layout: by_agent,
+    };
+    let att = reference::attention(&map_attention, &queries, &k, &v, &key_valid, &agent_scene);
     let (h_want, next_want) = reference::residual_chain(
         &att,
         &h,
@@ -171,7 +210,82 @@ pub fn kernel_checks(ctx: &GpuContext) -> Result<Vec<KernelCheck>> {
     let got: Vec<f32> = h_got.into_iter().chain(y_got).collect();
     let want: Vec<f32> = h_want.into_iter().chain(y_want).collect();
     checks.push(KernelCheck {
-        name: "residual_chain (output, MLP, next q/k/v)",
+        name: "residual_chain (map attention, output, MLP, next q/k/v)",
+        values: got.len(),
+        tolerance: loose,
+        outcome: loose.check(&got, &want),
+    });
+
+    // The embedding chain: the token embedding (agent frame at slot 9, constant-velocity
+    // reference) and block 0's q, k, v behind its norm, in 3 parts.
+    let packed = rng.uniform(6 * d + w * d + 6 * d + d, 0.5);
+    let (next_w, next_b) = (rng.uniform(3 * d * d, 0.3), rng.uniform(3 * d, 0.3));
+    let (x, agent) = (rng.uniform(rows * 3, 2.0), rng.uniform(b * a * d, 1.0));
+    let sigma: Vec<f32> = rng.uniform(b * w, 1.0).iter().map(|v| 1.05 + v).collect();
+    let valid = rng.flags(rows, 0.9);
+    let mut next_weights = transpose(&next_w, 3 * d);
+    let next_bias_at = next_weights.len() as u32;
+    next_weights.extend(&next_b);
+    let p = ChainParams {
+        rows: rows as u32,
+        d: d as u32,
+        eps: 1e-5,
+        next_w: 0,
+        next_b: next_bias_at,
+        next_out: (3 * d) as u32,
+        part: d as u32,
+        part_stride: (rows * d) as u32,
+        slots: w as u32,
+        agents: a as u32,
+        anchor_slot: 9,
+        sigma_data: 0.5,
+        heading_scale: 0.25,
+        residual_scale: 40.0,
+        relative_scale: 1.0,
+        ..ChainParams::default()
+    };
+    let inputs = EmbedChainInputs {
+        weights: &next_weights,
+        embed: &packed,
+        x: &x,
+        sigma: &sigma,
+        valid: &valid,
+        agent: &agent,
+    };
+    let (h_got, y_got) = chain_kernel.run_embed(ctx, p, &inputs)?;
+    let shape = reference::EmbedShape {
+        agents: a,
+        slots: w,
+        hidden: d,
+        sigma_data: 0.5,
+        anchor_slot: Some(9),
+        heading_scale: 0.25,
+        relative_scale: 1.0,
+        residual_scale: 40.0,
+    };
+    let h_want = reference::embed_tokens(&shape, &x, &sigma, &valid, &agent, &packed);
+    let (ones, zeros) = (vec![1.0; d], vec![0.0; d]);
+    let next_want = reference::linear_fused(
+        &h_want,
+        &next_w,
+        &next_b,
+        rows,
+        d,
+        3 * d,
+        false,
+        Some((&ones, &zeros, 1e-5)),
+        None,
+    );
+    let y_want: Vec<f32> = (0..3 * rows * d)
+        .map(|i| {
+            let (part, row, column) = (i / (rows * d), i % (rows * d) / d, i % d);
+            next_want[row * 3 * d + part * d + column]
+        })
+        .collect();
+    let got: Vec<f32> = h_got.into_iter().chain(y_got).collect();
+    let want: Vec<f32> = h_want.into_iter().chain(y_want).collect();
+    checks.push(KernelCheck {
+        name: "embed_chain (token embedding, block 0's q/k/v)",
         values: got.len(),
         tolerance: loose,
         outcome: loose.check(&got, &want),
