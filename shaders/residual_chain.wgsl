@@ -9,8 +9,9 @@
 // the head's F and the kernel writes D(x; σ) instead (common/precondition.wgsl, prepended),
 // and with `update` also the sampler's step from it (heun.wgsl's `heun_euler`, then its
 // `multistep_correct` where γ ≠ 0; γ is 0 in a Heun step): x_e, a dispatch saved. With
-// `attend`, att is the map attention of the tile's rows, made here from the map's q (bound as
-// `att`) and its kept keys: the map's attention dispatch saved too.
+// `attend`, att is the attention of the tile's rows, made here from their q (bound as `att`)
+// and keys grouped by agent row (the map's kept keys, or the agent's W slots for attention
+// over time): the attention's dispatch saved too.
 // Every weight lives in one bound range of the weights buffer, at offsets in floats, transposed
 // ([in, out]: the engine transposes them on upload) so that neighbouring invocations load
 // neighbouring weights. A workgroup of 64 holds ROWS rows of a layer's input in workgroup
@@ -44,7 +45,7 @@ struct Params {
     residual_scale: f32,
     update: u32,      // precondition: 1 also writes x_e (the Euler step, γ-corrected)
     relative_scale: f32, // embed_chain: the agent frame's relative features' multiplier
-    attend: u32,      // 1: the attention's rows are the map attention's, made here from its queries in `att`
+    attend: u32,      // 1: the attention's rows are made here (`attention_rows`) from their queries in `att`
     heads: u32,       // attend: heads, each of head_dim columns (heads · head_dim = D)
     head_dim: u32,
     scale: f32,       // attend: 1 / √head_dim
@@ -75,8 +76,8 @@ const NO_BIAS: u32 = 0xffffffffu;
 @group(0) @binding(11) var<storage, read> gamma: array<f32>;       // update: [B, W]
 @group(0) @binding(12) var<storage, read> agent: array<f32>;       // embed_chain: [B, A, D]
 @group(0) @binding(13) var<storage, read> embed_weights: array<f32>; // embed_chain: the packed small weights
-@group(0) @binding(14) var<storage, read> map_kv: array<f32>;      // attend: the map's k, v [key rows, D] at k_off, v_off
-@group(0) @binding(15) var<storage, read> key_valid: array<f32>;   // attend: [key rows]
+@group(0) @binding(14) var<storage, read> map_kv: array<f32>;      // attend: k, v [key rows, D] at k_off, v_off (the map's, or qkv's)
+@group(0) @binding(15) var<storage, read> key_valid: array<f32>;   // attend: [key rows] (the map's flags, or valid)
 @group(0) @binding(16) var<storage, read> agent_scene: array<u32>; // attend: [B·A], each agent row's map scene
 
 // What common/embed_token.wgsl reads of this kernel's (`embed_chain`).
@@ -112,14 +113,14 @@ var<workgroup> tile: array<f32, 2048>;          // [ROWS, MAX_D]: att, then the 
 var<workgroup> hidden_units: array<f32, 1024>;  // [ROWS, UNITS]: a chunk of MLP units, or F [ROWS, 3]
 var<workgroup> tile_stats: array<vec2<f32>, 8>; // [ROWS]: (mean, 1/σ) of each row of the tile
 
-// The map attention of the tile's rows (as `attention.wgsl`'s over the map: one (row, head) a
-// task, an online softmax over the row's agent's valid keys, zeros where none is valid) into
-// the tile; rows past `live` zero. The queries are `att`'s rows (the map's q), the keys and
-// values `map_kv`'s: agent row n = token / W reads key rows n·keys + j (its own polylines) or,
-// with `key_mode` 1, agent_scene[n]·keys + j (its scene's map).
+// The attention of the tile's rows (as `attention.wgsl`'s: one (row, head) a task, an online
+// softmax over the row's agent's valid keys, zeros where none is valid) into the tile; rows
+// past `live` zero. The queries are `att`'s rows, the keys and values `map_kv`'s: agent row
+// n = token / W reads key rows n·keys + j (over the map, its own polylines; over time, keys =
+// W: its own slots) or, with `key_mode` 1, agent_scene[n]·keys + j (its scene's map).
 const MAX_HEAD_DIM: u32 = 64u;
 
-fn map_attention(lid: u32, first: u32, live: u32) {
+fn attention_rows(lid: u32, first: u32, live: u32) {
     let d = params.d;
     let hd = params.head_dim;
     for (var task = lid; task < ROWS * params.heads; task += LANES) {
@@ -299,7 +300,7 @@ fn residual_chain(
     // here), then each invocation adds its blocks of every row into h (no other invocation
     // touches them).
     if (params.attend == 1u) {
-        map_attention(lid, first, live);
+        attention_rows(lid, first, live);
     } else {
         for (var i = lid; i < ROWS * d; i += LANES) {
             let r = i / d;

@@ -8,17 +8,18 @@
 //! The forward pass is the one of `docs/checkpoint.md`, kernel by kernel (the agents'
 //! `embed_agent` ran once on upload): with agent maps `pick_agent_maps` and the polyline
 //! encoder → `linear` map k/v of every block at once → `embed_chain` (the token embedding, then
-//! block 0's q/k/v behind its layer norm, one layer of 3·D outputs) → per block: `attention`
-//! (time), `residual_chain` (the time output projection into the residual stream, the agents'
-//! q/k/v), `attention` or `pair_attention` (agents), `residual_chain` (output, the map's q into
-//! `map_q`), `residual_chain` attending (the map attention of its rows from `map_q` and the
-//! kept keys, output, the MLP, the next block's q/k/v or the head with `precondition_output`'s
-//! math and the sampler's update): 19.5 dispatches an evaluation of road20-wide4 with its share
-//! of a Heun step's update, 18 where its second evaluation keeps the first's map keys. With
+//! block 0's q/k/v behind its layer norm, one layer of 3·D outputs) → per block:
+//! `residual_chain` attending over time (each agent's W slots of `qkv`, the output projection
+//! into the residual stream, the agents' q/k/v into `agents_qkv`), `attention` or
+//! `pair_attention` (agents), `residual_chain` (output, the map's q into `map_q`),
+//! `residual_chain` attending over the map (from `map_q` and the kept keys; output, the MLP,
+//! the next block's q/k/v into `qkv` or the head with `precondition_output`'s math and the
+//! sampler's update): 16.5 dispatches an evaluation of road20-wide4 with its share of a Heun
+//! step's update, 15 where its second evaluation keeps the first's map keys. With
 //! `ContextOptions::residual_chains` off (or D past the chain's tile) the embedding is
-//! `embed_tokens`, the map attention an `attention`, and each layer a `linear` of its own (norm,
-//! ReLU and residual add fused in), and the head's output goes through `precondition_output`. The sampler
-//! steps around it are in `sampler_step`.
+//! `embed_tokens`, every attention an `attention` (or `pair_attention`), and each layer a
+//! `linear` of its own (norm, ReLU and residual add fused in), and the head's output goes
+//! through `precondition_output`. The sampler steps around it are in `sampler_step`.
 
 use std::collections::HashMap;
 use std::path::Path;
@@ -107,10 +108,11 @@ struct ChainLayers<'a> {
     next: Option<(&'a str, usize, usize)>,
 }
 
-/// The map attention a residual chain makes before its output projection
-/// (`ChainParams::attend`), its queries being the chain's `att` input: every block's k, v in
-/// `map_kv` (k at `k_off`, v at `v_off` floats), each key row's flag, each agent row's map
-/// scene; `keys` per agent row or (`key_mode` 1) per map scene.
+/// The attention a residual chain makes before its output projection (`ChainParams::attend`),
+/// its queries being the chain's `att` input (from offset 0): the map's (every block's k, v in
+/// `map_kv`, each agent row's K polylines or, `key_mode` 1, its scene's P) or time's (the k, v
+/// parts of `qkv`, each agent's W slots); k at `k_off`, v at `v_off` floats, each key row's
+/// flag, each agent row's map scene.
 #[derive(Debug, Clone, Copy)]
 struct ChainAttention<'a> {
     map_kv: &'a wgpu::Buffer,
@@ -544,7 +546,7 @@ impl GpuDenoiser {
             }
             None => (unread(), unread(), unread()),
         };
-        // The map attention's bindings: the layout has them whether the chain attends or not.
+        // The attention's bindings: the layout has them whether the chain attends or not.
         let (map_kv, key_valid, agent_scene) = match attend {
             Some(a) => {
                 let heads = c.heads as u32;
@@ -900,6 +902,7 @@ impl GpuDenoiser {
         let Scratch {
             h,
             qkv,
+            agents_qkv,
             token_part,
             att,
             map_q,
@@ -1127,8 +1130,17 @@ impl GpuDenoiser {
                         fused,
                     )?;
                 }
-                let [q, k, v] = [0, 1, 2].map(|j| part_of(qkv, j, token_part, tokens * d));
-                if part == "agents" && c.agent_pairs.is_some() {
+                // With chains, agent attention reads the q, k, v the time chain wrote to
+                // `agents_qkv`, and time attention is made by its chain.
+                let source = if chains && part == "agents" {
+                    agents_qkv
+                } else {
+                    qkv
+                };
+                let [q, k, v] = [0, 1, 2].map(|j| part_of(source, j, token_part, tokens * d));
+                if chains && part == "time" {
+                    // Made by the time chain below (`ChainParams::attend`).
+                } else if part == "agents" && c.agent_pairs.is_some() {
                     // Agent pairs: their features from this `x`, in the pair kernel.
                     let pairs = PairAttentionParams::of(c, b, a)?;
                     let params = Self::params(ctx, &pairs);
@@ -1168,22 +1180,39 @@ impl GpuDenoiser {
                 }
                 let output = format!("{blk}.{part}.o");
                 if chains {
-                    // The output projection, then the next layer: the agents' q, k, v after
-                    // time attention, the map's q after agent attention.
-                    // The map's q goes to `map_q`, which the map's chain attends from.
-                    let (next, next_layer, y) = if part == "time" {
-                        (qkv_of(i, "agents").0, (3 * d, d), qkv)
+                    // The output projection, then the next layer: after time attention (which
+                    // this chain makes, over each agent's W slots of `qkv`) the agents' q, k, v
+                    // into `agents_qkv`; after agent attention the map's q into `map_q`, which
+                    // the map's chain attends from. Neither may go into a buffer the chain
+                    // reads: other workgroups read it in the same dispatch.
+                    if part == "time" {
+                        let next = qkv_of(i, "agents").0;
+                        let layers = ChainLayers {
+                            output: &output,
+                            mlp: None,
+                            next: Some((&next, 3 * d, d)),
+                        };
+                        let attend = ChainAttention {
+                            map_kv: qkv,
+                            k_off: token_part,
+                            v_off: 2 * token_part,
+                            key_valid: &batch.valid,
+                            agent_scene: &batch.agent_scene,
+                            keys: w32,
+                            key_mode: 0,
+                        };
+                        let io = (qkv, h, agents_qkv.as_entire_binding());
+                        self.chain(ctx, ops, layers, io, tokens, token_part, None, Some(attend))?;
                     } else {
-                        (format!("{blk}.map.q"), (d, d), map_q)
-                    };
-                    let layers = ChainLayers {
-                        output: &output,
-                        mlp: None,
-                        next: Some((&next, next_layer.0, next_layer.1)),
-                    };
-                    let y = y.as_entire_binding();
-                    let io = (att, h, y);
-                    self.chain(ctx, ops, layers, io, tokens, token_part, None, None)?;
+                        let next = format!("{blk}.map.q");
+                        let layers = ChainLayers {
+                            output: &output,
+                            mlp: None,
+                            next: Some((&next, d, d)),
+                        };
+                        let io = (att, h, map_q.as_entire_binding());
+                        self.chain(ctx, ops, layers, io, tokens, token_part, None, None)?;
+                    }
                 } else {
                     // The output projection adds into the residual stream.
                     self.linear(

@@ -22,6 +22,9 @@ pub(crate) struct Scratch {
     pub(super) h: wgpu::Buffer, // [T, D]: the residual stream
     /// `[3, token_part]`: q, k, v `[T, D]` each, from one fused projection.
     pub(super) qkv: wgpu::Buffer,
+    /// With residual chains, agent attention's q, k, v (`[3, token_part]`), which the time
+    /// chain writes while it attends from `qkv`; one float otherwise.
+    pub(super) agents_qkv: wgpu::Buffer,
     /// Floats from one part of `qkv` to the next: `T · D` rounded up to the offset alignment.
     pub(super) token_part: usize,
     pub(super) att: wgpu::Buffer, // [T, D]
@@ -134,14 +137,15 @@ impl Scratch {
         let map_kv_all = (2 * c.blocks * key_part * 4) as u64 <= max_bytes;
         let kv_parts = if map_kv_all { 2 * c.blocks } else { 2 };
         // Residual chains keep the MLP's hidden layer and the head's F on chip.
-        let (hidden, f, map_q) = if chains {
-            (1, 1, tokens * d)
+        let (hidden, f, map_q, agents_qkv) = if chains {
+            (1, 1, tokens * d, 3 * token_part)
         } else {
-            (tokens * d * c.mlp_ratio, tokens * 3, 1)
+            (tokens * d * c.mlp_ratio, tokens * 3, 1, 1)
         };
         Ok(Self {
             h: buf("h", tokens * d),
             qkv: buf("qkv", 3 * token_part),
+            agents_qkv: buf("agents qkv", agents_qkv),
             token_part,
             att: buf("attention", tokens * d),
             map_q: buf("map q", map_q),

@@ -3,8 +3,8 @@
 //! residual stream, optionally the MLP (its hidden layer 64 units at a time, never in memory),
 //! and optionally the next layer behind its layer norm (the next attention's q/k/v, the map's
 //! q, or the head with the output preconditioning, and then optionally the sampler's Euler step
-//! with the multistep sampler's correction); with `attend` it first makes its rows' map
-//! attention itself (the queries in `att`, the keys and values bound apart). Its `embed_chain`
+//! with the multistep sampler's correction); with `attend` it first makes its rows' attention
+//! itself (the queries in `att`, the keys and values bound apart: the map's, or time's). Its `embed_chain`
 //! entry makes the token embedding
 //! (`shaders/common/embed_token.wgsl`) and the first layer (block 0's q, k, v) the same way. The
 //! engine runs them where the layer-by-layer path ran two to six dispatches
@@ -22,7 +22,7 @@ pub const ROWS: u32 = 8;
 pub const MAX_HIDDEN: u32 = 256;
 /// Invocations of one workgroup.
 const LANES: u32 = 64;
-/// Widest head the chain's map attention holds (the shader's `MAX_HEAD_DIM`).
+/// Widest head the chain's attention holds (the shader's `MAX_HEAD_DIM`).
 pub const MAX_HEAD_DIM: u32 = 64;
 /// `anchor_slot` without an agent frame.
 pub const NO_FRAME: u32 = u32::MAX;
@@ -67,10 +67,10 @@ pub struct ChainParams {
     pub update: u32,
     /// `embed_chain`: the agent frame's relative features' multiplier.
     pub relative_scale: f32,
-    /// 1: the attention's rows are made here, the map attention of `att`'s rows (the map's q)
-    /// over the keys and values in the `map_kv` binding (`heads` of `head_dim`, `scale`; `keys`
-    /// per agent row, or with `key_mode` 1 per map scene of `agent_scene`; k at `k_off`, v at
-    /// `v_off` floats).
+    /// 1: the attention's rows are made here, the attention of `att`'s rows (their q) over the
+    /// keys and values in the `map_kv` binding (`heads` of `head_dim`, `scale`; `keys` per agent
+    /// row, or with `key_mode` 1 per map scene of `agent_scene`; k at `k_off`, v at `v_off`
+    /// floats): the map's over its kept keys, or time's over `qkv`'s k and v parts.
     pub attend: u32,
     pub heads: u32,
     pub head_dim: u32,
@@ -110,7 +110,7 @@ impl ChainParams {
                 || self.keys == 0)
         {
             return Err(Error::Input(format!(
-                "the chain's map attention needs heads × head dim = D ({} × {} against {}, head \
+                "the chain's attention needs heads × head dim = D ({} × {} against {}, head \
                  dim ≤ {MAX_HEAD_DIM}) and keys ({})",
                 self.heads, self.head_dim, self.d, self.keys
             )));
@@ -160,7 +160,7 @@ pub fn embed_bindings<'a>(
     ]
 }
 
-/// The map attention's bindings of a `residual_chain` dispatch (bound whether it attends or
+/// The attention's bindings of a `residual_chain` dispatch (bound whether it attends or
 /// not: the kernel's layout has them): keys and values, key flags, agent rows' map scenes.
 pub fn attend_bindings<'a>(
     map_kv: &'a wgpu::Buffer,
@@ -201,7 +201,7 @@ pub struct ChainInputs<'a> {
     pub valid: &'a [f32],
 }
 
-/// The map attention a chain with `attend` makes ([`ResidualChain::run_full`]): the keys' and
+/// The attention a chain with `attend` makes ([`ResidualChain::run_full`]): the keys' and
 /// values' buffer (`k_off`, `v_off` into it), each key row's flag, each agent row's map scene.
 #[derive(Debug, Clone, Copy)]
 pub struct AttendInputs<'a> {
@@ -328,7 +328,7 @@ impl ResidualChain {
         self.run_full(ctx, p, inputs, update, None)
     }
 
-    /// [`Self::run_with_update`] with the map attention (`p.attend`, `att` holding the queries).
+    /// [`Self::run_with_update`] with its own attention (`p.attend`, `att` holding the queries).
     pub fn run_full(
         &self,
         ctx: &GpuContext,
