@@ -156,7 +156,7 @@ run)
     # The candle reference takes minutes per step at thousands of scenes: timed up to 8 only
     # (the first lent run, 2026-11-26, measured it to 64: docs/experiments/2026-11-26-gpu-h100/).
     # road20 stands for every D = 64 checkpoint (the same shapes), road20-wide4 is the default.
-    # The blocks as residual chains (the default since 2026-11-27: 15–16.5 dispatches an
+    # The blocks as residual chains (the default since 2026-11-27: 12–13.5 dispatches an
     # evaluation) and layer by layer (38–40), each with the kernels chosen per layer (auto) beside each linear
     # variant alone (the chains run linear layers only for the first q/k/v and the map's k/v;
     # the per-polyline encoder was measured against the blocked one on 2026-11-26); then the

@@ -47,22 +47,14 @@ fn row_of(group: u32, agent: u32) -> u32 {
     return (scene * params.agents + agent) * params.slots + group % params.slots;
 }
 
+// The states as common/pair_features.wgsl reads them.
+fn pair_state(i: u32) -> f32 {
+    return states[i];
+}
+
 fn pair_features(query: u32, key: u32, cos_a: f32, sin_a: f32) -> array<f32, 6> {
-    let dx = states[key * 3u] - states[query * 3u];
-    let dy = states[key * 3u + 1u] - states[query * 3u + 1u];
-    let forward = dx * cos_a + dy * sin_a;
-    let left = dy * cos_a - dx * sin_a;
-    let distance = sqrt(forward * forward + left * left);
-    let squash = 1.0 / (distance + params.direction);
-    let turn = (states[key * 3u + 2u] - states[query * 3u + 2u]) / params.heading_scale;
-    return array<f32, 6>(
-        forward * squash,
-        left * squash,
-        exp(-distance / params.near),
-        exp(-distance / params.far),
-        cos(turn),
-        sin(turn),
-    );
+    let scales = PairScales(params.heading_scale, params.direction, params.near, params.far);
+    return pair_features_of(query, key, cos_a, sin_a, scales);
 }
 
 @compute @workgroup_size(64)

@@ -49,10 +49,14 @@ struct Params {
     heads: u32,       // attend: heads, each of head_dim columns (heads · head_dim = D)
     head_dim: u32,
     scale: f32,       // attend: 1 / √head_dim
-    keys: u32,        // attend: keys per agent row (K, its own) or per map scene (P)
-    key_mode: u32,    // attend: 0, agent row n's keys are rows n·keys …; 1, those of its scene agent_scene[n]
+    keys: u32,        // attend: keys per agent row (K, its own) or per map scene (P); agents: A
+    key_mode: u32,    // attend: 0, agent row n's keys are rows n·keys …; 1, those of its scene agent_scene[n]; 2, the agents of its scene at its slot
     k_off: u32,       // attend: offsets (floats) of the keys' k and v in map_kv
     v_off: u32,
+    pairs: u32,       // attend, key_mode 2: 1 adds the agent-pair features (agent_pairs.wgsl) from x
+    direction: f32,   // pairs: length scales in state units (heading_scale is the pairs')
+    near: f32,
+    far: f32,
 }
 
 const ROWS: u32 = 8u;
@@ -78,7 +82,14 @@ const NO_BIAS: u32 = 0xffffffffu;
 @group(0) @binding(13) var<storage, read> embed_weights: array<f32>; // embed_chain: the packed small weights
 @group(0) @binding(14) var<storage, read> map_kv: array<f32>;      // attend: k, v [key rows, D] at k_off, v_off (the map's, or qkv's)
 @group(0) @binding(15) var<storage, read> key_valid: array<f32>;   // attend: [key rows] (the map's flags, or valid)
-@group(0) @binding(16) var<storage, read> agent_scene: array<u32>; // attend: [B·A], each agent row's map scene
+@group(0) @binding(16) var<storage, read> agent_scene: array<u32>; // attend: [B·A], each agent row's map scene (key_mode 2: its scene)
+@group(0) @binding(17) var<storage, read> pair_k: array<f32>;      // pairs: [D, 6]
+@group(0) @binding(18) var<storage, read> pair_v: array<f32>;      // pairs: [D, 6]
+
+// The states as common/pair_features.wgsl reads them (x, bound for agent attention's pairs).
+fn pair_state(i: u32) -> f32 {
+    return x[i];
+}
 
 // What common/embed_token.wgsl reads of this kernel's (`embed_chain`).
 fn embed_weight(i: u32) -> f32 {
@@ -113,16 +124,20 @@ var<workgroup> tile: array<f32, 2048>;          // [ROWS, MAX_D]: att, then the 
 var<workgroup> hidden_units: array<f32, 1024>;  // [ROWS, UNITS]: a chunk of MLP units, or F [ROWS, 3]
 var<workgroup> tile_stats: array<vec2<f32>, 8>; // [ROWS]: (mean, 1/σ) of each row of the tile
 
-// The attention of the tile's rows (as `attention.wgsl`'s: one (row, head) a task, an online
-// softmax over the row's agent's valid keys, zeros where none is valid) into the tile; rows
-// past `live` zero. The queries are `att`'s rows, the keys and values `map_kv`'s: agent row
-// n = token / W reads key rows n·keys + j (over the map, its own polylines; over time, keys =
-// W: its own slots) or, with `key_mode` 1, agent_scene[n]·keys + j (its scene's map).
+// The attention of the tile's rows (as `attention.wgsl`'s and `agent_pairs.wgsl`'s: one (row,
+// head) a task, an online softmax over the row's valid keys, zeros where none is valid) into
+// the tile; rows past `live` zero. The queries are `att`'s rows, the keys and values
+// `map_kv`'s, their flags `key_valid`'s. Token t of agent row n = t / W at slot t % W reads key
+// rows n·keys + j (`key_mode` 0: over the map, its own polylines; over time, keys = W, its own
+// slots), agent_scene[n]·keys + j (1: its scene's map), or (2: over agents, keys = A) the agents
+// j of its batch scene at its slot, those of its own packed scene (`agent_scene`) only, with the
+// pair features (`pairs`) in its anchor frame.
 const MAX_HEAD_DIM: u32 = 64u;
 
 fn attention_rows(lid: u32, first: u32, live: u32) {
     let d = params.d;
     let hd = params.head_dim;
+    let scales = PairScales(params.heading_scale, params.direction, params.near, params.far);
     for (var task = lid; task < ROWS * params.heads; task += LANES) {
         let r = task / params.heads;
         let head = task % params.heads;
@@ -130,18 +145,49 @@ fn attention_rows(lid: u32, first: u32, live: u32) {
         for (var c = 0u; c < hd; c++) {
             acc[c] = 0.0;
         }
+        var acc_pair: array<f32, 6>;
+        var q_pair: array<f32, 6>;
+        for (var f = 0u; f < PAIR_FEATURES; f++) {
+            acc_pair[f] = 0.0;
+            q_pair[f] = 0.0;
+        }
         var running_max = -3.0e38;
         var denom = 0.0;
         if (r < live) {
             let token = first + r;
             let agent_row = token / params.slots;
+            let slot = token % params.slots;
+            let scene = agent_row / params.agents;
             var key0 = agent_row * params.keys;
             if (params.key_mode == 1u) {
                 key0 = agent_scene[agent_row] * params.keys;
             }
             let q_base = token * d + head * hd;
+            var cos_a = 1.0;
+            var sin_a = 0.0;
+            if (params.pairs == 1u) {
+                // The query agent's anchor heading (the scene frame's 0 without an anchor), and
+                // K_hᵀ q_h.
+                let anchor_row = agent_row * params.slots + params.anchor_slot;
+                let heading = x[anchor_row * 3u + 2u] * key_valid[anchor_row] / params.heading_scale;
+                cos_a = cos(heading);
+                sin_a = sin(heading);
+                for (var f = 0u; f < PAIR_FEATURES; f++) {
+                    var sum = 0.0;
+                    for (var c = 0u; c < hd; c++) {
+                        sum += att[q_base + c] * pair_k[(head * hd + c) * PAIR_FEATURES + f];
+                    }
+                    q_pair[f] = sum;
+                }
+            }
             for (var j = 0u; j < params.keys; j++) {
-                let key = key0 + j;
+                var key = key0 + j;
+                if (params.key_mode == 2u) {
+                    key = ((scene * params.agents + j) * params.slots) + slot;
+                    if (agent_scene[scene * params.agents + j] != agent_scene[agent_row]) {
+                        continue;
+                    }
+                }
                 if (key_valid[key] == 0.0) {
                     continue;
                 }
@@ -151,6 +197,13 @@ fn attention_rows(lid: u32, first: u32, live: u32) {
                 for (var c = 0u; c < hd; c++) {
                     score += att[q_base + c] * map_kv[k_base + c];
                 }
+                var pair = array<f32, 6>(0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
+                if (params.pairs == 1u) {
+                    pair = pair_features_of(token, key, cos_a, sin_a, scales);
+                    for (var f = 0u; f < PAIR_FEATURES; f++) {
+                        score += q_pair[f] * pair[f];
+                    }
+                }
                 score *= params.scale;
                 let new_max = max(running_max, score);
                 let correction = exp(running_max - new_max);
@@ -159,12 +212,21 @@ fn attention_rows(lid: u32, first: u32, live: u32) {
                 for (var c = 0u; c < hd; c++) {
                     acc[c] = acc[c] * correction + weight * map_kv[v_base + c];
                 }
+                for (var f = 0u; f < PAIR_FEATURES; f++) {
+                    acc_pair[f] = acc_pair[f] * correction + weight * pair[f];
+                }
                 running_max = new_max;
             }
         }
         let inv = select(0.0, 1.0 / denom, denom > 0.0);
         for (var c = 0u; c < hd; c++) {
-            tile[r * MAX_D + head * hd + c] = acc[c] * inv;
+            var offset = 0.0;
+            if (params.pairs == 1u) {
+                for (var f = 0u; f < PAIR_FEATURES; f++) {
+                    offset += pair_v[(head * hd + c) * PAIR_FEATURES + f] * acc_pair[f];
+                }
+            }
+            tile[r * MAX_D + head * hd + c] = (acc[c] + offset) * inv;
         }
     }
 }

@@ -172,6 +172,8 @@ pub fn kernel_checks(ctx: &GpuContext) -> Result<Vec<KernelCheck>> {
         map_kv: &map_kv,
         key_valid: &key_valid,
         agent_scene: &agent_scene,
+        pair_k: &[],
+        pair_v: &[],
     };
     let chain_kernel = ResidualChain::new(ctx);
     let (h_got, y_got, _) = chain_kernel.run_full(ctx, p, &inputs, None, Some(attend))?;

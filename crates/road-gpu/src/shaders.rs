@@ -40,6 +40,8 @@ pub enum Shader {
 const PRECONDITION: &str = include_str!("../../../shaders/common/precondition.wgsl");
 /// `shaders/common/embed_token.wgsl`: one value of the token embedding.
 const EMBED_TOKEN: &str = include_str!("../../../shaders/common/embed_token.wgsl");
+/// `shaders/common/pair_features.wgsl`: the features of a pair of agents.
+const PAIR_FEATURES: &str = include_str!("../../../shaders/common/pair_features.wgsl");
 /// `shaders/common/linear_io.wgsl`: the linear kernels' params, bindings and epilogue.
 const LINEAR_IO: &str = include_str!("../../../shaders/common/linear_io.wgsl");
 /// `shaders/common/enable_f16.wgsl`: `enable f16;`, first in the f16 families.
@@ -117,10 +119,14 @@ impl Shader {
             Shader::Heun => include_str!("../../../shaders/heun.wgsl"),
             Shader::Window => include_str!("../../../shaders/window.wgsl"),
             Shader::AgentMap => include_str!("../../../shaders/agent_map.wgsl"),
-            Shader::AgentPairs => include_str!("../../../shaders/agent_pairs.wgsl"),
+            Shader::AgentPairs => concat!(
+                include_str!("../../../shaders/common/pair_features.wgsl"),
+                include_str!("../../../shaders/agent_pairs.wgsl")
+            ),
             Shader::ResidualChain => concat!(
                 include_str!("../../../shaders/common/precondition.wgsl"),
                 include_str!("../../../shaders/common/embed_token.wgsl"),
+                include_str!("../../../shaders/common/pair_features.wgsl"),
                 include_str!("../../../shaders/residual_chain.wgsl")
             ),
             Shader::Compact => include_str!("../../../shaders/compact.wgsl"),
@@ -132,7 +138,8 @@ impl Shader {
     pub fn includes(self) -> &'static [&'static str] {
         match self {
             Shader::Elementwise => &[PRECONDITION],
-            Shader::ResidualChain => &[PRECONDITION, EMBED_TOKEN],
+            Shader::ResidualChain => &[PRECONDITION, EMBED_TOKEN, PAIR_FEATURES],
+            Shader::AgentPairs => &[PAIR_FEATURES],
             Shader::Embed => &[EMBED_TOKEN],
             Shader::Linear => &[LINEAR_IO],
             Shader::LinearF16 => &[ENABLE_F16, LINEAR_IO],

@@ -1303,6 +1303,8 @@ fn residual_chain_attending_matches_the_cpu_reference() {
             map_kv: &map_kv,
             key_valid: &key_valid,
             agent_scene: &agent_scene,
+            pair_k: &[],
+            pair_v: &[],
         };
         let (h_got, y_got, _) = kernel
             .run_full(&ctx, p, &inputs, None, Some(attend))
@@ -1348,6 +1350,158 @@ fn residual_chain_attending_matches_the_cpu_reference() {
         }
         if let Err(e) = tol.check(&y_got, &y_want) {
             panic!("{what}: next layer: {e}");
+        }
+    }
+}
+
+/// The residual chain attending over agents (`key_mode` 2: the agents of each scene at the
+/// row's slot, their own packed scene's only) against the CPU references of the attention
+/// (plain, and with the pair features from the states) and of the chain: 2 batch scenes of 4
+/// agents over 5 slots, one holding two packed scenes, an invalid agent slot.
+#[test]
+fn residual_chain_attending_over_agents_matches_the_cpu_reference() {
+    use road_gpu::kernels::agent_pairs::PairAttentionParams;
+    use road_gpu::kernels::attention::{AttentionParams, SceneMode, TokenLayout};
+    use road_gpu::kernels::residual_chain::{
+        AttendInputs, ChainInputs, ChainParams, ResidualChain, transpose,
+    };
+    use road_gpu::reference::{attention, pair_attention, residual_chain};
+    let ctx = context();
+    let kernel = ResidualChain::new(&ctx);
+    let mut rng = rand::rngs::StdRng::seed_from_u64(31);
+    let (scenes, agents, slots, d, heads) = (2usize, 4usize, 5usize, 32usize, 2usize);
+    let rows = scenes * agents * slots;
+    let head_dim = d / heads;
+    for pairs in [false, true] {
+        let mut weights = PackedWeights { values: Vec::new() };
+        let hosts: Vec<Vec<f32>> = [d * d, d, d * d, d]
+            .iter()
+            .map(|&n| random(&mut rng, n, 0.3))
+            .collect();
+        let (q, k, v) = (
+            random(&mut rng, rows * d, 1.0),
+            random(&mut rng, rows * d, 1.0),
+            random(&mut rng, rows * d, 1.0),
+        );
+        let states = random(&mut rng, rows * 3, 2.0);
+        let mut valid = vec![1.0f32; rows];
+        valid[(agents + 2) * slots + 3] = 0.0;
+        // Scene 1 holds two packed scenes: agents 0, 1 and agents 2, 3.
+        let agent_scene: Vec<u32> = vec![0, 0, 0, 0, 1, 1, 2, 2];
+        let (pair_k, pair_v) = (random(&mut rng, d * 6, 0.3), random(&mut rng, d * 6, 0.3));
+        let scales = (0.25f32, 2.5f32, 1.25f32, 5.0f32);
+        let mut p = ChainParams {
+            rows: rows as u32,
+            d: d as u32,
+            eps: 1e-5,
+            next_out: d as u32,
+            part: d as u32,
+            part_stride: (rows * d) as u32,
+            attend: 1,
+            slots: slots as u32,
+            agents: agents as u32,
+            heads: heads as u32,
+            head_dim: head_dim as u32,
+            scale: 1.0 / (head_dim as f32).sqrt(),
+            keys: agents as u32,
+            key_mode: 2,
+            anchor_slot: 2,
+            pairs: u32::from(pairs),
+            heading_scale: scales.0,
+            direction: scales.1,
+            near: scales.2,
+            far: scales.3,
+            ..ChainParams::default()
+        };
+        p.o_w = weights.push(transpose(&hosts[0], d));
+        p.o_b = weights.push(hosts[1].clone());
+        p.next_w = weights.push(transpose(&hosts[2], d));
+        p.next_b = weights.push(hosts[3].clone());
+        let mut map_kv = k.clone();
+        p.k_off = 0;
+        p.v_off = map_kv.len() as u32;
+        map_kv.extend(&v);
+        let h = random(&mut rng, rows * d, 1.0);
+        let y0 = random(&mut rng, p.y_len(), 1.0);
+        let inputs = ChainInputs {
+            weights: &weights.values,
+            att: &q,
+            h: &h,
+            y: &y0,
+            x: &states,
+            sigma: &[0.0],
+            valid: &[0.0],
+        };
+        let attend = AttendInputs {
+            map_kv: &map_kv,
+            key_valid: &valid,
+            agent_scene: &agent_scene,
+            pair_k: if pairs { &pair_k } else { &[] },
+            pair_v: if pairs { &pair_v } else { &[] },
+        };
+        let (h_got, y_got, _) = kernel
+            .run_full(&ctx, p, &inputs, None, Some(attend))
+            .unwrap();
+        let att = if pairs {
+            let pp = PairAttentionParams {
+                groups: (scenes * slots) as u32,
+                heads: heads as u32,
+                head_dim: head_dim as u32,
+                agents: agents as u32,
+                slots: slots as u32,
+                anchor_slot: 2,
+                scale: p.scale,
+                heading_scale: scales.0,
+                direction: scales.1,
+                near: scales.2,
+                far: scales.3,
+                _pad: 0,
+            };
+            pair_attention(
+                &pp,
+                &q,
+                &k,
+                &v,
+                &valid,
+                &states,
+                &pair_k,
+                &pair_v,
+                &agent_scene,
+            )
+        } else {
+            let layout = TokenLayout {
+                inner_count: slots as u32,
+                outer_stride: (agents * slots) as u32,
+                inner_stride: 1,
+                token_stride: slots as u32,
+            };
+            let ap = AttentionParams {
+                groups: (scenes * slots) as u32,
+                heads: heads as u32,
+                head_dim: head_dim as u32,
+                queries: agents as u32,
+                keys: agents as u32,
+                scale: p.scale,
+                scene_agents: agents as u32,
+                scene_mode: SceneMode::AgentsOfOneScene as u32,
+                q_layout: layout,
+                kv_layout: layout,
+                mask_layout: layout,
+            };
+            attention(&ap, &q, &k, &v, &valid, &agent_scene)
+        };
+        let layer = |i: usize| (&hosts[i][..], &hosts[i + 1][..]);
+        let (h_want, y_want) =
+            residual_chain(&att, &h, rows, d, layer(0), None, Some(layer(2)), 1e-5);
+        let tol = Tolerance {
+            rel: 1e-4,
+            abs: 2e-5,
+        };
+        if let Err(e) = tol.check(&h_got, &h_want) {
+            panic!("pairs {pairs}: h: {e}");
+        }
+        if let Err(e) = tol.check(&y_got, &y_want) {
+            panic!("pairs {pairs}: next layer: {e}");
         }
     }
 }

@@ -335,8 +335,9 @@ fn map_keys_are_made_only_when_their_inputs_change() {
 }
 
 /// Residual chains: per evaluation the agent maps' pick and encoder, every block's map k, v at
-/// once, the embedding with the first q, k, v (one chain), then per block its agent attention
-/// and three chains (the time and the map chains attend themselves), the last of which makes the
+/// once, the embedding with the first q, k, v (one chain), then per block three chains, each
+/// making the attention before it (over time, over agents with the pair features, over the
+/// map), the last of which makes the
 /// first evaluation's Euler step too (a Heun step's second
 /// evaluation adds its correction: half a dispatch an evaluation; a multistep step none); layer
 /// by layer the embedding, the first q, k, v and 11 per block (the map k, v of every block still
@@ -365,12 +366,12 @@ fn residual_chains_cut_the_dispatches_and_bytes_of_an_evaluation() {
     }
     let (chains, layers) = (per_setting[0], per_setting[1]);
     let blocks = config.blocks as f64;
-    assert_eq!(chains.dispatches_per_evaluation(), 4.0 + 4.0 * blocks + 0.5);
+    assert_eq!(chains.dispatches_per_evaluation(), 4.0 + 3.0 * blocks + 0.5);
     assert_eq!(
         layers.dispatches_per_evaluation(),
         4.0 + 11.0 * blocks + 3.0
     );
-    assert_eq!(multistep[0].dispatches_per_evaluation(), 4.0 + 4.0 * blocks);
+    assert_eq!(multistep[0].dispatches_per_evaluation(), 4.0 + 3.0 * blocks);
     assert_eq!(
         multistep[1].dispatches_per_evaluation(),
         4.0 + 11.0 * blocks + 4.0

@@ -233,10 +233,10 @@ fn a_denoiser_runs_as_its_table_chose() {
         let mut plan = gpu.heun_plan(&ctx, &batch, &map_tokens).unwrap();
         plan.run(&ctx, &batch, &sigma, &sigma, false).unwrap();
         let dispatches = plan.take_traffic().dispatches;
-        // Chains: the first makes the embedding too, the time and map chains attend, the last
-        // makes the Euler step.
+        // Chains: the first makes the embedding too, every other its attention, the last the
+        // Euler step.
         let expected = if residual_chains {
-            4 + 4 * config.blocks
+            4 + 3 * config.blocks
         } else {
             4 + 11 * config.blocks + 3
         };

@@ -8,18 +8,20 @@
 //! The forward pass is the one of `docs/checkpoint.md`, kernel by kernel (the agents'
 //! `embed_agent` ran once on upload): with agent maps `pick_agent_maps` and the polyline
 //! encoder → `linear` map k/v of every block at once → `embed_chain` (the token embedding, then
-//! block 0's q/k/v behind its layer norm, one layer of 3·D outputs) → per block:
-//! `residual_chain` attending over time (each agent's W slots of `qkv`, the output projection
-//! into the residual stream, the agents' q/k/v into `agents_qkv`), `attention` or
-//! `pair_attention` (agents), `residual_chain` (output, the map's q into `map_q`),
-//! `residual_chain` attending over the map (from `map_q` and the kept keys; output, the MLP,
-//! the next block's q/k/v into `qkv` or the head with `precondition_output`'s math and the
-//! sampler's update): 16.5 dispatches an evaluation of road20-wide4 with its share of a Heun
-//! step's update, 15 where its second evaluation keeps the first's map keys. With
-//! `ContextOptions::residual_chains` off (or D past the chain's tile) the embedding is
-//! `embed_tokens`, every attention an `attention` (or `pair_attention`), and each layer a
-//! `linear` of its own (norm, ReLU and residual add fused in), and the head's output goes
-//! through `precondition_output`. The sampler steps around it are in `sampler_step`.
+//! block 0's q/k/v behind its layer norm, one layer of 3·D outputs) → per block three
+//! `residual_chain`s, each making the attention before it itself (`ChainParams::attend`): over
+//! time (each agent's W slots of `qkv`; the output projection into the residual stream, the
+//! agents' q/k/v into `agents_qkv`), over agents (the agents of the row's scene at its slot,
+//! with the pair features; output, the map's q into `map_q`), over the map (from `map_q` and the
+//! kept keys; output, the MLP, the next block's q/k/v into `qkv` or the head with
+//! `precondition_output`'s math and the sampler's update): 13.5 dispatches an evaluation of
+//! road20-wide4 with its share of a Heun step's update, 12 where its second evaluation keeps the
+//! first's map keys. A chain never writes a buffer it attends from: other workgroups read it in
+//! the same dispatch. With `ContextOptions::residual_chains` off (or D past the chain's tile)
+//! the embedding is `embed_tokens`, every attention an `attention` (or `pair_attention`), and
+//! each layer a `linear` of its own (norm, ReLU and residual add fused in), and the head's
+//! output goes through `precondition_output`. The sampler steps around it are in
+//! `sampler_step`.
 
 use std::collections::HashMap;
 use std::path::Path;
@@ -113,7 +115,9 @@ struct ChainLayers<'a> {
 /// `map_kv`, each agent row's K polylines or, `key_mode` 1, its scene's P) or time's (the k, v
 /// parts of `qkv`, each agent's W slots); k at `k_off`, v at `v_off` floats, each key row's
 /// flag, each agent row's map scene.
-#[derive(Debug, Clone, Copy)]
+/// Over agents (`key_mode` 2), `states` are the evaluation's x, which the pair features (with
+/// `pairs`: the block's pair weights and the scales) are made from.
+#[derive(Debug, Clone)]
 struct ChainAttention<'a> {
     map_kv: &'a wgpu::Buffer,
     k_off: usize,
@@ -122,6 +126,19 @@ struct ChainAttention<'a> {
     agent_scene: &'a wgpu::Buffer,
     keys: u32,
     key_mode: u32,
+    /// A: agent rows per batch scene.
+    agents: u32,
+    states: Option<&'a wgpu::Buffer>,
+    pairs: Option<ChainPairs<'a>>,
+}
+
+/// The pair features of a chain's agent attention: the block's `pair_k`, `pair_v` `[D, 6]` and
+/// the model's pair scales and anchor slot.
+#[derive(Debug, Clone)]
+struct ChainPairs<'a> {
+    pair_k: wgpu::BindingResource<'a>,
+    pair_v: wgpu::BindingResource<'a>,
+    params: PairAttentionParams,
 }
 
 /// What the head's residual chain preconditions with: the evaluation's `x [B, A, W, 3]`,
@@ -547,24 +564,41 @@ impl GpuDenoiser {
             None => (unread(), unread(), unread()),
         };
         // The attention's bindings: the layout has them whether the chain attends or not.
-        let (map_kv, key_valid, agent_scene) = match attend {
+        let mut states = None;
+        let (map_kv, key_valid, agent_scene, pair_k, pair_v) = match attend {
             Some(a) => {
                 let heads = c.heads as u32;
                 p.attend = 1;
                 p.slots = c.window_slots as u32;
+                p.agents = a.agents;
                 p.heads = heads;
                 p.head_dim = c.hidden as u32 / heads;
                 p.scale = 1.0 / (p.head_dim as f32).sqrt();
                 p.keys = a.keys;
                 p.key_mode = a.key_mode;
                 (p.k_off, p.v_off) = (a.k_off as u32, a.v_off as u32);
+                states = a.states;
+                let (pair_k, pair_v) = match a.pairs {
+                    Some(pairs) => {
+                        p.pairs = 1;
+                        p.anchor_slot = pairs.params.anchor_slot;
+                        p.heading_scale = pairs.params.heading_scale;
+                        p.direction = pairs.params.direction;
+                        p.near = pairs.params.near;
+                        p.far = pairs.params.far;
+                        (pairs.pair_k, pairs.pair_v)
+                    }
+                    None => (unread(), unread()),
+                };
                 (
                     a.map_kv.as_entire_binding(),
                     a.key_valid.as_entire_binding(),
                     a.agent_scene.as_entire_binding(),
+                    pair_k,
+                    pair_v,
                 )
             }
-            None => (unread(), unread(), unread()),
+            None => (unread(), unread(), unread(), unread(), unread()),
         };
         p.check()?;
         let params = Self::params(ctx, &p);
@@ -586,7 +620,18 @@ impl GpuDenoiser {
             .enumerate()
             .map(|(i, r)| (i as u32 + 1, r))
             .collect();
-        bound.extend([(14, map_kv), (15, key_valid), (16, agent_scene)]);
+        bound.extend([
+            (14, map_kv),
+            (15, key_valid),
+            (16, agent_scene),
+            (17, pair_k),
+            (18, pair_v),
+        ]);
+        if let Some(states) = states {
+            // Agent attention's pair features read the evaluation's states (a chain that
+            // attends over agents never preconditions, which binds them too).
+            bound[4].1 = states.as_entire_binding();
+        }
         ops.push(
             self.pipelines
                 .residual_chain
@@ -1130,16 +1175,10 @@ impl GpuDenoiser {
                         fused,
                     )?;
                 }
-                // With chains, agent attention reads the q, k, v the time chain wrote to
-                // `agents_qkv`, and time attention is made by its chain.
-                let source = if chains && part == "agents" {
-                    agents_qkv
-                } else {
-                    qkv
-                };
-                let [q, k, v] = [0, 1, 2].map(|j| part_of(source, j, token_part, tokens * d));
-                if chains && part == "time" {
-                    // Made by the time chain below (`ChainParams::attend`).
+                let [q, k, v] = [0, 1, 2].map(|j| part_of(qkv, j, token_part, tokens * d));
+                if chains {
+                    // Made by the chain below (`ChainParams::attend`): over time from `qkv`,
+                    // over agents from `agents_qkv`, which the time chain wrote.
                 } else if part == "agents" && c.agent_pairs.is_some() {
                     // Agent pairs: their features from this `x`, in the pair kernel.
                     let pairs = PairAttentionParams::of(c, b, a)?;
@@ -1200,6 +1239,9 @@ impl GpuDenoiser {
                             agent_scene: &batch.agent_scene,
                             keys: w32,
                             key_mode: 0,
+                            agents: a32,
+                            states: None,
+                            pairs: None,
                         };
                         let io = (qkv, h, agents_qkv.as_entire_binding());
                         self.chain(ctx, ops, layers, io, tokens, token_part, None, Some(attend))?;
@@ -1210,8 +1252,30 @@ impl GpuDenoiser {
                             mlp: None,
                             next: Some((&next, d, d)),
                         };
-                        let io = (att, h, map_q.as_entire_binding());
-                        self.chain(ctx, ops, layers, io, tokens, token_part, None, None)?;
+                        // Over the agents of each scene at each slot, their own packed scene's
+                        // only, with the pair features where the model has them.
+                        let pairs = match c.agent_pairs {
+                            Some(_) => Some(ChainPairs {
+                                pair_k: self.w(&format!("{blk}.agents.pair_k"))?,
+                                pair_v: self.w(&format!("{blk}.agents.pair_v"))?,
+                                params: PairAttentionParams::of(c, b, a)?,
+                            }),
+                            None => None,
+                        };
+                        let attend = ChainAttention {
+                            map_kv: agents_qkv,
+                            k_off: token_part,
+                            v_off: 2 * token_part,
+                            key_valid: &batch.valid,
+                            agent_scene: &batch.agent_scene,
+                            keys: a32,
+                            key_mode: 2,
+                            agents: a32,
+                            states: Some(x),
+                            pairs,
+                        };
+                        let io = (agents_qkv, h, map_q.as_entire_binding());
+                        self.chain(ctx, ops, layers, io, tokens, token_part, None, Some(attend))?;
                     }
                 } else {
                     // The output projection adds into the residual stream.
@@ -1302,6 +1366,9 @@ impl GpuDenoiser {
                 agent_scene: &batch.agent_scene,
                 keys: attn.keys,
                 key_mode: u32::from(attn.scene_mode == SceneMode::KeysOfTheAgentsScene as u32),
+                agents: a32,
+                states: None,
+                pairs: None,
             };
             if !chains {
                 let params = Self::params(ctx, &attn);

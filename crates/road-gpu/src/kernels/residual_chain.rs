@@ -76,9 +76,17 @@ pub struct ChainParams {
     pub head_dim: u32,
     pub scale: f32,
     pub keys: u32,
+    /// 0: agent row n's keys are rows n·keys + j; 1: those of its map scene; 2: the agents of
+    /// its batch scene at its slot (keys = A), of its own packed scene only.
     pub key_mode: u32,
     pub k_off: u32,
     pub v_off: u32,
+    /// 1 (key_mode 2): the agent-pair features from `x` (`agent_pairs.wgsl`'s), with these
+    /// length scales in state units (`heading_scale` is the pairs').
+    pub pairs: u32,
+    pub direction: f32,
+    pub near: f32,
+    pub far: f32,
 }
 
 impl ChainParams {
@@ -114,6 +122,12 @@ impl ChainParams {
                  dim ≤ {MAX_HEAD_DIM}) and keys ({})",
                 self.heads, self.head_dim, self.d, self.keys
             )));
+        }
+        if self.attend == 1 && (self.slots == 0 || (self.key_mode == 2 && self.agents == 0)) {
+            return Err(Error::Input(
+                "the chain's attention needs the window's slots (and, over agents, the agents)"
+                    .into(),
+            ));
         }
         if self.precondition == 1 && self.next_out != 3 {
             return Err(Error::Input(format!(
@@ -208,6 +222,9 @@ pub struct AttendInputs<'a> {
     pub map_kv: &'a [f32],
     pub key_valid: &'a [f32],
     pub agent_scene: &'a [u32],
+    /// With `pairs`: the pair weights `[D, 6]` (the states are `ChainInputs::x`); else empty.
+    pub pair_k: &'a [f32],
+    pub pair_v: &'a [f32],
 }
 
 /// The sampler's step a chain with `update` makes from its D: `σ_next [B, W]`, `D_prev [rows,
@@ -395,6 +412,14 @@ impl ResidualChain {
                 read("agent_scene", &[0.0]),
             ),
         };
+        let or_one = |v: &[f32]| if v.is_empty() { vec![0.0] } else { v.to_vec() };
+        let (pair_k, pair_v) = match attend {
+            Some(a) => (
+                read("pair_k", &or_one(a.pair_k)),
+                read("pair_v", &or_one(a.pair_v)),
+            ),
+            None => (read("pair_k", &[0.0]), read("pair_v", &[0.0])),
+        };
         let mut encoder = ctx
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
@@ -419,6 +444,10 @@ impl ResidualChain {
             .map(|(i, b)| (i as u32 + 1, b.as_entire_binding()))
             .collect();
         bound.extend(attend_bindings(&map_kv, &key_valid, &agent_scene));
+        bound.extend([
+            (17, pair_k.as_entire_binding()),
+            (18, pair_v.as_entire_binding()),
+        ]);
         self.pipeline
             .encode_bound(ctx, &mut encoder, &params, &bound, p.threads());
         ctx.queue.submit([encoder.finish()]);
