@@ -293,6 +293,12 @@ pub fn kernel_checks(ctx: &GpuContext) -> Result<Vec<KernelCheck>> {
         outcome: loose.check(&got, &want),
     });
     checks.push(head_chain_check(ctx, &mut rng, &tensors[..6], d, m, loose)?);
+    checks.push(agents_chain_check(
+        ctx,
+        &mut rng,
+        (b, a, w, d, heads),
+        loose,
+    )?);
 
     // The polyline encoder over 3 scenes' 32 polylines of 20 points.
     let (n, q) = (3 * 32, 20);
@@ -593,6 +599,135 @@ fn packed_chain(
         ..ChainParams::default()
     };
     (weights, params)
+}
+
+/// The chain after agent attention as the engine runs it: agent attention with the pair
+/// features over the agents of each scene at each slot (scene 1's agents in two packed scenes,
+/// some slots invalid), then the output projection and the map's q.
+fn agents_chain_check(
+    ctx: &GpuContext,
+    rng: &mut Inputs,
+    (b, a, w, d, heads): (usize, usize, usize, usize, usize),
+    tolerance: Tolerance,
+) -> Result<KernelCheck> {
+    let rows = b * a * w;
+    let tensors: Vec<Vec<f32>> = [d * d, d, d * d, d]
+        .iter()
+        .map(|&n| rng.uniform(n, 0.3))
+        .collect();
+    let mut weights = Vec::new();
+    let mut offsets = Vec::new();
+    for (t, out) in tensors.iter().zip([d, 1, d, 1]) {
+        offsets.push(weights.len() as u32);
+        weights.extend(transpose(t, out));
+    }
+    let (q, k, v) = (
+        rng.uniform(rows * d, 1.0),
+        rng.uniform(rows * d, 1.0),
+        rng.uniform(rows * d, 1.0),
+    );
+    let states = rng.uniform(rows * 3, 2.0);
+    let valid = rng.flags(rows, 0.9);
+    let (pair_k, pair_v) = (rng.uniform(d * 6, 0.3), rng.uniform(d * 6, 0.3));
+    let agent_scene: Vec<u32> = (0..b * a)
+        .map(|row| {
+            let (scene, agent) = (row / a, row % a);
+            (2 * scene + usize::from(scene == 1 && agent >= a / 2)) as u32
+        })
+        .collect();
+    let head_dim = d / heads;
+    let pairs = PairAttentionParams {
+        groups: (b * w) as u32,
+        heads: heads as u32,
+        head_dim: head_dim as u32,
+        agents: a as u32,
+        slots: w as u32,
+        anchor_slot: 9,
+        scale: 1.0 / (head_dim as f32).sqrt(),
+        heading_scale: 0.25,
+        direction: 2.5,
+        near: 1.25,
+        far: 5.0,
+        _pad: 0,
+    };
+    let p = ChainParams {
+        rows: rows as u32,
+        d: d as u32,
+        eps: 1e-5,
+        o_w: offsets[0],
+        o_b: offsets[1],
+        next_w: offsets[2],
+        next_b: offsets[3],
+        next_out: d as u32,
+        part: d as u32,
+        part_stride: (rows * d) as u32,
+        attend: 1,
+        slots: w as u32,
+        agents: a as u32,
+        heads: heads as u32,
+        head_dim: head_dim as u32,
+        scale: pairs.scale,
+        keys: a as u32,
+        key_mode: 2,
+        k_off: 0,
+        v_off: (rows * d) as u32,
+        anchor_slot: pairs.anchor_slot,
+        pairs: 1,
+        heading_scale: pairs.heading_scale,
+        direction: pairs.direction,
+        near: pairs.near,
+        far: pairs.far,
+        ..ChainParams::default()
+    };
+    let h = rng.uniform(rows * d, 1.0);
+    let map_kv: Vec<f32> = k.iter().chain(&v).copied().collect();
+    let inputs = ChainInputs {
+        weights: &weights,
+        att: &q,
+        h: &h,
+        y: &vec![0.0; rows * d],
+        x: &states,
+        sigma: &[0.0],
+        valid: &[0.0],
+    };
+    let attend = AttendInputs {
+        map_kv: &map_kv,
+        key_valid: &valid,
+        agent_scene: &agent_scene,
+        pair_k: &pair_k,
+        pair_v: &pair_v,
+    };
+    let (h_got, y_got, _) =
+        ResidualChain::new(ctx).run_full(ctx, p, &inputs, None, Some(attend))?;
+    let att = reference::pair_attention(
+        &pairs,
+        &q,
+        &k,
+        &v,
+        &valid,
+        &states,
+        &pair_k,
+        &pair_v,
+        &agent_scene,
+    );
+    let (h_want, y_want) = reference::residual_chain(
+        &att,
+        &h,
+        rows,
+        d,
+        (&tensors[0], &tensors[1]),
+        None,
+        Some((&tensors[2], &tensors[3])),
+        1e-5,
+    );
+    let got: Vec<f32> = h_got.into_iter().chain(y_got).collect();
+    let want: Vec<f32> = h_want.into_iter().chain(y_want).collect();
+    Ok(KernelCheck {
+        name: "residual_chain (agent attention with pair features, output, map q)",
+        values: got.len(),
+        tolerance,
+        outcome: tolerance.check(&got, &want),
+    })
 }
 
 /// The last block's chain as a Heun or multistep step's first evaluation runs it: output

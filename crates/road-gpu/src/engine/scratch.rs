@@ -1,6 +1,7 @@
 //! The forward pass's scratch activations: the residual stream, q/k/v, the attention output,
-//! the MLP's hidden layer and the head's output (those two only layer by layer), the map's k/v
-//! and, with agent maps, each agent's picked polylines and their tokens. Sized once per batch
+//! the MLP's hidden layer and the head's output (those three only layer by layer), agent
+//! attention's q/k/v and the map's q (those two only with residual chains), the map's k/v and,
+//! with agent maps, each agent's picked polylines and their tokens. Sized once per batch
 //! shape, checked against what the adapter binds.
 
 use road_model::ModelConfig;
@@ -27,7 +28,8 @@ pub(crate) struct Scratch {
     pub(super) agents_qkv: wgpu::Buffer,
     /// Floats from one part of `qkv` to the next: `T · D` rounded up to the offset alignment.
     pub(super) token_part: usize,
-    pub(super) att: wgpu::Buffer, // [T, D]
+    /// `[T, D]` layer by layer; one float with chains (they attend on chip).
+    pub(super) att: wgpu::Buffer,
     /// `[T, D]` with residual chains: the map's q, which the map's chain attends from (`qkv`
     /// receives the next block's q, k, v in the same dispatch); one float otherwise.
     pub(super) map_q: wgpu::Buffer,
@@ -136,18 +138,19 @@ impl Scratch {
         let (token_part, key_part) = (part_floats(ctx, tokens * d), part_floats(ctx, key_rows * d));
         let map_kv_all = (2 * c.blocks * key_part * 4) as u64 <= max_bytes;
         let kv_parts = if map_kv_all { 2 * c.blocks } else { 2 };
-        // Residual chains keep the MLP's hidden layer and the head's F on chip.
-        let (hidden, f, map_q, agents_qkv) = if chains {
-            (1, 1, tokens * d, 3 * token_part)
+        // Residual chains keep the MLP's hidden layer, the head's F and every attention's output
+        // on chip; they read agent attention's q, k, v and the map's q from buffers of their own.
+        let (hidden, f, att, map_q, agents_qkv) = if chains {
+            (1, 1, 1, tokens * d, 3 * token_part)
         } else {
-            (tokens * d * c.mlp_ratio, tokens * 3, 1, 1)
+            (tokens * d * c.mlp_ratio, tokens * 3, tokens * d, 1, 1)
         };
         Ok(Self {
             h: buf("h", tokens * d),
             qkv: buf("qkv", 3 * token_part),
             agents_qkv: buf("agents qkv", agents_qkv),
             token_part,
-            att: buf("attention", tokens * d),
+            att: buf("attention", att),
             map_q: buf("map q", map_q),
             hidden: buf("mlp", hidden),
             mkv: buf("map kv", kv_parts * key_part),
