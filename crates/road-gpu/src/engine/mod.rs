@@ -119,7 +119,10 @@ struct ChainLayers<'a> {
 /// `pairs`: the block's pair weights and the scales) are made from.
 #[derive(Debug, Clone)]
 struct ChainAttention<'a> {
-    map_kv: &'a wgpu::Buffer,
+    /// The queries `[T, D]`, bound as the chain's `att`.
+    queries: wgpu::BindingResource<'a>,
+    /// The keys and values, k at `k_off`, v at `v_off` floats into the binding.
+    map_kv: wgpu::BindingResource<'a>,
     k_off: usize,
     v_off: usize,
     key_valid: &'a wgpu::Buffer,
@@ -212,6 +215,19 @@ fn part_of(
         buffer,
         offset: (index * stride * 4) as u64,
         size: std::num::NonZeroU64::new((len.max(1) * 4) as u64),
+    })
+}
+
+/// Parts `parts` of a buffer split into parts `stride` floats apart, as one binding.
+fn parts_of(
+    buffer: &wgpu::Buffer,
+    parts: std::ops::Range<usize>,
+    stride: usize,
+) -> wgpu::BindingResource<'_> {
+    wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+        buffer,
+        offset: (parts.start * stride * 4) as u64,
+        size: std::num::NonZeroU64::new((parts.len().max(1) * stride.max(1) * 4) as u64),
     })
 }
 
@@ -564,7 +580,7 @@ impl GpuDenoiser {
             None => (unread(), unread(), unread()),
         };
         // The attention's bindings: the layout has them whether the chain attends or not.
-        let mut states = None;
+        let (mut states, mut queries) = (None, None);
         let (map_kv, key_valid, agent_scene, pair_k, pair_v) = match attend {
             Some(a) => {
                 let heads = c.heads as u32;
@@ -578,6 +594,7 @@ impl GpuDenoiser {
                 p.key_mode = a.key_mode;
                 (p.k_off, p.v_off) = (a.k_off as u32, a.v_off as u32);
                 states = a.states;
+                queries = Some(a.queries);
                 let (pair_k, pair_v) = match a.pairs {
                     Some(pairs) => {
                         p.pairs = 1;
@@ -591,7 +608,7 @@ impl GpuDenoiser {
                     None => (unread(), unread()),
                 };
                 (
-                    a.map_kv.as_entire_binding(),
+                    a.map_kv,
                     a.key_valid.as_entire_binding(),
                     a.agent_scene.as_entire_binding(),
                     pair_k,
@@ -604,7 +621,7 @@ impl GpuDenoiser {
         let params = Self::params(ctx, &p);
         let resources = [
             range,
-            att.as_entire_binding(),
+            queries.unwrap_or_else(|| att.as_entire_binding()),
             h.as_entire_binding(),
             y,
             x,
@@ -1232,9 +1249,10 @@ impl GpuDenoiser {
                             next: Some((&next, 3 * d, d)),
                         };
                         let attend = ChainAttention {
-                            map_kv: qkv,
-                            k_off: token_part,
-                            v_off: 2 * token_part,
+                            queries: part_of(qkv, 0, token_part, tokens * d),
+                            map_kv: parts_of(qkv, 1..3, token_part),
+                            k_off: 0,
+                            v_off: token_part,
                             key_valid: &batch.valid,
                             agent_scene: &batch.agent_scene,
                             keys: w32,
@@ -1263,9 +1281,10 @@ impl GpuDenoiser {
                             None => None,
                         };
                         let attend = ChainAttention {
-                            map_kv: agents_qkv,
-                            k_off: token_part,
-                            v_off: 2 * token_part,
+                            queries: part_of(agents_qkv, 0, token_part, tokens * d),
+                            map_kv: parts_of(agents_qkv, 1..3, token_part),
+                            k_off: 0,
+                            v_off: token_part,
                             key_valid: &batch.valid,
                             agent_scene: &batch.agent_scene,
                             keys: a32,
@@ -1359,9 +1378,10 @@ impl GpuDenoiser {
             };
             // With chains the map's chain attends itself (`ChainParams::attend`).
             let attend = ChainAttention {
-                map_kv: mkv,
-                k_off: kv_part * key_part,
-                v_off: (kv_part + 1) * key_part,
+                queries: map_q.as_entire_binding(),
+                map_kv: parts_of(mkv, kv_part..kv_part + 2, key_part),
+                k_off: 0,
+                v_off: key_part,
                 key_valid,
                 agent_scene: &batch.agent_scene,
                 keys: attn.keys,
