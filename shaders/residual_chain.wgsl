@@ -341,6 +341,15 @@ fn add_into_h(blk: Block, sums: array<vec4<f32>, 4>, first: u32, live: u32) {
     }
 }
 
+// The tile's rows from `first` that hold tokens. Rows past the end stay zero in the tile and
+// are never written; every invocation still takes every barrier.
+fn live_rows(first: u32) -> u32 {
+    if (first >= params.rows) {
+        return 0u;
+    }
+    return min(ROWS, params.rows - first);
+}
+
 @compute @workgroup_size(64)
 fn residual_chain(
     @builtin(workgroup_id) wid: vec3<u32>,
@@ -349,14 +358,7 @@ fn residual_chain(
 ) {
     let d = params.d;
     let first = (wid.x + wid.y * groups.x) * ROWS;
-    // Rows past the end stay zero in the tile and are never written; every invocation still
-    // takes every barrier.
-    var live = ROWS;
-    if (first >= params.rows) {
-        live = 0u;
-    } else {
-        live = min(ROWS, params.rows - first);
-    }
+    let live = live_rows(first);
 
     // The output projection: the attention's rows into the tile (read, or with `attend` made
     // here), then each invocation adds its blocks of every row into h (no other invocation
@@ -445,12 +447,7 @@ fn embed_chain(
 ) {
     let d = params.d;
     let first = (wid.x + wid.y * groups.x) * ROWS;
-    var live = ROWS;
-    if (first >= params.rows) {
-        live = 0u;
-    } else {
-        live = min(ROWS, params.rows - first);
-    }
+    let live = live_rows(first);
     let shape = EmbedShape(
         params.agents,
         params.slots,

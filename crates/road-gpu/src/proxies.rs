@@ -31,29 +31,28 @@ pub fn flops_per_evaluation(c: &ModelConfig, agents: usize, polylines: usize) ->
     let m = d * c.mlp_ratio as f64;
     let t = a * w;
     let linear = |rows: f64, i: f64, o: f64| 2.0 * rows * i * o;
-    // With agent maps each agent attends to its own K polylines, encoded in its frame every
-    // evaluation (the point encoder's D × D layer over K·Q points per agent); without, every
-    // token attends to the scene's P polylines, encoded once per scene (not counted here).
-    let (map_keys, map_kv_rows, map_encoder) = match &c.agent_map {
-        Some(spec) => {
-            let k = road_model::agent_map::polylines_per_agent(spec.polylines, polylines) as f64;
-            let q = c.polyline_points as f64;
-            (k, a * k, linear(a * k * q, d, d))
-        }
-        None => (p, p, 0.0),
+    // With agent maps each agent attends to its own K polylines; without, every token to the
+    // scene's P. The keys' own work (encoder, k, v) is `map_key_flops`.
+    let map_keys = match &c.agent_map {
+        Some(spec) => road_model::agent_map::polylines_per_agent(spec.polylines, polylines) as f64,
+        None => p,
     };
     let per_block = 2.0 * 4.0 * linear(t, d, d) // time and agent attention projections
         + 2.0 * 2.0 * t * w * d // time attention scores and weighted sums
         + 2.0 * 2.0 * t * a * d // agent attention
-        + 2.0 * linear(t, d, d) + 2.0 * linear(map_kv_rows, d, d) // map q, o; k, v
+        + 2.0 * linear(t, d, d) // map q, o
         + 2.0 * 2.0 * t * map_keys * d // map attention
         + linear(t, d, m) + linear(t, m, d); // MLP
-    c.blocks as f64 * per_block + map_encoder + linear(t, 3.0, d) + linear(t, d, 3.0)
+    c.blocks as f64 * per_block
+        + map_key_flops(c, agents, polylines)
+        + linear(t, 3.0, d)
+        + linear(t, d, 3.0)
 }
 
 /// The part of [`flops_per_evaluation`] that makes the map's keys: with agent maps the point
-/// encoder and every block's map k, v of the agents' polylines, else every block's map k, v of
-/// the scene's. The engine makes them only in evaluations whose map inputs changed (the
+/// encoder (its D × D layer over K·Q points per agent, in the agent's frame) and every block's
+/// map k, v of the agents' polylines, else every block's map k, v of the scene's (the scene
+/// map's encoder runs once per scene set and is not counted). The engine makes them only in evaluations whose map inputs changed (the
 /// windows' anchors, the maps; `HeunPlan`), and counts them only there.
 pub fn map_key_flops(c: &ModelConfig, agents: usize, polylines: usize) -> f64 {
     let d = c.hidden as f64;

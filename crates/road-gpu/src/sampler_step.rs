@@ -255,6 +255,12 @@ impl MapKeys {
     }
 }
 
+/// `list`'s dispatches but those at the indices `skip`.
+fn unskipped(list: &[Dispatch], skip: std::ops::Range<usize>) -> impl Iterator<Item = &Dispatch> {
+    let kept = list.iter().enumerate();
+    kept.filter(move |(i, _)| !skip.contains(i)).map(|(_, d)| d)
+}
+
 /// How a [`HeunPlan`] moves the windows: Heun (EDM Algorithm 1, the Euler step alone without
 /// the second evaluation) or the multistep sampler with its γ `[B, W]`.
 #[derive(Debug, Clone, Copy)]
@@ -386,25 +392,13 @@ impl HeunPlan {
         );
         let made = u64::from(!keep_first || keys.first.is_empty())
             + u64::from(second_evaluation && (!keep_second || keys.second.is_empty()));
-        let euler = self
-            .euler
-            .iter()
-            .enumerate()
-            .filter(|(i, _)| !skip_first.contains(i))
-            .map(|(_, d)| d);
-        let after_euler: Vec<&Dispatch> = match rule {
-            StepRule::Heun { .. } if second_evaluation => self
-                .correct
-                .iter()
-                .enumerate()
-                .filter(|(i, _)| !skip_second.contains(i))
-                .map(|(_, d)| d)
-                .collect(),
-            StepRule::Heun { .. } => Vec::new(),
-            StepRule::Multistep { .. } => self.multistep.iter().collect(),
+        let after_euler: &[Dispatch] = match rule {
+            StepRule::Heun { .. } if second_evaluation => &self.correct,
+            StepRule::Heun { .. } => &[],
+            StepRule::Multistep { .. } => self.multistep.as_slice(),
         };
         // One pass per dispatch: measured faster on lavapipe than one pass for all of them.
-        for d in euler.chain(after_euler) {
+        for d in unskipped(&self.euler, skip_first).chain(unskipped(after_euler, skip_second)) {
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
                 label: Some("heun"),
                 timestamp_writes: None,

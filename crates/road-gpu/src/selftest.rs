@@ -202,13 +202,7 @@ pub fn kernel_checks(ctx: &GpuContext) -> Result<Vec<KernelCheck>> {
         Some((&tensors[6], &tensors[7])),
         1e-5,
     );
-    // y's parts are q, k, v [rows, D] each, in that order: [rows, 3D] rearranged.
-    let y_want: Vec<f32> = (0..3 * rows * d)
-        .map(|i| {
-            let (part, row, column) = (i / (rows * d), i % (rows * d) / d, i % d);
-            next_want[row * 3 * d + part * d + column]
-        })
-        .collect();
+    let y_want = into_parts(&next_want, rows, d);
     let got: Vec<f32> = h_got.into_iter().chain(y_got).collect();
     let want: Vec<f32> = h_want.into_iter().chain(y_want).collect();
     checks.push(KernelCheck {
@@ -278,12 +272,7 @@ pub fn kernel_checks(ctx: &GpuContext) -> Result<Vec<KernelCheck>> {
         Some((&ones, &zeros, 1e-5)),
         None,
     );
-    let y_want: Vec<f32> = (0..3 * rows * d)
-        .map(|i| {
-            let (part, row, column) = (i / (rows * d), i % (rows * d) / d, i % d);
-            next_want[row * 3 * d + part * d + column]
-        })
-        .collect();
+    let y_want = into_parts(&next_want, rows, d);
     let got: Vec<f32> = h_got.into_iter().chain(y_got).collect();
     let want: Vec<f32> = h_want.into_iter().chain(y_want).collect();
     checks.push(KernelCheck {
@@ -568,6 +557,17 @@ pub fn kernel_checks(ctx: &GpuContext) -> Result<Vec<KernelCheck>> {
 /// A chain's 8 tensors (`W_o`, `b_o`, `W_1`, `b_1`, `W_2`, `b_2`, `W_next`, `b_next`, each
 /// `[out, in]`) packed as the engine uploads them (weights transposed, biases as they are),
 /// and the params of `(rows, D, M, next outputs)` pointing at them.
+/// A q, k, v layer's outputs `[rows, 3D]` as the chain writes them: parts q, k, v `[rows, D]`
+/// each, in that order.
+fn into_parts(outputs: &[f32], rows: usize, d: usize) -> Vec<f32> {
+    (0..3 * rows * d)
+        .map(|i| {
+            let (part, row, column) = (i / (rows * d), i % (rows * d) / d, i % d);
+            outputs[row * 3 * d + part * d + column]
+        })
+        .collect()
+}
+
 fn packed_chain(
     tensors: &[Vec<f32>],
     (rows, d, m, next_out): (usize, usize, usize, usize),

@@ -218,19 +218,6 @@ fn part_of(
     })
 }
 
-/// Parts `parts` of a buffer split into parts `stride` floats apart, as one binding.
-fn parts_of(
-    buffer: &wgpu::Buffer,
-    parts: std::ops::Range<usize>,
-    stride: usize,
-) -> wgpu::BindingResource<'_> {
-    wgpu::BindingResource::Buffer(wgpu::BufferBinding {
-        buffer,
-        offset: (parts.start * stride * 4) as u64,
-        size: std::num::NonZeroU64::new((parts.len().max(1) * stride.max(1) * 4) as u64),
-    })
-}
-
 /// Every pipeline of the engine, compiled once.
 #[derive(Debug)]
 pub(crate) struct Pipelines {
@@ -1250,7 +1237,7 @@ impl GpuDenoiser {
                         };
                         let attend = ChainAttention {
                             queries: part_of(qkv, 0, token_part, tokens * d),
-                            map_kv: parts_of(qkv, 1..3, token_part),
+                            map_kv: rows_of(qkv, 1, 2, token_part),
                             k_off: 0,
                             v_off: token_part,
                             key_valid: &batch.valid,
@@ -1282,7 +1269,7 @@ impl GpuDenoiser {
                         };
                         let attend = ChainAttention {
                             queries: part_of(agents_qkv, 0, token_part, tokens * d),
-                            map_kv: parts_of(agents_qkv, 1..3, token_part),
+                            map_kv: rows_of(agents_qkv, 1, 2, token_part),
                             k_off: 0,
                             v_off: token_part,
                             key_valid: &batch.valid,
@@ -1379,7 +1366,7 @@ impl GpuDenoiser {
             // With chains the map's chain attends itself (`ChainParams::attend`).
             let attend = ChainAttention {
                 queries: map_q.as_entire_binding(),
-                map_kv: parts_of(mkv, kv_part..kv_part + 2, key_part),
+                map_kv: rows_of(mkv, kv_part, 2, key_part),
                 k_off: 0,
                 v_off: key_part,
                 key_valid,
