@@ -8,8 +8,9 @@
 // Masked keys carry exactly zero weight: invalid ones, and those of another scene where a
 // packed batch holds several scenes in one (`agent_scene`, [B·A]: agents attend only to agents
 // of their own scene; a plain batch's row a of scene b holds b). A query with no valid key
-// yields zeros (as attention.wgsl). One invocation per (group, head, query) with an online softmax; heads of 16
-// keep the query and the accumulator in registers (as attention.wgsl).
+// yields zeros (as attention.wgsl). One invocation per (group, head, query) with an online
+// softmax (common/online_softmax.wgsl, prepended); heads of 16 keep the query and the
+// accumulator in registers (as attention.wgsl).
 
 struct Params {
     groups: u32,
@@ -101,8 +102,7 @@ fn pair_attention(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wo
     for (var f = 0u; f < F; f++) {
         acc_pair[f] = 0.0;
     }
-    var running_max = -3.0e38;
-    var denom = 0.0;
+    var softmax = online_softmax_new();
     for (var j = 0u; j < params.agents; j++) {
         let k_row = row_of(group, j);
         if (!is_key(group, j, k_row, own_scene)) {
@@ -118,19 +118,15 @@ fn pair_attention(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wo
             score += q_pair[f] * r[f];
         }
         score *= params.scale;
-        let new_max = max(running_max, score);
-        let correction = exp(running_max - new_max);
-        let weight = exp(score - new_max);
-        denom = denom * correction + weight;
+        let w = online_softmax_push(&softmax, score);
         for (var c = 0u; c < hd; c++) {
-            acc[c] = acc[c] * correction + weight * v[k_base + c];
+            acc[c] = acc[c] * w.correction + w.weight * v[k_base + c];
         }
         for (var f = 0u; f < F; f++) {
-            acc_pair[f] = acc_pair[f] * correction + weight * r[f];
+            acc_pair[f] = acc_pair[f] * w.correction + w.weight * r[f];
         }
-        running_max = new_max;
     }
-    let inv = select(0.0, 1.0 / denom, denom > 0.0);
+    let inv = online_softmax_inverse(softmax);
     for (var c = 0u; c < hd; c++) {
         var offset = 0.0;
         for (var f = 0u; f < F; f++) {
@@ -176,8 +172,7 @@ fn pair_attend16(
     for (var f = 0u; f < F; f++) {
         acc_pair[f] = 0.0;
     }
-    var running_max = -3.0e38;
-    var denom = 0.0;
+    var softmax = online_softmax_new();
     for (var j = 0u; j < params.agents; j++) {
         let k_row = row_of(group, j);
         if (!is_key(group, j, k_row, own_scene)) {
@@ -191,20 +186,16 @@ fn pair_attend16(
             score += q_pair[f] * r[f];
         }
         score *= params.scale;
-        let new_max = max(running_max, score);
-        let correction = exp(running_max - new_max);
-        let weight = exp(score - new_max);
-        denom = denom * correction + weight;
-        a0 = a0 * correction + weight * v4(k_base);
-        a1 = a1 * correction + weight * v4(k_base + 4u);
-        a2 = a2 * correction + weight * v4(k_base + 8u);
-        a3 = a3 * correction + weight * v4(k_base + 12u);
+        let w = online_softmax_push(&softmax, score);
+        a0 = a0 * w.correction + w.weight * v4(k_base);
+        a1 = a1 * w.correction + w.weight * v4(k_base + 4u);
+        a2 = a2 * w.correction + w.weight * v4(k_base + 8u);
+        a3 = a3 * w.correction + w.weight * v4(k_base + 12u);
         for (var f = 0u; f < F; f++) {
-            acc_pair[f] = acc_pair[f] * correction + weight * r[f];
+            acc_pair[f] = acc_pair[f] * w.correction + w.weight * r[f];
         }
-        running_max = new_max;
     }
-    let inv = select(0.0, 1.0 / denom, denom > 0.0);
+    let inv = online_softmax_inverse(softmax);
     for (var c = 0u; c < 16u; c++) {
         var offset = 0.0;
         for (var f = 0u; f < F; f++) {

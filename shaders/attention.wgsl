@@ -15,8 +15,9 @@
 // agent_scene[n] (the scene-frame map of the agent's own scene). 0: neither.
 //
 // Masked keys carry exactly zero weight (as an additive −1e9 bias does after exp in f32).
-// One invocation per (group, head, query) with an online softmax; a query with no valid key
-// yields zeros (the reference's output there is never read: such tokens are invalid).
+// One invocation per (group, head, query) with an online softmax (common/online_softmax.wgsl,
+// prepended); a query with no valid key yields zeros (the reference's output there is never
+// read: such tokens are invalid).
 // Heads of 16 (every model here) take a path whose query and accumulator are four vec4 in
 // registers; other head sizes index an array, which a GPU keeps in local memory.
 
@@ -111,8 +112,7 @@ fn attention(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgro
     for (var c = 0u; c < hd; c++) {
         acc[c] = 0.0;
     }
-    var running_max = -3.0e38;
-    var denom = 0.0;
+    var softmax = online_softmax_new();
     for (var j = 0u; j < params.keys; j++) {
         if (!is_key(group, kg, own_scene, j)) {
             continue;
@@ -123,16 +123,12 @@ fn attention(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgro
             score += q[q_base + c] * k[k_base + c];
         }
         score *= params.scale;
-        let new_max = max(running_max, score);
-        let correction = exp(running_max - new_max);
-        let weight = exp(score - new_max);
-        denom = denom * correction + weight;
+        let w = online_softmax_push(&softmax, score);
         for (var c = 0u; c < hd; c++) {
-            acc[c] = acc[c] * correction + weight * v[k_base + c];
+            acc[c] = acc[c] * w.correction + w.weight * v[k_base + c];
         }
-        running_max = new_max;
     }
-    let inv = select(0.0, 1.0 / denom, denom > 0.0);
+    let inv = online_softmax_inverse(softmax);
     for (var c = 0u; c < hd; c++) {
         out[q_base + c] = acc[c] * inv;
     }
@@ -162,8 +158,7 @@ fn attend16(group: u32, query: u32, q_base: u32, head_offset: u32, d: u32) {
     var a1 = vec4<f32>(0.0);
     var a2 = vec4<f32>(0.0);
     var a3 = vec4<f32>(0.0);
-    var running_max = -3.0e38;
-    var denom = 0.0;
+    var softmax = online_softmax_new();
     for (var j = 0u; j < params.keys; j++) {
         if (!is_key(group, kg, own_scene, j)) {
             continue;
@@ -171,17 +166,13 @@ fn attend16(group: u32, query: u32, q_base: u32, head_offset: u32, d: u32) {
         let k_base = row_of(params.kv_layout, kg, j) * d + head_offset;
         let score = (dot(q0, k4(k_base)) + dot(q1, k4(k_base + 4u))
             + dot(q2, k4(k_base + 8u)) + dot(q3, k4(k_base + 12u))) * params.scale;
-        let new_max = max(running_max, score);
-        let correction = exp(running_max - new_max);
-        let weight = exp(score - new_max);
-        denom = denom * correction + weight;
-        a0 = a0 * correction + weight * v4(k_base);
-        a1 = a1 * correction + weight * v4(k_base + 4u);
-        a2 = a2 * correction + weight * v4(k_base + 8u);
-        a3 = a3 * correction + weight * v4(k_base + 12u);
-        running_max = new_max;
+        let w = online_softmax_push(&softmax, score);
+        a0 = a0 * w.correction + w.weight * v4(k_base);
+        a1 = a1 * w.correction + w.weight * v4(k_base + 4u);
+        a2 = a2 * w.correction + w.weight * v4(k_base + 8u);
+        a3 = a3 * w.correction + w.weight * v4(k_base + 12u);
     }
-    let inv = select(0.0, 1.0 / denom, denom > 0.0);
+    let inv = online_softmax_inverse(softmax);
     let r0 = a0 * inv;
     let r1 = a1 * inv;
     let r2 = a2 * inv;

@@ -125,13 +125,13 @@ var<workgroup> hidden_units: array<f32, 1024>;  // [ROWS, UNITS]: a chunk of MLP
 var<workgroup> tile_stats: array<vec2<f32>, 8>; // [ROWS]: (mean, 1/σ) of each row of the tile
 
 // The attention of the tile's rows (as `attention.wgsl`'s and `agent_pairs.wgsl`'s: one (row,
-// head) a task, an online softmax over the row's valid keys, zeros where none is valid) into
-// the tile; rows past `live` zero. The queries are `att`'s rows, the keys and values
-// `map_kv`'s, their flags `key_valid`'s. Token t of agent row n = t / W at slot t % W reads key
-// rows n·keys + j (`key_mode` 0: over the map, its own polylines; over time, keys = W, its own
-// slots), agent_scene[n]·keys + j (1: its scene's map), or (2: over agents, keys = A) the agents
-// j of its batch scene at its slot, those of its own packed scene (`agent_scene`) only, with the
-// pair features (`pairs`) in its anchor frame.
+// head) a task, an online softmax (common/online_softmax.wgsl, prepended) over the row's valid
+// keys, zeros where none is valid) into the tile; rows past `live` zero. The queries are `att`'s
+// rows, the keys and values `map_kv`'s, their flags `key_valid`'s. Token t of agent row n = t / W
+// at slot t % W reads key rows n·keys + j (`key_mode` 0: over the map, its own polylines; over
+// time, keys = W, its own slots), agent_scene[n]·keys + j (1: its scene's map), or (2: over
+// agents, keys = A) the agents j of its batch scene at its slot, those of its own packed scene
+// (`agent_scene`) only, with the pair features (`pairs`) in its anchor frame.
 const MAX_HEAD_DIM: u32 = 64u;
 
 fn attention_rows(lid: u32, first: u32, live: u32) {
@@ -151,8 +151,7 @@ fn attention_rows(lid: u32, first: u32, live: u32) {
             acc_pair[f] = 0.0;
             q_pair[f] = 0.0;
         }
-        var running_max = -3.0e38;
-        var denom = 0.0;
+        var softmax = online_softmax_new();
         if (r < live) {
             let token = first + r;
             let agent_row = token / params.slots;
@@ -205,20 +204,16 @@ fn attention_rows(lid: u32, first: u32, live: u32) {
                     }
                 }
                 score *= params.scale;
-                let new_max = max(running_max, score);
-                let correction = exp(running_max - new_max);
-                let weight = exp(score - new_max);
-                denom = denom * correction + weight;
+                let w = online_softmax_push(&softmax, score);
                 for (var c = 0u; c < hd; c++) {
-                    acc[c] = acc[c] * correction + weight * map_kv[v_base + c];
+                    acc[c] = acc[c] * w.correction + w.weight * map_kv[v_base + c];
                 }
                 for (var f = 0u; f < PAIR_FEATURES; f++) {
-                    acc_pair[f] = acc_pair[f] * correction + weight * pair[f];
+                    acc_pair[f] = acc_pair[f] * w.correction + w.weight * pair[f];
                 }
-                running_max = new_max;
             }
         }
-        let inv = select(0.0, 1.0 / denom, denom > 0.0);
+        let inv = online_softmax_inverse(softmax);
         for (var c = 0u; c < hd; c++) {
             var offset = 0.0;
             if (params.pairs == 1u) {

@@ -42,6 +42,8 @@ const PRECONDITION: &str = include_str!("../../../shaders/common/precondition.wg
 const EMBED_TOKEN: &str = include_str!("../../../shaders/common/embed_token.wgsl");
 /// `shaders/common/pair_features.wgsl`: the features of a pair of agents.
 const PAIR_FEATURES: &str = include_str!("../../../shaders/common/pair_features.wgsl");
+/// `shaders/common/online_softmax.wgsl`: the attention kernels' online softmax.
+const ONLINE_SOFTMAX: &str = include_str!("../../../shaders/common/online_softmax.wgsl");
 /// `shaders/common/linear_io.wgsl`: the linear kernels' params, bindings and epilogue.
 const LINEAR_IO: &str = include_str!("../../../shaders/common/linear_io.wgsl");
 /// `shaders/common/enable_f16.wgsl`: `enable f16;`, first in the f16 families.
@@ -107,7 +109,10 @@ impl Shader {
                 include_str!("../../../shaders/linear_coop.wgsl")
             ),
             Shader::Polyline => include_str!("../../../shaders/polyline.wgsl"),
-            Shader::Attention => include_str!("../../../shaders/attention.wgsl"),
+            Shader::Attention => concat!(
+                include_str!("../../../shaders/common/online_softmax.wgsl"),
+                include_str!("../../../shaders/attention.wgsl")
+            ),
             Shader::Embed => concat!(
                 include_str!("../../../shaders/common/embed_token.wgsl"),
                 include_str!("../../../shaders/embed.wgsl")
@@ -121,12 +126,14 @@ impl Shader {
             Shader::AgentMap => include_str!("../../../shaders/agent_map.wgsl"),
             Shader::AgentPairs => concat!(
                 include_str!("../../../shaders/common/pair_features.wgsl"),
+                include_str!("../../../shaders/common/online_softmax.wgsl"),
                 include_str!("../../../shaders/agent_pairs.wgsl")
             ),
             Shader::ResidualChain => concat!(
                 include_str!("../../../shaders/common/precondition.wgsl"),
                 include_str!("../../../shaders/common/embed_token.wgsl"),
                 include_str!("../../../shaders/common/pair_features.wgsl"),
+                include_str!("../../../shaders/common/online_softmax.wgsl"),
                 include_str!("../../../shaders/residual_chain.wgsl")
             ),
             Shader::Compact => include_str!("../../../shaders/compact.wgsl"),
@@ -138,8 +145,9 @@ impl Shader {
     pub fn includes(self) -> &'static [&'static str] {
         match self {
             Shader::Elementwise => &[PRECONDITION],
-            Shader::ResidualChain => &[PRECONDITION, EMBED_TOKEN, PAIR_FEATURES],
-            Shader::AgentPairs => &[PAIR_FEATURES],
+            Shader::ResidualChain => &[PRECONDITION, EMBED_TOKEN, PAIR_FEATURES, ONLINE_SOFTMAX],
+            Shader::AgentPairs => &[PAIR_FEATURES, ONLINE_SOFTMAX],
+            Shader::Attention => &[ONLINE_SOFTMAX],
             Shader::Embed => &[EMBED_TOKEN],
             Shader::Linear => &[LINEAR_IO],
             Shader::LinearF16 => &[ENABLE_F16, LINEAR_IO],
