@@ -14,16 +14,22 @@
 #   --from DIR        the previous lend's run folder (its tar unpacked and its state parts
 #                     joined here), carried
 #   --config CONFIG   the run to train (default configs/road20-large.toml)
-#   --train-bench-secs S   the trainer's throughput bench (default 120; 0 skips it): the
-#                 run's model at batches of 256 and 1024, fp32 (the path before 2026-11-26),
-#                 bf16 with batches made on the GPU, and that compiled (which did not finish
-#                 compiling within 120 s on the H100)
+#   --train-bench-secs S   the trainer's throughput bench (default 150; 0 skips it): the
+#                 run's model at batches of 1024 and 2048, bf16 with batches made on the GPU
+#                 (the training calls' path; 7 279 scene-samples/s at 2048 on the H200), that
+#                 with fused attention (sdpa), and that with the blocks compiled (regional
+#                 compilation: the whole forward did not finish compiling within 120 s on
+#                 the H100); each case profiled for 3 steps (its top operators and kernels
+#                 per step in the JSON)
 #   --no-suite    skip the engine suite (a lend whose first call ran the whole suite:
 #                 scripts/gpu-suite.sh run --budget-secs 510; this call then trains)
-#   --quick       small batches (how this machine tests the procedure on lavapipe and the CPU)
-#   options after `--` go to torch_train.py train (default: --precision bf16 --pipeline device;
-#                 not --compile: on the H100, 2026-11-26, compiling road20-large took the
-#                 whole 4-minute training budget)
+#   --quick       small batches, in the bench and the training (how this machine tests the
+#                 procedure on lavapipe and the CPU)
+#   options after `--` go to torch_train.py train (default: what the bench favours,
+#                 `torch_train.py pick-options`: --precision bf16 --pipeline device, with
+#                 --attention sdpa and the blocks compiled where each measured ≥ 5 % faster at
+#                 the run's batch, compiled ones only where they compiled within 90 s; on the
+#                 H100, 2026-11-26, compiling the whole forward took the 4-minute budget)
 #
 # Carry: dist (bash scripts/gpu-suite.sh prepare), .gl (the Vulkan loader), the run's export
 # (.road-cache/torch-large for road20-large: ROAD_TORCH_EXPORT names it) and, from the second
@@ -37,10 +43,11 @@ started=$(date +%s)
 budget=540
 from=""
 config=configs/road20-large.toml
-bench_secs=120
+bench_secs=150
 quick=()
 suite=true
 train_options=(--precision bf16 --pipeline device)
+picked=false  # options given after `--`: train with those, whatever the bench says
 while [ $# -gt 0 ]; do
     case "$1" in
     --budget-secs) budget=$2; shift 2 ;;
@@ -49,7 +56,7 @@ while [ $# -gt 0 ]; do
     --train-bench-secs) bench_secs=$2; shift 2 ;;
     --quick) quick=(--quick); shift ;;
     --no-suite) suite=false; shift ;;
-    --) shift; train_options=("$@"); break ;;
+    --) shift; train_options=("$@"); picked=true; break ;;
     *) sed -n '2,/^set -euo/p' "$0" | sed '$d' >&2; exit 2 ;;
     esac
 done
@@ -69,12 +76,21 @@ fi
 if [ "$bench_secs" -gt 0 ] && [ "$(left)" -gt $((bench_secs + 120)) ]; then
     start=$(date +%s)
     rc=0
-    batches=256,1024
+    batches=1024,2048
     [ ${#quick[@]} -gt 0 ] && batches=8
     timeout $((bench_secs + 30)) bash scripts/gpu-train.sh bench "$config" --size base \
-        --batch-scenes "$batches" --variants fp32,bf16+device,bf16+device+compile \
-        --json "$out/train-bench.json" --budget-secs "$bench_secs" >"$out/train-bench.txt" 2>&1 || rc=$?
+        --batch-scenes "$batches" \
+        --variants bf16+device,bf16+device+sdpa,bf16+device+sdpa+compile-blocks \
+        --profile-steps 3 --json "$out/train-bench.json" --budget-secs "$bench_secs" \
+        >"$out/train-bench.txt" 2>&1 || rc=$?
     echo "train-bench: exit $rc after $(($(date +%s) - start)) s" | tee -a "$out/steps.txt"
+    if ! $picked && [ -f "$out/train-bench.json" ]; then
+        if options=$("${PYTHON:-python3}" scripts/torch_train.py pick-options --config "$config" \
+            --bench "$out/train-bench.json" 2>>"$out/steps.txt"); then
+            read -r -a train_options <<<"$options"
+        fi
+        echo "train options: ${train_options[*]}" | tee -a "$out/steps.txt"
+    fi
     # Its table is in the JSON; the text is the log, appended to the training log below.
 fi
 
@@ -90,8 +106,10 @@ start=$(date +%s)
 rc=0
 {
     cat "$out/train-bench.txt" 2>/dev/null || true
+    quick_train=()
+    [ ${#quick[@]} -gt 0 ] && quick_train=(--set train.batch_scenes=8)
     bash scripts/gpu-train.sh "$config" "$run_dir" --minutes "$minutes" ${from_args[@]+"${from_args[@]}"} \
-        "${train_options[@]}"
+        ${quick_train[@]+"${quick_train[@]}"} "${train_options[@]}"
 } >"$out/train.log" 2>&1 || rc=$?
 rm -f "$out/train-bench.txt"
 echo "train: exit $rc after $(($(date +%s) - start)) s (budget $minutes min)" | tee -a "$out/steps.txt"

@@ -233,6 +233,9 @@ class Attention(nn.Module):
         self.v = nn.Linear(d, d)
         self.o = nn.Linear(d, d)
         self.heads = heads
+        # `Denoiser.use_sdpa`: attention without pair features through PyTorch's fused
+        # kernel (no [N, H, Lq, Lk] scores kept for the backward on a GPU).
+        self.sdpa = False
         self.pair_k: nn.Parameter | None = None
         self.pair_v: nn.Parameter | None = None
         if pair_features is not None:
@@ -254,9 +257,16 @@ class Attention(nn.Module):
         q = split(self.q(xq) * (1.0 / math.sqrt(dh)), lq)  # [N, H, Lq, dh]
         k = split(self.k(xkv), lk)  # [N, H, Lk, dh]
         v = split(self.v(xkv), lk)  # [N, H, Lk, dh]
-        scores = q @ k.transpose(-1, -2)  # [N, H, Lq, Lk]
         if (self.pair_k is None) != (pairs is None):
             raise ValueError("pair features go with pair weights (agent attention of agent_pairs)")
+        if self.sdpa and pairs is None:
+            # The same softmax(q·kᵀ + bias)·v (q already scaled); a fully masked row is
+            # uniform here as there (the bias is finite).
+            out = nn.functional.scaled_dot_product_attention(
+                q, k, v, attn_mask=bias.to(q.dtype), scale=1.0
+            )  # [N, H, Lq, dh]
+            return self.o(out.transpose(1, 2).reshape(n, lq, d))
+        scores = q @ k.transpose(-1, -2)  # [N, H, Lq, Lk]
         if self.pair_k is not None and self.pair_v is not None and pairs is not None:
             f = pairs.shape[-1]
             # q_i · K_h r_ij = (K_hᵀ q_i) · r_ij: F (not dh) per pair.
@@ -511,6 +521,14 @@ class Denoiser(nn.Module):
         self.blocks = nn.ModuleList(Block(c) for _ in range(c.blocks))
         self.ln_out = nn.LayerNorm(d, eps=LN_EPS)
         self.head = nn.Linear(d, 3)
+
+    def use_sdpa(self, on: bool = True) -> None:
+        """Attention without pair features (over time, the map, and agents when the model
+        has no pairs) through `scaled_dot_product_attention` instead of written-out
+        products: the same function, rounded differently (a speed option for training)."""
+        for module in self.modules():
+            if isinstance(module, Attention):
+                module.sdpa = on
 
     def encode_polylines(self, points: Tensor) -> Tensor:
         """`points [N, P, Q, 2]` → `[N, P, D]`: per-point MLP, max over Q, norm."""

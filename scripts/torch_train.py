@@ -430,6 +430,8 @@ class Meta:
 
 
 PRECISIONS = ("fp32", "bf16")
+ATTENTIONS = ("explicit", "sdpa")
+COMPILE_SCOPES = ("forward", "blocks")
 # The layers a bf16 forward keeps in f32: the input embeddings (positions in 40 m units and
 # log σ lose too much to bf16's 8-bit mantissa) and the output head; a few FLOPs in all. On
 # road20-wide4's weights (6 batches of 64) bf16 everywhere shifted the loss by +0.9 to +2.3 %
@@ -459,8 +461,11 @@ class Trainer:
 
     `precision` "bf16" runs the training forward under bf16 autocast (f32 weights, moments,
     EMA and loss); `compile` runs it (forward and loss, and so their backward) through
-    `torch.compile`, falling back to eager, with a warning, if compiling raises. Validation is
-    f32 eager either way."""
+    `torch.compile`, falling back to eager, with a warning, if compiling raises; with
+    `compile_scope` "blocks" only the transformer blocks are compiled (one graph shared by
+    them all: a fraction of the compile time). `attention` "sdpa" runs the attentions
+    without pair features through PyTorch's fused kernel. Validation is f32 eager with
+    written-out attention either way."""
 
     def __init__(
         self,
@@ -469,16 +474,27 @@ class Trainer:
         precision: str = "fp32",
         compile: bool = False,
         compile_mode: str = "default",
+        compile_scope: str = "forward",
+        attention: str = "explicit",
     ) -> None:
         if precision not in PRECISIONS:
             raise ValueError(f"precision {precision!r}: one of {', '.join(PRECISIONS)}")
+        if compile_scope not in COMPILE_SCOPES:
+            raise ValueError(
+                f"compile scope {compile_scope!r}: one of {', '.join(COMPILE_SCOPES)}"
+            )
+        if attention not in ATTENTIONS:
+            raise ValueError(f"attention {attention!r}: one of {', '.join(ATTENTIONS)}")
         self.run = run
         self.device = device
         self.precision = precision
         self.autocast_dtype = torch.bfloat16 if precision == "bf16" else None
         self.compile_mode = compile_mode if compile else None
         self.compile_error: str | None = None
+        self.compile_scope = compile_scope
+        self.attention = attention
         self._compiled: Any = None
+        self._compiled_blocks = False
         # TF32 during validation: None leaves the flags as they are.
         self.validation_tf32: bool | None = None
         # Compile with the batch dimension dynamic as well (`bench`: one graph for every
@@ -487,6 +503,7 @@ class Trainer:
         self.model = td.Denoiser(run.model)
         seeded_init(self.model, run.train.seed)
         self.model.to(device)
+        self.model.use_sdpa(attention == "sdpa")
         if self.autocast_dtype is not None:
             for name in F32_LAYERS:
                 layer = getattr(self.model, name, None)
@@ -503,9 +520,9 @@ class Trainer:
         self.meta = Meta()
         self.ema_model = td.Denoiser(run.model).to(device).eval()
         if compile:
-            self._compiled = self._compile(compile_mode)
+            self._compile(compile_mode)
 
-    def _compile(self, mode: str) -> Any:
+    def _compile(self, mode: str) -> None:
         dtype = self.autocast_dtype
         try:
             import torch._dynamo as dynamo
@@ -513,16 +530,26 @@ class Trainer:
             # Agent counts vary by batch (and, in `bench`, models and batch sizes by case):
             # room for the recompilations.
             dynamo.config.cache_size_limit = max(dynamo.config.cache_size_limit, 64)
-            return torch.compile(
-                lambda model, batch: mixed_batch_loss(model, batch, dtype), mode=mode
-            )
+            if self.compile_scope == "blocks":
+                # Regional compilation: the blocks are one module class whose parameters
+                # dynamo treats as inputs, so the first block's graph serves the others.
+                for block in self.model.blocks:
+                    block.compile(mode=mode)
+                self._compiled_blocks = True
+            else:
+                self._compiled = torch.compile(
+                    lambda model, batch: mixed_batch_loss(model, batch, dtype), mode=mode
+                )
         except Exception as e:  # noqa: BLE001  (any failure: train uncompiled)
             self._compile_failed(e)
-            return None
 
     def _compile_failed(self, e: BaseException) -> None:
         self.compile_error = " ".join(f"{type(e).__name__}: {e}".split())[:500]
         self._compiled = None
+        if self._compiled_blocks:
+            for block in self.model.blocks:
+                block._compiled_call_impl = None  # what nn.Module.compile set: eager again
+            self._compiled_blocks = False
         print(
             f"warning: torch.compile failed ({self.compile_error}); continuing uncompiled",
             file=sys.stderr,
@@ -532,14 +559,18 @@ class Trainer:
     @property
     def compiled(self) -> bool:
         """Whether the training forward runs compiled (False after a fallback)."""
-        return self._compiled is not None
+        return self._compiled is not None or self._compiled_blocks
 
     def mode(self) -> str:
         """What the training forward runs as, for the checkpoint's `hardware` line."""
         label = "bf16 autocast" if self.precision == "bf16" else "fp32"
         if torch.backends.cuda.matmul.allow_tf32 and self.device.type == "cuda":
             label += " (TF32)"
-        return label + (", compiled" if self.compiled else "")
+        if self.attention == "sdpa":
+            label += ", SDPA attention"
+        if self.compiled:
+            label += ", compiled" if self.compile_scope == "forward" else ", blocks compiled"
+        return label
 
     def _loss_backward(self, batch: dict[str, Tensor]) -> Tensor:
         """The batch loss, its gradient accumulated into the parameters' `.grad`."""
@@ -563,6 +594,18 @@ class Trainer:
                 self._compile_failed(e)
                 for p in self.params:
                     p.grad = None
+        if self._compiled_blocks:
+            try:
+                return self._eager_loss_backward(batch)
+            except torch.cuda.OutOfMemoryError:
+                raise
+            except Exception as e:  # noqa: BLE001  (any compile failure: go on eager)
+                self._compile_failed(e)
+                for p in self.params:
+                    p.grad = None
+        return self._eager_loss_backward(batch)
+
+    def _eager_loss_backward(self, batch: dict[str, Tensor]) -> Tensor:
         if self.autocast_dtype is None:
             loss = batch_loss(self.model, batch)
         else:
@@ -1029,7 +1072,15 @@ def train(args: argparse.Namespace) -> None:
         )
     else:
         batches = Batches(run, export, workers, ahead=max(2, 2 * workers))
-    trainer = Trainer(run, device, args.precision, args.compile, args.compile_mode)
+    trainer = Trainer(
+        run,
+        device,
+        args.precision,
+        args.compile,
+        args.compile_mode,
+        args.compile_scope,
+        args.attention,
+    )
     trainer.validation_tf32 = args.allow_tf32
     val_np = exported_validation_batches(export / "validation_batches.safetensors", run)
     if val_np is None:
@@ -1309,7 +1360,7 @@ def make_train_fixture(out: Path, init: Path, seed: int) -> None:
 
 
 # `bench`'s defaults (its code: torch_train_bench.py, imported when the command runs).
-BENCH_VARIANTS = "fp32,fp32+device,bf16+device,bf16+device+compile"
+BENCH_VARIANTS = "fp32,fp32+device,bf16+device,bf16+device+sdpa,bf16+device+compile"
 BENCH_SIZES = ("base", "h192x4:model.hidden=192,model.heads=12,model.blocks=4")
 
 
@@ -1355,6 +1406,20 @@ def main(argv: list[str] | None = None) -> None:
             help="torch.compile's mode (default, max-autotune-no-cudagraphs, …)",
         )
         p.add_argument(
+            "--compile-scope",
+            choices=COMPILE_SCOPES,
+            default="forward",
+            help="with --compile: forward (the whole training forward and loss) or blocks "
+            "(the transformer blocks only, one graph for all: a fraction of the compile time)",
+        )
+        p.add_argument(
+            "--attention",
+            choices=ATTENTIONS,
+            default="explicit",
+            help="sdpa: attention without pair features through PyTorch's fused "
+            "scaled_dot_product_attention (validation keeps the written-out products)",
+        )
+        p.add_argument(
             "--pipeline",
             choices=("host", "device"),
             default="host",
@@ -1398,8 +1463,9 @@ def main(argv: list[str] | None = None) -> None:
     be.add_argument(
         "--variants",
         default=BENCH_VARIANTS,
-        help="comma-separated; each `+`-joined tokens: fp32 | bf16, compile, host | device "
-        f"(the pipeline; host by default), tf32 (default {BENCH_VARIANTS})",
+        help="comma-separated; each `+`-joined tokens: fp32 | bf16, compile | compile-blocks "
+        "(the whole forward, or the blocks only), host | device (the pipeline; host by "
+        f"default), tf32, sdpa (fused attention) (default {BENCH_VARIANTS})",
     )
     be.add_argument(
         "--batch-scenes", default="256,1024", help="comma-separated batch sizes (scenes)"
@@ -1434,9 +1500,24 @@ def main(argv: list[str] | None = None) -> None:
         help="leave out the pipeline-only rows (batches/s without a model)",
     )
     be.add_argument("--compile-mode", default="default", help="torch.compile's mode")
+    be.add_argument(
+        "--profile-steps",
+        type=int,
+        default=0,
+        help="after each case's timing, this many steps under torch.profiler: its top "
+        "operators (and kernels per step on a GPU) in the case's row",
+    )
+    be.add_argument("--profile-top", type=int, default=15, help="operators a profile keeps")
     be.add_argument("--loader-workers", type=int, default=-1, help="as train's")
     be.add_argument("--threads", type=int, default=0, help="torch CPU threads (default: torch's)")
     be.add_argument("--json", type=Path, default=None, help="write the results here as well")
+    po = sub.add_parser(
+        "pick-options",
+        help="the training options a bench JSON favours for a run (one line; why on stderr)",
+    )
+    run_args(po)
+    po.add_argument("--bench", type=Path, required=True, help="`bench --json`'s file")
+    po.add_argument("--baseline", default="bf16+device", help="the variant to beat")
     va = sub.add_parser("validate", help="a checkpoint's validation loss on the export")
     run_args(va)
     va.add_argument("--checkpoint", type=Path, required=True)
@@ -1459,6 +1540,15 @@ def main(argv: list[str] | None = None) -> None:
             import torch_train_bench  # here, not at the top: it imports this module
 
             torch_train_bench.bench(args)
+        elif args.command == "pick-options":
+            import torch_train_bench
+
+            run = load_run(args.config, args.overrides)
+            options, why = torch_train_bench.pick_options(
+                json.loads(args.bench.read_text()), run.train.batch_scenes, args.baseline
+            )
+            print(f"pick-options: {why}", file=sys.stderr)
+            print(" ".join(options))
         elif args.command == "validate":
             torch.backends.cuda.matmul.allow_tf32 = False
             validate_cmd(args)

@@ -31,13 +31,16 @@ from torch_train_data import ConfigError, ExportedSplit, Run, load_run_table, pa
 
 @dataclass(frozen=True)
 class Variant:
-    """A `bench` variant, `+`-joined tokens: fp32 | bf16, compile, host | device, tf32."""
+    """A `bench` variant, `+`-joined tokens: fp32 | bf16, compile | compile-blocks, host |
+    device, tf32, sdpa."""
 
     label: str
     precision: str = "fp32"
     compile: bool = False
+    compile_scope: str = "forward"
     pipeline: str = "host"
     tf32: bool = False
+    attention: str = "explicit"
 
 
 def parse_variant(text: str) -> Variant:
@@ -47,14 +50,19 @@ def parse_variant(text: str) -> Variant:
             fields["precision"] = token
         elif token == "compile":
             fields["compile"] = True
+        elif token == "compile-blocks":
+            fields["compile"] = True
+            fields["compile_scope"] = "blocks"
+        elif token == "sdpa":
+            fields["attention"] = "sdpa"
         elif token in ("host", "device"):
             fields["pipeline"] = token
         elif token == "tf32":
             fields["tf32"] = True
         else:
             raise ConfigError(
-                f"bench variant `{text}`: unknown token `{token}` (fp32, bf16, compile, host, "
-                "device, tf32)"
+                f"bench variant `{text}`: unknown token `{token}` (fp32, bf16, compile, "
+                "compile-blocks, host, device, tf32, sdpa)"
             )
     return Variant(label=text.strip(), **fields)
 
@@ -102,7 +110,15 @@ def bench_case(
             import torch._dynamo as dynamo
 
             dynamo.reset()
-        trainer = Trainer(run, device, variant.precision, variant.compile, args.compile_mode)
+        trainer = Trainer(
+            run,
+            device,
+            variant.precision,
+            variant.compile,
+            args.compile_mode,
+            variant.compile_scope,
+            variant.attention,
+        )
         trainer.dynamic_batch = True
         row["parameters"] = trainer.parameter_count()
         batches = make_batches(variant.pipeline, run)
@@ -161,6 +177,15 @@ def bench_case(
         )
         if device.type == "cuda":
             row["peak_memory_gib"] = round(torch.cuda.max_memory_allocated(device) / 2**30, 2)
+        if args.profile_steps > 0:
+            try:
+                row["profile"] = profile_steps(
+                    one, warmup + steps, args.profile_steps, args.profile_top, device
+                )
+            except torch.cuda.OutOfMemoryError:
+                raise
+            except Exception as e:  # noqa: BLE001  (the timing above stands without it)
+                row["profile_error"] = f"{type(e).__name__}: {e}".splitlines()[0][:500]
     except torch.cuda.OutOfMemoryError:
         row["error"] = "out of memory"
     except Exception as e:  # noqa: BLE001  (one failed case must not end the bench)
@@ -175,6 +200,52 @@ def bench_case(
         if device.type == "cuda":
             torch.cuda.empty_cache()
     return row
+
+
+def profile_steps(
+    one: Any, first_step: int, steps: int, top: int, device: torch.device
+) -> dict[str, Any]:
+    """`steps` more steps under torch.profiler: where a step's time goes, the `top` operators
+    by their own time on the device (on the CPU, by their own CPU time), and on a GPU the
+    kernels launched per step (what launch-bound steps and fusion show in)."""
+    from torch.autograd import DeviceType
+    from torch.profiler import ProfilerActivity, profile
+
+    cuda = device.type == "cuda"
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
+    with profile(activities=activities) as prof:
+        for k in range(steps):
+            one(first_step + k)
+        _sync(device)
+    events = prof.key_averages()
+
+    def own_us(e: Any) -> float:
+        if cuda:  # named self_cuda_time_total before PyTorch 2.4
+            own = getattr(e, "self_device_time_total", None)
+            return float(own if own is not None else e.self_cuda_time_total)
+        return float(e.self_cpu_time_total)
+
+    total_us = sum(own_us(e) for e in events)
+    ranked = sorted(events, key=own_us, reverse=True)[:top]
+    out: dict[str, Any] = {
+        "steps": steps,
+        "by": "self device time" if cuda else "self CPU time",
+        "ms_per_step": round(total_us / 1000 / steps, 3),
+        "ops": [
+            {
+                "name": e.key,
+                "ms_per_step": round(own_us(e) / 1000 / steps, 3),
+                "share": round(own_us(e) / total_us, 4) if total_us > 0 else None,
+                "calls_per_step": round(e.count / steps, 1),
+            }
+            for e in ranked
+        ],
+    }
+    if cuda:
+        out["kernels_per_step"] = round(
+            sum(e.count for e in events if e.device_type == DeviceType.CUDA) / steps, 1
+        )
+    return out
 
 
 def bench_data(
@@ -330,3 +401,59 @@ def bench(args: argparse.Namespace) -> None:
             f"{r.get('warmup_secs', ''):>9} {r.get('peak_memory_gib', ''):>8}  {note}"
         )
     write()
+
+
+# What `pick-options` asks of a variant before a training call uses it instead of the baseline.
+PICK_MIN_GAIN = 1.05  # scene-samples/s over the baseline's at the same batch
+PICK_MAX_COMPILE_SECS = 90.0  # a compiled variant's warm-up, its compiling included
+
+
+def pick_options(
+    bench_json: Any, batch_scenes: int, baseline: str = "bf16+device", size: str = "base"
+) -> tuple[list[str], str]:
+    """The training options a bench's measurements favour (`gpu-session.sh` trains with them):
+    among the variants of model `size` measured at the batch nearest `batch_scenes` that differ
+    from `baseline` by `sdpa` and `compile-blocks` alone, the fastest that beats it by
+    `PICK_MIN_GAIN` (compiled ones only where they compiled within `PICK_MAX_COMPILE_SECS`).
+    Returns the options and a sentence saying why."""
+    rows = [
+        r
+        for r in bench_json.get("cases", [])
+        if "scene_samples_per_sec" in r and not r.get("error") and r.get("size") == size
+    ]
+    base = parse_variant(baseline)
+    options = ["--precision", base.precision, "--pipeline", base.pipeline]
+    if base.tf32:
+        options.append("--allow-tf32")
+    measured = sorted({int(r["batch_scenes"]) for r in rows if r["variant"] == baseline})
+    if not measured:
+        return options, f"no measurement of {baseline}: the baseline's options"
+    batch = min(measured, key=lambda b: (abs(b - batch_scenes), b))
+    at = {r["variant"]: r for r in rows if int(r["batch_scenes"]) == batch}
+    base_rate = float(at[baseline]["scene_samples_per_sec"])
+    best: tuple[float, Variant] | None = None
+    notes = []
+    for label, r in at.items():
+        v = parse_variant(label)
+        same_base = (v.precision, v.pipeline, v.tf32) == (base.precision, base.pipeline, base.tf32)
+        if label == baseline or not same_base or (v.compile and v.compile_scope != "blocks"):
+            continue
+        gain = float(r["scene_samples_per_sec"]) / base_rate
+        compile_secs = float(r.get("warmup_secs", 1e9))
+        if v.compile and (not r.get("compiled") or compile_secs > PICK_MAX_COMPILE_SECS):
+            notes.append(f"{label} {gain:.2f}× but compiled late or not at all")
+            continue
+        notes.append(f"{label} {gain:.2f}×")
+        if gain >= PICK_MIN_GAIN and (best is None or gain > best[0]):
+            best = (gain, v)
+    why = f"at batch {batch}: {baseline} {base_rate:.0f} scene-samples/s; " + (
+        ", ".join(notes) or "nothing else measured"
+    )
+    if best is None:
+        return options, why + f": {baseline}'s options"
+    v = best[1]
+    if v.attention == "sdpa":
+        options += ["--attention", "sdpa"]
+    if v.compile:
+        options += ["--compile", "--compile-scope", "blocks"]
+    return options, why + f": {v.label}"
