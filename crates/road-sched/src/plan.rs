@@ -303,6 +303,13 @@ pub struct StallRelease {
     /// went 1.5 m every 5 s, and its queue behind it (issue 39).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub hand_back_speed_mps: Option<f64>,
+    /// A vehicle that backed off for one the release finds wedged, and now stands giving way,
+    /// is asked again while that one stays wedged, and backs off again (default false: asked
+    /// once, it gives way 3 s). 2 m left one beside the tail of a vehicle wedged at a kerb, and
+    /// the release then pulled it away forwards back beside it (11 s on FT under τ = 1;
+    /// docs/experiments/2026-11-30-make-room-again.md).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub make_room_again: bool,
 }
 
 /// The stuck removal's settings ([`PlannerSpec::stuck_removal`]), the last resort of long

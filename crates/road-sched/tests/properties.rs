@@ -577,6 +577,7 @@ fn stall_release_and_stuck_removal_outside_their_bounds_are_refused() {
             release_speed_mps: 5.0,
             gridlock_after_secs,
             hand_back_speed_mps: None,
+            make_room_again: false,
         }),
         ..spec(PlannerKind::Rolling, 10, 5, 40, None)
     };
@@ -587,6 +588,7 @@ fn stall_release_and_stuck_removal_outside_their_bounds_are_refused() {
             release_speed_mps,
             gridlock_after_secs: None,
             hand_back_speed_mps: None,
+            make_room_again: false,
         }),
         ..spec(PlannerKind::Rolling, 10, 5, 40, None)
     };
@@ -597,6 +599,7 @@ fn stall_release_and_stuck_removal_outside_their_bounds_are_refused() {
             release_speed_mps: 5.0,
             gridlock_after_secs: None,
             hand_back_speed_mps,
+            make_room_again: false,
         }),
         ..spec(PlannerKind::Rolling, 10, 5, 40, None)
     };

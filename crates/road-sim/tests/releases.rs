@@ -6,6 +6,9 @@
 //! on, so that only the rules under test move anyone.
 
 use std::f64::consts::PI;
+use std::path::{Path, PathBuf};
+
+use road_data::LaneletMap;
 
 use road_planner::collision_guard::GuardAction;
 use road_sched::{PlannerSpec, StallRelease};
@@ -14,7 +17,7 @@ use road_sim::closed_loop::SceneTick;
 use road_sim::procedural::{ProceduralMap, STEP_SECS};
 
 mod common;
-use common::{moved_m, run_rocking, run_stuttering, run_turning};
+use common::{moved_m, run_kept_on_lanes, run_rocking, run_stuttering, run_turning};
 
 /// The merge's script's vehicles `keep` standing still for 10 s, under `release`.
 fn run(release: Option<StallRelease>, keep: &[usize]) -> Vec<SceneTick> {
@@ -182,6 +185,7 @@ const RELEASE: StallRelease = StallRelease {
     release_speed_mps: 5.0,
     gridlock_after_secs: None,
     hand_back_speed_mps: None,
+    make_room_again: false,
 };
 
 #[test]
@@ -377,6 +381,77 @@ fn a_vehicle_with_its_tail_at_the_road_edge_makes_room_backing_along_it() {
         "1 keeps its centre on the road"
     );
     drove_on_along_the_road(&ticks);
+}
+
+/// The INTERACTION data's folder (`ROAD_DATA`, else `../shared/data/interaction` beside the
+/// checkout), as the data tests find it.
+fn interaction_map(location: &str) -> LaneletMap {
+    let dir = std::env::var_os("ROAD_DATA")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| {
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/interaction")
+        });
+    let path = dir.join("maps").join(format!("{location}.osm"));
+    LaneletMap::load(&path, location)
+        .unwrap_or_else(|e| panic!("{}: {e} (set ROAD_DATA)", path.display()))
+}
+
+#[test]
+fn a_vehicle_beside_the_tail_of_one_wedged_at_a_kerb_makes_room_again_until_it_gets_out() {
+    // DR_USA_Roundabout_FT, where the ring's outer edge meets an exit: vehicle 0 (4.2 m) with
+    // its centre at the kerb, pointing along it (−35°), every step ahead off the road; vehicle
+    // 1 (4.3 m) stands beside its rear on the right, 5° further round, 2.45 m back and 1.8 m
+    // to its right (in 0's frame). So stood vehicles 3 and 5 of a long session under τ = 1
+    // (seed 24) for 11 s: 0's turn in place and its backing swing its tail into 1; asked, 1
+    // backed off 2 m, which left it beside 0's tail, gave way for 3 s while 0 stood wedged,
+    // and was then pulled away forwards, back beside it. With the release's `make_room_again`
+    // (the τ = 1 planner's), one giving way that still stands in a wedged vehicle's every
+    // move makes room again, and 0 gets out.
+    let lanes = interaction_map("DR_USA_Roundabout_FT");
+    let stands = [
+        (0, 1027.409, 976.024, (-34.81f64).to_radians()),
+        (1, 1024.363, 975.937, (-39.63f64).to_radians()),
+    ];
+    let run = |make_room_again| {
+        let mut planner = wedge_planner();
+        planner.stall_release = Some(StallRelease {
+            make_room_again,
+            ..RELEASE
+        });
+        run_kept_on_lanes(
+            ProceduralMap::Roundabout,
+            &lanes,
+            &planner,
+            &[3, 5],
+            &stands,
+            250,
+        )
+    };
+    // Asked once (the default), 1 gives way 3 s beside 0's tail: 0 is still there at 6 s.
+    let asked_once = run(false);
+    let moved_asked_once = moved_m(&asked_once[..=60], 0, 0);
+    assert!(
+        moved_asked_once < 0.5,
+        "0 wedged at 6 s: {moved_asked_once:.2} m"
+    );
+    let ticks = run(true);
+    assert!(
+        ticks.iter().all(|t| t.collisions.is_empty()),
+        "no collision"
+    );
+    assert!(ticks.iter().all(|t| t.off_road.is_empty()), "on the road");
+    assert!(
+        ticks
+            .iter()
+            .any(|t| t.guarded.contains(&(1, GuardAction::BackedOff))),
+        "1 makes room"
+    );
+    // With `make_room_again`, out within 6 s: its release after 3 s, then 1 makes room until
+    // it can go.
+    let moved_by_6_s = moved_m(&ticks[..=60], 0, 0);
+    assert!(moved_by_6_s > 1.0, "0 out by 6 s: {moved_by_6_s:.2} m");
+    let moved = moved_m(&ticks, 0, 0);
+    assert!(moved > 5.0, "0 got out: {moved:.2} m");
 }
 
 #[test]

@@ -297,6 +297,8 @@ impl SceneRuntime<'_> {
             memory.manoeuvred = false;
         }
         let (paths, standing) = self.blocked_paths(&present);
+        // (asking, asked, again): `again`, asked by a wedged vehicle with the release's
+        // `make_room_again`, also while giving way.
         let mut make_room = Vec::new();
         for &a in &present {
             if self.controllers[a] != Controller::Model || self.overrides[a].is_some() {
@@ -393,7 +395,7 @@ impl SceneRuntime<'_> {
                         .in_path(a)
                         .iter()
                         .filter(|&&b| standing[b])
-                        .map(|&b| (a, b)),
+                        .map(|&b| (a, b, false)),
                 );
             }
             let speed = (self.speed_mps[a] + release.acceleration_mps2 * STEP_SECS)
@@ -524,7 +526,7 @@ impl SceneRuntime<'_> {
                     make_room.extend(
                         self.blockers_of(a, to, heading, heading_scale)
                             .into_iter()
-                            .map(|b| (a, b)),
+                            .map(|b| (a, b, release.make_room_again)),
                     );
                 }
             }
@@ -704,7 +706,7 @@ impl SceneRuntime<'_> {
             .collect()
     }
 
-    /// Vehicles asked to make room (`(asking, asked)` pairs) by a wedged vehicle the stall
+    /// Vehicles asked to make room (`(asking, asked, again)`) by a wedged vehicle the stall
     /// release pulls away, or by one moving off into them, move off as in a deadlock
     /// ([`Self::back_off`]), away from the one asking: backwards when it stands ahead of them,
     /// forwards when behind (asked to back off, vehicles behind a wedged one backed into it,
@@ -712,26 +714,30 @@ impl SceneRuntime<'_> {
     /// off or pulling away already: asked to back off while the release pulled it away, a
     /// vehicle at a kerb had both every tick for 29 s, and the long sessions' free-road stops
     /// were 29 against 15 (issue 39); but one the release found wedged this tick gives its
-    /// pull-away up and makes room (`HeldMemory::wedged`). With the stall release on (`can_pull_away`), one asked
+    /// pull-away up and makes room (`HeldMemory::wedged`). Asked `again` (by a vehicle the
+    /// stall release found wedged, with its `make_room_again`), one that backed off and now
+    /// gives way backs off again. With the stall release on (`can_pull_away`), one asked
     /// from behind that has free road ahead is pulled away instead: making room forwards 2 m,
     /// then standing 3 s, a vehicle the model kept stopped on a roundabout's ring led its
     /// queue round at 0.4 m/s for minutes (issue 39). Nor is one asked whose move would cross
     /// the road's edge ([`Self::backs_off_on_the_road`]).
-    fn make_room(&mut self, asked: &[(usize, usize)], can_pull_away: bool) {
+    fn make_room(&mut self, asked: &[(usize, usize, bool)], can_pull_away: bool) {
         if asked.is_empty() {
             return;
         }
         let ticks = ((BACK_OFF_SECS + GIVE_WAY_SECS) / STEP_SECS).round() as u32;
+        let give_way_ticks = (GIVE_WAY_SECS / STEP_SECS).round() as u32;
         let present: Vec<usize> = (0..self.controllers.len())
             .filter(|&b| !self.retired[b])
             .collect();
         let (paths, _) = self.blocked_paths(&present);
-        for &(a, b) in asked {
+        for &(a, b, again) in asked {
             let memory = self.held[b];
             if self.controllers[b] != Controller::Model
                 || self.overrides[b].is_some()
                 || self.speed_mps[b] >= crate::free_road::STOPPED_MAX_SPEED_MPS
-                || memory.backing_off_ticks > 0
+                || memory.backing_off_ticks >= give_way_ticks
+                || (memory.backing_off_ticks > 0 && !again)
                 || (memory.pulling_away && !memory.wedged)
             {
                 continue;
@@ -987,7 +993,7 @@ impl SceneRuntime<'_> {
                 make_room.extend(
                     self.blockers_of(a, end, heading, heading_scale)
                         .into_iter()
-                        .map(|b| (a, b)),
+                        .map(|b| (a, b, false)),
                 );
             }
             set_emitted(emitted, a, frame, to, heading_to, heading_scale);
@@ -1384,6 +1390,7 @@ mod tests {
             release_speed_mps: 5.0,
             gridlock_after_secs: None,
             hand_back_speed_mps: None,
+            make_room_again: false,
         };
         // Unset: as fast as the release drives it now.
         assert_eq!(hand_back_speed_mps(0.15, &release), 0.15);

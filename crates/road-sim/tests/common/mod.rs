@@ -240,6 +240,20 @@ pub fn run_on_lanes(
     )
 }
 
+/// As [`run_on_lanes`] with `map`'s script's vehicles `keep` (their sizes) placed by `stands`
+/// (index among the kept) on `lanes`.
+pub fn run_kept_on_lanes(
+    map: ProceduralMap,
+    lanes: &LaneletMap,
+    planner: &PlannerSpec,
+    keep: &[usize],
+    stands: &[(usize, f64, f64, f64)],
+    ticks: usize,
+) -> Vec<SceneTick> {
+    let motion = Motion::straight(0.0);
+    run_on(map, Some(lanes), planner, keep, stands, ticks, motion, None)
+}
+
 #[allow(clippy::too_many_arguments)]
 fn run_on(
     map: ProceduralMap,
