@@ -577,8 +577,10 @@ class Trainer:
         self.model.train()
         for p in self.params:
             p.grad = None
-        if self._compiled is not None:
+        if self.compiled:
             try:
+                if self._compiled is None:
+                    return self._eager_loss_backward(batch)  # through the compiled blocks
                 if hasattr(torch._dynamo, "maybe_mark_dynamic"):
                     for key in ("x0", "x_noisy", "valid", "agent_features"):
                         torch._dynamo.maybe_mark_dynamic(batch[key], 1)  # agents
@@ -588,15 +590,6 @@ class Trainer:
                 loss = self._compiled(self.model, batch)
                 loss.backward()
                 return loss
-            except torch.cuda.OutOfMemoryError:
-                raise
-            except Exception as e:  # noqa: BLE001  (any compile failure: go on eager)
-                self._compile_failed(e)
-                for p in self.params:
-                    p.grad = None
-        if self._compiled_blocks:
-            try:
-                return self._eager_loss_backward(batch)
             except torch.cuda.OutOfMemoryError:
                 raise
             except Exception as e:  # noqa: BLE001  (any compile failure: go on eager)
