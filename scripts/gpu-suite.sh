@@ -166,6 +166,13 @@ run)
         --checkpoints models/road20-wide4 models/road20 --batches "${batches[@]}" \
         --cpu-max-batch 8 --fusion chains layers --linear-kernels auto rowwise tiled blocked \
         --cache "$out/cache" --json
+    # The chains on the wide tile (32–64 rows a workgroup, blocks of 8 × 8, weights read as
+    # vec4; built 2026-11-30 for the large batches where the narrow tile lost 2.3× to layers)
+    # beside the narrow tile and layers, the kernels chosen per layer: a step of its own, so
+    # that the first card to run it cannot cost the engine step its rows.
+    step engine-wide-chains 60 "$out/engine-wide-chains.json" "$bin" bench engine \
+        --checkpoints models/road20-wide4 models/road20 --batches "${batches[@]}" \
+        --cpu-max-batch 0 --fusion chains wide-chains layers --cache "$out/cache" --json
     # 4 096 scenes of road20-wide4 padded to 23 agents pass the adapter's 2 GiB binding when
     # profiled whole (H200, 2026-11-30); packed, as the engine step runs them, they fit.
     # One scene too: its 3.6 ms a Heun step (2 evaluations of 24 dispatches, 2026-11-30) is 75 µs a
@@ -201,7 +208,7 @@ run)
         --fusion layers --precisions f16 --tensor-cores on off --cache "$out/cache" --json
     step engine-profile 120 "$out/engine-profile.json" "$bin" bench engine \
         --checkpoints models/road20-wide4 --batches "${profile_batches[@]}" --cpu-max-batch 0 \
-        --linear-kernels auto --fusion chains layers --shader-checks checked unchecked --profile \
+        --linear-kernels auto --fusion chains wide-chains layers --shader-checks checked unchecked --profile \
         --cache "$out/cache" --json
     # Serving: scenes ticking through the scheduler, each engine in the same run (the GPU's
     # alone with --engine-only: the CPU column does not change with the kernels).

@@ -43,6 +43,11 @@ pub struct ContextOptions {
     /// layer by layer: on by default (issue 40: fewer dispatches and bytes moved; the layers
     /// stay as the variant to time against, and for hidden widths past the chain's tile).
     pub residual_chains: bool,
+    /// With `residual_chains`: run them on the wide tile (32–64 rows a workgroup, blocks of
+    /// 8 × 8, weights read as vec4; `ChainTile::wide`) where the model and device allow it,
+    /// instead of the narrow one (8 rows). Off by default: the narrow tile is the one measured
+    /// on cards so far, and a hardware adapter's tuning (`road gpu tune`) chooses per batch.
+    pub wide_chains: bool,
     /// Keep the map's keys (the agent maps' pick and encoder, every block's map k, v) from one
     /// evaluation to the next while what they are made from holds: the maps, and with agent
     /// maps each agent's anchor state, which a step leaves as it is where σ (and γ) do not
@@ -142,6 +147,7 @@ impl Default for ContextOptions {
             pack_scenes: true,
             eager_packing: false,
             residual_chains: true,
+            wide_chains: false,
             keep_map_keys: true,
             precision: Precision::F32,
             cooperative_matrices: true,
@@ -164,6 +170,7 @@ pub struct GpuContext {
     pack_scenes: bool,
     eager_packing: bool,
     residual_chains: bool,
+    wide_chains: bool,
     keep_map_keys: bool,
     precision: Precision,
     /// f16 layers on the tensor cores (`linear_coop.wgsl`): the adapter offers them, the device
@@ -260,6 +267,7 @@ impl GpuContext {
             eager_packing: options.eager_packing,
             // The chains run f32 only.
             residual_chains: options.residual_chains && options.precision == Precision::F32,
+            wide_chains: options.wide_chains,
             keep_map_keys: options.keep_map_keys,
             precision: options.precision,
             cooperative,
@@ -353,12 +361,18 @@ impl GpuContext {
         self.residual_chains
     }
 
-    /// `"chains"` or `"layers"`: how the blocks' layers between attentions run.
+    /// See [`ContextOptions::wide_chains`].
+    pub fn wide_chains(&self) -> bool {
+        self.wide_chains
+    }
+
+    /// `"chains"`, `"wide-chains"` or `"layers"`: how the blocks' layers between attentions
+    /// run (as `road bench engine --fusion` names them).
     pub fn fusion_setting(&self) -> &'static str {
-        if self.residual_chains {
-            "chains"
-        } else {
-            "layers"
+        match (self.residual_chains, self.wide_chains) {
+            (true, false) => "chains",
+            (true, true) => "wide-chains",
+            (false, _) => "layers",
         }
     }
 

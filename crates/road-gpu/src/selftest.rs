@@ -10,7 +10,8 @@ use crate::kernels::compact::{CompactRows, NONE, gather_rows_reference, scatter_
 use crate::kernels::linear::{Linear, LinearKernel, LinearParams, fold_layer_norm};
 use crate::kernels::polyline::{PolylineEncoder, PolylineKernel, PolylineParams};
 use crate::kernels::residual_chain::{
-    AttendInputs, ChainInputs, ChainParams, EmbedChainInputs, NO_FRAME, ResidualChain, transpose,
+    AttendInputs, ChainInputs, ChainParams, ChainTile, EmbedChainInputs, NO_FRAME, ResidualChain,
+    transpose,
 };
 use crate::tolerance::Mismatch;
 use crate::{GpuContext, Result, Tolerance, reference};
@@ -176,6 +177,14 @@ pub fn kernel_checks(ctx: &GpuContext) -> Result<Vec<KernelCheck>> {
         pair_v: &[],
     };
     let chain_kernel = ResidualChain::new(ctx);
+    // The wide tile too where this device holds it: its first run on a card is here.
+    let wide_kernel = ChainTile::wide(
+        d as u32,
+        m as u32,
+        ctx.device.limits().max_compute_workgroup_storage_size,
+    )
+    .map(|tile| ResidualChain::with_tile(ctx, tile))
+    .transpose()?;
     let (h_got, y_got, _) = chain_kernel.run_full(ctx, p, &inputs, None, Some(attend))?;
     let by_agent = TokenLayout::contiguous(keys as u32);
     let map_attention = AttentionParams {
@@ -211,6 +220,16 @@ pub fn kernel_checks(ctx: &GpuContext) -> Result<Vec<KernelCheck>> {
         tolerance: loose,
         outcome: loose.check(&got, &want),
     });
+    if let Some(wide) = &wide_kernel {
+        let (h_got, y_got, _) = wide.run_full(ctx, p, &inputs, None, Some(attend))?;
+        let got: Vec<f32> = h_got.into_iter().chain(y_got).collect();
+        checks.push(KernelCheck {
+            name: "residual_chain, wide tile (map attention, output, MLP, next q/k/v)",
+            values: got.len(),
+            tolerance: loose,
+            outcome: loose.check(&got, &want),
+        });
+    }
 
     // The embedding chain: the token embedding (agent frame at slot 9, constant-velocity
     // reference) and block 0's q, k, v behind its norm, in 3 parts.
@@ -281,7 +300,36 @@ pub fn kernel_checks(ctx: &GpuContext) -> Result<Vec<KernelCheck>> {
         tolerance: loose,
         outcome: loose.check(&got, &want),
     });
-    checks.push(head_chain_check(ctx, &mut rng, &tensors[..6], d, m, loose)?);
+    if let Some(wide) = &wide_kernel {
+        let (h_got, y_got) = wide.run_embed(ctx, p, &inputs)?;
+        let got: Vec<f32> = h_got.into_iter().chain(y_got).collect();
+        checks.push(KernelCheck {
+            name: "embed_chain, wide tile (token embedding, block 0's q/k/v)",
+            values: got.len(),
+            tolerance: loose,
+            outcome: loose.check(&got, &want),
+        });
+    }
+    let head_name = "residual_chain (head, preconditioning, sampler step)";
+    checks.push(head_chain_check(
+        ctx,
+        (&chain_kernel, head_name),
+        &mut rng,
+        &tensors[..6],
+        (d, m),
+        loose,
+    )?);
+    if let Some(wide) = &wide_kernel {
+        let name = "residual_chain, wide tile (head, preconditioning, sampler step)";
+        checks.push(head_chain_check(
+            ctx,
+            (wide, name),
+            &mut rng,
+            &tensors[..6],
+            (d, m),
+            loose,
+        )?);
+    }
     checks.push(agents_chain_check(
         ctx,
         &mut rng,
@@ -736,10 +784,10 @@ fn agents_chain_check(
 /// correction: D against the references, x_e against `road_rollout::heun` from the kernel's D.
 fn head_chain_check(
     ctx: &GpuContext,
+    (kernel, name): (&ResidualChain, &'static str),
     rng: &mut Inputs,
     block: &[Vec<f32>],
-    d: usize,
-    m: usize,
+    (d, m): (usize, usize),
     loose: Tolerance,
 ) -> Result<KernelCheck> {
     let (scenes, agents, slots) = (2, 3, 5);
@@ -803,8 +851,7 @@ fn head_chain_check(
         previous: &previous,
         gamma: &gamma,
     };
-    let (h_got, d_got, x_e_got) =
-        ResidualChain::new(ctx).run_with_update(ctx, p, &inputs, Some(update))?;
+    let (h_got, d_got, x_e_got) = kernel.run_with_update(ctx, p, &inputs, Some(update))?;
     let (h_want, f) = reference::residual_chain(
         &att,
         &h,
@@ -833,7 +880,7 @@ fn head_chain_check(
     let got: Vec<f32> = h_got.into_iter().chain(d_got).chain(x_e_got).collect();
     let want: Vec<f32> = h_want.into_iter().chain(d_want).chain(x_e_want).collect();
     Ok(KernelCheck {
-        name: "residual_chain (head, preconditioning, sampler step)",
+        name,
         values: got.len(),
         tolerance: loose,
         outcome: loose.check(&got, &want),

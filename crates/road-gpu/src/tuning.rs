@@ -12,11 +12,12 @@ use crate::kernels::linear::LinearKernel;
 use crate::shaders::Shader;
 use crate::{Error, GpuContext, Result};
 
-/// How one evaluation runs: its blocks as residual chains or layer by layer, and its linear
-/// layers' kernel (`None`: chosen per layer by size).
+/// How one evaluation runs: its blocks as residual chains (on the narrow or the wide tile) or
+/// layer by layer, and its linear layers' kernel (`None`: chosen per layer by size).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct EvalSettings {
     pub residual_chains: bool,
+    pub wide_chains: bool,
     pub linear_kernel: Option<LinearKernel>,
 }
 
@@ -25,6 +26,9 @@ pub struct EvalSettings {
 pub struct Candidate {
     /// The blocks as residual chains (`true`) or layer by layer.
     pub residual_chains: bool,
+    /// The chains on the wide tile (`ContextOptions::wide_chains`); absent in older caches.
+    #[serde(default)]
+    pub wide_chains: bool,
     /// The linear layers' kernel, its entry point's name, or `"auto"` (chosen per layer).
     pub linear_kernel: LinearChoice,
 }
@@ -64,24 +68,35 @@ impl Candidate {
     pub fn settings(self) -> EvalSettings {
         EvalSettings {
             residual_chains: self.residual_chains,
+            wide_chains: self.residual_chains && self.wide_chains,
             linear_kernel: self.linear_kernel.kernel(),
         }
     }
 
     /// `chains, auto` and the like: how `road gpu tune` prints it.
     pub fn describe(self) -> String {
-        let fusion = if self.residual_chains {
-            "chains"
-        } else {
-            "layers"
+        let fusion = match (self.residual_chains, self.wide_chains) {
+            (true, false) => "chains",
+            (true, true) => "wide chains",
+            (false, _) => "layers",
         };
         format!("{fusion}, {}", self.linear_kernel.name())
     }
 }
 
-/// Every candidate the tuner times for a model: chains only where its rows fit the chain's tile.
+/// Every candidate the tuner times for a model: chains only where its rows fit the chain's
+/// tile; the wide tile (with the linear kernels the large batches it is for choose: by size,
+/// or blocked) where its widths allow it (`ChainTile::wide`; a device whose workgroups cannot
+/// hold it records the candidate's error).
 pub fn candidates(config: &ModelConfig) -> Vec<Candidate> {
-    let fits = config.hidden <= crate::kernels::residual_chain::MAX_HIDDEN as usize;
+    use crate::kernels::residual_chain::{ChainTile, MAX_HIDDEN};
+    let fits = config.hidden <= MAX_HIDDEN as usize;
+    let wide_fits = ChainTile::wide(
+        config.hidden as u32,
+        (config.hidden * config.mlp_ratio) as u32,
+        u32::MAX,
+    )
+    .is_some();
     let linear = [
         LinearChoice::Auto,
         LinearChoice::Rowwise,
@@ -96,6 +111,16 @@ pub fn candidates(config: &ModelConfig) -> Vec<Candidate> {
         for linear_kernel in linear {
             all.push(Candidate {
                 residual_chains,
+                wide_chains: false,
+                linear_kernel,
+            });
+        }
+    }
+    if fits && wide_fits {
+        for linear_kernel in [LinearChoice::Auto, LinearChoice::Blocked] {
+            all.push(Candidate {
+                residual_chains: true,
+                wide_chains: true,
                 linear_kernel,
             });
         }
@@ -150,6 +175,7 @@ impl TuneTable {
             .map_or(
                 EvalSettings {
                     residual_chains: true,
+                    wide_chains: false,
                     linear_kernel: None,
                 },
                 |batch| batch.chosen.settings(),

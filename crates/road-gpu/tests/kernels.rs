@@ -909,24 +909,71 @@ fn the_selftest_kernel_checks_pass() {
 /// them: each tensor's offset in floats.
 struct PackedWeights {
     values: Vec<f32>,
+    /// Each tensor at a multiple of 4 floats, as the wide chain tile reads them (and the
+    /// engine lays them out); else odd gaps, which the narrow tile takes.
+    quads: bool,
 }
 
 impl PackedWeights {
+    fn new(quads: bool) -> Self {
+        Self {
+            values: Vec::new(),
+            quads,
+        }
+    }
+
     fn push(&mut self, tensor: Vec<f32>) -> u32 {
-        // Odd gaps between tensors: offsets need no alignment inside the bound range.
+        // A gap before every tensor that must keep out of every sum.
         self.values.push(9.0);
+        while self.quads && !self.values.len().is_multiple_of(4) {
+            self.values.push(9.0);
+        }
         let at = self.values.len() as u32;
         self.values.extend(tensor);
         at
     }
 }
 
+/// A chain run's `h`, `y` and `x_e` after.
+type ChainRun = (Vec<f32>, Vec<f32>, Vec<f32>);
+/// An embedding chain run's `h` and `y` after.
+type EmbedRun = (Vec<f32>, Vec<f32>);
+
+/// The wide chain tile for D and M where they allow it, with as many rows as this device's
+/// workgroups hold (on lavapipe's 32 KiB: 64 rows at D 16, 32 at D 96, 16 at D 256), and its
+/// name for messages.
+fn wide_chain(
+    ctx: &GpuContext,
+    d: usize,
+    m: usize,
+) -> Option<(String, road_gpu::kernels::residual_chain::ResidualChain)> {
+    use road_gpu::kernels::residual_chain::{ChainTile, ResidualChain};
+    let bytes = ctx.device.limits().max_compute_workgroup_storage_size;
+    let tile = ChainTile::wide(d as u32, m as u32, bytes)?;
+    Some((
+        format!("wide tile of {} rows", tile.rows),
+        ResidualChain::with_tile(ctx, tile).unwrap(),
+    ))
+}
+
+/// The kernels a chain test runs a shape on: the narrow tile (made once per test) and the
+/// wide one where there is one, each with its name.
+fn chain_kernels<'a>(
+    narrow: &'a road_gpu::kernels::residual_chain::ResidualChain,
+    wide: &'a Option<(String, road_gpu::kernels::residual_chain::ResidualChain)>,
+) -> Vec<(String, &'a road_gpu::kernels::residual_chain::ResidualChain)> {
+    let mut kernels = vec![("narrow tile".to_string(), narrow)];
+    kernels.extend(wide.iter().map(|(name, kernel)| (name.clone(), kernel)));
+    kernels
+}
+
 /// The residual chain (`residual_chain.wgsl`) against [`road_gpu::reference::residual_chain`]:
-/// rows around its 8-row tile (one, a partial tile, several), hidden widths from 1 to its 256,
-/// MLP widths across several 64-unit chunks and not a multiple of 64, no MLP, no next layer, the
-/// next layer split into parts with gaps that must keep their values, and the head with the
-/// output preconditioning against [`road_gpu::reference::precondition_output`] with and without
-/// an agent frame and a constant-velocity reference.
+/// rows around its tile (one, a partial tile, several), hidden widths from 1 to its 256, MLP
+/// widths across several chunks and not a multiple of a chunk, no MLP, no next layer, the next
+/// layer split into parts with gaps that must keep their values, and the head with the output
+/// preconditioning against [`road_gpu::reference::precondition_output`] with and without an
+/// agent frame and a constant-velocity reference. Each on the narrow tile (weights at odd
+/// offsets) and, where D and M allow, on the wide one (16, 32 and 64 rows among the shapes).
 #[test]
 fn residual_chain_matches_the_cpu_reference() {
     use road_gpu::kernels::residual_chain::{
@@ -946,8 +993,9 @@ fn residual_chain_matches_the_cpu_reference() {
         (17, 256, 512, 256, 256),
         (8, 1, 3, 2, 1),
         (24, 64, 130, 3, 3),
+        // The wide tile's last chunk of 4 units: its second quad of weights past the chunk.
+        (11, 32, 68, 96, 32),
     ] {
-        let mut weights = PackedWeights { values: Vec::new() };
         let o_w_host = random(&mut rng, d * d, 0.3);
         let o_b_host = random(&mut rng, d, 0.3);
         let (w1_host, b1_host, w2_host, b2_host) = (
@@ -972,60 +1020,66 @@ fn residual_chain_matches_the_cpu_reference() {
             anchor_slot: NO_FRAME,
             ..ChainParams::default()
         };
-        // Weights transposed, as the engine uploads a chain's.
-        p.o_w = weights.push(transpose(&o_w_host, d));
-        p.o_b = weights.push(o_b_host.clone());
-        p.w1 = weights.push(transpose(&w1_host, m));
-        p.b1 = weights.push(b1_host.clone());
-        p.w2 = weights.push(transpose(&w2_host, d));
-        p.b2 = weights.push(b2_host.clone());
-        p.next_w = weights.push(transpose(&next_w_host, next_out));
-        p.next_b = weights.push(next_b_host.clone());
         let att = random(&mut rng, rows * d, 1.0);
         let h: Vec<f32> = random(&mut rng, rows * d, 1.0)
             .iter()
             .map(|v| v + 0.5)
             .collect();
         let y0 = random(&mut rng, p.y_len(), 1.0);
-        let inputs = ChainInputs {
-            weights: &weights.values,
-            att: &att,
-            h: &h,
-            y: &y0,
-            x: &[0.0],
-            sigma: &[0.0],
-            valid: &[0.0],
-        };
-        let (h_got, y_got) = kernel.run(&ctx, p, &inputs).unwrap();
         let mlp = (m > 0).then_some(((&w1_host[..], &b1_host[..]), (&w2_host[..], &b2_host[..])));
         let next = (next_out > 0).then_some((&next_w_host[..], &next_b_host[..]));
         let (h_want, next_want) =
             residual_chain(&att, &h, rows, d, (&o_w_host, &o_b_host), mlp, next, 1e-5);
-        let shape = format!("{rows} rows, D {d}, M {m}, next {next_out} in parts of {part}");
-        // Sums of up to D + M products of O(1) terms in another order.
-        let tol = Tolerance {
-            rel: 1e-4,
-            abs: 2e-5,
-        };
-        if let Err(e) = tol.check(&h_got, &h_want) {
-            panic!("{shape}: h: {e}");
-        }
-        let part_stride = p.part_stride as usize;
-        let at = |r: usize, o: usize| (o / part) * part_stride + r * part + o % part;
-        let next_got: Vec<f32> = (0..rows * next_out)
-            .map(|i| y_got[at(i / next_out, i % next_out)])
-            .collect();
-        if let Err(e) = tol.check(&next_got, &next_want) {
-            panic!("{shape}: next layer: {e}");
-        }
-        let parts = next_out.div_ceil(part);
-        for j in 0..parts.saturating_sub(1) {
-            let gap = j * part_stride + rows * part..(j + 1) * part_stride;
-            assert_eq!(
-                y_got[gap.clone()],
-                y0[gap],
-                "{shape}: the gap after part {j}"
-            );
+        let wide = wide_chain(&ctx, d, m);
+        for (tile, kernel) in chain_kernels(&kernel, &wide) {
+            // Weights transposed, as the engine uploads a chain's; at odd offsets for the
+            // narrow tile, at multiples of 4 for the wide one.
+            let mut weights = PackedWeights::new(kernel.tile.wide_blocks);
+            p.o_w = weights.push(transpose(&o_w_host, d));
+            p.o_b = weights.push(o_b_host.clone());
+            p.w1 = weights.push(transpose(&w1_host, m));
+            p.b1 = weights.push(b1_host.clone());
+            p.w2 = weights.push(transpose(&w2_host, d));
+            p.b2 = weights.push(b2_host.clone());
+            p.next_w = weights.push(transpose(&next_w_host, next_out));
+            p.next_b = weights.push(next_b_host.clone());
+            let inputs = ChainInputs {
+                weights: &weights.values,
+                att: &att,
+                h: &h,
+                y: &y0,
+                x: &[0.0],
+                sigma: &[0.0],
+                valid: &[0.0],
+            };
+            let (h_got, y_got) = kernel.run(&ctx, p, &inputs).unwrap();
+            let shape =
+                format!("{tile}: {rows} rows, D {d}, M {m}, next {next_out} in parts of {part}");
+            // Sums of up to D + M products of O(1) terms in another order.
+            let tol = Tolerance {
+                rel: 1e-4,
+                abs: 2e-5,
+            };
+            if let Err(e) = tol.check(&h_got, &h_want) {
+                panic!("{shape}: h: {e}");
+            }
+            let part_stride = p.part_stride as usize;
+            let at = |r: usize, o: usize| (o / part) * part_stride + r * part + o % part;
+            let next_got: Vec<f32> = (0..rows * next_out)
+                .map(|i| y_got[at(i / next_out, i % next_out)])
+                .collect();
+            if let Err(e) = tol.check(&next_got, &next_want) {
+                panic!("{shape}: next layer: {e}");
+            }
+            let parts = next_out.div_ceil(part);
+            for j in 0..parts.saturating_sub(1) {
+                let gap = j * part_stride + rows * part..(j + 1) * part_stride;
+                assert_eq!(
+                    y_got[gap.clone()],
+                    y0[gap],
+                    "{shape}: the gap after part {j}"
+                );
+            }
         }
     }
 
@@ -1033,7 +1087,7 @@ fn residual_chain_matches_the_cpu_reference() {
     let (scenes, agents, slots, d, m) = (2, 3, 5, 24, 48);
     let rows = scenes * agents * slots;
     for (frame, residual_scale) in [(false, 0.0), (true, 0.0), (true, 4.0)] {
-        let mut weights = PackedWeights { values: Vec::new() };
+        let mut weights = PackedWeights::new(true);
         let hosts: Vec<Vec<f32>> = [d * d, d, m * d, m, d * m, d, 3 * d, 3]
             .iter()
             .map(|&n| random(&mut rng, n, 0.3))
@@ -1103,91 +1157,94 @@ fn residual_chain_matches_the_cpu_reference() {
             sigma: &sigma,
             valid: &valid,
         };
-        let (h_got, d_got) = kernel.run(&ctx, p, &inputs).unwrap();
-        let (h_want, f) = residual_chain(
-            &att,
-            &h,
-            rows,
-            d,
-            (&hosts[0], &hosts[1]),
-            Some(((&hosts[2], &hosts[3]), (&hosts[4], &hosts[5]))),
-            Some((&hosts[6], &hosts[7])),
-            1e-5,
-        );
-        let d_want = precondition_output(&x, &f, &sigma, &valid, shape);
-        let tol = Tolerance {
-            rel: 1e-4,
-            abs: 2e-5,
-        };
-        let case = format!("head, frame {frame}, residual scale {residual_scale}");
-        if let Err(e) = tol.check(&h_got, &h_want) {
-            panic!("{case}: h: {e}");
-        }
-        if let Err(e) = tol.check(&d_got, &d_want) {
-            panic!("{case}: D(x; σ): {e}");
-        }
+        let wide = wide_chain(&ctx, d, m);
+        for (tile, kernel) in chain_kernels(&kernel, &wide) {
+            let (h_got, d_got) = kernel.run(&ctx, p, &inputs).unwrap();
+            let (h_want, f) = residual_chain(
+                &att,
+                &h,
+                rows,
+                d,
+                (&hosts[0], &hosts[1]),
+                Some(((&hosts[2], &hosts[3]), (&hosts[4], &hosts[5]))),
+                Some((&hosts[6], &hosts[7])),
+                1e-5,
+            );
+            let d_want = precondition_output(&x, &f, &sigma, &valid, shape);
+            let tol = Tolerance {
+                rel: 1e-4,
+                abs: 2e-5,
+            };
+            let case = format!("{tile}: head, frame {frame}, residual scale {residual_scale}");
+            if let Err(e) = tol.check(&h_got, &h_want) {
+                panic!("{case}: h: {e}");
+            }
+            if let Err(e) = tol.check(&d_got, &d_want) {
+                panic!("{case}: D(x; σ): {e}");
+            }
 
-        // With the sampler's step: the Euler step from the kernel's own D where σ changes
-        // (unchanged slots, one landing on 0, some γ 0), then the multistep correction,
-        // against `road_rollout::heun`; h and D as without it.
-        let sigma_next: Vec<f32> = sigma
-            .iter()
-            .enumerate()
-            .map(|(i, &s)| match i % 4 {
-                0 => s,
-                1 => 0.0,
-                _ => s * 0.7,
-            })
-            .collect();
-        let previous = random(&mut rng, rows * 3, 2.0);
-        let gamma: Vec<f32> = (0..scenes * slots)
-            .map(|i| {
-                if i % 3 == 0 {
-                    0.0
-                } else {
-                    rng.random_range(-1.0..1.0)
-                }
-            })
-            .collect();
-        let update = road_gpu::kernels::residual_chain::UpdateInputs {
-            sigma_next: &sigma_next,
-            previous: &previous,
-            gamma: &gamma,
-        };
-        let with_update = ChainParams { update: 1, ..p };
-        let (h_upd, d_upd, x_e_got) = kernel
-            .run_with_update(&ctx, with_update, &inputs, Some(update))
+            // With the sampler's step: the Euler step from the kernel's own D where σ changes
+            // (unchanged slots, one landing on 0, some γ 0), then the multistep correction,
+            // against `road_rollout::heun`; h and D as without it.
+            let sigma_next: Vec<f32> = sigma
+                .iter()
+                .enumerate()
+                .map(|(i, &s)| match i % 4 {
+                    0 => s,
+                    1 => 0.0,
+                    _ => s * 0.7,
+                })
+                .collect();
+            let previous = random(&mut rng, rows * 3, 2.0);
+            let gamma: Vec<f32> = (0..scenes * slots)
+                .map(|i| {
+                    if i % 3 == 0 {
+                        0.0
+                    } else {
+                        rng.random_range(-1.0..1.0)
+                    }
+                })
+                .collect();
+            let update = road_gpu::kernels::residual_chain::UpdateInputs {
+                sigma_next: &sigma_next,
+                previous: &previous,
+                gamma: &gamma,
+            };
+            let with_update = ChainParams { update: 1, ..p };
+            let (h_upd, d_upd, x_e_got) = kernel
+                .run_with_update(&ctx, with_update, &inputs, Some(update))
+                .unwrap();
+            assert_eq!(
+                (h_upd, &d_upd),
+                (h_got, &d_got),
+                "{case}: h and D with the update"
+            );
+            let (mut x_e_want, _) = road_rollout::heun::heun_update(
+                &x,
+                agents,
+                slots,
+                &sigma,
+                &sigma_next,
+                false,
+                |_, _| Ok(d_got.clone()),
+            )
             .unwrap();
-        assert_eq!(
-            (h_upd, &d_upd),
-            (h_got, &d_got),
-            "{case}: h and D with the update"
-        );
-        let (mut x_e_want, _) = road_rollout::heun::heun_update(
-            &x,
-            agents,
-            slots,
-            &sigma,
-            &sigma_next,
-            false,
-            |_, _| Ok(d_got.clone()),
-        )
-        .unwrap();
-        road_rollout::heun::multistep_correct(
-            &mut x_e_want,
-            &d_got,
-            &previous,
-            &gamma,
-            agents,
-            slots,
-        );
-        // The same operations in the same order; a fused multiply-add may round once less.
-        let exact = Tolerance {
-            rel: 1e-6,
-            abs: 1e-6,
-        };
-        if let Err(e) = exact.check(&x_e_got, &x_e_want) {
-            panic!("{case}: x_e: {e}");
+            road_rollout::heun::multistep_correct(
+                &mut x_e_want,
+                &d_got,
+                &previous,
+                &gamma,
+                agents,
+                slots,
+            );
+            // The same operations in the same order; a fused multiply-add may round once less.
+            let exact = Tolerance {
+                rel: 1e-6,
+                abs: 1e-6,
+            };
+            if let Err(e) = exact.check(&x_e_got, &x_e_want) {
+                panic!("{case}: x_e: {e}");
+            }
         }
     }
 }
@@ -1215,6 +1272,60 @@ fn residual_chain_refuses_widths_past_its_tile() {
     assert!(err.contains("3 outputs"), "{err}");
 }
 
+/// The wide chain tile: as many rows as a device's workgroups hold, as many invocations as
+/// blocks of a D-wide layer, none for widths its vec4 reads cannot take; and a layout off the
+/// multiples of 4 refused by the field's name, not run.
+#[test]
+fn the_wide_chain_tile_fits_its_device_and_refuses_unaligned_layouts() {
+    use road_gpu::kernels::residual_chain::{ChainParams, ChainTile};
+    // road20-wide4 (D 96, M 192) on an H100's 48 KiB: 64 rows, 96 invocations; on lavapipe's
+    // 32 KiB, 32 rows.
+    let h100 = ChainTile::wide(96, 192, 48 << 10).unwrap();
+    assert_eq!((h100.rows, h100.lanes, h100.tile_d), (64, 96, 97));
+    assert!(h100.workgroup_bytes() <= 48 << 10);
+    let lavapipe = ChainTile::wide(96, 192, 32 << 10).unwrap();
+    assert_eq!((lavapipe.rows, lavapipe.lanes), (32, 64));
+    // road20-large (D 192): 32 rows on 48 KiB.
+    let large = ChainTile::wide(192, 384, 48 << 10).unwrap();
+    assert_eq!((large.rows, large.lanes), (32, 96));
+    for (d, m, bytes) in [
+        (33, 66, 48 << 10),
+        (100, 200, 48 << 10),
+        (96, 190, 48 << 10),
+        (96, 192, 4 << 10),
+        (264, 528, 1 << 20),
+    ] {
+        assert_eq!(
+            ChainTile::wide(d, m, bytes),
+            None,
+            "D {d}, M {m}, {bytes} bytes"
+        );
+    }
+    let p = ChainParams {
+        rows: 8,
+        d: 96,
+        m: 192,
+        o_w: 4,
+        o_b: 400,
+        w1: 4,
+        b1: 8,
+        w2: 13,
+        b2: 16,
+        ..ChainParams::default()
+    };
+    let err = h100.check(&p).unwrap_err().to_string();
+    assert!(err.contains("`w2` (13)"), "{err}");
+    // The narrow tile takes the same layout.
+    ChainTile::narrow(96).check(&p).unwrap();
+    let too_wide = ChainParams { d: 104, ..p };
+    assert!(
+        h100.check(&too_wide)
+            .unwrap_err()
+            .to_string()
+            .contains("104")
+    );
+}
+
 /// The residual chain that attends itself (`ChainParams::attend`: the map attention of its
 /// rows before the output projection) against the CPU references of the attention and of the
 /// chain: each agent row's own keys, and (`key_mode` 1) its scene's; invalid keys, an agent
@@ -1239,7 +1350,7 @@ fn residual_chain_attending_matches_the_cpu_reference() {
         let rows = agents * slots;
         let m = 2 * d;
         let key_rows = map_scenes.map_or(agents * keys, |scenes| scenes * keys);
-        let mut weights = PackedWeights { values: Vec::new() };
+        let mut weights = PackedWeights::new(true);
         let hosts: Vec<Vec<f32>> = [d * d, d, m * d, m, d * m, d, d * d, d]
             .iter()
             .map(|&n| random(&mut rng, n, 0.3))
@@ -1306,9 +1417,16 @@ fn residual_chain_attending_matches_the_cpu_reference() {
             pair_k: &[],
             pair_v: &[],
         };
-        let (h_got, y_got, _) = kernel
-            .run_full(&ctx, p, &inputs, None, Some(attend))
-            .unwrap();
+        let wide = wide_chain(&ctx, d, m);
+        let runs: Vec<(String, ChainRun)> = chain_kernels(&kernel, &wide)
+            .into_iter()
+            .map(|(tile, k)| {
+                (
+                    tile,
+                    k.run_full(&ctx, p, &inputs, None, Some(attend)).unwrap(),
+                )
+            })
+            .collect();
         let by_agent = TokenLayout::contiguous(keys as u32);
         let attn = AttentionParams {
             groups: agents as u32,
@@ -1339,17 +1457,21 @@ fn residual_chain_attending_matches_the_cpu_reference() {
             Some(layer(6)),
             1e-5,
         );
-        let what =
-            format!("{agents} agents × {slots}, D {d}, {heads} heads, {keys} keys, {map_scenes:?}");
         let tol = Tolerance {
             rel: 1e-4,
             abs: 2e-5,
         };
-        if let Err(e) = tol.check(&h_got, &h_want) {
-            panic!("{what}: h: {e}");
-        }
-        if let Err(e) = tol.check(&y_got, &y_want) {
-            panic!("{what}: next layer: {e}");
+        for (tile, (h_got, y_got, _)) in &runs {
+            let what = format!(
+                "{tile}: {agents} agents × {slots}, D {d}, {heads} heads, {keys} keys, \
+                 {map_scenes:?}"
+            );
+            if let Err(e) = tol.check(h_got, &h_want) {
+                panic!("{what}: h: {e}");
+            }
+            if let Err(e) = tol.check(y_got, &y_want) {
+                panic!("{what}: next layer: {e}");
+            }
         }
     }
 }
@@ -1373,7 +1495,7 @@ fn residual_chain_attending_over_agents_matches_the_cpu_reference() {
     let rows = scenes * agents * slots;
     let head_dim = d / heads;
     for pairs in [false, true] {
-        let mut weights = PackedWeights { values: Vec::new() };
+        let mut weights = PackedWeights::new(true);
         let hosts: Vec<Vec<f32>> = [d * d, d, d * d, d]
             .iter()
             .map(|&n| random(&mut rng, n, 0.3))
@@ -1439,9 +1561,16 @@ fn residual_chain_attending_over_agents_matches_the_cpu_reference() {
             pair_k: if pairs { &pair_k } else { &[] },
             pair_v: if pairs { &pair_v } else { &[] },
         };
-        let (h_got, y_got, _) = kernel
-            .run_full(&ctx, p, &inputs, None, Some(attend))
-            .unwrap();
+        let wide = wide_chain(&ctx, d, 0);
+        let runs: Vec<(String, ChainRun)> = chain_kernels(&kernel, &wide)
+            .into_iter()
+            .map(|(tile, k)| {
+                (
+                    tile,
+                    k.run_full(&ctx, p, &inputs, None, Some(attend)).unwrap(),
+                )
+            })
+            .collect();
         let att = if pairs {
             let pp = PairAttentionParams {
                 groups: (scenes * slots) as u32,
@@ -1497,11 +1626,13 @@ fn residual_chain_attending_over_agents_matches_the_cpu_reference() {
             rel: 1e-4,
             abs: 2e-5,
         };
-        if let Err(e) = tol.check(&h_got, &h_want) {
-            panic!("pairs {pairs}: h: {e}");
-        }
-        if let Err(e) = tol.check(&y_got, &y_want) {
-            panic!("pairs {pairs}: next layer: {e}");
+        for (tile, (h_got, y_got, _)) in &runs {
+            if let Err(e) = tol.check(h_got, &h_want) {
+                panic!("{tile}: pairs {pairs}: h: {e}");
+            }
+            if let Err(e) = tol.check(y_got, &y_want) {
+                panic!("{tile}: pairs {pairs}: next layer: {e}");
+            }
         }
     }
 }
@@ -1529,7 +1660,7 @@ fn embed_chain_matches_the_cpu_reference() {
         let rows = scenes * agents * slots;
         let width = if residual_scale > 0.0 { 6 } else { 4 };
         let packed_len = 6 * d + slots * d + anchor.map_or(0, |_| width * d + d);
-        let mut weights = PackedWeights { values: Vec::new() };
+        let mut weights = PackedWeights::new(true);
         let packed = random(&mut rng, packed_len, 0.5);
         let next_out = 3 * d;
         let (next_w_host, next_b_host) = (
@@ -1584,7 +1715,11 @@ fn embed_chain_matches_the_cpu_reference() {
             valid: &valid,
             agent: &agent,
         };
-        let (h_got, y_got) = kernel.run_embed(&ctx, p, &inputs).unwrap();
+        let wide = wide_chain(&ctx, d, 0);
+        let runs: Vec<(String, EmbedRun)> = chain_kernels(&kernel, &wide)
+            .into_iter()
+            .map(|(tile, k)| (tile, k.run_embed(&ctx, p, &inputs).unwrap()))
+            .collect();
         let h_want = embed_tokens(&shape, &x, &sigma, &valid, &agent, &packed);
         let (ones, zeros) = (vec![1.0; d], vec![0.0; d]);
         let standardise = Some((&ones[..], &zeros[..], 1e-5));
@@ -1599,21 +1734,25 @@ fn embed_chain_matches_the_cpu_reference() {
             standardise,
             None,
         );
-        let what =
-            format!("{scenes} × {agents} × {slots}, D {d}, anchor {anchor:?}, cv {residual_scale}");
         let tol = Tolerance {
             rel: 1e-4,
             abs: 2e-5,
         };
-        if let Err(e) = tol.check(&h_got, &h_want) {
-            panic!("{what}: h: {e}");
-        }
         let at = |r: usize, o: usize| (o / d) * p.part_stride as usize + r * d + o % d;
-        let next_got: Vec<f32> = (0..rows * next_out)
-            .map(|i| y_got[at(i / next_out, i % next_out)])
-            .collect();
-        if let Err(e) = tol.check(&next_got, &next_want) {
-            panic!("{what}: first layer: {e}");
+        for (tile, (h_got, y_got)) in &runs {
+            let what = format!(
+                "{tile}: {scenes} × {agents} × {slots}, D {d}, anchor {anchor:?}, cv \
+                 {residual_scale}"
+            );
+            if let Err(e) = tol.check(h_got, &h_want) {
+                panic!("{what}: h: {e}");
+            }
+            let next_got: Vec<f32> = (0..rows * next_out)
+                .map(|i| y_got[at(i / next_out, i % next_out)])
+                .collect();
+            if let Err(e) = tol.check(&next_got, &next_want) {
+                panic!("{what}: first layer: {e}");
+            }
         }
     }
 }

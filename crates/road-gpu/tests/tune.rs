@@ -54,9 +54,10 @@ fn every_candidate_is_timed_at_every_batch_and_the_fastest_chosen() {
     let every = tune::candidates(&config);
     assert_eq!(
         every.len(),
-        8,
-        "chains and layers × auto and the three kernels"
+        10,
+        "chains and layers × auto and the three kernels, wide chains × auto and blocked"
     );
+    assert_eq!(every.iter().filter(|c| c.wide_chains).count(), 2);
     for batch in &table.batches {
         let timed: Vec<Candidate> = batch.timings.iter().map(|t| t.candidate).collect();
         assert_eq!(timed, every);
@@ -79,6 +80,31 @@ fn every_candidate_is_timed_at_every_batch_and_the_fastest_chosen() {
         ..config.clone()
     };
     assert!(tune::candidates(&wide).iter().all(|c| !c.residual_chains));
+    // One whose widths the wide tile's vec4 reads cannot take gets the narrow tile only.
+    let odd = ModelConfig {
+        hidden: 36,
+        heads: 2,
+        ..config.clone()
+    };
+    let candidates = tune::candidates(&odd);
+    assert!(candidates.iter().any(|c| c.residual_chains));
+    assert!(candidates.iter().all(|c| !c.wide_chains));
+}
+
+/// A cache written before the wide tile existed (no `wide_chains` field) still parses, its
+/// choices on the narrow tile.
+#[test]
+fn a_candidate_without_the_wide_field_is_on_the_narrow_tile() {
+    let old: Candidate =
+        serde_json::from_str(r#"{"residual_chains": true, "linear_kernel": "blocked"}"#).unwrap();
+    assert_eq!(
+        old,
+        Candidate {
+            residual_chains: true,
+            wide_chains: false,
+            linear_kernel: LinearChoice::Blocked,
+        }
+    );
 }
 
 /// A table that runs every size as `candidate`.
@@ -106,10 +132,12 @@ fn the_cache_round_trips_keyed_by_adapter_kernels_and_model() {
     assert_eq!(TuneCache::load(&path).unwrap(), TuneCache::default());
     let layers = Candidate {
         residual_chains: false,
+        wide_chains: false,
         linear_kernel: LinearChoice::Blocked,
     };
     let chains = Candidate {
         residual_chains: true,
+        wide_chains: true,
         linear_kernel: LinearChoice::Auto,
     };
     let mut cache = TuneCache::default();
@@ -167,6 +195,7 @@ fn attach_takes_the_cached_table_and_leaves_the_defaults_without_one() {
     assert!(gpu.tuning().is_none());
     let layers = Candidate {
         residual_chains: false,
+        wide_chains: false,
         linear_kernel: LinearChoice::Rowwise,
     };
     let mut cache = TuneCache::default();
@@ -188,7 +217,7 @@ fn attach_takes_the_cached_table_and_leaves_the_defaults_without_one() {
 
 /// A denoiser with a table runs each evaluation as chosen for the nearest timed size: layer by
 /// layer when the table says so (more dispatches, the same values as the chains'), the chains
-/// otherwise.
+/// on the narrow or the wide tile otherwise (the same dispatches, the same values).
 #[test]
 fn a_denoiser_runs_as_its_table_chose() {
     let ctx = context();
@@ -216,10 +245,11 @@ fn a_denoiser_runs_as_its_table_chose() {
     };
     let tokens = scenes * agents * w;
     let mut outputs = Vec::new();
-    for residual_chains in [true, false] {
+    for (residual_chains, wide_chains) in [(true, false), (true, true), (false, false)] {
         let mut gpu = denoiser(&ctx, &config);
         let chosen = Candidate {
             residual_chains,
+            wide_chains,
             linear_kernel: LinearChoice::Auto,
         };
         gpu.set_tuning(Some(table_choosing(&ctx, &config, chosen)));
@@ -240,14 +270,19 @@ fn a_denoiser_runs_as_its_table_chose() {
         } else {
             4 + 11 * config.blocks + 3
         };
-        assert_eq!(dispatches as usize, expected, "chains {residual_chains}");
+        assert_eq!(
+            dispatches as usize, expected,
+            "chains {residual_chains}, wide {wide_chains}"
+        );
         outputs.push(gpu.denoise(&ctx, &inputs, &map_tokens).unwrap());
     }
     let tol = Tolerance {
         rel: 1e-4,
         abs: 1e-5,
     };
-    if let Err(m) = tol.check(&outputs[0], &outputs[1]) {
-        panic!("chains against layers: {m}");
+    for (name, output) in [("narrow", &outputs[0]), ("wide", &outputs[1])] {
+        if let Err(m) = tol.check(output, &outputs[2]) {
+            panic!("chains on the {name} tile against layers: {m}");
+        }
     }
 }

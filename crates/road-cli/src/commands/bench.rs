@@ -123,9 +123,11 @@ pub struct EngineBenchArgs {
     #[arg(long, num_args = 1.., default_values = ["on"], value_parser = ["on", "eager", "off"])]
     pub packing: Vec<String>,
     /// How a block's layers between attentions run, each a GPU row: `chains` (one
-    /// `residual_chain` dispatch each: output projection, MLP, the next layer; the default) or
-    /// `layers` (a dispatch per layer, `ContextOptions::residual_chains` off).
-    #[arg(long, num_args = 1.., default_values = ["chains"], value_parser = ["chains", "layers"])]
+    /// `residual_chain` dispatch each: output projection, MLP, the next layer; the default, on
+    /// the narrow tile of 8 rows), `wide-chains` (the same on the wide tile: 32–64 rows, blocks
+    /// of 8 × 8, `ContextOptions::wide_chains`) or `layers` (a dispatch per layer,
+    /// `ContextOptions::residual_chains` off).
+    #[arg(long, num_args = 1.., default_values = ["chains"], value_parser = ["chains", "wide-chains", "layers"])]
     pub fusion: Vec<String>,
     /// Whether an evaluation keeps the map's keys (agent maps, every block's map k, v) of the
     /// one before while what they are made from holds (`kept`, the default:
@@ -175,8 +177,10 @@ fn gpu_setting(row: &serde_json::Value) -> String {
         Some("eager") => setting += ", packed eagerly",
         _ => {}
     }
-    if row["fusion"].as_str() == Some("layers") {
-        setting += ", layer by layer";
+    match row["fusion"].as_str() {
+        Some("layers") => setting += ", layer by layer",
+        Some("wide-chains") => setting += ", wide chains",
+        _ => {}
     }
     if row["map_keys"].as_str() == Some("remade") {
         setting += ", map keys remade";
@@ -507,7 +511,8 @@ fn engine_bench(args: &EngineBenchArgs) -> Result<()> {
                                     unchecked_shaders: checks == "unchecked",
                                     pack_scenes: packing != "off",
                                     eager_packing: packing == "eager",
-                                    residual_chains: fusion == "chains",
+                                    residual_chains: fusion != "layers",
+                                    wide_chains: fusion == "wide-chains",
                                     keep_map_keys: map_keys == "kept",
                                     precision,
                                     cooperative_matrices: cores == "on",

@@ -28,8 +28,8 @@ pub enum GpuCommand {
         precisions: Vec<road_gpu::Precision>,
     },
     /// Time one denoiser evaluation of each checkpoint under every way the engine can run it
-    /// (residual chains or layer by layer; linear kernels chosen per layer or one variant
-    /// everywhere) at several batch sizes on this adapter, print the table, and cache the
+    /// (residual chains on the narrow or the wide tile, or layer by layer; linear kernels
+    /// chosen per layer or one variant everywhere) at several batch sizes on this adapter, print the table, and cache the
     /// fastest per size for `road serve` and `road demo` (they tune a hardware adapter they
     /// have no table for by themselves, once).
     Tune(TuneArgs),

@@ -35,7 +35,7 @@ use crate::kernels::attention::{AttentionParams, MAX_HEAD_DIM, SceneMode, TokenL
 use crate::kernels::linear::{Linear, LinearKernel, LinearParams};
 use crate::kernels::linear_f16::{LinearF16, LinearF16Kernel};
 use crate::kernels::polyline::{PolylineEncoder, PolylineKernel, PolylineParams};
-use crate::kernels::residual_chain::{ChainParams, ResidualChain};
+use crate::kernels::residual_chain::{ChainParams, ChainTile, MAX_HIDDEN, ResidualChain};
 use crate::kernels::{Dispatch, Pipeline, read_back, record_all, rows_of, storage_buffer, upload};
 use crate::shaders::Shader;
 pub use crate::tuning::EvalSettings;
@@ -96,7 +96,7 @@ struct ElementwiseParams {
 
 /// Whether a model's rows fit the residual chain's tile.
 fn fits_chain(c: &ModelConfig) -> bool {
-    c.hidden <= crate::kernels::residual_chain::MAX_HIDDEN as usize
+    c.hidden <= MAX_HIDDEN as usize
 }
 
 /// The layers of one residual chain (`residual_chain.wgsl`), by checkpoint name.
@@ -108,6 +108,8 @@ struct ChainLayers<'a> {
     mlp: Option<(&'a str, &'a str)>,
     /// The next layer (behind its folded norm), its outputs and outputs per part.
     next: Option<(&'a str, usize, usize)>,
+    /// On the wide tile (`EvalSettings::wide_chains`), else the narrow one.
+    wide: bool,
 }
 
 /// The attention a residual chain makes before its output projection (`ChainParams::attend`),
@@ -236,13 +238,42 @@ pub(crate) struct Pipelines {
     pub(crate) multistep_correct: Pipeline,
     pick_agent_maps: Pipeline,
     pair_attention: Pipeline,
+    /// The residual chains on the narrow tile (8 rows a workgroup).
     residual_chain: ResidualChain,
+    /// On the wide tile (32–64 rows, vec4 weights), where the model's widths and the device's
+    /// workgroup memory allow ([`ChainTile::wide`]).
+    residual_chain_wide: Option<ResidualChain>,
     /// A batch's rows into and out of compact sub-batches (`GpuStepEngine`).
     pub(crate) compact_rows: crate::kernels::compact::CompactRows,
 }
 
 impl Pipelines {
-    fn new(ctx: &GpuContext) -> Result<Self> {
+    /// The chain kernels of the wide tile or the narrow one; an error where the wide tile was
+    /// asked for and this model or device has none.
+    fn chain_kernel(&self, wide: bool) -> Result<&ResidualChain> {
+        if !wide {
+            return Ok(&self.residual_chain);
+        }
+        self.residual_chain_wide.as_ref().ok_or_else(|| {
+            Error::Input(
+                "wide residual chains need D a multiple of 8 and M of 4, and a tile of at \
+                 least 16 rows within the device's workgroup memory"
+                    .into(),
+            )
+        })
+    }
+
+    fn new(ctx: &GpuContext, config: &ModelConfig) -> Result<Self> {
+        let (d, m) = (
+            config.hidden as u32,
+            (config.hidden * config.mlp_ratio) as u32,
+        );
+        let wide_tile =
+            ChainTile::wide(d, m, ctx.device.limits().max_compute_workgroup_storage_size);
+        let residual_chain_wide = match wide_tile.filter(|_| fits_chain(config)) {
+            Some(tile) => Some(ResidualChain::with_tile(ctx, tile)?),
+            None => None,
+        };
         let linear_f16 = match ctx.precision() {
             crate::Precision::F32 => None,
             crate::Precision::F16 => Some(LinearF16::new(ctx, LinearF16Kernel::for_context(ctx))?),
@@ -262,7 +293,8 @@ impl Pipelines {
             multistep_correct: Pipeline::new(ctx, Shader::Heun, "multistep_correct"),
             pick_agent_maps: Pipeline::new(ctx, Shader::AgentMap, "pick_agent_maps"),
             pair_attention: Pipeline::new(ctx, Shader::AgentPairs, "pair_attention"),
-            residual_chain: ResidualChain::new(ctx),
+            residual_chain: ResidualChain::with_tile(ctx, ChainTile::narrow(d.min(MAX_HIDDEN)))?,
+            residual_chain_wide,
             compact_rows: crate::kernels::compact::CompactRows::new(ctx),
         })
     }
@@ -402,7 +434,7 @@ impl GpuDenoiser {
             config: config.clone(),
             weights,
             slices,
-            pipelines: Pipelines::new(ctx)?,
+            pipelines: Pipelines::new(ctx, config)?,
             tuning: None,
         })
     }
@@ -427,12 +459,16 @@ impl GpuDenoiser {
             Some(table) => table.settings_for(tokens),
             None => EvalSettings {
                 residual_chains: ctx.residual_chains(),
+                wide_chains: ctx.wide_chains(),
                 linear_kernel: ctx.named_linear_kernel(),
             },
         };
         // The chains run f32 only: under f16 the layers run one by one.
         settings.residual_chains &=
             fits_chain(&self.config) && ctx.precision() == crate::Precision::F32;
+        // The wide tile where this model and device have it, else the narrow one.
+        settings.wide_chains &=
+            settings.residual_chains && self.pipelines.residual_chain_wide.is_some();
         settings
     }
 
@@ -440,6 +476,11 @@ impl GpuDenoiser {
     /// context's options say.
     pub fn set_tuning(&mut self, tuning: Option<crate::tuning::TuneTable>) {
         self.tuning = tuning;
+    }
+
+    /// The wide chain tile this denoiser can run on, if its model and device have one.
+    pub fn wide_chain_tile(&self) -> Option<ChainTile> {
+        self.pipelines.residual_chain_wide.as_ref().map(|k| k.tile)
     }
 
     /// The tuning this denoiser runs by, if any.
@@ -465,11 +506,15 @@ impl GpuDenoiser {
             found.push((name, slice));
         }
         let start = found.iter().map(|(_, s)| s.offset).min().unwrap_or(0);
+        // Ending on a whole vec4 (the chains bind the weights as `array<vec4<f32>>`; the
+        // buffer is padded to one).
         let end = found
             .iter()
             .map(|(_, s)| s.offset + s.size)
             .max()
-            .unwrap_or(4);
+            .unwrap_or(4)
+            .div_ceil(16)
+            * 16;
         let offsets = found
             .into_iter()
             .map(|(name, s)| (name, ((s.offset - start) / 4) as u32))
@@ -498,6 +543,7 @@ impl GpuDenoiser {
         attend: Option<ChainAttention<'_>>,
     ) -> Result<()> {
         let c = &self.config;
+        let kernel = self.pipelines.chain_kernel(layers.wide)?;
         let mut names = vec![layers.output];
         names.extend(layers.mlp.iter().flat_map(|(a, b)| [*a, *b]));
         names.extend(layers.next.iter().map(|n| n.0));
@@ -604,7 +650,7 @@ impl GpuDenoiser {
             }
             None => (unread(), unread(), unread(), unread(), unread()),
         };
-        p.check()?;
+        kernel.tile.check(&p)?;
         let params = Self::params(ctx, &p);
         let resources = [
             range,
@@ -637,10 +683,9 @@ impl GpuDenoiser {
             bound[4].1 = states.as_entire_binding();
         }
         ops.push(
-            self.pipelines
-                .residual_chain
+            kernel
                 .pipeline
-                .prepare(ctx, &params, &bound, p.threads()),
+                .prepare(ctx, &params, &bound, kernel.tile.threads(&p)),
         );
         Ok(())
     }
@@ -1124,7 +1169,8 @@ impl GpuDenoiser {
                 relative_scale: p.relative_scale,
                 ..ChainParams::default()
             };
-            chain.check()?;
+            let kernel = self.pipelines.chain_kernel(settings.wide_chains)?;
+            kernel.tile.check(&chain)?;
             let params = Self::params(ctx, &chain);
             let bound = crate::kernels::residual_chain::embed_bindings(
                 (range, self.w("packed.embed")?),
@@ -1132,12 +1178,11 @@ impl GpuDenoiser {
                 qkv.as_entire_binding(),
                 (x, sigma, &batch.valid, &batch.agent_embedding),
             );
-            ops.push(self.pipelines.residual_chain.embed.prepare(
-                ctx,
-                &params,
-                &bound,
-                chain.threads(),
-            ));
+            ops.push(
+                kernel
+                    .embed
+                    .prepare(ctx, &params, &bound, kernel.tile.threads(&chain)),
+            );
         }
         for i in 0..c.blocks {
             let blk = format!("blocks.{i}");
@@ -1231,6 +1276,7 @@ impl GpuDenoiser {
                     if part == "time" {
                         let next = qkv_of(i, "agents").0;
                         let layers = ChainLayers {
+                            wide: settings.wide_chains,
                             output: &output,
                             mlp: None,
                             next: Some((&next, 3 * d, d)),
@@ -1253,6 +1299,7 @@ impl GpuDenoiser {
                     } else {
                         let next = format!("{blk}.map.q");
                         let layers = ChainLayers {
+                            wide: settings.wide_chains,
                             output: &output,
                             mlp: None,
                             next: Some((&next, d, d)),
@@ -1409,6 +1456,7 @@ impl GpuDenoiser {
                     qkv_of(i + 1, "time").0
                 };
                 let layers = ChainLayers {
+                    wide: settings.wide_chains,
                     output: &map_o,
                     mlp: Some((&mlp_in, &mlp_out)),
                     next: Some(if last {

@@ -163,7 +163,8 @@ pub(super) fn lay_out(
         packed.push((format!("{MAP_KV_ALL}.{kind}"), values));
     }
 
-    let align = u64::from(ctx.device.limits().min_storage_buffer_offset_alignment).max(4);
+    // Every tensor at a 16-byte boundary at least: the chains read weights as vec4.
+    let align = u64::from(ctx.device.limits().min_storage_buffer_offset_alignment).max(16);
     let mut blob: Vec<u8> = Vec::new();
     let mut slices = HashMap::new();
     let mut laid: Vec<(String, &Vec<f32>)> = tensors
@@ -218,6 +219,8 @@ pub(super) fn lay_out(
             );
         }
     }
+    // Whole vec4s to the end, so that a chain's range (`weight_range`) can end on one.
+    blob.resize(blob.len().div_ceil(16) * 16, 0);
     let weights = upload(ctx, "weights", &blob, wgpu::BufferUsages::STORAGE);
     Ok((weights, slices))
 }

@@ -1,6 +1,7 @@
 //! `shaders/residual_chain.wgsl`: what a block does between two attentions, in one dispatch
 //! whose rows stay in workgroup memory: the attention's output projection added into the
-//! residual stream, optionally the MLP (its hidden layer 64 units at a time, never in memory),
+//! residual stream, optionally the MLP (its hidden layer a chunk of units at a time, never in
+//! memory),
 //! and optionally the next layer behind its layer norm (the next attention's q/k/v, the map's
 //! q, or the head with the output preconditioning, and then optionally the sampler's Euler step
 //! with the multistep sampler's correction); with `attend` it first makes its rows' attention
@@ -9,6 +10,9 @@
 //! (`shaders/common/embed_token.wgsl`) and the first layer (block 0's q, k, v) the same way. The
 //! engine runs them where the layer-by-layer path ran two to six dispatches
 //! (`ContextOptions::residual_chains`).
+//! The tile's shape is a pipeline's ([`ChainTile`]): narrow (8 rows, blocks of 4 × 4, any
+//! layout) or wide (32–64 rows, blocks of 8 × 8, weights read as vec4), which the autotuner
+//! chooses between by batch size.
 
 use bytemuck::{Pod, Zeroable};
 
@@ -16,12 +20,12 @@ use super::{Pipeline, read_back, storage_buffer, upload};
 use crate::shaders::Shader;
 use crate::{Error, GpuContext, Result};
 
-/// Rows (tokens) of one workgroup (the shader's `ROWS`).
-pub const ROWS: u32 = 8;
-/// Widest hidden width D the workgroup's row tile holds (the shader's `MAX_D`).
+/// Widest hidden width D a chain's tile is made for.
 pub const MAX_HIDDEN: u32 = 256;
-/// Invocations of one workgroup.
-const LANES: u32 = 64;
+/// The MLP's hidden units a wide tile holds at a time.
+const WIDE_UNITS: u32 = 64;
+/// Most invocations of a wide tile's workgroup.
+const WIDE_MAX_LANES: u32 = 256;
 /// Widest head the chain's attention holds (the shader's `MAX_HEAD_DIM`).
 pub const MAX_HEAD_DIM: u32 = 64;
 /// `anchor_slot` without an agent frame.
@@ -89,12 +93,116 @@ pub struct ChainParams {
     pub far: f32,
 }
 
-impl ChainParams {
-    /// Invocations of one dispatch.
-    pub fn threads(&self) -> u32 {
-        self.rows.div_ceil(ROWS) * LANES
+/// The shape of a chain pipeline's tile: the shader's override constants.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ChainTile {
+    /// Rows (tokens) of one workgroup (`CHAIN_ROWS`).
+    pub rows: u32,
+    /// Invocations of one workgroup (`CHAIN_LANES`).
+    pub lanes: u32,
+    /// The MLP's hidden units a chunk (`CHAIN_UNITS`).
+    pub units: u32,
+    /// Floats from one row of the tile to the next (`TILE_D`): the widest D it holds, odd.
+    pub tile_d: u32,
+    /// Blocks of 8 × 8 with vec4 weight reads (`WIDE_BLOCKS`), else 4 × 4 read by floats.
+    pub wide_blocks: bool,
+}
+
+impl ChainTile {
+    /// 8 rows, 64 invocations, blocks of 4 × 4: the most workgroups at small batches, any
+    /// shape and offsets. Holds D up to `max_d`.
+    pub fn narrow(max_d: u32) -> Self {
+        Self {
+            rows: 8,
+            lanes: 64,
+            units: 128,
+            tile_d: odd_at_least(max_d),
+            wide_blocks: false,
+        }
     }
 
+    /// The wide tile for a model of hidden width `d` and MLP width `m` on a device whose
+    /// workgroups hold `workgroup_bytes`: the most rows of 64, 32 or 16 that fit, blocks of
+    /// 8 × 8, as many invocations as blocks of a D-wide layer (a multiple of 32). `None` where
+    /// D is not a multiple of 8, M not of 4, D past [`MAX_HIDDEN`], or not even 16 rows fit.
+    pub fn wide(d: u32, m: u32, workgroup_bytes: u32) -> Option<Self> {
+        if d == 0 || !d.is_multiple_of(8) || !m.is_multiple_of(4) || d > MAX_HIDDEN {
+            return None;
+        }
+        [64, 32, 16].into_iter().find_map(|rows| {
+            let blocks = (rows / 8) * (d / 8);
+            let tile = Self {
+                rows,
+                lanes: blocks.div_ceil(32).clamp(1, WIDE_MAX_LANES / 32) * 32,
+                units: WIDE_UNITS,
+                tile_d: odd_at_least(d),
+                wide_blocks: true,
+            };
+            (tile.workgroup_bytes() <= workgroup_bytes).then_some(tile)
+        })
+    }
+
+    /// Bytes of workgroup memory a workgroup takes (the shader's `tile`, `hidden_units`,
+    /// `tile_stats`).
+    pub fn workgroup_bytes(&self) -> u32 {
+        4 * self.rows * (self.tile_d + self.units + 1) + 8 * self.rows
+    }
+
+    /// Invocations of a dispatch over `p.rows` tokens.
+    pub fn threads(&self, p: &ChainParams) -> u32 {
+        p.rows.div_ceil(self.rows) * self.lanes
+    }
+
+    /// The shader's override constants for this tile.
+    fn constants(&self) -> [(&'static str, f64); 5] {
+        [
+            ("CHAIN_ROWS", f64::from(self.rows)),
+            ("CHAIN_LANES", f64::from(self.lanes)),
+            ("CHAIN_UNITS", f64::from(self.units)),
+            ("TILE_D", f64::from(self.tile_d)),
+            ("WIDE_BLOCKS", f64::from(u8::from(self.wide_blocks))),
+        ]
+    }
+
+    /// `p` on this tile: [`ChainParams::check`], D within the tile and, for wide blocks, every
+    /// width, stride and weight offset a multiple of 4 (their vec4 reads).
+    pub fn check(&self, p: &ChainParams) -> Result<()> {
+        p.check()?;
+        if p.d > self.tile_d {
+            return Err(Error::Input(format!(
+                "hidden width {} past the chain tile's {}",
+                p.d, self.tile_d
+            )));
+        }
+        if self.wide_blocks {
+            let mut quads = vec![("d", p.d), ("m", p.m), ("o_w", p.o_w), ("o_b", p.o_b)];
+            if p.m > 0 {
+                quads.extend([("w1", p.w1), ("b1", p.b1), ("w2", p.w2), ("b2", p.b2)]);
+            }
+            if p.next_out > 0 && p.precondition == 0 {
+                quads.extend([
+                    ("next_out", p.next_out),
+                    ("next_w", p.next_w),
+                    ("next_b", p.next_b),
+                ]);
+            }
+            if let Some((name, value)) = quads.into_iter().find(|(_, v)| !v.is_multiple_of(4)) {
+                return Err(Error::Input(format!(
+                    "the wide chain tile reads weights as vec4: `{name}` ({value}) must be a \
+                     multiple of 4"
+                )));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// The least odd number ≥ `n` (rows of the tile that far apart fall in distinct banks).
+fn odd_at_least(n: u32) -> u32 {
+    n | 1
+}
+
+impl ChainParams {
     /// The shapes the kernel takes: a clear error for the rest.
     pub fn check(&self) -> Result<()> {
         if self.d == 0 || self.d > MAX_HIDDEN {
@@ -237,11 +345,12 @@ pub struct UpdateInputs<'a> {
 }
 
 /// The `residual_chain` kernel and its `embed_chain` entry (the token embedding, then the
-/// first layer), compiled once.
+/// first layer), compiled once for one tile.
 #[derive(Debug)]
 pub struct ResidualChain {
     pub pipeline: Pipeline,
     pub embed: Pipeline,
+    pub tile: ChainTile,
 }
 
 /// Host inputs of one run of `embed_chain` ([`ResidualChain::run_embed`]): `x [rows, 3]`,
@@ -258,11 +367,46 @@ pub struct EmbedChainInputs<'a> {
 }
 
 impl ResidualChain {
+    /// The narrow tile for every D up to [`MAX_HIDDEN`] (its workgroup fits any device).
     pub fn new(ctx: &GpuContext) -> Self {
+        let tile = ChainTile::narrow(MAX_HIDDEN);
         Self {
-            pipeline: Pipeline::new(ctx, Shader::ResidualChain, "residual_chain"),
-            embed: Pipeline::new(ctx, Shader::ResidualChain, "embed_chain"),
+            pipeline: Self::pipeline(ctx, "residual_chain", tile),
+            embed: Self::pipeline(ctx, "embed_chain", tile),
+            tile,
         }
+    }
+
+    /// The kernels for `tile`; an error where the device's workgroups cannot hold it.
+    pub fn with_tile(ctx: &GpuContext, tile: ChainTile) -> Result<Self> {
+        let limits = ctx.device.limits();
+        let available = limits.max_compute_workgroup_storage_size;
+        if tile.workgroup_bytes() > available
+            || tile.lanes > limits.max_compute_invocations_per_workgroup
+        {
+            return Err(Error::Device(format!(
+                "the chain tile {tile:?} takes {} bytes of workgroup memory and {} \
+                 invocations; the device's workgroups hold {available} and {}",
+                tile.workgroup_bytes(),
+                tile.lanes,
+                limits.max_compute_invocations_per_workgroup
+            )));
+        }
+        Ok(Self {
+            pipeline: Self::pipeline(ctx, "residual_chain", tile),
+            embed: Self::pipeline(ctx, "embed_chain", tile),
+            tile,
+        })
+    }
+
+    fn pipeline(ctx: &GpuContext, entry: &'static str, tile: ChainTile) -> Pipeline {
+        Pipeline::with_constants(
+            ctx,
+            Shader::ResidualChain,
+            entry,
+            tile.lanes,
+            &tile.constants(),
+        )
     }
 
     /// One `embed_chain` dispatch on host data: `(h, y)` after (`h [rows, D]` the embedding,
@@ -273,7 +417,7 @@ impl ResidualChain {
         p: ChainParams,
         inputs: &EmbedChainInputs<'_>,
     ) -> Result<(Vec<f32>, Vec<f32>)> {
-        p.check()?;
+        self.tile.check(&p)?;
         let read = |label: &str, data: &[f32]| {
             upload(
                 ctx,
@@ -294,7 +438,7 @@ impl ResidualChain {
             storage_buffer(ctx, "y", (p.y_len().max(1) * 4) as u64),
         );
         let (weights, embed, x, sigma, valid, agent) = (
-            read("weights", inputs.weights),
+            read("weights", &in_quads(inputs.weights)),
             read("embed", inputs.embed),
             read("x", inputs.x),
             read("sigma", inputs.sigma),
@@ -313,7 +457,7 @@ impl ResidualChain {
             (&x, &sigma, &valid, &agent),
         );
         self.embed
-            .encode_bound(ctx, &mut encoder, &params, &bound, p.threads());
+            .encode_bound(ctx, &mut encoder, &params, &bound, self.tile.threads(&p));
         ctx.queue.submit([encoder.finish()]);
         let floats = |bytes: Vec<u8>| bytemuck::cast_slice::<u8, f32>(&bytes).to_vec();
         Ok((
@@ -354,7 +498,7 @@ impl ResidualChain {
         update: Option<UpdateInputs<'_>>,
         attend: Option<AttendInputs<'_>>,
     ) -> Result<(Vec<f32>, Vec<f32>, Vec<f32>)> {
-        p.check()?;
+        self.tile.check(&p)?;
         let read = |label: &str, data: &[f32]| {
             upload(
                 ctx,
@@ -375,7 +519,10 @@ impl ResidualChain {
             bytemuck::bytes_of(&p),
             wgpu::BufferUsages::UNIFORM,
         );
-        let (weights, att) = (read("weights", inputs.weights), read("att", inputs.att));
+        let (weights, att) = (
+            read("weights", &in_quads(inputs.weights)),
+            read("att", inputs.att),
+        );
         let (h, y) = (read_write("h", inputs.h), read_write("y", inputs.y));
         let (x, sigma, valid) = (
             read("x", inputs.x),
@@ -449,7 +596,7 @@ impl ResidualChain {
             (18, pair_v.as_entire_binding()),
         ]);
         self.pipeline
-            .encode_bound(ctx, &mut encoder, &params, &bound, p.threads());
+            .encode_bound(ctx, &mut encoder, &params, &bound, self.tile.threads(&p));
         ctx.queue.submit([encoder.finish()]);
         let floats = |bytes: Vec<u8>| bytemuck::cast_slice::<u8, f32>(&bytes).to_vec();
         let h_after = floats(read_back(ctx, &h, (inputs.h.len() * 4) as u64)?);
@@ -465,4 +612,11 @@ impl ResidualChain {
         };
         Ok((h_after, y_after, x_e_after))
     }
+}
+
+/// `weights` padded with zeros to whole vec4s (the kernel binds them as `array<vec4<f32>>`).
+fn in_quads(weights: &[f32]) -> Vec<f32> {
+    let mut padded = weights.to_vec();
+    padded.resize(weights.len().div_ceil(4).max(1) * 4, 0.0);
+    padded
 }
