@@ -2,8 +2,9 @@
 # The whole test suite, from a fresh Debian/Ubuntu machine with a Rust toolchain and Python 3:
 # installs what the tests need (lavapipe; a virtual environment .venv-test with eclipse-zenoh,
 # mcap, pytest and the Python client), then formatting, the module-circle check, clippy with
-# -D warnings, every test of the workspace, and the Python client's tests against the `road`
-# binary. The data tests read ../shared/data/interaction (or $ROAD_DATA).
+# -D warnings, every test of the workspace, the Python client's tests against the `road`
+# binary and the scripts' own (scripts/tests). The data tests read ../shared/data/interaction
+# (or $ROAD_DATA).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -37,7 +38,8 @@ python3 scripts/module_cycles.py
 cargo clippy --workspace --all-targets --locked -- -D warnings
 cargo test --workspace --locked
 
-# The Python client (clients/python) against a real `road serve` on loopback.
+# The Python client (clients/python) against a real `road serve` on loopback, and the scripts'
+# own tests (scripts/tests; no PyTorch here).
 if ! python3 -m venv --help >/dev/null 2>&1 || ! python3 -c 'import ensurepip' >/dev/null 2>&1; then
     SUDO=""
     if [ "$(id -u)" -ne 0 ]; then SUDO="sudo"; fi
@@ -50,5 +52,5 @@ fi
 .venv-test/bin/pip install -q ./clients/python
 cargo build --locked -p road-cli
 ROAD_BIN="$(cargo metadata --format-version 1 --no-deps | python3 -c 'import json,sys; print(json.load(sys.stdin)["target_directory"])')/debug/road" \
-    .venv-test/bin/python -m pytest -q clients/python/tests
+    .venv-test/bin/python -m pytest -q clients/python/tests scripts/tests
 echo "test suite finished in $(( $(date +%s) - start )) s"

@@ -32,9 +32,9 @@ device, batches gathered there, no step waiting for the device; other random str
 `bench` times them.
 
 This file holds training, validation, the parity fixture and the command line; the device
-pipeline is torch_device_pipeline.py, `bench` torch_train_bench.py, and what both pipelines
-read (the run config, the export, the agent buckets, the per-step random stream)
-torch_train_data.py.
+pipeline is torch_device_pipeline.py, `bench` torch_train_bench.py, `pick-options`' choice
+torch_train_pick.py, and what both pipelines read (the run config, the export, the agent
+buckets, the per-step random stream) torch_train_data.py.
 """
 
 from __future__ import annotations
@@ -73,6 +73,7 @@ from torch_train_data import (  # noqa: E402  (the run config, the export, the s
     parse_run,
     step_rng,
 )
+from torch_train_pick import PRECISIONS, pick_options  # noqa: E402  (no torch: CI tests it)
 
 ADAM_BETA1 = 0.9
 ADAM_BETA2 = 0.999
@@ -429,7 +430,6 @@ class Meta:
     validation_loss: float | None = None
 
 
-PRECISIONS = ("fp32", "bf16")
 ATTENTIONS = ("explicit", "sdpa")
 COMPILE_SCOPES = ("forward", "blocks")
 # The layers a bf16 forward keeps in f32: the input embeddings (positions in 40 m units and
@@ -1534,10 +1534,8 @@ def main(argv: list[str] | None = None) -> None:
 
             torch_train_bench.bench(args)
         elif args.command == "pick-options":
-            import torch_train_bench
-
             run = load_run(args.config, args.overrides)
-            options, why = torch_train_bench.pick_options(
+            options, why = pick_options(
                 json.loads(args.bench.read_text()), run.train.batch_scenes, args.baseline
             )
             print(f"pick-options: {why}", file=sys.stderr)
