@@ -421,34 +421,28 @@ fn wide_hidden_block(w: u32, b: u32, blk: Block, units: u32) -> array<vec4<f32>,
     return acc;
 }
 
-// Adds a wide block's sums into h (rows below `live`, columns below D).
+// Adds a wide block's sums into h.
 fn wide_add_into_h(blk: Block, sums: array<vec4<f32>, 16>, first: u32, live: u32) {
-    let d = params.d;
     for (var r = 0u; r < 8u; r++) {
-        let row = blk.row + r;
-        if (row < live) {
-            for (var j = 0u; j < 8u; j++) {
-                let column = blk.column + j;
-                if (column < d) {
-                    h[(first + row) * d + column] += sums[2u * r + j / 4u][j % 4u];
-                }
-            }
+        for (var j = 0u; j < 8u; j++) {
+            add_sum(blk.row + r, blk.column + j, sums[2u * r + j / 4u][j % 4u], first, live);
         }
     }
 }
 
-// Adds a block's sums into h (rows `first + blk.row + r` below `live`, columns below D).
+// Adds `value` into h at the tile's row `row` (token first + row) and column `column`, when
+// the row is below `live` and the column below D.
+fn add_sum(row: u32, column: u32, value: f32, first: u32, live: u32) {
+    if (row < live && column < params.d) {
+        h[(first + row) * params.d + column] += value;
+    }
+}
+
+// Adds a block's sums into h.
 fn add_into_h(blk: Block, sums: array<vec4<f32>, 4>, first: u32, live: u32) {
-    let d = params.d;
     for (var r = 0u; r < 4u; r++) {
-        let row = blk.row + r;
-        if (row < live) {
-            for (var j = 0u; j < 4u; j++) {
-                let column = blk.column + j;
-                if (column < d) {
-                    h[(first + row) * d + column] += sums[r][j];
-                }
-            }
+        for (var j = 0u; j < 4u; j++) {
+            add_sum(blk.row + r, blk.column + j, sums[r][j], first, live);
         }
     }
 }

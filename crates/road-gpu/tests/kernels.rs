@@ -939,6 +939,23 @@ type ChainRun = (Vec<f32>, Vec<f32>, Vec<f32>);
 /// An embedding chain run's `h` and `y` after.
 type EmbedRun = (Vec<f32>, Vec<f32>);
 
+/// Each kernel's run of a chain that attends (`ChainParams::attend`), with its name.
+fn run_attending(
+    ctx: &GpuContext,
+    kernels: Vec<(String, &road_gpu::kernels::residual_chain::ResidualChain)>,
+    p: road_gpu::kernels::residual_chain::ChainParams,
+    inputs: &road_gpu::kernels::residual_chain::ChainInputs<'_>,
+    attend: road_gpu::kernels::residual_chain::AttendInputs<'_>,
+) -> Vec<(String, ChainRun)> {
+    kernels
+        .into_iter()
+        .map(|(tile, k)| {
+            let run = k.run_full(ctx, p, inputs, None, Some(attend)).unwrap();
+            (tile, run)
+        })
+        .collect()
+}
+
 /// The wide chain tile for D and M where they allow it, with as many rows as this device's
 /// workgroups hold (on lavapipe's 32 KiB: 64 rows at D 16, 32 at D 96, 16 at D 256), and its
 /// name for messages.
@@ -1418,15 +1435,7 @@ fn residual_chain_attending_matches_the_cpu_reference() {
             pair_v: &[],
         };
         let wide = wide_chain(&ctx, d, m);
-        let runs: Vec<(String, ChainRun)> = chain_kernels(&kernel, &wide)
-            .into_iter()
-            .map(|(tile, k)| {
-                (
-                    tile,
-                    k.run_full(&ctx, p, &inputs, None, Some(attend)).unwrap(),
-                )
-            })
-            .collect();
+        let runs = run_attending(&ctx, chain_kernels(&kernel, &wide), p, &inputs, attend);
         let by_agent = TokenLayout::contiguous(keys as u32);
         let attn = AttentionParams {
             groups: agents as u32,
@@ -1562,15 +1571,7 @@ fn residual_chain_attending_over_agents_matches_the_cpu_reference() {
             pair_v: if pairs { &pair_v } else { &[] },
         };
         let wide = wide_chain(&ctx, d, 0);
-        let runs: Vec<(String, ChainRun)> = chain_kernels(&kernel, &wide)
-            .into_iter()
-            .map(|(tile, k)| {
-                (
-                    tile,
-                    k.run_full(&ctx, p, &inputs, None, Some(attend)).unwrap(),
-                )
-            })
-            .collect();
+        let runs = run_attending(&ctx, chain_kernels(&kernel, &wide), p, &inputs, attend);
         let att = if pairs {
             let pp = PairAttentionParams {
                 groups: (scenes * slots) as u32,
