@@ -45,8 +45,10 @@ pub struct ContextOptions {
     pub residual_chains: bool,
     /// With `residual_chains`: run them on the wide tile (32–64 rows a workgroup, blocks of
     /// 8 × 8, weights read as vec4; `ChainTile::wide`) where the model and device allow it,
-    /// instead of the narrow one (8 rows). Off by default: the narrow tile is the one measured
-    /// on cards so far, and a hardware adapter's tuning (`road gpu tune`) chooses per batch.
+    /// else on the narrow one (8 rows). On by default: on lavapipe the wide tile steps
+    /// road20-wide4 and road20 1.4–1.6× faster than the narrow one at 1 to 64 scenes
+    /// (`docs/benchmarks.md`); a hardware adapter's tuning (`road gpu tune`) times both and
+    /// chooses per batch size. Off: the narrow tile (`road bench engine --fusion chains`).
     pub wide_chains: bool,
     /// Keep the map's keys (the agent maps' pick and encoder, every block's map k, v) from one
     /// evaluation to the next while what they are made from holds: the maps, and with agent
@@ -147,7 +149,7 @@ impl Default for ContextOptions {
             pack_scenes: true,
             eager_packing: false,
             residual_chains: true,
-            wide_chains: false,
+            wide_chains: true,
             keep_map_keys: true,
             precision: Precision::F32,
             cooperative_matrices: true,

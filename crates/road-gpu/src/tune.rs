@@ -218,15 +218,15 @@ pub enum Attached {
 /// adapter, tunes now at [`HARDWARE_BATCHES`] (seconds, once per adapter, driver, kernels and
 /// model) and caches the table; on a software adapter (lavapipe) leaves the defaults
 /// (`road gpu tune` tunes one on request). A cache file that cannot be read is reported and
-/// treated as empty (it is then rewritten). Contexts that name a linear kernel, turn the
-/// chains off or ask for the wide tile are the bench's comparisons: they are left as named.
+/// treated as empty (it is then rewritten). Contexts that name a linear kernel or turn the
+/// chains off are the bench's comparisons: they are left as named.
 pub fn attach(ctx: &GpuContext, gpu: &mut GpuDenoiser) -> Attached {
     attach_from(ctx, gpu, cache_path())
 }
 
 /// [`attach`] with the cache file at `path` (`None`: no cache; a table tuned is not kept).
 pub fn attach_from(ctx: &GpuContext, gpu: &mut GpuDenoiser, path: Option<PathBuf>) -> Attached {
-    if ctx.named_linear_kernel().is_some() || !ctx.residual_chains() || ctx.wide_chains() {
+    if ctx.named_linear_kernel().is_some() || !ctx.residual_chains() {
         return Attached::Defaults;
     }
     let mut cache = match path.as_deref().map(TuneCache::load) {

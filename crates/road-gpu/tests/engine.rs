@@ -334,31 +334,33 @@ fn whole_denoiser_matches_candle_layer_by_layer() {
     whole_denoiser_matches_candle_on(&ctx, &agent_pairs_config(), "denoiser-layers");
 }
 
-/// The residual chains on the wide tile (`ContextOptions::wide_chains`: 32–64 rows a
-/// workgroup, blocks of 8 × 8, weights read as vec4 from the engine's 16-byte-aligned layout),
-/// with the default checkpoint's features.
+/// The residual chains on the narrow tile (`ContextOptions::wide_chains` off: 8 rows a
+/// workgroup, blocks of 4 × 4, weights read one float at a time), with the default checkpoint's
+/// features; the default options run the wide tile where the model has one (checked here too).
 #[test]
-fn whole_denoiser_matches_candle_on_the_wide_chain_tile() {
-    let ctx = GpuContext::new(&ContextOptions {
-        validation: true,
-        wide_chains: true,
-        ..ContextOptions::default()
-    })
-    .unwrap_or_else(|e| panic!("GPU tests need an adapter: {e}"));
-    assert_eq!(ctx.fusion_setting(), "wide-chains");
+fn whole_denoiser_matches_candle_on_the_narrow_chain_tile() {
     let config = agent_pairs_config();
-    let (dir, _) = checkpoint_dir(&config, "denoiser-wide-chains-tile");
-    let gpu = GpuDenoiser::from_checkpoint(&ctx, &dir).unwrap();
+    let default = context();
+    assert_eq!(default.fusion_setting(), "wide-chains");
+    let (dir, _) = checkpoint_dir(&config, "denoiser-chain-tiles");
+    let gpu = GpuDenoiser::from_checkpoint(&default, &dir).unwrap();
     let tile = gpu
         .wide_chain_tile()
         .expect("the test model has a wide chain tile");
     assert!(tile.wide_blocks && tile.rows >= 16, "{tile:?}");
-    let settings = gpu.settings_for(&ctx, 4096);
+    let settings = gpu.settings_for(&default, 4096);
     assert!(
         settings.residual_chains && settings.wide_chains,
         "{settings:?}"
     );
-    whole_denoiser_matches_candle_on(&ctx, &config, "denoiser-wide-chains");
+    let ctx = GpuContext::new(&ContextOptions {
+        validation: true,
+        wide_chains: false,
+        ..ContextOptions::default()
+    })
+    .unwrap_or_else(|e| panic!("GPU tests need an adapter: {e}"));
+    assert_eq!(ctx.fusion_setting(), "chains");
+    whole_denoiser_matches_candle_on(&ctx, &config, "denoiser-narrow-chains");
 }
 
 /// Under [`road_gpu::Precision::F16`] (the blocks' layers with f16 inputs and weights, f32

@@ -122,12 +122,12 @@ pub struct EngineBenchArgs {
     /// (one batch padded to the most agents), each a GPU row.
     #[arg(long, num_args = 1.., default_values = ["on"], value_parser = ["on", "eager", "off"])]
     pub packing: Vec<String>,
-    /// How a block's layers between attentions run, each a GPU row: `chains` (one
-    /// `residual_chain` dispatch each: output projection, MLP, the next layer; the default, on
-    /// the narrow tile of 8 rows), `wide-chains` (the same on the wide tile: 32–64 rows, blocks
-    /// of 8 × 8, `ContextOptions::wide_chains`) or `layers` (a dispatch per layer,
-    /// `ContextOptions::residual_chains` off).
-    #[arg(long, num_args = 1.., default_values = ["chains"], value_parser = ["chains", "wide-chains", "layers"])]
+    /// How a block's layers between attentions run, each a GPU row: `wide-chains` (one
+    /// `residual_chain` dispatch each: output projection, MLP, the next layer, on the wide tile
+    /// of 32–64 rows where the model has one; the engine's default), `chains` (the same on the
+    /// narrow tile of 8 rows, `ContextOptions::wide_chains` off) or `layers` (a dispatch per
+    /// layer, `ContextOptions::residual_chains` off).
+    #[arg(long, num_args = 1.., default_values = ["wide-chains"], value_parser = ["chains", "wide-chains", "layers"])]
     pub fusion: Vec<String>,
     /// Whether an evaluation keeps the map's keys (agent maps, every block's map k, v) of the
     /// one before while what they are made from holds (`kept`, the default:
