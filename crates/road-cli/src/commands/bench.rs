@@ -179,7 +179,8 @@ fn gpu_setting(row: &serde_json::Value) -> String {
     }
     match row["fusion"].as_str() {
         Some("layers") => setting += ", layer by layer",
-        Some("wide-chains") => setting += ", wide chains",
+        // The wide tile is the default: the narrow one is named.
+        Some("chains") => setting += ", narrow chains",
         _ => {}
     }
     if row["map_keys"].as_str() == Some("remade") {
