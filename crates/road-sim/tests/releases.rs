@@ -405,8 +405,8 @@ fn a_vehicle_beside_the_tail_of_one_wedged_at_a_kerb_makes_room_again_until_it_g
     // (seed 24) for 11 s: 0's turn in place and its backing swing its tail into 1; asked, 1
     // backed off 2 m, which left it beside 0's tail, gave way for 3 s while 0 stood wedged,
     // and was then pulled away forwards, back beside it. With the release's `make_room_again`
-    // (the τ = 1 planner's), one giving way that still stands in a wedged vehicle's every
-    // move makes room again, and 0 gets out.
+    // (the default planner's since 2026-11-30), one giving way that still stands in a wedged
+    // vehicle's every move makes room again, and 0 gets out.
     let lanes = interaction_map("DR_USA_Roundabout_FT");
     let stands = [
         (0, 1027.409, 976.024, (-34.81f64).to_radians()),
@@ -427,7 +427,7 @@ fn a_vehicle_beside_the_tail_of_one_wedged_at_a_kerb_makes_room_again_until_it_g
             250,
         )
     };
-    // Asked once (the default), 1 gives way 3 s beside 0's tail: 0 is still there at 6 s.
+    // Asked once (the option's default), 1 gives way 3 s beside 0's tail: 0 is still there at 6 s.
     let asked_once = run(false);
     let moved_asked_once = moved_m(&asked_once[..=60], 0, 0);
     assert!(
