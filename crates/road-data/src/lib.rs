@@ -14,6 +14,7 @@ pub mod geometry;
 pub mod map;
 pub mod sources;
 pub mod stats;
+pub mod testing;
 pub mod tracks;
 
 use std::path::{Path, PathBuf};

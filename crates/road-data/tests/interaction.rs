@@ -1,23 +1,13 @@
 //! Tests on the shared INTERACTION data (`ROAD_DATA`, else `../shared/data/interaction` beside
 //! the clone). Missing data is a failure: these run in CI.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use road_data::stats::{self, MAX_MEDIAN_LANE_DISTANCE_M};
 use road_data::{Dataset, SourceSet, Split, WindowConfig, cache};
 
 fn data_dir() -> PathBuf {
-    let dir = std::env::var_os("ROAD_DATA")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| {
-            Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/interaction")
-        });
-    assert!(
-        dir.join("maps").is_dir(),
-        "INTERACTION data not found at {} (set ROAD_DATA)",
-        dir.display()
-    );
-    dir
+    road_data::testing::interaction_dir()
 }
 
 #[test]

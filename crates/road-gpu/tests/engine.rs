@@ -2,7 +2,7 @@
 //! (`ROAD_DATA`, else `../shared/data/interaction`), with one per-slot σ vector per scene.
 
 use std::collections::HashMap;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use candle_core::{Device, Tensor};
 use rand::rngs::StdRng;
@@ -110,16 +110,7 @@ fn kept_map_keys_change_nothing<T: PartialEq + std::fmt::Debug>(
 }
 
 fn validation_set() -> Dataset {
-    let dir = std::env::var_os("ROAD_DATA")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| {
-            Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/interaction")
-        });
-    assert!(
-        dir.join("maps").is_dir(),
-        "INTERACTION data not found at {} (set ROAD_DATA)",
-        dir.display()
-    );
+    let dir = road_data::testing::interaction_dir();
     Dataset::build(
         &SourceSet::discover(&dir).unwrap(),
         Split::Validation,

@@ -106,10 +106,10 @@ pub struct PlannerSpec {
     /// continuation: fitting through them pulls every sample towards it.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub plan_smoothing_ahead: Option<usize>,
-    /// τ in (0, 1]: the pure noise a future slot starts from is `τ · σ_max · z` instead of
+    /// τ in (0, 2]: the pure noise a future slot starts from is `τ · σ_max · z` instead of
     /// `σ_max · z` (the window's first build and each new slot of a rolling or replanned
-    /// window): a lower sampling temperature (a deviation from the paper: the model is still
-    /// told σ_max). Absent: 1.
+    /// window): below 1 a lower sampling temperature, above 1 a wider spread than the model
+    /// draws (a deviation from the paper: the model is still told σ_max). Absent: 1.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub noise_temperature: Option<f64>,
     /// The collision guard in closed loop (`road_planner::collision_guard`; a deviation from the paper, a
@@ -526,8 +526,8 @@ impl PlannerSpec {
             _ => {}
         }
         if let Some(tau) = self.noise_temperature {
-            if !(tau > 0.0 && tau <= 1.0) {
-                return bad(format!("noise_temperature must be in (0, 1], got {tau}"));
+            if !(tau > 0.0 && tau <= 2.0) {
+                return bad(format!("noise_temperature must be in (0, 2], got {tau}"));
             }
         }
         if let Some(guard) = self.collision_guard {

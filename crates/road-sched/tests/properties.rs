@@ -433,6 +433,25 @@ fn plan_smoothing_options_are_checked_together() {
 }
 
 #[test]
+fn noise_temperature_is_checked() {
+    let with = |tau: f64| PlannerSpec {
+        noise_temperature: Some(tau),
+        ..spec(PlannerKind::Rolling, 10, 10, 20, None)
+    };
+    for tau in [0.5, 1.0, 1.5, 2.0] {
+        assert!(with(tau).validate("p").is_ok(), "τ = {tau}");
+        assert_eq!(with(tau).noise_temperature(), tau);
+    }
+    for tau in [0.0, -1.0, 2.5, f64::NAN, f64::INFINITY] {
+        let message = with(tau).validate("p").unwrap_err().to_string();
+        assert!(
+            message.contains("noise_temperature must be in (0, 2]"),
+            "τ = {tau}: {message}"
+        );
+    }
+}
+
+#[test]
 fn jerk_tracking_options_are_checked() {
     let with = |jerk_cost_m: f64, ahead: usize| PlannerSpec {
         jerk_tracking: Some(road_sched::JerkTracking {

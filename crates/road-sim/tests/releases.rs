@@ -6,7 +6,6 @@
 //! on, so that only the rules under test move anyone.
 
 use std::f64::consts::PI;
-use std::path::{Path, PathBuf};
 
 use road_data::LaneletMap;
 
@@ -386,12 +385,9 @@ fn a_vehicle_with_its_tail_at_the_road_edge_makes_room_backing_along_it() {
 /// The INTERACTION data's folder (`ROAD_DATA`, else `../shared/data/interaction` beside the
 /// checkout), as the data tests find it.
 fn interaction_map(location: &str) -> LaneletMap {
-    let dir = std::env::var_os("ROAD_DATA")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| {
-            Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/interaction")
-        });
-    let path = dir.join("maps").join(format!("{location}.osm"));
+    let path = road_data::testing::interaction_dir()
+        .join("maps")
+        .join(format!("{location}.osm"));
     LaneletMap::load(&path, location)
         .unwrap_or_else(|e| panic!("{}: {e} (set ROAD_DATA)", path.display()))
 }
