@@ -556,3 +556,28 @@ pub fn embed_tokens(
     }
     h
 }
+
+/// The multistep sampler's step the residual chain fuses after the head: the Euler step of every
+/// slot from σ `[B, W]` to σ_next `[B, W]` with `d [B, A, W, 3]` as its one evaluation
+/// (`road_rollout::heun::heun_update`), then the correction against each slot's previous
+/// estimate `[B, A, W, 3]` with γ `[B, W]` (`road_rollout::heun::multistep_correct`; γ = 0
+/// leaves the Euler step). Returns x_e `[B, A, W, 3]`; shapes that disagree are an error.
+#[allow(clippy::too_many_arguments)]
+pub fn multistep_step(
+    x: &[f32],
+    d: &[f32],
+    previous: &[f32],
+    sigma: &[f32],
+    sigma_next: &[f32],
+    gamma: &[f32],
+    agents: usize,
+    slots: usize,
+) -> Result<Vec<f32>, String> {
+    let (mut x_e, _) =
+        road_rollout::heun::heun_update(x, agents, slots, sigma, sigma_next, false, |_, _| {
+            Ok(d.to_vec())
+        })
+        .map_err(|e| e.to_string())?;
+    road_rollout::heun::multistep_correct(&mut x_e, d, previous, gamma, agents, slots);
+    Ok(x_e)
+}

@@ -871,12 +871,17 @@ fn head_chain_check(
         residual_scale: 4.0,
     };
     let d_want = reference::precondition_output(&x, &f, &sigma, &valid, shape);
-    let (mut x_e_want, _) =
-        road_rollout::heun::heun_update(&x, agents, slots, &sigma, &sigma_next, false, |_, _| {
-            Ok(d_got.clone())
-        })
-        .map_err(|e| crate::Error::Input(e.to_string()))?;
-    road_rollout::heun::multistep_correct(&mut x_e_want, &d_got, &previous, &gamma, agents, slots);
+    let x_e_want = reference::multistep_step(
+        &x,
+        &d_got,
+        &previous,
+        &sigma,
+        &sigma_next,
+        &gamma,
+        agents,
+        slots,
+    )
+    .map_err(crate::Error::Input)?;
     let got: Vec<f32> = h_got.into_iter().chain(d_got).chain(x_e_got).collect();
     let want: Vec<f32> = h_want.into_iter().chain(d_want).chain(x_e_want).collect();
     Ok(KernelCheck {

@@ -1236,24 +1236,17 @@ fn residual_chain_matches_the_cpu_reference() {
                 (h_got, &d_got),
                 "{case}: h and D with the update"
             );
-            let (mut x_e_want, _) = road_rollout::heun::heun_update(
+            let x_e_want = road_gpu::reference::multistep_step(
                 &x,
-                agents,
-                slots,
-                &sigma,
-                &sigma_next,
-                false,
-                |_, _| Ok(d_got.clone()),
-            )
-            .unwrap();
-            road_rollout::heun::multistep_correct(
-                &mut x_e_want,
                 &d_got,
                 &previous,
+                &sigma,
+                &sigma_next,
                 &gamma,
                 agents,
                 slots,
-            );
+            )
+            .unwrap();
             // The same operations in the same order; a fused multiply-add may round once less.
             let exact = Tolerance {
                 rel: 1e-6,
