@@ -17,6 +17,8 @@
 //! 2. **No new overlap.** A model agent whose box would overlap another's after the tick moves
 //!    only the largest fraction of its step that keeps it a centimetre clear (bisection), over
 //!    as many passes as it takes to settle (an agent stopped short can push its follower back).
+//! 3. **Cut steps tried again** (`regrow_cut_steps`): each step the passes cut is tried whole
+//!    against everyone as settled and kept where rule 2 lets it through.
 //!
 //! Pairs that already overlapped before the tick are left alone (braking cannot separate them,
 //! and the log has such pairs at standstill). The guarded state is what joins the history and
@@ -171,37 +173,14 @@ pub fn guard_step(
     // poses clear of one another before the tick, so passes until nothing changes settle: a
     // queue of followers behind an agent stopped short takes one pass per link.
     let movable: Vec<usize> = (0..n).filter(|&i| agents[i].movable).collect();
+    let wanted: Vec<Pose> = agents.iter().map(|a| a.proposed).collect();
     for _ in 0..=movable.len() {
         let mut changed = false;
         for &i in &movable {
-            // Clear of every other box by `margin_m` (this agent's box grown by it).
             let clear = |agents: &[GuardAgent], pose: Pose, margin_m: f64| {
-                let a = &agents[i];
-                let grown = OrientedBox {
-                    pose,
-                    length_m: a.length_m + 2.0 * margin_m,
-                    width_m: a.width_m + 2.0 * margin_m,
-                };
-                (0..n).all(|j| {
-                    let b = &agents[j];
-                    j == i
-                        || overlapped_before[i * n + j]
-                        || (position(pose) - position(b.proposed)).length()
-                            > reach(a) + reach(b) + margin_m
-                        || !grown.overlaps(&box_at(b, b.proposed))
-                })
+                clear_of_others(agents, i, pose, margin_m, &overlapped_before)
             };
-            if clear(agents, agents[i].proposed, STOP_SHORT_CLEARANCE_M) {
-                continue;
-            }
-            // Closer than the clearance: a step that overlaps nobody and takes it farther from
-            // everyone that close goes on (a standing vehicle may pull away from a neighbour);
-            // any other is cut. Steps allowed merely because they overlap nobody let a
-            // standing vehicle's millimetre jitter close the gap to nothing, and rounding then
-            // made it an overlap (issue 39's long sessions counted those as collisions).
-            if agents[i].proposed == agents[i].before
-                || clear(agents, agents[i].proposed, 0.0) && !nearer_to_a_close_agent(agents, i)
-            {
+            if passes_no_overlap(agents, i, &overlapped_before) {
                 continue;
             }
             let (before, proposed) = (agents[i].before, agents[i].proposed);
@@ -226,7 +205,72 @@ pub fn guard_step(
             break;
         }
     }
+
+    // 3. Steps cut for another's step that was itself cut after (`regrow_cut_steps`): the
+    // passes above only ever shorten steps, in agent order, each against the others' steps as
+    // they stand then, so an agent pulling away from one about to drive into it is cut for
+    // that drive, the other is then cut for it, and both stand (a long session's exit on the
+    // roundabout held so for 15 s). Each cut step is tried again whole against everyone as
+    // settled, in agent order, and kept where the rule above lets it through; every pair is
+    // then still checked with its later-moved member in its final pose.
+    if settings.regrow_cut_steps {
+        for &i in &movable {
+            let settled = agents[i].proposed;
+            if settled == wanted[i] {
+                continue;
+            }
+            agents[i].proposed = wanted[i];
+            if passes_no_overlap(agents, i, &overlapped_before) {
+                actions.retain(|&action| action != (i, GuardAction::StoppedShort));
+            } else {
+                agents[i].proposed = settled;
+            }
+        }
+    }
     actions
+}
+
+/// Whether agent `i`'s proposed pose is clear of every other agent's box by `margin_m` (its own
+/// box grown by it), pairs that overlapped before the tick aside.
+fn clear_of_others(
+    agents: &[GuardAgent],
+    i: usize,
+    pose: Pose,
+    margin_m: f64,
+    overlapped_before: &[bool],
+) -> bool {
+    let n = agents.len();
+    let a = &agents[i];
+    let grown = OrientedBox {
+        pose,
+        length_m: a.length_m + 2.0 * margin_m,
+        width_m: a.width_m + 2.0 * margin_m,
+    };
+    (0..n).all(|j| {
+        let b = &agents[j];
+        j == i
+            || overlapped_before[i * n + j]
+            || (position(pose) - position(b.proposed)).length() > reach(a) + reach(b) + margin_m
+            || !grown.overlaps(&OrientedBox {
+                pose: b.proposed,
+                length_m: b.length_m,
+                width_m: b.width_m,
+            })
+    })
+}
+
+/// The no-overlap rule for agent `i`'s proposed step against the others as proposed: clear of
+/// everyone by [`STOP_SHORT_CLEARANCE_M`], or standing, or closer than that but overlapping
+/// nobody and nearer to nobody that close (a standing vehicle may pull away from a
+/// neighbour). Steps allowed merely because they overlap nobody let a standing vehicle's
+/// millimetre jitter close the gap to nothing, and rounding then made it an overlap (issue
+/// 39's long sessions counted those as collisions).
+fn passes_no_overlap(agents: &[GuardAgent], i: usize, overlapped_before: &[bool]) -> bool {
+    let pose = agents[i].proposed;
+    clear_of_others(agents, i, pose, STOP_SHORT_CLEARANCE_M, overlapped_before)
+        || pose == agents[i].before
+        || clear_of_others(agents, i, pose, 0.0, overlapped_before)
+            && !nearer_to_a_close_agent(agents, i)
 }
 
 /// Whether agent `i`'s proposed pose brings its box nearer, outline to outline, to another
@@ -328,6 +372,7 @@ mod tests {
             brake_mps2: 6.0,
             yield_to_unreactive,
             release_deadlock_after_secs: None,
+            regrow_cut_steps: false,
         }
     }
 
@@ -502,6 +547,42 @@ mod tests {
             agents[1].proposed.x_m, 6.0,
             "an external agent is never moved"
         );
+    }
+
+    /// Agent 0 pulls away (0.1 m) from agent 1, whose nose stands 5 mm behind its tail and
+    /// which drives 0.3 m on: checked first, 0 is cut for 1's drive into its tail, then 1 for
+    /// 0's tail, and both stand. Tried again against 1 as settled, 0's step passes and 1 alone
+    /// is held.
+    #[test]
+    fn a_step_cut_for_another_s_cut_step_is_regrown_when_asked() {
+        let pair = || [agent(0.0, 0.1, 0.0, true), agent(-4.005, -3.705, 0.0, true)];
+        let mut both_stand = pair();
+        let actions = guard_step(&mut both_stand, &settings(0, false));
+        assert_eq!(both_stand[0].proposed, both_stand[0].before);
+        assert_eq!(both_stand[1].proposed, both_stand[1].before);
+        assert_eq!(
+            actions,
+            vec![
+                (0, GuardAction::StoppedShort),
+                (1, GuardAction::StoppedShort)
+            ]
+        );
+
+        let regrow = CollisionGuard {
+            regrow_cut_steps: true,
+            ..settings(0, false)
+        };
+        let mut regrown = pair();
+        let actions = guard_step(&mut regrown, &regrow);
+        assert_eq!(regrown[0].proposed, pair()[0].proposed, "0 pulls away");
+        assert_eq!(regrown[1].proposed, regrown[1].before, "1 waits");
+        assert_eq!(actions, vec![(1, GuardAction::StoppedShort)]);
+        let boxes = regrown.map(|a| OrientedBox {
+            pose: a.proposed,
+            length_m: a.length_m,
+            width_m: a.width_m,
+        });
+        assert!(!boxes[0].overlaps(&boxes[1]));
     }
 
     #[test]

@@ -216,6 +216,13 @@ pub struct CollisionGuard {
     /// (issue 39's deadlocks on the intersection). Absent: never.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub release_deadlock_after_secs: Option<f64>,
+    /// After the no-overlap rule has settled, each step it cut is tried again whole against
+    /// everyone as settled and kept where the rule lets it through: the rule's passes shorten
+    /// steps in agent order against the others' steps before those are cut, so a vehicle pulling
+    /// away from one about to drive into it stood with it (`road_planner::collision_guard`).
+    /// Off unless set.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub regrow_cut_steps: bool,
 }
 
 /// How long an agent that breaks a deadlock (`CollisionGuard::release_deadlock_after_secs`)

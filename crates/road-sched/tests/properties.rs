@@ -544,6 +544,7 @@ fn turning_circle_and_deadlock_release_are_checked() {
             brake_mps2: 6.0,
             yield_to_unreactive: true,
             release_deadlock_after_secs: Some(secs),
+            regrow_cut_steps: false,
         }),
         ..spec(PlannerKind::Rolling, 10, 5, 40, None)
     };

@@ -420,6 +420,7 @@ fn the_collision_guard_keeps_model_agents_out_of_each_other() {
             brake_mps2: 6.0,
             yield_to_unreactive: false,
             release_deadlock_after_secs: None,
+            regrow_cut_steps: false,
         }),
         ..planner()
     };

@@ -269,6 +269,7 @@ fn two_vehicles_locked_nose_to_corner_are_undone_by_the_deadlock_release() {
         brake_mps2: 6.0,
         yield_to_unreactive: true,
         release_deadlock_after_secs: None,
+        regrow_cut_steps: false,
     };
     let planner = |release_deadlock_after_secs| PlannerSpec {
         collision_guard: Some(road_sched::CollisionGuard {
@@ -517,6 +518,7 @@ fn wedge_planner() -> PlannerSpec {
             brake_mps2: 6.0,
             yield_to_unreactive: true,
             release_deadlock_after_secs: None,
+            regrow_cut_steps: false,
         }),
         obs_noise: Some(0.0),
         ..PlannerSpec::default()
@@ -877,6 +879,7 @@ fn a_step_cut_short_beside_a_roundabout_s_island_stands_on_the_road() {
             brake_mps2: 6.0,
             yield_to_unreactive: true,
             release_deadlock_after_secs: None,
+            regrow_cut_steps: false,
         }),
         obs_noise: Some(0.0),
         ..PlannerSpec::default()
