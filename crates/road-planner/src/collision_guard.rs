@@ -173,7 +173,10 @@ pub fn guard_step(
     // poses clear of one another before the tick, so passes until nothing changes settle: a
     // queue of followers behind an agent stopped short takes one pass per link.
     let movable: Vec<usize> = (0..n).filter(|&i| agents[i].movable).collect();
-    let wanted: Vec<Pose> = agents.iter().map(|a| a.proposed).collect();
+    // The steps as proposed, for rule 3 only (no copy each tick where it is off).
+    let wanted: Option<Vec<Pose>> = settings
+        .regrow_cut_steps
+        .then(|| agents.iter().map(|a| a.proposed).collect());
     for _ in 0..=movable.len() {
         let mut changed = false;
         for &i in &movable {
@@ -213,7 +216,7 @@ pub fn guard_step(
     // roundabout held so for 15 s). Each cut step is tried again whole against everyone as
     // settled, in agent order, and kept where the rule above lets it through; every pair is
     // then still checked with its later-moved member in its final pose.
-    if settings.regrow_cut_steps {
+    if let Some(wanted) = wanted {
         for &i in &movable {
             let settled = agents[i].proposed;
             if settled == wanted[i] {

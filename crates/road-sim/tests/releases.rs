@@ -383,8 +383,8 @@ fn a_vehicle_with_its_tail_at_the_road_edge_makes_room_backing_along_it() {
     drove_on_along_the_road(&ticks);
 }
 
-/// The INTERACTION data's folder (`ROAD_DATA`, else `../shared/data/interaction` beside the
-/// checkout), as the data tests find it.
+/// An INTERACTION location's map, from where every test finds the data
+/// (`road_data::testing::interaction_dir`).
 fn interaction_map(location: &str) -> LaneletMap {
     let path = road_data::testing::interaction_dir()
         .join("maps")
